@@ -1,0 +1,249 @@
+"""Command line: a thin shell over the Python API.
+
+Every command parses its flags, calls public functions, prints. Errors the
+library raises become one line on stderr and a documented exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from contextlib import contextmanager
+from typing import Iterator, Sequence
+
+from . import __version__
+from .errors import (
+    CorruptFileError,
+    DftpccError,
+    InvalidInputError,
+    MissingDependencyError,
+    UnsupportedFormatError,
+)
+
+#: Exit status per failure, most specific first (documented in the README).
+EXIT_CODES: list[tuple[type[BaseException], int]] = [
+    (UnsupportedFormatError, 4),
+    (InvalidInputError, 3),
+    (CorruptFileError, 5),
+    (MissingDependencyError, 6),
+    (DftpccError, 1),
+    (OSError, 7),
+]
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+def _cutoff(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {value}")
+    return value
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _resolution(text: str) -> float | str:
+    return "auto" if text == "auto" else _positive(text)
+
+
+def _classes(text: str) -> list[int]:
+    try:
+        values = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated class codes, got {text!r}") from None
+    if not values or any(not 0 <= v <= 255 for v in values):
+        raise argparse.ArgumentTypeError(f"class codes are 0-255, got {text!r}")
+    return values
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {value}")
+    return value
+
+
+@contextmanager
+def _progress(enabled: bool, stages: Sequence[str]) -> Iterator:
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(stages), disable=not enabled or None, leave=False, file=sys.stderr,
+               bar_format="{desc:<10} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
+    seen: list[str] = []
+
+    def on_stage(name: str) -> None:
+        if seen:
+            bar.update(1)
+        seen.append(name)
+        bar.set_description_str(name)
+
+    try:
+        yield on_stage
+    finally:
+        bar.close()
+
+
+COMPRESS_STAGES = ("read", "grid", "spectrum", "encode", "container", "write")
+
+
+def cmd_compress(args: argparse.Namespace) -> int:
+    from .files import compress_file
+
+    options = dict(aggregate=args.aggregate, frame=args.frame, transform=args.transform,
+                   step=args.step, fill=args.fill, detrend=args.detrend)
+    t0 = time.perf_counter()
+    with _progress(not args.quiet, COMPRESS_STAGES) as on_stage:
+        cmap = compress_file(args.input, args.output, resolution=args.resolution, cutoff=args.cutoff,
+                             profile=args.profile, format=args.format, classes=args.classes,
+                             on_stage=on_stage, **options)
+    if not args.quiet:
+        info = cmap.info()
+        stats = info["stats"]
+        line = (f"{args.output}: {info['bytes']:,} bytes, {info['bits_per_point']:.3f} bits/point, "
+                f"{info['points_original']:,} points -> {info['points_rebuilt']:,} cells, "
+                f"DEM RMSE {stats['dem_rmse_m'] * 1000:.1f} mm")
+        if "vertical_rmse_m" in stats:
+            line += f", vertical RMSE {stats['vertical_rmse_m'] * 1000:.1f} mm (floor {stats['gridding_rmse_m'] * 1000:.1f} mm)"
+        print(line + f" [{time.perf_counter() - t0:.2f} s]")
+    return 0
+
+
+def cmd_decompress(args: argparse.Namespace) -> int:
+    from .files import decompress_file
+
+    points = decompress_file(args.input, args.output, format=args.format, max_bytes=args.max_bytes,
+                             cutoff=args.cutoff)
+    if not args.quiet:
+        print(f"{args.output}: {points.shape[0]:,} points")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from .container import open as open_map
+
+    with open_map(args.input) as cmap:
+        info = cmap.info()
+    if args.json:
+        print(json.dumps(info, indent=2, sort_keys=True))
+        return 0
+    g, p, s = info["grid"], info["params"], info["stats"]
+    rows = [
+        ("file", f"{info['file']} ({info['bytes']:,} bytes, format {info['format_version']})"),
+        ("points", f"{info['points_original']:,} original, {info['points_rebuilt']:,} rebuilt"),
+        ("bits/point", f"{info['bits_per_point']:.4f}"),
+        ("grid", f"{g['rows']} x {g['cols']} cells of {g['resolution_m']} m, angle {g['angle_rad']:.4f} rad"),
+        ("origin", f"x {g['origin'][0]:.3f}, y {g['origin'][1]:.3f}, z0 {g['z0_m']:.3f}"),
+        ("profile", f"{p['profile']} (transform {p['transform']}, storage {p['storage']}, "
+                    f"detrend {p['detrend']}, fill {p['fill']})"),
+        ("cutoff", f"{p['cutoff']}" + (f", step {p['step'] * 1000:.3f} mm" if p["storage"] == "quantized" else "")),
+        ("DEM error", f"RMSE {s.get('dem_rmse_m', float('nan')) * 1000:.2f} mm, "
+                      f"max {s.get('dem_max_error_m', float('nan')) * 1000:.2f} mm"),
+        ("sections", f"mask {s.get('mask_bytes')} B, coefficients {s.get('coef_bytes')} B ({s.get('coef_count')} values)"),
+        ("CRS", (info["crs"] or "none")[:70]),
+    ]
+    if "vertical_rmse_m" in s:
+        rows.insert(8, ("point error", f"vertical RMSE {s['vertical_rmse_m'] * 1000:.2f} mm, "
+                                       f"gridding floor {s['gridding_rmse_m'] * 1000:.2f} mm"))
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        print(f"{key:<{width}}  {value}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    run_demo(n_points=args.points, resolution=args.resolution, out=args.out, seed=args.seed)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dftpcc",
+        description="Compress terrain point cloud maps by low-pass filtering the DFT of their DEM.")
+    parser.add_argument("--version", action="version", version=f"dftpcc {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    p = sub.add_parser("compress", help="point cloud -> .dftpc", description=(
+        "Grid a point cloud into a DEM, low-pass its spectrum and write a .dftpc file. "
+        "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .tif"))
+    p.add_argument("input")
+    p.add_argument("output", help="the .dftpc file to write")
+    p.add_argument("--resolution", "-r", type=_resolution, default="auto",
+                   help="DEM cell size in metres, or 'auto' (default: about 4 points per cell; "
+                        "a GeoTIFF keeps its own pixels)")
+    p.add_argument("--cutoff", "-c", type=_cutoff, default=0.8, help="cutoff ratio f_c = 1 - r/r_M in [0, 1) (default 0.8)")
+    p.add_argument("--profile", choices=("compact", "paper"), default="compact",
+                   help="compact (default): detrended DCT, quantized, entropy-coded; paper: the published method")
+    p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classification codes, e.g. 2 for ground")
+    p.add_argument("--aggregate", choices=("mean", "median", "min", "max"), help="cell height from its points (default mean)")
+    p.add_argument("--frame", choices=("axis", "oriented"), help="axis-aligned or minimum-area rotated grid (default axis)")
+    p.add_argument("--transform", choices=("dft", "dct"), help="override the profile's transform")
+    p.add_argument("--detrend", choices=("none", "plane"), help="override the profile's detrending")
+    p.add_argument("--fill", choices=("smooth", "zero"), help="how empty cells are filled before the transform")
+    p.add_argument("--step", type=_positive, help="quantizer step in metres (default: automatic)")
+    p.add_argument("--format", help="input format if the extension does not tell")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
+    p.set_defaults(func=cmd_compress)
+
+    p = sub.add_parser("decompress", help=".dftpc -> point cloud or GeoTIFF DEM", description=(
+        "Rebuild the map. Output format from the extension: .las .laz .ply .pcd .xyz .txt .csv .npy, "
+        "or .tif for the rebuilt DEM."))
+    p.add_argument("input")
+    p.add_argument("output")
+    p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
+    p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
+    p.add_argument("--format", help="output format if the extension does not tell")
+    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=cmd_decompress)
+
+    p = sub.add_parser("info", help="header, parameters and sizes, without decoding")
+    p.add_argument("input")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("demo", help="run the whole pipeline on a built-in terrain and print a table")
+    p.add_argument("--points", type=_positive_int, default=300_000, help="points to generate (default 300000)")
+    p.add_argument("--resolution", type=_positive, default=0.25, help="cell size in metres (default 0.25)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", help="folder to write the demo cloud and its .dftpc files to")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print("dftpcc: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (DftpccError, OSError) as exc:
+        code = next(c for kind, c in EXIT_CODES if isinstance(exc, kind))
+        print(f"dftpcc: error: {exc}", file=sys.stderr)
+        return code
+    except MemoryError:
+        print("dftpcc: error: out of memory; try a coarser --resolution", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""File-level helpers: read a cloud, compress it, write the ``.dftpc``; and back."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .codec import Stage, _noop, compress, encode_dem
+from .container import CompressedMap, atomic_write
+from .container import open as open_map
+from .errors import InvalidInputError
+from .formats import format_of, read, read_raster_dem, write, write_geotiff
+from .grid import DEM, Grid
+from .params import make_params
+
+__all__ = ["compress_file", "decompress_file", "dem_from_geotiff"]
+
+
+def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
+                  resolution: float | str = "auto", cutoff: float = 0.8, profile: str = "compact",
+                  format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
+                  on_stage: Stage = _noop, **options: Any) -> CompressedMap:
+    """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
+
+    Parameters are those of :func:`dftpcc.compress` and :func:`dftpcc.read`.
+    A GeoTIFF source with ``resolution='auto'`` is coded on its own pixel grid.
+
+    Returns
+    -------
+    CompressedMap
+        The written map, opened (header parsed).
+    """
+    on_stage("read")
+    if format_of(src, format) == "tif" and resolution == "auto":
+        dem, crs = dem_from_geotiff(src)
+        params = make_params(resolution=dem.grid.resolution, cutoff=cutoff, profile=profile, **options)
+        data = encode_dem(dem, params, crs=crs, on_stage=on_stage)
+    else:
+        cloud = read(src, format=format, classes=classes)
+        data = compress(cloud.points, resolution=resolution, cutoff=cutoff, profile=profile,
+                        crs=cloud.crs, on_stage=on_stage, **options)
+    on_stage("write")
+    atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
+    return open_map(data)
+
+
+def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
+                    format: str | None = None, max_bytes: int | None = None,  # noqa: A002
+                    cutoff: float | None = None) -> np.ndarray:
+    """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
+
+    The output format comes from ``dst``'s extension; ``.tif`` writes the
+    rebuilt DEM as a GeoTIFF, any other the point cloud. The CRS read from
+    the original file is written back where the format has room for it.
+
+    Returns
+    -------
+    ndarray, shape (cells, 3)
+        The rebuilt points.
+    """
+    fmt = format_of(dst, format)
+    with open_map(src, max_bytes=max_bytes) as cmap:
+        dem = cmap.read_dem(cutoff=cutoff)
+        crs = cmap.crs
+    from .rebuild import dem_to_points
+
+    points = dem_to_points(dem)
+    if fmt == "tif":
+        write_geotiff(dst, dem, crs=crs)
+    else:
+        write(dst, points, crs=crs, format=fmt)
+    return points
+
+
+def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]:
+    """A north-up GeoTIFF DEM as a :class:`DEM` on its own pixel grid.
+
+    Raises
+    ------
+    InvalidInputError
+        Rotated or non-square pixels (read it as points instead, with a resolution).
+    """
+    heights, valid, t, crs = read_raster_dem(path)
+    if t.b != 0 or t.d != 0 or abs(abs(t.a) - abs(t.e)) > 1e-9 * abs(t.a):
+        raise InvalidInputError(f"{path}: pixels are rotated or not square; give a --resolution to grid its points")
+    if not valid.any():
+        raise InvalidInputError(f"{path}: every pixel is nodata")
+    res = abs(t.a)
+    rows, cols = heights.shape
+    # Grid rows run south to north; a north-up file's row 0 is the northern edge.
+    flipped = t.e < 0
+    h = heights[::-1] if flipped else heights
+    m = valid[::-1] if flipped else valid
+    y0 = t.f + t.e * rows if flipped else t.f
+    z0 = float(h[m].mean())
+    grid = Grid(x0=t.c, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols)
+    return DEM(grid=grid, heights=np.where(m, h - z0, 0.0), mask=m, gridding_rmse=0.0), crs

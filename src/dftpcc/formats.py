@@ -1,0 +1,306 @@
+"""Read stage (and the final write): point clouds and DEMs in the formats users have.
+
+LAS/LAZ (laspy + lazrs), PLY (plyfile), PCD (pypcd4), XYZ/CSV/TXT (numpy),
+NPY, and GeoTIFF DEMs (rasterio). The format comes from the file extension
+unless named. Coordinates stay float64. A CRS travels as a dict
+``{"wkt": str | None, "las_vlrs": [...]}``: the WKT when the source has one,
+and the raw LAS georeferencing records so a LAS -> .dftpc -> LAS round trip
+gives back the very same records.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .errors import InvalidInputError, UnsupportedFormatError
+from .grid import DEM, Grid
+
+__all__ = ["PointCloud", "read", "write", "read_raster_dem", "write_geotiff", "FORMATS", "format_of"]
+
+#: Extension -> format name.
+FORMATS = {
+    ".las": "las", ".laz": "laz", ".ply": "ply", ".pcd": "pcd",
+    ".xyz": "xyz", ".txt": "xyz", ".csv": "csv", ".npy": "npy",
+    ".tif": "tif", ".tiff": "tif",
+}
+#: LAS VLRs that carry georeferencing (LASF_Projection).
+_LAS_CRS_USER = "LASF_Projection"
+_WKT_RECORD = 2112
+
+
+@dataclass
+class PointCloud:
+    """Points and the georeferencing they came with.
+
+    Attributes
+    ----------
+    points : ndarray, shape (N, 3), float64
+        x, y, z in the file's units (metres for dftpcc's defaults).
+    crs : dict
+        ``{"wkt": ..., "las_vlrs": [...]}``; empty when the file has none.
+    """
+
+    points: np.ndarray
+    crs: dict[str, Any] = field(default_factory=dict)
+
+
+def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
+    """The format name of ``path`` from ``fmt`` or its extension."""
+    if fmt:
+        fmt = fmt.lower().lstrip(".")
+        if fmt not in set(FORMATS.values()):
+            raise UnsupportedFormatError(f"unknown format {fmt!r}; known: {', '.join(sorted(set(FORMATS.values())))}")
+        return fmt
+    ext = Path(path).suffix.lower()
+    if ext not in FORMATS:
+        raise UnsupportedFormatError(
+            f"{path}: cannot tell the format from the extension {ext or '(none)'}; "
+            f"use one of {', '.join(sorted(FORMATS))} or name the format")
+    return FORMATS[ext]
+
+
+def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
+         classes: Sequence[int] | None = None) -> PointCloud:
+    """Read a point cloud.
+
+    Parameters
+    ----------
+    path : path
+    format : str, optional
+        ``las``, ``laz``, ``ply``, ``pcd``, ``xyz``, ``csv``, ``npy`` or
+        ``tif`` (every valid pixel of a GeoTIFF DEM becomes a point at its
+        centre); default from the extension.
+    classes : sequence of int, optional
+        LAS/LAZ only: keep points of these classification codes (2 = ground).
+
+    Raises
+    ------
+    InvalidInputError
+        Missing or unreadable file, no x/y/z, or no point left.
+    """
+    path = Path(path)
+    fmt = format_of(path, format)
+    if not path.is_file():
+        raise InvalidInputError(f"{path}: no such file")
+    if classes is not None and fmt not in ("las", "laz"):
+        raise InvalidInputError("classes can only be selected in LAS/LAZ files")
+    reader = {"las": _read_las, "laz": _read_las, "ply": _read_ply, "pcd": _read_pcd,
+              "xyz": _read_text, "csv": _read_text, "npy": _read_npy, "tif": _read_tif}[fmt]
+    try:
+        if fmt in ("las", "laz"):
+            cloud = reader(path, classes)
+        else:
+            cloud = reader(path)
+    except InvalidInputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
+        raise InvalidInputError(f"{path}: cannot read as {fmt}: {exc}") from None
+    pts = cloud.points
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InvalidInputError(f"{path}: expected x, y, z columns, got shape {pts.shape}")
+    if pts.shape[0] == 0:
+        raise InvalidInputError(f"{path}: no points" + (" of the selected classes" if classes else ""))
+    return cloud
+
+
+def _read_las(path: Path, classes: Sequence[int] | None) -> PointCloud:
+    import laspy
+
+    las = laspy.read(path)
+    pts = np.column_stack([np.asarray(las.x, dtype=np.float64), np.asarray(las.y, dtype=np.float64),
+                           np.asarray(las.z, dtype=np.float64)])
+    if classes is not None:
+        pts = pts[np.isin(np.asarray(las.classification), np.asarray(list(classes)))]
+    vlrs, wkt = [], None
+    for vlr in list(las.header.vlrs) + list(getattr(las, "evlrs", None) or []):
+        if getattr(vlr, "user_id", "") != _LAS_CRS_USER:
+            continue
+        data = vlr.record_data_bytes() if hasattr(vlr, "record_data_bytes") else bytes(vlr.record_data)
+        vlrs.append({"record_id": int(vlr.record_id), "description": str(vlr.description),
+                     "data": base64.b64encode(data).decode("ascii")})
+        if vlr.record_id == _WKT_RECORD:
+            wkt = data.rstrip(b"\0").decode("utf-8", "replace")
+    crs: dict[str, Any] = {}
+    if vlrs:
+        crs = {"wkt": wkt, "las_vlrs": vlrs}
+    return PointCloud(pts, crs)
+
+
+def _read_ply(path: Path) -> PointCloud:
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path))
+    if "vertex" not in ply:
+        raise InvalidInputError(f"{path}: PLY file has no vertex element")
+    v = ply["vertex"]
+    names = v.data.dtype.names or ()
+    if not {"x", "y", "z"} <= set(names):
+        raise InvalidInputError(f"{path}: PLY vertices lack x, y or z")
+    pts = np.column_stack([np.asarray(v[c], dtype=np.float64) for c in "xyz"])
+    wkt = next((c[len("crs "):] for c in ply.comments if c.startswith("crs ")), None)
+    return PointCloud(pts, {"wkt": wkt} if wkt else {})
+
+
+def _read_pcd(path: Path) -> PointCloud:
+    from pypcd4 import PointCloud as PCD
+
+    pc = PCD.from_path(path)
+    fields = list(pc.fields)
+    if not {"x", "y", "z"} <= set(fields):
+        raise InvalidInputError(f"{path}: PCD lacks x, y or z fields")
+    arr = pc.numpy(("x", "y", "z"))
+    return PointCloud(np.asarray(arr, dtype=np.float64))
+
+
+def _read_text(path: Path) -> PointCloud:
+    with path.open("r", encoding="utf-8", errors="replace") as fh:
+        first = fh.readline()
+    delimiter = "," if "," in first else None
+    skip = 0
+    try:
+        [float(t) for t in (first.split(",") if delimiter else first.split())[:3]]
+    except ValueError:
+        skip = 1  # a header line
+    data = np.loadtxt(path, delimiter=delimiter, skiprows=skip, usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
+    return PointCloud(data)
+
+
+def _read_npy(path: Path) -> PointCloud:
+    arr = np.load(path, allow_pickle=False)
+    if arr.dtype.names:
+        arr = np.column_stack([arr[c] for c in "xyz"])
+    arr = np.asarray(arr, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] < 3:
+        raise InvalidInputError(f"{path}: expected an (N, 3) array, got shape {arr.shape}")
+    return PointCloud(arr[:, :3])
+
+
+def read_raster_dem(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, Any, dict[str, Any]]:
+    """A GeoTIFF DEM as (heights, valid mask, affine transform, crs dict).
+
+    Heights are float64, rows as stored (north-up files have row 0 at the top).
+    """
+    import rasterio
+
+    with rasterio.open(path) as src:
+        band = src.read(1, masked=True)
+        heights = np.asarray(band.filled(np.nan), dtype=np.float64)
+        valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
+        crs = {"wkt": src.crs.to_wkt()} if src.crs else {}
+        return heights, valid, src.transform, crs
+
+
+def _read_tif(path: Path) -> PointCloud:
+    heights, valid, transform, crs = read_raster_dem(path)
+    rows, cols = np.nonzero(valid)
+    a, b, c, d, e, f = transform.a, transform.b, transform.c, transform.d, transform.e, transform.f
+    x = c + a * (cols + 0.5) + b * (rows + 0.5)
+    y = f + d * (cols + 0.5) + e * (rows + 0.5)
+    return PointCloud(np.column_stack([x, y, heights[rows, cols]]), crs)
+
+
+def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, Any] | None = None,
+          format: str | None = None) -> None:  # noqa: A002
+    """Write points to ``path`` in the format of its extension (or ``format``).
+
+    The file appears complete or not at all (temporary file, then rename).
+    For a DEM as GeoTIFF use :func:`write_geotiff`.
+    """
+    from .container import atomic_write
+
+    fmt = format_of(path, format)
+    if fmt == "tif":
+        raise UnsupportedFormatError("a GeoTIFF holds a DEM, not points: use write_geotiff")
+    points = np.asarray(points, dtype=np.float64)
+    writer = {"las": _write_las, "laz": _write_las, "ply": _write_ply, "pcd": _write_pcd,
+              "xyz": _write_text, "csv": _write_text, "npy": _write_npy}[fmt]
+    atomic_write(path, lambda tmp: writer(tmp, points, crs or {}, fmt))
+
+
+#: LAS output stores coordinates as integers of this many metres.
+LAS_SCALE = 0.001
+
+
+def _write_las(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
+    import laspy
+    from laspy.vlrs.vlr import VLR
+
+    vlrs = [VLR(user_id=_LAS_CRS_USER, record_id=v["record_id"], description=v.get("description", ""),
+                record_data=base64.b64decode(v["data"])) for v in crs.get("las_vlrs", [])]
+    has_wkt = any(v.record_id == _WKT_RECORD for v in vlrs)
+    if not vlrs and crs.get("wkt"):
+        vlrs = [VLR(user_id=_LAS_CRS_USER, record_id=_WKT_RECORD, description="OGC WKT",
+                    record_data=crs["wkt"].encode() + b"\0")]
+        has_wkt = True
+    # LAS 1.4 point format 6 requires WKT; GeoTIFF keys go in a 1.2 file.
+    header = laspy.LasHeader(point_format=6 if has_wkt or not vlrs else 0,
+                             version="1.4" if has_wkt or not vlrs else "1.2")
+    if has_wkt:
+        header.global_encoding.wkt = True
+    header.vlrs.extend(vlrs)
+    header.scales = np.array([LAS_SCALE] * 3)
+    header.offsets = np.floor(points.min(axis=0)) if points.size else np.zeros(3)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    las.classification = np.full(points.shape[0], 2, dtype=np.uint8)  # a terrain model: ground
+    with open(tmp, "wb") as fh:
+        las.write(fh, do_compress=(fmt == "laz"))
+
+
+def _write_ply(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
+    from plyfile import PlyData, PlyElement
+
+    vertex = np.empty(points.shape[0], dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
+    comments = ["made by dftpcc"] + ([f"crs {crs['wkt']}"] if crs.get("wkt") else [])
+    PlyData([PlyElement.describe(vertex, "vertex")], text=False, comments=comments).write(str(tmp))
+
+
+def _write_pcd(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
+    from pypcd4 import PointCloud as PCD
+
+    PCD.from_points(points, ("x", "y", "z"), (np.float64, np.float64, np.float64)).save(tmp)
+
+
+def _write_text(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
+    np.savetxt(tmp, points, fmt="%.6f", delimiter="," if fmt == "csv" else " ",
+               header="x,y,z" if fmt == "csv" else "", comments="")
+
+
+def _write_npy(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
+    with open(tmp, "wb") as fh:
+        np.save(fh, points)
+
+
+def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | None = None) -> None:
+    """Write a DEM as a float32 GeoTIFF (north-up), empty cells as nodata (NaN)."""
+    import rasterio
+    from rasterio.transform import Affine
+
+    from .container import atomic_write
+
+    grid: Grid = dem.grid
+    heights = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
+    import math
+
+    c, s = math.cos(grid.angle), math.sin(grid.angle)
+    r = grid.resolution
+    # Row 0 of the file is the last grid row (largest v): flip v.
+    top_x = grid.x0 - s * grid.rows * r
+    top_y = grid.y0 + c * grid.rows * r
+    transform = Affine(c * r, s * r, top_x, s * r, -c * r, top_y)
+    wkt = (crs or {}).get("wkt")
+
+    def _write(tmp: Path) -> None:
+        with rasterio.open(tmp, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1,
+                           dtype="float32", nodata=float("nan"), transform=transform,
+                           crs=wkt or None) as dst:
+            dst.write(heights, 1)
+
+    atomic_write(path, _write)

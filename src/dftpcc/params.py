@@ -1,0 +1,151 @@
+"""How a map is compressed: one frozen dataclass that travels in the file header.
+
+Every choice the pipeline makes is a field here, so a ``.dftpc`` file always
+says how it was made (``dftpcc info``) and can be re-made from that record.
+Profiles are named presets of these fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from .errors import InvalidInputError
+
+__all__ = ["Params", "PROFILES", "make_params"]
+
+AGGREGATES = ("mean", "median", "min", "max")
+FRAMES = ("axis", "oriented")
+TRANSFORMS = ("dft", "dct")
+DETRENDS = ("none", "plane")
+FILLS = ("zero", "smooth")
+STORAGES = ("complex64", "quantized")
+
+
+@dataclass(frozen=True)
+class Params:
+    """Parameters of one compression.
+
+    Attributes
+    ----------
+    resolution : float
+        Cell size of the DEM in metres (same unit as x and y).
+    cutoff : float
+        Cutoff ratio ``f_c = 1 - r / r_M`` in [0, 1); 0 keeps every coefficient.
+    profile : str
+        Name of the preset the other fields came from (``paper`` or ``compact``).
+    aggregate : str
+        Height of a cell from its points: ``mean``, ``median``, ``min`` or ``max``.
+    frame : str
+        ``axis``: axis-aligned bounding rectangle (the paper);
+        ``oriented``: minimum-area rotated rectangle.
+    transform : str
+        ``dft``: the paper's periodic 2D DFT; ``dct``: DCT-II, i.e. the DFT of
+        the DEM mirrored about its borders, which has no wrap-around jump.
+    detrend : str
+        ``plane`` removes a least-squares plane before the transform.
+    fill : str
+        Height given to empty cells before the transform: ``zero`` (the
+        projection plane) or ``smooth`` (a push-pull interpolation).
+    storage : str
+        ``complex64``: the paper's raw coefficients; ``quantized``: integer
+        coefficients, entropy-coded.
+    step : float
+        Quantizer step in metres (orthonormal transform, so a step is a
+        height). 0 with ``storage='quantized'`` means choose automatically.
+    deadzone : float
+        Rounding offset of the dead-zone quantizer in steps, in [0, 0.5):
+        values with ``|c| < (0.5 + deadzone) * step`` become zero.
+    """
+
+    resolution: float
+    cutoff: float = 0.8
+    profile: str = "compact"
+    aggregate: str = "mean"
+    frame: str = "axis"
+    transform: str = "dct"
+    detrend: str = "plane"
+    fill: str = "smooth"
+    storage: str = "quantized"
+    step: float = 0.0
+    deadzone: float = 0.2
+
+    def __post_init__(self) -> None:
+        _check_positive("resolution", self.resolution)
+        if not (isinstance(self.cutoff, (int, float)) and 0.0 <= self.cutoff < 1.0):
+            raise InvalidInputError(f"cutoff must be in [0, 1), got {self.cutoff!r}")
+        for name, allowed in (
+            ("aggregate", AGGREGATES),
+            ("frame", FRAMES),
+            ("transform", TRANSFORMS),
+            ("detrend", DETRENDS),
+            ("fill", FILLS),
+            ("storage", STORAGES),
+        ):
+            value = getattr(self, name)
+            if value not in allowed:
+                raise InvalidInputError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
+        if not (math.isfinite(self.step) and self.step >= 0):
+            raise InvalidInputError(f"step must be a finite number >= 0 metres, got {self.step!r}")
+        if not (0.0 <= self.deadzone < 0.5):
+            raise InvalidInputError(f"deadzone must be in [0, 0.5), got {self.deadzone!r}")
+
+    def replace(self, **changes: Any) -> "Params":
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> "Params":
+        data = json.loads(text)
+        if not isinstance(data, dict):
+            raise InvalidInputError("parameters must be a JSON object")
+        known = {f.name for f in dataclasses.fields(cls)}
+        # Fields written by a newer minor version are ignored, not fatal.
+        return cls(**{k: v for k, v in data.items() if k in known})
+
+
+def _check_positive(name: str, value: Any) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise InvalidInputError(f"{name} must be a positive finite number, got {value!r}")
+
+
+#: Named presets. ``paper`` is the method exactly as published; ``compact``
+#: is the default codec.
+PROFILES: dict[str, dict[str, Any]] = {
+    "paper": dict(
+        transform="dft", detrend="none", fill="smooth", storage="complex64", frame="axis",
+    ),
+    "compact": dict(
+        transform="dct", detrend="plane", fill="smooth", storage="quantized",
+    ),
+}
+
+
+def make_params(*, resolution: float, cutoff: float = 0.8, profile: str = "compact", **overrides: Any) -> Params:
+    """Build :class:`Params` from a profile name plus explicit overrides.
+
+    Parameters
+    ----------
+    resolution : float
+        DEM cell size in metres.
+    cutoff : float
+        Cutoff ratio f_c in [0, 1).
+    profile : str
+        ``compact`` (default) or ``paper``.
+    **overrides
+        Any other :class:`Params` field; ``None`` values are ignored.
+    """
+    if profile not in PROFILES:
+        raise InvalidInputError(f"profile must be one of {', '.join(PROFILES)}; got {profile!r}")
+    fields = dict(PROFILES[profile])
+    fields.update({k: v for k, v in overrides.items() if v is not None})
+    unknown = set(fields) - {f.name for f in dataclasses.fields(Params)}
+    if unknown:
+        raise InvalidInputError(f"unknown parameter(s): {', '.join(sorted(unknown))}")
+    return Params(resolution=resolution, cutoff=cutoff, profile=profile, **fields)
