@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import base64
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -167,7 +168,10 @@ def _read_text(path: Path) -> PointCloud:
         [float(t) for t in (first.split(",") if delimiter else first.split())[:3]]
     except ValueError:
         skip = 1  # a header line
-    data = np.loadtxt(path, delimiter=delimiter, skiprows=skip, usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # an empty file is reported as "no points"
+        data = np.loadtxt(path, delimiter=delimiter, skiprows=skip, usecols=(0, 1, 2), ndmin=2,
+                          dtype=np.float64)
     return PointCloud(data)
 
 

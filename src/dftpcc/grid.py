@@ -33,6 +33,9 @@ __all__ = [
 #: 800 MB and the transform needs a few such arrays.
 MAX_CELLS = 100_000_000
 
+#: Margin, in cells, around a rotated grid (see fit_grid).
+ROTATED_MARGIN = 1e-6
+
 #: ``auto`` resolution aims at this many points per occupied cell.
 AUTO_POINTS_PER_CELL = 4.0
 
@@ -194,9 +197,13 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
     c, s = math.cos(angle), math.sin(angle)
     u = c * points[:, 0] + s * points[:, 1]
     v = -s * points[:, 0] + c * points[:, 1]
-    umin, vmin = float(u.min()), float(v.min())
-    cols = int(math.floor((float(u.max()) - umin) / resolution)) + 1
-    rows = int(math.floor((float(v.max()) - vmin) / resolution)) + 1
+    # A rotated frame recomputes local coordinates from a rotated origin; a
+    # margin of a millionth of a cell keeps round-off from pushing the
+    # extreme points outside the grid.
+    margin = ROTATED_MARGIN * resolution if angle else 0.0
+    umin, vmin = float(u.min()) - margin, float(v.min()) - margin
+    cols = int(math.floor((float(u.max()) + margin - umin) / resolution)) + 1
+    rows = int(math.floor((float(v.max()) + margin - vmin) / resolution)) + 1
     if rows * cols > MAX_CELLS:
         raise InvalidInputError(
             f"a {rows} x {cols} grid ({rows * cols:,} cells) at {resolution} m exceeds the "

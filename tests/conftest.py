@@ -1,0 +1,43 @@
+"""Shared fixtures: the real survey data beside the checkout, and small self-made terrains."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+#: ../shared/data beside the checkout (CI has it there).
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def data_file(name: str) -> Path:
+    """Path of a file in ../shared/data, skipping the test when it is absent."""
+    path = DATA / name
+    if not path.is_file():
+        pytest.skip(f"real data {name} not found at {path}")
+    return path
+
+
+@pytest.fixture(scope="session")
+def field_ground() -> np.ndarray:
+    """Ground points (class 2) of the gentle IGN field: flat terrain, quarter-disc footprint."""
+    import dftpcc
+
+    return dftpcc.read(data_file("pointclouds/field_gentle_ign.laz"), classes=[2]).points
+
+
+@pytest.fixture(scope="session")
+def redrocks() -> np.ndarray:
+    """The rough Red Rocks cloud (local metres)."""
+    import dftpcc
+
+    return dftpcc.read(data_file("pointclouds/redrocks_rough.ply")).points
+
+
+@pytest.fixture(scope="session")
+def small_terrain() -> np.ndarray:
+    """A small deterministic built-in terrain (about 14 000 points, 40 m square)."""
+    from dftpcc.terrain import regolith_plain
+
+    return regolith_plain(20_000, size=40.0, craters=4, rocks=30, seed=3)

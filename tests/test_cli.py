@@ -1,0 +1,141 @@
+"""The command line: every command works, every user mistake is one line and a non-zero exit."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import dftpcc
+from dftpcc.cli import main
+
+from .conftest import data_file
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dftpcc", *args], capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture()
+def cloud_file(tmp_path, small_terrain):
+    path = tmp_path / "terrain.ply"
+    dftpcc.write(path, small_terrain)
+    return path
+
+
+def test_compress_info_decompress(tmp_path, cloud_file, capsys):
+    out = tmp_path / "t.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "-c", "0.8", "-q"]) == 0
+    assert main(["info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["params"]["cutoff"] == 0.8 and info["params"]["profile"] == "compact"
+    assert info["points_original"] == 0 or info["points_original"] > 0
+    assert main(["info", str(out)]) == 0
+    assert "bits/point" in capsys.readouterr().out
+    for ext in (".las", ".ply", ".npy", ".tif"):
+        assert main(["decompress", str(out), str(tmp_path / f"back{ext}"), "-q"]) == 0
+    back = dftpcc.read(tmp_path / "back.ply").points
+    assert back.shape[0] == info["points_rebuilt"]
+
+
+def test_paper_profile_from_the_command_line(tmp_path, cloud_file, capsys):
+    out = tmp_path / "p.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "--profile", "paper", "-q"]) == 0
+    assert dftpcc.open(out).params.storage == "complex64"
+
+
+def test_geotiff_in_and_out(tmp_path):
+    src = data_file("dems/mars_gale_1m.tif")
+    out = tmp_path / "gale.dftpc"
+    assert main(["compress", str(src), str(out), "-c", "0.5", "-q"]) == 0
+    m = dftpcc.open(out)
+    assert m.grid.shape == (337, 348) and m.grid.resolution == pytest.approx(1.0, rel=1e-3)
+    assert main(["decompress", str(out), str(tmp_path / "gale.tif"), "-q"]) == 0
+    import rasterio
+
+    with rasterio.open(src) as a, rasterio.open(tmp_path / "gale.tif") as b:
+        assert a.crs == b.crs
+        assert a.transform.almost_equals(b.transform)
+        diff = b.read(1) - a.read(1)
+        assert np.sqrt(np.nanmean(diff**2)) < 0.5
+
+
+def test_demo_runs(capsys):
+    assert main(["demo", "--points", "20000", "--resolution", "0.5"]) == 0
+    out = capsys.readouterr().out
+    assert "paper" in out and "compact" in out and "0.95" in out
+
+
+def test_help_on_every_command():
+    for cmd in ("compress", "decompress", "info", "demo"):
+        result = run(cmd, "--help")
+        assert result.returncode == 0 and "usage" in result.stdout
+
+
+BAD = [
+    (["compress", "{missing}", "{out}", "-r", "1"], 3, "no such file"),
+    (["compress", "{cloud}", "{out}", "--cutoff", "1.5"], 2, "must be in [0, 1)"),
+    (["compress", "{cloud}", "{out}", "--resolution", "-1"], 2, "positive"),
+    (["compress", "{cloud}", "{weird}", "-r", "1"], 0, None),  # any output name is fine
+    (["compress", "{unknown}", "{out}", "-r", "1"], 4, "cannot tell the format"),
+    (["compress", "{empty}", "{out}", "-r", "1"], 3, "no points"),
+    (["compress", "{nan}", "{out}", "-r", "1"], 3, "NaN or infinite"),
+    (["compress", "{huge}", "{out}", "-r", "0.1"], 3, "limit"),
+    (["decompress", "{garbage}", "{out_ply}"], 5, "not a .dftpc file"),
+    (["decompress", "{truncated}", "{out_ply}"], 5, "truncated"),
+    (["info", "{garbage}"], 5, "not a .dftpc file"),
+    (["decompress", "{good}", "{out_bad_ext}"], 4, "cannot tell the format"),
+    (["compress", "{cloud}", "{nodir}", "-r", "1"], 3, "does not exist"),
+]
+
+
+@pytest.mark.parametrize("argv,code,message", BAD)
+def test_user_mistakes_end_in_one_line(tmp_path, cloud_file, argv, code, message):
+    files = {
+        "missing": tmp_path / "missing.laz",
+        "cloud": cloud_file,
+        "out": tmp_path / "out.dftpc",
+        "weird": tmp_path / "out.bin",
+        "unknown": tmp_path / "cloud.e57",
+        "empty": tmp_path / "empty.xyz",
+        "nan": tmp_path / "nan.xyz",
+        "huge": tmp_path / "huge.xyz",
+        "garbage": tmp_path / "garbage.dftpc",
+        "truncated": tmp_path / "truncated.dftpc",
+        "good": tmp_path / "good.dftpc",
+        "out_ply": tmp_path / "out.ply",
+        "out_bad_ext": tmp_path / "out.xls",
+        "nodir": tmp_path / "no" / "such" / "dir.dftpc",
+    }
+    files["unknown"].write_bytes(b"x")
+    files["empty"].write_text("")
+    files["nan"].write_text("0 0 0\n1 1 nan\n2 2 2\n")
+    files["huge"].write_text("0 0 0\n10000000 10000000 1\n")
+    files["garbage"].write_bytes(b"hello world" * 10)
+    good = dftpcc.compress(dftpcc.read(cloud_file).points, resolution=1.0)
+    files["good"].write_bytes(good)
+    files["truncated"].write_bytes(good[: len(good) // 2])
+    before = set(tmp_path.rglob("*"))
+    result = run(*[a.format(**files) for a in argv])
+    assert result.returncode == code, result.stderr
+    if message is None:
+        return
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("dftpcc: error") or lines[0].startswith("usage") or "error:" in lines[0]
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+    # never a partial or temporary output file
+    assert set(tmp_path.rglob("*")) == before
+
+
+def test_failed_compress_keeps_the_previous_file(tmp_path):
+    out = tmp_path / "map.dftpc"
+    out.write_bytes(b"previous content")
+    (tmp_path / "nan.xyz").write_text("0 0 nan\n")
+    assert run("compress", str(tmp_path / "nan.xyz"), str(out), "-r", "1").returncode == 3
+    assert out.read_bytes() == b"previous content"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.dftpc", "nan.xyz"]

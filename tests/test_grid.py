@@ -1,0 +1,96 @@
+"""Gridding a cloud into a DEM: geometry, aggregation, fill, resolution."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dftpcc.errors import InvalidInputError
+from dftpcc.grid import MAX_CELLS, auto_resolution, fill_empty, fit_grid, fit_plane, plane_values, rasterize
+
+
+def test_grid_is_minimum_bounding_rectangle_at_centroid_height():
+    pts = np.array([[10.0, 20.0, 1.0], [13.9, 21.0, 3.0], [11.0, 25.9, 5.0]])
+    g = fit_grid(pts, 1.0)
+    assert (g.x0, g.y0) == (10.0, 20.0)
+    assert (g.rows, g.cols) == (6, 4)
+    assert g.z0 == pytest.approx(3.0)
+
+
+def test_every_point_falls_in_its_grid():
+    rng = np.random.default_rng(1)
+    pts = rng.uniform([6e5, 6.6e6, 0], [6e5 + 300, 6.6e6 + 200, 10], size=(5000, 3))
+    for frame in ("axis", "oriented"):
+        g = fit_grid(pts, 0.7, frame=frame)
+        assert (g.flat_index(pts) >= 0).all()
+
+
+@pytest.mark.parametrize("aggregate,expected", [("mean", 2.0), ("median", 1.5), ("min", 1.0), ("max", 3.5)])
+def test_aggregates(aggregate, expected):
+    pts = np.array([[0.1, 0.1, 1.0], [0.2, 0.2, 1.5], [0.3, 0.3, 3.5], [5.0, 5.0, 2.0]])
+    dem = rasterize(pts, fit_grid(pts, 1.0), aggregate=aggregate)
+    assert dem.heights[0, 0] + dem.grid.z0 == pytest.approx(expected)
+    assert dem.mask.sum() == 2
+
+
+def test_gridding_rmse_is_the_spread_within_cells():
+    pts = np.array([[0.5, 0.5, 1.0], [0.5, 0.5, 3.0], [1.5, 0.5, 7.0]])
+    dem = rasterize(pts, fit_grid(pts, 1.0))
+    assert dem.gridding_rmse == pytest.approx(math.sqrt((1 + 1 + 0) / 3))
+
+
+def test_oriented_frame_shrinks_a_diagonal_strip():
+    rng = np.random.default_rng(2)
+    t = rng.uniform(0, 1000, 20000)
+    w = rng.uniform(-20, 20, 20000)
+    pts = np.column_stack([t * 0.6 - w * 0.8, t * 0.8 + w * 0.6, rng.normal(0, 1, 20000)])
+    axis, rotated = fit_grid(pts, 2.0), fit_grid(pts, 2.0, frame="oriented")
+    assert rotated.size < 0.15 * axis.size
+    assert (rotated.flat_index(pts) >= 0).all()
+    # Cell centres map back into the strip.
+    rows, cols = np.nonzero(rasterize(pts, rotated).mask)
+    x, y = rotated.centres(rows, cols)
+    assert np.abs(-0.8 * x + 0.6 * y).max() < 20 + 2 * 2.0
+
+
+def test_fill_keeps_occupied_cells_and_is_smooth():
+    yy, xx = np.mgrid[0:64, 0:64]
+    truth = 0.05 * xx + 0.02 * yy
+    mask = np.hypot(xx, yy) < 50  # a quarter disc
+    filled = fill_empty(np.where(mask, truth, 0.0), mask)
+    np.testing.assert_array_equal(filled[mask], truth[mask])
+    # The fill continues the surface instead of dropping to zero.
+    assert np.abs(np.diff(filled, axis=1)).max() < 0.5
+    zero = fill_empty(truth, mask, method="zero")
+    assert (zero[~mask] == 0).all()
+
+
+def test_plane_fit_recovers_a_plane():
+    yy, xx = np.mgrid[0:20, 0:30]
+    from dftpcc.grid import DEM, Grid
+
+    dem = DEM(Grid(0, 0, 0, 1.0, 20, 30), 1.5 + 0.1 * xx - 0.2 * yy, np.ones((20, 30), bool))
+    plane = fit_plane(dem)
+    np.testing.assert_allclose(plane, (1.5, 0.1, -0.2), atol=1e-12)
+    np.testing.assert_allclose(plane_values(plane, (20, 30)), dem.heights, atol=1e-12)
+
+
+def test_refuses_a_grid_too_large_for_memory():
+    pts = np.array([[0.0, 0.0, 0.0], [1e7, 1e7, 1.0]])  # 10,000 km at 0.1 m
+    with pytest.raises(InvalidInputError, match="cells.*limit"):
+        fit_grid(pts, 0.1)
+    assert MAX_CELLS < (1e8 ** 2)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf")])
+def test_bad_resolution(bad):
+    with pytest.raises(InvalidInputError, match="resolution"):
+        fit_grid(np.zeros((3, 3)), bad)
+
+
+def test_auto_resolution_tracks_density(field_ground):
+    res = auto_resolution(field_ground)
+    # about 6.7 ground points per square metre on the field: 4 per cell is ~0.77 m cells
+    assert 0.6 < res < 1.0
