@@ -1,0 +1,326 @@
+"""Shared pieces of the benchmark scripts: test files, timing, the error metric, RD curves.
+
+The scripts measure, they never assert: targets are printed as PASS/MISS.
+Everything here uses only dftpcc's public API (``read``, ``grid.fit_grid``,
+``grid.rasterize``) plus numpy/scipy.
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import os
+import re
+import statistics
+import sys
+import time
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+import dftpcc
+from dftpcc.grid import DEM, Grid, fit_grid, rasterize
+
+REPO = Path(__file__).resolve().parent.parent
+#: Real data lives beside the checkout (CI layout: ../shared/data); never copied into the repo.
+DEFAULT_DATA = Path(os.environ.get("DFTPCC_DATA", REPO.parent / "shared" / "data"))
+DOC = REPO / "docs" / "benchmarks.md"
+FIGURES = REPO / "docs" / "figures"
+
+#: LAS classification code of ground points.
+GROUND = 2
+#: A DEM sampled at pixel centres puts every point exactly on a cell edge of a
+#: grid anchored at the first point; a cell this much (relative) smaller than
+#: the pixel keeps each point in its own cell whatever the rounding.
+LATTICE_SHRINK = 1e-9
+#: Errors below this (metres) count as this in log-log interpolation.
+MIN_ERROR = 1e-9
+
+
+@dataclass(frozen=True)
+class Case:
+    """One test file and how to grid it.
+
+    Attributes
+    ----------
+    name : str
+        File name under the data folder's ``pointclouds/`` or ``dems/``.
+    resolution : float or None
+        DEM cell size in metres; None for a GeoTIFF = its pixel size.
+    classes : tuple of int or None
+        LAS classes to keep (None = every point).
+    terrain : str
+        ``gentle`` or ``rough``: which target applies.
+    """
+
+    name: str
+    resolution: float | None
+    classes: tuple[int, ...] | None
+    terrain: str
+
+    @property
+    def is_dem(self) -> bool:
+        return self.name.endswith((".tif", ".tiff"))
+
+    @property
+    def stem(self) -> str:
+        return Path(self.name).stem
+
+    def path(self, data: Path) -> Path:
+        return data / ("dems" if self.is_dem else "pointclouds") / self.name
+
+    def label(self) -> str:
+        what = " (ground class)" if self.classes == (GROUND,) else ""
+        return f"{self.name}{what}"
+
+
+@dataclass
+class Loaded:
+    """A case read into memory.
+
+    Attributes
+    ----------
+    points : ndarray, shape (N, 3), float64, metres
+    resolution : float
+        Cell size actually used, metres.
+    read_seconds : float
+        Wall time of the file parsing (not part of any codec's time).
+    notes : list of str
+        Anything the reader of the table must know about this file.
+    las_header : object or None
+        laspy header of a LAS/LAZ source (scales/offsets for the LAZ reference).
+    """
+
+    case: Case
+    points: np.ndarray
+    resolution: float
+    read_seconds: float
+    notes: list[str]
+    las_header: Any = None
+
+
+def pick_cases(cases: Sequence[Case], wanted: Sequence[str] | None) -> list[Case]:
+    """The cases whose file name starts with one of ``wanted`` (all when None)."""
+    if not wanted:
+        return list(cases)
+    chosen = []
+    for w in wanted:
+        hits = [c for c in cases if c.name.startswith(w) or c.stem == w]
+        if not hits:
+            sys.exit(f"unknown file {w!r}; known: {', '.join(c.name for c in cases)}")
+        chosen += [c for c in hits if c not in chosen]
+    return chosen
+
+
+def _sample_dem(path: Path) -> np.ndarray:
+    """One point per valid pixel at its centre, as ``dftpcc.read`` does (metres)."""
+    import rasterio
+
+    with rasterio.open(path) as src:
+        band = src.read(1, masked=True)
+        t = src.transform
+    valid = ~np.ma.getmaskarray(band)
+    heights = np.asarray(band.data, dtype=np.float64)
+    rows, cols = np.nonzero(valid & np.isfinite(heights))
+    x = t.c + t.a * (cols + 0.5) + t.b * (rows + 0.5)
+    y = t.f + t.d * (cols + 0.5) + t.e * (rows + 0.5)
+    return np.column_stack([x, y, heights[rows, cols]])
+
+
+def _pixel_width(path: Path) -> float:
+    """Width of a GeoTIFF's pixels in metres (its x step)."""
+    import rasterio
+
+    with rasterio.open(path) as src:
+        return float(abs(src.transform.a))
+
+
+def load(case: Case, data: Path) -> Loaded:
+    """Read a case; GeoTIFFs become one point per valid pixel at the pixel size."""
+    path = case.path(data)
+    notes: list[str] = []
+    header = None
+    t0 = time.perf_counter()
+    if case.is_dem:
+        try:
+            points = dftpcc.read(path).points
+        except dftpcc.InvalidInputError as exc:
+            # Same convention as dftpcc.read (pixel centres), so the benchmark can run.
+            points = _sample_dem(path)
+            notes.append(f"dftpcc.read failed ({exc}); pixels sampled with rasterio instead, "
+                         "same pixel-centre convention")
+        seconds = time.perf_counter() - t0
+        pixel = _pixel_width(path)
+        resolution = pixel * (1.0 - LATTICE_SHRINK)
+        notes.append(f"DEM sampled to points: one point per valid pixel at its centre; "
+                     f"resolution = pixel width {pixel:.4f} m (x (1 - {LATTICE_SHRINK:g}) so that no "
+                     f"point rounds into its neighbour's cell)")
+    else:
+        if case.name.endswith((".las", ".laz")):
+            import laspy
+
+            with laspy.open(path) as fh:
+                header = fh.header
+        classes = list(case.classes) if case.classes else None
+        points = dftpcc.read(path, classes=classes).points
+        seconds = time.perf_counter() - t0
+        resolution = float(case.resolution)
+    return Loaded(case, points, resolution, seconds, notes, header)
+
+
+@contextmanager
+def warnings_as_notes(notes: list[str]) -> Iterator[None]:
+    """Collect each distinct warning once into ``notes`` instead of printing it per call."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        text = f"{w.category.__name__}: {w.message}"
+        if text not in notes:
+            notes.append(text)
+
+
+def shared_grid(points: np.ndarray, resolution: float) -> tuple[Grid, DEM]:
+    """The axis-aligned grid dftpcc uses and the mean-height DEM on it."""
+    grid = fit_grid(points, resolution)
+    return grid, rasterize(points, grid)
+
+
+def median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
+    """Median wall time in seconds of ``repeats`` calls, and the last result."""
+    times, result = [], None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), result
+
+
+def rmse(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values)))) if values.size else 0.0
+
+
+class NearestHeights:
+    """Vertical RMSE of the original points against the decoded point nearest in x, y.
+
+    The KD-tree and the match of each original point are cached per decoded
+    x, y layout: every DEM codec decodes to the same occupied-cell centres, so
+    the tree is built once per grid, not once per setting.
+    """
+
+    def __init__(self, points: np.ndarray):
+        self.points = points
+        self._xy: np.ndarray | None = None
+        self._match: np.ndarray | None = None
+
+    def rmse(self, decoded: np.ndarray) -> float:
+        """RMS of ``z - z_nearest`` in metres over all original points."""
+        xy = np.ascontiguousarray(decoded[:, :2])
+        if self._xy is None or self._xy.shape != xy.shape or not np.array_equal(self._xy, xy):
+            _, match = cKDTree(xy).query(self.points[:, :2], workers=-1)
+            self._xy, self._match = xy, match
+        return rmse(self.points[:, 2] - decoded[self._match, 2])
+
+
+# --- rate-distortion curves ---------------------------------------------------------
+
+def lower_hull(samples: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Efficient frontier of (bits per point, RMSE metres) samples.
+
+    The lower convex hull in log-log space, from the smallest error to the
+    cheapest point, ordered by increasing error (decreasing bits).
+    """
+    pts = sorted({(max(e, MIN_ERROR), b) for b, e in samples if b > 0 and math.isfinite(e)})
+    if not pts:
+        return []
+    logs = [(math.log(e), math.log(b)) for e, b in pts]
+    hull: list[int] = []
+    for i, (x, y) in enumerate(logs):
+        if hull and logs[hull[-1]][0] == x:
+            continue  # same error, higher bits (sorted): never on the lower hull
+        while len(hull) >= 2:
+            (x1, y1), (x2, y2) = logs[hull[-2]], logs[hull[-1]]
+            if (x2 - x1) * (y - y1) - (y2 - y1) * (x - x1) <= 0:
+                hull.pop()
+            else:
+                break
+        hull.append(i)
+    cheapest = min(range(len(hull)), key=lambda k: logs[hull[k]][1])
+    return [(pts[i][1], pts[i][0]) for i in hull[: cheapest + 1]]
+
+
+def bits_at(hull: Sequence[tuple[float, float]], error: float) -> tuple[float | None, str]:
+    """Bits per point the frontier needs for a vertical RMSE of ``error`` metres.
+
+    Log-log interpolation between the two hull points around ``error`` (the
+    method of ANCHORS.md). Returns ``(None, 'unreached')`` when no setting got
+    that low, and the cheapest point's bits with flag ``'cheapest'`` when even
+    the cheapest setting is already better than ``error`` (an upper bound).
+    """
+    if not hull:
+        return None, "unreached"
+    if error < hull[0][1] * (1 - 1e-12):
+        return None, "unreached"
+    if error >= hull[-1][1]:
+        return hull[-1][0], ("cheapest" if error > hull[-1][1] * (1 + 1e-9) else "")
+    for (b0, e0), (b1, e1) in zip(hull, hull[1:]):
+        if e0 <= error <= e1:
+            if e1 == e0:
+                return b0, ""
+            t = math.log(error / e0) / math.log(e1 / e0)
+            return math.exp(math.log(b0) + t * math.log(b1 / b0)), ""
+    return None, "unreached"
+
+
+# --- printing ------------------------------------------------------------------------
+
+def fmt_bits(value: float | None, flag: str = "") -> str:
+    if value is None:
+        return "—"
+    text = f"{value:.3f}" if value < 100 else f"{value:.1f}"
+    return text + ("*" if flag == "cheapest" else "")
+
+
+def verdict(ok: bool | None) -> str:
+    return "n/a" if ok is None else ("PASS" if ok else "MISS")
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def command_line() -> str:
+    args = [a if re.fullmatch(r"[\w./=,:@+-]+", a) else repr(a) for a in sys.argv[1:]]
+    script = os.path.relpath(sys.argv[0], REPO) if os.path.isabs(sys.argv[0]) else sys.argv[0]
+    return " ".join([".venv/bin/python", script, *args])
+
+
+def write_doc_section(key: str, title: str, body: str, path: Path = DOC) -> None:
+    """Replace (or append) the section between this key's markers in docs/benchmarks.md."""
+    begin, end = f"<!-- {key}:begin -->", f"<!-- {key}:end -->"
+    stamp = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
+    block = (f"{begin}\n## {title}\n\nRegenerated {stamp} with `{command_line()}`.\n\n"
+             f"{body.strip()}\n{end}")
+    text = path.read_text() if path.exists() else DOC_HEAD
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + block + text[text.index(end) + len(end):]
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+DOC_HEAD = """# Benchmarks
+
+Measured on the shared 2-core machine (noisy: times are medians over repeats,
+compare ratios rather than absolute speeds). Data: `../shared/data` (never copied
+into the repository). Each section below is rewritten by the script named in it;
+edit the text outside the markers only.
+"""
