@@ -180,6 +180,48 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"dftpcc: error: {message} (see '{self.prog} --help')\n")
 
 
+def _cutoffs(text: str) -> tuple[float, ...]:
+    from .sweep import parse_cutoffs
+
+    try:
+        return parse_cutoffs(text)
+    except InvalidInputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _resolutions(text: str) -> list[float | str]:
+    return [_resolution(t.strip()) for t in text.split(",") if t.strip()]
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .sweep import evaluate_files, format_metrics, jsonable
+
+    result = evaluate_files(args.original, args.candidate, classes=args.classes)
+    print(json.dumps(jsonable(result), indent=2, sort_keys=True) if args.json else format_metrics(result))
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from .sweep import format_row, run_sweep, terrains
+
+    inputs = terrains(args.input, args.resolution, classes=args.classes)
+    show = (lambda row: None) if args.quiet else (lambda row: print(format_row(row), flush=True))
+    rows, csv_path, png_path = run_sweep(inputs, out=args.out, cutoffs=args.cutoffs, profile=args.profile,
+                                         on_row=show)
+    if not args.quiet:
+        print(f"{len(rows)} rows -> {csv_path}, {png_path}")
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from .sweep import compare_file
+
+    path = compare_file(args.original, out=args.out, cutoffs=args.cutoffs, resolution=args.resolution,
+                        profile=args.profile, classes=args.classes)
+    print(path)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="dftpcc",
@@ -232,6 +274,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="folder to write the demo cloud and its .dftpc files to")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("evaluate", help="every error metric between an original and a compressed or rebuilt map",
+                       description="Compare ORIGINAL with a .dftpc file (decoded here; bits per point from its "
+                                   "size) or any rebuilt point cloud file. Distances in metres.")
+    p.add_argument("original")
+    p.add_argument("candidate", metavar="COMPRESSED_OR_REBUILT")
+    p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes of ORIGINAL (as compressed)")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("sweep", help="compress at many cutoffs: sweep.csv and sweep.png (the paper's Fig. 5)")
+    p.add_argument("input", nargs="+")
+    p.add_argument("--cutoffs", type=_cutoffs, default="0,0.05,...,0.95",
+                   help="comma-separated cutoff ratios; '0,0.1,...,0.9' continues a progression "
+                        "(default 0,0.05,...,0.95)")
+    p.add_argument("--resolution", "-r", type=_resolutions, default=["auto"],
+                   help="DEM cell size in metres (or 'auto'): one for all inputs, or comma-separated, one per input")
+    p.add_argument("--profile", choices=("compact", "paper"), default="compact")
+    p.add_argument("--classes", type=_classes, help="LAS/LAZ inputs: keep only these classes, e.g. 2 for ground")
+    p.add_argument("--out", "-o", required=True, help="folder for sweep.csv and sweep.png")
+    p.add_argument("--quiet", "-q", action="store_true")
+    p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("compare", help="original and rebuilt maps side by side (the paper's Fig. 6)")
+    p.add_argument("original")
+    p.add_argument("--cutoffs", type=_cutoffs, default="0.8,0.95", help="cutoff ratios to show (default 0.8,0.95)")
+    p.add_argument("--resolution", "-r", type=_resolution, default="auto", help="DEM cell size in metres, or 'auto'")
+    p.add_argument("--profile", choices=("compact", "paper"), default="compact")
+    p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
+    p.add_argument("--out", "-o", required=True, help="folder for the PNG")
+    p.set_defaults(func=cmd_compare)
     return parser
 
 
