@@ -2,12 +2,16 @@
 
 ``compress`` and ``decompress`` are the two calls most users need; the
 stages they compose live in ``grid``, ``spectrum``, ``coding``,
-``container`` and ``rebuild``.
+``container`` and ``rebuild``. Rate control lives here too: the transform
+of a DEM is computed once, then cutoffs and quantizer steps are tried
+against it until the target (an RMSE, a maximum error or a size) is met
+by the smallest (or most accurate) file.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
@@ -19,13 +23,35 @@ from .grid import DEM, auto_resolution, fill_empty, fit_grid, fit_plane, plane_v
 from .params import Params, make_params
 from .rebuild import dem_to_points
 
-__all__ = ["compress", "decompress", "encode_dem", "decode_dem", "resolve_params"]
+__all__ = ["compress", "decompress", "encode_dem", "decode_dem", "resolve_params", "DEFAULT_CUTOFF"]
 
+#: Cutoff ratio used when neither a cutoff nor a target is given.
+DEFAULT_CUTOFF = 0.8
 #: With an automatic step, quantization may add this fraction of the
 #: gridding error (RMS, metres) to the rebuilt DEM ...
 QUANT_FLOOR_FRACTION = 0.5
 #: ... but never less than this, for DEMs gridded from one point per cell.
 MIN_QUANT_RMSE = 0.001
+#: Cutoff ratios rate control tries.
+CUTOFF_CANDIDATES = (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97)
+#: Bisection iterations on the quantizer step (log scale).
+STEP_ITERATIONS = 18
+#: Rounds of measuring the true error and correcting the step search.
+CALIBRATION_ROUNDS = 4
+#: Rate control stops raising the cutoff once a file is this much larger than the best.
+GIVE_UP_FACTOR = 1.3
+#: Quantizer steps tried per cutoff for a maximum-error target, as multiples of it.
+MAX_ERROR_STEP_FACTORS = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+#: First guess of the bytes a file needs besides mask and coefficients
+#: (section table, parameters, statistics, CRS) when sizing to a target.
+HEADER_ESTIMATE = 600
+#: Bytes the statistics section may grow by between two candidates.
+STATS_SLACK = 64
+#: Attempts at meeting a size target after measuring the real overhead.
+BUDGET_ROUNDS = 3
+#: The residual layer aims this much inside the promised bound, so float
+#: round-off in the decoder's inverse transform cannot break the guarantee.
+GUARANTEE_MARGIN = 1e-6
 
 Stage = Callable[[str], None]
 
@@ -34,17 +60,18 @@ def _noop(_: str) -> None:
     pass
 
 
-def resolve_params(points: np.ndarray, *, resolution: float | str = "auto", cutoff: float = 0.8,
+def resolve_params(points: np.ndarray, *, resolution: float | str = "auto", cutoff: float | None = None,
                    profile: str = "compact", **options: Any) -> Params:
     """:class:`Params` for ``points``, choosing the resolution when it is ``"auto"``."""
     if isinstance(resolution, str):
         if resolution != "auto":
             raise InvalidInputError(f"resolution must be a number of metres or 'auto', got {resolution!r}")
         resolution = auto_resolution(points)
-    return make_params(resolution=resolution, cutoff=cutoff, profile=profile, **options)
+    return make_params(resolution=resolution, cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff,
+                       profile=profile, **options)
 
 
-def compress(points: np.ndarray, *, resolution: float | str = "auto", cutoff: float = 0.8,
+def compress(points: np.ndarray, *, resolution: float | str = "auto", cutoff: float | None = None,
              profile: str = "compact", crs: dict[str, Any] | None = None,
              on_stage: Stage = _noop, **options: Any) -> bytes:
     """Compress a terrain point cloud into ``.dftpc`` bytes.
@@ -55,8 +82,9 @@ def compress(points: np.ndarray, *, resolution: float | str = "auto", cutoff: fl
         x, y, z in metres; float64 keeps coordinates of 1e7 m exact.
     resolution : float or 'auto'
         DEM cell size in metres; ``auto`` aims at a few points per cell.
-    cutoff : float
-        Cutoff ratio f_c = 1 - r/r_M in [0, 1) (paper eq. 2).
+    cutoff : float, optional
+        Cutoff ratio f_c = 1 - r/r_M in [0, 1) (paper eq. 2). Default 0.8,
+        or chosen by rate control when a target is given.
     profile : {'compact', 'paper'}
         ``paper`` stores the raw complex DFT coefficients inside the circle
         exactly as the paper does; ``compact`` (default) detrends, uses the
@@ -66,8 +94,10 @@ def compress(points: np.ndarray, *, resolution: float | str = "auto", cutoff: fl
     on_stage : callable, optional
         Called with the name of each stage as it starts (progress display).
     **options
-        Any other :class:`~dftpcc.params.Params` field (``step``,
-        ``aggregate``, ``frame``, ``transform``, ``fill``, ...).
+        Any other :class:`~dftpcc.params.Params` field: ``step`` (metres),
+        ``aggregate``, ``frame``, ``transform``, ``fill``, ``coder``, ``mask``,
+        and the rate-control targets ``target_rmse`` (metres),
+        ``target_max_error`` (metres), ``target_bpp`` (bits per point).
 
     Returns
     -------
@@ -76,18 +106,234 @@ def compress(points: np.ndarray, *, resolution: float | str = "auto", cutoff: fl
     Raises
     ------
     InvalidInputError
-        Empty or non-finite cloud, bad parameter, grid too large.
+        Empty or non-finite cloud, bad parameter, grid too large, target
+        out of reach.
     """
     on_stage("grid")
     points = np.asarray(points)
     params = resolve_params(points, resolution=resolution, cutoff=cutoff, profile=profile, **options)
     grid = fit_grid(points, params.resolution, frame=params.frame)
     dem = rasterize(points, grid, aggregate=params.aggregate)
-    return encode_dem(dem, params, point_count=int(points.shape[0]), crs=crs, on_stage=on_stage)
+    return encode_dem(dem, params, point_count=int(points.shape[0]), crs=crs, on_stage=on_stage,
+                      cutoff_given=cutoff is not None)
+
+
+def _footprint(mask: np.ndarray) -> np.ndarray:
+    """Occupied cells plus the empty ones the map encloses (one-cell gaps closed, holes filled)."""
+    from scipy import ndimage
+
+    closed = ndimage.binary_closing(mask, structure=np.ones((3, 3), bool), border_value=0) | mask
+    return ndimage.binary_fill_holes(closed)
+
+
+@dataclass
+class _Trial:
+    """One (cutoff, step) tried against a spectrum."""
+
+    cutoff: float
+    step: float
+    stream: np.ndarray  # what gets entropy-coded (int64 or complex64)
+    heights: np.ndarray  # the DEM the decoder will rebuild (relative to z0)
+    rmse: float  # on occupied cells, metres
+    max_error: float  # on occupied cells, metres
+
+
+class _Spectrum:
+    """What does not change between trials: detrended, filled DEM and its sorted transform."""
+
+    def __init__(self, dem: DEM, params: Params):
+        self.dem, self.params = dem, params
+        self.mask = dem.mask
+        self.kept_cells = _footprint(dem.mask) if params.mask == "footprint" else dem.mask
+        self.plane = fit_plane(dem) if params.detrend == "plane" else (0.0, 0.0, 0.0)
+        self.trend = plane_values(self.plane, dem.grid.shape) if params.detrend == "plane" else 0.0
+        filled = fill_empty(dem.heights - self.trend, dem.mask, method=params.fill)
+        self.lay = spectrum.layout(params.transform, params.storage, dem.grid.shape)
+        order, radii, angles = spectrum.full_order(self.lay)
+        self.coefs = spectrum.forward(filled, self.lay).ravel()[order]
+        self.order = order
+        # Frequency of every stored value (a complex one is stored as two reals).
+        self.radius = np.repeat(radii, 2) if self._interleaved else radii
+        self.angle = np.repeat(angles, 2) if self._interleaved else angles
+        # Parseval: squared coefficient error -> mean squared error per cell.
+        n = dem.grid.size
+        self.parseval = {"dct": 1.0 / n, "half": 2.0 / n, "full": 1.0 / (n * n)}[self.lay.kind]
+
+    @property
+    def _interleaved(self) -> bool:
+        return self.lay.kind == "half" and self.params.storage == "quantized"
+
+    def count(self, cutoff: float) -> int:
+        return spectrum.kept_count(self.lay, cutoff)
+
+    def reals(self, n: int) -> np.ndarray:
+        kept = self.coefs[:n]
+        return kept.view(np.float64) if np.iscomplexobj(kept) else kept
+
+    def synthesise(self, values: np.ndarray) -> np.ndarray:
+        """Heights (relative to z0) from the first ``len(values)`` sorted coefficients."""
+        coefs = np.zeros(self.lay.coef_shape, dtype=values.dtype)
+        coefs.ravel()[self.order[: values.size]] = values
+        return spectrum.inverse(coefs, self.lay) + self.trend
+
+    def trial(self, cutoff: float, step: float) -> _Trial:
+        n = self.count(cutoff)
+        if self.params.storage == "complex64":
+            stream = self.coefs[:n].astype(np.complex64)
+            decoded = stream.astype(np.complex128)
+        else:
+            stream = coding.quantize(self.reals(n), step, self.params.deadzone)
+            decoded = coding.dequantize(stream, step)
+            if np.iscomplexobj(self.coefs):
+                decoded = decoded.view(np.complex128)
+        heights = self.synthesise(decoded)
+        err = (heights - self.dem.heights)[self.mask]
+        return _Trial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))), float(np.abs(err).max()))
+
+    def proxy_rmse(self, cutoff: float, step: float) -> float:
+        """Whole-grid RMSE predicted in the coefficient domain, without an inverse transform."""
+        n = self.count(cutoff)
+        reals = self.reals(n)
+        dropped = self.reals(self.coefs.size)[reals.size:]
+        err = reals - coding.dequantize(coding.quantize(reals, step, self.params.deadzone), step)
+        total = float(np.dot(err, err)) + float(np.dot(dropped, dropped))
+        return math.sqrt(total * self.parseval)
+
+    def encode(self, trial: _Trial, *, exhaustive: bool = True) -> bytes:
+        n = trial.stream.size
+        return coding.encode_coefficients(trial.stream, radius=self.radius[:n], angle=self.angle[:n],
+                                          coder=self.params.coder, exhaustive=exhaustive)
+
+
+def _step_for_rmse(spec: _Spectrum, cutoff: float, target: float) -> _Trial | None:
+    """The coarsest step at ``cutoff`` whose rebuilt DEM is within ``target`` RMSE (occupied cells)."""
+    exact = spec.trial(cutoff, _tiny_step(spec))
+    if exact.rmse > target:
+        return None
+    if spec.params.storage != "quantized":
+        return exact  # nothing to choose but the cutoff
+    best = exact
+    goal = target
+    for _ in range(CALIBRATION_ROUNDS):
+        lo, hi = _tiny_step(spec), max(target, 1e-9) * 1e4
+        for _ in range(STEP_ITERATIONS):
+            mid = math.sqrt(lo * hi)
+            if spec.proxy_rmse(cutoff, mid) <= goal:
+                lo = mid
+            else:
+                hi = mid
+        trial = spec.trial(cutoff, lo)
+        if trial.rmse <= target:
+            if trial.step > best.step:
+                best = trial
+            if trial.rmse > 0.97 * target:
+                break
+        # The proxy counts filled cells too; correct its goal by what we measured.
+        goal *= target / max(trial.rmse, 1e-12)
+    return best
+
+
+def _tiny_step(spec: _Spectrum) -> float:
+    # Fine enough that quantization is negligible next to any sensible target.
+    scale = float(np.abs(spec.reals(min(spec.coefs.size, 1))).max()) if spec.coefs.size else 1.0
+    return max(scale, 1.0) * 1e-9 if spec.params.storage == "quantized" else 0.0
+
+
+def _cutoffs(params: Params, cutoff_given: bool) -> tuple[float, ...]:
+    return (params.cutoff,) if cutoff_given else CUTOFF_CANDIDATES
+
+
+def _residual(spec: _Spectrum, trial: _Trial, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """Integers that bring every occupied cell within ``bound`` metres, and the corrected heights.
+
+    One integer per rebuilt cell, row-major; interpolated (footprint) cells
+    have no measured height and get 0.
+    """
+    step = 2.0 * bound * (1.0 - GUARANTEE_MARGIN)
+    err = np.where(spec.mask, spec.dem.heights - trial.heights, 0.0)[spec.kept_cells]
+    q = np.round(err / step).astype(np.int64)
+    heights = trial.heights.copy()
+    heights[spec.kept_cells] += q * step
+    return q, heights
+
+
+def _encode_residual(q: np.ndarray, coder: str) -> bytes:
+    flat = np.zeros(q.size)  # one band per chunk: the residual has no frequency
+    return coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder)
+
+
+def _decode_residual(blob: Any, count: int) -> np.ndarray:
+    flat = np.zeros(count)
+    return coding.decode_coefficients(blob, count, radius=flat, angle=flat)
+
+
+def _rate_control(spec: _Spectrum, params: Params, point_count: int, fixed_bytes: int,
+                  cutoff_given: bool) -> tuple[_Trial, bytes, np.ndarray | None, bytes]:
+    """Choose cutoff and step for the target in ``params``; returns trial, coefficients, residual."""
+    quantized = params.storage == "quantized"
+    best: tuple[int, float, _Trial, bytes, np.ndarray | None, bytes] | None = None
+    if params.target_rmse > 0:
+        for cutoff in _cutoffs(params, cutoff_given):
+            trial = _step_for_rmse(spec, cutoff, params.target_rmse)
+            if trial is None:
+                continue
+            blob = spec.encode(trial, exhaustive=False)
+            if best is None or len(blob) < best[0]:
+                best = (len(blob), trial.rmse, trial, blob, None, b"")
+            elif len(blob) > GIVE_UP_FACTOR * best[0]:
+                break  # past the best cutoff: sizes only grow from here
+        if best is None:
+            raise InvalidInputError(f"target RMSE {params.target_rmse} m cannot be reached")
+    elif params.target_max_error > 0:
+        bound = params.target_max_error
+        steps = [bound * f for f in MAX_ERROR_STEP_FACTORS] if quantized else [0.0]
+        for cutoff in _cutoffs(params, cutoff_given):
+            for step in steps:
+                trial = spec.trial(cutoff, step)
+                q, _ = _residual(spec, trial, bound)
+                blob = spec.encode(trial, exhaustive=False)
+                resid = _encode_residual(q, params.coder)
+                size = len(blob) + len(resid)
+                if best is None or size < best[0]:
+                    best = (size, trial.rmse, trial, blob, q, resid)
+    else:  # target_bpp
+        budget = int(params.target_bpp * point_count / 8) - fixed_bytes
+        if budget <= 0:
+            raise InvalidInputError(
+                f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header "
+                f"alone need {8 * fixed_bytes / point_count:.4f} bits/point")
+        for cutoff in _cutoffs(params, cutoff_given):
+            if quantized:
+                lo, hi = _tiny_step(spec) * 1e3, 1e4
+                found = None
+                for _ in range(STEP_ITERATIONS):
+                    mid = math.sqrt(lo * hi)
+                    trial = spec.trial(cutoff, mid)
+                    blob = spec.encode(trial, exhaustive=False)
+                    if len(blob) <= budget:
+                        found, hi = (trial, blob), mid
+                    else:
+                        lo = mid
+                if found is None:
+                    continue
+                trial, blob = found
+            else:
+                trial = spec.trial(cutoff, 0.0)
+                blob = spec.encode(trial, exhaustive=False)
+                if len(blob) > budget:
+                    continue
+            if best is None or trial.rmse < best[1]:
+                best = (len(blob), trial.rmse, trial, blob, None, b"")
+        if best is None:
+            raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be reached with these settings")
+    _, _, trial, _, q, resid = best
+    # The search sized candidates with one band layout; the file gets the best per chunk.
+    return trial, spec.encode(trial), q, resid
 
 
 def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
-               crs: dict[str, Any] | None = None, on_stage: Stage = _noop) -> bytes:
+               crs: dict[str, Any] | None = None, on_stage: Stage = _noop,
+               cutoff_given: bool = True) -> bytes:
     """Code an already gridded DEM (e.g. a GeoTIFF) with ``params``.
 
     Parameters
@@ -95,85 +341,85 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     dem : DEM
         Heights relative to ``dem.grid.z0`` (metres) and occupancy.
     params : Params
+        With a target set, rate control chooses ``cutoff`` (unless
+        ``cutoff_given``) and ``step``.
     point_count : int, optional
         Points of the original cloud (for bits per point); default: occupied cells.
+    cutoff_given : bool
+        Whether ``params.cutoff`` was chosen by the user (rate control then
+        only chooses the step).
     """
     if not dem.mask.any():
         raise InvalidInputError("the map has no occupied cell")
-    mask = dem.mask
-    n_occupied = int(mask.sum())
-    point_count = n_occupied if point_count is None else point_count
+    point_count = int(dem.mask.sum()) if point_count is None else point_count
     on_stage("spectrum")
-    plane = fit_plane(dem) if params.detrend == "plane" else (0.0, 0.0, 0.0)
-    trend = plane_values(plane, dem.grid.shape) if params.detrend == "plane" else 0.0
-    filled = fill_empty(dem.heights - trend, mask, method=params.fill)
-    lay = spectrum.layout(params.transform, params.storage, dem.grid.shape)
-    order = spectrum.kept_order(lay, params.cutoff)
-    kept = spectrum.forward(filled, lay).ravel()[order]
+    spec = _Spectrum(dem, params)
+    mask_blob = coding.encode_mask(spec.kept_cells)
 
     on_stage("encode")
     floor = dem.gridding_rmse or 0.0
-    if params.storage == "complex64":
-        stream = kept.astype(np.complex64)
-        decoded = stream.astype(np.complex128)
-    else:
-        reals = _as_reals(kept)
+    if not params.has_target:
         step = params.step
-        if step == 0.0:
+        if params.storage == "quantized" and step == 0.0:
             target = max(QUANT_FLOOR_FRACTION * floor, MIN_QUANT_RMSE)
-            step = coding.choose_step(reals, target_rmse=target, n_cells=dem.grid.size,
-                                      deadzone=params.deadzone)
-            params = params.replace(step=step)
-        stream = coding.quantize(reals, step, params.deadzone)
-        decoded = _from_reals(coding.dequantize(stream, step), lay)
-    coef_blob = coding.encode_coefficients(stream)
-    mask_blob = coding.encode_mask(mask)
+            step = coding.choose_step(spec.reals(spec.count(params.cutoff)), target_rmse=target,
+                                      n_cells=dem.grid.size, deadzone=params.deadzone)
+        trial = spec.trial(params.cutoff, step)
+        return _finish(spec, params.replace(step=step), trial, spec.encode(trial), None, b"", mask_blob,
+                       point_count, crs, on_stage)
+    # Rate control. For a size target the header's own bytes count too: start
+    # from an estimate, then shrink the budget by any overshoot.
+    overhead = len(mask_blob) + HEADER_ESTIMATE
+    for _ in range(BUDGET_ROUNDS):
+        trial, coef_blob, q_resid, resid_blob = _rate_control(spec, params, point_count, overhead, cutoff_given)
+        data = _finish(spec, params.replace(cutoff=trial.cutoff, step=trial.step), trial, coef_blob, q_resid,
+                       resid_blob, mask_blob, point_count, crs, on_stage)
+        if params.target_bpp <= 0 or 8 * len(data) <= params.target_bpp * point_count:
+            return data
+        # Measured now: everything but the coefficients, plus room for the
+        # statistics' digits to change with the next candidate.
+        overhead = len(data) - len(coef_blob) - len(resid_blob) + STATS_SLACK
+    raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be met with these settings")
 
-    # Measure what the decoder will rebuild, so the file states its own error.
-    rebuilt = _synthesise(decoded, order, lay) + trend
-    err = (rebuilt - dem.heights)[mask]
+
+def _finish(spec: _Spectrum, params: Params, trial: _Trial, coef_blob: bytes, q_resid: np.ndarray | None,
+            resid_blob: bytes, mask_blob: bytes, point_count: int, crs: dict[str, Any] | None,
+            on_stage: Stage) -> bytes:
+    """Measure what the decoder will rebuild and pack the file with those figures."""
+    dem, occupied = spec.dem, spec.mask
+    floor = dem.gridding_rmse or 0.0
+    heights = trial.heights
+    if q_resid is not None:
+        _, heights = _residual(spec, trial, params.target_max_error)
+    err = (heights - dem.heights)[occupied]
     stats: dict[str, Any] = {
         "dem_rmse_m": float(np.sqrt(np.mean(err * err))),
         "dem_max_error_m": float(np.abs(err).max()),
         "gridding_rmse_m": floor,
         "mask_bytes": len(mask_blob),
         "coef_bytes": len(coef_blob),
+        "residual_bytes": len(resid_blob),
+        "cells_interpolated": int(spec.kept_cells.sum()) - int(occupied.sum()),
     }
     if dem.counts is not None and params.aggregate == "mean":
         # Per cell, points scatter about their mean, so the errors add in quadrature.
-        weighted = float(np.sum(dem.counts[mask] * err * err)) / max(int(dem.counts.sum()), 1)
+        weighted = float(np.sum(dem.counts[occupied] * err * err)) / max(int(dem.counts.sum()), 1)
         stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
-    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=n_occupied,
-                    plane=plane, crs=crs or {}, stats=stats, coef_count=int(order.size))
+    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(spec.kept_cells.sum()),
+                    plane=spec.plane, crs=crs or {}, stats=stats, coef_count=spec.count(params.cutoff))
     on_stage("container")
-    return pack(header, mask_blob, coef_blob)
+    return pack(header, mask_blob, coef_blob, resid_blob)
 
 
-def _as_reals(kept: np.ndarray) -> np.ndarray:
-    """Real values to quantize: a complex coefficient becomes (real, imag)."""
-    if np.iscomplexobj(kept):
-        return kept.view(np.float64).copy()
-    return kept
-
-
-def _from_reals(values: np.ndarray, lay: spectrum.Layout) -> np.ndarray:
-    if lay.kind == "dct":
-        return values
-    return values.view(np.complex128)
-
-
-def _synthesise(kept: np.ndarray, order: np.ndarray, lay: spectrum.Layout) -> np.ndarray:
-    coefs = np.zeros(lay.coef_shape, dtype=kept.dtype if np.iscomplexobj(kept) else np.float64)
-    coefs.ravel()[order[: kept.size]] = kept
-    return spectrum.inverse(coefs, lay)
-
-
-def decode_dem(header: Header, mask_blob: bytes | memoryview, coef_blob: bytes | memoryview,
-               *, cutoff: float | None = None, allow_partial: bool = False) -> DEM:
+def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None = None,
+               allow_partial: bool = False) -> DEM:
     """Rebuild the DEM of a parsed file.
 
     Parameters
     ----------
+    header : Header
+    blobs : dict
+        Coded sections from :func:`dftpcc.container.unpack`.
     cutoff : float, optional
         Decode with a larger cutoff than the file was made with (fewer
         coefficients, coarser map). Must be at least the file's cutoff.
@@ -181,19 +427,24 @@ def decode_dem(header: Header, mask_blob: bytes | memoryview, coef_blob: bytes |
         Accept a truncated coefficient section and decode its whole chunks.
     """
     params, grid = header.params, header.grid
-    mask = coding.decode_mask(mask_blob, grid.shape)
+    mask = coding.decode_mask(blobs[b"MASK"], grid.shape)
     if int(mask.sum()) != header.cell_count:
         raise CorruptFileError("occupancy mask disagrees with the header's cell count")
     lay = spectrum.layout(params.transform, params.storage, grid.shape)
-    order = spectrum.kept_order(lay, params.cutoff)
-    if order.size != header.coef_count:
+    n = spectrum.kept_count(lay, params.cutoff)
+    if n != header.coef_count:
         raise CorruptFileError("coefficient count disagrees with the grid and cutoff")
+    order, radii, angles = spectrum.full_order(lay)
     per_coef = 2 if (lay.kind == "half" and params.storage == "quantized") else 1
-    stream = coding.decode_coefficients(coef_blob, order.size * per_coef, allow_partial=allow_partial)
+    radius, angle = np.repeat(radii[:n], per_coef), np.repeat(angles[:n], per_coef)
+    stream = coding.decode_coefficients(blobs[b"COEF"], n * per_coef, radius=radius, angle=angle,
+                                        allow_partial=allow_partial)
     if params.storage == "quantized":
         if stream.dtype.kind != "i":
             raise CorruptFileError("quantized file holds float coefficients")
-        values = _from_reals(coding.dequantize(stream[: stream.size - stream.size % per_coef], params.step), lay)
+        values = coding.dequantize(stream[: stream.size - stream.size % per_coef], params.step)
+        if per_coef == 2:
+            values = values.view(np.complex128)
     else:
         if stream.dtype.kind != "c":
             raise CorruptFileError("complex64 file holds integer coefficients")
@@ -204,10 +455,17 @@ def decode_dem(header: Header, mask_blob: bytes | memoryview, coef_blob: bytes |
         if cutoff < params.cutoff:
             raise InvalidInputError(
                 f"cannot decode at cutoff {cutoff}: the file keeps only frequencies up to cutoff {params.cutoff}")
-        values = values[: spectrum.kept_order(lay, cutoff).size]
-    heights = _synthesise(values, order, lay)
+        values = values[: spectrum.kept_count(lay, cutoff)]
+    coefs = np.zeros(lay.coef_shape, dtype=values.dtype)
+    coefs.ravel()[order[: values.size]] = values
+    heights = spectrum.inverse(coefs, lay)
     if params.detrend == "plane":
         heights += plane_values(header.plane, grid.shape)
+    complete = values.size == n and cutoff is None
+    if b"RESD" in blobs and complete:
+        # The residual layer only applies to the full-resolution map it was computed for.
+        q = _decode_residual(blobs[b"RESD"], int(mask.sum()))
+        heights[mask] += q * (2.0 * params.target_max_error * (1.0 - GUARANTEE_MARGIN))
     return DEM(grid=grid, heights=heights, mask=mask)
 
 
@@ -232,6 +490,6 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
         if max_bytes <= 0:
             raise InvalidInputError(f"max_bytes must be positive, got {max_bytes}")
         data = data[:max_bytes]
-    header, mask_blob, coef_blob = unpack(data, allow_truncated_coef=max_bytes is not None)
-    dem = decode_dem(header, mask_blob, coef_blob, cutoff=cutoff, allow_partial=max_bytes is not None)
+    header, blobs = unpack(data, allow_truncated_coef=max_bytes is not None)
+    dem = decode_dem(header, blobs, cutoff=cutoff, allow_partial=max_bytes is not None)
     return dem_to_points(dem)

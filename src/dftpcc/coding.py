@@ -2,8 +2,15 @@
 
 Coefficients arrive ordered from low to high frequency. They are cut into
 chunks of geometrically growing length, each coded on its own, so any prefix
-of whole chunks decodes to a coarser map (progressive decoding). The
-occupancy mask is bit-packed and zstd-compressed.
+of whole chunks decodes to a coarser map (progressive decoding). Inside a
+chunk, integers are coded either with zstd (the baseline) or with an ANS
+coder (constriction) under a Laplace model whose scale is sent per frequency
+band (rings of ``BAND_WIDTH`` frequency pixels): magnitudes fall with
+frequency, so each ring gets the model that fits it.
+
+The occupancy mask is coded line by line with an adaptive context model
+(the cells of the two previous lines around it), or bit-packed and zstd'd
+when that is smaller.
 """
 
 from __future__ import annotations
@@ -12,8 +19,14 @@ import math
 import struct
 import zlib
 
+import warnings
+
 import numpy as np
 import zstandard
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    import constriction
 
 from .errors import CorruptFileError
 
@@ -35,8 +48,26 @@ CHUNK_GROWTH = 2
 #: Chunk header: coefficient count, payload bytes, CRC-32 of the payload.
 _CHUNK = struct.Struct("<IIII")  # count, nbytes, crc32, element kind
 #: Element kinds inside a chunk.
-KIND_INT = 0
-KIND_COMPLEX64 = 1
+KIND_INT = 0  # zigzag byte planes, zstd
+KIND_COMPLEX64 = 1  # raw little-endian complex64 (the paper)
+KIND_ANS = 2  # Laplace model per band, ANS-coded
+#: Ways to cut a chunk into frequency bands, one Laplace scale each:
+#: (ring width in DFT frequency pixels, angular sectors). The encoder keeps,
+#: per chunk, the one that codes it smallest (side information included):
+#: terrain spectra are often directional (ridges, furrows, slopes).
+BAND_LAYOUTS = ((4.0, 1), (8.0, 1), (4.0, 4), (8.0, 4), (4.0, 16), (8.0, 16))
+#: Band scales are sent as 8-bit codes on a log2 grid of 1/SCALE_STEPS octave.
+SCALE_STEPS = 8
+SCALE_BIAS = 128
+#: Smallest Laplace scale used (in quantizer steps); keeps probabilities nonzero.
+MIN_SCALE = 0.05
+#: Band scales are few and small: a fast zstd level codes them as well as a slow one.
+_SIDE_ZSTD = zstandard.ZstdCompressor(level=3)
+#: Largest integer the ANS coder takes; a chunk with larger ones falls back
+#: to zstd. The coder gives every integer of the support a nonzero
+#: probability out of 2**24, so a wide support wastes rate on every symbol.
+MAX_ANS_SYMBOL = 1 << 15
+_ANS_HEAD = struct.Struct("<BII")  # band layout, largest |q| in the chunk, number of band codes
 #: A chunk never holds more coefficients than this (guards allocation on decode).
 MAX_CHUNK_COEFS = 1 << 28
 
@@ -143,12 +174,104 @@ def _unzstd(dctx: zstandard.ZstdDecompressor, payload: bytes, limit: int, what: 
         raise CorruptFileError(f"{what} does not decompress: {exc}") from None
 
 
-def encode_coefficients(values: np.ndarray) -> bytes:
+def band_ids(radius: np.ndarray, angle: np.ndarray, layout: int) -> np.ndarray:
+    """Band number of each coefficient under ``BAND_LAYOUTS[layout]``.
+
+    ``radius`` is in DFT frequency pixels, ``angle`` scaled to [0, 1].
+    """
+    width, sectors = BAND_LAYOUTS[layout]
+    sector = np.minimum((angle * sectors).astype(np.int64), sectors - 1)
+    return (radius / width).astype(np.int64) * sectors + sector
+
+
+def _band_scales(q: np.ndarray, bands: np.ndarray) -> tuple[int, np.ndarray]:
+    """First band and 8-bit log-scale codes of the bands in ``bands`` (0 = all zero)."""
+    lo = int(bands.min())
+    local = bands - lo
+    n = int(local.max()) + 1
+    mean_abs = np.bincount(local, weights=np.abs(q).astype(np.float64), minlength=n)
+    count = np.bincount(local, minlength=n)
+    # The maximum-likelihood Laplace scale of a band is its mean |q|.
+    b = np.divide(mean_abs, count, out=np.zeros(n), where=count > 0)
+    codes = np.where(b > 0, np.clip(np.round(np.log2(np.maximum(b, 1e-12)) * SCALE_STEPS) + SCALE_BIAS, 1, 255), 0)
+    return lo, codes.astype(np.uint8)
+
+
+def _scale_of(codes: np.ndarray) -> np.ndarray:
+    return np.where(codes > 0, np.maximum(2.0 ** ((codes.astype(np.float64) - SCALE_BIAS) / SCALE_STEPS), MIN_SCALE), 0.0)
+
+
+def _laplace(max_abs: int):
+    return constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1)
+
+
+def _encode_ans_with(q: np.ndarray, bands: np.ndarray, layout: int, max_abs: int) -> bytes:
+    lo, codes = _band_scales(q, bands)
+    # Zero codes compress well: most high-frequency bands are empty at low rates.
+    side = _SIDE_ZSTD.compress(codes.tobytes())
+    scale = _scale_of(codes)[bands - lo]
+    live = scale > 0
+    words = np.zeros(0, dtype=np.uint32)
+    if live.any():
+        coder = constriction.stream.stack.AnsCoder()
+        coder.encode_reverse(q[live].astype(np.int32), _laplace(max_abs), np.zeros(int(live.sum())), scale[live])
+        words = coder.get_compressed()
+    return _ANS_HEAD.pack(layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
+
+
+def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: bool) -> bytes:
+    max_abs = int(np.abs(q).max()) if q.size else 0
+    layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
+    return min((_encode_ans_with(q, band_ids(radius, angle, k), k, max_abs) for k in layouts), key=len)
+
+
+def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str) -> np.ndarray:
+    if len(payload) < _ANS_HEAD.size:
+        raise CorruptFileError(f"{what} is too short")
+    layout, max_abs, side_len = _ANS_HEAD.unpack_from(payload, 0)
+    if layout >= len(BAND_LAYOUTS) or max_abs > MAX_ANS_SYMBOL:
+        raise CorruptFileError(f"{what} has an implausible header")
+    bands = band_ids(radius, angle, layout)
+    lo = int(bands.min())
+    ncodes = int(bands.max()) - lo + 1
+    end = _ANS_HEAD.size + side_len
+    if len(payload) < end or (len(payload) - end) % 4:
+        raise CorruptFileError(f"{what} has a wrong length")
+    codes = np.frombuffer(_unzstd(zstandard.ZstdDecompressor(), payload[_ANS_HEAD.size:end], ncodes, what),
+                          dtype=np.uint8)
+    if codes.size != ncodes:
+        raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
+    scale = _scale_of(codes)[bands - lo]
+    live = scale > 0
+    out = np.zeros(bands.size, dtype=np.int64)
+    if live.any():
+        words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
+        try:
+            coder = constriction.stream.stack.AnsCoder(words)
+            out[live] = coder.decode(_laplace(max_abs), np.zeros(int(live.sum())), scale[live])
+        except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
+            raise CorruptFileError(f"{what} does not decode: {exc}") from None
+    return out
+
+
+def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
+                        angle: np.ndarray | None = None, coder: str = "ans", exhaustive: bool = True) -> bytes:
     """Code an ordered coefficient stream as self-checking chunks.
 
-    ``values`` is either int64 (quantized, zstd-coded) or complex64 (the
-    paper's raw storage, stored as is: real and imaginary float32, little
-    endian).
+    Parameters
+    ----------
+    values : ndarray
+        int64 (quantized) or complex64 (the paper's raw storage, stored as
+        is: real and imaginary float32, little endian).
+    radius, angle : ndarray, optional
+        Frequency of each value (radius in DFT frequency pixels, angle scaled
+        to [0, 1]); needed by ``coder='ans'``, which models by band.
+    coder : {'ans', 'zstd'}
+        Entropy coder for integer chunks. ``ans`` falls back to zstd for a
+        chunk whose values exceed :data:`MAX_ANS_SYMBOL`.
+    exhaustive : bool
+        Try every band layout per chunk (``False``: the first only; faster,
+        for rate-control searches that only need a size estimate).
     """
     out = [struct.pack("<I", len(_chunk_bounds(values.size)))]
     complex_kind = np.iscomplexobj(values)
@@ -157,6 +280,8 @@ def encode_coefficients(values: np.ndarray) -> bytes:
         part = values[start:stop]
         if complex_kind:
             payload, kind = part.astype("<c8").tobytes(), KIND_COMPLEX64
+        elif coder == "ans" and radius is not None and int(np.abs(part).max()) <= MAX_ANS_SYMBOL:
+            payload, kind = _encode_ans(part, radius[start:stop], angle[start:stop], exhaustive), KIND_ANS
         else:
             payload, kind = cctx.compress(_pack_ints(part)), KIND_INT
         out.append(_CHUNK.pack(stop - start, len(payload), zlib.crc32(payload), kind))
@@ -164,7 +289,8 @@ def encode_coefficients(values: np.ndarray) -> bytes:
     return b"".join(out)
 
 
-def decode_coefficients(blob: bytes | memoryview, expected: int, *, allow_partial: bool = False) -> np.ndarray:
+def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.ndarray | None = None,
+                        angle: np.ndarray | None = None, allow_partial: bool = False) -> np.ndarray:
     """Inverse of :func:`encode_coefficients`.
 
     Parameters
@@ -173,6 +299,8 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, allow_partia
         The coefficient section (possibly truncated when ``allow_partial``).
     expected : int
         Number of coefficients the header announces.
+    radius, angle : ndarray, optional
+        Frequency of each of the ``expected`` values (needed for ANS chunks).
     allow_partial : bool
         Return the coefficients of the whole chunks present instead of
         raising when the section is cut short (progressive decoding).
@@ -210,31 +338,126 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, allow_partia
         pos += nbytes
         if zlib.crc32(payload) != crc:
             raise CorruptFileError(f"coefficient chunk {index} fails its checksum")
+        what = f"coefficient chunk {index}"
         if kind == KIND_COMPLEX64:
             if nbytes != 8 * count:
-                raise CorruptFileError(f"coefficient chunk {index} has a wrong length")
+                raise CorruptFileError(f"{what} has a wrong length")
             parts.append(np.frombuffer(payload, dtype="<c8").astype(np.complex128))
         elif kind == KIND_INT:
-            raw = _unzstd(dctx, payload, 1 + 8 * count, f"coefficient chunk {index}")
+            raw = _unzstd(dctx, payload, 1 + 8 * count, what)
             parts.append(_unpack_ints(raw, count))
+        elif kind == KIND_ANS:
+            if radius is None or angle is None or radius.size < stop:
+                raise CorruptFileError(f"{what} is ANS-coded but no frequencies are known")
+            parts.append(_decode_ans(payload, radius[start:stop], angle[start:stop], what))
         else:
-            raise CorruptFileError(f"coefficient chunk {index} has unknown kind {kind}")
+            raise CorruptFileError(f"{what} has unknown kind {kind}")
     if not parts:
         return np.zeros(0, dtype=np.int64)
-    if len({p.dtype for p in parts}) != 1:
+    if len({p.dtype.kind for p in parts}) != 1:
         raise CorruptFileError("coefficient chunks mix kinds")
     return np.concatenate(parts)
 
 
+#: Mask coding kinds (first byte of the mask section).
+MASK_ZSTD = 0
+MASK_CONTEXT = 1
+#: Causal neighbours (line offset, cell offset) of the context model: two
+#: previous lines only, so a whole line decodes in one vectorised call.
+MASK_TEMPLATE = ((-1, -1), (-1, 0), (-1, 1), (-2, 0), (-1, -2), (-1, 2), (-2, -1), (-2, 1))
+#: Krichevsky-Trofimov-like prior of the adaptive counts.
+_PRIOR_ONES, _PRIOR_TOTAL = 0.4, 0.8
+_MASK_HEAD = struct.Struct("<BB")  # kind, transposed
+
+
+def _mask_contexts(lines: np.ndarray, i: int) -> np.ndarray:
+    """Context number of every cell of line ``i`` from lines ``i-2`` and ``i-1``."""
+    width = lines.shape[1]
+    ctx = np.zeros(width, dtype=np.int64)
+    for bit, (dl, dc) in enumerate(MASK_TEMPLATE):
+        j = i + dl
+        if j < 0:
+            continue
+        row = lines[j]
+        shifted = np.zeros(width, dtype=np.int64)
+        if dc >= 0:
+            shifted[: width - dc] = row[dc:]
+        else:
+            shifted[-dc:] = row[: width + dc]
+        ctx |= shifted << bit
+    return ctx
+
+
+def _context_probabilities(ones: np.ndarray, total: np.ndarray, ctx: np.ndarray) -> np.ndarray:
+    return (ones[ctx] + _PRIOR_ONES) / (total[ctx] + _PRIOR_TOTAL)
+
+
+def _bernoulli():
+    return constriction.stream.model.Bernoulli(perfect=False)
+
+
+def _encode_mask_context(lines: np.ndarray) -> bytes:
+    n = 1 << len(MASK_TEMPLATE)
+    ones, total = np.zeros(n), np.zeros(n)
+    probs = np.empty(lines.shape, dtype=np.float64)
+    for i in range(lines.shape[0]):
+        ctx = _mask_contexts(lines, i)
+        probs[i] = _context_probabilities(ones, total, ctx)
+        ones += np.bincount(ctx, weights=lines[i], minlength=n)
+        total += np.bincount(ctx, minlength=n)
+    coder = constriction.stream.stack.AnsCoder()
+    coder.encode_reverse(lines.ravel().astype(np.int32), _bernoulli(), probs.ravel())
+    return coder.get_compressed().astype("<u4").tobytes()
+
+
+def _decode_mask_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
+    if len(payload) % 4:
+        raise CorruptFileError("occupancy mask has a wrong length")
+    n = 1 << len(MASK_TEMPLATE)
+    ones, total = np.zeros(n), np.zeros(n)
+    lines = np.zeros(shape, dtype=np.int64)
+    try:
+        coder = constriction.stream.stack.AnsCoder(np.frombuffer(payload, dtype="<u4").astype(np.uint32))
+        for i in range(shape[0]):
+            ctx = _mask_contexts(lines, i)
+            lines[i] = coder.decode(_bernoulli(), _context_probabilities(ones, total, ctx))
+            ones += np.bincount(ctx, weights=lines[i], minlength=n)
+            total += np.bincount(ctx, minlength=n)
+    except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
+        raise CorruptFileError(f"occupancy mask does not decode: {exc}") from None
+    return lines.astype(bool)
+
+
 def encode_mask(mask: np.ndarray) -> bytes:
-    """Bit-packed occupancy (row-major), zstd-compressed."""
-    return zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(np.packbits(mask.ravel()).tobytes())
+    """Code the occupancy mask; the smaller of the context model and zstd wins.
+
+    The context coder runs along the longer axis, line after line across
+    the shorter one, so there are as few sequential steps as possible.
+    """
+    transposed = mask.shape[0] > mask.shape[1]
+    lines = (mask.T if transposed else mask).astype(np.int64)
+    candidates = [
+        _MASK_HEAD.pack(MASK_CONTEXT, transposed) + _encode_mask_context(lines),
+        _MASK_HEAD.pack(MASK_ZSTD, 0)
+        + zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(np.packbits(mask.ravel()).tobytes()),
+    ]
+    return min(candidates, key=len)
 
 
 def decode_mask(blob: bytes | memoryview, shape: tuple[int, int]) -> np.ndarray:
     """Inverse of :func:`encode_mask`; checks the size against ``shape``."""
+    blob = bytes(blob)
+    if len(blob) < _MASK_HEAD.size:
+        raise CorruptFileError("occupancy mask is truncated")
+    kind, transposed = _MASK_HEAD.unpack_from(blob, 0)
+    payload = blob[_MASK_HEAD.size:]
+    if kind == MASK_CONTEXT and transposed in (0, 1):
+        lines = _decode_mask_context(payload, (shape[1], shape[0]) if transposed else shape)
+        return lines.T.copy() if transposed else lines
+    if kind != MASK_ZSTD:
+        raise CorruptFileError(f"occupancy mask has unknown coding {kind}")
     nbytes = (shape[0] * shape[1] + 7) // 8
-    raw = _unzstd(zstandard.ZstdDecompressor(), bytes(blob), nbytes, "occupancy mask")
+    raw = _unzstd(zstandard.ZstdDecompressor(), payload, nbytes, "occupancy mask")
     if len(raw) != nbytes:
         raise CorruptFileError("occupancy mask has the wrong size for the grid")
     bits = np.unpackbits(np.frombuffer(raw, dtype=np.uint8), count=shape[0] * shape[1])

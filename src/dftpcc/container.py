@@ -83,8 +83,12 @@ class Header:
     coef_count: int = 0
 
 
-def pack(header: Header, mask_blob: bytes, coef_blob: bytes) -> bytes:
-    """Serialise a map into ``.dftpc`` bytes."""
+def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes = b"") -> bytes:
+    """Serialise a map into ``.dftpc`` bytes.
+
+    ``resid_blob`` is the optional residual layer (max-error guarantee); it
+    follows the coefficients, so a prefix of the file still decodes.
+    """
     g = header.grid
     geom = _GEOM.pack(g.x0, g.y0, g.z0, g.resolution, g.rows, g.cols, g.angle,
                       header.point_count, header.cell_count, *header.plane)
@@ -95,8 +99,8 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes) -> bytes:
         (b"CRS ", json.dumps(header.crs, sort_keys=True).encode()),
         (b"STAT", json.dumps(info, sort_keys=True).encode()),
         (b"MASK", mask_blob),
-        (b"COEF", coef_blob),  # last, so a prefix of the file carries the low frequencies
-    ]
+        (b"COEF", coef_blob),  # late, so a prefix of the file carries the low frequencies
+    ] + ([(b"RESD", resid_blob)] if resid_blob else [])
     offset = _PREAMBLE.size + len(sections) * _ENTRY.size + _CRC.size
     table = []
     for tag, payload in sections:
@@ -135,6 +139,8 @@ def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, me
             if tag == b"COEF" and allow_truncated_coef:
                 found[tag] = data[offset:] if offset <= len(data) else data[0:0]
                 continue
+            if tag == b"RESD" and allow_truncated_coef:
+                continue
             raise CorruptFileError(f"file is truncated: section {name} needs bytes up to {end}, file has {len(data)}")
         payload = data[offset:end]
         if zlib.crc32(payload) != crc:
@@ -153,14 +159,17 @@ def _json(payload: memoryview, name: str) -> Any:
         raise CorruptFileError(f"section {name} is not valid JSON: {exc}") from None
 
 
-def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False) -> tuple[Header, memoryview, memoryview]:
+def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False) -> tuple[Header, dict[bytes, memoryview]]:
     """Parse and check ``.dftpc`` bytes.
 
     Returns
     -------
     header : Header
-    mask_blob, coef_blob : memoryview
-        The coded mask and coefficient sections (not yet decoded).
+    blobs : dict
+        Payloads of the coded sections by tag (``b"MASK"``, ``b"COEF"``,
+        ``b"RESD"`` when present), not yet decoded. With
+        ``allow_truncated_coef`` a cut-short COEF is returned as far as it
+        goes and a missing or cut RESD is left out.
 
     Raises
     ------
@@ -192,7 +201,7 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False) -> t
     grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle)
     header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,
                     plane=(pa, pb, pc), crs=crs, stats=stats, coef_count=coef_count)
-    return header, found[b"MASK"], found[b"COEF"]
+    return header, {tag: found[tag] for tag in (b"MASK", b"COEF", b"RESD") if tag in found}
 
 
 class CompressedMap:
@@ -211,7 +220,7 @@ class CompressedMap:
             data = data[:max_bytes]
         self._data = data
         self._partial = max_bytes is not None
-        self.header, self._mask_blob, self._coef_blob = unpack(data, allow_truncated_coef=self._partial)
+        self.header, self._blobs = unpack(data, allow_truncated_coef=self._partial)
 
     # Context-manager protocol, like rasterio.open: nothing to release but
     # the buffer, yet `with dftpcc.open(...) as m:` reads naturally.
@@ -240,8 +249,7 @@ class CompressedMap:
         """The rebuilt DEM (see :func:`dftpcc.codec.decode_dem`)."""
         from .codec import decode_dem
 
-        return decode_dem(self.header, self._mask_blob, self._coef_blob, cutoff=cutoff,
-                          allow_partial=self._partial)
+        return decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
 
     def read_points(self, *, cutoff: float | None = None) -> np.ndarray:
         """The rebuilt cloud, shape (cells, 3), float64, original frame (metres)."""

@@ -23,6 +23,8 @@ TRANSFORMS = ("dft", "dct")
 DETRENDS = ("none", "plane")
 FILLS = ("zero", "smooth")
 STORAGES = ("complex64", "quantized")
+CODERS = ("ans", "zstd")
+MASKS = ("exact", "footprint")
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,23 @@ class Params:
     deadzone : float
         Rounding offset of the dead-zone quantizer in steps, in [0, 0.5):
         values with ``|c| < (0.5 + deadzone) * step`` become zero.
+    coder : str
+        Entropy coder of quantized coefficients: ``ans`` (Laplace model per
+        frequency band) or ``zstd``.
+    mask : str
+        ``exact``: rebuild exactly the occupied cells. ``footprint``: also
+        the empty cells enclosed by the map (gaps between scan lines,
+        occluded spots), which makes the mask far cheaper; those cells get
+        interpolated heights.
+    target_rmse : float
+        If > 0, rate control: the smallest file whose rebuilt DEM is within
+        this RMSE (metres) of the gridded DEM on occupied cells.
+    target_max_error : float
+        If > 0, every occupied cell of the rebuilt DEM is within this many
+        metres of the gridded DEM (a residual layer guarantees it).
+    target_bpp : float
+        If > 0, the most accurate file of at most this many bits per
+        original point.
     """
 
     resolution: float
@@ -71,7 +90,12 @@ class Params:
     fill: str = "smooth"
     storage: str = "quantized"
     step: float = 0.0
-    deadzone: float = 0.2
+    deadzone: float = 0.1
+    coder: str = "ans"
+    mask: str = "exact"
+    target_rmse: float = 0.0
+    target_max_error: float = 0.0
+    target_bpp: float = 0.0
 
     def __post_init__(self) -> None:
         _check_positive("resolution", self.resolution)
@@ -84,6 +108,8 @@ class Params:
             ("detrend", DETRENDS),
             ("fill", FILLS),
             ("storage", STORAGES),
+            ("coder", CODERS),
+            ("mask", MASKS),
         ):
             value = getattr(self, name)
             if value not in allowed:
@@ -92,6 +118,17 @@ class Params:
             raise InvalidInputError(f"step must be a finite number >= 0 metres, got {self.step!r}")
         if not (0.0 <= self.deadzone < 0.5):
             raise InvalidInputError(f"deadzone must be in [0, 0.5), got {self.deadzone!r}")
+        targets = {name: getattr(self, name) for name in ("target_rmse", "target_max_error", "target_bpp")}
+        for name, value in targets.items():
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise InvalidInputError(f"{name} must be a finite number >= 0, got {value!r}")
+        if sum(v > 0 for v in targets.values()) > 1:
+            raise InvalidInputError("give at most one of target_rmse, target_max_error, target_bpp")
+
+    @property
+    def has_target(self) -> bool:
+        """True when rate control chooses the cutoff and the step."""
+        return self.target_rmse > 0 or self.target_max_error > 0 or self.target_bpp > 0
 
     def replace(self, **changes: Any) -> "Params":
         """A copy with some fields changed (validated again)."""

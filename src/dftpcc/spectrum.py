@@ -36,6 +36,8 @@ __all__ = [
     "forward",
     "inverse",
     "kept_order",
+    "kept_count",
+    "full_order",
 ]
 
 #: Worker threads for scipy.fft; -1 uses every core.
@@ -55,6 +57,9 @@ class Layout:
         Shape of the coefficient array.
     radius : ndarray, shape coef_shape
         Distance of each coefficient from DC in DFT frequency pixels.
+    angle : ndarray, shape coef_shape
+        Direction of each coefficient's frequency, scaled to [0, 1] over the
+        half-plane (``full``, ``half``) or quadrant (``dct``) the layout covers.
     """
 
     def __init__(self, kind: str, shape: tuple[int, int]):
@@ -74,6 +79,9 @@ class Layout:
             raise ValueError(f"unknown layout {kind!r}")
         self.coef_shape = (du.size, dv.size)
         self.radius = np.hypot(du[:, None], dv[None, :])
+        span = {"full": 2 * math.pi, "half": math.pi, "dct": math.pi / 2}[kind]
+        start = {"full": -math.pi, "half": -math.pi / 2, "dct": 0.0}[kind]
+        self.angle = np.clip((np.arctan2(du[:, None], dv[None, :]) - start) / span, 0.0, 1.0)
 
 
 def layout(transform: str, storage: str, shape: tuple[int, int]) -> Layout:
@@ -89,18 +97,41 @@ def radius_limit(shape: tuple[int, int], cutoff: float) -> float:
     return (1.0 - cutoff) * math.hypot(n / 2.0, m / 2.0)
 
 
+_ORDER_CACHE: dict[tuple[str, tuple[int, int]], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+_ORDER_CACHE_SIZE = 8
+
+
+def full_order(lay: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat indices of every coefficient from low to high radius, their radii and angles.
+
+    The order is deterministic (stable sort on radius, ties by index), so the
+    encoder and decoder derive it from the shape alone. Cached per shape:
+    sweeps and rate control ask for it many times.
+    """
+    key = (lay.kind, lay.shape)
+    if key not in _ORDER_CACHE:
+        if len(_ORDER_CACHE) >= _ORDER_CACHE_SIZE:
+            _ORDER_CACHE.pop(next(iter(_ORDER_CACHE)))
+        flat_radius = lay.radius.ravel()
+        order = np.argsort(flat_radius, kind="stable")
+        _ORDER_CACHE[key] = (order, flat_radius[order], lay.angle.ravel()[order])
+    return _ORDER_CACHE[key]
+
+
+def kept_count(lay: Layout, cutoff: float) -> int:
+    """How many coefficients lie inside the circle of ``cutoff``."""
+    _, radii, _ = full_order(lay)
+    # A hair of slack so a coefficient exactly on the circle is kept on every platform.
+    return int(np.searchsorted(radii, radius_limit(lay.shape, cutoff) * (1 + 1e-12), side="right"))
+
+
 def kept_order(lay: Layout, cutoff: float) -> np.ndarray:
     """Flat indices of the coefficients inside the circle, from low to high radius.
 
-    The order is deterministic (stable sort on radius, ties by index), so the
-    encoder and decoder derive it from the shape alone, and any prefix of the
-    stream is a smaller circle: the basis of progressive decoding.
+    Any prefix of the stream is a smaller circle: the basis of progressive
+    decoding.
     """
-    r = radius_limit(lay.shape, cutoff)
-    flat_radius = lay.radius.ravel()
-    # A hair of slack so a coefficient exactly on the circle is kept on every platform.
-    inside = np.flatnonzero(flat_radius <= r * (1 + 1e-12))
-    return inside[np.argsort(flat_radius[inside], kind="stable")]
+    return full_order(lay)[0][: kept_count(lay, cutoff)]
 
 
 def forward(values: np.ndarray, lay: Layout) -> np.ndarray:
