@@ -1,17 +1,21 @@
 """Command line: a thin shell over the Python API.
 
 Every command parses its flags, calls public functions, prints. Errors the
-library raises become one line on stderr and a documented exit code.
+library raises become one line on stderr and a documented exit code
+(docs/errors.md); warnings become one ``dftpcc: warning:`` line each.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import time
+import traceback
+import warnings
 from contextlib import contextmanager
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Sequence
 
 from . import __version__
 from .errors import (
@@ -19,20 +23,37 @@ from .errors import (
     DftpccError,
     InvalidInputError,
     MissingDependencyError,
+    ResourceLimitError,
     UnsupportedFormatError,
 )
 
-#: Exit status per failure, most specific first (documented in the README).
+#: Exit status per failure, most specific first (documented in docs/errors.md).
 EXIT_CODES: list[tuple[type[BaseException], int]] = [
     (UnsupportedFormatError, 4),
     (InvalidInputError, 3),
+    (ResourceLimitError, 8),
     (CorruptFileError, 5),
     (MissingDependencyError, 6),
     (DftpccError, 1),
     (OSError, 7),
+    (MemoryError, 9),
 ]
 EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
+#: An exception dftpcc did not raise on purpose: a bug (EX_SOFTWARE).
+EXIT_INTERNAL = 70
+#: Killed by a signal: 128 + its number (SIGINT 130, SIGTERM 143), as shells report.
+EXIT_SIGNAL_BASE = 128
+EXIT_INTERRUPTED = EXIT_SIGNAL_BASE + signal.SIGINT
+#: Signals that end a run cleanly (temporary files removed) instead of killing it.
+_STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+class _Stopped(BaseException):
+    """Raised in the main thread when a stop signal arrives, so ``finally`` blocks run."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
 
 
 def _cutoff(text: str) -> float:
@@ -308,21 +329,56 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _show_warning(message: Any, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    print(f"dftpcc: warning: {message}", file=sys.stderr)
+
+
+def _on_stop_signal(signum: int, _frame: Any) -> None:
+    raise _Stopped(signum)
+
+
+@contextmanager
+def _stop_signals_raise() -> Iterator[None]:
+    """SIGTERM and SIGHUP unwind the stack like Ctrl-C, so no temporary file is left."""
+    previous = {}
+    try:
+        for sig in _STOP_SIGNALS:
+            previous[sig] = signal.signal(sig, _on_stop_signal)
+    except ValueError:  # not the main thread: leave signals alone
+        pass
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except KeyboardInterrupt:
-        print("dftpcc: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except (DftpccError, OSError) as exc:
-        code = next(c for kind, c in EXIT_CODES if isinstance(exc, kind))
-        print(f"dftpcc: error: {exc}", file=sys.stderr)
-        return code
-    except MemoryError:
-        print("dftpcc: error: out of memory; try a coarser --resolution", file=sys.stderr)
-        return 1
+    with warnings.catch_warnings(), _stop_signals_raise():
+        warnings.showwarning = _show_warning
+        try:
+            return args.func(args)
+        except KeyboardInterrupt:
+            print("dftpcc: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
+        except _Stopped as stop:
+            print(f"dftpcc: stopped by signal {signal.Signals(stop.signum).name}", file=sys.stderr)
+            return EXIT_SIGNAL_BASE + stop.signum
+        except MemoryError:
+            print("dftpcc: error: out of memory; try a coarser --resolution", file=sys.stderr)
+            return dict(EXIT_CODES)[MemoryError]
+        except (DftpccError, OSError) as exc:
+            code = next(c for kind, c in EXIT_CODES if isinstance(exc, kind))
+            print(f"dftpcc: error: {exc}", file=sys.stderr)
+            return code
+        except Exception as exc:  # noqa: BLE001 - a bug: keep the traceback for the report
+            traceback.print_exc()
+            print(f"dftpcc: internal error: {type(exc).__name__}: {exc} (a bug in dftpcc; please report it "
+                  f"with the traceback above)", file=sys.stderr)
+            return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
-"""The exceptions dftpcc raises.
+"""The exceptions and warnings dftpcc raises.
 
 The library raises only these (plus ``MemoryError`` from numpy in truly
 exceptional cases); the command line turns each into one line on stderr and
-a distinct exit code (see ``dftpcc.cli.EXIT_CODES``).
+a distinct exit code (see ``dftpcc.cli.EXIT_CODES`` and docs/errors.md).
+Warnings say that a result is valid but not what the user may think it is.
 """
 
 from __future__ import annotations
@@ -11,8 +12,12 @@ __all__ = [
     "DftpccError",
     "InvalidInputError",
     "CorruptFileError",
+    "ResourceLimitError",
     "UnsupportedFormatError",
     "MissingDependencyError",
+    "DftpccWarning",
+    "MultiHeightWarning",
+    "LargeGridWarning",
 ]
 
 
@@ -25,12 +30,37 @@ class InvalidInputError(DftpccError, ValueError):
 
 
 class UnsupportedFormatError(InvalidInputError):
-    """A file extension or format name dftpcc cannot read or write."""
+    """A file extension, format name or ``.dftpc`` major version dftpcc cannot read or write."""
 
 
 class CorruptFileError(DftpccError):
     """A ``.dftpc`` stream is truncated, damaged or not a dftpcc file at all."""
 
 
+class ResourceLimitError(CorruptFileError):
+    """A ``.dftpc`` header asks for more cells than the file's size justifies.
+
+    Either a crafted file (a decompression bomb) or a legitimate but
+    extremely compressible map; the message gives the numbers, and
+    ``dftpcc.open(..., max_cells=N)`` decodes a trusted file anyway.
+    """
+
+
 class MissingDependencyError(DftpccError, ImportError):
     """An optional package needed for this operation is not installed."""
+
+
+class DftpccWarning(UserWarning):
+    """Base class of the warnings dftpcc issues."""
+
+
+class MultiHeightWarning(DftpccWarning):
+    """Some cells hold points at several heights (a wall, an overhang, vegetation).
+
+    A DEM keeps one height per cell, so those points cannot be rebuilt; the
+    message says what fraction of the points and by how much.
+    """
+
+
+class LargeGridWarning(DftpccWarning):
+    """A map was written that readers refuse by default (see :class:`ResourceLimitError`)."""

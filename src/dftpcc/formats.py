@@ -21,6 +21,7 @@ import numpy as np
 
 from .errors import InvalidInputError, UnsupportedFormatError
 from .grid import DEM, Grid
+from .grid import drop_nonfinite as _drop_nonfinite  # read() has a keyword of that name
 
 __all__ = ["PointCloud", "read", "write", "read_raster_dem", "write_geotiff", "FORMATS", "format_of"]
 
@@ -67,7 +68,7 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
 
 
 def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
-         classes: Sequence[int] | None = None) -> PointCloud:
+         classes: Sequence[int] | None = None, drop_nonfinite: bool = False) -> PointCloud:
     """Read a point cloud.
 
     Parameters
@@ -79,6 +80,9 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
         centre); default from the extension.
     classes : sequence of int, optional
         LAS/LAZ only: keep points of these classification codes (2 = ground).
+    drop_nonfinite : bool
+        Drop rows with a NaN or infinite coordinate instead of returning
+        them (compression refuses them). Default: keep them.
 
     Raises
     ------
@@ -105,7 +109,11 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
     pts = cloud.points
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InvalidInputError(f"{path}: expected x, y, z columns, got shape {pts.shape}")
-    if pts.shape[0] == 0:
+    if drop_nonfinite and pts.shape[0]:
+        cloud.points, dropped = _drop_nonfinite(pts)
+        if cloud.points.shape[0] == 0:
+            raise InvalidInputError(f"{path}: all {dropped:,} points have NaN or infinite coordinates")
+    if cloud.points.shape[0] == 0:
         raise InvalidInputError(f"{path}: no points" + (" of the selected classes" if classes else ""))
     return cloud
 
@@ -192,12 +200,17 @@ def read_raster_dem(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarra
     """
     import rasterio
 
-    with rasterio.open(path) as src:
-        band = src.read(1, masked=True)
-        heights = np.asarray(band.filled(np.nan), dtype=np.float64)
-        valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
-        crs = {"wkt": src.crs.to_wkt()} if src.crs else {}
-        return heights, valid, src.transform, crs
+    try:
+        with rasterio.open(path) as src:
+            band = src.read(1, masked=True)
+            crs = {"wkt": src.crs.to_wkt()} if src.crs else {}
+            transform = src.transform
+    except Exception as exc:  # noqa: BLE001 - GDAL raises its own errors on bad files
+        raise InvalidInputError(f"{path}: cannot read as a GeoTIFF DEM: {exc}") from None
+    # Integer DEMs (int16 SRTM, MOLA) cannot hold NaN: convert before filling nodata.
+    heights = np.asarray(band.astype(np.float64).filled(np.nan), dtype=np.float64)
+    valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
+    return heights, valid, transform, crs
 
 
 def _read_tif(path: Path) -> PointCloud:

@@ -10,28 +10,50 @@ filled smoothly so the transform sees no artificial cliff.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
-from .errors import InvalidInputError
+from .errors import InvalidInputError, MultiHeightWarning
 
 __all__ = [
     "Grid",
     "DEM",
+    "HeightSpread",
     "MAX_CELLS",
+    "drop_nonfinite",
     "fit_grid",
     "rasterize",
     "fill_empty",
     "fit_plane",
     "auto_resolution",
+    "cell_limit",
     "gridding_rmse",
 ]
 
 #: Largest grid dftpcc builds in memory (cells). A float64 DEM this size is
 #: 800 MB and the transform needs a few such arrays.
 MAX_CELLS = 100_000_000
+
+#: Peak memory of compressing one cell, bytes: the DEM, its mask, counts,
+#: fill, transform and synthesis arrays (about 90 B measured for the
+#: compact profile, 120 B for the paper's complex DFT), rounded up.
+ENCODE_BYTES_PER_CELL = 128
+
+#: Float64 resolves a coordinate ``x`` to about ``x * 2**-52``; a grid needs
+#: that to be below this fraction of a cell, or cells blur into each other.
+COORDINATE_PRECISION_CELLS = 1e-3
+
+#: A point farther than this many cell sizes (vertically) from its cell's
+#: height is one the DEM cannot represent: a wall, an overhang, a tree.
+#: Even a 45 degree slope stays within 0.71 cells of a cell's mean height.
+MULTI_HEIGHT_TOLERANCE_CELLS = 1.0
+
+#: Warn (:class:`~dftpcc.errors.MultiHeightWarning`) when at least this
+#: fraction of the points cannot be represented.
+MULTI_HEIGHT_WARN_FRACTION = 0.01
 
 #: Margin, in cells, around a rotated grid (see fit_grid).
 ROTATED_MARGIN = 1e-6
@@ -114,6 +136,63 @@ class Grid:
         return self.x0 + c * u - s * v, self.y0 + s * u + c * v
 
 
+@dataclass(frozen=True)
+class HeightSpread:
+    """How far a cloud is from having one height per cell.
+
+    A DEM keeps one height per cell; points far above or below it (a
+    vertical wall, an overhang, vegetation over ground) are flattened.
+
+    Attributes
+    ----------
+    tolerance_m : float
+        A point farther than this from its cell's height (metres) is counted
+        as unrepresented (:data:`MULTI_HEIGHT_TOLERANCE_CELLS` cell sizes).
+    points : int
+        Points gridded.
+    unrepresented_points : int
+        Points farther than ``tolerance_m`` from their cell's height.
+    unrepresented_cells : int
+        Cells holding at least one such point.
+    unrepresented_rmse_m : float
+        RMS distance of those points to their cell's height, metres (0 if none).
+    max_distance_m : float
+        Largest distance of any point to its cell's height, metres.
+    """
+
+    tolerance_m: float
+    points: int
+    unrepresented_points: int
+    unrepresented_cells: int
+    unrepresented_rmse_m: float
+    max_distance_m: float
+
+    @property
+    def fraction(self) -> float:
+        """Fraction of the points the DEM cannot represent, in [0, 1]."""
+        return self.unrepresented_points / self.points if self.points else 0.0
+
+    def as_stats(self) -> dict[str, float | int]:
+        """The figures as flat JSON-ready fields, for a file's STAT section."""
+        return {
+            "unrepresented_fraction": self.fraction,
+            "unrepresented_points": self.unrepresented_points,
+            "unrepresented_cells": self.unrepresented_cells,
+            "unrepresented_rmse_m": self.unrepresented_rmse_m,
+            "unrepresented_tolerance_m": self.tolerance_m,
+            "max_point_distance_m": self.max_distance_m,
+        }
+
+    def describe(self) -> str:
+        """One sentence for a warning or a summary line."""
+        return (f"{100 * self.fraction:.2f} % of the points ({self.unrepresented_points:,} of "
+                f"{self.points:,}, in {self.unrepresented_cells:,} cell(s)) lie more than "
+                f"{self.tolerance_m:g} m ({MULTI_HEIGHT_TOLERANCE_CELLS:g} cell) above or below their cell's height, by "
+                f"{self.unrepresented_rmse_m:.3g} m RMS and up to {self.max_distance_m:.3g} m: a DEM "
+                f"keeps one height per cell, so walls, overhangs and vegetation are flattened "
+                f"(keep ground points only, e.g. LAS class 2, or use finer cells)")
+
+
 @dataclass
 class DEM:
     """A gridded map: heights relative to ``grid.z0`` plus which cells had points.
@@ -131,6 +210,8 @@ class DEM:
     gridding_rmse : float, optional
         RMS vertical distance in metres of the points to their cell's height:
         with ``mean`` cells, the floor no codec storing this DEM goes below.
+    spread : HeightSpread, optional
+        Points the DEM cannot represent (known when gridded from points).
     """
 
     grid: Grid
@@ -138,19 +219,56 @@ class DEM:
     mask: np.ndarray
     counts: np.ndarray | None = None
     gridding_rmse: float | None = None
+    spread: HeightSpread | None = None
 
 
-def _check_points(points: np.ndarray) -> np.ndarray:
+#: How many offending row numbers an error message lists.
+_ROWS_SHOWN = 5
+
+
+def _as_xyz(points: np.ndarray) -> np.ndarray:
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] < 3:
         raise InvalidInputError(f"points must have shape (N, 3), got {points.shape}")
+    if points.dtype.kind not in "biuf":
+        raise InvalidInputError(f"points must be real numbers, got dtype {points.dtype}")
+    return np.asarray(points[:, :3], dtype=np.float64)
+
+
+def _check_points(points: np.ndarray) -> np.ndarray:
+    points = _as_xyz(points)
     if points.shape[0] == 0:
         raise InvalidInputError("the point cloud is empty")
-    points = np.asarray(points[:, :3], dtype=np.float64)
-    if not np.isfinite(points).all():
-        bad = int((~np.isfinite(points).all(axis=1)).sum())
-        raise InvalidInputError(f"{bad} point(s) have NaN or infinite coordinates; drop them first")
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        shown = ", ".join(str(int(i)) for i in bad[:_ROWS_SHOWN]) + (", ..." if bad.size > _ROWS_SHOWN else "")
+        raise InvalidInputError(
+            f"{bad.size} of {points.shape[0]} point(s) have NaN or infinite coordinates (rows {shown}); "
+            f"drop them first (dftpcc.grid.drop_nonfinite, or read(..., drop_nonfinite=True))")
     return points
+
+
+def drop_nonfinite(points: np.ndarray) -> tuple[np.ndarray, int]:
+    """The rows of ``points`` whose x, y and z are all finite.
+
+    Compression refuses NaN or infinite coordinates, since silently losing
+    points hides a broken sensor or reader; this is the explicit opt-in.
+
+    Parameters
+    ----------
+    points : array_like, shape (N, 3)
+
+    Returns
+    -------
+    points : ndarray, shape (M, 3), float64
+        The finite rows, in their order.
+    dropped : int
+        ``N - M``.
+    """
+    points = _as_xyz(points)
+    finite = np.isfinite(points).all(axis=1)
+    return points[finite], int(points.shape[0] - finite.sum())
 
 
 def _min_area_angle(xy: np.ndarray) -> float:
@@ -187,8 +305,11 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
     Raises
     ------
     InvalidInputError
-        Empty or non-finite cloud, a bad resolution, or a grid over
-        :data:`MAX_CELLS` cells.
+        Empty or non-finite cloud, a bad resolution, a grid over
+        :func:`cell_limit` cells (:data:`MAX_CELLS`, or what the available
+        memory holds; the message gives the numbers and the coarsest
+        resolution that fits), or coordinates too large for float64 to
+        resolve cells of ``resolution``.
     """
     points = _check_points(points)
     if not (math.isfinite(resolution) and resolution > 0):
@@ -202,16 +323,85 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
     # extreme points outside the grid.
     margin = ROTATED_MARGIN * resolution if angle else 0.0
     umin, vmin = float(u.min()) - margin, float(v.min()) - margin
-    cols = int(math.floor((float(u.max()) + margin - umin) / resolution)) + 1
-    rows = int(math.floor((float(v.max()) + margin - vmin) / resolution)) + 1
-    if rows * cols > MAX_CELLS:
-        raise InvalidInputError(
-            f"a {rows} x {cols} grid ({rows * cols:,} cells) at {resolution} m exceeds the "
-            f"{MAX_CELLS:,}-cell limit; use a coarser resolution"
-        )
+    # Sizes in floats first: a tiny resolution or a huge extent must give a
+    # clear refusal, not an overflow or an attempt to allocate.
+    with np.errstate(over="ignore", invalid="ignore"):
+        cols_f = float(np.floor((float(u.max()) + margin - umin) / resolution)) + 1.0
+        rows_f = float(np.floor((float(v.max()) + margin - vmin) / resolution)) + 1.0
+    _check_grid_size(rows_f, cols_f, resolution)
+    _check_precision(points, resolution)
+    rows, cols = int(rows_f), int(cols_f)
     x0, y0 = c * umin - s * vmin, s * umin + c * vmin
     return Grid(x0=x0, y0=y0, z0=float(points[:, 2].mean()), resolution=float(resolution),
                 rows=rows, cols=cols, angle=angle)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory the system can still give this process (Linux), else ``None``."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def cell_limit() -> int:
+    """Largest grid (cells) compression will build here: :data:`MAX_CELLS`, or less
+    when the available memory cannot hold :data:`ENCODE_BYTES_PER_CELL` per cell."""
+    memory = available_memory()
+    return MAX_CELLS if memory is None else max(1, min(MAX_CELLS, memory // ENCODE_BYTES_PER_CELL))
+
+
+def _size(nbytes: float) -> str:
+    for unit, scale in (("PB", 1e15), ("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:,.1f} {unit}"
+    return f"{nbytes / 1e3:,.1f} kB"
+
+
+def _count(n: float) -> str:
+    return f"{n:,.0f}" if n < 1e15 else f"{n:.3g}"
+
+
+#: Headroom on a suggested resolution for the extra row and column a grid takes.
+ROUNDING_MARGIN = 0.01
+
+
+def _round_up(value: float, digits: int = 2) -> float:
+    """``value`` rounded up to ``digits`` significant digits (a resolution to suggest)."""
+    scale = 10.0 ** (math.floor(math.log10(value)) - digits + 1)
+    return float(f"{math.ceil(value / scale) * scale:.{digits}g}")
+
+
+def _check_grid_size(rows: float, cols: float, resolution: float) -> None:
+    cells = rows * cols
+    limit = cell_limit()
+    if math.isfinite(cells) and cells <= limit:
+        return
+    if not math.isfinite(cells):
+        raise InvalidInputError(
+            f"the points span about {_count((cols - 1) * resolution)} x {_count((rows - 1) * resolution)} m: "
+            f"at {resolution:g} m that is more cells than can be counted; use a coarser resolution")
+    why = (f"the {MAX_CELLS:,}-cell limit" if limit == MAX_CELLS else
+           f"the {limit:,} cells that the available memory ({_size(available_memory() or 0)}) holds")
+    # Cells scale with 1/resolution**2: the coarsest step that fits, rounded up.
+    need = resolution * math.sqrt(cells / limit) * (1 + ROUNDING_MARGIN)
+    hint = f"use a resolution of at least {_round_up(need):g} m"
+    raise InvalidInputError(
+        f"a {_count(rows)} x {_count(cols)} grid ({_count(cells)} cells) at {resolution:g} m would need "
+        f"about {_size(cells * ENCODE_BYTES_PER_CELL)} of memory and exceeds {why}; {hint}")
+
+
+def _check_precision(points: np.ndarray, resolution: float) -> None:
+    largest = float(np.abs(points[:, :2]).max())
+    ulp = largest * 2.0**-52
+    if ulp > COORDINATE_PRECISION_CELLS * resolution:
+        raise InvalidInputError(
+            f"coordinates up to {largest:.3g} m are resolved only to {ulp:.2g} m in float64, too coarse for "
+            f"{resolution:g} m cells; subtract an offset from x and y first")
 
 
 def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean") -> DEM:
@@ -250,8 +440,27 @@ def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean") -> DEM
     else:
         raise InvalidInputError(f"aggregate must be mean, median, min or max; got {aggregate!r}")
     dz = z - heights[idx]
+    spread = _height_spread(dz, idx, grid.resolution)
+    if spread.fraction >= MULTI_HEIGHT_WARN_FRACTION:
+        warnings.warn(spread.describe(), MultiHeightWarning, stacklevel=2)
     return DEM(grid=grid, heights=heights.reshape(grid.shape), mask=mask.reshape(grid.shape),
-               counts=count.reshape(grid.shape), gridding_rmse=float(np.sqrt(np.mean(dz * dz))))
+               counts=count.reshape(grid.shape), gridding_rmse=float(np.sqrt(np.mean(dz * dz))),
+               spread=spread)
+
+
+def _height_spread(dz: np.ndarray, idx: np.ndarray, resolution: float) -> HeightSpread:
+    tolerance = MULTI_HEIGHT_TOLERANCE_CELLS * resolution
+    dist = np.abs(dz)
+    far = dist > tolerance
+    n_far = int(far.sum())
+    return HeightSpread(
+        tolerance_m=tolerance,
+        points=int(dz.size),
+        unrepresented_points=n_far,
+        unrepresented_cells=int(np.unique(idx[far]).size) if n_far else 0,
+        unrepresented_rmse_m=float(np.sqrt(np.mean(dist[far] ** 2))) if n_far else 0.0,
+        max_distance_m=float(dist.max()) if dz.size else 0.0,
+    )
 
 
 def gridding_rmse(points: np.ndarray, dem: DEM) -> float:
@@ -338,8 +547,17 @@ def auto_resolution(points: np.ndarray) -> float:
     xy = points[:, :2]
     extent = np.ptp(xy, axis=0)
     area = float(extent[0] * extent[1])
-    if area <= 0 or points.shape[0] < 2:
-        raise InvalidInputError("cannot choose a resolution automatically: the points span no area")
+    if not math.isfinite(area):
+        raise InvalidInputError(f"cannot choose a resolution automatically: the points span "
+                                f"{extent[0]:.3g} x {extent[1]:.3g} m; give a resolution in metres")
+    if float(extent.max()) <= 0:
+        raise InvalidInputError(
+            f"cannot choose a resolution automatically: all {points.shape[0]:,} point(s) lie at one x, y "
+            f"position; give a resolution in metres (the map is then a single cell)")
+    if area <= 0:
+        # A line along x or y (a transect): density along its length.
+        spacing = float(extent.max()) / (points.shape[0] - 1)
+        return AUTO_POINTS_PER_CELL * spacing
     trial = math.sqrt(area / points.shape[0])
     cols = np.floor((xy[:, 0] - xy[:, 0].min()) / trial).astype(np.int64)
     rows = np.floor((xy[:, 1] - xy[:, 1].min()) / trial).astype(np.int64)
