@@ -3,16 +3,24 @@
 A file is a fixed preamble, a table of sections (tag, tile, offset, length,
 CRC-32) protected by its own CRC, then the section payloads. Every section is
 checked against its CRC before use, and every size is checked against the
-file length before anything is allocated. Tile 0 is the whole map; the tile
-field lets a later tiled layout add independently coded tiles behind an
-index without changing this structure.
+file length before anything is allocated; the grid a header asks for must
+also fit a decoding budget that grows with the file's size, so a small
+crafted file cannot demand gigabytes (docs/format-validation.md lists every
+check). Tile 0 is the whole map; the tile field lets a later tiled layout
+add independently coded tiles behind an index without changing this
+structure.
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import json
+import math
 import os
+import secrets
 import struct
+import warnings
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +28,13 @@ from typing import IO, Any, BinaryIO
 
 import numpy as np
 
-from .errors import CorruptFileError, InvalidInputError
+from .errors import (
+    CorruptFileError,
+    InvalidInputError,
+    LargeGridWarning,
+    ResourceLimitError,
+    UnsupportedFormatError,
+)
 from .grid import MAX_CELLS, Grid
 from .params import Params
 
@@ -33,6 +47,7 @@ __all__ = [
     "CompressedMap",
     "open",
     "atomic_write",
+    "cell_budget",
 ]
 
 MAGIC = b"\x89DFTPC\r\n"
@@ -48,6 +63,41 @@ MAX_SECTIONS = 1024
 _GEOM = struct.Struct("<ddddIIdQQddd")
 #: Sections the reader needs; unknown tags are skipped.
 REQUIRED = (b"GEOM", b"PARM", b"MASK", b"COEF")
+
+# Decoding budget. Decoding costs memory and time in proportion to the grid
+# (rows x cols), whatever the file's size, so a header's grid is checked
+# against what the file's size justifies before anything is allocated.
+#: Any file may ask for a grid this large (cells): the costliest such grid
+#: decodes in under half a second and 200 MB.
+FREE_CELLS = 1 << 21
+#: Beyond FREE_CELLS a file must hold at least one byte per this many cells.
+#: Maps of real terrain hold 5 to 100 cells per byte (measured on the
+#: project's survey data, cutoffs 0.8 to 0.99); only a near-constant surface
+#: compresses harder, and it can be opened with ``max_cells``.
+CELLS_PER_BYTE = 1024
+#: Peak memory to decode one cell, bytes (54 to 81 B measured), for messages.
+DECODE_BYTES_PER_CELL = 96
+#: Largest coordinate, height, grid extent or quantizer step a header may
+#: state, metres (about 7 astronomical units): beyond it a number is not a
+#: map coordinate but a damaged or crafted field, and it could overflow.
+MAX_COORDINATE_M = 1e12
+#: Largest plane term ``|a| + |b|*cols + |c|*rows`` a header may state, metres.
+MAX_PLANE_M = 1e18
+#: STAT fields that must be numbers when present (others are free-form).
+_STAT_NUMBERS = ("dem_rmse_m", "dem_max_error_m", "gridding_rmse_m", "vertical_rmse_m")
+_STAT_COUNTS = ("mask_bytes", "coef_bytes")
+#: LAS variable-length records: 16-bit record id, 32-byte description.
+_VLR_MAX_ID = 0xFFFF
+_VLR_DESCRIPTION = 32
+
+
+def cell_budget(file_size: int) -> int:
+    """Largest grid (cells) a ``.dftpc`` file of ``file_size`` bytes may ask for by default.
+
+    ``max(FREE_CELLS, CELLS_PER_BYTE * file_size)``, capped at
+    :data:`~dftpcc.grid.MAX_CELLS` (the largest grid the encoder builds).
+    """
+    return int(min(MAX_CELLS, max(FREE_CELLS, CELLS_PER_BYTE * file_size)))
 
 
 @dataclass
@@ -107,7 +157,13 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
         table.append(_ENTRY.pack(tag, 0, offset, len(payload), zlib.crc32(payload)))
         offset += len(payload)
     head = _PREAMBLE.pack(MAGIC, *VERSION, 0, len(sections)) + b"".join(table)
-    return head + _CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections)
+    data = head + _CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections)
+    if g.size > cell_budget(len(data)):
+        warnings.warn(
+            f"this map is a {g.rows} x {g.cols} grid ({g.size:,} cells) in only {len(data):,} bytes; readers "
+            f"refuse such a file by default as a possible decompression bomb: open it with "
+            f"dftpcc.open(..., max_cells={g.size})", LargeGridWarning, stacklevel=2)
+    return data
 
 
 def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, memoryview]:
@@ -117,9 +173,10 @@ def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, me
     if magic != MAGIC:
         raise CorruptFileError("not a .dftpc file (bad magic bytes)")
     if major != VERSION[0]:
-        raise CorruptFileError(f"format version {major}.{minor} is not supported (this reader: {VERSION[0]}.x)")
+        raise UnsupportedFormatError(
+            f".dftpc format version {major}.{minor} is not supported (this reader: {VERSION[0]}.x)")
     if count > MAX_SECTIONS:
-        raise CorruptFileError(f"section table claims {count} sections")
+        raise CorruptFileError(f"section table claims {count} sections, more than the {MAX_SECTIONS} allowed")
     table_end = _PREAMBLE.size + count * _ENTRY.size
     if len(data) < table_end + _CRC.size:
         raise CorruptFileError("file is truncated inside its section table")
@@ -157,10 +214,102 @@ def _json(payload: memoryview, name: str) -> Any:
         return json.loads(bytes(payload).decode("utf-8")) if len(payload) else {}
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CorruptFileError(f"section {name} is not valid JSON: {exc}") from None
+    except RecursionError:  # deeply nested arrays: crafted, never written by dftpcc
+        raise CorruptFileError(f"section {name} nests JSON too deeply") from None
 
 
-def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False) -> tuple[Header, dict[bytes, memoryview]]:
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _check_geometry(geom: tuple, budget: int, file_size: int) -> None:
+    """Geometry fields against sane limits and the decoding budget (see the constants above)."""
+    (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = geom
+    if not all(math.isfinite(v) for v in (x0, y0, z0, res, angle, pa, pb, pc)) or res <= 0:
+        raise CorruptFileError("geometry section holds non-finite or non-positive values")
+    if max(abs(x0), abs(y0), abs(z0), abs(angle)) > MAX_COORDINATE_M:
+        raise CorruptFileError(f"geometry section states an origin beyond {MAX_COORDINATE_M:g} m")
+    if rows == 0 or cols == 0:
+        raise CorruptFileError(f"implausible grid {rows} x {cols}")
+    if res * max(rows, cols) > MAX_COORDINATE_M:
+        raise CorruptFileError(f"grid {rows} x {cols} of {res:g} m cells extends beyond {MAX_COORDINATE_M:g} m")
+    if abs(pa) + abs(pb) * cols + abs(pc) * rows > MAX_PLANE_M:
+        raise CorruptFileError(f"detrending plane ({pa:g}, {pb:g}, {pc:g}) leaves the map by more than {MAX_PLANE_M:g} m")
+    cells = rows * cols
+    if cells > budget:
+        asks = (f"refusing to decode: the header asks for a {rows:,} x {cols:,} grid ({cells:,} cells, about "
+                f"{cells * DECODE_BYTES_PER_CELL / 1e9:,.1f} GB to decode)")
+        if cells > MAX_CELLS:
+            raise ResourceLimitError(f"{asks}, more than the {MAX_CELLS:,}-cell limit of the format")
+        raise ResourceLimitError(
+            f"{asks}, more than the {budget:,} cells allowed for a {file_size:,}-byte file; if you trust "
+            f"this file, open it with max_cells={cells}")
+    if not 1 <= ncells <= cells:
+        raise CorruptFileError(f"implausible grid {rows} x {cols} with {ncells} occupied cells")
+    if npoints < ncells:
+        raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
+
+
+def _check_params(params: Params, res: float) -> None:
+    if not math.isclose(params.resolution, res, rel_tol=1e-9):
+        raise CorruptFileError(f"parameter resolution {params.resolution!r} m disagrees with the grid's {res!r} m")
+    if params.storage == "quantized" and not 0.0 < params.step <= MAX_COORDINATE_M:
+        raise CorruptFileError(f"quantizer step {params.step!r} m is not in (0, {MAX_COORDINATE_M:g}]")
+
+
+def _check_stats(stats: Any) -> None:
+    if not isinstance(stats, dict):
+        raise CorruptFileError("section STAT must be a JSON object")
+    for key in _STAT_NUMBERS:
+        if key in stats and not _is_number(stats[key]):
+            raise CorruptFileError(f"section STAT: {key} must be a number, got {stats[key]!r:.40}")
+    for key in _STAT_COUNTS:
+        if key in stats and not _is_count(stats[key]):
+            raise CorruptFileError(f"section STAT: {key} must be a count, got {stats[key]!r:.40}")
+
+
+def _check_crs(crs: Any) -> None:
+    """The CRS is written back into LAS, PLY and GeoTIFF outputs, so its shape must be right."""
+    if not isinstance(crs, dict):
+        raise CorruptFileError("section CRS must be a JSON object")
+    wkt = crs.get("wkt")
+    if wkt is not None and not isinstance(wkt, str):
+        raise CorruptFileError("section CRS: wkt must be a string")
+    vlrs = crs.get("las_vlrs", [])
+    if not isinstance(vlrs, list):
+        raise CorruptFileError("section CRS: las_vlrs must be a list")
+    for i, vlr in enumerate(vlrs):
+        ok = (isinstance(vlr, dict)
+              and isinstance(vlr.get("record_id"), int) and not isinstance(vlr.get("record_id"), bool)
+              and 0 <= vlr["record_id"] <= _VLR_MAX_ID
+              and isinstance(vlr.get("description", ""), str)
+              and len(vlr.get("description", "").encode("utf-8")) <= _VLR_DESCRIPTION
+              and isinstance(vlr.get("data"), str))
+        if ok:
+            try:
+                base64.b64decode(vlr["data"], validate=True)
+            except (binascii.Error, ValueError):
+                ok = False
+        if not ok:
+            raise CorruptFileError(f"section CRS: LAS record {i} is malformed")
+
+
+def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
+           max_cells: int | None = None) -> tuple[Header, dict[bytes, memoryview]]:
     """Parse and check ``.dftpc`` bytes.
+
+    Parameters
+    ----------
+    data : bytes
+    allow_truncated_coef : bool
+        Accept a COEF section cut short (progressive decoding of a prefix).
+    max_cells : int, optional
+        Largest grid (rows x cols) to accept; default :func:`cell_budget`
+        of ``len(data)``. Never more than :data:`~dftpcc.grid.MAX_CELLS`.
 
     Returns
     -------
@@ -174,34 +323,48 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False) -> t
     Raises
     ------
     CorruptFileError
-        Bad magic, unsupported major version, a failed checksum, a size that
-        does not fit the file, or an implausible geometry.
+        Bad magic, a failed checksum, a size that does not fit the file, or
+        an implausible geometry, parameter or statistics field.
+    ResourceLimitError
+        The grid is larger than ``max_cells`` (a possible decompression bomb).
+    UnsupportedFormatError
+        Another major version of the format.
     """
     data = memoryview(data)
+    budget = _budget(len(data), max_cells)
     found = _sections(data, allow_truncated_coef=allow_truncated_coef)
     geom = found[b"GEOM"]
     if len(geom) < _GEOM.size:
         raise CorruptFileError("geometry section is too short")
-    (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = _GEOM.unpack_from(geom, 0)
-    if not all(np.isfinite([x0, y0, z0, res, angle, pa, pb, pc])) or res <= 0:
-        raise CorruptFileError("geometry section holds non-finite or non-positive values")
-    if rows == 0 or cols == 0 or rows * cols > MAX_CELLS or ncells > rows * cols:
-        raise CorruptFileError(f"implausible grid {rows} x {cols} with {ncells} occupied cells")
+    fields = _GEOM.unpack_from(geom, 0)
+    _check_geometry(fields, budget, len(data))
+    (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = fields
     try:
         params = Params.from_json(bytes(found[b"PARM"]).decode("utf-8"))
-    except (InvalidInputError, TypeError, UnicodeDecodeError, ValueError) as exc:
+    except (InvalidInputError, TypeError, UnicodeDecodeError, ValueError, OverflowError) as exc:
         raise CorruptFileError(f"parameter section is invalid: {exc}") from None
+    except RecursionError:
+        raise CorruptFileError("parameter section nests JSON too deeply") from None
+    _check_params(params, res)
     stats = _json(found[b"STAT"], "STAT") if b"STAT" in found else {}
     crs = _json(found[b"CRS "], "CRS") if b"CRS " in found else {}
-    if not isinstance(stats, dict) or not isinstance(crs, dict):
-        raise CorruptFileError("STAT and CRS sections must be JSON objects")
+    _check_stats(stats)
+    _check_crs(crs)
     coef_count = stats.get("coef_count")
-    if not isinstance(coef_count, int) or not 0 <= coef_count <= rows * cols:
+    if not _is_count(coef_count) or coef_count > rows * cols:
         raise CorruptFileError("coefficient count is missing or implausible")
     grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle)
     header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,
                     plane=(pa, pb, pc), crs=crs, stats=stats, coef_count=coef_count)
     return header, {tag: found[tag] for tag in (b"MASK", b"COEF", b"RESD") if tag in found}
+
+
+def _budget(file_size: int, max_cells: int | None) -> int:
+    if max_cells is None:
+        return cell_budget(file_size)
+    if not _is_count(max_cells) or max_cells == 0:
+        raise InvalidInputError(f"max_cells must be a positive whole number, got {max_cells!r}")
+    return min(max_cells, MAX_CELLS)
 
 
 class CompressedMap:
@@ -211,16 +374,19 @@ class CompressedMap:
     are decoded only when :meth:`read_points` or :meth:`read_dem` asks.
     """
 
-    def __init__(self, data: bytes, name: str = "<bytes>", *, max_bytes: int | None = None):
+    def __init__(self, data: bytes, name: str = "<bytes>", *, max_bytes: int | None = None,
+                 max_cells: int | None = None, file_size: int | None = None):
         self.name = name
-        self.size = len(data)
+        # With max_bytes the budget follows the whole file, which exists, not the prefix read.
+        self.size = len(data) if file_size is None else file_size
         if max_bytes is not None:
             if max_bytes <= 0:
                 raise InvalidInputError(f"max_bytes must be positive, got {max_bytes}")
             data = data[:max_bytes]
         self._data = data
         self._partial = max_bytes is not None
-        self.header, self._blobs = unpack(data, allow_truncated_coef=self._partial)
+        self.header, self._blobs = unpack(data, allow_truncated_coef=self._partial,
+                                          max_cells=_budget(self.size, max_cells))
 
     # Context-manager protocol, like rasterio.open: nothing to release but
     # the buffer, yet `with dftpcc.open(...) as m:` reads naturally.
@@ -246,10 +412,19 @@ class CompressedMap:
         return self.header.crs
 
     def read_dem(self, *, cutoff: float | None = None):
-        """The rebuilt DEM (see :func:`dftpcc.codec.decode_dem`)."""
+        """The rebuilt DEM (see :func:`dftpcc.codec.decode_dem`).
+
+        Raises
+        ------
+        CorruptFileError
+            A section fails to decode, or decodes to non-finite heights.
+        """
         from .codec import decode_dem
 
-        return decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
+        dem = decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
+        if not np.isfinite(dem.heights[dem.mask]).all():
+            raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
+        return dem
 
     def read_points(self, *, cutoff: float | None = None) -> np.ndarray:
         """The rebuilt cloud, shape (cells, 3), float64, original frame (metres)."""
@@ -277,7 +452,8 @@ class CompressedMap:
         }
 
 
-def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | None = None) -> CompressedMap:  # noqa: A001
+def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | None = None,  # noqa: A001
+         max_cells: int | None = None) -> CompressedMap:
     """Open a compressed map from a path, a binary file object or bytes.
 
     Parameters
@@ -286,43 +462,105 @@ def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | 
     max_bytes : int, optional
         Read only the first ``max_bytes`` bytes, as if the rest had not been
         received yet; the map decodes from the low frequencies it holds.
+    max_cells : int, optional
+        Largest grid (rows x cols) to accept. By default a file may ask for
+        :func:`cell_budget` of its size; raise it for a trusted file that
+        :class:`~dftpcc.errors.ResourceLimitError` refused.
 
     Raises
     ------
     InvalidInputError
-        The path does not exist or is not a file.
+        The path does not exist or is not a file, or a bad argument.
     CorruptFileError
         The content is not a valid ``.dftpc`` stream.
+    ResourceLimitError
+        The header asks for a grid over the budget.
+    UnsupportedFormatError
+        Another major version of the format.
     """
     if isinstance(source, (bytes, bytearray, memoryview)):
-        return CompressedMap(bytes(source), max_bytes=max_bytes)
+        return CompressedMap(bytes(source), max_bytes=max_bytes, max_cells=max_cells)
     if hasattr(source, "read"):
-        return CompressedMap(source.read(), getattr(source, "name", "<stream>"), max_bytes=max_bytes)
+        return CompressedMap(source.read(), getattr(source, "name", "<stream>"), max_bytes=max_bytes,
+                             max_cells=max_cells)
     path = Path(source)
     if not path.is_file():
         raise InvalidInputError(f"{path}: no such file")
     with path.open("rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
         data = fh.read() if max_bytes is None else fh.read(max_bytes)
-    return CompressedMap(data, str(path), max_bytes=max_bytes)
+    return CompressedMap(data, str(path), max_bytes=max_bytes, max_cells=max_cells, file_size=max(size, len(data)))
+
+
+#: Temporary files of :func:`atomic_write`: ``.NAME.PID.TOKEN.tmpSUFFIX``.
+_TMP_MARK = ".tmp"
 
 
 def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
     """Create ``path`` through a temporary file in the same folder, renamed into place.
 
-    ``write(fh_or_path)`` receives the temporary path. If it raises, or the
-    process dies, the temporary file is removed (or left under a hidden name)
-    and ``path`` keeps whatever it held before: never a partial file.
+    ``write(tmp_path)`` receives the temporary path. The file is flushed to
+    disk, renamed over ``path`` in one step (``os.replace``) and the folder
+    entry synced, so ``path`` holds either its previous content or the whole
+    new one, never a partial file. If ``write`` raises or the process is
+    interrupted (Ctrl-C, SIGTERM under the CLI) the temporary file is
+    removed; only a process killed outright (SIGKILL, power loss) leaves it,
+    under a hidden name, and the next write to ``path`` removes it.
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise InvalidInputError(f"{path}: folder {folder} does not exist")
-    tmp = folder / f".{path.name}.{os.getpid()}.tmp{path.suffix}"
+    _remove_stale_temporaries(folder, path.name)
+    tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}{path.suffix}"
     try:
         write(tmp)
         with tmp.open("rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+        _sync_folder(folder)
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _sync_folder(folder: Path) -> None:
+    # The rename is durable only once the folder entry is on disk too.
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems cannot sync a folder; the rename is still atomic
+    finally:
+        os.close(fd)
+
+
+def _remove_stale_temporaries(folder: Path, name: str) -> None:
+    """Remove temporaries of ``name`` left by writers that were killed outright."""
+    prefix = f".{name}."
+    try:
+        candidates = [p for p in folder.iterdir() if p.name.startswith(prefix) and _TMP_MARK in p.name]
+    except OSError:
+        return
+    for candidate in candidates:
+        pid = candidate.name[len(prefix):].split(".", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            try:
+                candidate.unlink()
+            except OSError:
+                pass
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists but not ours, or cannot tell: leave its file alone
+    return True

@@ -1,0 +1,198 @@
+"""Write the corrupt-file corpus: small damaged or crafted ``.dftpc`` files and what reading each must do.
+
+    python tests/corpus/make_corpus.py          # rewrites tests/corpus/*.dftpc and expected.json
+
+Each file is a small valid map (tests/fuzz/seeds.py) truncated, bit-flipped
+or given a lying header (a field changed and every checksum made to match,
+as a crafted file would). ``expected.json`` maps each file to the exception
+``dftpcc.open(file).read_points()`` must raise (the exact class) and, for the
+checks the container makes, a regular expression its message must match.
+tests/test_corrupt.py replays them. Regenerate after a format change; the
+cases themselves are the list below.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import sys
+import zlib
+from pathlib import Path
+
+import zstandard
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parents[1]))  # the checkout, for tests.fuzz
+
+from tests.fuzz import craft  # noqa: E402
+from tests.fuzz.seeds import seed_files  # noqa: E402
+
+#: Every corpus file stays under this size (bytes).
+MAX_FILE_BYTES = 20_000
+
+
+def _flip(data: bytes, pos: int, bit: int = 0) -> bytes:
+    buf = bytearray(data)
+    buf[pos] ^= 1 << bit
+    return bytes(buf)
+
+
+def _section_start(data: bytes, tag: bytes) -> int:
+    return next(off for t, _tile, off, _len, _crc in craft.table(data) if t == tag)
+
+
+def _json_section(data: bytes, tag: bytes, **changes) -> bytes:
+    obj = json.loads(craft.section(data, tag))
+    obj.update(changes)
+    return craft.replace_section(data, tag, json.dumps(obj).encode())
+
+
+def _raw_section(data: bytes, tag: bytes, text: str | bytes) -> bytes:
+    return craft.replace_section(data, tag, text.encode() if isinstance(text, str) else text)
+
+
+def cases() -> dict[str, tuple[bytes, str, str | None]]:
+    """name -> (bytes, exception class name, message regex or None)."""
+    seeds = seed_files()
+    good = seeds["compact_dct"]
+    paper = seeds["paper_dft"]
+    head_end = craft.PREAMBLE.size + len(craft.table(good)) * craft.ENTRY.size + craft.CRC.size
+    mask_at, coef_at = _section_start(good, b"MASK"), _section_start(good, b"COEF")
+    sections = craft.split(good)
+    C, R, U = "CorruptFileError", "ResourceLimitError", "UnsupportedFormatError"
+    out: dict[str, tuple[bytes, str, str | None]] = {
+        # Not a .dftpc at all.
+        "empty": (b"", C, "only 0 bytes"),
+        "ten_bytes": (good[:10], C, "only 10 bytes"),
+        "png_signature": (b"\x89PNG\r\n\x1a\n" + bytes(200), C, "bad magic"),
+        "text_file": (b"x y z\n0 0 0\n" * 30, C, "bad magic"),
+        # Truncations.
+        "truncated_in_table": (good[:40], C, "truncated inside its section table"),
+        "truncated_before_table_crc": (good[:head_end - 2], C, "truncated inside its section table"),
+        "truncated_after_header": (good[:head_end], C, "truncated: section GEOM"),
+        "truncated_in_mask": (good[:mask_at + 3], C, "truncated: section MASK"),
+        "truncated_in_coef": (good[:coef_at + (len(good) - coef_at) // 2], C, "truncated: section COEF"),
+        "truncated_last_byte": (good[:-1], C, "truncated: section COEF"),
+        # Damage: one flipped bit, caught by a checksum that names the section.
+        "flip_in_magic": (_flip(good, 1), C, "bad magic"),
+        "flip_in_table": (_flip(good, craft.PREAMBLE.size + 5), C, "section table fails its checksum"),
+        "flip_in_table_crc": (_flip(good, head_end - 1, 7), C, "section table fails its checksum"),
+        "flip_in_section_count": (_flip(good, 12), C, "truncated inside its section table|table fails"),
+    }
+    with_crs = seeds["with_crs"]  # its CRS section has bytes to damage
+    for tag in (b"GEOM", b"PARM", b"CRS ", b"STAT", b"MASK", b"COEF"):
+        start = _section_start(with_crs, tag)
+        name = tag.decode().strip()
+        out[f"flip_in_{name.lower()}"] = (_flip(with_crs, start + 2, 3), C, f"section {name} fails its checksum")
+    out["flip_in_paper_coef"] = (_flip(paper, len(paper) - 5), C, "section COEF fails its checksum")
+    out["newer_major_version"] = (craft.join(sections, version=(2, 0)), U, "version 2.0 is not supported")
+    out["newer_minor_version_is_read"] = None  # placeholder, removed below (valid files are not corpus)
+    # Lying section tables (checksums fixed).
+    out.update({
+        "count_too_large": (craft.join(sections, count=5000), C, "claims 5000 sections"),
+        "count_beyond_file": (craft.join(sections, count=500), C, "truncated inside its section table"),
+        "count_zero": (craft.join(sections, count=0), C, "section table fails its checksum"),
+        "section_missing_mask": (craft.replace_section(good, b"MASK", None), C, "section MASK is missing"),
+        "section_missing_geom": (craft.replace_section(good, b"GEOM", None), C, "section GEOM is missing"),
+        "offset_beyond_file": (craft.with_table_entry(good, 0, offset=1 << 40), C, "truncated: section GEOM"),
+        "offset_into_header": (craft.with_table_entry(good, 0, offset=4), C, "section GEOM overlaps the header"),
+        "length_huge": (craft.with_table_entry(good, 5, length=(1 << 63) + 12), C, "truncated: section COEF"),
+        "coef_length_claims_1gb": (craft.with_table_entry(good, 5, length=1 << 30), C, "truncated: section COEF"),
+    })
+    del out["newer_minor_version_is_read"]
+    # Lying geometry.
+    g = craft.geom(good)
+    out.update({
+        "geom_short": (craft.replace_section(good, b"GEOM", craft.section(good, b"GEOM")[:40]), C, "too short"),
+        "geom_rows_zero": (craft.with_geom(good, rows=0), C, "implausible grid 0 x"),
+        "geom_bomb_10k_squared": (craft.with_geom(good, rows=10_000, cols=10_000), R, "refusing to decode.*max_cells"),
+        "geom_bomb_max_u32": (craft.with_geom(good, rows=0xFFFFFFFF, cols=0xFFFFFFFF), R, "100,000,000-cell limit of the format"),
+        "geom_cells_more_than_grid": (craft.with_geom(good, cell_count=g["rows"] * g["cols"] + 1), C, "occupied cells"),
+        "geom_cells_zero": (craft.with_geom(good, cell_count=0), C, "with 0 occupied cells"),
+        "geom_points_fewer_than_cells": (craft.with_geom(good, point_count=1), C, "original points"),
+        "geom_nan_origin": (craft.with_geom(good, x0=float("nan")), C, "non-finite"),
+        "geom_inf_plane": (craft.with_geom(good, plane_b=float("inf")), C, "non-finite"),
+        "geom_negative_resolution": (craft.with_geom(good, resolution=-1.0), C, "non-positive"),
+        "geom_huge_resolution": (craft.with_geom(good, resolution=1e300), C, "extends beyond"),
+        "geom_huge_origin": (craft.with_geom(good, x0=1e200), C, "origin beyond"),
+        "geom_huge_plane": (craft.with_geom(good, plane_c=1e300), C, "detrending plane"),
+        "geom_wrong_shape": (craft.with_geom(good, rows=g["rows"] + 1), C, None),
+    })
+    # Lying parameters.
+    out.update({
+        "parm_not_json": (_raw_section(good, b"PARM", "resolution=1"), C, "parameter section is invalid"),
+        "parm_not_utf8": (_raw_section(good, b"PARM", b"\xff\xfe{}"), C, "parameter section is invalid"),
+        "parm_list": (_raw_section(good, b"PARM", "[1, 2]"), C, "must be a JSON object"),
+        "parm_deep_nesting": (_raw_section(good, b"PARM", "[" * 15_000), C, "too deeply"),
+        "parm_huge_int_resolution": (_json_section(good, b"PARM", resolution=10**400), C, "parameter section is invalid"),
+        "parm_nan_cutoff": (_raw_section(good, b"PARM", craft.section(good, b"PARM").decode().replace(
+            '"cutoff": 0.8', '"cutoff": NaN')), C, "cutoff"),
+        "parm_cutoff_one": (_json_section(good, b"PARM", cutoff=1.0), C, "cutoff"),
+        "parm_unknown_transform": (_json_section(good, b"PARM", transform="wavelet"), C, "transform"),
+        "parm_step_zero": (_json_section(good, b"PARM", step=0.0), C, "quantizer step"),
+        "parm_step_huge": (_json_section(good, b"PARM", step=1e300), C, "quantizer step"),
+        "parm_resolution_mismatch": (_json_section(good, b"PARM", resolution=g["resolution"] * 2), C,
+                                     "disagrees with the grid"),
+        "parm_storage_swapped": (_json_section(good, b"PARM", storage="complex64"), C, None),
+        "parm_cutoff_changed": (_json_section(good, b"PARM", cutoff=0.5), C, None),
+    })
+    # Lying statistics and CRS.
+    out.update({
+        "stat_not_object": (_raw_section(good, b"STAT", "[]"), C, "STAT must be a JSON object"),
+        "stat_deep_nesting": (_raw_section(good, b"STAT", "[" * 15_000), C, "too deeply"),
+        "stat_no_coef_count": (_raw_section(good, b"STAT", "{}"), C, "coefficient count"),
+        "stat_coef_count_negative": (_json_section(good, b"STAT", coef_count=-1), C, "coefficient count"),
+        "stat_coef_count_bool": (_json_section(good, b"STAT", coef_count=True), C, "coefficient count"),
+        "stat_coef_count_huge": (_json_section(good, b"STAT", coef_count=2**62), C, "coefficient count"),
+        "stat_coef_count_off_by_one": (_json_section(good, b"STAT", coef_count=json.loads(
+            craft.section(good, b"STAT"))["coef_count"] + 1), C, None),
+        "stat_rmse_is_object": (_json_section(good, b"STAT", dem_rmse_m={}), C, "dem_rmse_m must be a number"),
+        "stat_bytes_negative": (_json_section(good, b"STAT", mask_bytes=-5), C, "mask_bytes must be a count"),
+        "crs_not_object": (_raw_section(good, b"CRS ", "\"EPSG:4326\""), C, "CRS must be a JSON object"),
+        "crs_wkt_number": (_raw_section(good, b"CRS ", '{"wkt": 5}'), C, "wkt must be a string"),
+        "crs_vlr_bad_base64": (_raw_section(good, b"CRS ", json.dumps(
+            {"las_vlrs": [{"record_id": 34735, "description": "", "data": "!!!"}]})), C, "LAS record 0"),
+        "crs_vlr_id_too_large": (_raw_section(good, b"CRS ", json.dumps(
+            {"las_vlrs": [{"record_id": 70000, "description": "", "data": ""}]})), C, "LAS record 0"),
+    })
+    # Lying coded sections (their messages belong to the codec, so only the class is fixed).
+    zbomb = zstandard.ZstdCompressor(level=19).compress(b"\xff" * 50_000_000)
+    out.update({
+        "mask_zstd_bomb": (craft.replace_section(good, b"MASK", zbomb), C, None),
+        "mask_random": (craft.replace_section(good, b"MASK", bytes(range(256)) * 2), C, None),
+        "mask_empty": (craft.replace_section(good, b"MASK", b""), C, None),
+        "mask_of_another_map": (craft.replace_section(good, b"MASK", craft.section(seeds["paper_dft_fc0"], b"MASK")), C,
+                                None),
+        "coef_empty": (craft.replace_section(good, b"COEF", b""), C, None),
+        "coef_zstd_bomb": (craft.replace_section(good, b"COEF", struct.pack("<I", 1) + zbomb), C, None),
+        "coef_random": (craft.replace_section(good, b"COEF", bytes(range(256)) * 4), C, None),
+        "coef_chunk_count_huge": (craft.replace_section(good, b"COEF", b"\xff\xff\xff\xff" +
+                                                        craft.section(good, b"COEF")[4:]), C, None),
+        "coef_of_paper_file": (craft.replace_section(good, b"COEF", craft.section(paper, b"COEF")), C, None),
+        "coef_swapped_with_mask": (craft.replace_section(craft.replace_section(good, b"COEF", craft.section(
+            good, b"MASK")), b"MASK", craft.section(good, b"COEF")), C, None),
+    })
+    # A paper (complex float32) file whose coefficients are NaN: caught after decoding.
+    coef = bytearray(craft.section(paper, b"COEF"))
+    struct.pack_into("<f", coef, 4 + 16, float("nan"))  # first value of the first chunk
+    struct.pack_into("<I", coef, 4 + 8, zlib.crc32(bytes(coef[4 + 16:4 + 16 + struct.unpack_from("<I", coef, 8)[0]])))
+    out["paper_nan_coefficient"] = (craft.replace_section(paper, b"COEF", bytes(coef)), C, "non-finite heights")
+    return out
+
+
+def main() -> int:
+    for old in HERE.glob("*.dftpc"):
+        old.unlink()
+    expected = {}
+    for name, (data, error, match) in sorted(cases().items()):
+        if len(data) > MAX_FILE_BYTES:
+            raise SystemExit(f"{name}: {len(data)} bytes, over the {MAX_FILE_BYTES}-byte corpus limit")
+        (HERE / f"{name}.dftpc").write_bytes(data)
+        expected[f"{name}.dftpc"] = {"error": error, "match": match}
+    (HERE / "expected.json").write_text(json.dumps(expected, indent=1, sort_keys=True) + "\n")
+    print(f"{len(expected)} corrupt files written to {HERE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

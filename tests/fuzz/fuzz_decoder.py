@@ -1,0 +1,457 @@
+"""Fuzz the ``.dftpc`` decoder: any bytes must decode or raise a dftpcc error.
+
+For every input the decoder must (docs/errors.md, "Fuzzing"):
+
+* raise nothing but :class:`dftpcc.DftpccError` subclasses (no IndexError,
+  no struct.error, no OverflowError, no MemoryError ...);
+* decode to finite points when it does not raise;
+* finish within :data:`TIME_LIMIT_S`;
+* allocate at most :data:`DECODE_BYTES_PER_CELL` per cell of the grid the
+  header was validated to have, plus a few bytes per input byte.
+
+The first byte of an input is a mode: bit 0 recomputes every checksum of
+the rest (a crafted file rather than a damaged one, so mutations reach the
+checks behind the CRCs), bit 1 decodes progressively from a prefix
+(``max_bytes``), bit 2 also decodes at a larger cutoff.
+
+Two engines share :func:`check`:
+
+``python tests/fuzz/fuzz_decoder.py --iterations 100000 [--seed N] [--report FILE]``
+    Built-in structure-aware mutator over the seed maps (tests/fuzz/seeds.py);
+    needs nothing beyond the test dependencies. The CI test runs it bounded.
+``python tests/fuzz/fuzz_decoder.py --atheris [libFuzzer flags] [CORPUS_DIR]``
+    Coverage-guided atheris/libFuzzer (``pip install -e .[fuzz]``), seeded
+    with the same maps; e.g. ``-atheris_runs=100000 -timeout=1 -rss_limit_mb=4096``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import math
+import os
+import random
+import resource
+import signal
+import struct
+import sys
+import time
+import tracemalloc
+import traceback
+import warnings
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+try:  # as part of the test package, or run as a script from this folder
+    from . import craft
+    from .seeds import seed_files
+except ImportError:  # pragma: no cover - script mode
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import craft  # type: ignore[no-redef]
+    from seeds import seed_files  # type: ignore[no-redef]
+
+import dftpcc
+from dftpcc import container
+
+#: No input may take longer to decode (seconds).
+TIME_LIMIT_S = 1.0
+#: An input still running after this many seconds is aborted as a hang.
+WATCHDOG_S = 10.0
+#: Allowed allocation: per cell of the validated grid ...
+DECODE_BYTES_PER_CELL = container.DECODE_BYTES_PER_CELL
+#: ... plus per byte of input (copies of the input and its sections) ...
+BYTES_PER_INPUT_BYTE = 16
+#: ... plus a fixed allowance for interpreter and library overhead.
+SLACK_BYTES = 4 << 20
+#: Address-space cap of a campaign process, so a runaway allocation fails
+#: as MemoryError (and is reported) instead of exhausting the machine.
+CAMPAIGN_ADDRESS_SPACE = 8 << 30
+
+MODE_FIX_CRCS = 1
+MODE_PREFIX = 2
+MODE_CUTOFF = 4
+#: Decode-time cutoff used by MODE_CUTOFF (coarser than any seed's).
+FUZZ_CUTOFF = 0.97
+
+
+class _Hang(Exception):
+    pass
+
+
+@dataclass
+class Outcome:
+    kind: str  # "decoded", "refused" (a DftpccError), or a failure: "crash", "slow", "memory", "nonfinite"
+    detail: str = ""
+    seconds: float = 0.0
+    peak_bytes: int = 0
+    allowed_bytes: int = 0
+
+    @property
+    def failed(self) -> bool:
+        return self.kind not in ("decoded", "refused")
+
+
+def _decode(data: bytes) -> tuple[np.ndarray | None, int]:
+    """Decode one input as the mode byte says; returns (points, validated grid cells)."""
+    mode, body = (data[0], data[1:]) if data else (0, b"")
+    if mode & MODE_FIX_CRCS:
+        body = craft.fix_crcs(body)
+    max_bytes = None
+    if mode & MODE_PREFIX and body:
+        max_bytes = max(1, len(body) * (1 + (mode >> 4)) // 17)
+    cells = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a warning is not a failure
+        with dftpcc.open(body, max_bytes=max_bytes) as cmap:
+            cells = cmap.grid.size
+            points = cmap.read_points(cutoff=FUZZ_CUTOFF if mode & MODE_CUTOFF and cmap.params.cutoff <= FUZZ_CUTOFF
+                                      else None)
+    return points, cells
+
+
+def _on_alarm(_signum, _frame):
+    raise _Hang()
+
+
+def check(data: bytes, *, trace_memory: bool = True) -> Outcome:
+    """Decode ``data`` and classify what happened (see the module docstring)."""
+    allowed = BYTES_PER_INPUT_BYTE * len(data) + SLACK_BYTES
+    cells = 0
+    if trace_memory:
+        tracemalloc.start()
+        tracemalloc.reset_peak()
+    previous = signal.signal(signal.SIGALRM, _on_alarm)
+    signal.setitimer(signal.ITIMER_REAL, WATCHDOG_S)
+    t0 = time.perf_counter()
+    try:
+        points, cells = _decode(data)
+        outcome = Outcome("decoded")
+        if points is not None and not np.isfinite(points).all():
+            outcome = Outcome("nonfinite", "decoded points are not finite")
+    except _Hang:
+        outcome = Outcome("slow", f"still running after {WATCHDOG_S} s")
+    except dftpcc.DftpccError as exc:
+        outcome = Outcome("refused", f"{type(exc).__name__}: {exc}")
+    except MemoryError:
+        outcome = Outcome("memory", "MemoryError")
+    except Exception as exc:  # noqa: BLE001 - exactly what the fuzzer looks for
+        outcome = Outcome("crash", "".join(traceback.format_exception(exc)))
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    outcome.seconds = time.perf_counter() - t0
+    if trace_memory:
+        outcome.peak_bytes = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    outcome.allowed_bytes = allowed + DECODE_BYTES_PER_CELL * cells
+    if not outcome.failed:
+        if outcome.seconds > TIME_LIMIT_S:
+            outcome.kind, outcome.detail = "slow", f"{outcome.seconds:.2f} s"
+        elif trace_memory and outcome.peak_bytes > outcome.allowed_bytes:
+            outcome.kind = "memory"
+            outcome.detail = f"peak {outcome.peak_bytes:,} B > allowed {outcome.allowed_bytes:,} B for {cells:,} cells"
+    return outcome
+
+
+# --- the built-in structure-aware mutator ----------------------------------------------------------
+
+_INTS = (0, 1, 2, 0x7F, 0x80, 0xFF, 0x7FFF, 0xFFFF, 0x7FFFFFFF, 0xFFFFFFFF, 1 << 32, 1 << 40, (1 << 63) - 1,
+         (1 << 64) - 1)
+_FLOATS = (0.0, -0.0, 1.0, -1.0, 0.5, 1e-300, 5e-324, 1e12, 1e15, 1e308, -1e308, math.inf, -math.inf, math.nan)
+_JSON_VALUES = (None, True, False, 0, -1, 1, 2**31, 2**63, 10**400, 0.5, 1.5, -0.5, 1e308, "x", "", [], {},
+                [[[[[]]]]], {"a": {}})
+
+
+class Mutator:
+    """Random mutations of seed maps: bytes, fields, sections, JSON, truncations, splices."""
+
+    def __init__(self, seeds: list[bytes], rng: random.Random):
+        self.seeds = seeds
+        self.rng = rng
+
+    def __call__(self) -> bytes:
+        rng = self.rng
+        data = rng.choice(self.seeds)
+        ops = (self._flip, self._interesting_int, self._interesting_float, self._truncate, self._insert,
+               self._delete, self._splice, self._geom, self._table, self._json, self._blob)
+        weights = (4, 2, 2, 2, 1, 1, 1, 3, 2, 3, 2)
+        for _ in range(rng.choice((1, 1, 1, 2, 3))):
+            try:
+                data = rng.choices(ops, weights)[0](data)
+            except (struct.error, ValueError, KeyError, RecursionError, OverflowError):
+                pass  # a structural mutation that does not apply to these bytes
+        mode = rng.getrandbits(8)
+        if rng.random() < 0.5:
+            mode |= MODE_FIX_CRCS  # half the inputs look crafted rather than damaged
+        return bytes([mode]) + data
+
+    def _pos(self, data: bytes) -> int:
+        # Headers are small and dense with fields: aim there more often.
+        if data and self.rng.random() < 0.5:
+            return self.rng.randrange(min(len(data), 512))
+        return self.rng.randrange(len(data)) if data else 0
+
+    def _flip(self, data: bytes) -> bytes:
+        if not data:
+            return data
+        buf = bytearray(data)
+        for _ in range(self.rng.choice((1, 1, 2, 8))):
+            i = self._pos(data)
+            buf[i] ^= 1 << self.rng.randrange(8)
+        return bytes(buf)
+
+    def _interesting_int(self, data: bytes) -> bytes:
+        if len(data) < 8:
+            return data
+        fmt = self.rng.choice(("<B", "<H", "<I", "<Q"))
+        value = self.rng.choice(_INTS) & ((1 << (8 * struct.calcsize(fmt))) - 1)
+        i = min(self._pos(data), len(data) - struct.calcsize(fmt))
+        buf = bytearray(data)
+        struct.pack_into(fmt, buf, i, value)
+        return bytes(buf)
+
+    def _interesting_float(self, data: bytes) -> bytes:
+        if len(data) < 8:
+            return data
+        i = min(self._pos(data), len(data) - 8)
+        buf = bytearray(data)
+        struct.pack_into("<d", buf, i, self.rng.choice(_FLOATS))
+        return bytes(buf)
+
+    def _truncate(self, data: bytes) -> bytes:
+        return data[: self.rng.randrange(len(data) + 1)]
+
+    def _insert(self, data: bytes) -> bytes:
+        i = self.rng.randrange(len(data) + 1)
+        return data[:i] + self.rng.randbytes(self.rng.choice((1, 4, 8, 64))) + data[i:]
+
+    def _delete(self, data: bytes) -> bytes:
+        if not data:
+            return data
+        i = self.rng.randrange(len(data))
+        return data[:i] + data[i + self.rng.choice((1, 4, 8, 64)):]
+
+    def _splice(self, data: bytes) -> bytes:
+        other = self.rng.choice(self.seeds)
+        i, j = self.rng.randrange(len(data) + 1), self.rng.randrange(len(other) + 1)
+        return data[:i] + other[j:]
+
+    def _sections(self, data: bytes) -> list[tuple[bytes, bytes]] | None:
+        try:
+            return craft.split(data)
+        except struct.error:
+            return None
+
+    def _geom(self, data: bytes) -> bytes:
+        try:
+            fields = craft.geom(data)
+        except (struct.error, KeyError):
+            return data
+        name = self.rng.choice(craft.GEOM_FIELDS)
+        if isinstance(fields[name], int):
+            value = self.rng.choice(_INTS + (fields[name] + 1, max(0, fields[name] - 1), fields[name] * 2))
+            value &= (1 << 32) - 1 if name in ("rows", "cols") else (1 << 64) - 1
+        else:
+            value = self.rng.choice(_FLOATS + (fields[name] * 2, -fields[name]))
+        try:
+            return craft.with_geom(data, **{name: value})
+        except (struct.error, KeyError):
+            return data
+
+    def _table(self, data: bytes) -> bytes:
+        sections = self._sections(data)
+        if not sections:
+            return data
+        rng = self.rng
+        choice = rng.randrange(5)
+        if choice == 0:  # drop a section
+            del sections[rng.randrange(len(sections))]
+            return craft.join(sections)
+        if choice == 1:  # duplicate one
+            sections.insert(rng.randrange(len(sections) + 1), rng.choice(sections))
+            return craft.join(sections)
+        if choice == 2:  # reorder
+            rng.shuffle(sections)
+            return craft.join(sections)
+        if choice == 3:  # a lying count
+            return craft.join(sections, count=rng.choice((0, 1, len(sections) + 1, 1024, 1025, 0xFFFFFFFF)))
+        try:  # a lying entry: offset or length
+            index = rng.randrange(len(sections))
+            name = rng.choice(("offset", "length", "tile"))
+            return craft.with_table_entry(data, index, **{name: rng.choice(_INTS) & ((1 << 64) - 1 if name != "tile"
+                                                                                    else (1 << 32) - 1)})
+        except struct.error:
+            return data
+
+    def _json(self, data: bytes) -> bytes:
+        sections = self._sections(data)
+        if not sections:
+            return data
+        rng = self.rng
+        index = rng.choice([i for i, (t, _) in enumerate(sections) if t in (b"PARM", b"STAT", b"CRS ")] or [0])
+        tag, payload = sections[index]
+        try:
+            obj = json.loads(payload)
+        except (ValueError, RecursionError):
+            obj = {}
+        if isinstance(obj, dict) and obj and rng.random() < 0.8:
+            key = rng.choice(sorted(obj))
+            obj[key] = rng.choice(_JSON_VALUES)
+            text = json.dumps(obj)
+        elif rng.random() < 0.5:
+            text = rng.choice(("[" * 100_000, "{}", "[]", "null", "\"x\"", "1e999", "{\"a\": NaN}"))
+        else:
+            text = json.dumps(rng.choice(_JSON_VALUES))
+        sections[index] = (tag, text.encode("utf-8", "surrogatepass"))
+        return craft.join(sections)
+
+    def _blob(self, data: bytes) -> bytes:
+        sections = self._sections(data)
+        if not sections:
+            return data
+        import zstandard
+
+        rng = self.rng
+        index = rng.choice([i for i, (t, _) in enumerate(sections) if t in (b"MASK", b"COEF")] or [0])
+        tag, payload = sections[index]
+        choice = rng.randrange(4)
+        if choice == 0:  # a zstd frame that expands enormously (a bomb)
+            payload = zstandard.ZstdCompressor().compress(b"\xff" * rng.choice((10, 1000, 10**6, 10**7)))
+        elif choice == 1:  # random bytes
+            payload = rng.randbytes(rng.choice((0, 1, 16, 100, len(payload))))
+        elif choice == 2:  # a field inside the payload
+            if len(payload) >= 4:
+                buf = bytearray(payload)
+                struct.pack_into("<I", buf, rng.randrange(0, len(buf) - 3), rng.choice(_INTS) & 0xFFFFFFFF)
+                payload = bytes(buf)
+        else:  # the other section's payload
+            payload = rng.choice(sections)[1]
+        sections[index] = (tag, payload)
+        return craft.join(sections)
+
+
+@dataclass
+class Campaign:
+    iterations: int = 0
+    outcomes: collections.Counter = field(default_factory=collections.Counter)
+    refusals: collections.Counter = field(default_factory=collections.Counter)
+    failures: list[dict] = field(default_factory=list)
+    max_seconds: float = 0.0
+    max_seconds_input: str = ""
+    total_seconds: float = 0.0
+    max_peak_bytes: int = 0
+    max_peak_fraction: float = 0.0
+    seconds: list[float] = field(default_factory=list)
+
+    def add(self, data: bytes, outcome: Outcome, save_to: Path | None) -> None:
+        self.iterations += 1
+        self.outcomes[outcome.kind] += 1
+        if outcome.kind == "refused":
+            self.refusals[outcome.detail.split(":", 1)[0]] += 1
+        self.total_seconds += outcome.seconds
+        self.seconds.append(outcome.seconds)
+        if outcome.seconds > self.max_seconds:
+            self.max_seconds, self.max_seconds_input = outcome.seconds, data[:64].hex()
+        self.max_peak_bytes = max(self.max_peak_bytes, outcome.peak_bytes)
+        if outcome.allowed_bytes:
+            self.max_peak_fraction = max(self.max_peak_fraction, outcome.peak_bytes / outcome.allowed_bytes)
+        if outcome.failed:
+            name = f"failure-{zlib.crc32(data):08x}.bin"
+            if save_to is not None:
+                save_to.mkdir(parents=True, exist_ok=True)
+                (save_to / name).write_bytes(data)
+            self.failures.append({"kind": outcome.kind, "input": name, "detail": outcome.detail[-2000:]})
+
+    def report(self) -> dict:
+        secs = sorted(self.seconds)
+        return {
+            "iterations": self.iterations,
+            "outcomes": dict(self.outcomes),
+            "refusals_by_error": dict(self.refusals),
+            "failures": len(self.failures),
+            "failure_details": self.failures[:20],
+            "decode_seconds_max": round(self.max_seconds, 4),
+            "decode_seconds_p99": round(secs[int(0.99 * (len(secs) - 1))], 4) if secs else 0.0,
+            "decode_seconds_mean": round(self.total_seconds / max(1, self.iterations), 5),
+            "slowest_input_prefix_hex": self.max_seconds_input,
+            "peak_traced_bytes_max": self.max_peak_bytes,
+            "peak_over_allowed_max": round(self.max_peak_fraction, 4),
+            "max_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        }
+
+
+def run(iterations: int, *, seed: int = 0, time_budget: float | None = None, save_to: Path | None = None,
+        trace_memory: bool = True, progress: bool = False) -> dict:
+    """Run the built-in engine; returns the report (see :meth:`Campaign.report`)."""
+    rng = random.Random(seed)
+    seeds = list(seed_files().values())
+    mutate = Mutator(seeds, rng)
+    campaign = Campaign()
+    # The unmutated seeds first (each must decode), then mutations.
+    inputs = ([bytes([0]) + s for s in seeds] + [bytes([MODE_PREFIX | MODE_CUTOFF]) + s for s in seeds])
+    start = time.perf_counter()
+    for i in range(iterations):
+        data = inputs[i] if i < len(inputs) else mutate()
+        campaign.add(data, check(data, trace_memory=trace_memory), save_to)
+        if time_budget is not None and time.perf_counter() - start > time_budget:
+            break
+        if progress and (i + 1) % 10_000 == 0:
+            print(f"{i + 1:,} inputs, {len(campaign.failures)} failures, "
+                  f"{time.perf_counter() - start:.0f} s", file=sys.stderr, flush=True)
+    report = campaign.report()
+    report.update(engine="builtin", seed=seed, wall_seconds=round(time.perf_counter() - start, 1),
+                  seeds=len(seeds))
+    return report
+
+
+def _atheris(argv: list[str]) -> None:  # pragma: no cover - needs atheris
+    import atheris
+
+    seeds = seed_files()
+    corpus = [a for a in argv[1:] if not a.startswith("-")]
+    for folder in corpus:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        for name, data in seeds.items():
+            for mode in (0, MODE_FIX_CRCS, MODE_PREFIX):
+                (Path(folder) / f"{name}-{mode}").write_bytes(bytes([mode]) + data)
+
+    def test_one_input(data: bytes) -> None:
+        outcome = check(data, trace_memory=False)  # libFuzzer's -rss_limit_mb and -timeout watch instead
+        if outcome.failed:
+            raise RuntimeError(f"{outcome.kind}: {outcome.detail}")
+
+    atheris.instrument_all()
+    atheris.Setup(argv, test_one_input)
+    atheris.Fuzz()
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv if argv is None else argv
+    if "--atheris" in argv:
+        _atheris([a for a in argv if a != "--atheris"])
+        return 0
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--iterations", type=int, default=100_000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--time-budget", type=float, help="stop after this many seconds")
+    parser.add_argument("--report", type=Path, help="write the JSON report here")
+    parser.add_argument("--failures", type=Path, default=Path("fuzz-failures"),
+                        help="folder for inputs that failed (default ./fuzz-failures)")
+    parser.add_argument("--no-memory", action="store_true", help="skip the per-input allocation check (faster)")
+    args = parser.parse_args(argv[1:])
+    resource.setrlimit(resource.RLIMIT_AS, (CAMPAIGN_ADDRESS_SPACE, resource.getrlimit(resource.RLIMIT_AS)[1]))
+    report = run(args.iterations, seed=args.seed, time_budget=args.time_budget, save_to=args.failures,
+                 trace_memory=not args.no_memory, progress=True)
+    text = json.dumps(report, indent=2)
+    print(text)
+    if args.report:
+        args.report.write_text(text + "\n")
+    return 1 if report["failures"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,65 @@
+"""Valid ``.dftpc`` files to start fuzzing from: small, and covering every code path.
+
+Made with the current encoder each time (never checked in), so the seeds
+follow the format as it evolves. ``python tests/fuzz/seeds.py DIR`` writes
+them to DIR as ``NAME.dftpc``.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import dftpcc
+from dftpcc.terrain import regolith_plain
+
+#: name -> compress() options. Small grids (at most ~40 x 40 cells) keep
+#: each decode around a millisecond, so a fuzzer runs many inputs a second.
+SEED_OPTIONS: dict[str, dict] = {
+    "compact_dct": dict(resolution=1.0, cutoff=0.8),
+    "compact_dct_fc0": dict(resolution=1.5, cutoff=0.0),
+    "compact_dft": dict(resolution=1.0, cutoff=0.5, transform="dft"),
+    "compact_oriented_zero": dict(resolution=1.0, cutoff=0.6, frame="oriented", fill="zero", detrend="none"),
+    "compact_median_step": dict(resolution=2.0, cutoff=0.3, aggregate="median", step=0.01),
+    "paper_dft": dict(resolution=1.5, cutoff=0.8, profile="paper"),
+    "paper_dft_fc0": dict(resolution=3.0, cutoff=0.0, profile="paper"),
+}
+
+
+def _terrain() -> np.ndarray:
+    # Irregular footprint (a disc sector) so masks have holes and edges.
+    return regolith_plain(4000, size=40.0, craters=3, rocks=10, seed=11)
+
+
+def seed_files() -> dict[str, bytes]:
+    """name -> bytes of each seed map (plus a one-cell map and one with a CRS)."""
+    points = _terrain()
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for name, options in SEED_OPTIONS.items():
+            out[name] = dftpcc.compress(points, **options)
+        out["one_cell"] = dftpcc.compress(np.array([[5.0, 7.0, 1.25]]), resolution=1.0)
+        out["with_crs"] = dftpcc.compress(
+            points[::4], resolution=2.0, crs={"wkt": 'LOCAL_CS["rover frame"]', "las_vlrs": [
+                {"record_id": 34735, "description": "GeoKeyDirectoryTag", "data": "AQABAAAAAQA="}]})
+    return out
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) != 1:
+        print("usage: python tests/fuzz/seeds.py DIR", file=sys.stderr)
+        return 2
+    folder = Path(argv[0])
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, data in seed_files().items():
+        (folder / f"{name}.dftpc").write_bytes(data)
+        print(f"{folder / name}.dftpc: {len(data)} bytes")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
