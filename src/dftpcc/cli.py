@@ -127,7 +127,9 @@ def cmd_compress(args: argparse.Namespace) -> int:
     from .files import compress_file
 
     options = dict(aggregate=args.aggregate, frame=args.frame, transform=args.transform,
-                   step=args.step, fill=args.fill, detrend=args.detrend)
+                   step=args.step, fill=args.fill, detrend=args.detrend, mask=args.mask, coder=args.coder,
+                   target_rmse=args.target_rmse, target_max_error=args.target_max_error,
+                   target_bpp=args.target_bpp)
     t0 = time.perf_counter()
     with _progress(not args.quiet, COMPRESS_STAGES) as on_stage:
         cmap = compress_file(args.input, args.output, resolution=args.resolution, cutoff=args.cutoff,
@@ -155,6 +157,14 @@ def cmd_decompress(args: argparse.Namespace) -> int:
     return 0
 
 
+def _target_text(p: dict) -> str:
+    for key, text in (("target_rmse", "DEM RMSE <= {} m"), ("target_max_error", "max error <= {} m"),
+                      ("target_bpp", "<= {} bits/point")):
+        if p.get(key, 0) > 0:
+            return text.format(p[key]) + " (cutoff and step chosen by rate control)"
+    return "none (cutoff and step as given)"
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from .container import open as open_map
 
@@ -173,9 +183,11 @@ def cmd_info(args: argparse.Namespace) -> int:
         ("profile", f"{p['profile']} (transform {p['transform']}, storage {p['storage']}, "
                     f"detrend {p['detrend']}, fill {p['fill']})"),
         ("cutoff", f"{p['cutoff']}" + (f", step {p['step'] * 1000:.3f} mm" if p["storage"] == "quantized" else "")),
+        ("target", _target_text(p)),
         ("DEM error", f"RMSE {s.get('dem_rmse_m', float('nan')) * 1000:.2f} mm, "
                       f"max {s.get('dem_max_error_m', float('nan')) * 1000:.2f} mm"),
-        ("sections", f"mask {s.get('mask_bytes')} B, coefficients {s.get('coef_bytes')} B ({s.get('coef_count')} values)"),
+        ("sections", f"mask {s.get('mask_bytes')} B, coefficients {s.get('coef_bytes')} B ({s.get('coef_count')} values)"
+                     + (f", residual {s['residual_bytes']} B" if s.get("residual_bytes") else "")),
         ("CRS", (info["crs"] or "none")[:70]),
     ]
     if "vertical_rmse_m" in s:
@@ -259,7 +271,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", "-r", type=_resolution, default="auto",
                    help="DEM cell size in metres, or 'auto' (default: about 4 points per cell; "
                         "a GeoTIFF keeps its own pixels)")
-    p.add_argument("--cutoff", "-c", type=_cutoff, default=0.8, help="cutoff ratio f_c = 1 - r/r_M in [0, 1) (default 0.8)")
+    p.add_argument("--cutoff", "-c", type=_cutoff,
+                   help="cutoff ratio f_c = 1 - r/r_M in [0, 1) (default 0.8; with a --target-*, chosen for you)")
+    target = p.add_mutually_exclusive_group()
+    target.add_argument("--target-rmse", type=_positive, metavar="METRES",
+                        help="smallest file whose rebuilt DEM is within this RMSE of the gridded one")
+    target.add_argument("--target-max-error", type=_positive, metavar="METRES",
+                        help="every occupied cell within this error (adds a residual layer)")
+    target.add_argument("--target-bpp", type=_positive, metavar="BITS",
+                        help="most accurate file of at most this many bits per original point")
     p.add_argument("--profile", choices=("compact", "paper"), default="compact",
                    help="compact (default): detrended DCT, quantized, entropy-coded; paper: the published method")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classification codes, e.g. 2 for ground")
@@ -269,6 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--detrend", choices=("none", "plane"), help="override the profile's detrending")
     p.add_argument("--fill", choices=("smooth", "zero"), help="how empty cells are filled before the transform")
     p.add_argument("--step", type=_positive, help="quantizer step in metres (default: automatic)")
+    p.add_argument("--mask", choices=("exact", "footprint"),
+                   help="exact (default): rebuild occupied cells only; footprint: also the gaps the map encloses")
+    p.add_argument("--coder", choices=("ans", "zstd"), help="entropy coder of the coefficients (default ans)")
     p.add_argument("--format", help="input format if the extension does not tell")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=cmd_compress)

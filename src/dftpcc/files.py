@@ -8,7 +8,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .codec import Stage, _noop, compress, encode_dem
+from .codec import DEFAULT_CUTOFF, Stage, _noop, compress, encode_dem
 from .container import CompressedMap, atomic_write
 from .container import open as open_map
 from .errors import InvalidInputError
@@ -20,7 +20,7 @@ __all__ = ["compress_file", "decompress_file", "dem_from_geotiff"]
 
 
 def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
-                  resolution: float | str = "auto", cutoff: float = 0.8, profile: str = "compact",
+                  resolution: float | str = "auto", cutoff: float | None = None, profile: str = "compact",
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
                   on_stage: Stage = _noop, **options: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
@@ -36,8 +36,9 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
     on_stage("read")
     if format_of(src, format) == "tif" and resolution == "auto":
         dem, crs = dem_from_geotiff(src)
-        params = make_params(resolution=dem.grid.resolution, cutoff=cutoff, profile=profile, **options)
-        data = encode_dem(dem, params, crs=crs, on_stage=on_stage)
+        params = make_params(resolution=dem.grid.resolution, cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff,
+                             profile=profile, **options)
+        data = encode_dem(dem, params, crs=crs, on_stage=on_stage, cutoff_given=cutoff is not None)
     else:
         cloud = read(src, format=format, classes=classes)
         data = compress(cloud.points, resolution=resolution, cutoff=cutoff, profile=profile,
