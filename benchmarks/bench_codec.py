@@ -16,14 +16,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import dftpcc  # noqa: E402
 from common import (  # noqa: E402
     DEFAULT_DATA, GROUND, Case, bits_at, fmt_bits, load, lower_hull, markdown_table, median_time,
-    pick_cases, rmse, shared_grid, verdict, warnings_as_notes, write_doc_section,
+    library_label, pick_cases, rmse, shared_grid, verdict, warnings_as_notes, write_doc_section,
 )
 
 CASES = (
@@ -171,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     repeats = args.repeats or (QUICK_REPEATS if args.quick else REPEATS)
     cases = pick_cases(CASES, args.files)
     t0 = time.perf_counter()
+    print(f"Measuring {library_label()}.", flush=True)
     measured = []
     parts = [f"Times are medians of {repeats} in-memory runs (points already parsed); compact uses the "
              "library's automatic quantizer step. RMSE: every original point against the rebuilt height "

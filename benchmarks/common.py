@@ -35,9 +35,12 @@ FIGURES = REPO / "docs" / "figures"
 #: LAS classification code of ground points.
 GROUND = 2
 #: A DEM sampled at pixel centres puts every point exactly on a cell edge of a
-#: grid anchored at the first point; a cell this much (relative) smaller than
-#: the pixel keeps each point in its own cell whatever the rounding.
-LATTICE_SHRINK = 1e-9
+#: grid anchored at the first point, and rounding then drops some into the
+#: neighbouring cell (17% of the Moon DEM's cells collide at the exact pixel
+#: width). A cell this much (relative) smaller than the pixel keeps each point
+#: inside its own cell, far enough from the edge that its nearest decoded cell
+#: centre is its own even at UTM-size coordinates.
+LATTICE_SHRINK = 1e-6
 #: Errors below this (metres) count as this in log-log interpolation.
 MIN_ERROR = 1e-9
 
@@ -232,26 +235,30 @@ class NearestHeights:
 def lower_hull(samples: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
     """Efficient frontier of (bits per point, RMSE metres) samples.
 
-    The lower convex hull in log-log space, from the smallest error to the
-    cheapest point, ordered by increasing error (decreasing bits).
+    The lower-left convex hull in the (bits, mean squared error) plane: the
+    points no mix of two other settings beats (coding part of a map with one
+    setting and the rest with another averages both the bits and the squared
+    error). Returned from the smallest error to the cheapest point, i.e. by
+    increasing error and decreasing bits. (A hull taken in log-log space would
+    be wrong: a codec whose bits grow linearly with log-error, like Draco's,
+    is concave there and would lose every point but its two ends.)
     """
-    pts = sorted({(max(e, MIN_ERROR), b) for b, e in samples if b > 0 and math.isfinite(e)})
-    if not pts:
-        return []
-    logs = [(math.log(e), math.log(b)) for e, b in pts]
-    hull: list[int] = []
-    for i, (x, y) in enumerate(logs):
-        if hull and logs[hull[-1]][0] == x:
-            continue  # same error, higher bits (sorted): never on the lower hull
+    pts = sorted({(b, e * e, e) for b, e in samples if b > 0 and math.isfinite(e)})
+    hull: list[tuple[float, float, float]] = []
+    for b, mse, e in pts:
+        if hull and hull[-1][0] == b:
+            continue  # same bits, larger error (sorted)
         while len(hull) >= 2:
-            (x1, y1), (x2, y2) = logs[hull[-2]], logs[hull[-1]]
-            if (x2 - x1) * (y - y1) - (y2 - y1) * (x - x1) <= 0:
-                hull.pop()
+            (b1, m1, _), (b2, m2, _) = hull[-2], hull[-1]
+            if (b2 - b1) * (mse - m1) - (m2 - m1) * (b - b1) <= 0:
+                hull.pop()  # hull[-1] lies on or above the chord to this point
             else:
                 break
-        hull.append(i)
-    cheapest = min(range(len(hull)), key=lambda k: logs[hull[k]][1])
-    return [(pts[i][1], pts[i][0]) for i in hull[: cheapest + 1]]
+        hull.append((b, mse, e))
+    if not hull:
+        return []
+    best = min(range(len(hull)), key=lambda k: hull[k][1])
+    return [(b, e) for b, _, e in reversed(hull[: best + 1])]
 
 
 def bits_at(hull: Sequence[tuple[float, float]], error: float) -> tuple[float | None, str]:
@@ -272,6 +279,7 @@ def bits_at(hull: Sequence[tuple[float, float]], error: float) -> tuple[float | 
         if e0 <= error <= e1:
             if e1 == e0:
                 return b0, ""
+            e0 = max(e0, MIN_ERROR)
             t = math.log(error / e0) / math.log(e1 / e0)
             return math.exp(math.log(b0) + t * math.log(b1 / b0)), ""
     return None, "unreached"
@@ -302,11 +310,27 @@ def command_line() -> str:
     return " ".join([".venv/bin/python", script, *args])
 
 
+def library_label() -> str:
+    """Which dftpcc was measured: the commit of this checkout, or the path it was imported from."""
+    import subprocess
+
+    where = Path(dftpcc.__file__).resolve().parent
+    if REPO / "src" in where.parents:
+        def git(*args: str) -> str:
+            return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True).stdout.strip()
+
+        dirty = git("status", "--porcelain", "--", "src")
+        return f"dftpcc {dftpcc.__version__} at commit {git('rev-parse', '--short', 'HEAD')}" + \
+            (" + uncommitted changes in src/" if dirty else "")
+    return f"dftpcc {dftpcc.__version__} imported from {where}"
+
+
 def write_doc_section(key: str, title: str, body: str, path: Path = DOC) -> None:
     """Replace (or append) the section between this key's markers in docs/benchmarks.md."""
     begin, end = f"<!-- {key}:begin -->", f"<!-- {key}:end -->"
     stamp = datetime.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z")
-    block = (f"{begin}\n## {title}\n\nRegenerated {stamp} with `{command_line()}`.\n\n"
+    block = (f"{begin}\n## {title}\n\nRegenerated {stamp} with `{command_line()}` "
+             f"({library_label()}).\n\n"
              f"{body.strip()}\n{end}")
     text = path.read_text() if path.exists() else DOC_HEAD
     if begin in text and end in text:

@@ -1,0 +1,647 @@
+"""Issue 3: dftpcc's rate-distortion against point-cloud and raster anchors, in one run.
+
+For each file, every codec is swept over its quality setting; each setting
+gives (bits per original point, vertical RMSE of every original point against
+the decoded point nearest to it in x, y). The lower convex hull of those
+samples (log-log) is each codec's frontier, and the bits it needs at fixed
+error levels are read off it by log-log interpolation, as in ANCHORS.md.
+Targets are printed as PASS/MISS; nothing here fails.
+
+    .venv/bin/python benchmarks/bench_anchors.py [--quick] [--files field mars ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import zstandard
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import dftpcc  # noqa: E402
+from common import (  # noqa: E402
+    DEFAULT_DATA, FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load, lower_hull,
+    library_label, markdown_table, median_time, pick_cases, verdict, warnings_as_notes, write_doc_section,
+)
+from dftpcc.grid import Grid, fit_grid, rasterize  # noqa: E402
+
+CASES = (
+    Case("field_gentle_ign.laz", 0.5, (GROUND,), "gentle"),
+    Case("coastal_plain_ign.laz", 2.0, (GROUND,), "gentle"),
+    Case("mountain_arid_alirt.las", 2.0, None, "rough"),
+    Case("redrocks_rough.ply", 5.0, None, "rough"),
+    Case("mars_gale_1m.tif", None, None, "gentle"),
+    # A complex crater with 6.4 km of relief: judged against the rough target.
+    Case("moon_kepler_lola_48m.tif", None, None, "rough"),
+)
+
+#: Error levels for point clouds, as multiples of the gridding floor.
+FLOOR_MULTIPLES = (1.25, 1.5, 3.0)
+#: Error levels for a DEM sampled one point per pixel (floor 0), as fractions
+#: of its RMS relief (standard deviation of the heights).
+RELIEF_FRACTIONS = (0.001, 0.003, 0.01)
+
+#: Targets of issue 3: compact's bits over the best anchor's, over Draco's, over paper's.
+MAX_OVER_BEST = {"gentle": 0.7, "rough": 1.0}
+MAX_OVER_DRACO = 0.2
+MAX_OVER_PAPER = 0.1
+
+#: Sweeps. dftpcc compact: cutoff x quantizer step (step in units of the first error scale).
+COMPACT_CUTOFFS = (0.0, 0.2, 0.4, 0.5, 0.6, 0.7, 0.75, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97)
+COMPACT_STEPS = tuple(2.0 ** (k / 2) for k in range(-2, 17))        # 0.5 .. 256 units
+PAPER_CUTOFFS = (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97, 0.98, 0.99)
+DRACO_BITS = tuple(range(8, 17))
+DRACO_LEVEL = 7
+JPEG2K_PSNR = tuple(range(40, 81, 5))                                # dB on the 16-bit DEM
+ERROR_BOUNDS = tuple(2.0 ** (k / 2) for k in range(-4, 13))          # LERC / SZ3, 0.25 .. 64 units
+QUICK = dict(compact_cutoffs=(0.0, 0.5, 0.7, 0.8, 0.9, 0.95), compact_steps=tuple(2.0 ** k for k in range(-1, 9)),
+             paper_cutoffs=(0.0, 0.5, 0.8, 0.9, 0.95, 0.98), draco_bits=(8, 10, 12, 14, 16),
+             jpeg2k_psnr=(40, 50, 60, 70, 80), error_bounds=tuple(2.0 ** k for k in range(-2, 7)))
+
+#: zstd level for the occupancy bitmap of the raster anchors (as ANCHORS.md).
+MASK_ZSTD_LEVEL = 19
+#: Side information a raster anchor needs to put its DEM back in place: grid
+#: origin, cell size, rows, cols, height offset and range, as eight 8-byte
+#: numbers. With it the JPEG2000 figures of ANCHORS.md are reproduced.
+RASTER_HEADER_BYTES = 8 * 8
+#: Draco's local origin (three float64) travels beside the Draco buffer.
+DRACO_ORIGIN_BYTES = 3 * 8
+#: LAZ reference: coordinates stored at the source's scale, or this (metres) for PLY/GeoTIFF.
+LAZ_SCALE = 0.001
+U16_MAX = 65535
+TIMING_REPEATS = 3
+#: A full run should stay under this (seconds); beyond it the script advises --quick.
+RUN_BUDGET_S = 15 * 60
+
+ANCHORS_MD = {  # file -> (Draco, JPEG2000) bits/pt at 1.25x, 1.5x, 3x the floor, from ANCHORS.md
+    "field_gentle_ign.laz": ((7.958, 7.255, 4.552), (0.751, 0.251, 0.080)),
+    "coastal_plain_ign.laz": ((11.796, 11.034, 8.316), (5.146, 3.907, 1.975)),
+    "mountain_arid_alirt.las": ((4.832, 4.091, 4.091), (0.194, 0.170, 0.145)),
+    "redrocks_rough.ply": ((4.285, 4.037, 4.037), (0.360, 0.285, 0.285)),
+}
+
+
+# --- the raster the DEM anchors code ------------------------------------------------
+
+@dataclass
+class Raster:
+    """Mean-height DEM of a cloud on dftpcc's axis-aligned grid, ready for raster codecs.
+
+    Attributes
+    ----------
+    grid : Grid
+    heights : ndarray (rows, cols), float64
+        Mean height per cell relative to ``grid.z0`` (metres); 0 where empty.
+    filled : ndarray (rows, cols), float64
+        ``heights`` with every empty cell given its nearest occupied cell's value.
+    mask : ndarray (rows, cols), bool
+    mask_blob : bytes
+        Occupancy bit-packed and zstd-compressed.
+    """
+
+    grid: Grid
+    heights: np.ndarray
+    filled: np.ndarray
+    mask: np.ndarray
+    mask_blob: bytes
+
+
+def make_raster(points: np.ndarray, resolution: float) -> Raster:
+    grid = fit_grid(points, resolution)
+    dem = rasterize(points, grid)
+    mask = dem.mask
+    if mask.all():
+        filled = dem.heights
+    else:
+        nearest = ndimage.distance_transform_edt(~mask, return_distances=False, return_indices=True)
+        filled = dem.heights[tuple(nearest)]
+    blob = zstandard.ZstdCompressor(level=MASK_ZSTD_LEVEL).compress(np.packbits(mask.ravel()).tobytes())
+    return Raster(grid, dem.heights, filled, mask, blob)
+
+
+def raster_points(grid: Grid, mask_blob: bytes, heights: np.ndarray) -> np.ndarray:
+    """Decoded cloud of a raster anchor: one point per occupied cell, at its centre (as dftpcc)."""
+    raw = zstandard.ZstdDecompressor().decompress(mask_blob)
+    mask = np.unpackbits(np.frombuffer(raw, np.uint8), count=grid.size).astype(bool).reshape(grid.shape)
+    rows, cols = np.nonzero(mask)
+    x, y = grid.centres(rows, cols)
+    return np.column_stack([x, y, heights[rows, cols] + grid.z0])
+
+
+# --- codecs: encode(setting) -> (bytes, state); decode(state) -> points ---------------
+
+@dataclass
+class Codec:
+    """One codec under test: how to encode a cloud at a setting and decode it back."""
+
+    name: str
+    settings: list[Any]
+    encode: Callable[[Any, bool], tuple[int, Any]]
+    decode: Callable[[Any], np.ndarray]
+    describe: Callable[[Any], str]
+    is_anchor: bool = True
+    #: Encoded state -> bytes of {"mask", "coef" (coefficients / codestream), "header"}.
+    split: Callable[[Any], dict] | None = None
+
+
+@dataclass
+class Sample:
+    setting: Any
+    bytes: int
+    bpp: float
+    err: float
+    out_points: int
+    extra: dict = field(default_factory=dict)
+
+
+#: A compact setting ``(TARGET, metres)`` asks the library's rate control for that DEM RMSE.
+TARGET = "target_rmse"
+
+
+def dftpcc_codec(name: str, profile: str, settings: list[tuple[Any, float]], points: np.ndarray,
+                 resolution: float) -> Codec:
+    def encode(setting: tuple[Any, float], fresh: bool) -> tuple[int, Any]:
+        cutoff, value = setting
+        if cutoff == TARGET:
+            blob = dftpcc.compress(points, resolution=resolution, profile=profile, target_rmse=value)
+        else:
+            options = {"step": value} if profile == "compact" else {}
+            blob = dftpcc.compress(points, resolution=resolution, cutoff=cutoff, profile=profile, **options)
+        return len(blob), blob
+
+    def describe(setting: tuple[Any, float]) -> str:
+        cutoff, value = setting
+        if cutoff == TARGET:
+            return f"rate control, target_rmse {1000 * value:.3g} mm"
+        return f"f_c {cutoff:g}" + (f", step {1000 * value:.3g} mm" if profile == "compact" else "")
+
+    def split(blob: bytes) -> dict:
+        stats = dftpcc.open(blob).header.stats
+        mask, coef = stats.get("mask_bytes", 0), stats.get("coef_bytes", 0)
+        return {"mask": mask, "coef": coef, "header": len(blob) - mask - coef}
+
+    return Codec(name, settings, encode, dftpcc.decompress, describe, is_anchor=False, split=split)
+
+
+def draco_codec(points: np.ndarray, bits: tuple[int, ...]) -> Codec:
+    import DracoPy
+
+    def encode(q: int, fresh: bool) -> tuple[int, Any]:
+        origin = points.min(axis=0)
+        buf = DracoPy.encode((points - origin).astype(np.float32), quantization_bits=q,
+                             compression_level=DRACO_LEVEL)
+        return len(buf) + DRACO_ORIGIN_BYTES, (buf, origin)
+
+    def split(state: Any) -> dict:
+        return {"mask": 0, "coef": len(state[0]), "header": DRACO_ORIGIN_BYTES}
+
+    def decode(state: Any) -> np.ndarray:
+        buf, origin = state
+        return np.asarray(DracoPy.decode(buf).points, dtype=np.float64) + origin
+
+    return Codec("Draco", list(bits), encode, decode, lambda q: f"{q} bits", split=split)
+
+
+def raster_codec(name: str, settings: list[Any], cached: Raster, points: np.ndarray, resolution: float,
+                 code: Callable[[Raster, Any], tuple[bytes, Any]],
+                 uncode: Callable[[Raster, Any], np.ndarray], describe: Callable[[Any], str]) -> Codec:
+    """A raster codec wrapped to code a cloud: grid + fill + mask, then ``code`` the DEM.
+
+    ``code`` returns the coded bytes and the state ``uncode`` needs (which holds those bytes first).
+    """
+
+    def code_bytes(inner: Any) -> bytes:
+        first = inner[0] if isinstance(inner, tuple) else inner
+        return first.tobytes() if isinstance(first, np.ndarray) else first
+
+    def encode(setting: Any, fresh: bool) -> tuple[int, Any]:
+        raster = make_raster(points, resolution) if fresh else cached
+        payload, state = code(raster, setting)
+        return len(payload) + len(raster.mask_blob) + RASTER_HEADER_BYTES, (raster, state)
+
+    def decode(state: Any) -> np.ndarray:
+        raster, inner = state
+        return raster_points(raster.grid, raster.mask_blob, uncode(raster, inner))
+
+    def split(state: Any) -> dict:
+        raster, inner = state
+        return {"mask": len(raster.mask_blob), "coef": len(code_bytes(inner)), "header": RASTER_HEADER_BYTES}
+
+    return Codec(name, settings, encode, decode, describe, split=split)
+
+
+def jpeg2k_code(raster: Raster, psnr: float) -> tuple[bytes, Any]:
+    import imagecodecs
+
+    lo, hi = float(raster.filled.min()), float(raster.filled.max())
+    span = hi - lo if hi > lo else 1.0
+    u16 = np.round((raster.filled - lo) / span * U16_MAX).astype(np.uint16)
+    blob = imagecodecs.jpeg2k_encode(u16, level=psnr)
+    return blob, (blob, lo, span)
+
+
+def jpeg2k_uncode(raster: Raster, state: Any) -> np.ndarray:
+    import imagecodecs
+
+    blob, lo, span = state
+    return imagecodecs.jpeg2k_decode(blob).astype(np.float64) / U16_MAX * span + lo
+
+
+def lerc_code(raster: Raster, max_error: float) -> tuple[bytes, Any]:
+    import lerc
+
+    values = raster.heights.astype(np.float32)
+    result, nbytes, buf = lerc.encode(values, 1, True, raster.mask.astype(np.uint8), max_error, 1)
+    if result != 0:
+        raise RuntimeError(f"lerc.encode failed with code {result}")
+    blob = bytes(buf)[:nbytes]
+    return blob, blob
+
+
+def lerc_uncode(raster: Raster, blob: bytes) -> np.ndarray:
+    import lerc
+
+    result, values, _valid = lerc.decode(blob)
+    if result != 0:
+        raise RuntimeError(f"lerc.decode failed with code {result}")
+    return np.asarray(values, dtype=np.float64)
+
+
+def sz3_code(raster: Raster, bound: float) -> tuple[bytes, Any]:
+    from pysz import sz, szConfig, szErrorBoundMode
+
+    values = raster.filled.astype(np.float32)
+    config = szConfig(values.shape)
+    config.errorBoundMode = szErrorBoundMode.ABS
+    config.absErrorBound = bound
+    packed, _ratio = sz.compress(values, config)
+    return packed.tobytes(), (packed, values.shape)
+
+
+def sz3_uncode(raster: Raster, state: Any) -> np.ndarray:
+    from pysz import sz
+
+    packed, shape = state
+    values, _config = sz.decompress(packed, np.float32, shape)
+    return np.asarray(values, dtype=np.float64)
+
+
+def laz_codec(loaded: Loaded) -> Codec:
+    import laspy
+
+    points = loaded.points
+    src = loaded.las_header
+
+    def split(data: bytes) -> dict:
+        return {"mask": 0, "coef": len(data), "header": 0}
+
+    def encode(_: Any, fresh: bool) -> tuple[int, Any]:
+        header = laspy.LasHeader(point_format=0, version="1.2")
+        if src is not None:
+            header.scales, header.offsets = np.asarray(src.scales), np.asarray(src.offsets)
+        else:
+            header.scales = np.full(3, LAZ_SCALE)
+            header.offsets = np.floor(points.min(axis=0))
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+        out = io.BytesIO()
+        las.write(out, do_compress=True, laz_backend=laspy.LazBackend.Lazrs)
+        data = out.getvalue()
+        return len(data), data
+
+    def decode(data: bytes) -> np.ndarray:
+        las = laspy.read(io.BytesIO(data))
+        return np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]).astype(np.float64)
+
+    scale = "source scale" if src is not None else f"{LAZ_SCALE * 1000:g} mm"
+    return Codec("LAZ (lossless)", [None], encode, decode, lambda _: f"point format 0, {scale}", split=split)
+
+
+# --- one file -------------------------------------------------------------------------
+
+def error_levels(loaded: Loaded, floor: float) -> tuple[list[tuple[str, float]], float, str]:
+    """(label, metres) error levels, the unit of the sweeps, and how the levels were chosen."""
+    if loaded.case.is_dem:
+        relief = float(np.std(loaded.points[:, 2]))
+        levels = [(f"{100 * f:g}% relief ({1000 * f * relief:.1f} mm)", f * relief) for f in RELIEF_FRACTIONS]
+        how = (f"one point per pixel, so the gridding floor is {1000 * floor:.3g} mm; error levels are "
+               f"fractions of the RMS relief (standard deviation of the heights, {relief:.2f} m)")
+        return levels, levels[0][1], how
+    levels = [(f"{k:g}× floor ({1000 * k * floor:.1f} mm)", k * floor) for k in FLOOR_MULTIPLES]
+    return levels, floor, f"error levels are multiples of the gridding floor {1000 * floor:.1f} mm"
+
+
+def rate_control_available() -> bool:
+    """Whether this dftpcc's compress takes ``target_rmse`` (rate control)."""
+    import dataclasses
+
+    return TARGET in {f.name for f in dataclasses.fields(dftpcc.Params)}
+
+
+def sweep(codec: Codec, matcher: NearestHeights, n: int) -> list[Sample]:
+    samples = []
+    for setting in codec.settings:
+        try:
+            size, state = codec.encode(setting, False)
+        except dftpcc.InvalidInputError:
+            if isinstance(setting, tuple) and setting[0] == TARGET:
+                continue  # a target rate control cannot reach is a missing sample, not a failure
+            raise
+        decoded = codec.decode(state)
+        extra = codec.split(state) if codec.split else {}
+        samples.append(Sample(setting, size, 8.0 * size / n, matcher.rmse(decoded), decoded.shape[0], extra))
+    return samples
+
+
+def time_codec(codec: Codec, setting: Any, n: int) -> tuple[float, float]:
+    """Median encode rate (input points/s) and decode rate (output points/s), from the points."""
+    t_enc, (_, state) = median_time(lambda: codec.encode(setting, True), TIMING_REPEATS)
+    t_dec, decoded = median_time(lambda: codec.decode(state), TIMING_REPEATS)
+    return n / t_enc, decoded.shape[0] / t_dec
+
+
+def measure(loaded: Loaded, sweeps: dict) -> dict:
+    points, res = loaded.points, loaded.resolution
+    n = points.shape[0]
+    raster = make_raster(points, res)
+    dem = rasterize(points, raster.grid)
+    floor = float(dem.gridding_rmse)
+    levels, unit, how = error_levels(loaded, floor)
+    if loaded.case.is_dem and (floor > 0 or int(raster.mask.sum()) != n):
+        loaded.notes.append(f"the grid does not hold one point per cell ({int(raster.mask.sum())} cells for "
+                            f"{n} points, floor {1000 * floor:.1f} mm)")
+    if loaded.case.is_dem:
+        # Pixel centres sit near cell edges: check each one's nearest decoded centre is its own cell's.
+        rows, cols = np.nonzero(raster.mask)
+        centres = np.column_stack(raster.grid.centres(rows, cols))
+        _, nearest = cKDTree(centres).query(points[:, :2])
+        rank = np.cumsum(raster.mask.ravel()) - 1
+        stray = int(np.count_nonzero(rank[raster.grid.flat_index(points)] != nearest))
+        if stray:
+            loaded.notes.append(f"{stray} points are nearer another cell's centre than their own")
+    compact_settings: list[tuple[Any, float]] = [
+        (c, s * unit) for c in sweeps["compact_cutoffs"] for s in sweeps["compact_steps"]]
+    if rate_control_available():
+        # The cell RMSE that, added to the floor in quadrature, makes each level.
+        compact_settings += [(TARGET, math.sqrt(e * e - floor * floor)) for _, e in levels if e > floor]
+    paper_settings = [(c, 0.0) for c in sweeps["paper_cutoffs"]]
+    bounds = [b * unit for b in sweeps["error_bounds"]]
+    codecs = [
+        dftpcc_codec("dftpcc compact", "compact", compact_settings, points, res),
+        dftpcc_codec("dftpcc paper", "paper", paper_settings, points, res),
+        draco_codec(points, sweeps["draco_bits"]),
+        raster_codec("JPEG2000", list(sweeps["jpeg2k_psnr"]), raster, points, res, jpeg2k_code, jpeg2k_uncode,
+                     lambda db: f"PSNR {db} dB"),
+        raster_codec("LERC", bounds, raster, points, res, lerc_code, lerc_uncode,
+                     lambda e: f"maxZError {1000 * e:.3g} mm"),
+        raster_codec("SZ3", bounds, raster, points, res, sz3_code, sz3_uncode,
+                     lambda e: f"abs bound {1000 * e:.3g} mm"),
+        laz_codec(loaded),
+    ]
+    matcher = NearestHeights(points)
+    results = {}
+    for codec in codecs:
+        t0 = time.perf_counter()
+        samples = sweep(codec, matcher, n)
+        hull = lower_hull([(s.bpp, s.err) for s in samples])
+        on_hull = [s for s in samples if (s.bpp, s.err) in set(hull)]
+        # Time the frontier setting closest (in log error) to the middle level; a rate-controlled
+        # file is left out, since its time is the search's, not the codec's.
+        middle = levels[len(levels) // 2][1]
+        fixed = [s for s in (on_hull or samples) if not (isinstance(s.setting, tuple) and s.setting[0] == TARGET)]
+        timed = min(fixed or samples, key=lambda s: abs(math.log(max(s.err, MIN_ERROR) / middle)))
+        enc_rate, dec_rate = time_codec(codec, timed.setting, n)
+        results[codec.name] = dict(codec=codec, samples=samples, hull=hull, on_hull=on_hull, timed=timed,
+                                   enc_rate=enc_rate, dec_rate=dec_rate,
+                                   bits=[bits_at(hull, e) for _, e in levels],
+                                   seconds=time.perf_counter() - t0)
+    return dict(loaded=loaded, n=n, floor=floor, levels=levels, how=how, raster=raster, results=results)
+
+
+# --- reporting ------------------------------------------------------------------------
+
+def best_anchor(results: dict, level: int) -> tuple[float | None, str, str]:
+    best: tuple[float | None, str, str] = (None, "", "")
+    for name, r in results.items():
+        if not r["codec"].is_anchor:
+            continue
+        bits, flag = r["bits"][level]
+        if bits is not None and (best[0] is None or bits < best[0]):
+            best = (bits, name, flag)
+    return best
+
+
+def ratio_cell(num: tuple[float | None, str], den: tuple[float | None, str], limit: float) -> str:
+    """compact / other, with a bound sign when either side is clamped at its cheapest setting."""
+    (a, fa), (b, fb) = num, den
+    if a is None or b is None:
+        return "n/a (" + ("compact" if a is None else "anchor") + " never this accurate)"
+    ratio = a / b
+    sign = "≤" if fa == "cheapest" and fb != "cheapest" else ("≥" if fb == "cheapest" and fa != "cheapest" else "")
+    if fa == "cheapest" and fb == "cheapest":
+        sign = "~"
+    return f"{sign}{ratio:.2f} {verdict(ratio <= limit)}"
+
+
+def report(m: dict) -> str:
+    loaded, n, results, levels = m["loaded"], m["n"], m["results"], m["levels"]
+    case = loaded.case
+    g = m["raster"].grid
+    out = [f"### {case.label()} — {case.terrain}, {loaded.resolution:.4g} m",
+           "",
+           f"{n:,} points; grid {g.rows} x {g.cols}, {int(m['raster'].mask.sum()):,} occupied cells; "
+           f"{m['how']}. Figure: `docs/figures/bench_rd_{case.stem}.png`.", ""]
+    out += [f"Note: {note}" for note in loaded.notes]
+    if loaded.notes:
+        out.append("")
+    header = ["codec"] + [f"bits/pt @ {label}" for label, _ in levels] + \
+        ["settings", "encode M pts/s", "decode M pts/s", "timed at"]
+    rows = []
+    for name, r in results.items():
+        codec = r["codec"]
+        rows.append([name] + [fmt_bits(b, f) for b, f in r["bits"]] +
+                    [f"{len(r['samples'])}", f"{r['enc_rate'] / 1e6:.2f}", f"{r['dec_rate'] / 1e6:.2f}",
+                     codec.describe(r["timed"].setting)])
+    best = [best_anchor(results, i) for i in range(len(levels))]
+    rows.append(["**best anchor**"] + [f"{fmt_bits(b, f)} {name}" if b is not None else "—" for b, name, f in best]
+                + ["", "", "", ""])
+    compact = results["dftpcc compact"]["bits"]
+    limit = MAX_OVER_BEST[case.terrain]
+    rows.append([f"compact / best anchor (≤ {limit:g})"] +
+                [ratio_cell(compact[i], (best[i][0], best[i][2]), limit) for i in range(len(levels))]
+                + ["", "", "", ""])
+    rows.append([f"compact / Draco (≤ {MAX_OVER_DRACO:g})"] +
+                [ratio_cell(compact[i], results["Draco"]["bits"][i], MAX_OVER_DRACO) for i in range(len(levels))]
+                + ["", "", "", ""])
+    rows.append([f"compact / paper (≤ {MAX_OVER_PAPER:g})"] +
+                [ratio_cell(compact[i], results["dftpcc paper"]["bits"][i], MAX_OVER_PAPER)
+                 for i in range(len(levels))] + ["", "", "", ""])
+    out += [markdown_table(header, rows), ""]
+    out.append(split_table(m))
+    return "\n".join(out)
+
+
+def split_table(m: dict) -> str:
+    """Where the bytes go, for compact and the best anchor, at the frontier setting that just meets each level."""
+    n, results = m["n"], m["results"]
+    rows = []
+    for i, (label, level) in enumerate(m["levels"]):
+        for name in ("dftpcc compact", best_anchor(results, i)[1] or "JPEG2000"):
+            r = results[name]
+            ok = [s for s in r["on_hull"] if s.err <= level]
+            if not ok:
+                rows.append([label, name, "never this accurate", "", "", "", "", ""])
+                continue
+            s = min(ok, key=lambda s: s.bpp)
+            x = s.extra
+            rows.append([label, name, r["codec"].describe(s.setting), f"{1000 * s.err:.1f}", fmt_bits(s.bpp),
+                         fmt_bits(8.0 * x["mask"] / n), fmt_bits(8.0 * x["coef"] / n),
+                         fmt_bits(8.0 * x["header"] / n)])
+    header = ["level", "codec", "setting (cheapest frontier point meeting the level)", "RMSE mm", "bits/pt",
+              "mask", "coefficients / codestream", "header & framing"]
+    return ("Where the bits go (bits/pt; LERC keeps its mask inside its codestream; dftpcc's "
+            "header & framing = file size - stats['mask_bytes'] - stats['coef_bytes']):\n\n"
+            + markdown_table(header, rows) + "\n\n")
+
+
+def anchors_md_check(measured: list[dict]) -> str:
+    rows = []
+    for m in measured:
+        ref = ANCHORS_MD.get(m["loaded"].case.name)
+        if not ref:
+            continue
+        for i, (label, _) in enumerate(m["levels"]):
+            cells = [m["loaded"].case.name, label.split(" (")[0]]
+            for codec, refs in zip(("Draco", "JPEG2000"), ref):
+                bits, flag = m["results"][codec]["bits"][i]
+                cells.append(f"{fmt_bits(bits, flag)} / {refs[i]:.3f}"
+                             + (f" ({bits / refs[i]:.3f}×)" if bits else ""))
+            rows.append(cells)
+    if not rows:
+        return ""
+    return ("### Anchors re-measured against ANCHORS.md\n\nThis run / ANCHORS.md, bits per point.\n\n"
+            + markdown_table(["file", "level", "Draco", "JPEG2000"], rows))
+
+
+def plot(m: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 5.2))
+    colours = {"dftpcc compact": "C3", "dftpcc paper": "C1", "Draco": "C0", "JPEG2000": "C2", "LERC": "C4",
+               "SZ3": "C5", "LAZ (lossless)": "0.4"}
+    for name, r in m["results"].items():
+        c = colours.get(name)
+        if name.startswith("LAZ"):
+            ax.axhline(r["samples"][0].bpp, color=c, ls=":", lw=1, label=f"{name} {r['samples'][0].bpp:.1f}")
+            continue
+        errs = np.array([max(s.err, 1e-6) for s in r["samples"]]) * 1000
+        bpps = np.array([s.bpp for s in r["samples"]])
+        ax.scatter(errs, bpps, s=6, color=c, alpha=0.35, lw=0)
+        hb = np.array([b for b, _ in r["hull"]])
+        he = np.array([max(e, 1e-6) for _, e in r["hull"]]) * 1000
+        ax.plot(he, hb, "-o", ms=3, color=c, label=name, lw=1.5 if name.startswith("dftpcc compact") else 1)
+    for label, e in m["levels"]:
+        ax.axvline(e * 1000, color="k", ls="--", lw=0.6)
+        ax.text(e * 1000, 1.02, label.split(" (")[0], transform=ax.get_xaxis_transform(), ha="center",
+                fontsize=7)
+    if m["floor"] > 0:
+        ax.axvline(m["floor"] * 1000, color="k", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("vertical RMSE to nearest decoded point (mm)")
+    ax.set_ylabel("bits per original point")
+    loaded = m["loaded"]
+    ax.set_title(f"{loaded.case.label()}, {loaded.resolution:.4g} m, {m['n']:,} points", fontsize=9, pad=14)
+    ax.grid(True, which="both", lw=0.3, alpha=0.5)
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="coarser sweeps (about a third of the settings)")
+    ap.add_argument("--files", nargs="+", metavar="NAME", help="file names (or prefixes) to run")
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding pointclouds/ and dems/")
+    ap.add_argument("--no-figures", action="store_true", help="do not write docs/figures/bench_rd_*.png")
+    docs = ap.add_mutually_exclusive_group()
+    docs.add_argument("--docs", action="store_true", default=None,
+                      help="rewrite this script's section of docs/benchmarks.md (default: only on a full run)")
+    docs.add_argument("--no-docs", dest="docs", action="store_false")
+    args = ap.parse_args(argv)
+    sweeps = dict(compact_cutoffs=COMPACT_CUTOFFS, compact_steps=COMPACT_STEPS, paper_cutoffs=PAPER_CUTOFFS,
+                  draco_bits=DRACO_BITS, jpeg2k_psnr=JPEG2K_PSNR, error_bounds=ERROR_BOUNDS)
+    if args.quick:
+        sweeps.update(QUICK)
+    cases = pick_cases(CASES, args.files)
+    t0 = time.perf_counter()
+    print(f"Measuring {library_label()}.", flush=True)
+    intro = (
+        "Bits per ORIGINAL point each codec needs for a vertical RMSE (every original point against the "
+        "decoded point nearest to it in x, y) at the given level, read off each codec's frontier (the "
+        "lower convex hull of its sweep in the bits x squared-error plane, i.e. what mixing two settings "
+        "could reach) by log-log interpolation between frontier points (ANCHORS.md). `*`: the codec's cheapest setting "
+        "is already more accurate than the level, so the figure is an upper bound; `—`: no setting got "
+        "that accurate. Ratios: `≥`/`≤` when one side is such a bound. Floor: RMSE of the points against "
+        "the mean height of their own cell. Speeds: medians of "
+        f"{TIMING_REPEATS} in-memory runs at the frontier setting closest to the middle level, from parsed "
+        "points to bytes (raster anchors include gridding, fill and mask) and back to points.\n\n"
+        "Anchors: Draco (DracoPy, compression level 7, quantization 8–16 bits, float32 points about a "
+        f"local origin, + {DRACO_ORIGIN_BYTES} B for that origin); JPEG2000 (imagecodecs, 16-bit DEM "
+        "scaled over its range, empty cells filled from the nearest occupied one, PSNR 40–80 dB); LERC "
+        "(float32 DEM + its valid mask, maxZError sweep); SZ3 (pysz, float32 filled DEM, absolute bound "
+        "sweep); the three raster anchors are also charged the zstd-19 occupancy bitmap (LERC carries its "
+        f"own mask instead) and {RASTER_HEADER_BYTES} B of grid/scale header; LAZ (laspy + lazrs, x y z "
+        "only) is the lossless reference. dftpcc compact sweeps f_c x step "
+        f"({len(sweeps['compact_cutoffs'])} x {len(sweeps['compact_steps'])}, plus one rate-controlled file "
+        "per level when the library offers `target_rmse`), paper sweeps f_c "
+        f"({len(sweeps['paper_cutoffs'])} values). Targets: compact ≤ 0.7x the best anchor on gentle "
+        "terrain, ≤ 1.0x on rough, ≤ 0.2x Draco, ≤ 0.1x paper, at every level.")
+    print(intro, "\n", flush=True)
+    measured, parts = [], [intro]
+    for case in cases:
+        t_case = time.perf_counter()
+        loaded = load(case, args.data)
+        with warnings_as_notes(loaded.notes):
+            m = measure(loaded, sweeps)
+        measured.append(m)
+        if not args.no_figures:
+            plot(m, FIGURES / f"bench_rd_{case.stem}.png")
+        text = report(m)
+        secs = {name: r["seconds"] for name, r in m["results"].items()}
+        text += (f"Time for this file: {time.perf_counter() - t_case:.0f} s ("
+                 + ", ".join(f"{k} {v:.0f} s" for k, v in secs.items()) + ").\n")
+        parts.append(text)
+        print(text, flush=True)
+    check = anchors_md_check(measured)
+    if check:
+        parts.append(check)
+        print(check)
+    elapsed = time.perf_counter() - t0
+    over = "  (over the ~15 min budget: use --quick)" if elapsed > RUN_BUDGET_S else ""
+    print(f"\nrun time {elapsed:.0f} s{over}")
+    write = args.docs if args.docs is not None else (not args.quick and not args.files)
+    if write:
+        write_doc_section("bench_anchors", "Rate-distortion against the anchors (issue 3)",
+                          "\n\n".join(parts) + f"\n\nRun time {elapsed:.0f} s.")
+        print("wrote docs/benchmarks.md (bench_anchors section)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
