@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench bench-anchors fuzz clean
+.PHONY: demo test bench bench-anchors fuzz reproduce clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,10 @@ bench: $(STAMP)
 # Rate-distortion against Draco, JPEG2000, LERC, SZ3 and LAZ (~5 min; ARGS=--quick for ~1 min).
 bench-anchors: $(STAMP)
 	$(BIN)/python benchmarks/bench_anchors.py $(ARGS)
+
+# Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
+reproduce: $(STAMP)
+	$(BIN)/python scripts/reproduce.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache .hypothesis
