@@ -30,7 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import dftpcc  # noqa: E402
 from common import (  # noqa: E402
-    DEFAULT_DATA, FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load, lower_hull,
+    DEFAULT_DATA, FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load,
+    load_average, lower_hull,
     library_label, markdown_table, median_time, pick_cases, verdict, warnings_as_notes, write_doc_section,
 )
 from dftpcc.grid import Grid, fit_grid, rasterize  # noqa: E402
@@ -590,7 +591,7 @@ def main(argv: list[str] | None = None) -> int:
         sweeps.update(QUICK)
     cases = pick_cases(CASES, args.files)
     t0 = time.perf_counter()
-    print(f"Measuring {library_label()}.", flush=True)
+    print(f"Measuring {library_label()}; {load_average()}.", flush=True)
     intro = (
         "Bits per ORIGINAL point each codec needs for a vertical RMSE (every original point against the "
         "decoded point nearest to it in x, y) at the given level, read off each codec's frontier (the "
@@ -633,12 +634,13 @@ def main(argv: list[str] | None = None) -> int:
         parts.append(check)
         print(check)
     elapsed = time.perf_counter() - t0
-    over = "  (over the ~15 min budget: use --quick)" if elapsed > RUN_BUDGET_S else ""
-    print(f"\nrun time {elapsed:.0f} s{over}")
+    over = " (over the ~15 min budget: use --quick)" if elapsed > RUN_BUDGET_S else ""
+    parts.append(f"Run time {elapsed:.0f} s{over}; {load_average()} at the end.")
+    print("\n" + parts[-1])
     write = args.docs if args.docs is not None else (not args.quick and not args.files)
     if write:
         write_doc_section("bench_anchors", "Rate-distortion against the anchors (issue 3)",
-                          "\n\n".join(parts) + f"\n\nRun time {elapsed:.0f} s.")
+                          "\n\n".join(parts))
         print("wrote docs/benchmarks.md (bench_anchors section)")
     return 0
 

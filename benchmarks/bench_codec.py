@@ -21,8 +21,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import dftpcc  # noqa: E402
 from common import (  # noqa: E402
-    DEFAULT_DATA, GROUND, Case, bits_at, fmt_bits, load, lower_hull, markdown_table, median_time,
-    library_label, pick_cases, rmse, shared_grid, verdict, warnings_as_notes, write_doc_section,
+    DEFAULT_DATA, GROUND, Case, bits_at, fmt_bits, load, load_average, lower_hull, markdown_table, median_time,
+    median_times, library_label, pick_cases, rmse, shared_grid, verdict, warnings_as_notes, write_doc_section,
 )
 
 CASES = (
@@ -60,9 +60,9 @@ def measure_case(case: Case, data: Path, cutoffs: tuple[float, ...], repeats: in
     runs = []
     for profile in PROFILES:
         for fc in cutoffs:
-            t_c, blob = median_time(lambda: dftpcc.compress(points, resolution=res, cutoff=fc, profile=profile),
-                                    repeats)
-            t_d, rebuilt = median_time(lambda: dftpcc.decompress(blob), repeats)
+            t_c, cpu_c, blob = median_times(
+                lambda: dftpcc.compress(points, resolution=res, cutoff=fc, profile=profile), repeats)
+            t_d, cpu_d, rebuilt = median_times(lambda: dftpcc.decompress(blob), repeats)
             cmap = dftpcc.open(blob)
             out = cmap.read_dem()
             idx = out.grid.flat_index(points)
@@ -72,7 +72,8 @@ def measure_case(case: Case, data: Path, cutoffs: tuple[float, ...], repeats: in
             stats = cmap.header.stats
             runs.append(dict(profile=profile, cutoff=fc, bytes=len(blob), bpp=8.0 * len(blob) / n, err=err,
                              mask=stats.get("mask_bytes"), coef=stats.get("coef_bytes"),
-                             step=cmap.params.step, t_c=t_c, t_d=t_d, out_points=rebuilt.shape[0]))
+                             step=cmap.params.step, t_c=t_c, t_d=t_d, cpu_c=cpu_c, cpu_d=cpu_d,
+                             out_points=rebuilt.shape[0]))
     paper_hull = lower_hull([(r["bpp"], r["err"]) for r in runs if r["profile"] == "paper"])
     for r in runs:
         if r["profile"] == "compact":
@@ -104,7 +105,8 @@ def report_case(m: dict) -> str:
              ""]
     lines += [f"Note: {note}" for note in m["loaded"].notes]
     header = ["profile", "f_c", "bits/pt", "mask / coef / other B", "step mm", "RMSE mm", "× floor",
-              "compress s", "M in pts/s", "decompress s", "M out pts/s", "compact/paper bits @ same RMSE"]
+              "compress s (CPU s)", "M in pts/s", "decompress s (CPU s)", "M out pts/s",
+              "compact/paper bits @ same RMSE"]
     rows = []
     for r in m["runs"]:
         c_rate, d_rate = n / r["t_c"], r["out_points"] / r["t_d"]
@@ -116,7 +118,8 @@ def report_case(m: dict) -> str:
         rows.append([r["profile"], f"{r['cutoff']:g}", fmt_bits(r["bpp"]), f"{r['mask']} / {r['coef']} / {other}",
                      f"{1000 * r['step']:.1f}" if r["profile"] == "compact" else "—",
                      f"{1000 * r['err']:.1f}", f"{r['err'] / floor:.2f}" if floor > 0 else "—",
-                     f"{r['t_c']:.3f}", c_txt, f"{r['t_d']:.3f}", d_txt, ratio_text(r)])
+                     f"{r['t_c']:.3f} ({r['cpu_c']:.3f})", c_txt, f"{r['t_d']:.3f} ({r['cpu_d']:.3f})", d_txt,
+                     ratio_text(r)])
     lines += [markdown_table(header, rows), ""]
     return "\n".join(lines)
 
@@ -146,10 +149,12 @@ def targets(measured: list[dict]) -> str:
             if r["cutoff"] != DEFAULT_CUTOFF:
                 continue
             c_rate, d_rate = speed["n"] / r["t_c"], r["out_points"] / r["t_d"]
+            c_cpu, d_cpu = speed["n"] / r["cpu_c"], r["out_points"] / r["cpu_d"]
             out.append(f"- {SPEED_FILE}, {r['profile']}, f_c = {DEFAULT_CUTOFF}: compress "
                        f"{c_rate / 1e6:.1f} M input points/s (>= {MIN_COMPRESS_RATE / 1e6:g}) "
                        f"{verdict(c_rate >= MIN_COMPRESS_RATE)}; decompress {d_rate / 1e6:.1f} M output "
-                       f"points/s (>= {MIN_DECOMPRESS_RATE / 1e6:g}) {verdict(d_rate >= MIN_DECOMPRESS_RATE)}")
+                       f"points/s (>= {MIN_DECOMPRESS_RATE / 1e6:g}) {verdict(d_rate >= MIN_DECOMPRESS_RATE)} "
+                       f"(per CPU-second: {c_cpu / 1e6:.1f} and {d_cpu / 1e6:.1f} M)")
     else:
         out.append("- speed targets: not measured in this run")
     return "\n".join(out)
@@ -170,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     repeats = args.repeats or (QUICK_REPEATS if args.quick else REPEATS)
     cases = pick_cases(CASES, args.files)
     t0 = time.perf_counter()
-    print(f"Measuring {library_label()}.", flush=True)
+    print(f"Measuring {library_label()}; {load_average()}.", flush=True)
     measured = []
     parts = [f"Times are medians of {repeats} in-memory runs (points already parsed); compact uses the "
              "library's automatic quantizer step. RMSE: every original point against the rebuilt height "
@@ -190,11 +195,13 @@ def main(argv: list[str] | None = None) -> int:
     parts.append(targets(measured))
     print(parts[-1])
     elapsed = time.perf_counter() - t0
-    print(f"\nrun time {elapsed:.0f} s")
+    parts.append(f"Run time {elapsed:.0f} s; {load_average()} at the end (times above are wall-clock medians; "
+                 "CPU seconds, all threads of this process, in brackets).")
+    print("\n" + parts[-1])
     write = args.docs if args.docs is not None else (not args.quick and not args.files)
     if write:
         write_doc_section("bench_codec", "Codec: bits, error and speed per cutoff (issue 2)",
-                          "\n\n".join(parts) + f"\n\nRun time {elapsed:.0f} s.")
+                          "\n\n".join(parts))
         print("wrote docs/benchmarks.md (bench_codec section)")
     return 0
 

@@ -196,12 +196,31 @@ def shared_grid(points: np.ndarray, resolution: float) -> tuple[Grid, DEM]:
 
 def median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
     """Median wall time in seconds of ``repeats`` calls, and the last result."""
-    times, result = [], None
+    wall, _, result = median_times(fn, repeats)
+    return wall, result
+
+
+def median_times(fn: Callable[[], Any], repeats: int) -> tuple[float, float, Any]:
+    """Median wall and CPU (this process, all threads) seconds of ``repeats`` calls, and the last result.
+
+    On a shared machine the wall time grows with other people's load; the CPU
+    time much less, so both are worth quoting.
+    """
+    walls, cpus, result = [], [], None
     for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         result = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), result
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    return statistics.median(walls), statistics.median(cpus), result
+
+
+def load_average() -> str:
+    """The machine's 1-minute load average and core count, to read the timings by."""
+    try:
+        return f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+    except OSError:
+        return f"{os.cpu_count()} cores"
 
 
 def rmse(values: np.ndarray) -> float:
