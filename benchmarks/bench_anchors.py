@@ -556,8 +556,8 @@ def plot(m: dict, path: Path) -> None:
         ax.plot(he, hb, "-o", ms=3, color=c, label=name, lw=1.5 if name.startswith("dftpcc compact") else 1)
     for label, e in m["levels"]:
         ax.axvline(e * 1000, color="k", ls="--", lw=0.6)
-        ax.text(e * 1000, 1.02, label.split(" (")[0], transform=ax.get_xaxis_transform(), ha="center",
-                fontsize=7)
+        ax.text(e * 1000, 0.02, " " + label.split(" (")[0], transform=ax.get_xaxis_transform(), ha="right",
+                va="bottom", rotation=90, fontsize=7)
     if m["floor"] > 0:
         ax.axvline(m["floor"] * 1000, color="k", lw=0.8)
     ax.set_xscale("log")
@@ -565,7 +565,7 @@ def plot(m: dict, path: Path) -> None:
     ax.set_xlabel("vertical RMSE to nearest decoded point (mm)")
     ax.set_ylabel("bits per original point")
     loaded = m["loaded"]
-    ax.set_title(f"{loaded.case.label()}, {loaded.resolution:.4g} m, {m['n']:,} points", fontsize=9, pad=14)
+    ax.set_title(f"{loaded.case.label()}, {loaded.resolution:.4g} m, {m['n']:,} points", fontsize=9)
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
     ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()

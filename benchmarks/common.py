@@ -326,7 +326,8 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 def command_line() -> str:
     args = [a if re.fullmatch(r"[\w./=,:@+-]+", a) else repr(a) for a in sys.argv[1:]]
     script = os.path.relpath(sys.argv[0], REPO) if os.path.isabs(sys.argv[0]) else sys.argv[0]
-    return " ".join([".venv/bin/python", script, *args])
+    env = [f"PYTHONPATH={os.environ['PYTHONPATH']}"] if os.environ.get("PYTHONPATH") else []
+    return " ".join([*env, ".venv/bin/python", script, *args])
 
 
 def library_label() -> str:
