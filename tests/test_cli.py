@@ -139,3 +139,23 @@ def test_failed_compress_keeps_the_previous_file(tmp_path):
     assert run("compress", str(tmp_path / "nan.xyz"), str(out), "-r", "1").returncode == 3
     assert out.read_bytes() == b"previous content"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.dftpc", "nan.xyz"]
+
+
+@pytest.mark.parametrize("name", ["moon_kepler_lola_48m.tif", "mars_korolev_mola.tif"])
+def test_non_square_planetary_dems_keep_their_grid(tmp_path, name):
+    # LOLA and MOLA products come on grids whose pixels are not square.
+    src = data_file(f"dems/{name}")
+    out = tmp_path / "m.dftpc"
+    assert main(["compress", str(src), str(out), "-c", "0.3", "-q"]) == 0
+    assert main(["decompress", str(out), str(tmp_path / "m.tif"), "-q"]) == 0
+    import rasterio
+
+    with rasterio.open(src) as a, rasterio.open(tmp_path / "m.tif") as b:
+        assert a.transform.almost_equals(b.transform, precision=1e-9)
+        valid = a.read(1, masked=True)
+        back = b.read(1)
+        assert np.array_equal(~np.ma.getmaskarray(valid), np.isfinite(back))
+    # points of the rebuilt map sit on the original pixel centres
+    pts = dftpcc.read(tmp_path / "m.tif").points
+    orig = dftpcc.read(src).points
+    np.testing.assert_allclose(np.sort(pts[:, 0]), np.sort(orig[:, 0]), rtol=0, atol=1e-6 * np.abs(orig[:, 0]).max())

@@ -197,22 +197,14 @@ def test_progressive_budget_follows_the_whole_file(tmp_path, monkeypatch, good):
 # --- what decoding produces -------------------------------------------------------------------------
 
 def test_non_finite_heights_are_refused(monkeypatch, good):
-    real = codec.decode_dem
+    # Whatever makes the inverse transform produce NaN, decoding refuses it.
+    from dftpcc import spectrum
 
-    def poisoned(*args, **kwargs):
-        dem = real(*args, **kwargs)
-        dem.heights[dem.mask] = np.nan
-        return dem
-
-    monkeypatch.setattr(codec, "decode_dem", poisoned)
+    monkeypatch.setattr(spectrum, "inverse", lambda coefs, lay: np.full(lay.shape, np.nan))
     with pytest.raises(CorruptFileError, match="non-finite heights"):
         _read(good)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "codec.decompress() returns NaN points for a crafted complex64 file whose COEF holds NaN floats "
-    "(CRCs fixed): decode_dem/decompress never check the decoded heights are finite; "
-    "dftpcc.open().read_dem() does. Fix in codec.decode_dem (or coding.decode_coefficients for complex64)."))
 def test_decompress_rejects_nan_coefficients():
     data = (CORPUS / "paper_nan_coefficient.dftpc").read_bytes()
     with pytest.raises(CorruptFileError):
@@ -220,11 +212,6 @@ def test_decompress_rejects_nan_coefficients():
         assert np.isfinite(points).all()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "A paper (complex64) file cut before the end of its first coefficient chunk fails with the "
-    "misleading 'complex64 file holds integer coefficients': coding.decode_coefficients returns an "
-    "empty int64 array when no whole chunk is present, and codec.decode_dem checks its dtype. A compact "
-    "file cut the same way decodes (to its plane)."))
 def test_paper_file_cut_inside_its_first_chunk_decodes_progressively(seeds):
     data = seeds["paper_dft"]  # one coefficient chunk
     points = _read(data, max_bytes=len(data) - 10)

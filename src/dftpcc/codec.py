@@ -439,7 +439,9 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     radius, angle = np.repeat(radii[:n], per_coef), np.repeat(angles[:n], per_coef)
     stream = coding.decode_coefficients(blobs[b"COEF"], n * per_coef, radius=radius, angle=angle,
                                         allow_partial=allow_partial)
-    if params.storage == "quantized":
+    if stream.size == 0:  # a prefix too short for one whole chunk: the map is its trend
+        values = np.zeros(0, dtype=np.complex128 if lay.kind != "dct" else np.float64)
+    elif params.storage == "quantized":
         if stream.dtype.kind != "i":
             raise CorruptFileError("quantized file holds float coefficients")
         values = coding.dequantize(stream[: stream.size - stream.size % per_coef], params.step)
@@ -466,6 +468,8 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
         # The residual layer only applies to the full-resolution map it was computed for.
         q = _decode_residual(blobs[b"RESD"], int(mask.sum()))
         heights[mask] += q * (2.0 * params.target_max_error * (1.0 - GUARANTEE_MARGIN))
+    if not np.isfinite(heights[mask]).all():
+        raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
     return DEM(grid=grid, heights=heights, mask=mask)
 
 

@@ -59,8 +59,10 @@ _ENTRY = struct.Struct("<4sIQQI")  # tag, tile, offset, length, crc32
 _CRC = struct.Struct("<I")
 MAX_SECTIONS = 1024
 #: Geometry section: origin x, y, projection-plane z, resolution, rows, cols,
-#: angle, original point count, occupied cells, plane a, b, c.
+#: angle, original point count, occupied cells, plane a, b, c; then the row
+#: spacing (0 for square cells).
 _GEOM = struct.Struct("<ddddIIdQQddd")
+_GEOM_Y = struct.Struct("<d")
 #: Sections the reader needs; unknown tags are skipped.
 REQUIRED = (b"GEOM", b"PARM", b"MASK", b"COEF")
 
@@ -141,7 +143,7 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     """
     g = header.grid
     geom = _GEOM.pack(g.x0, g.y0, g.z0, g.resolution, g.rows, g.cols, g.angle,
-                      header.point_count, header.cell_count, *header.plane)
+                      header.point_count, header.cell_count, *header.plane) + _GEOM_Y.pack(g.resolution_y or 0.0)
     info = dict(header.stats, coef_count=header.coef_count)
     sections = [
         (b"GEOM", geom),
@@ -353,7 +355,11 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     coef_count = stats.get("coef_count")
     if not _is_count(coef_count) or coef_count > rows * cols:
         raise CorruptFileError("coefficient count is missing or implausible")
-    grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle)
+    res_y = _GEOM_Y.unpack_from(geom, _GEOM.size)[0] if len(geom) >= _GEOM.size + _GEOM_Y.size else 0.0
+    if not (math.isfinite(res_y) and res_y >= 0):
+        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r}")
+    grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
+                resolution_y=res_y or None)
     header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,
                     plane=(pa, pb, pc), crs=crs, stats=stats, coef_count=coef_count)
     return header, {tag: found[tag] for tag in (b"MASK", b"COEF", b"RESD") if tag in found}
@@ -421,10 +427,7 @@ class CompressedMap:
         """
         from .codec import decode_dem
 
-        dem = decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
-        if not np.isfinite(dem.heights[dem.mask]).all():
-            raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
-        return dem
+        return decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
 
     def read_points(self, *, cutoff: float | None = None) -> np.ndarray:
         """The rebuilt cloud, shape (cells, 3), float64, original frame (metres)."""

@@ -18,6 +18,9 @@ from .params import make_params
 
 __all__ = ["compress_file", "decompress_file", "dem_from_geotiff"]
 
+#: Pixels whose sides differ by less than this fraction count as square.
+SQUARE_TOLERANCE = 1e-9
+
 
 def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
                   resolution: float | str = "auto", cutoff: float | None = None, profile: str = "compact",
@@ -82,14 +85,14 @@ def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]
     Raises
     ------
     InvalidInputError
-        Rotated or non-square pixels (read it as points instead, with a resolution).
+        Rotated or east-to-west pixels (read it as points instead, with a
+        resolution), or no valid pixel.
     """
     heights, valid, t, crs = read_raster_dem(path)
-    if t.b != 0 or t.d != 0 or abs(abs(t.a) - abs(t.e)) > 1e-9 * abs(t.a):
-        raise InvalidInputError(f"{path}: pixels are rotated or not square; give a --resolution to grid its points")
+    if t.b != 0 or t.d != 0 or t.a <= 0:
+        raise InvalidInputError(f"{path}: pixels are rotated or flipped; give a --resolution to grid its points")
     if not valid.any():
         raise InvalidInputError(f"{path}: every pixel is nodata")
-    res = abs(t.a)
     rows, cols = heights.shape
     # Grid rows run south to north; a north-up file's row 0 is the northern edge.
     flipped = t.e < 0
@@ -97,5 +100,7 @@ def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]
     m = valid[::-1] if flipped else valid
     y0 = t.f + t.e * rows if flipped else t.f
     z0 = float(h[m].mean())
-    grid = Grid(x0=t.c, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols)
+    # Planetary DEMs often have slightly (or very) non-square pixels: keep both spacings.
+    res_y = abs(t.e) if abs(abs(t.e) - t.a) > SQUARE_TOLERANCE * t.a else None
+    grid = Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=rows, cols=cols, resolution_y=res_y)
     return DEM(grid=grid, heights=np.where(m, h - z0, 0.0), mask=m, gridding_rmse=0.0), crs

@@ -307,11 +307,11 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
     import math
 
     c, s = math.cos(grid.angle), math.sin(grid.angle)
-    r = grid.resolution
+    r, dy = grid.resolution, grid.dy
     # Row 0 of the file is the last grid row (largest v): flip v.
-    top_x = grid.x0 - s * grid.rows * r
-    top_y = grid.y0 + c * grid.rows * r
-    transform = Affine(c * r, s * r, top_x, s * r, -c * r, top_y)
+    top_x = grid.x0 - s * grid.rows * dy
+    top_y = grid.y0 + c * grid.rows * dy
+    transform = Affine(c * r, s * dy, top_x, s * r, -c * dy, top_y)
     wkt = (crs or {}).get("wkt")
 
     def _write(tmp: Path) -> None:

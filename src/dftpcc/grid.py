@@ -67,7 +67,7 @@ class Grid:
     """Geometry of a DEM: where cell (row, col) lies in the original frame.
 
     A point ``p`` has local coordinates ``R(-angle) @ (p.xy - origin)``;
-    column ``floor(u / resolution)``, row ``floor(v / resolution)``. Row 0 is
+    column ``floor(u / resolution)``, row ``floor(v / dy)``. Row 0 is
     at the smallest local v (south for an axis-aligned grid). Heights in the
     DEM are relative to ``z0``, the centroid height of the cloud (the paper's
     projection plane).
@@ -79,11 +79,14 @@ class Grid:
     z0 : float
         Height of the projection plane, metres.
     resolution : float
-        Cell size, metres.
+        Cell size, metres (along u; along v too unless ``resolution_y``).
     rows, cols : int
         Shape of the DEM.
     angle : float
         Rotation of the grid's u axis from the x axis, radians.
+    resolution_y : float, optional
+        Cell size along v in metres when cells are not square (GeoTIFF DEMs
+        on a latitude/longitude grid); None for square cells.
     """
 
     x0: float
@@ -93,6 +96,12 @@ class Grid:
     rows: int
     cols: int
     angle: float = 0.0
+    resolution_y: float | None = None
+
+    @property
+    def dy(self) -> float:
+        """Cell size along v (rows), metres."""
+        return self.resolution if self.resolution_y is None else self.resolution_y
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -117,8 +126,7 @@ class Grid:
     def cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Row and column (int64) of each point; may fall outside the grid."""
         u, v = self.to_local(xy)
-        inv = 1.0 / self.resolution
-        return np.floor(v * inv).astype(np.int64), np.floor(u * inv).astype(np.int64)
+        return np.floor(v * (1.0 / self.dy)).astype(np.int64), np.floor(u * (1.0 / self.resolution)).astype(np.int64)
 
     def flat_index(self, xy: np.ndarray) -> np.ndarray:
         """Row-major cell index of each point, -1 where it lies outside the grid."""
@@ -129,7 +137,7 @@ class Grid:
     def centres(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World x, y of the centres of cells ``(rows, cols)``."""
         u = (cols + 0.5) * self.resolution
-        v = (rows + 0.5) * self.resolution
+        v = (rows + 0.5) * self.dy
         if self.angle == 0.0:
             return self.x0 + u, self.y0 + v
         c, s = self._rotation()
