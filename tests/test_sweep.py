@@ -37,6 +37,7 @@ def test_one_resolution_or_one_per_input():
     assert [t.resolution for t in sweep.terrains(["a.las", "b.ply"], [2.0, 5.0])] == [2.0, 5.0]
     with pytest.raises(InvalidInputError):
         sweep.terrains(["a.las", "b.ply", "c.ply"], [2.0, 5.0])
+    assert [t.name for t in sweep.terrains(["x/map.las", "y/map.las"], [1.0])] == ["x/map", "y/map"]
 
 
 @pytest.fixture(scope="module")

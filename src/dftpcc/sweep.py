@@ -129,7 +129,10 @@ def terrains(paths: Sequence[str | os.PathLike[str]], resolutions: Sequence[floa
         raise InvalidInputError(f"give one resolution, or one per input: {len(resolutions)} resolutions "
                                 f"for {len(paths)} inputs")
     keep = tuple(classes) if classes is not None else None
-    return [Terrain(path, res, keep) for path, res in zip(paths, resolutions)]
+    stems = [Path(p).stem for p in paths]
+    # Two inputs named alike in different folders must stay apart in the CSV and the legend.
+    labels = [f"{Path(p).parent.name}/{stem}" if stems.count(stem) > 1 else stem for p, stem in zip(paths, stems)]
+    return [Terrain(path, res, keep, label) for path, res, label in zip(paths, resolutions, labels)]
 
 
 def parse_cutoffs(text: str) -> tuple[float, ...]:
