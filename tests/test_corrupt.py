@@ -218,6 +218,42 @@ def test_paper_file_cut_inside_its_first_chunk_decodes_progressively(seeds):
     assert points.shape == _read(data).shape
 
 
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+    "coding.decode_mask trusts the 'transposed' byte of a context-coded mask, so a crafted file makes "
+    "it decode line by line along the LONGER side: one Python iteration (~30 us) per line, 76 s for a "
+    "1 KB file with a 2,000,000 x 1 grid (the cell budget allows 2^21 cells). The encoder always sets "
+    "transposed = rows > cols; decode_mask should refuse any other value (or choose the axis itself)."))
+def test_a_tall_thin_crafted_mask_is_refused_quickly(seeds):
+    from dftpcc import coding
+
+    good = seeds["compact_dct"]
+    payload = craft.section(good, b"MASK")[coding._MASK_HEAD.size:]
+    lying = coding._MASK_HEAD.pack(coding.MASK_CONTEXT, 0) + payload  # "not transposed"
+    data = craft.replace_section(craft.with_geom(good, rows=30_000, cols=2), b"MASK", lying)
+    t0 = time.perf_counter()
+    with pytest.raises(CorruptFileError):
+        _read(data)
+    assert time.perf_counter() - t0 < 0.1  # two lines of 30,000 cells take milliseconds
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+    "codec._decode_residual accepts a residual (RESD) section coded as complex64 chunks; decode_dem then "
+    "adds complex values to the float heights and numpy raises UFuncTypeError (a TypeError, not a "
+    "CorruptFileError). decode_dem should refuse a residual stream that is not integer."))
+def test_a_complex_residual_layer_is_refused(seeds):
+    from dftpcc import coding
+
+    good = seeds["compact_max_error"]
+    cells = dftpcc.open(good).header.cell_count
+    lying = craft.replace_section(good, b"RESD", coding.encode_coefficients(np.ones(cells, dtype=np.complex64)))
+    try:
+        _read(lying)
+    except CorruptFileError:
+        pass
+    except Exception as exc:  # noqa: BLE001
+        raise AssertionError(f"{type(exc).__name__}: {exc}") from None
+
+
 # --- the command line: one line and a distinct exit code per kind of failure ------------------------
 
 @pytest.mark.parametrize("name,code", [

@@ -233,7 +233,7 @@ def _check_geometry(geom: tuple, budget: int, file_size: int) -> None:
     (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = geom
     if not all(math.isfinite(v) for v in (x0, y0, z0, res, angle, pa, pb, pc)) or res <= 0:
         raise CorruptFileError("geometry section holds non-finite or non-positive values")
-    if max(abs(x0), abs(y0), abs(z0), abs(angle)) > MAX_COORDINATE_M:
+    if max(abs(x0), abs(y0), abs(z0)) > MAX_COORDINATE_M:
         raise CorruptFileError(f"geometry section states an origin beyond {MAX_COORDINATE_M:g} m")
     if rows == 0 or cols == 0:
         raise CorruptFileError(f"implausible grid {rows} x {cols}")
@@ -358,6 +358,8 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     res_y = _GEOM_Y.unpack_from(geom, _GEOM.size)[0] if len(geom) >= _GEOM.size + _GEOM_Y.size else 0.0
     if not (math.isfinite(res_y) and res_y >= 0):
         raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r}")
+    if res_y * rows > MAX_COORDINATE_M:
+        raise CorruptFileError(f"grid {rows} rows of {res_y:g} m extend beyond {MAX_COORDINATE_M:g} m")
     grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
                 resolution_y=res_y or None)
     header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,

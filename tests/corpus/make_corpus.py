@@ -117,6 +117,10 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "geom_huge_origin": (craft.with_geom(good, x0=1e200), C, "origin beyond"),
         "geom_huge_plane": (craft.with_geom(good, plane_c=1e300), C, "detrending plane"),
         "geom_wrong_shape": (craft.with_geom(good, rows=g["rows"] + 1), C, None),
+        "geom_row_spacing_nan": (craft.replace_section(good, b"GEOM", craft.section(good, b"GEOM")[:craft.GEOM.size]
+                                                       + struct.pack("<d", float("nan"))), C, "row spacing"),
+        "geom_row_spacing_huge": (craft.replace_section(good, b"GEOM", craft.section(good, b"GEOM")[:craft.GEOM.size]
+                                                        + struct.pack("<d", 1e300)), C, "extend beyond"),
     })
     # Lying parameters.
     out.update({

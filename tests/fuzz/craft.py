@@ -73,13 +73,14 @@ def geom(data: bytes) -> dict[str, float | int]:
 
 
 def with_geom(data: bytes, **changes: float | int) -> bytes:
-    """The file with some geometry fields changed, CRCs fixed."""
+    """The file with some geometry fields changed (later fields kept as they are), CRCs fixed."""
     fields = geom(data)
     unknown = set(changes) - set(fields)
     if unknown:
         raise KeyError(unknown)
     fields.update(changes)
-    return replace_section(data, b"GEOM", GEOM.pack(*(fields[k] for k in GEOM_FIELDS)))
+    tail = section(data, b"GEOM")[GEOM.size:]
+    return replace_section(data, b"GEOM", GEOM.pack(*(fields[k] for k in GEOM_FIELDS)) + tail)
 
 
 def with_table_entry(data: bytes, index: int, **changes: int | bytes) -> bytes:

@@ -24,6 +24,8 @@ SEED_OPTIONS: dict[str, dict] = {
     "compact_dft": dict(resolution=1.0, cutoff=0.5, transform="dft"),
     "compact_oriented_zero": dict(resolution=1.0, cutoff=0.6, frame="oriented", fill="zero", detrend="none"),
     "compact_median_step": dict(resolution=2.0, cutoff=0.3, aggregate="median", step=0.01),
+    "compact_zstd_footprint": dict(resolution=1.0, cutoff=0.7, coder="zstd", mask="footprint"),
+    "compact_max_error": dict(resolution=1.0, cutoff=0.8, target_max_error=0.02),  # has a RESD section
     "paper_dft": dict(resolution=1.5, cutoff=0.8, profile="paper"),
     "paper_dft_fc0": dict(resolution=3.0, cutoff=0.0, profile="paper"),
 }
