@@ -88,8 +88,9 @@ MAX_PLANE_M = 1e18
 #: STAT fields that must be numbers when present (others are free-form).
 _STAT_NUMBERS = ("dem_rmse_m", "dem_max_error_m", "gridding_rmse_m", "vertical_rmse_m")
 _STAT_COUNTS = ("mask_bytes", "coef_bytes")
-#: LAS variable-length records: 16-bit record id, 32-byte description.
+#: LAS variable-length records: 16-bit record id and length, 32-byte description.
 _VLR_MAX_ID = 0xFFFF
+_VLR_MAX_BYTES = 0xFFFF
 _VLR_DESCRIPTION = 32
 
 
@@ -293,7 +294,7 @@ def _check_crs(crs: Any) -> None:
               and isinstance(vlr.get("data"), str))
         if ok:
             try:
-                base64.b64decode(vlr["data"], validate=True)
+                ok = len(base64.b64decode(vlr["data"], validate=True)) <= _VLR_MAX_BYTES
             except (binascii.Error, ValueError):
                 ok = False
         if not ok:

@@ -13,9 +13,10 @@ from __future__ import annotations
 import base64
 import os
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -228,6 +229,14 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
 
     The file appears complete or not at all (temporary file, then rename).
     For a DEM as GeoTIFF use :func:`write_geotiff`.
+
+    Raises
+    ------
+    InvalidInputError
+        The writer cannot represent the points or the CRS (e.g. a LAS
+        record over 64 KiB, a WKT a PLY comment cannot hold).
+    OSError
+        The file system refused (permissions, disk full).
     """
     from .container import atomic_write
 
@@ -237,7 +246,19 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
     points = np.asarray(points, dtype=np.float64)
     writer = {"las": _write_las, "laz": _write_las, "ply": _write_ply, "pcd": _write_pcd,
               "xyz": _write_text, "csv": _write_text, "npy": _write_npy}[fmt]
-    atomic_write(path, lambda tmp: writer(tmp, points, crs or {}, fmt))
+    with _writer_errors(path, fmt):
+        atomic_write(path, lambda tmp: writer(tmp, points, crs or {}, fmt))
+
+
+@contextmanager
+def _writer_errors(path: str | os.PathLike[str], fmt: str) -> Iterator[None]:
+    """Third-party writers raise anything on what they cannot represent: one clear error instead."""
+    try:
+        yield
+    except (InvalidInputError, OSError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - laspy, plyfile, pypcd4, rasterio have no common error
+        raise InvalidInputError(f"{path}: cannot write as {fmt}: {exc}") from None
 
 
 #: LAS output stores coordinates as integers of this many metres.
@@ -320,4 +341,5 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
                            crs=wkt or None) as dst:
             dst.write(heights, 1)
 
-    atomic_write(path, _write)
+    with _writer_errors(path, "tif"):
+        atomic_write(path, _write)
