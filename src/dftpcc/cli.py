@@ -142,7 +142,8 @@ def cmd_compress(args: argparse.Namespace) -> int:
                 f"{info['points_original']:,} points -> {info['points_rebuilt']:,} cells, "
                 f"DEM RMSE {stats['dem_rmse_m'] * 1000:.1f} mm")
         if "vertical_rmse_m" in stats:
-            line += f", vertical RMSE {stats['vertical_rmse_m'] * 1000:.1f} mm (floor {stats['gridding_rmse_m'] * 1000:.1f} mm)"
+            line += (f", vertical RMSE {stats['vertical_rmse_m'] * 1000:.1f} mm "
+                     f"(floor {stats.get('gridding_rmse_m', float('nan')) * 1000:.1f} mm)")
         print(line + f" [{time.perf_counter() - t0:.2f} s]")
     return 0
 
@@ -192,7 +193,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     ]
     if "vertical_rmse_m" in s:
         rows.insert(8, ("point error", f"vertical RMSE {s['vertical_rmse_m'] * 1000:.2f} mm, "
-                                       f"gridding floor {s['gridding_rmse_m'] * 1000:.2f} mm"))
+                                       f"gridding floor {s.get('gridding_rmse_m', float('nan')) * 1000:.2f} mm"))
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")

@@ -264,7 +264,10 @@ def _encode_residual(q: np.ndarray, coder: str) -> bytes:
 
 def _decode_residual(blob: Any, count: int) -> np.ndarray:
     flat = np.zeros(count)
-    return coding.decode_coefficients(blob, count, radius=flat, angle=flat)
+    q = coding.decode_coefficients(blob, count, radius=flat, angle=flat)
+    if q.dtype.kind != "i" or q.size != count:
+        raise CorruptFileError("residual layer is not one integer per rebuilt cell")
+    return q
 
 
 def _rate_control(spec: _Spectrum, params: Params, point_count: int, fixed_bytes: int,

@@ -72,6 +72,10 @@ _ANS_HEAD = struct.Struct("<BII")  # band layout, largest |q| in the chunk, numb
 MAX_CHUNK_COEFS = 1 << 28
 
 
+#: choose_step stops when the step is known to within this factor.
+STEP_TOLERANCE = 1.02
+
+
 def quantize(values: np.ndarray, step: float, deadzone: float) -> np.ndarray:
     """Dead-zone uniform quantizer: integers ``sign(c) * floor(|c|/step + 0.5 - deadzone)``.
 
@@ -116,7 +120,7 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
             lo = mid
         else:
             hi = mid
-        if hi / lo < 1.01:
+        if hi / lo < STEP_TOLERANCE:
             break
     return lo
 
@@ -201,21 +205,32 @@ def _scale_of(codes: np.ndarray) -> np.ndarray:
     return np.where(codes > 0, np.maximum(2.0 ** ((codes.astype(np.float64) - SCALE_BIAS) / SCALE_STEPS), MIN_SCALE), 0.0)
 
 
-def _laplace(max_abs: int):
-    return constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1)
+def _laplace(max_abs: int, scale: float):
+    return constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
+
+
+def _groups(codes: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """Positions of the values sharing each nonzero scale code, codes ascending.
+
+    Values with one code share one concrete model, so the coder builds each
+    model once instead of once per value (ten times faster on large maps).
+    """
+    order = np.argsort(codes, kind="stable")
+    sorted_codes = codes[order]
+    present = np.unique(sorted_codes)
+    bounds = np.searchsorted(sorted_codes, present, side="left").tolist() + [codes.size]
+    return [(int(code), order[bounds[k]:bounds[k + 1]]) for k, code in enumerate(present) if code > 0]
 
 
 def _encode_ans_with(q: np.ndarray, bands: np.ndarray, layout: int, max_abs: int) -> bytes:
     lo, codes = _band_scales(q, bands)
     # Zero codes compress well: most high-frequency bands are empty at low rates.
     side = _SIDE_ZSTD.compress(codes.tobytes())
-    scale = _scale_of(codes)[bands - lo]
-    live = scale > 0
-    words = np.zeros(0, dtype=np.uint32)
-    if live.any():
-        coder = constriction.stream.stack.AnsCoder()
-        coder.encode_reverse(q[live].astype(np.int32), _laplace(max_abs), np.zeros(int(live.sum())), scale[live])
-        words = coder.get_compressed()
+    coder = constriction.stream.stack.AnsCoder()
+    # A stack coder decodes last-in first-out: push the groups in reverse.
+    for code, where in reversed(_groups(codes[bands - lo])):
+        coder.encode_reverse(q[where].astype(np.int32), _laplace(max_abs, float(_scale_of(np.array([code]))[0])))
+    words = coder.get_compressed()
     return _ANS_HEAD.pack(layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
 
 
@@ -241,16 +256,16 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
                           dtype=np.uint8)
     if codes.size != ncodes:
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
-    scale = _scale_of(codes)[bands - lo]
-    live = scale > 0
     out = np.zeros(bands.size, dtype=np.int64)
-    if live.any():
-        words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
-        try:
-            coder = constriction.stream.stack.AnsCoder(words)
-            out[live] = coder.decode(_laplace(max_abs), np.zeros(int(live.sum())), scale[live])
-        except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
-            raise CorruptFileError(f"{what} does not decode: {exc}") from None
+    words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
+    try:
+        coder = constriction.stream.stack.AnsCoder(words)
+        for code, where in _groups(codes[bands - lo]):
+            out[where] = coder.decode(_laplace(max_abs, float(_scale_of(np.array([code]))[0])), where.size)
+    except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
+        raise CorruptFileError(f"{what} does not decode: {exc}") from None
+    if np.abs(out).max(initial=0) > max_abs:
+        raise CorruptFileError(f"{what} decodes outside its stated range")
     return out
 
 
@@ -368,6 +383,9 @@ MASK_TEMPLATE = ((-1, -1), (-1, 0), (-1, 1), (-2, 0), (-1, -2), (-1, 2), (-2, -1
 #: Krichevsky-Trofimov-like prior of the adaptive counts.
 _PRIOR_ONES, _PRIOR_TOTAL = 0.4, 0.8
 _MASK_HEAD = struct.Struct("<BB")  # kind, transposed
+#: The bitmap fallback rarely wins; a middle zstd level keeps it from costing
+#: a tenth of a second on large maps.
+_MASK_ZSTD = zstandard.ZstdCompressor(level=9)
 
 
 def _mask_contexts(lines: np.ndarray, i: int) -> np.ndarray:
@@ -438,8 +456,7 @@ def encode_mask(mask: np.ndarray) -> bytes:
     lines = (mask.T if transposed else mask).astype(np.int64)
     candidates = [
         _MASK_HEAD.pack(MASK_CONTEXT, transposed) + _encode_mask_context(lines),
-        _MASK_HEAD.pack(MASK_ZSTD, 0)
-        + zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(np.packbits(mask.ravel()).tobytes()),
+        _MASK_HEAD.pack(MASK_ZSTD, 0) + _MASK_ZSTD.compress(np.packbits(mask.ravel()).tobytes()),
     ]
     return min(candidates, key=len)
 
@@ -451,7 +468,11 @@ def decode_mask(blob: bytes | memoryview, shape: tuple[int, int]) -> np.ndarray:
         raise CorruptFileError("occupancy mask is truncated")
     kind, transposed = _MASK_HEAD.unpack_from(blob, 0)
     payload = blob[_MASK_HEAD.size:]
-    if kind == MASK_CONTEXT and transposed in (0, 1):
+    if kind == MASK_CONTEXT:
+        # The encoder always runs along the longer axis (fewest sequential
+        # lines); a file claiming otherwise could make decoding crawl.
+        if transposed != (shape[0] > shape[1]):
+            raise CorruptFileError("occupancy mask runs along the wrong axis")
         lines = _decode_mask_context(payload, (shape[1], shape[0]) if transposed else shape)
         return lines.T.copy() if transposed else lines
     if kind != MASK_ZSTD:

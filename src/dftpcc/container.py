@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import IO, Any, BinaryIO
 
 import numpy as np
+import zstandard
 
 from .errors import (
     CorruptFileError,
@@ -148,9 +149,9 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     info = dict(header.stats, coef_count=header.coef_count)
     sections = [
         (b"GEOM", geom),
-        (b"PARM", header.params.to_json().encode()),
-        (b"CRS ", json.dumps(header.crs, sort_keys=True).encode()),
-        (b"STAT", json.dumps(info, sort_keys=True).encode()),
+        (b"PARM", _pack_json(json.loads(header.params.to_json()))),
+        (b"CRS ", _pack_json(_crs_for_file(header.crs))),
+        (b"STAT", _pack_json(info)),
         (b"MASK", mask_blob),
         (b"COEF", coef_blob),  # late, so a prefix of the file carries the low frequencies
     ] + ([(b"RESD", resid_blob)] if resid_blob else [])
@@ -212,9 +213,72 @@ def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, me
     return found
 
 
+#: A JSON section may be stored as one zstd frame (it starts with these bytes,
+#: which no JSON text does) when that is smaller: a map of a few hundred
+#: points should not pay a kilobyte for its metadata.
+_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+#: Largest decompressed JSON section a reader accepts (bytes).
+MAX_JSON_BYTES = 1 << 20
+
+
+def _pack_json(obj: Any) -> bytes:
+    raw = json.dumps(obj, sort_keys=True, separators=(",", ":")).encode("utf-8")
+    packed = zstandard.ZstdCompressor(level=19).compress(raw)
+    return packed if len(packed) < len(raw) else raw
+
+
+def _json_text(payload: memoryview, name: str) -> str:
+    raw = bytes(payload)
+    if raw[:4] == _ZSTD_MAGIC:
+        try:
+            if zstandard.frame_content_size(raw) > MAX_JSON_BYTES:
+                raise CorruptFileError(f"section {name} declares more than {MAX_JSON_BYTES} bytes of JSON")
+            raw = zstandard.ZstdDecompressor().decompress(raw, max_output_size=MAX_JSON_BYTES)
+        except zstandard.ZstdError as exc:
+            raise CorruptFileError(f"section {name} does not decompress: {exc}") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise CorruptFileError(f"section {name} is not UTF-8: {exc}") from None
+
+
+def _crs_for_file(crs: dict[str, Any]) -> dict[str, Any]:
+    """The CRS as stored: LAS records that are text travel as text, so the WKT
+    (often present twice, as ``wkt`` and as its LAS record) compresses to once."""
+    out = dict(crs)
+    vlrs = []
+    for vlr in crs.get("las_vlrs", []):
+        data = base64.b64decode(vlr["data"])
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError:
+            vlrs.append(vlr)
+            continue
+        if text.encode("utf-8") == data:
+            vlrs.append({k: v for k, v in vlr.items() if k != "data"} | {"text": text})
+        else:
+            vlrs.append(vlr)
+    if vlrs:
+        out["las_vlrs"] = vlrs
+    return out
+
+
+def _crs_from_file(crs: Any) -> Any:
+    """Inverse of :func:`_crs_for_file`: every LAS record back to base64 ``data``."""
+    if not isinstance(crs, dict) or not isinstance(crs.get("las_vlrs"), list):
+        return crs
+    vlrs = []
+    for vlr in crs["las_vlrs"]:
+        if isinstance(vlr, dict) and "data" not in vlr and isinstance(vlr.get("text"), str):
+            data = base64.b64encode(vlr["text"].encode("utf-8")).decode("ascii")
+            vlr = {k: v for k, v in vlr.items() if k != "text"} | {"data": data}
+        vlrs.append(vlr)
+    return dict(crs, las_vlrs=vlrs)
+
+
 def _json(payload: memoryview, name: str) -> Any:
     try:
-        return json.loads(bytes(payload).decode("utf-8")) if len(payload) else {}
+        return json.loads(_json_text(payload, name)) if len(payload) else {}
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CorruptFileError(f"section {name} is not valid JSON: {exc}") from None
     except RecursionError:  # deeply nested arrays: crafted, never written by dftpcc
@@ -343,14 +407,16 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     _check_geometry(fields, budget, len(data))
     (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = fields
     try:
-        params = Params.from_json(bytes(found[b"PARM"]).decode("utf-8"))
+        params = Params.from_json(_json_text(found[b"PARM"], "PARM"))
+    except CorruptFileError as exc:
+        raise CorruptFileError(f"parameter section is invalid: {exc}") from None
     except (InvalidInputError, TypeError, UnicodeDecodeError, ValueError, OverflowError) as exc:
         raise CorruptFileError(f"parameter section is invalid: {exc}") from None
     except RecursionError:
         raise CorruptFileError("parameter section nests JSON too deeply") from None
     _check_params(params, res)
     stats = _json(found[b"STAT"], "STAT") if b"STAT" in found else {}
-    crs = _json(found[b"CRS "], "CRS") if b"CRS " in found else {}
+    crs = _crs_from_file(_json(found[b"CRS "], "CRS")) if b"CRS " in found else {}
     _check_stats(stats)
     _check_crs(crs)
     coef_count = stats.get("coef_count")
