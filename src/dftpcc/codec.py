@@ -141,7 +141,7 @@ class _Trial:
 class _Spectrum:
     """What does not change between trials: detrended, filled DEM and its sorted transform."""
 
-    def __init__(self, dem: DEM, params: Params):
+    def __init__(self, dem: DEM, params: Params, *, searching: bool):
         self.dem, self.params = dem, params
         self.mask = dem.mask
         self.kept_cells = _footprint(dem.mask) if params.mask == "footprint" else dem.mask
@@ -149,10 +149,12 @@ class _Spectrum:
         self.trend = plane_values(self.plane, dem.grid.shape) if params.detrend == "plane" else 0.0
         filled = fill_empty(dem.heights - self.trend, dem.mask, method=params.fill)
         self.lay = spectrum.layout(params.transform, params.storage, dem.grid.shape)
-        order, radii, angles = spectrum.full_order(self.lay)
+        # Rate control may try any cutoff; otherwise only the kept circle is needed.
+        order, radii, angles = spectrum.kept_order(self.lay, 0.0 if searching else params.cutoff)
         self.coefs = spectrum.forward(filled, self.lay).ravel()[order]
         self.order = order
         # Frequency of every stored value (a complex one is stored as two reals).
+        self.radii = radii
         self.radius = np.repeat(radii, 2) if self._interleaved else radii
         self.angle = np.repeat(angles, 2) if self._interleaved else angles
         # Parseval: squared coefficient error -> mean squared error per cell.
@@ -164,7 +166,8 @@ class _Spectrum:
         return self.lay.kind == "half" and self.params.storage == "quantized"
 
     def count(self, cutoff: float) -> int:
-        return spectrum.kept_count(self.lay, cutoff)
+        return int(np.searchsorted(self.radii, spectrum.radius_limit(self.lay.shape, cutoff) * (1 + 1e-12),
+                                   side="right"))
 
     def reals(self, n: int) -> np.ndarray:
         kept = self.coefs[:n]
@@ -356,7 +359,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         raise InvalidInputError("the map has no occupied cell")
     point_count = int(dem.mask.sum()) if point_count is None else point_count
     on_stage("spectrum")
-    spec = _Spectrum(dem, params)
+    spec = _Spectrum(dem, params, searching=params.has_target and not cutoff_given)
     mask_blob = coding.encode_mask(spec.kept_cells)
 
     on_stage("encode")
@@ -437,7 +440,7 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     n = spectrum.kept_count(lay, params.cutoff)
     if n != header.coef_count:
         raise CorruptFileError("coefficient count disagrees with the grid and cutoff")
-    order, radii, angles = spectrum.full_order(lay)
+    order, radii, angles = spectrum.kept_order(lay, params.cutoff)
     per_coef = 2 if (lay.kind == "half" and params.storage == "quantized") else 1
     radius, angle = np.repeat(radii[:n], per_coef), np.repeat(angles[:n], per_coef)
     stream = coding.decode_coefficients(blobs[b"COEF"], n * per_coef, radius=radius, angle=angle,

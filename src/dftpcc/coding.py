@@ -377,9 +377,11 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
 #: Mask coding kinds (first byte of the mask section).
 MASK_ZSTD = 0
 MASK_CONTEXT = 1
-#: Causal neighbours (line offset, cell offset) of the context model: two
-#: previous lines only, so a whole line decodes in one vectorised call.
-MASK_TEMPLATE = ((-1, -1), (-1, 0), (-1, 1), (-2, 0), (-1, -2), (-1, 2), (-2, -1), (-2, 1))
+#: Context of a cell: the 5 cells around it on the previous line (offsets
+#: -2..+2) and the 3 on the line before that (-1..+1), as 8 bits. Only
+#: previous lines, so a whole line decodes in one vectorised call.
+_TAPS5 = np.array([16, 8, 4, 2, 1])  # np.convolve flips: bit k <- offset k-2
+CONTEXTS = 256
 #: Krichevsky-Trofimov-like prior of the adaptive counts.
 _PRIOR_ONES, _PRIOR_TOTAL = 0.4, 0.8
 _MASK_HEAD = struct.Struct("<BB")  # kind, transposed
@@ -388,26 +390,15 @@ _MASK_HEAD = struct.Struct("<BB")  # kind, transposed
 _MASK_ZSTD = zstandard.ZstdCompressor(level=9)
 
 
-def _mask_contexts(lines: np.ndarray, i: int) -> np.ndarray:
-    """Context number of every cell of line ``i`` from lines ``i-2`` and ``i-1``."""
-    width = lines.shape[1]
-    ctx = np.zeros(width, dtype=np.int64)
-    for bit, (dl, dc) in enumerate(MASK_TEMPLATE):
-        j = i + dl
-        if j < 0:
-            continue
-        row = lines[j]
-        shifted = np.zeros(width, dtype=np.int64)
-        if dc >= 0:
-            shifted[: width - dc] = row[dc:]
-        else:
-            shifted[-dc:] = row[: width + dc]
-        ctx |= shifted << bit
-    return ctx
+def _line_codes(line: np.ndarray) -> np.ndarray:
+    """5-bit code of each cell's neighbourhood (offsets -2..+2) on one line."""
+    # "full" then the centred slice: "same" would pad lines shorter than the taps.
+    return np.convolve(line, _TAPS5, mode="full")[2:2 + line.size]
 
 
-def _context_probabilities(ones: np.ndarray, total: np.ndarray, ctx: np.ndarray) -> np.ndarray:
-    return (ones[ctx] + _PRIOR_ONES) / (total[ctx] + _PRIOR_TOTAL)
+def _contexts(codes_above: np.ndarray, codes_above2: np.ndarray) -> np.ndarray:
+    # Bits 0-4: previous line -2..+2; bits 5-7: the line before, -1..+1.
+    return codes_above | (((codes_above2 >> 1) & 7) << 5)
 
 
 def _bernoulli():
@@ -415,14 +406,19 @@ def _bernoulli():
 
 
 def _encode_mask_context(lines: np.ndarray) -> bytes:
-    n = 1 << len(MASK_TEMPLATE)
-    ones, total = np.zeros(n), np.zeros(n)
-    probs = np.empty(lines.shape, dtype=np.float64)
-    for i in range(lines.shape[0]):
-        ctx = _mask_contexts(lines, i)
-        probs[i] = _context_probabilities(ones, total, ctx)
-        ones += np.bincount(ctx, weights=lines[i], minlength=n)
-        total += np.bincount(ctx, minlength=n)
+    n_lines, width = lines.shape
+    codes = np.zeros((n_lines + 2, width), dtype=np.int64)  # two empty lines above the first
+    for i in range(n_lines):
+        codes[i + 2] = _line_codes(lines[i])
+    ctx = _contexts(codes[1:-1], codes[:-2])
+    # Counts seen before each line: per-line histograms, accumulated, shifted by one line.
+    flat = (ctx + CONTEXTS * np.arange(n_lines)[:, None]).ravel()
+    ones = np.bincount(flat, weights=lines.ravel(), minlength=n_lines * CONTEXTS).reshape(n_lines, CONTEXTS)
+    total = np.bincount(flat, minlength=n_lines * CONTEXTS).reshape(n_lines, CONTEXTS).astype(np.float64)
+    ones = np.vstack([np.zeros(CONTEXTS), np.cumsum(ones, axis=0)[:-1]])
+    total = np.vstack([np.zeros(CONTEXTS), np.cumsum(total, axis=0)[:-1]])
+    rows = np.arange(n_lines)[:, None]
+    probs = (ones[rows, ctx] + _PRIOR_ONES) / (total[rows, ctx] + _PRIOR_TOTAL)
     coder = constriction.stream.stack.AnsCoder()
     coder.encode_reverse(lines.ravel().astype(np.int32), _bernoulli(), probs.ravel())
     return coder.get_compressed().astype("<u4").tobytes()
@@ -431,16 +427,20 @@ def _encode_mask_context(lines: np.ndarray) -> bytes:
 def _decode_mask_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
     if len(payload) % 4:
         raise CorruptFileError("occupancy mask has a wrong length")
-    n = 1 << len(MASK_TEMPLATE)
-    ones, total = np.zeros(n), np.zeros(n)
+    n_lines, width = shape
+    ones, total = np.zeros(CONTEXTS), np.zeros(CONTEXTS)
     lines = np.zeros(shape, dtype=np.int64)
+    above, above2 = np.zeros(width, dtype=np.int64), np.zeros(width, dtype=np.int64)
     try:
         coder = constriction.stream.stack.AnsCoder(np.frombuffer(payload, dtype="<u4").astype(np.uint32))
-        for i in range(shape[0]):
-            ctx = _mask_contexts(lines, i)
-            lines[i] = coder.decode(_bernoulli(), _context_probabilities(ones, total, ctx))
-            ones += np.bincount(ctx, weights=lines[i], minlength=n)
-            total += np.bincount(ctx, minlength=n)
+        model = _bernoulli()
+        for i in range(n_lines):
+            ctx = _contexts(above, above2)
+            line = coder.decode(model, (ones[ctx] + _PRIOR_ONES) / (total[ctx] + _PRIOR_TOTAL))
+            lines[i] = line
+            ones += np.bincount(ctx, weights=line, minlength=CONTEXTS)
+            total += np.bincount(ctx, minlength=CONTEXTS)
+            above2, above = above, _line_codes(lines[i])
     except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
         raise CorruptFileError(f"occupancy mask does not decode: {exc}") from None
     return lines.astype(bool)

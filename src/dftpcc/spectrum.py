@@ -57,9 +57,8 @@ class Layout:
         Shape of the coefficient array.
     radius : ndarray, shape coef_shape
         Distance of each coefficient from DC in DFT frequency pixels.
-    angle : ndarray, shape coef_shape
-        Direction of each coefficient's frequency, scaled to [0, 1] over the
-        half-plane (``full``, ``half``) or quadrant (``dct``) the layout covers.
+
+    See :meth:`angle_of` for the direction of a coefficient's frequency.
     """
 
     def __init__(self, kind: str, shape: tuple[int, int]):
@@ -78,10 +77,16 @@ class Layout:
         else:
             raise ValueError(f"unknown layout {kind!r}")
         self.coef_shape = (du.size, dv.size)
+        self._du, self._dv = du, dv
         self.radius = np.hypot(du[:, None], dv[None, :])
-        span = {"full": 2 * math.pi, "half": math.pi, "dct": math.pi / 2}[kind]
-        start = {"full": -math.pi, "half": -math.pi / 2, "dct": 0.0}[kind]
-        self.angle = np.clip((np.arctan2(du[:, None], dv[None, :]) - start) / span, 0.0, 1.0)
+
+    def angle_of(self, flat: np.ndarray) -> np.ndarray:
+        """Direction of the frequencies at flat indices ``flat``, scaled to [0, 1]
+        over the half-plane (``full``, ``half``) or quadrant (``dct``) the layout covers."""
+        span = {"full": 2 * math.pi, "half": math.pi, "dct": math.pi / 2}[self.kind]
+        start = {"full": -math.pi, "half": -math.pi / 2, "dct": 0.0}[self.kind]
+        rows, cols = np.divmod(flat, self.coef_shape[1])
+        return np.clip((np.arctan2(self._du[rows], self._dv[cols]) - start) / span, 0.0, 1.0)
 
 
 def layout(transform: str, storage: str, shape: tuple[int, int]) -> Layout:
@@ -97,41 +102,44 @@ def radius_limit(shape: tuple[int, int], cutoff: float) -> float:
     return (1.0 - cutoff) * math.hypot(n / 2.0, m / 2.0)
 
 
-_ORDER_CACHE: dict[tuple[str, tuple[int, int]], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+_ORDER_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 _ORDER_CACHE_SIZE = 8
 
 
-def full_order(lay: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Flat indices of every coefficient from low to high radius, their radii and angles.
+def _limit(lay: Layout, cutoff: float) -> float:
+    # A hair of slack so a coefficient exactly on the circle is kept on every platform.
+    return radius_limit(lay.shape, cutoff) * (1 + 1e-12)
 
-    The order is deterministic (stable sort on radius, ties by index), so the
-    encoder and decoder derive it from the shape alone. Cached per shape:
-    sweeps and rate control ask for it many times.
+
+def kept_order(lay: Layout, cutoff: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The coefficients inside the circle of ``cutoff``, from low to high radius.
+
+    Returns flat indices, their radii and their angles. The order is
+    deterministic (stable sort on radius, ties by index), so the encoder and
+    decoder derive it from the shape alone; the stream for a larger cutoff
+    is a prefix of this one (progressive decoding). Only the coefficients
+    inside the circle are sorted, and results are cached per shape and
+    cutoff: sweeps and rate control ask many times.
     """
-    key = (lay.kind, lay.shape)
+    key = (lay.kind, lay.shape, cutoff)
     if key not in _ORDER_CACHE:
         if len(_ORDER_CACHE) >= _ORDER_CACHE_SIZE:
             _ORDER_CACHE.pop(next(iter(_ORDER_CACHE)))
         flat_radius = lay.radius.ravel()
-        order = np.argsort(flat_radius, kind="stable")
-        _ORDER_CACHE[key] = (order, flat_radius[order], lay.angle.ravel()[order])
+        inside = np.flatnonzero(flat_radius <= _limit(lay, cutoff)) if cutoff > 0 else np.arange(flat_radius.size)
+        order = inside[np.argsort(flat_radius[inside], kind="stable")]
+        _ORDER_CACHE[key] = (order, flat_radius[order], lay.angle_of(order))
     return _ORDER_CACHE[key]
+
+
+def full_order(lay: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every coefficient from low to high radius: :func:`kept_order` at cutoff 0."""
+    return kept_order(lay, 0.0)
 
 
 def kept_count(lay: Layout, cutoff: float) -> int:
     """How many coefficients lie inside the circle of ``cutoff``."""
-    _, radii, _ = full_order(lay)
-    # A hair of slack so a coefficient exactly on the circle is kept on every platform.
-    return int(np.searchsorted(radii, radius_limit(lay.shape, cutoff) * (1 + 1e-12), side="right"))
-
-
-def kept_order(lay: Layout, cutoff: float) -> np.ndarray:
-    """Flat indices of the coefficients inside the circle, from low to high radius.
-
-    Any prefix of the stream is a smaller circle: the basis of progressive
-    decoding.
-    """
-    return full_order(lay)[0][: kept_count(lay, cutoff)]
+    return int(np.count_nonzero(lay.radius <= _limit(lay, cutoff)))
 
 
 def forward(values: np.ndarray, lay: Layout) -> np.ndarray:
