@@ -576,7 +576,7 @@ def plot(m: dict, path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="coarser sweeps (about a third of the settings)")
+    ap.add_argument("--quick", action="store_true", help="coarser sweeps (about a quarter of the settings)")
     ap.add_argument("--files", nargs="+", metavar="NAME", help="file names (or prefixes) to run")
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding pointclouds/ and dems/")
     ap.add_argument("--no-figures", action="store_true", help="do not write docs/figures/bench_rd_*.png")
