@@ -21,7 +21,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_codec.py
 
-# Rate-distortion against Draco, JPEG2000, LERC, SZ3 and LAZ (~5 min; ARGS=--quick for ~1 min).
+# Rate-distortion against Draco, JPEG2000, LERC, SZ3 and LAZ (~7 min on the shared 2-core box; ARGS=--quick ~2 min).
 bench-anchors: $(STAMP)
 	$(BIN)/python benchmarks/bench_anchors.py $(ARGS)
 
