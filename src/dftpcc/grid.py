@@ -130,9 +130,20 @@ class Grid:
 
     def flat_index(self, xy: np.ndarray) -> np.ndarray:
         """Row-major cell index of each point, -1 where it lies outside the grid."""
-        r, c = self.cell_of(xy)
-        inside = (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.cols)
-        return np.where(inside, r * self.cols + c, -1)
+        # The hot loop of gridding: in-place float arithmetic, one conversion,
+        # as few passes over millions of points as numpy allows.
+        u, v = self.to_local(xy)
+        u = np.multiply(u, 1.0 / self.resolution)
+        v = np.multiply(v, 1.0 / self.dy)
+        np.floor(u, out=u)
+        np.floor(v, out=v)
+        outside = (u < 0) | (u >= self.cols) | (v < 0) | (v >= self.rows)
+        v *= self.cols
+        v += u  # exact: cell counts are far below 2**53
+        idx = v.astype(np.int64)
+        if outside.any():
+            idx[outside] = -1
+        return idx
 
     def centres(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World x, y of the centres of cells ``(rows, cols)``."""
@@ -328,8 +339,11 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
         raise InvalidInputError(f"resolution must be a positive number of metres, got {resolution!r}")
     angle = _min_area_angle(points[:, :2]) if frame == "oriented" else 0.0
     c, s = math.cos(angle), math.sin(angle)
-    u = c * points[:, 0] + s * points[:, 1]
-    v = -s * points[:, 0] + c * points[:, 1]
+    if angle:
+        u = c * points[:, 0] + s * points[:, 1]
+        v = -s * points[:, 0] + c * points[:, 1]
+    else:  # the paper's frame: no arithmetic over millions of points
+        u, v = points[:, 0], points[:, 1]
     # A rotated frame recomputes local coordinates from a rotated origin; a
     # margin of a millionth of a cell keeps round-off from pushing the
     # extreme points outside the grid.
@@ -495,9 +509,20 @@ def fit_plane(dem: DEM) -> tuple[float, float, float]:
     rows, cols = np.nonzero(dem.mask)
     if rows.size < 3:
         return (float(dem.heights[dem.mask].mean()) if rows.size else 0.0, 0.0, 0.0)
-    design = np.column_stack([np.ones(rows.size), cols.astype(float), rows.astype(float)])
-    coef, *_ = np.linalg.lstsq(design, dem.heights[rows, cols], rcond=None)
-    return float(coef[0]), float(coef[1]), float(coef[2])
+    # Normal equations on centred coordinates: 3 x 3, well conditioned, and
+    # a few passes over the cells instead of a least-squares solve on them.
+    x, y, z = cols.astype(float), rows.astype(float), dem.heights[rows, cols]
+    mx, my, mz = x.mean(), y.mean(), z.mean()
+    x -= mx
+    y -= my
+    z = z - mz
+    normal = np.array([[x @ x, x @ y], [x @ y, y @ y]])
+    rhs = np.array([x @ z, y @ z])
+    try:
+        b, c = np.linalg.solve(normal, rhs)
+    except np.linalg.LinAlgError:  # all cells on one line: fit along it only
+        b, c = np.linalg.lstsq(normal, rhs, rcond=None)[0]
+    return float(mz - b * mx - c * my), float(b), float(c)
 
 
 def plane_values(plane: tuple[float, float, float], shape: tuple[int, int]) -> np.ndarray:
