@@ -159,3 +159,17 @@ def test_non_square_planetary_dems_keep_their_grid(tmp_path, name):
     pts = dftpcc.read(tmp_path / "m.tif").points
     orig = dftpcc.read(src).points
     np.testing.assert_allclose(np.sort(pts[:, 0]), np.sort(orig[:, 0]), rtol=0, atol=1e-6 * np.abs(orig[:, 0]).max())
+
+
+def test_progressive_decode_from_the_command_line(tmp_path, cloud_file):
+    out = tmp_path / "t.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "-c", "0.3", "-q"]) == 0
+    m = dftpcc.open(out)
+    head = m.size - m.header.stats["coef_bytes"]
+    partial = tmp_path / "partial.npy"
+    assert main(["decompress", str(out), str(partial), "--max-bytes", str(head + 2000), "-q"]) == 0
+    assert np.load(partial).shape == (m.header.cell_count, 3)
+    result = run("decompress", str(out), str(tmp_path / "x.npy"), "--max-bytes", "200")
+    assert result.returncode == 5
+    assert "a partial decode needs at least the first" in result.stderr
+    assert not (tmp_path / "x.npy").exists()

@@ -14,7 +14,8 @@ from dftpcc.grid import MAX_CELLS, auto_resolution, fill_empty, fit_grid, fit_pl
 def test_grid_is_minimum_bounding_rectangle_at_centroid_height():
     pts = np.array([[10.0, 20.0, 1.0], [13.9, 21.0, 3.0], [11.0, 25.9, 5.0]])
     g = fit_grid(pts, 1.0)
-    assert (g.x0, g.y0) == (10.0, 20.0)
+    # 4 x 6 whole cells around a 3.9 x 5.9 m extent, the 0.1 m overhang split evenly
+    assert (g.x0, g.y0) == pytest.approx((9.95, 19.95))
     assert (g.rows, g.cols) == (6, 4)
     assert g.z0 == pytest.approx(3.0)
 
@@ -94,3 +95,14 @@ def test_auto_resolution_tracks_density(field_ground):
     res = auto_resolution(field_ground)
     # about 6.7 ground points per square metre on the field: 4 per cell is ~0.77 m cells
     assert 0.6 < res < 1.0
+
+
+def test_points_on_a_lattice_of_the_cell_size_sit_mid_cell():
+    # A DEM sampled at its pixel centres, at UTM-size coordinates: one point per cell.
+    yy, xx = np.mgrid[0:300, 0:200]
+    pts = np.column_stack([484649.25 + 47.679 * xx.ravel(), 6632629.75 + 47.679 * yy.ravel(),
+                           np.zeros(xx.size)])
+    g = fit_grid(pts, 47.679)
+    assert (g.rows, g.cols) == (300, 200)
+    dem = rasterize(pts, g)
+    assert dem.mask.all() and dem.counts.max() == 1

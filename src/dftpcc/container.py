@@ -202,6 +202,10 @@ def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, me
                 continue
             if tag == b"RESD" and allow_truncated_coef:
                 continue
+            if allow_truncated_coef:  # a prefix asked for on purpose: say how much is needed
+                raise CorruptFileError(
+                    f"the first {len(data)} bytes end inside section {name}: a partial decode needs "
+                    f"at least the first {end} bytes")
             raise CorruptFileError(f"file is truncated: section {name} needs bytes up to {end}, file has {len(data)}")
         payload = data[offset:end]
         if zlib.crc32(payload) != crc:

@@ -14,6 +14,10 @@ from .terrain import regolith_plain
 __all__ = ["run_demo"]
 
 DEMO_CUTOFFS = (0.0, 0.5, 0.8, 0.9, 0.95)
+#: The rate-control example asks for a DEM RMSE of this many gridding floors.
+DEMO_TARGET_FLOORS = 1.0
+#: Fractions of the file the progressive-decoding example reads.
+DEMO_PREFIXES = (0.1, 0.25, 0.5, 1.0)
 
 
 def run_demo(*, n_points: int = 300_000, resolution: float = 0.25, out: str | None = None, seed: int = 0) -> list[dict]:
@@ -52,4 +56,24 @@ def run_demo(*, n_points: int = 300_000, resolution: float = 0.25, out: str | No
                 (folder / f"demo_{profile}_fc{cutoff:.2f}.dftpc").write_bytes(data)
     print("vert RMSE: each point against its cell's rebuilt height; floor: against its cell's mean "
           "(the best any DEM at this resolution can do).")
+
+    floor = rows[0]["floor_m"]
+    target = DEMO_TARGET_FLOORS * floor
+    t0 = time.perf_counter()
+    data = compress(points, resolution=resolution, target_rmse=target)
+    m = open_map(data)
+    print(f"\nrate control, --target-rmse {target * 1000:.1f} mm: chose f_c {m.params.cutoff}, step "
+          f"{m.params.step * 1000:.1f} mm -> {len(data):,} bytes ({8 * len(data) / points.shape[0]:.3f} bits/pt), "
+          f"DEM RMSE {m.header.stats['dem_rmse_m'] * 1000:.1f} mm [{time.perf_counter() - t0:.1f} s]")
+    full = open_map(data).read_dem()
+    coef_bytes = m.header.stats["coef_bytes"]
+    head = len(data) - coef_bytes  # everything before the coefficients (mask included) must arrive
+    print("progressive decoding of that file: header and mask, then a part of the coefficients, as if "
+          "the rest had not arrived:")
+    for fraction in DEMO_PREFIXES:
+        n = head + int(coef_bytes * fraction)
+        dem = open_map(data, max_bytes=n).read_dem()
+        err = (dem.heights - full.heights)[full.mask]
+        print(f"  first {n:>7,} bytes ({fraction:4.0%} of the coefficients): RMSE "
+              f"{np.sqrt(np.mean(err * err)) * 1000:7.1f} mm from the full decode")
     return rows

@@ -55,6 +55,9 @@ MULTI_HEIGHT_TOLERANCE_CELLS = 1.0
 #: fraction of the points cannot be represented.
 MULTI_HEIGHT_WARN_FRACTION = 0.01
 
+#: An extent within this many cells below a whole number of cells counts as whole.
+LATTICE_TOLERANCE = 1e-6
+
 #: Margin, in cells, around a rotated grid (see fit_grid).
 ROTATED_MARGIN = 1e-6
 
@@ -352,11 +355,19 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
     # Sizes in floats first: a tiny resolution or a huge extent must give a
     # clear refusal, not an overflow or an attempt to allocate.
     with np.errstate(over="ignore", invalid="ignore"):
-        cols_f = float(np.floor((float(u.max()) + margin - umin) / resolution)) + 1.0
-        rows_f = float(np.floor((float(v.max()) + margin - vmin) / resolution)) + 1.0
+        # An extent a hair short of whole cells (round-off on lattice data)
+        # counts as whole, so the last lattice point gets its own cell.
+        cols_f = float(np.floor((float(u.max()) + margin - umin) / resolution + LATTICE_TOLERANCE)) + 1.0
+        rows_f = float(np.floor((float(v.max()) + margin - vmin) / resolution + LATTICE_TOLERANCE)) + 1.0
     _check_grid_size(rows_f, cols_f, resolution)
     _check_precision(points, resolution)
     rows, cols = int(rows_f), int(cols_f)
+    # Whole cells overhang the points' extent; split the overhang evenly on
+    # both sides. Points on a lattice of the cell size (a DEM's pixel
+    # centres, a voxelised SLAM map) then sit mid-cell, not on cell edges
+    # where round-off would drop some into their neighbour.
+    umin -= (cols * resolution - (float(u.max()) + margin - umin)) / 2.0
+    vmin -= (rows * resolution - (float(v.max()) + margin - vmin)) / 2.0
     x0, y0 = c * umin - s * vmin, s * umin + c * vmin
     return Grid(x0=x0, y0=y0, z0=float(points[:, 2].mean()), resolution=float(resolution),
                 rows=rows, cols=cols, angle=angle)
