@@ -53,13 +53,16 @@ def test_stats_state_the_true_error(redrocks):
     data = dftpcc.compress(redrocks, resolution=5.0, cutoff=0.7)
     stats = dftpcc.open(data).header.stats
     err = _dem_error(data, redrocks, 5.0)
-    assert stats["dem_rmse_m"] == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-9)
-    assert stats["dem_max_error_m"] == pytest.approx(np.abs(err).max(), rel=1e-9)
+    # stated to 5 significant digits, rounded up: an upper bound within 1e-4
+    true_rmse, true_max = np.sqrt(np.mean(err**2)), np.abs(err).max()
+    assert true_rmse <= stats["dem_rmse_m"] <= true_rmse * (1 + 1e-4)
+    assert true_max <= stats["dem_max_error_m"] <= true_max * (1 + 1e-4)
     # vertical RMSE of each point against its own cell's rebuilt height
     dem = dftpcc.open(data).read_dem()
     idx = dem.grid.flat_index(redrocks)
     dz = redrocks[:, 2] - dem.grid.z0 - dem.heights.ravel()[idx]
-    assert stats["vertical_rmse_m"] == pytest.approx(np.sqrt(np.mean(dz**2)), rel=1e-9)
+    true_vertical = np.sqrt(np.mean(dz**2))
+    assert true_vertical <= stats["vertical_rmse_m"] <= true_vertical * (1 + 1e-4)
 
 
 def test_compact_and_paper_agree_within_quantization_error(field_ground):

@@ -149,9 +149,10 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     info = dict(header.stats, coef_count=header.coef_count)
     sections = [
         (b"GEOM", geom),
-        (b"PARM", _pack_json(json.loads(header.params.to_json()))),
+        (b"PARM", _pack_json(_params_for_file(header.params))),
         (b"CRS ", _pack_json(_crs_for_file(header.crs))),
-        (b"STAT", _pack_json(info)),
+        (b"STAT", _pack_json({k: _round_up(v) for k, v in info.items()
+                              if k not in _DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
         (b"MASK", mask_blob),
         (b"COEF", coef_blob),  # late, so a prefix of the file carries the low frequencies
     ] + ([(b"RESD", resid_blob)] if resid_blob else [])
@@ -225,6 +226,44 @@ _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 MAX_JSON_BYTES = 1 << 20
 
 
+#: Parameter values a version-1 file leaves out. Frozen here, apart from the
+#: library's defaults, so that changing a default later cannot change what
+#: an existing file means.
+V1_PARAM_DEFAULTS: dict[str, Any] = {
+    "cutoff": 0.8, "profile": "compact", "aggregate": "mean", "frame": "axis", "transform": "dct",
+    "detrend": "plane", "fill": "smooth", "storage": "quantized", "step": 0.0, "deadzone": 0.1,
+    "coder": "ans", "mask": "exact", "target_rmse": 0.0, "target_max_error": 0.0, "target_bpp": 0.0,
+}
+#: Statistics the reader derives from the section table instead of storing them.
+_DERIVED_STATS = {"mask_bytes": b"MASK", "coef_bytes": b"COEF", "residual_bytes": b"RESD"}
+#: Statistics left out when zero.
+_OPTIONAL_STATS = ("cells_interpolated",)
+#: Significant digits the statistics keep; errors are rounded up, so a
+#: stated error stays an upper bound.
+STAT_DIGITS = 5
+
+
+def _params_for_file(params: Params) -> dict[str, Any]:
+    full = json.loads(params.to_json())
+    return {k: v for k, v in full.items() if k not in V1_PARAM_DEFAULTS or V1_PARAM_DEFAULTS[k] != v}
+
+
+def _params_from_file(text: str) -> Params:
+    stored = json.loads(text)
+    if not isinstance(stored, dict):
+        raise InvalidInputError("parameters must be a JSON object")
+    return Params.from_json(json.dumps(V1_PARAM_DEFAULTS | stored))
+
+
+def _round_up(value: Any) -> Any:
+    if not isinstance(value, float) or value == 0.0 or not math.isfinite(value):
+        return value
+    exponent = math.floor(math.log10(abs(value))) - (STAT_DIGITS - 1)
+    scale = 10.0 ** exponent
+    rounded = math.ceil(value / scale) * scale
+    return float(f"{rounded:.{STAT_DIGITS}g}") if float(f"{rounded:.{STAT_DIGITS}g}") >= value else rounded
+
+
 def _pack_json(obj: Any) -> bytes:
     raw = json.dumps(obj, sort_keys=True, separators=(",", ":")).encode("utf-8")
     packed = zstandard.ZstdCompressor(level=19).compress(raw)
@@ -244,6 +283,17 @@ def _json_text(payload: memoryview, name: str) -> str:
         return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise CorruptFileError(f"section {name} is not UTF-8: {exc}") from None
+
+
+def _section_lengths(data: memoryview) -> dict[bytes, int]:
+    """Declared payload length of each tile-0 section (the table was checked already)."""
+    (count,) = struct.unpack_from("<I", data, 12)
+    out: dict[bytes, int] = {}
+    for i in range(count):
+        tag, tile, _offset, length, _crc = _ENTRY.unpack_from(data, _PREAMBLE.size + i * _ENTRY.size)
+        if tile == 0:
+            out.setdefault(tag, length)
+    return out
 
 
 def _crs_for_file(crs: dict[str, Any]) -> dict[str, Any]:
@@ -411,7 +461,7 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     _check_geometry(fields, budget, len(data))
     (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = fields
     try:
-        params = Params.from_json(_json_text(found[b"PARM"], "PARM"))
+        params = _params_from_file(_json_text(found[b"PARM"], "PARM"))
     except CorruptFileError as exc:
         raise CorruptFileError(f"parameter section is invalid: {exc}") from None
     except (InvalidInputError, TypeError, UnicodeDecodeError, ValueError, OverflowError) as exc:
@@ -420,6 +470,9 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
         raise CorruptFileError("parameter section nests JSON too deeply") from None
     _check_params(params, res)
     stats = _json(found[b"STAT"], "STAT") if b"STAT" in found else {}
+    if isinstance(stats, dict):
+        for key, tag in _DERIVED_STATS.items():
+            stats.setdefault(key, _section_lengths(data).get(tag, 0))
     crs = _crs_from_file(_json(found[b"CRS "], "CRS")) if b"CRS " in found else {}
     _check_stats(stats)
     _check_crs(crs)
