@@ -16,6 +16,8 @@ from dftpcc.errors import InvalidInputError
 
 from .conftest import data_file
 
+#: Relative precision of the errors a .dftpc header states (5 significant digits).
+STATED_PRECISION = 1e-4
 #: Floating-point tolerance for distances computed from metre-scale coordinates (metres).
 TOL = 1e-9
 
@@ -175,7 +177,10 @@ def test_paper_rmse_matches_what_the_codec_reports_on_real_terrain(profile):
     points = dftpcc.read(data_file("pointclouds/mountain_arid_alirt.las"), classes=[2]).points
     data = dftpcc.compress(points, resolution=2.0, cutoff=0.9, profile=profile)
     stated = dftpcc.open(data).header.stats["vertical_rmse_m"]
-    assert metrics.paper_rmse(points, dftpcc.decompress(data)) == pytest.approx(stated, rel=1e-9)
+    ours = metrics.paper_rmse(points, dftpcc.decompress(data))
+    # The file states its errors to STATED_PRECISION, rounded up.
+    assert ours <= stated * (1 + 1e-12)
+    assert ours == pytest.approx(stated, rel=STATED_PRECISION)
 
 
 @pytest.mark.parametrize("bad", [np.zeros((0, 3)), np.zeros((4, 2)), np.array([[0.0, np.nan, 1.0]])])

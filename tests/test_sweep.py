@@ -70,8 +70,9 @@ def test_bits_fall_and_error_rises_with_the_cutoff_on_real_terrain(mountain_swee
     assert all(b1 < b0 for b0, b1 in zip(bits, bits[1:])), (profile, bits)
     rmse = [r["paper_rmse_m"] for r in rows]
     assert rmse[-1] > rmse[0]
-    # Nothing a codec rebuilds beats the DEM it was given: the gridding floor.
-    assert min(rmse) >= rows[0]["gridding_rmse_m"] * (1 - 1e-9)
+    # Nothing a codec rebuilds beats the DEM it was given: the gridding floor
+    # (which the header states to 5 significant digits).
+    assert min(rmse) >= rows[0]["gridding_rmse_m"] * (1 - 1e-4)
 
 
 def test_bits_fall_with_the_cutoff_on_the_large_field_map(field_ground):
