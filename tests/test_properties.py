@@ -199,3 +199,27 @@ def test_decoded_heights_are_real_for_every_profile_and_transform():
                 warnings.simplefilter("ignore")
                 heights = dftpcc.open(data).read_dem().heights
             assert heights.dtype == np.float64, (profile, transform, heights.dtype)
+
+
+DETERMINISM_CHILD = """
+import sys, numpy as np, warnings, dftpcc
+warnings.simplefilter("ignore")
+points = np.load(sys.argv[1])
+for profile in ("compact", "paper"):
+    sys.stdout.write(dftpcc.compress(points, resolution=0.5, cutoff=0.6, profile=profile).hex() + "\\n")
+"""
+
+
+def test_same_bytes_in_another_process_with_other_thread_counts(tmp_path):
+    import subprocess
+    import sys
+
+    from dftpcc.terrain import regolith_plain
+
+    points = regolith_plain(20_000, size=30.0, seed=4)
+    np.save(tmp_path / "p.npy", points)
+    here = [_compress(points, dict(resolution=0.5, cutoff=0.6, profile=p)).hex() for p in ("compact", "paper")]
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    child = subprocess.run([sys.executable, "-c", DETERMINISM_CHILD, str(tmp_path / "p.npy")], env=env,
+                           capture_output=True, text=True, timeout=300, check=True)
+    assert child.stdout.split() == here

@@ -361,6 +361,7 @@ class Campaign:
     failures: list[dict] = field(default_factory=list)
     max_seconds: float = 0.0
     max_seconds_input: str = ""
+    max_passing_seconds: float = 0.0
     total_seconds: float = 0.0
     max_peak_bytes: int = 0
     max_peak_fraction: float = 0.0
@@ -375,6 +376,8 @@ class Campaign:
         self.seconds.append(outcome.seconds)
         if outcome.seconds > self.max_seconds:
             self.max_seconds, self.max_seconds_input = outcome.seconds, data[:64].hex()
+        if not outcome.failed:
+            self.max_passing_seconds = max(self.max_passing_seconds, outcome.seconds)
         self.max_peak_bytes = max(self.max_peak_bytes, outcome.peak_bytes)
         if outcome.allowed_bytes:
             self.max_peak_fraction = max(self.max_peak_fraction, outcome.peak_bytes / outcome.allowed_bytes)
@@ -394,6 +397,7 @@ class Campaign:
             "failures": len(self.failures),
             "failure_details": self.failures[:20],
             "decode_seconds_max": round(self.max_seconds, 4),
+            "decode_seconds_max_of_passing_inputs": round(self.max_passing_seconds, 4),
             "decode_seconds_p99": round(secs[int(0.99 * (len(secs) - 1))], 4) if secs else 0.0,
             "decode_seconds_mean": round(self.total_seconds / max(1, self.iterations), 5),
             "slowest_input_prefix_hex": self.max_seconds_input,
