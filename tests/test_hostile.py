@@ -78,7 +78,7 @@ def test_dropping_nonfinite_rows_is_an_explicit_choice(tmp_path):
 def test_duplicate_points_change_nothing_but_the_count():
     pts = _terrain(1500)
     once, twice = dftpcc.compress(pts, resolution=1.0), dftpcc.compress(np.vstack([pts, pts]), resolution=1.0)
-    np.testing.assert_array_equal(dftpcc.decompress(twice), dftpcc.decompress(once))
+    np.testing.assert_allclose(dftpcc.decompress(twice), dftpcc.decompress(once), rtol=1e-12, atol=1e-12)
     assert dftpcc.open(twice).header.point_count == 3000
     assert dftpcc.open(once).header.point_count == 1500
     # Some points repeated: each copy weighs in its cell's mean like any other point.
@@ -135,7 +135,7 @@ def test_all_points_in_one_cell_are_a_one_cell_map_at_their_mean_height():
     assert back.shape == (1, 3)
     assert back[0, 2] == pytest.approx(pts[:, 2].mean(), abs=1e-4)
     stats = dftpcc.open(data).header.stats
-    assert stats["gridding_rmse_m"] == pytest.approx(pts[:, 2].std(), rel=1e-6)
+    assert stats["gridding_rmse_m"] == pytest.approx(pts[:, 2].std(), rel=1e-4)  # 5 significant digits
 
 
 def test_a_transect_along_an_axis_gets_an_automatic_resolution():

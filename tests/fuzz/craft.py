@@ -9,6 +9,7 @@ of the MASK and COEF sections.
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 
@@ -66,6 +67,16 @@ def replace_section(data: bytes, tag: bytes, payload: bytes | None) -> bytes:
 
 def section(data: bytes, tag: bytes) -> bytes:
     return dict(split(data))[tag]
+
+
+def json_of(data: bytes, tag: bytes):
+    """The JSON value of section ``tag`` (stored as text, or zstd-compressed text)."""
+    return json.loads(container._json_text(memoryview(section(data, tag)), tag.decode()))
+
+
+def with_json(data: bytes, tag: bytes, value) -> bytes:
+    """The file with section ``tag`` holding ``value`` as plain JSON text (which readers accept), CRCs fixed."""
+    return replace_section(data, tag, json.dumps(value).encode())
 
 
 def geom(data: bytes) -> dict[str, float | int]:

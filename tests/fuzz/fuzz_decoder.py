@@ -314,8 +314,8 @@ class Mutator:
         index = rng.choice([i for i, (t, _) in enumerate(sections) if t in (b"PARM", b"STAT", b"CRS ")] or [0])
         tag, payload = sections[index]
         try:
-            obj = json.loads(payload)
-        except (ValueError, RecursionError):
+            obj = json.loads(container._json_text(memoryview(payload), tag.decode()))
+        except (ValueError, RecursionError, dftpcc.DftpccError):
             obj = {}
         if isinstance(obj, dict) and obj and rng.random() < 0.8:
             key = rng.choice(sorted(obj))
