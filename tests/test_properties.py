@@ -29,7 +29,7 @@ from dftpcc.grid import MULTI_HEIGHT_TOLERANCE_CELLS, drop_nonfinite, fit_grid, 
 #: Relative and absolute tolerance of "equal" for errors measured twice in float64.
 REL, ABS = 1e-9, 1e-12
 
-SETTINGS = settings(max_examples=25, deadline=None, derandomize=bool(os.environ.get("CI")),
+SETTINGS = settings(max_examples=50, deadline=None, derandomize=bool(os.environ.get("CI")),
                     suppress_health_check=[HealthCheck.too_slow])
 
 

@@ -142,6 +142,10 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
     # Lying statistics and CRS.
     out.update({
         "stat_not_object": (_raw_section(good, b"STAT", "[]"), C, "STAT must be a JSON object"),
+        "stat_zstd_bomb": (_raw_section(good, b"STAT", zstandard.ZstdCompressor(level=19).compress(
+            b"[" + b" " * 2_000_000 + b"]")), C, "declares more than"),
+        "parm_zstd_garbage": (_raw_section(good, b"PARM", b"\x28\xb5\x2f\xfd" + bytes(40)), C,
+                              "parameter section is invalid"),
         "stat_deep_nesting": (_raw_section(good, b"STAT", "[" * 15_000), C, "too deeply"),
         "stat_no_coef_count": (_raw_section(good, b"STAT", "{}"), C, "coefficient count"),
         "stat_coef_count_negative": (_json_section(good, b"STAT", coef_count=-1), C, "coefficient count"),
