@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench bench-anchors fuzz reproduce clean
+.PHONY: demo test bench bench-anchors bench-borders fuzz reproduce clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,14 @@ bench-anchors: $(STAMP)
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce.py
+
+# Border handling, fill and coder at equal error (~4 min): rewrites docs/borders.md.
+bench-borders: $(STAMP)
+	$(BIN)/python benchmarks/bench_borders.py > docs/borders.md
+
+# The decoder fuzz campaign (100,000 inputs, ~2 min); the test suite runs a short one.
+fuzz: $(STAMP)
+	$(BIN)/python tests/fuzz/fuzz_decoder.py --iterations 100000 --seed 11
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache .hypothesis

@@ -160,3 +160,26 @@ def test_bad_parameters_raise_invalid_input(small_terrain, kwargs):
     args = dict(resolution=0.5) | kwargs
     with pytest.raises(InvalidInputError):
         dftpcc.compress(small_terrain, **args)
+
+
+def test_footprint_may_rebuild_more_cells_than_points():
+    # A sparse scan: one point in every other cell. The footprint closes the gaps.
+    yy, xx = np.mgrid[0:40:2, 0:40:2]
+    pts = np.column_stack([xx.ravel() + 0.5, yy.ravel() + 0.5, 0.01 * xx.ravel()])
+    m = dftpcc.open(dftpcc.compress(pts, resolution=1.0, cutoff=0.0, mask="footprint"))
+    assert m.header.cell_count > pts.shape[0]
+    assert dftpcc.decompress(dftpcc.compress(pts, resolution=1.0, mask="footprint")).shape[0] > pts.shape[0]
+
+
+def test_file_records_what_the_dem_cannot_represent():
+    # A vertical wall: two heights in the same cells.
+    rng = np.random.default_rng(5)
+    ground = np.column_stack([rng.uniform(0, 20, 4000), rng.uniform(0, 20, 4000), rng.normal(0, 0.01, 4000)])
+    wall = np.column_stack([rng.uniform(9, 10, 400), rng.uniform(0, 20, 400), rng.uniform(0, 5, 400)])
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        stats = dftpcc.open(dftpcc.compress(np.vstack([ground, wall]), resolution=1.0)).header.stats
+    assert stats["unrepresented_points"] > 0
+    assert 0 < stats["unrepresented_fraction"] < 0.2

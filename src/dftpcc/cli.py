@@ -134,6 +134,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
     with _progress(not args.quiet, COMPRESS_STAGES) as on_stage:
         cmap = compress_file(args.input, args.output, resolution=args.resolution, cutoff=args.cutoff,
                              profile=args.profile, format=args.format, classes=args.classes,
+                             drop_nonfinite=args.drop_nonfinite,
                              on_stage=on_stage, **options)
     if not args.quiet:
         info = cmap.info()
@@ -152,7 +153,7 @@ def cmd_decompress(args: argparse.Namespace) -> int:
     from .files import decompress_file
 
     points = decompress_file(args.input, args.output, format=args.format, max_bytes=args.max_bytes,
-                             cutoff=args.cutoff)
+                             cutoff=args.cutoff, max_cells=args.max_cells)
     if not args.quiet:
         print(f"{args.output}: {points.shape[0]:,} points")
     return 0
@@ -169,7 +170,7 @@ def _target_text(p: dict) -> str:
 def cmd_info(args: argparse.Namespace) -> int:
     from .container import open as open_map
 
-    with open_map(args.input) as cmap:
+    with open_map(args.input, max_cells=args.max_cells) as cmap:
         info = cmap.info()
     if args.json:
         print(json.dumps(info, indent=2, sort_keys=True))
@@ -293,6 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mask", choices=("exact", "footprint"),
                    help="exact (default): rebuild occupied cells only; footprint: also the gaps the map encloses")
     p.add_argument("--coder", choices=("ans", "zstd"), help="entropy coder of the coefficients (default ans)")
+    p.add_argument("--drop-nonfinite", action="store_true",
+                   help="drop points with NaN or infinite coordinates instead of refusing the file")
     p.add_argument("--format", help="input format if the extension does not tell")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=cmd_compress)
@@ -304,6 +307,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("output")
     p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
     p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
+    p.add_argument("--max-cells", type=_positive_int, metavar="N",
+                   help="decode a trusted file whose grid is larger than a file of its size may ask for")
     p.add_argument("--format", help="output format if the extension does not tell")
     p.add_argument("--quiet", "-q", action="store_true")
     p.set_defaults(func=cmd_decompress)
@@ -311,6 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("info", help="header, parameters and sizes, without decoding")
     p.add_argument("input")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--max-cells", type=_positive_int, metavar="N",
+                   help="read a trusted file whose grid is larger than a file of its size may ask for")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("demo", help="run the whole pipeline on a built-in terrain and print a table")
@@ -327,6 +334,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("candidate", metavar="COMPRESSED_OR_REBUILT")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes of ORIGINAL (as compressed)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--max-cells", type=_positive_int, metavar="N",
+                   help="read a trusted file whose grid is larger than a file of its size may ask for")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("sweep", help="compress at many cutoffs: sweep.csv and sweep.png (the paper's Fig. 5)")

@@ -407,6 +407,10 @@ def _finish(spec: _Spectrum, params: Params, trial: _Trial, coef_blob: bytes, q_
         "residual_bytes": len(resid_blob),
         "cells_interpolated": int(spec.kept_cells.sum()) - int(occupied.sum()),
     }
+    spread = getattr(dem, "spread", None)
+    if spread is not None and spread.unrepresented_points:
+        # Walls, overhangs, vegetation: what one height per cell could not hold.
+        stats.update(spread.as_stats())
     if dem.counts is not None and params.aggregate == "mean":
         # Per cell, points scatter about their mean, so the errors add in quadrature.
         weighted = float(np.sum(dem.counts[occupied] * err * err)) / max(int(dem.counts.sum()), 1)

@@ -368,11 +368,9 @@ def _check_geometry(geom: tuple, budget: int, file_size: int) -> None:
             raise ResourceLimitError(f"{asks}, more than the {MAX_CELLS:,}-cell limit of the format")
         raise ResourceLimitError(
             f"{asks}, more than the {budget:,} cells allowed for a {file_size:,}-byte file; if you trust "
-            f"this file, open it with max_cells={cells}")
+            f"this file, open it with max_cells={cells} (command line: --max-cells {cells})")
     if not 1 <= ncells <= cells:
         raise CorruptFileError(f"implausible grid {rows} x {cols} with {ncells} occupied cells")
-    if npoints < ncells:
-        raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
 
 
 def _check_params(params: Params, res: float) -> None:
@@ -469,6 +467,10 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     except RecursionError:
         raise CorruptFileError("parameter section nests JSON too deeply") from None
     _check_params(params, res)
+    # Every rebuilt cell of an exact mask held a point; a footprint mask also
+    # rebuilds enclosed empty cells, so it may have more cells than points.
+    if params.mask == "exact" and npoints < ncells:
+        raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
     stats = _json(found[b"STAT"], "STAT") if b"STAT" in found else {}
     if isinstance(stats, dict):
         for key, tag in _DERIVED_STATS.items():

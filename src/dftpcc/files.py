@@ -25,7 +25,7 @@ SQUARE_TOLERANCE = 1e-9
 def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
                   resolution: float | str = "auto", cutoff: float | None = None, profile: str = "compact",
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
-                  on_stage: Stage = _noop, **options: Any) -> CompressedMap:
+                  drop_nonfinite: bool = False, on_stage: Stage = _noop, **options: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
     Parameters are those of :func:`dftpcc.compress` and :func:`dftpcc.read`.
@@ -43,7 +43,7 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
                              profile=profile, **options)
         data = encode_dem(dem, params, crs=crs, on_stage=on_stage, cutoff_given=cutoff is not None)
     else:
-        cloud = read(src, format=format, classes=classes)
+        cloud = read(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite)
         data = compress(cloud.points, resolution=resolution, cutoff=cutoff, profile=profile,
                         crs=cloud.crs, on_stage=on_stage, **options)
     on_stage("write")
@@ -53,7 +53,7 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
 
 def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
                     format: str | None = None, max_bytes: int | None = None,  # noqa: A002
-                    cutoff: float | None = None) -> np.ndarray:
+                    cutoff: float | None = None, max_cells: int | None = None) -> np.ndarray:
     """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
 
     The output format comes from ``dst``'s extension; ``.tif`` writes the
@@ -66,7 +66,7 @@ def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
         The rebuilt points.
     """
     fmt = format_of(dst, format)
-    with open_map(src, max_bytes=max_bytes) as cmap:
+    with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
         dem = cmap.read_dem(cutoff=cutoff)
         crs = cmap.crs
     from .rebuild import dem_to_points

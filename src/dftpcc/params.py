@@ -114,6 +114,9 @@ class Params:
             value = getattr(self, name)
             if value not in allowed:
                 raise InvalidInputError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
+        if self.storage == "complex64" and self.transform != "dft":
+            raise InvalidInputError("complex64 storage holds the paper's complex DFT coefficients: it needs "
+                                    "transform='dft' (the DCT's are real; use storage='quantized')")
         if not (math.isfinite(self.step) and self.step >= 0):
             raise InvalidInputError(f"step must be a finite number >= 0 metres, got {self.step!r}")
         if not (0.0 <= self.deadzone < 0.5):
