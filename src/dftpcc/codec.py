@@ -42,6 +42,8 @@ CALIBRATION_ROUNDS = 4
 GIVE_UP_FACTOR = 1.3
 #: Quantizer steps tried per cutoff for a maximum-error target, as multiples of it.
 MAX_ERROR_STEP_FACTORS = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+#: What a file records of the points its DEM cannot represent (DEM.spread).
+SPREAD_STATS = ("unrepresented_fraction", "unrepresented_rmse_m")
 #: First guess of the bytes a file needs besides mask and coefficients
 #: (section table, parameters, statistics, CRS) when sizing to a target.
 HEADER_ESTIMATE = 600
@@ -410,7 +412,10 @@ def _finish(spec: _Spectrum, params: Params, trial: _Trial, coef_blob: bytes, q_
     spread = getattr(dem, "spread", None)
     if spread is not None and spread.unrepresented_points:
         # Walls, overhangs, vegetation: what one height per cell could not hold.
-        stats.update(spread.as_stats())
+        # Two figures say it; the rest of DEM.spread would cost a small map
+        # more header than its coefficients.
+        full = spread.as_stats()
+        stats.update({key: full[key] for key in SPREAD_STATS})
     if dem.counts is not None and params.aggregate == "mean":
         # Per cell, points scatter about their mean, so the errors add in quadrature.
         weighted = float(np.sum(dem.counts[occupied] * err * err)) / max(int(dem.counts.sum()), 1)

@@ -150,7 +150,7 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     sections = [
         (b"GEOM", geom),
         (b"PARM", _pack_json(_params_for_file(header.params))),
-        (b"CRS ", _pack_json(_crs_for_file(header.crs))),
+    ] + ([(b"CRS ", _pack_json(_crs_for_file(header.crs)))] if header.crs else []) + [
         (b"STAT", _pack_json({k: _round_up(v) for k, v in info.items()
                               if k not in _DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
         (b"MASK", mask_blob),
