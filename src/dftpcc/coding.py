@@ -441,12 +441,15 @@ def _decode_mask_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
         coder = constriction.stream.stack.AnsCoder(np.frombuffer(payload, dtype="<u4").astype(np.uint32))
         model = _bernoulli()
         for i in range(n_lines):
+            # The hot loop of decoding: per line, one table of 256 probabilities,
+            # one gather, one histogram (zeros and ones of each context interleaved).
             ctx = _contexts(above, above2)
-            line = coder.decode(model, (ones[ctx] + _PRIOR_ONES) / (total[ctx] + _PRIOR_TOTAL))
+            line = coder.decode(model, ((ones + _PRIOR_ONES) / (total + _PRIOR_TOTAL))[ctx])
             lines[i] = line
-            ones += np.bincount(ctx, weights=line, minlength=CONTEXTS)
-            total += np.bincount(ctx, minlength=CONTEXTS)
-            above2, above = above, _line_codes(lines[i])
+            seen = np.bincount(2 * ctx + line, minlength=2 * CONTEXTS)
+            ones += seen[1::2]
+            total += seen[0::2] + seen[1::2]
+            above2, above = above, _line_codes(line)
     except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
         raise CorruptFileError(f"occupancy mask does not decode: {exc}") from None
     return lines.astype(bool)

@@ -24,6 +24,7 @@ frequencies whichever transform is used.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -89,8 +90,9 @@ class Layout:
         return np.clip((np.arctan2(self._du[rows], self._dv[cols]) - start) / span, 0.0, 1.0)
 
 
+@functools.lru_cache(maxsize=8)
 def layout(transform: str, storage: str, shape: tuple[int, int]) -> Layout:
-    """The coefficient layout used by a transform/storage pair."""
+    """The coefficient layout used by a transform/storage pair (cached: treat it as read-only)."""
     if transform == "dct":
         return Layout("dct", shape)
     return Layout("full" if storage == "complex64" else "half", shape)
