@@ -567,7 +567,20 @@ def fill_empty(heights: np.ndarray, mask: np.ndarray, *, method: str = "smooth")
     return _push_pull(out, mask.astype(np.float64))
 
 
+def _upsample2(a: np.ndarray, axis: int) -> np.ndarray:
+    """Linear 2x upsampling along ``axis`` with cell-centred samples, edges clamped."""
+    a = np.moveaxis(a, axis, 0)
+    before = np.concatenate([a[:1], a[:-1]])
+    after = np.concatenate([a[1:], a[-1:]])
+    out = np.empty((2 * a.shape[0],) + a.shape[1:])
+    out[0::2] = 0.75 * a + 0.25 * before
+    out[1::2] = 0.75 * a + 0.25 * after
+    return np.moveaxis(out, 0, axis)
+
+
 def _push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    if weights.min() >= 1.0:
+        return values  # nothing to fill at this level (coarse levels of a dense map)
     if min(values.shape) <= 1 and values.size <= 2:
         total = weights.sum()
         mean = (values * weights).sum() / total if total else 0.0
@@ -582,7 +595,7 @@ def _push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     coarse_v = np.divide(vsum, wsum, out=np.zeros_like(vsum), where=wsum > 0)
     coarse = _push_pull(coarse_v, np.minimum(wsum, 1.0))
     # Push: bilinear upsampling of the filled coarse level back to this size.
-    up = ndimage.zoom(coarse, 2, order=1, mode="nearest", grid_mode=True)[:r, :c]
+    up = _upsample2(_upsample2(coarse, 0), 1)[:r, :c]
     wc = np.minimum(weights, 1.0)
     return wc * values + (1.0 - wc) * up
 
