@@ -151,7 +151,7 @@ def main(argv=None) -> int:
     for name, resolution, classes in files:
         dem, n_points, targets, labels = load(name, resolution, classes)
         print(f"## {name}  ({dem.grid.rows} x {dem.grid.cols} cells, {n_points:,} points)")
-        print(f"| configuration | " + " | ".join(labels) + " |")
+        print("| configuration | " + " | ".join(labels) + " |")
         print("|---|" + "---|" * len(labels))
         sizes = [[len(encode(dem, o, f, t)) for t in targets] for _, o, f in CONFIGS]
         for (label, _, _), row in zip(CONFIGS, sizes):

@@ -38,7 +38,6 @@ __all__ = [
     "inverse",
     "kept_order",
     "kept_count",
-    "full_order",
 ]
 
 #: Worker threads for scipy.fft; -1 uses every core.
@@ -132,11 +131,6 @@ def kept_order(lay: Layout, cutoff: float = 0.0) -> tuple[np.ndarray, np.ndarray
         order = inside[np.argsort(flat_radius[inside], kind="stable")]
         _ORDER_CACHE[key] = (order, flat_radius[order], lay.angle_of(order))
     return _ORDER_CACHE[key]
-
-
-def full_order(lay: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every coefficient from low to high radius: :func:`kept_order` at cutoff 0."""
-    return kept_order(lay, 0.0)
 
 
 def kept_count(lay: Layout, cutoff: float) -> int:
