@@ -308,7 +308,7 @@ def _rate_control(spec: _Spectrum, params: Params, point_count: int, fixed_bytes
         budget = int(params.target_bpp * point_count / 8) - fixed_bytes
         if budget <= 0:
             raise InvalidInputError(
-                f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header "
+                f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header (CRS included) "
                 f"alone need {8 * fixed_bytes / point_count:.4f} bits/point")
         for cutoff in _cutoffs(params, cutoff_given):
             if quantized:
