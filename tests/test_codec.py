@@ -183,3 +183,12 @@ def test_file_records_what_the_dem_cannot_represent():
         stats = dftpcc.open(dftpcc.compress(np.vstack([ground, wall]), resolution=1.0)).header.stats
     assert 0 < stats["unrepresented_fraction"] < 0.2
     assert stats["unrepresented_rmse_m"] > 1.0  # the wall rises up to 5 m off the ground
+
+
+def test_stated_errors_round_up_even_when_subnormal():
+    # hypothesis found a map whose error was 5e-324 m: rounding must not divide by zero
+    from dftpcc.container import _round_up
+
+    for value in (5e-324, 1e-310, 0.017891234567, 2.0, 123456.789):
+        assert _round_up(value) >= value
+    assert _round_up(0.017891234567) == 0.017892

@@ -260,8 +260,11 @@ def _round_up(value: Any) -> Any:
         return value
     exponent = math.floor(math.log10(abs(value))) - (STAT_DIGITS - 1)
     scale = 10.0 ** exponent
+    if scale == 0.0:  # subnormal values (errors of 1e-320 m): nothing to round
+        return value
     rounded = math.ceil(value / scale) * scale
-    return float(f"{rounded:.{STAT_DIGITS}g}") if float(f"{rounded:.{STAT_DIGITS}g}") >= value else rounded
+    short = float(f"{rounded:.{STAT_DIGITS}g}")
+    return short if short >= value else rounded
 
 
 def _pack_json(obj: Any) -> bytes:
