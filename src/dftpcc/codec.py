@@ -248,13 +248,18 @@ def _cutoffs(params: Params, cutoff_given: bool) -> tuple[float, ...]:
     return (params.cutoff,) if cutoff_given else CUTOFF_CANDIDATES
 
 
+def _residual_step(bound: float) -> float:
+    """Quantizer step (metres) of the residual layer that keeps every cell within ``bound``."""
+    return 2.0 * bound * (1.0 - GUARANTEE_MARGIN)
+
+
 def _residual(spec: _Spectrum, trial: _Trial, bound: float) -> tuple[np.ndarray, np.ndarray]:
     """Integers that bring every occupied cell within ``bound`` metres, and the corrected heights.
 
     One integer per rebuilt cell, row-major; interpolated (footprint) cells
     have no measured height and get 0.
     """
-    step = 2.0 * bound * (1.0 - GUARANTEE_MARGIN)
+    step = _residual_step(bound)
     err = np.where(spec.mask, spec.dem.heights - trial.heights, 0.0)[spec.kept_cells]
     q = np.round(err / step).astype(np.int64)
     heights = trial.heights.copy()
@@ -482,7 +487,7 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     if b"RESD" in blobs and complete:
         # The residual layer only applies to the full-resolution map it was computed for.
         q = _decode_residual(blobs[b"RESD"], int(mask.sum()))
-        heights[mask] += q * (2.0 * params.target_max_error * (1.0 - GUARANTEE_MARGIN))
+        heights[mask] += q * _residual_step(params.target_max_error)
     if not np.isfinite(heights[mask]).all():
         raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
     return DEM(grid=grid, heights=heights, mask=mask)
