@@ -52,13 +52,6 @@ def test_flipped_bit_is_caught():
         coding.decode_coefficients(bytes(blob), values.size)
 
 
-@given(st.integers(1, 40), st.integers(1, 40), st.integers(0, 2**32 - 1))
-@settings(max_examples=40, deadline=None)
-def test_mask_round_trips(rows, cols, seed):
-    mask = np.random.default_rng(seed).random((rows, cols)) < 0.6
-    np.testing.assert_array_equal(coding.decode_mask(coding.encode_mask(mask), mask.shape), mask)
-
-
 def test_step_choice_meets_its_target():
     values = np.random.default_rng(0).laplace(scale=0.5, size=4000)
     step = coding.choose_step(values, target_rmse=0.01, n_cells=10000, deadzone=0.2)

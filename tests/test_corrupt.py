@@ -220,11 +220,11 @@ def test_paper_file_cut_inside_its_first_chunk_decodes_progressively(seeds):
 
 
 def test_a_tall_thin_crafted_mask_is_refused_quickly(seeds):
-    from dftpcc import coding
+    from dftpcc import occupancy
 
     good = seeds["compact_dct"]
-    payload = craft.section(good, b"MASK")[coding._MASK_HEAD.size:]
-    lying = coding._MASK_HEAD.pack(coding.MASK_CONTEXT, 0) + payload  # "not transposed"
+    payload = craft.section(good, b"MASK")[occupancy._HEAD.size:]
+    lying = occupancy._HEAD.pack(occupancy.KIND_CONTEXT, 0) + payload  # "not transposed"
     data = craft.replace_section(craft.with_geom(good, rows=30_000, cols=2), b"MASK", lying)
     t0 = time.perf_counter()
     with pytest.raises(CorruptFileError):

@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import coding, spectrum
+from . import coding, occupancy, spectrum
 from .container import Header, pack, unpack
 from .errors import CorruptFileError, InvalidInputError
 from .grid import DEM, auto_resolution, fill_empty, fit_grid, fit_plane, plane_values, rasterize
@@ -367,7 +367,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     point_count = int(dem.mask.sum()) if point_count is None else point_count
     on_stage("spectrum")
     spec = _Spectrum(dem, params, searching=params.has_target and not cutoff_given)
-    mask_blob = coding.encode_mask(spec.kept_cells)
+    mask_blob = occupancy.encode_mask(spec.kept_cells)
 
     on_stage("encode")
     floor = dem.gridding_rmse or 0.0
@@ -447,7 +447,7 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
         Accept a truncated coefficient section and decode its whole chunks.
     """
     params, grid = header.params, header.grid
-    mask = coding.decode_mask(blobs[b"MASK"], grid.shape)
+    mask = occupancy.decode_mask(blobs[b"MASK"], grid.shape)
     if int(mask.sum()) != header.cell_count:
         raise CorruptFileError("occupancy mask disagrees with the header's cell count")
     lay = spectrum.layout(params.transform, params.storage, grid.shape)
@@ -478,8 +478,12 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
             raise InvalidInputError(
                 f"cannot decode at cutoff {cutoff}: the file keeps only frequencies up to cutoff {params.cutoff}")
         values = values[: spectrum.kept_count(lay, cutoff)]
-    coefs = np.zeros(lay.coef_shape, dtype=values.dtype)
-    coefs.ravel()[order[: values.size]] = values
+    if lay.kind == "dct":  # only the low-frequency corner: the inverse pads it with zeros
+        shape, where = spectrum.corner(lay, order[: values.size])
+    else:
+        shape, where = lay.coef_shape, order[: values.size]
+    coefs = np.zeros(shape, dtype=values.dtype)
+    coefs.ravel()[where] = values
     heights = spectrum.inverse(coefs, lay)
     if params.detrend == "plane":
         heights += plane_values(header.plane, grid.shape)
@@ -488,7 +492,7 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
         # The residual layer only applies to the full-resolution map it was computed for.
         q = _decode_residual(blobs[b"RESD"], int(mask.sum()))
         heights[mask] += q * _residual_step(params.target_max_error)
-    if not np.isfinite(heights[mask]).all():
+    if not np.isfinite(heights).all() and not np.isfinite(heights[mask]).all():
         raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
     return DEM(grid=grid, heights=heights, mask=mask)
 

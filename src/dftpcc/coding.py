@@ -8,9 +8,7 @@ coder (constriction) under a Laplace model whose scale is sent per frequency
 band (rings of ``BAND_WIDTH`` frequency pixels): magnitudes fall with
 frequency, so each ring gets the model that fits it.
 
-The occupancy mask is coded line by line with an adaptive context model
-(the cells of the two previous lines around it), or bit-packed and zstd'd
-when that is smaller.
+The occupancy mask has its own coder, :mod:`dftpcc.occupancy`.
 """
 
 from __future__ import annotations
@@ -36,8 +34,6 @@ __all__ = [
     "choose_step",
     "encode_coefficients",
     "decode_coefficients",
-    "encode_mask",
-    "decode_mask",
 ]
 
 #: zstd level for coefficient chunks and the mask: high ratio, still fast on small inputs.
@@ -169,7 +165,7 @@ def _unpack_ints(raw: bytes, count: int) -> np.ndarray:
     return _unzigzag(full.view("<u8").ravel())
 
 
-def _unzstd(dctx: zstandard.ZstdDecompressor, payload: bytes, limit: int, what: str) -> bytes:
+def unzstd(dctx: zstandard.ZstdDecompressor, payload: bytes, limit: int, what: str) -> bytes:
     """Decompress one zstd frame that must expand to at most ``limit`` bytes.
 
     The frame's declared size is checked before anything is allocated, so a
@@ -258,7 +254,7 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     end = _ANS_HEAD.size + side_len
     if len(payload) < end or (len(payload) - end) % 4:
         raise CorruptFileError(f"{what} has a wrong length")
-    codes = np.frombuffer(_unzstd(zstandard.ZstdDecompressor(), payload[_ANS_HEAD.size:end], ncodes, what),
+    codes = np.frombuffer(unzstd(zstandard.ZstdDecompressor(), payload[_ANS_HEAD.size:end], ncodes, what),
                           dtype=np.uint8)
     if codes.size != ncodes:
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
@@ -365,7 +361,7 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
                 raise CorruptFileError(f"{what} has a wrong length")
             parts.append(np.frombuffer(payload, dtype="<c8").astype(np.complex128))
         elif kind == KIND_INT:
-            raw = _unzstd(dctx, payload, 1 + 8 * count, what)
+            raw = unzstd(dctx, payload, 1 + 8 * count, what)
             parts.append(_unpack_ints(raw, count))
         elif kind == KIND_ANS:
             if radius is None or angle is None or radius.size < stop:
@@ -378,118 +374,3 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
     if len({p.dtype.kind for p in parts}) != 1:
         raise CorruptFileError("coefficient chunks mix kinds")
     return np.concatenate(parts)
-
-
-#: Mask coding kinds (first byte of the mask section).
-MASK_ZSTD = 0
-MASK_CONTEXT = 1
-#: Context of a cell: the 5 cells around it on the previous line (offsets
-#: -2..+2) and the 3 on the line before that (-1..+1), as 8 bits. Only
-#: previous lines, so a whole line decodes in one vectorised call.
-_TAPS5 = np.array([16, 8, 4, 2, 1])  # np.convolve flips: bit k <- offset k-2
-CONTEXTS = 256
-#: Krichevsky-Trofimov-like prior of the adaptive counts.
-_PRIOR_ONES, _PRIOR_TOTAL = 0.4, 0.8
-_MASK_HEAD = struct.Struct("<BB")  # kind, transposed
-#: The bitmap fallback rarely wins; a middle zstd level keeps it from costing
-#: a tenth of a second on large maps.
-_MASK_ZSTD = zstandard.ZstdCompressor(level=9)
-
-
-def _line_codes(line: np.ndarray) -> np.ndarray:
-    """5-bit code of each cell's neighbourhood (offsets -2..+2) on one line."""
-    # "full" then the centred slice: "same" would pad lines shorter than the taps.
-    return np.convolve(line, _TAPS5, mode="full")[2:2 + line.size]
-
-
-def _contexts(codes_above: np.ndarray, codes_above2: np.ndarray) -> np.ndarray:
-    # Bits 0-4: previous line -2..+2; bits 5-7: the line before, -1..+1.
-    return codes_above | (((codes_above2 >> 1) & 7) << 5)
-
-
-def _bernoulli():
-    return constriction.stream.model.Bernoulli(perfect=False)
-
-
-def _encode_mask_context(lines: np.ndarray) -> bytes:
-    n_lines, width = lines.shape
-    codes = np.zeros((n_lines + 2, width), dtype=np.int64)  # two empty lines above the first
-    # _line_codes of every line at once: the five taps as shifted slices.
-    p = np.pad(lines, ((0, 0), (2, 2)))
-    codes[2:] = 16 * p[:, 4:] + 8 * p[:, 3:-1] + 4 * p[:, 2:-2] + 2 * p[:, 1:-3] + p[:, :-4]
-    ctx = _contexts(codes[1:-1], codes[:-2])
-    # Counts seen before each line: per-line histograms, accumulated, shifted by one line.
-    flat = (ctx + CONTEXTS * np.arange(n_lines)[:, None]).ravel()
-    ones = np.bincount(flat, weights=lines.ravel(), minlength=n_lines * CONTEXTS).reshape(n_lines, CONTEXTS)
-    total = np.bincount(flat, minlength=n_lines * CONTEXTS).reshape(n_lines, CONTEXTS).astype(np.float64)
-    ones = np.vstack([np.zeros(CONTEXTS), np.cumsum(ones, axis=0)[:-1]])
-    total = np.vstack([np.zeros(CONTEXTS), np.cumsum(total, axis=0)[:-1]])
-    rows = np.arange(n_lines)[:, None]
-    probs = (ones[rows, ctx] + _PRIOR_ONES) / (total[rows, ctx] + _PRIOR_TOTAL)
-    coder = constriction.stream.stack.AnsCoder()
-    coder.encode_reverse(lines.ravel().astype(np.int32), _bernoulli(), probs.ravel())
-    return coder.get_compressed().astype("<u4").tobytes()
-
-
-def _decode_mask_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
-    if len(payload) % 4:
-        raise CorruptFileError("occupancy mask has a wrong length")
-    n_lines, width = shape
-    ones, total = np.zeros(CONTEXTS), np.zeros(CONTEXTS)
-    lines = np.zeros(shape, dtype=np.int64)
-    above, above2 = np.zeros(width, dtype=np.int64), np.zeros(width, dtype=np.int64)
-    try:
-        coder = constriction.stream.stack.AnsCoder(np.frombuffer(payload, dtype="<u4").astype(np.uint32))
-        model = _bernoulli()
-        for i in range(n_lines):
-            # The hot loop of decoding: per line, one table of 256 probabilities,
-            # one gather, one histogram (zeros and ones of each context interleaved).
-            ctx = _contexts(above, above2)
-            line = coder.decode(model, ((ones + _PRIOR_ONES) / (total + _PRIOR_TOTAL))[ctx])
-            lines[i] = line
-            seen = np.bincount(2 * ctx + line, minlength=2 * CONTEXTS)
-            ones += seen[1::2]
-            total += seen[0::2] + seen[1::2]
-            above2, above = above, _line_codes(line)
-    except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
-        raise CorruptFileError(f"occupancy mask does not decode: {exc}") from None
-    return lines.astype(bool)
-
-
-def encode_mask(mask: np.ndarray) -> bytes:
-    """Code the occupancy mask; the smaller of the context model and zstd wins.
-
-    The context coder runs along the longer axis, line after line across
-    the shorter one, so there are as few sequential steps as possible.
-    """
-    transposed = mask.shape[0] > mask.shape[1]
-    lines = (mask.T if transposed else mask).astype(np.int64)
-    candidates = [
-        _MASK_HEAD.pack(MASK_CONTEXT, transposed) + _encode_mask_context(lines),
-        _MASK_HEAD.pack(MASK_ZSTD, 0) + _MASK_ZSTD.compress(np.packbits(mask.ravel()).tobytes()),
-    ]
-    return min(candidates, key=len)
-
-
-def decode_mask(blob: bytes | memoryview, shape: tuple[int, int]) -> np.ndarray:
-    """Inverse of :func:`encode_mask`; checks the size against ``shape``."""
-    blob = bytes(blob)
-    if len(blob) < _MASK_HEAD.size:
-        raise CorruptFileError("occupancy mask is truncated")
-    kind, transposed = _MASK_HEAD.unpack_from(blob, 0)
-    payload = blob[_MASK_HEAD.size:]
-    if kind == MASK_CONTEXT:
-        # The encoder always runs along the longer axis (fewest sequential
-        # lines); a file claiming otherwise could make decoding crawl.
-        if transposed != (shape[0] > shape[1]):
-            raise CorruptFileError("occupancy mask runs along the wrong axis")
-        lines = _decode_mask_context(payload, (shape[1], shape[0]) if transposed else shape)
-        return lines.T.copy() if transposed else lines
-    if kind != MASK_ZSTD:
-        raise CorruptFileError(f"occupancy mask has unknown coding {kind}")
-    nbytes = (shape[0] * shape[1] + 7) // 8
-    raw = _unzstd(zstandard.ZstdDecompressor(), payload, nbytes, "occupancy mask")
-    if len(raw) != nbytes:
-        raise CorruptFileError("occupancy mask has the wrong size for the grid")
-    bits = np.unpackbits(np.frombuffer(raw, dtype=np.uint8), count=shape[0] * shape[1])
-    return bits.astype(bool).reshape(shape)

@@ -36,6 +36,7 @@ __all__ = [
     "radius_limit",
     "forward",
     "inverse",
+    "corner",
     "kept_order",
     "kept_count",
 ]
@@ -148,9 +149,31 @@ def forward(values: np.ndarray, lay: Layout) -> np.ndarray:
 
 
 def inverse(coefs: np.ndarray, lay: Layout) -> np.ndarray:
-    """Back from coefficients to a real DEM of ``lay.shape`` (float64)."""
+    """Back from coefficients to a real DEM of ``lay.shape`` (float64).
+
+    For ``dct`` the coefficients may be just the low-frequency corner
+    ``[:kr, :kc]`` of the layout (the rest zero): the inverse then runs
+    first along the axis that has fewer non-zero lines, about 40 % less
+    work at f_c = 0.8.
+    """
     if lay.kind == "full":
         return sfft.ifft2(sfft.ifftshift(coefs), workers=FFT_WORKERS).real
     if lay.kind == "half":
         return sfft.irfft2(coefs, s=lay.shape, norm="ortho", workers=FFT_WORKERS)
-    return sfft.idctn(coefs, type=2, norm="ortho", workers=FFT_WORKERS)
+    (n, m), (kr, kc) = lay.shape, coefs.shape
+
+    def idct(x: np.ndarray, size: int, axis: int) -> np.ndarray:  # zero-pads x to size
+        return sfft.idct(x, type=2, n=size, axis=axis, norm="ortho", workers=FFT_WORKERS)
+
+    if kr * m <= n * kc:
+        return idct(idct(coefs, m, 1), n, 0)
+    return idct(idct(coefs, n, 0), m, 1)
+
+
+def corner(lay: Layout, flat: np.ndarray) -> tuple[tuple[int, int], np.ndarray]:
+    """The smallest top-left block of the coefficient array holding the
+    flat indices ``flat``, and their flat indices within that block."""
+    m = lay.coef_shape[1]
+    rows, cols = np.divmod(flat, m)
+    shape = (int(rows.max(initial=0)) + 1, int(cols.max(initial=0)) + 1)
+    return shape, rows * shape[1] + cols

@@ -88,6 +88,7 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
     out["newer_major_version"] = (craft.join(sections, version=(2, 0)), U, "version 2.0 is not supported")
     out["newer_minor_version_is_read"] = None  # placeholder, removed below (valid files are not corpus)
     # Lying section tables (checksums fixed).
+    coef = [entry[0] for entry in craft.table(good)].index(b"COEF")
     out.update({
         "count_too_large": (craft.join(sections, count=5000), C, "claims 5000 sections"),
         "count_beyond_file": (craft.join(sections, count=500), C, "truncated inside its section table"),
@@ -96,8 +97,8 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "section_missing_geom": (craft.replace_section(good, b"GEOM", None), C, "section GEOM is missing"),
         "offset_beyond_file": (craft.with_table_entry(good, 0, offset=1 << 40), C, "truncated: section GEOM"),
         "offset_into_header": (craft.with_table_entry(good, 0, offset=4), C, "section GEOM overlaps the header"),
-        "length_huge": (craft.with_table_entry(good, 5, length=(1 << 63) + 12), C, "truncated: section COEF"),
-        "coef_length_claims_1gb": (craft.with_table_entry(good, 5, length=1 << 30), C, "truncated: section COEF"),
+        "length_huge": (craft.with_table_entry(good, coef, length=(1 << 63) + 12), C, "truncated: section COEF"),
+        "coef_length_claims_1gb": (craft.with_table_entry(good, coef, length=1 << 30), C, "truncated: section COEF"),
     })
     del out["newer_minor_version_is_read"]
     # Lying geometry.
@@ -155,11 +156,11 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
             good, b"STAT")["coef_count"] + 1), C, None),
         "stat_rmse_is_object": (_json_section(good, b"STAT", dem_rmse_m={}), C, "dem_rmse_m must be a number"),
         "stat_bytes_negative": (_json_section(good, b"STAT", mask_bytes=-5), C, "mask_bytes must be a count"),
-        "crs_not_object": (_raw_section(good, b"CRS ", "\"EPSG:4326\""), C, "CRS must be a JSON object"),
-        "crs_wkt_number": (_raw_section(good, b"CRS ", '{"wkt": 5}'), C, "wkt must be a string"),
-        "crs_vlr_bad_base64": (_raw_section(good, b"CRS ", json.dumps(
+        "crs_not_object": (_raw_section(seeds["with_crs"], b"CRS ", "\"EPSG:4326\""), C, "CRS must be a JSON object"),
+        "crs_wkt_number": (_raw_section(seeds["with_crs"], b"CRS ", '{"wkt": 5}'), C, "wkt must be a string"),
+        "crs_vlr_bad_base64": (_raw_section(seeds["with_crs"], b"CRS ", json.dumps(
             {"las_vlrs": [{"record_id": 34735, "description": "", "data": "!!!"}]})), C, "LAS record 0"),
-        "crs_vlr_id_too_large": (_raw_section(good, b"CRS ", json.dumps(
+        "crs_vlr_id_too_large": (_raw_section(seeds["with_crs"], b"CRS ", json.dumps(
             {"las_vlrs": [{"record_id": 70000, "description": "", "data": ""}]})), C, "LAS record 0"),
     })
     # Lying coded sections (their messages belong to the codec, so only the class is fixed).
