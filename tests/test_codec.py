@@ -186,9 +186,10 @@ def test_file_records_what_the_dem_cannot_represent():
 
 
 def test_stated_errors_round_up_even_when_subnormal():
-    # hypothesis found a map whose error was 5e-324 m: rounding must not divide by zero
-    from dftpcc.container import _round_up
+    # hypothesis once found a map whose error was 5e-324 m
+    from dftpcc.container import _F32, _f32_up
 
-    for value in (5e-324, 1e-310, 0.017891234567, 2.0, 123456.789):
-        assert _round_up(value) >= value
-    assert _round_up(0.017891234567) == 0.017892
+    for value in (0.0, 5e-324, 1e-310, 1e-45, 0.017891234567, 0.1, 0.10000000100, 2.0, 123456.789, 3e38):
+        (stored,) = _F32.unpack(_f32_up(value))
+        assert stored >= value
+        assert stored <= max(value * (1 + 2**-23), 1.5e-45)  # the next float32 up, no further

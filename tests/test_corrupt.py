@@ -353,3 +353,28 @@ def test_the_largest_grid_a_small_file_gets_decodes_within_a_second(profile, tra
         _read(data)
         seconds.append(time.perf_counter() - t0)
     assert min(seconds) < FAIL_FAST_S
+
+
+def test_binary_stat_round_trips_and_skips_fields_it_does_not_know(good):
+    stats = dftpcc.open(good).header.stats
+    raw = craft.section(good, b"STAT")
+    assert raw[0] == container.STAT_BINARY
+    # A later writer's fields: one float (id 99) and one integer (id 200), in front.
+    later = raw[:1] + b"\x63" + b"\x00\x00\x80\x3f" + b"\xc8\x96\x01" + raw[1:]
+    assert dftpcc.open(craft.replace_section(good, b"STAT", later)).header.stats == stats
+
+
+def test_json_stat_of_earlier_files_is_still_read(good):
+    stats = dftpcc.open(good).header.stats
+    stored = {k: v for k, v in stats.items() if k not in ("mask_bytes", "coef_bytes", "residual_bytes")}
+    as_json = craft.replace_section(good, b"STAT", json.dumps(stored).encode())
+    assert dftpcc.open(as_json).header.stats == stats
+
+
+def test_the_fixed_header_of_a_small_map_is_small(seeds):
+    # Everything but the mask and the coefficients: preamble and table (160 B),
+    # GEOM (96 B), PARM and STAT; it used to be 430 B with JSON statistics.
+    for name in ("compact_dct", "compact_dct_fc0"):  # default options; others add PARM fields
+        data = seeds[name]
+        header = len(data) - len(craft.section(data, b"MASK")) - len(craft.section(data, b"COEF"))
+        assert header <= 310, (name, header)

@@ -183,6 +183,7 @@ class _Spectrum:
 
     def trial(self, cutoff: float, step: float) -> _Trial:
         n = self.count(cutoff)
+        step = coding.short_step(step)
         if self.params.storage == "complex64":
             stream = self.coefs[:n].astype(np.complex64)
             decoded = stream.astype(np.complex128)
@@ -378,7 +379,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
             step = coding.choose_step(spec.reals(spec.count(params.cutoff)), target_rmse=target,
                                       n_cells=dem.grid.size, deadzone=params.deadzone)
         trial = spec.trial(params.cutoff, step)
-        return _finish(spec, params.replace(step=step), trial, spec.encode(trial), None, b"", mask_blob,
+        return _finish(spec, params.replace(step=trial.step), trial, spec.encode(trial), None, b"", mask_blob,
                        point_count, crs, on_stage)
     # Rate control. For a size target the header's own bytes count too: start
     # from an estimate, then shrink the budget by any overshoot.

@@ -90,6 +90,22 @@ def quantize(values: np.ndarray, step: float, deadzone: float) -> np.ndarray:
     return (np.sign(values) * q).astype(np.int64)
 
 
+#: Significant digits of a quantizer step as the file states it.
+STEP_DIGITS = 6
+
+
+def short_step(step: float) -> float:
+    """The largest number of :data:`STEP_DIGITS` significant digits not above
+    ``step``: the file states it in a few characters, and a finer step only
+    lowers the error."""
+    if not (math.isfinite(step) and step > 0.0):
+        return step
+    short = float(f"{step:.{STEP_DIGITS}g}")
+    while short > step:
+        short = float(f"{short - 10.0 ** (math.floor(math.log10(short)) - STEP_DIGITS + 1):.{STEP_DIGITS}g}")
+    return short
+
+
 def dequantize(q: np.ndarray, step: float) -> np.ndarray:
     """Reconstruction of :func:`quantize`: ``q * step`` (metres)."""
     return q.astype(np.float64) * step

@@ -151,8 +151,8 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
         (b"GEOM", geom),
         (b"PARM", _pack_json(_params_for_file(header.params))),
     ] + ([(b"CRS ", _pack_json(_crs_for_file(header.crs)))] if header.crs else []) + [
-        (b"STAT", _pack_json({k: _round_up(v) for k, v in info.items()
-                              if k not in _DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
+        (b"STAT", _pack_stats({k: v for k, v in info.items()
+                               if k not in _DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
         (b"MASK", mask_blob),
         (b"COEF", coef_blob),  # late, so a prefix of the file carries the low frequencies
     ] + ([(b"RESD", resid_blob)] if resid_blob else [])
@@ -238,33 +238,95 @@ V1_PARAM_DEFAULTS: dict[str, Any] = {
 _DERIVED_STATS = {"mask_bytes": b"MASK", "coef_bytes": b"COEF", "residual_bytes": b"RESD"}
 #: Statistics left out when zero.
 _OPTIONAL_STATS = ("cells_interpolated",)
-#: Significant digits the statistics keep; errors are rounded up, so a
-#: stated error stays an upper bound.
-STAT_DIGITS = 5
 
 
 def _params_for_file(params: Params) -> dict[str, Any]:
     full = json.loads(params.to_json())
-    return {k: v for k, v in full.items() if k not in V1_PARAM_DEFAULTS or V1_PARAM_DEFAULTS[k] != v}
+    # The resolution is GEOM's cell width; a reader takes it from there.
+    return {k: v for k, v in full.items()
+            if k != "resolution" and (k not in V1_PARAM_DEFAULTS or V1_PARAM_DEFAULTS[k] != v)}
 
 
-def _params_from_file(text: str) -> Params:
+def _params_from_file(text: str, resolution: float) -> Params:
     stored = json.loads(text)
     if not isinstance(stored, dict):
         raise InvalidInputError("parameters must be a JSON object")
-    return Params.from_json(json.dumps(V1_PARAM_DEFAULTS | stored))
+    return Params.from_json(json.dumps(V1_PARAM_DEFAULTS | {"resolution": resolution} | stored))
 
 
-def _round_up(value: Any) -> Any:
-    if not isinstance(value, float) or value == 0.0 or not math.isfinite(value):
-        return value
-    exponent = math.floor(math.log10(abs(value))) - (STAT_DIGITS - 1)
-    scale = 10.0 ** exponent
-    if scale == 0.0:  # subnormal values (errors of 1e-320 m): nothing to round
-        return value
-    rounded = math.ceil(value / scale) * scale
-    short = float(f"{rounded:.{STAT_DIGITS}g}")
-    return short if short >= value else rounded
+#: Binary STAT: a marker byte, then records of a u8 field id and its value:
+#: ids below 128 hold a float32 (errors rounded up to the next float32, so a
+#: stated error stays an upper bound), ids from 128 an unsigned LEB128 integer.
+#: A reader skips ids it does not know. JSON STAT (first byte ``{`` or a zstd
+#: frame) is read too.
+STAT_BINARY = 0x01
+STAT_FIELDS: dict[int, str] = {
+    0: "dem_rmse_m", 1: "dem_max_error_m", 2: "gridding_rmse_m", 3: "vertical_rmse_m",
+    4: "unrepresented_fraction", 5: "unrepresented_rmse_m",
+    128: "coef_count", 129: "cells_interpolated",
+}
+_STAT_IDS = {name: i for i, name in STAT_FIELDS.items()}
+_F32 = struct.Struct("<f")
+
+
+def _leb128(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, value = value & 0x7F, value >> 7
+        out.append(byte | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def _f32_up(value: float) -> bytes:
+    """``value`` as the nearest float32 not below it (finite values stay finite)."""
+    f = np.float32(value)
+    if float(f) < value:
+        f = np.nextafter(f, np.float32(np.inf))
+    return _F32.pack(f)
+
+
+def _pack_stats(stats: dict[str, Any]) -> bytes:
+    out = bytearray([STAT_BINARY])
+    for name, value in sorted(stats.items(), key=lambda kv: _STAT_IDS.get(kv[0], 256)):
+        i = _STAT_IDS.get(name)
+        if i is None:
+            raise ValueError(f"statistic {name!r} has no STAT field id")
+        out.append(i)
+        out += _leb128(int(value)) if i >= 128 else _f32_up(float(value))
+    return bytes(out)
+
+
+def _unpack_stats(payload: memoryview) -> dict[str, Any]:
+    raw = bytes(payload)
+    if not raw or raw[0] != STAT_BINARY:
+        return _json(payload, "STAT")
+    stats: dict[str, Any] = {}
+    pos = 1
+    while pos < len(raw):
+        i = raw[pos]
+        pos += 1
+        if i < 128:
+            if pos + _F32.size > len(raw):
+                raise CorruptFileError("section STAT is truncated")
+            (value,) = _F32.unpack_from(raw, pos)
+            pos += _F32.size
+            if not math.isfinite(value):
+                raise CorruptFileError(f"section STAT: field {i} is not finite")
+        else:
+            value, shift = 0, 0
+            while True:
+                if pos >= len(raw) or shift > 63:
+                    raise CorruptFileError("section STAT holds a truncated or oversized integer")
+                byte = raw[pos]
+                pos += 1
+                value |= (byte & 0x7F) << shift
+                shift += 7
+                if not byte & 0x80:
+                    break
+        if i in STAT_FIELDS:
+            stats[STAT_FIELDS[i]] = value
+    return stats
 
 
 def _pack_json(obj: Any) -> bytes:
@@ -462,7 +524,7 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     _check_geometry(fields, budget, len(data))
     (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = fields
     try:
-        params = _params_from_file(_json_text(found[b"PARM"], "PARM"))
+        params = _params_from_file(_json_text(found[b"PARM"], "PARM"), res)
     except CorruptFileError as exc:
         raise CorruptFileError(f"parameter section is invalid: {exc}") from None
     except (InvalidInputError, TypeError, UnicodeDecodeError, ValueError, OverflowError) as exc:
@@ -474,7 +536,7 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     # rebuilds enclosed empty cells, so it may have more cells than points.
     if params.mask == "exact" and npoints < ncells:
         raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
-    stats = _json(found[b"STAT"], "STAT") if b"STAT" in found else {}
+    stats = _unpack_stats(found[b"STAT"]) if b"STAT" in found else {}
     if isinstance(stats, dict):
         for key, tag in _DERIVED_STATS.items():
             stats.setdefault(key, _section_lengths(data).get(tag, 0))

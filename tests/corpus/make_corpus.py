@@ -156,6 +156,14 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
             good, b"STAT")["coef_count"] + 1), C, None),
         "stat_rmse_is_object": (_json_section(good, b"STAT", dem_rmse_m={}), C, "dem_rmse_m must be a number"),
         "stat_bytes_negative": (_json_section(good, b"STAT", mask_bytes=-5), C, "mask_bytes must be a count"),
+        # Binary STAT (what dftpcc writes): a record cut short, a NaN error, an endless integer.
+        "stat_binary_cut_float": (_raw_section(good, b"STAT", b"\x01\x00\x00\x00"), C, "STAT is truncated"),
+        "stat_binary_nan": (_raw_section(good, b"STAT", b"\x01\x00" + struct.pack("<f", float("nan"))), C,
+                            "not finite"),
+        "stat_binary_endless_int": (_raw_section(good, b"STAT", b"\x01\x80" + b"\xff" * 12), C,
+                                    "truncated or oversized integer"),
+        "stat_binary_no_coef_count": (_raw_section(good, b"STAT", b"\x01\x07" + struct.pack("<f", 1.0)), C,
+                                      "coefficient count is missing"),
         "crs_not_object": (_raw_section(seeds["with_crs"], b"CRS ", "\"EPSG:4326\""), C, "CRS must be a JSON object"),
         "crs_wkt_number": (_raw_section(seeds["with_crs"], b"CRS ", '{"wkt": 5}'), C, "wkt must be a string"),
         "crs_vlr_bad_base64": (_raw_section(seeds["with_crs"], b"CRS ", json.dumps(

@@ -70,7 +70,9 @@ def section(data: bytes, tag: bytes) -> bytes:
 
 
 def json_of(data: bytes, tag: bytes):
-    """The JSON value of section ``tag`` (stored as text, or zstd-compressed text)."""
+    """The JSON value of section ``tag`` (stored as text, or zstd-compressed text; STAT may be binary)."""
+    if tag == b"STAT":
+        return container._unpack_stats(memoryview(section(data, tag)))
     return json.loads(container._json_text(memoryview(section(data, tag)), tag.decode()))
 
 
