@@ -151,22 +151,33 @@ def _encode_context(lines: np.ndarray, stripe: int) -> bytes:
     t = np.arange(n_lines) % stripe
     coded = (t > 0) | (np.arange(n_lines) == 0)  # every line but the seeds
     seeds = lines[~coded]
-    ctx = _contexts(lines, stripe)[coded].astype(np.intp)
+    ctx = _contexts(lines, stripe)[coded]
     bits = lines[coded]
     step = t[coded][:, None]
     # Counts seen before each step: per-step histograms, accumulated, shifted by one step.
-    flat = (ctx + CONTEXTS * step).ravel()
+    flat = (ctx.astype(np.intp) + CONTEXTS * step).ravel()
     ones = np.bincount(flat, weights=bits.ravel(), minlength=stripe * CONTEXTS).reshape(stripe, CONTEXTS)
     total = np.bincount(flat, minlength=stripe * CONTEXTS).reshape(stripe, CONTEXTS).astype(np.float64)
     ones = np.vstack([np.zeros(CONTEXTS), np.cumsum(ones, axis=0)[:-1]])
     total = np.vstack([np.zeros(CONTEXTS), np.cumsum(total, axis=0)[:-1]])
-    probs = (ones[step, ctx] + PRIOR_ONES[ctx]) / (total[step, ctx] + PRIOR_TOTAL)
+    prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)  # (step, context)
     # Decoding order: step by step; within a step the outside cells, then the
-    # inside cells, then the rest, each by stripe and column.
+    # inside cells, then the rest, each by stripe and column. The key fits 16
+    # bits, so the stable sort is a radix sort.
     group = np.where(ctx == OUTSIDE, 0, np.where(ctx == INSIDE, 1, 2))
-    order = np.argsort((group + 3 * step).ravel(), kind="stable")
+    key = (group + 3 * step).astype(np.uint16).ravel()
+    order = np.argsort(key, kind="stable")
+    key, bits, ctx = key[order], bits.ravel()[order].astype(np.int32), ctx.ravel()[order]
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(key)) + 1, [key.size]))
     coder = constriction.stream.stack.AnsCoder()
-    coder.encode_reverse(bits.ravel()[order].astype(np.int32), _bernoulli(), probs.ravel()[order])
+    model = _bernoulli()
+    # A stack: the last segment is encoded first.
+    for start, stop in zip(starts[-2::-1], starts[:0:-1]):
+        s, g = divmod(int(key[start]), 3)
+        if g == 2:
+            coder.encode_reverse(bits[start:stop], model, prob[s, ctx[start:stop]])
+        else:
+            coder.encode_reverse(bits[start:stop], _bernoulli(prob[s, OUTSIDE if g == 0 else INSIDE]))
     seed_frame = _encode_seeds(seeds)
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
 
