@@ -173,3 +173,14 @@ def test_progressive_decode_from_the_command_line(tmp_path, cloud_file):
     assert result.returncode == 5
     assert "a partial decode needs at least the first" in result.stderr
     assert not (tmp_path / "x.npy").exists()
+
+
+def test_a_closed_output_pipe_stops_quietly(tmp_path, cloud_file):
+    path = tmp_path / "map.dftpc"
+    assert main(["compress", str(cloud_file), str(path), "-q"]) == 0
+    proc = subprocess.Popen([sys.executable, "-m", "dftpcc", "info", "--json", str(path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # before the interpreter has even started: its first write hits a closed pipe
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 141
+    assert err == b""

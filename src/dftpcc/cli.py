@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import time
@@ -400,6 +401,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         except _Stopped as stop:
             print(f"dftpcc: stopped by signal {signal.Signals(stop.signum).name}", file=sys.stderr)
             return EXIT_SIGNAL_BASE + stop.signum
+        except BrokenPipeError:
+            # The reader of our output went away (`dftpcc info --json f | head`):
+            # stop quietly, as a SIGPIPE would, and keep Python's exit-time flush quiet too.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return EXIT_SIGNAL_BASE + signal.SIGPIPE
         except MemoryError:
             print("dftpcc: error: out of memory; try a coarser --resolution", file=sys.stderr)
             return dict(EXIT_CODES)[MemoryError]
