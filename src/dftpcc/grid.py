@@ -351,23 +351,29 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
     # margin of a millionth of a cell keeps round-off from pushing the
     # extreme points outside the grid.
     margin = ROTATED_MARGIN * resolution if angle else 0.0
-    umin, vmin = float(u.min()) - margin, float(v.min()) - margin
+    # Each extreme once, column by column: over millions of strided values every pass counts.
+    x_lo, x_hi, y_lo, y_hi = (float(f(points[:, k])) for k in (0, 1) for f in (np.min, np.max))
+    if angle:
+        umin, umax, vmin, vmax = float(u.min()), float(u.max()), float(v.min()), float(v.max())
+    else:
+        umin, umax, vmin, vmax = x_lo, x_hi, y_lo, y_hi
+    umin, vmin, umax, vmax = umin - margin, vmin - margin, umax + margin, vmax + margin
     # Sizes in floats first: a tiny resolution or a huge extent must give a
     # clear refusal, not an overflow or an attempt to allocate.
     with np.errstate(over="ignore", invalid="ignore"):
         # An extent a hair short of whole cells (round-off on lattice data)
         # counts as whole, so the last lattice point gets its own cell.
-        cols_f = float(np.floor((float(u.max()) + margin - umin) / resolution + LATTICE_TOLERANCE)) + 1.0
-        rows_f = float(np.floor((float(v.max()) + margin - vmin) / resolution + LATTICE_TOLERANCE)) + 1.0
+        cols_f = float(np.floor((umax - umin) / resolution + LATTICE_TOLERANCE)) + 1.0
+        rows_f = float(np.floor((vmax - vmin) / resolution + LATTICE_TOLERANCE)) + 1.0
     _check_grid_size(rows_f, cols_f, resolution)
-    _check_precision(points, resolution)
+    _check_precision(max(abs(x_lo), abs(x_hi), abs(y_lo), abs(y_hi)), resolution)
     rows, cols = int(rows_f), int(cols_f)
     # Whole cells overhang the points' extent; split the overhang evenly on
     # both sides. Points on a lattice of the cell size (a DEM's pixel
     # centres, a voxelised SLAM map) then sit mid-cell, not on cell edges
     # where round-off would drop some into their neighbour.
-    umin -= (cols * resolution - (float(u.max()) + margin - umin)) / 2.0
-    vmin -= (rows * resolution - (float(v.max()) + margin - vmin)) / 2.0
+    umin -= (cols * resolution - (umax - umin)) / 2.0
+    vmin -= (rows * resolution - (vmax - vmin)) / 2.0
     x0, y0 = c * umin - s * vmin, s * umin + c * vmin
     return Grid(x0=x0, y0=y0, z0=float(points[:, 2].mean()), resolution=float(resolution),
                 rows=rows, cols=cols, angle=angle)
@@ -432,9 +438,8 @@ def _check_grid_size(rows: float, cols: float, resolution: float) -> None:
         f"about {_size(cells * ENCODE_BYTES_PER_CELL)} of memory and exceeds {why}; {hint}")
 
 
-def _check_precision(points: np.ndarray, resolution: float) -> None:
-    largest = max(abs(float(points[:, k].min())) for k in (0, 1))
-    largest = max(largest, *(abs(float(points[:, k].max())) for k in (0, 1)))
+def _check_precision(largest: float, resolution: float) -> None:
+    """``largest``: the largest |x| or |y| of the cloud, metres."""
     ulp = largest * 2.0**-52
     if ulp > COORDINATE_PRECISION_CELLS * resolution:
         raise InvalidInputError(
@@ -478,27 +483,28 @@ def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean") -> DEM
     else:
         raise InvalidInputError(f"aggregate must be mean, median, min or max; got {aggregate!r}")
     dz = z - heights[idx]
-    spread = _height_spread(dz, idx, grid.resolution)
+    sq = np.multiply(dz, dz, out=dz)  # squared distances: all that is needed from here on
+    spread = _height_spread(sq, idx, grid.resolution)
     if spread.fraction >= MULTI_HEIGHT_WARN_FRACTION:
         warnings.warn(spread.describe(), MultiHeightWarning, stacklevel=2)
     return DEM(grid=grid, heights=heights.reshape(grid.shape), mask=mask.reshape(grid.shape),
-               counts=count.reshape(grid.shape), gridding_rmse=float(np.sqrt(np.mean(dz * dz))),
+               counts=count.reshape(grid.shape), gridding_rmse=float(np.sqrt(np.mean(sq))),
                spread=spread)
 
 
-def _height_spread(dz: np.ndarray, idx: np.ndarray, resolution: float) -> HeightSpread:
+def _height_spread(sq: np.ndarray, idx: np.ndarray, resolution: float) -> HeightSpread:
+    """``sq``: squared vertical distance of each point to its cell's height."""
     tolerance = MULTI_HEIGHT_TOLERANCE_CELLS * resolution
-    dist = np.abs(dz)
-    far = dist > tolerance
-    n_far = int(far.sum())
+    far = sq > tolerance * tolerance
+    n_far = int(np.count_nonzero(far))
     return HeightSpread(
         tolerance_m=tolerance,
-        points=int(dz.size),
+        points=int(sq.size),
         unrepresented_points=n_far,
         # bincount, not unique: O(n) instead of a sort over millions of points
         unrepresented_cells=int(np.count_nonzero(np.bincount(idx[far]))) if n_far else 0,
-        unrepresented_rmse_m=float(np.sqrt(np.mean(dist[far] ** 2))) if n_far else 0.0,
-        max_distance_m=float(dist.max()) if dz.size else 0.0,
+        unrepresented_rmse_m=math.sqrt(float(np.sum(sq, where=far)) / n_far) if n_far else 0.0,
+        max_distance_m=math.sqrt(float(sq.max())) if sq.size else 0.0,
     )
 
 
