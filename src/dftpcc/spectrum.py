@@ -70,7 +70,10 @@ class Layout:
             du = np.arange(n, dtype=float) - n // 2
             dv = np.arange(m, dtype=float) - m // 2
         elif kind == "half":
-            du = sfft.fftfreq(n, 1.0 / n)
+            # Signed integer row frequencies (fftfreq's order), computed exactly:
+            # fftfreq(n, 1/n) is off by an ulp for some n, which reorders ties.
+            k = np.arange(n)
+            du = np.where(k < (n + 1) // 2, k, k - n).astype(float)
             dv = np.arange(m // 2 + 1, dtype=float)
         elif kind == "dct":
             du = np.arange(n, dtype=float) / 2.0
