@@ -6,6 +6,7 @@ It does not import dftpcc: it exists to show whether the format document is enou
 
 from __future__ import annotations
 
+import decimal
 import json
 import math
 import struct
@@ -267,7 +268,24 @@ def _chunk_bounds(total: int) -> list[tuple[int, int]]:
     return bounds
 
 
-def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray) -> np.ndarray:
+def _table_model(max_abs: int, code: int):
+    """COEF kind 3: the Categorical model of a band, from integers (format.md, steps 1-4)."""
+    with decimal.localcontext() as ctx:
+        ctx.prec = 50
+        b = max(decimal.Decimal(2) ** (decimal.Decimal(code - 128) / 8), decimal.Decimal("0.05"))
+        r = int(((1 + b * b).sqrt() - 1) / b * 65536)
+    w = [1 << 32]
+    for _ in range(max_abs):
+        w.append((w[-1] * r) >> 16)
+    n = 2 * max_abs + 1
+    weights = [w[abs(q)] for q in range(-max_abs, max_abs + 1)]
+    total = sum(weights)
+    f = [1 + (x * ((1 << 24) - n)) // total for x in weights]
+    f[max_abs] += (1 << 24) - sum(f)
+    return constriction.stream.model.Categorical(np.array(f, dtype=np.float64) / (1 << 24), perfect=False)
+
+
+def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray, table: bool) -> np.ndarray:
     if len(p) < 9:
         raise ValueError("ANS chunk is truncated")
     layout, max_abs, side = struct.unpack_from("<BII", p, 0)
@@ -285,9 +303,12 @@ def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray) -> n
     out = np.zeros(count, np.int64)
     for c in np.unique(code[code > 0]):
         sel = np.flatnonzero(code == c)
-        scale = max(2.0 ** ((int(c) - 128) / 8), 0.05)
-        model = constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
-        out[sel] = coder.decode(model, len(sel))
+        if table:
+            out[sel] = coder.decode(_table_model(max_abs, int(c)), len(sel)) - max_abs
+        else:
+            scale = max(2.0 ** ((int(c) - 128) / 8), 0.05)
+            model = constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
+            out[sel] = coder.decode(model, len(sel))
     return out
 
 
@@ -324,8 +345,8 @@ def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray) -> np.n
             values.append(np.frombuffer(body, "<c8").astype(np.complex128))
         elif kind == 0:
             values.append(_zstd_chunk(body, count))
-        elif kind == 2:
-            values.append(_ans_chunk(body, count, radius[start:stop], angle[start:stop]))
+        elif kind in (2, 3):
+            values.append(_ans_chunk(body, count, radius[start:stop], angle[start:stop], table=kind == 3))
         else:
             raise ValueError(f"coefficient chunk has unknown kind {kind}")
     if len(kinds) > 1:

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import struct
+import zlib
+
 import numpy as np
 import pytest
+import zstandard
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -60,3 +64,64 @@ def test_step_choice_meets_its_target():
     # and it is not needlessly fine: twice the step breaks the target
     err2 = values - coding.dequantize(coding.quantize(values, 2 * step, 0.2), 2 * step)
     assert np.sqrt(np.sum(err2**2) / 10000) > 0.01
+
+
+def test_kind_2_chunks_of_earlier_builds_still_decode():
+    # Written here as format.md describes kind 2: Laplace models per band scale group.
+    import struct
+    import zlib
+
+    import constriction
+    import zstandard
+
+    rng = np.random.default_rng(3)
+    values = np.round(rng.laplace(scale=3.0, size=700)).astype(np.int64)
+    radius, angle = np.linspace(0, 30, values.size), np.zeros(values.size)
+    chunks = []
+    for start, stop in coding._chunk_bounds(values.size):
+        q = values[start:stop]
+        max_abs = int(np.abs(q).max())
+        bands = coding.band_ids(radius[start:stop], angle[start:stop], 0)
+        lo, codes = coding._band_scales(q, bands)
+        coder = constriction.stream.stack.AnsCoder()
+        for code, where in reversed(coding._groups(codes[bands - lo])):
+            scale = max(2.0 ** ((code - 128) / 8), 0.05)
+            model = constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
+            coder.encode_reverse(q[where].astype(np.int32), model)
+        side = zstandard.compress(codes.tobytes())
+        payload = struct.pack("<BII", 0, max_abs, len(side)) + side + coder.get_compressed().astype("<u4").tobytes()
+        chunks.append(struct.pack("<IIII", stop - start, len(payload), zlib.crc32(payload), coding.KIND_ANS) + payload)
+    blob = struct.pack("<I", len(chunks)) + b"".join(chunks)
+    out = coding.decode_coefficients(blob, values.size, radius=radius, angle=angle)
+    np.testing.assert_array_equal(out, values)
+
+
+def test_table_models_are_fixed_integers():
+    # The decay of each scale code is an exact integer: pin a few, so a change
+    # in how they are computed cannot slip through.
+    assert coding._decay(128) == 27145  # b = 1: (sqrt(2) - 1) * 65536, floored
+    assert coding._decay(1) == 1637  # b = 0.05 (the floor of the scale)
+    assert coding._decay(255) == 65534
+    w = coding._magnitudes(128)
+    assert w[0] == 1 << 32 and w[1] == ((1 << 32) * 27145) >> 16
+
+
+def test_a_chunk_may_not_ask_for_huge_probability_tables():
+    # 256 values, each in its own band scale group, with a magnitude bound of 2**15:
+    # 255 tables of 65,537 symbols would take a third of a second to build.
+    values = np.zeros(256, dtype=np.int64)
+    values[::2] = np.round(2.0 ** (np.arange(128) / 8.5))  # ~120 distinct band scales
+    assert values.max() <= coding.MAX_ANS_SYMBOL  # so only the table budget rules ANS out
+    radius, angle = np.arange(256) * 8.0, np.zeros(256)  # one band per value with layouts 0 and 1
+    blob = coding.encode_coefficients(values, radius=radius, angle=angle)
+    # The encoder falls back to zstd for such a chunk ...
+    assert struct.unpack_from("<I", blob, 16)[0] == coding.KIND_INT
+    np.testing.assert_array_equal(coding.decode_coefficients(blob, 256, radius=radius, angle=angle), values)
+    # ... and a crafted ANS chunk asking for them is refused before any is built.
+    bands = coding.band_ids(radius, angle, 1)
+    lo, codes = coding._band_scales(values, bands)
+    side = zstandard.compress(np.maximum(codes, 1).tobytes())
+    payload = struct.pack("<BII", 1, coding.MAX_ANS_SYMBOL, len(side)) + side + b"\0" * 8
+    chunk = struct.pack("<IIII", 256, len(payload), zlib.crc32(payload), coding.KIND_ANS_TABLE) + payload
+    with pytest.raises(CorruptFileError, match="larger probability tables"):
+        coding.decode_coefficients(struct.pack("<I", 1) + chunk, 256, radius=radius, angle=angle)

@@ -204,7 +204,7 @@ def test_every_coding_is_exercised(small):
     for options in ({}, {"coder": "zstd"}, {"profile": "paper"}):
         sections = spec_decoder._sections(dftpcc.compress(small, resolution=1.0, **options))
         kinds |= chunk_kinds(sections[b"COEF"])
-    assert kinds == {0, 1, 2}
+    assert kinds == {0, 1, 3}
 
 
 # --------------------------------------------------------------------------- crafted headers

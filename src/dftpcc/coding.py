@@ -13,6 +13,8 @@ The occupancy mask has its own coder, :mod:`dftpcc.occupancy`.
 
 from __future__ import annotations
 
+import decimal
+import functools
 import math
 import struct
 import zlib
@@ -46,7 +48,8 @@ _CHUNK = struct.Struct("<IIII")  # count, nbytes, crc32, element kind
 #: Element kinds inside a chunk.
 KIND_INT = 0  # zigzag byte planes, zstd
 KIND_COMPLEX64 = 1  # raw little-endian complex64 (the paper)
-KIND_ANS = 2  # Laplace model per band, ANS-coded
+KIND_ANS = 2  # constriction's QuantizedLaplace per band, ANS-coded (read only)
+KIND_ANS_TABLE = 3  # two-sided geometric per band from integer tables, ANS-coded
 #: Ways to cut a chunk into frequency bands, one Laplace scale each:
 #: (ring width in DFT frequency pixels, angular sectors). The encoder keeps,
 #: per chunk, the one that codes it smallest (side information included):
@@ -67,6 +70,9 @@ _ANS_HEAD = struct.Struct("<BII")  # band layout, largest |q| in the chunk, numb
 #: Chunks of at most this many values try every band layout and keep the
 #: smallest; longer ones code only the layout whose estimated size is smallest.
 EXACT_LAYOUT_CHOICE = 4096
+#: See :func:`table_budget`: building a table of n symbols costs about 6 ns a symbol.
+TABLE_ENTRIES_PER_VALUE = 16
+TABLE_ENTRIES_PER_CHUNK = 1 << 19
 #: A chunk never holds more coefficients than this (guards allocation on decode).
 MAX_CHUNK_COEFS = 1 << 28
 
@@ -230,6 +236,55 @@ def _laplace(max_abs: int, scale: float):
     return constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
 
 
+#: Probabilities of the table models are integers out of 2**TABLE_BITS.
+TABLE_BITS = 24
+
+
+@functools.lru_cache(maxsize=None)
+def _decay(code: int) -> int:
+    """Ratio between successive magnitudes of band scale ``code``, in 1/65536.
+
+    The two-sided geometric ``P(q) ~ t**|q|`` whose mean ``|q|`` is the band's
+    scale b has ``t = (sqrt(1 + b*b) - 1) / b``. Computed in decimal at 50
+    digits (correctly rounded square root and power), then floored: the same
+    integer on every machine, unlike a float ``exp`` or ``pow``.
+    """
+    with decimal.localcontext() as ctx:
+        ctx.prec = 50
+        b = max(decimal.Decimal(2) ** (decimal.Decimal(code - SCALE_BIAS) / SCALE_STEPS),
+                decimal.Decimal(str(MIN_SCALE)))
+        return int(((1 + b * b).sqrt() - 1) / b * (1 << 16))
+
+
+@functools.lru_cache(maxsize=None)
+def _magnitudes(code: int) -> np.ndarray:
+    """Integer weights of |q| = 0, 1, ...: ``w0 = 2**32``, ``w(k) = w(k-1) * decay >> 16``,
+    up to MAX_ANS_SYMBOL or the first zero."""
+    r, w = _decay(code), [1 << 32]
+    while w[-1] and len(w) <= MAX_ANS_SYMBOL:
+        w.append((w[-1] * r) >> 16)
+    return np.array(w, dtype=np.int64)
+
+
+@functools.lru_cache(maxsize=1024)
+def _table_model(max_abs: int, code: int):
+    """constriction model of the values -max_abs..max_abs (symbols 0..2*max_abs) of a band.
+
+    Frequencies out of 2**24: 1 + w(|q|) * (2**24 - n) // total for each of the
+    n = 2*max_abs+1 values (total: the sum of their weights), the remainder
+    to q = 0. The probabilities handed to constriction are these integers
+    over 2**24, exact in float64, so its table is the same everywhere.
+    """
+    w = np.zeros(max_abs + 1, dtype=np.int64)
+    known = _magnitudes(code)[: max_abs + 1]
+    w[: known.size] = known
+    both = np.concatenate([w[:0:-1], w])
+    free = (1 << TABLE_BITS) - both.size
+    freq = 1 + both * free // int(both.sum())
+    freq[max_abs] += (1 << TABLE_BITS) - int(freq.sum())
+    return constriction.stream.model.Categorical(freq / float(1 << TABLE_BITS), perfect=False)
+
+
 def _groups(codes: np.ndarray) -> list[tuple[int, np.ndarray]]:
     """Positions of the values sharing each nonzero scale code, codes ascending.
 
@@ -250,7 +305,7 @@ def _encode_ans_with(q: np.ndarray, bands: np.ndarray, layout: int, max_abs: int
     coder = constriction.stream.stack.AnsCoder()
     # A stack coder decodes last-in first-out: push the groups in reverse.
     for code, where in reversed(_groups(codes[bands - lo])):
-        coder.encode_reverse(q[where].astype(np.int32), _laplace(max_abs, float(_scale_of(np.array([code]))[0])))
+        coder.encode_reverse((q[where] + max_abs).astype(np.int32), _table_model(max_abs, code))
     words = coder.get_compressed()
     return _ANS_HEAD.pack(layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
 
@@ -263,21 +318,39 @@ def _estimated_bits(q: np.ndarray, bands: np.ndarray) -> float:
     coded = per_value > 0
     b = _scale_of(per_value[coded])
     a = np.abs(q[coded]).astype(np.float64)
-    # Probability of |q| under a Laplace of scale b rounded to integers, both signs.
-    p = np.where(a == 0, -np.expm1(-0.5 / b), 0.5 * (np.exp(-(a - 0.5) / b) - np.exp(-(a + 0.5) / b)))
-    return 8.0 * len(_SIDE_ZSTD.compress(codes.tobytes())) - float(np.log2(np.maximum(p, 2.0**-24)).sum())
+    # Probability of q under the two-sided geometric of mean |q| b (see _decay).
+    t = (np.sqrt(1 + b * b) - 1) / b
+    log_p = np.log2((1 - t) / (1 + t)) + a * np.log2(np.maximum(t, 1e-300))
+    return 8.0 * len(_SIDE_ZSTD.compress(codes.tobytes())) - float(np.maximum(log_p, -TABLE_BITS).sum())
 
 
-def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: bool) -> bytes:
+def table_budget(count: int) -> int:
+    """Most table entries (models x symbols) an ANS chunk of ``count`` values may ask
+    the decoder to build: models cost time to build, so a crafted chunk must not
+    make a few bytes cost seconds."""
+    return TABLE_ENTRIES_PER_VALUE * count + TABLE_ENTRIES_PER_CHUNK
+
+
+def _table_work(q: np.ndarray, bands: np.ndarray, max_abs: int) -> int:
+    lo, codes = _band_scales(q, bands)
+    return int(np.count_nonzero(np.unique(codes[bands - lo]))) * (2 * max_abs + 1)
+
+
+def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: bool) -> bytes | None:
+    """The chunk ANS-coded with the best band layout, or None when every layout
+    would need more tables than :func:`table_budget` allows (the caller then uses zstd)."""
     max_abs = int(np.abs(q).max()) if q.size else 0
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
+    layouts = [k for k in layouts if _table_work(q, band_ids(radius, angle, k), max_abs) <= table_budget(q.size)]
+    if not layouts:
+        return None
     if len(layouts) > 1 and q.size > EXACT_LAYOUT_CHOICE:
         # Long chunks: pick the layout by its estimated size, code it once.
         layouts = [min(layouts, key=lambda k: _estimated_bits(q, band_ids(radius, angle, k)))]
     return min((_encode_ans_with(q, band_ids(radius, angle, k), k, max_abs) for k in layouts), key=len)
 
 
-def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str) -> np.ndarray:
+def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str, *, table: bool) -> np.ndarray:
     if len(payload) < _ANS_HEAD.size:
         raise CorruptFileError(f"{what} is too short")
     layout, max_abs, side_len = _ANS_HEAD.unpack_from(payload, 0)
@@ -295,10 +368,16 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
     out = np.zeros(bands.size, dtype=np.int64)
     words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
+    groups = _groups(codes[bands - lo])
+    if table and len(groups) * (2 * max_abs + 1) > table_budget(bands.size):
+        raise CorruptFileError(f"{what} asks for larger probability tables than its {bands.size} values allow")
     try:
         coder = constriction.stream.stack.AnsCoder(words)
-        for code, where in _groups(codes[bands - lo]):
-            out[where] = coder.decode(_laplace(max_abs, float(_scale_of(np.array([code]))[0])), where.size)
+        for code, where in groups:
+            if table:
+                out[where] = coder.decode(_table_model(max_abs, code), where.size) - max_abs
+            else:
+                out[where] = coder.decode(_laplace(max_abs, float(_scale_of(np.array([code]))[0])), where.size)
     except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
         raise CorruptFileError(f"{what} does not decode: {exc}") from None
     if np.abs(out).max(initial=0) > max_abs:
@@ -332,8 +411,9 @@ def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
         part = values[start:stop]
         if complex_kind:
             payload, kind = part.astype("<c8").tobytes(), KIND_COMPLEX64
-        elif coder == "ans" and radius is not None and int(np.abs(part).max()) <= MAX_ANS_SYMBOL:
-            payload, kind = _encode_ans(part, radius[start:stop], angle[start:stop], exhaustive), KIND_ANS
+        elif coder == "ans" and radius is not None and int(np.abs(part).max()) <= MAX_ANS_SYMBOL and (
+                ans := _encode_ans(part, radius[start:stop], angle[start:stop], exhaustive)) is not None:
+            payload, kind = ans, KIND_ANS_TABLE
         else:
             payload, kind = cctx.compress(_pack_ints(part)), KIND_INT
         out.append(_CHUNK.pack(stop - start, len(payload), zlib.crc32(payload), kind))
@@ -398,10 +478,11 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
         elif kind == KIND_INT:
             raw = unzstd(dctx, payload, 1 + 8 * count, what)
             parts.append(_unpack_ints(raw, count))
-        elif kind == KIND_ANS:
+        elif kind in (KIND_ANS, KIND_ANS_TABLE):
             if radius is None or angle is None or radius.size < stop:
                 raise CorruptFileError(f"{what} is ANS-coded but no frequencies are known")
-            parts.append(_decode_ans(payload, radius[start:stop], angle[start:stop], what))
+            parts.append(_decode_ans(payload, radius[start:stop], angle[start:stop], what,
+                                     table=kind == KIND_ANS_TABLE))
         else:
             raise CorruptFileError(f"{what} has unknown kind {kind}")
     if not parts:
