@@ -131,16 +131,9 @@ def test_small_map_other_grids(small, resolution):
         check(dftpcc.compress(small, resolution=resolution, **options))
 
 
-LARGE_OPTIONS = {
-    "default": {},
-    "paper": {"profile": "paper"},
-    "dft-compact": {"transform": "dft"},
-    "zstd": {"coder": "zstd"},
-    "footprint": {"mask": "footprint"},
-    "cutoff-0": {"cutoff": 0.0},
-    "cutoff-0.9": {"cutoff": 0.9},
-    "max-error": {"target_max_error": 0.1},
-}
+LARGE_OPTIONS = {name: SMALL_OPTIONS[name] for name in
+                 ("default", "paper", "dft-compact", "zstd", "footprint", "cutoff-0", "cutoff-0.9")}
+LARGE_OPTIONS["max-error"] = {"target_max_error": 0.1}
 
 
 @pytest.mark.parametrize("options", LARGE_OPTIONS.values(), ids=LARGE_OPTIONS.keys())
