@@ -181,6 +181,10 @@ class _Spectrum:
         coefs.ravel()[self.order[: values.size]] = values
         return spectrum.inverse(coefs, self.lay) + self.trend
 
+    def quantized(self, cutoff: float, step: float) -> np.ndarray:
+        """The integers a quantized trial at (cutoff, step) codes, without rebuilding the DEM."""
+        return coding.quantize(self.reals(self.count(cutoff)), coding.short_step(step), self.params.deadzone)
+
     def trial(self, cutoff: float, step: float) -> _Trial:
         n = self.count(cutoff)
         step = coding.short_step(step)
@@ -188,7 +192,7 @@ class _Spectrum:
             stream = self.coefs[:n].astype(np.complex64)
             decoded = stream.astype(np.complex128)
         else:
-            stream = coding.quantize(self.reals(n), step, self.params.deadzone)
+            stream = self.quantized(cutoff, step)
             decoded = coding.dequantize(stream, step)
             if np.iscomplexobj(self.coefs):
                 decoded = decoded.view(np.complex128)
@@ -206,8 +210,11 @@ class _Spectrum:
         return math.sqrt(total * self.parseval)
 
     def encode(self, trial: _Trial, *, exhaustive: bool = True) -> bytes:
-        n = trial.stream.size
-        return coding.encode_coefficients(trial.stream, radius=self.radius[:n], angle=self.angle[:n],
+        return self.encode_stream(trial.stream, exhaustive=exhaustive)
+
+    def encode_stream(self, stream: np.ndarray, *, exhaustive: bool = True) -> bytes:
+        n = stream.size
+        return coding.encode_coefficients(stream, radius=self.radius[:n], angle=self.angle[:n],
                                           coder=self.params.coder, exhaustive=exhaustive)
 
 
@@ -270,7 +277,8 @@ def _residual(spec: _Spectrum, trial: _Trial, bound: float) -> tuple[np.ndarray,
 
 def _encode_residual(q: np.ndarray, coder: str) -> bytes:
     flat = np.zeros(q.size)  # one band per chunk: the residual has no frequency
-    return coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder)
+    # Every band layout puts all values in band 0, so there is no layout to choose.
+    return coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
 
 
 def _decode_residual(blob: Any, count: int) -> np.ndarray:
@@ -318,19 +326,19 @@ def _rate_control(spec: _Spectrum, params: Params, point_count: int, fixed_bytes
                 f"alone need {8 * fixed_bytes / point_count:.4f} bits/point")
         for cutoff in _cutoffs(params, cutoff_given):
             if quantized:
+                # Sizes only: the DEM is rebuilt once, for the step found.
                 lo, hi = _tiny_step(spec) * 1e3, 1e4
                 found = None
                 for _ in range(STEP_ITERATIONS):
                     mid = math.sqrt(lo * hi)
-                    trial = spec.trial(cutoff, mid)
-                    blob = spec.encode(trial, exhaustive=False)
+                    blob = spec.encode_stream(spec.quantized(cutoff, mid), exhaustive=False)
                     if len(blob) <= budget:
-                        found, hi = (trial, blob), mid
+                        found, hi = (mid, blob), mid
                     else:
                         lo = mid
                 if found is None:
                     continue
-                trial, blob = found
+                trial, blob = spec.trial(cutoff, found[0]), found[1]
             else:
                 trial = spec.trial(cutoff, 0.0)
                 blob = spec.encode(trial, exhaustive=False)
