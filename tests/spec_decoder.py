@@ -295,7 +295,13 @@ def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray, tabl
     band = (np.floor(radius / width).astype(np.int64) * sectors
             + np.minimum(np.floor(angle * sectors).astype(np.int64), sectors - 1))
     lo, hi = int(band.min()), int(band.max())
-    codes = np.frombuffer(_zstd(p[9:9 + side], hi - lo + 1), np.uint8)
+    nbands = hi - lo + 1
+    if table and side == nbands:  # kind 3 stores few codes raw
+        codes = np.frombuffer(p[9:9 + side], np.uint8)
+    elif table and side > nbands:
+        raise ValueError("ANS chunk has too many bytes of band scales")
+    else:
+        codes = np.frombuffer(_zstd(p[9:9 + side], nbands), np.uint8)
     if len(codes) != hi - lo + 1:
         raise ValueError("ANS chunk has a wrong number of band scales")
     code = codes[band - lo].astype(np.int64)

@@ -125,3 +125,18 @@ def test_a_chunk_may_not_ask_for_huge_probability_tables():
     chunk = struct.pack("<IIII", 256, len(payload), zlib.crc32(payload), coding.KIND_ANS_TABLE) + payload
     with pytest.raises(CorruptFileError, match="larger probability tables"):
         coding.decode_coefficients(struct.pack("<I", 1) + chunk, 256, radius=radius, angle=angle)
+
+
+def test_few_band_scales_are_stored_raw_and_a_longer_side_is_refused():
+    values = np.array([5, -3, 2, 0, 1, 0, 0, -1] * 4, dtype=np.int64)
+    radius, angle = np.linspace(0, 3, values.size), np.zeros(values.size)  # one band
+    blob = coding.encode_coefficients(values, radius=radius, angle=angle)
+    kind = struct.unpack_from("<I", blob, 16)[0]
+    layout, max_abs, side = struct.unpack_from("<BII", blob, 20)
+    assert kind == coding.KIND_ANS_TABLE and side == 1  # one raw byte, not a 10-byte zstd frame
+    np.testing.assert_array_equal(coding.decode_coefficients(blob, values.size, radius=radius, angle=angle), values)
+    payload = bytearray(blob[20:30] + b"\x80" + blob[30:])  # a second byte of scales ...
+    struct.pack_into("<I", payload, 5, 2)  # ... for one band
+    chunk = struct.pack("<IIII", values.size, len(payload), zlib.crc32(bytes(payload)), kind) + bytes(payload)
+    with pytest.raises(CorruptFileError, match="bytes of band scales"):
+        coding.decode_coefficients(struct.pack("<I", 1) + chunk, values.size, radius=radius, angle=angle)

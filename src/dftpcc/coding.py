@@ -298,10 +298,19 @@ def _groups(codes: np.ndarray) -> list[tuple[int, np.ndarray]]:
     return [(int(code), order[bounds[k]:bounds[k + 1]]) for k, code in enumerate(present) if code > 0]
 
 
+def _side_info(codes: np.ndarray) -> bytes:
+    """The band scale codes as a zstd frame, or raw when the frame would not be shorter
+    (a few bands: the frame's own header outweighs them). A reader tells them apart by
+    length: raw is exactly one byte per band."""
+    raw = codes.tobytes()
+    packed = _SIDE_ZSTD.compress(raw)
+    return packed if len(packed) < len(raw) else raw
+
+
 def _encode_ans_with(q: np.ndarray, bands: np.ndarray, layout: int, max_abs: int) -> bytes:
     lo, codes = _band_scales(q, bands)
     # Zero codes compress well: most high-frequency bands are empty at low rates.
-    side = _SIDE_ZSTD.compress(codes.tobytes())
+    side = _side_info(codes)
     coder = constriction.stream.stack.AnsCoder()
     # A stack coder decodes last-in first-out: push the groups in reverse.
     for code, where in reversed(_groups(codes[bands - lo])):
@@ -321,7 +330,7 @@ def _estimated_bits(q: np.ndarray, bands: np.ndarray) -> float:
     # Probability of q under the two-sided geometric of mean |q| b (see _decay).
     t = (np.sqrt(1 + b * b) - 1) / b
     log_p = np.log2((1 - t) / (1 + t)) + a * np.log2(np.maximum(t, 1e-300))
-    return 8.0 * len(_SIDE_ZSTD.compress(codes.tobytes())) - float(np.maximum(log_p, -TABLE_BITS).sum())
+    return 8.0 * len(_side_info(codes)) - float(np.maximum(log_p, -TABLE_BITS).sum())
 
 
 def table_budget(count: int) -> int:
@@ -362,8 +371,13 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     end = _ANS_HEAD.size + side_len
     if len(payload) < end or (len(payload) - end) % 4:
         raise CorruptFileError(f"{what} has a wrong length")
-    codes = np.frombuffer(unzstd(zstandard.ZstdDecompressor(), payload[_ANS_HEAD.size:end], ncodes, what),
-                          dtype=np.uint8)
+    side = payload[_ANS_HEAD.size:end]
+    if table and side_len == ncodes:  # raw codes (kind 3 only)
+        codes = np.frombuffer(side, dtype=np.uint8)
+    elif table and side_len > ncodes:
+        raise CorruptFileError(f"{what} has {side_len} bytes of band scales for {ncodes} bands")
+    else:
+        codes = np.frombuffer(unzstd(zstandard.ZstdDecompressor(), side, ncodes, what), dtype=np.uint8)
     if codes.size != ncodes:
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
     out = np.zeros(bands.size, dtype=np.int64)
