@@ -1,12 +1,14 @@
-"""Encode stage: quantize coefficients and entropy-code them and the mask.
+"""Encode stage: quantize the coefficients and entropy-code them.
 
 Coefficients arrive ordered from low to high frequency. They are cut into
 chunks of geometrically growing length, each coded on its own, so any prefix
 of whole chunks decodes to a coarser map (progressive decoding). Inside a
 chunk, integers are coded either with zstd (the baseline) or with an ANS
-coder (constriction) under a Laplace model whose scale is sent per frequency
-band (rings of ``BAND_WIDTH`` frequency pixels): magnitudes fall with
-frequency, so each ring gets the model that fits it.
+coder (constriction) whose model is chosen per frequency band (rings, and
+sectors of them, see ``BAND_LAYOUTS``): magnitudes fall with frequency, so
+each band sends one scale, its mean |q|, and is coded with the two-sided
+geometric distribution of that mean, built from integer tables so that
+every machine decodes the same bits.
 
 The occupancy mask has its own coder, :mod:`dftpcc.occupancy`.
 """
@@ -50,7 +52,7 @@ KIND_INT = 0  # zigzag byte planes, zstd
 KIND_COMPLEX64 = 1  # raw little-endian complex64 (the paper)
 KIND_ANS = 2  # constriction's QuantizedLaplace per band, ANS-coded (read only)
 KIND_ANS_TABLE = 3  # two-sided geometric per band from integer tables, ANS-coded
-#: Ways to cut a chunk into frequency bands, one Laplace scale each:
+#: Ways to cut a chunk into frequency bands, one scale each:
 #: (ring width in DFT frequency pixels, angular sectors). The encoder keeps,
 #: per chunk, the one that codes it smallest (side information included):
 #: terrain spectra are often directional (ridges, furrows, slopes).
@@ -58,7 +60,7 @@ BAND_LAYOUTS = ((4.0, 1), (8.0, 1), (8.0, 4), (8.0, 16))
 #: Band scales are sent as 8-bit codes on a log2 grid of 1/SCALE_STEPS octave.
 SCALE_STEPS = 8
 SCALE_BIAS = 128
-#: Smallest Laplace scale used (in quantizer steps); keeps probabilities nonzero.
+#: Smallest band scale used (in quantizer steps); keeps probabilities nonzero.
 MIN_SCALE = 0.05
 #: Band scales are few and small: a fast zstd level codes them as well as a slow one.
 _SIDE_ZSTD = zstandard.ZstdCompressor(level=3)
@@ -222,7 +224,8 @@ def _band_scales(q: np.ndarray, bands: np.ndarray) -> tuple[int, np.ndarray]:
     n = int(local.max()) + 1
     mean_abs = np.bincount(local, weights=np.abs(q).astype(np.float64), minlength=n)
     count = np.bincount(local, minlength=n)
-    # The maximum-likelihood Laplace scale of a band is its mean |q|.
+    # A band's scale is its mean |q| (the maximum-likelihood Laplace scale; the
+    # table models take the geometric distribution of that mean).
     b = np.divide(mean_abs, count, out=np.zeros(n), where=count > 0)
     codes = np.where(b > 0, np.clip(np.round(np.log2(np.maximum(b, 1e-12)) * SCALE_STEPS) + SCALE_BIAS, 1, 255), 0)
     return lo, codes.astype(np.uint8)
