@@ -269,9 +269,26 @@ def _magnitudes(code: int) -> np.ndarray:
     return np.array(w, dtype=np.int64)
 
 
-@functools.lru_cache(maxsize=1024)
+#: Table models of at most this magnitude bound are cached (at most ~70 kB
+#: each, so the cache stays under ~20 MB); wider ones (up to 0.3 MB) are rare,
+#: first chunks only, and built each time.
+CACHED_TABLE_MAX_ABS = 8192
+
+
 def _table_model(max_abs: int, code: int):
-    """constriction model of the values -max_abs..max_abs (symbols 0..2*max_abs) of a band.
+    """constriction model of the values -max_abs..max_abs (symbols 0..2*max_abs) of a band."""
+    if max_abs <= CACHED_TABLE_MAX_ABS:
+        return _cached_table_model(max_abs, code)
+    return _build_table_model(max_abs, code)
+
+
+@functools.lru_cache(maxsize=256)
+def _cached_table_model(max_abs: int, code: int):
+    return _build_table_model(max_abs, code)
+
+
+def _build_table_model(max_abs: int, code: int):
+    """See :func:`_table_model`.
 
     Frequencies out of 2**24: 1 + w(|q|) * (2**24 - n) // total for each of the
     n = 2*max_abs+1 values (total: the sum of their weights), the remainder
