@@ -1,4 +1,4 @@
-"""Issue 3 probe: would rate-distortion optimised rounding beat the dead-zone quantizer?
+"""Issue 3 probe: would rate-distortion optimised rounding or a per-band step beat the dead-zone quantizer?
 
 For one map and cutoff, find the quantizer step that brings the rebuilt DEM to
 a target RMSE (occupied cells) under each rounding rule, then code the
@@ -7,7 +7,11 @@ coefficients with the library's coder and compare sizes:
 * ``dead zone d``: ``floor(|c|/step + 0.5 - d)`` (the library's rule, d = 0.1);
 * ``RDO l``: plain rounding, then each nonzero value moves one step toward 0
   when the squared error it adds (in steps^2) is below ``l`` times the bits
-  it saves under a Laplace model per frequency ring (two passes).
+  it saves under a Laplace model per frequency ring (two passes);
+* ``band step a``: a step growing with frequency, ``step * (1 + a * radius /
+  largest radius)``, dead zone 0.1 (what a per-band step would do; the coder
+  is given the integers as they are, so its size is what such a file would
+  need apart from the per-band step table).
 
     .venv/bin/python benchmarks/probe_rdo.py [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
         [--cutoff 0.2 --multiple 1.25]
@@ -34,7 +38,7 @@ from dftpcc import codec, coding  # noqa: E402
 from dftpcc.grid import fit_grid, rasterize  # noqa: E402
 
 RULES = (("dead zone", 0.0), ("dead zone", 0.1), ("dead zone", 0.2), ("dead zone", 0.3),
-         ("RDO", 0.05), ("RDO", 0.1), ("RDO", 0.2))
+         ("RDO", 0.05), ("RDO", 0.1), ("RDO", 0.2), ("band step", 0.5), ("band step", 1.0), ("band step", -0.3))
 
 
 def _laplace_bits(q: np.ndarray, bands: np.ndarray):
@@ -45,9 +49,20 @@ def _laplace_bits(q: np.ndarray, bands: np.ndarray):
     return lambda v: -np.log2((1 - t) / (1 + t)) - np.abs(v) * np.log2(t)
 
 
-def quantize(x: np.ndarray, step: float, rule: str, value: float, bands: np.ndarray) -> np.ndarray:
+def steps_of(step: float, rule: str, value: float, radius: np.ndarray) -> np.ndarray | float:
+    """The step of each coefficient."""
+    if rule == "band step":
+        return step * (1 + value * radius / max(float(radius.max()), 1e-12))
+    return step
+
+
+def quantize(x: np.ndarray, step: float, rule: str, value: float, bands: np.ndarray,
+             radius: np.ndarray) -> np.ndarray:
     if rule == "dead zone":
         return coding.quantize(x, step, value)
+    if rule == "band step":
+        per = steps_of(step, rule, value, radius)
+        return (np.sign(x) * np.floor(np.abs(x) / per + 0.4)).astype(np.int64)
     q = coding.quantize(x, step, 0.0)
     a = np.abs(x) / step
     for _ in range(2):
@@ -77,8 +92,8 @@ def main() -> int:
     bands = coding.band_ids(radius, angle, 0)
     target = dem.gridding_rmse * math.sqrt(args.multiple ** 2 - 1)
 
-    def dem_rmse(q: np.ndarray, step: float) -> float:
-        err = (spec.synthesise(coding.dequantize(q, step)) - dem.heights)[dem.mask]
+    def dem_rmse(q: np.ndarray, step: np.ndarray | float) -> float:
+        err = (spec.synthesise(q * step) - dem.heights)[dem.mask]
         return math.sqrt(float(np.mean(err * err)))
 
     if dem_rmse(coding.quantize(x, 1e-9, 0.0), 1e-9) > target:
@@ -93,9 +108,11 @@ def main() -> int:
         lo, hi = target * 1e-3, target * 1e3
         while hi / lo > 1.003:
             mid = math.sqrt(lo * hi)
-            lo, hi = (mid, hi) if dem_rmse(quantize(x, mid, rule, value, bands), mid) <= target else (lo, mid)
-        q = quantize(x, lo, rule, value, bands)
-        rows.append((rule, value, lo, dem_rmse(q, lo), len(coding.encode_coefficients(q, radius=radius, angle=angle))))
+            q = quantize(x, mid, rule, value, bands, radius)
+            lo, hi = (mid, hi) if dem_rmse(q, steps_of(mid, rule, value, radius)) <= target else (lo, mid)
+        q = quantize(x, lo, rule, value, bands, radius)
+        rows.append((rule, value, lo, dem_rmse(q, steps_of(lo, rule, value, radius)),
+                     len(coding.encode_coefficients(q, radius=radius, angle=angle))))
     base = next(r[4] for r in rows if r[:2] == ("dead zone", 0.1))
     for rule, value, step, err, size in rows:
         print(f"| {rule} | {value:g} | {1e3 * step:.2f} | {1e3 * err:.2f} | {size:,} | {size / base:.3f} |")
