@@ -32,7 +32,7 @@ import dftpcc  # noqa: E402
 from common import (  # noqa: E402
     DEFAULT_DATA, FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load,
     load_average, lower_hull,
-    library_label, markdown_table, median_time, pick_cases, verdict, warnings_as_notes, write_doc_section,
+    finish_run, library_label, markdown_table, median_time, pick_cases, verdict, warnings_as_notes,
 )
 from dftpcc.grid import Grid, fit_grid, rasterize  # noqa: E402
 
@@ -645,13 +645,8 @@ def main(argv: list[str] | None = None) -> int:
         print(check)
     elapsed = time.perf_counter() - t0
     over = " (over the ~15 min budget: use --quick)" if elapsed > RUN_BUDGET_S else ""
-    parts.append(f"Run time {elapsed:.0f} s{over}; {load_average()} at the end.")
-    print("\n" + parts[-1])
-    write = args.docs if args.docs is not None else (not args.quick and not args.files)
-    if write:
-        write_doc_section("bench_anchors", "Rate-distortion against the anchors (issue 3)",
-                          "\n\n".join(parts))
-        print("wrote docs/benchmarks.md (bench_anchors section)")
+    finish_run(parts, args, "bench_anchors", "Rate-distortion against the anchors (issue 3)",
+               f"Run time {elapsed:.0f} s{over}; {load_average()} at the end.")
     return 0
 
 

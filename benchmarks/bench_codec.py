@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import dftpcc  # noqa: E402
 from common import (  # noqa: E402
     DEFAULT_DATA, GROUND, Case, bits_at, fmt_bits, load, load_average, lower_hull, markdown_table, median_time,
-    median_times, library_label, pick_cases, rmse, shared_grid, verdict, warnings_as_notes, write_doc_section,
+    finish_run, median_times, library_label, pick_cases, rmse, shared_grid, verdict, warnings_as_notes,
 )
 
 CASES = (
@@ -195,14 +195,9 @@ def main(argv: list[str] | None = None) -> int:
     parts.append(targets(measured))
     print(parts[-1])
     elapsed = time.perf_counter() - t0
-    parts.append(f"Run time {elapsed:.0f} s; {load_average()} at the end (times above are wall-clock medians; "
-                 "CPU seconds, all threads of this process, in brackets).")
-    print("\n" + parts[-1])
-    write = args.docs if args.docs is not None else (not args.quick and not args.files)
-    if write:
-        write_doc_section("bench_codec", "Codec: bits, error and speed per cutoff (issue 2)",
-                          "\n\n".join(parts))
-        print("wrote docs/benchmarks.md (bench_codec section)")
+    finish_run(parts, args, "bench_codec", "Codec: bits, error and speed per cutoff (issue 2)",
+               f"Run time {elapsed:.0f} s; {load_average()} at the end (times above are wall-clock medians; "
+               "CPU seconds, all threads of this process, in brackets).")
     return 0
 
 

@@ -7,6 +7,7 @@ Everything here uses only dftpcc's public API (``read``, ``grid.fit_grid``,
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import math
 import os
@@ -343,6 +344,17 @@ def library_label() -> str:
         return f"dftpcc {dftpcc.__version__} at commit {git('rev-parse', '--short', 'HEAD')}" + \
             (" + uncommitted changes in src/" if dirty else "")
     return f"dftpcc {dftpcc.__version__} imported from {where}"
+
+
+def finish_run(parts: list[str], args: argparse.Namespace, key: str, title: str, run_time_note: str) -> None:
+    """End a benchmark: print its run-time line, and write its docs section on a full
+    run (neither --quick nor --files) or when --docs asks for it."""
+    parts.append(run_time_note)
+    print("\n" + parts[-1])
+    write = args.docs if args.docs is not None else (not args.quick and not args.files)
+    if write:
+        write_doc_section(key, title, "\n\n".join(parts))
+        print(f"wrote docs/benchmarks.md ({key} section)")
 
 
 def write_doc_section(key: str, title: str, body: str, path: Path = DOC) -> None:

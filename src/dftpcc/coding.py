@@ -20,6 +20,7 @@ import functools
 import math
 import struct
 import zlib
+from typing import NamedTuple
 
 import warnings
 
@@ -327,30 +328,45 @@ def _side_info(codes: np.ndarray) -> bytes:
     return packed if len(packed) < len(raw) else raw
 
 
-def _encode_ans_with(q: np.ndarray, bands: np.ndarray, layout: int, max_abs: int) -> bytes:
-    lo, codes = _band_scales(q, bands)
+class _Bands(NamedTuple):
+    """One band layout applied to a chunk: its scale codes, and each value's code."""
+
+    layout: int
+    codes: np.ndarray  # one per band, from the chunk's lowest band
+    per_value: np.ndarray
+
+    @classmethod
+    def of(cls, q: np.ndarray, radius: np.ndarray, angle: np.ndarray, layout: int) -> _Bands:
+        bands = band_ids(radius, angle, layout)
+        lo, codes = _band_scales(q, bands)
+        return cls(layout, codes, codes[bands - lo])
+
+    def table_work(self, max_abs: int) -> int:
+        """Table entries the decoder builds: one table per distinct nonzero code."""
+        return int(np.count_nonzero(np.unique(self.per_value))) * (2 * max_abs + 1)
+
+
+def _encode_ans_with(q: np.ndarray, b: _Bands, max_abs: int) -> bytes:
     # Zero codes compress well: most high-frequency bands are empty at low rates.
-    side = _side_info(codes)
+    side = _side_info(b.codes)
     coder = constriction.stream.stack.AnsCoder()
     # A stack coder decodes last-in first-out: push the groups in reverse.
-    for code, where in reversed(_groups(codes[bands - lo])):
+    for code, where in reversed(_groups(b.per_value)):
         coder.encode_reverse((q[where] + max_abs).astype(np.int32), _table_model(max_abs, code))
     words = coder.get_compressed()
-    return _ANS_HEAD.pack(layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
+    return _ANS_HEAD.pack(b.layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
 
 
-def _estimated_bits(q: np.ndarray, bands: np.ndarray) -> float:
+def _estimated_bits(q: np.ndarray, b: _Bands) -> float:
     """Bits the ANS chunk of :func:`_encode_ans_with` would take, side information included,
     from the model's probabilities (within 0.01 % of the coded size on real maps)."""
-    lo, codes = _band_scales(q, bands)
-    per_value = codes[bands - lo]
-    coded = per_value > 0
-    b = _scale_of(per_value[coded])
+    coded = b.per_value > 0
+    scale = _scale_of(b.per_value[coded])
     a = np.abs(q[coded]).astype(np.float64)
-    # Probability of q under the two-sided geometric of mean |q| b (see _decay).
-    t = (np.sqrt(1 + b * b) - 1) / b
+    # Probability of q under the two-sided geometric of mean |q| scale (see _decay).
+    t = (np.sqrt(1 + scale * scale) - 1) / scale
     log_p = np.log2((1 - t) / (1 + t)) + a * np.log2(np.maximum(t, 1e-300))
-    return 8.0 * len(_side_info(codes)) - float(np.maximum(log_p, -TABLE_BITS).sum())
+    return 8.0 * len(_side_info(b.codes)) - float(np.maximum(log_p, -TABLE_BITS).sum())
 
 
 def table_budget(count: int) -> int:
@@ -360,23 +376,19 @@ def table_budget(count: int) -> int:
     return TABLE_ENTRIES_PER_VALUE * count + TABLE_ENTRIES_PER_CHUNK
 
 
-def _table_work(q: np.ndarray, bands: np.ndarray, max_abs: int) -> int:
-    lo, codes = _band_scales(q, bands)
-    return int(np.count_nonzero(np.unique(codes[bands - lo]))) * (2 * max_abs + 1)
-
-
 def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: bool) -> bytes | None:
     """The chunk ANS-coded with the best band layout, or None when every layout
     would need more tables than :func:`table_budget` allows (the caller then uses zstd)."""
     max_abs = int(np.abs(q).max()) if q.size else 0
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
-    layouts = [k for k in layouts if _table_work(q, band_ids(radius, angle, k), max_abs) <= table_budget(q.size)]
-    if not layouts:
+    candidates = [b for b in (_Bands.of(q, radius, angle, k) for k in layouts)
+                  if b.table_work(max_abs) <= table_budget(q.size)]
+    if not candidates:
         return None
-    if len(layouts) > 1 and q.size > EXACT_LAYOUT_CHOICE:
+    if len(candidates) > 1 and q.size > EXACT_LAYOUT_CHOICE:
         # Long chunks: pick the layout by its estimated size, code it once.
-        layouts = [min(layouts, key=lambda k: _estimated_bits(q, band_ids(radius, angle, k)))]
-    return min((_encode_ans_with(q, band_ids(radius, angle, k), k, max_abs) for k in layouts), key=len)
+        candidates = [min(candidates, key=lambda b: _estimated_bits(q, b))]
+    return min((_encode_ans_with(q, b, max_abs) for b in candidates), key=len)
 
 
 def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str, *, table: bool) -> np.ndarray:
