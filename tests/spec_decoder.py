@@ -25,7 +25,7 @@ MAX_JSON_BYTES = 1 << 20
 # PARM fields left out take these (frozen for all 1.x files).
 V1_DEFAULTS = {
     "cutoff": 0.8, "profile": "compact", "aggregate": "mean", "frame": "axis",
-    "transform": "dct", "detrend": "plane", "fill": "smooth", "storage": "quantized",
+    "transform": "dct", "detrend": "plane", "fill": "consistent", "storage": "quantized",
     "step": 0.0, "deadzone": 0.1, "coder": "ans", "mask": "exact", "target_rmse": 0.0,
     "target_max_error": 0.0, "target_bpp": 0.0,
 }

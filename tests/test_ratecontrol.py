@@ -129,3 +129,28 @@ def test_footprint_mask_costs_less_and_keeps_the_error(field_ground):
     dem = foot.read_dem()
     idx = dem.grid.flat_index(field_ground)
     assert dem.mask.ravel()[idx].all()
+
+
+def test_consistent_fill_makes_rate_controlled_files_smaller(field_ground):
+    # A third of the field's cells are empty (buildings and trees left out of
+    # the ground class): refilling them from the coded map needs fewer bits
+    # for the same error than the push-pull fill (4.5 % when this was written).
+    sizes = {}
+    for fill in ("smooth", "consistent"):
+        data = dftpcc.compress(field_ground, resolution=0.5, target_rmse=0.02, fill=fill)
+        m = dftpcc.open(data)
+        assert m.header.stats["dem_rmse_m"] <= 0.02
+        assert m.params.fill == fill
+        sizes[fill] = m.header.stats["coef_bytes"]
+    assert sizes["consistent"] < 0.98 * sizes["smooth"], sizes
+
+
+def test_consistent_fill_leaves_full_maps_alone():
+    # One point per cell of a 60 x 50 lattice: no empty cell, nothing to
+    # refill, so the very same coefficients as the smooth fill.
+    y, x = np.mgrid[0:50, 0:60] + 0.5
+    pts = np.column_stack([x.ravel(), y.ravel(), (np.sin(x / 7) * np.cos(y / 5) + 0.01 * x).ravel()])
+    stats = [dftpcc.open(dftpcc.compress(pts, resolution=1.0, target_rmse=0.01, fill=fill)).header.stats
+             for fill in ("smooth", "consistent")]
+    assert stats[0]["coef_bytes"] == stats[1]["coef_bytes"]
+    assert stats[0]["dem_rmse_m"] == stats[1]["dem_rmse_m"] <= 0.01

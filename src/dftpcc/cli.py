@@ -290,7 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", choices=("axis", "oriented"), help="axis-aligned or minimum-area rotated grid (default axis)")
     p.add_argument("--transform", choices=("dft", "dct"), help="override the profile's transform")
     p.add_argument("--detrend", choices=("none", "plane"), help="override the profile's detrending")
-    p.add_argument("--fill", choices=("smooth", "zero"), help="how empty cells are filled before the transform")
+    p.add_argument("--fill", choices=("consistent", "smooth", "zero"),
+                   help="how empty cells are filled before the transform (compact default: consistent)")
     p.add_argument("--step", type=_positive, help="quantizer step in metres (default: automatic)")
     p.add_argument("--mask", choices=("exact", "footprint"),
                    help="exact (default): rebuild occupied cells only; footprint: also the gaps the map encloses")

@@ -231,7 +231,7 @@ MAX_JSON_BYTES = 1 << 20
 #: an existing file means.
 V1_PARAM_DEFAULTS: dict[str, Any] = {
     "cutoff": 0.8, "profile": "compact", "aggregate": "mean", "frame": "axis", "transform": "dct",
-    "detrend": "plane", "fill": "smooth", "storage": "quantized", "step": 0.0, "deadzone": 0.1,
+    "detrend": "plane", "fill": "consistent", "storage": "quantized", "step": 0.0, "deadzone": 0.1,
     "coder": "ans", "mask": "exact", "target_rmse": 0.0, "target_max_error": 0.0, "target_bpp": 0.0,
 }
 #: Statistics the reader derives from the section table instead of storing them.

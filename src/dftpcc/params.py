@@ -21,7 +21,7 @@ AGGREGATES = ("mean", "median", "min", "max")
 FRAMES = ("axis", "oriented")
 TRANSFORMS = ("dft", "dct")
 DETRENDS = ("none", "plane")
-FILLS = ("zero", "smooth")
+FILLS = ("zero", "smooth", "consistent")
 STORAGES = ("complex64", "quantized")
 CODERS = ("ans", "zstd")
 MASKS = ("exact", "footprint")
@@ -51,7 +51,11 @@ class Params:
         ``plane`` removes a least-squares plane before the transform.
     fill : str
         Height given to empty cells before the transform: ``zero`` (the
-        projection plane) or ``smooth`` (a push-pull interpolation).
+        projection plane), ``smooth`` (a push-pull interpolation) or
+        ``consistent`` (push-pull; then, under rate control, the chosen
+        cutoff is tried again with the empty cells refilled twice from the
+        map the coded spectrum rebuilds, which needs fewer coefficients for
+        the same error, and the better file is kept).
     storage : str
         ``complex64``: the paper's raw coefficients; ``quantized``: integer
         coefficients, entropy-coded.
@@ -87,7 +91,7 @@ class Params:
     frame: str = "axis"
     transform: str = "dct"
     detrend: str = "plane"
-    fill: str = "smooth"
+    fill: str = "consistent"
     storage: str = "quantized"
     step: float = 0.0
     deadzone: float = 0.1
@@ -162,7 +166,7 @@ PROFILES: dict[str, dict[str, Any]] = {
         transform="dft", detrend="none", fill="smooth", storage="complex64", frame="axis",
     ),
     "compact": dict(
-        transform="dct", detrend="plane", fill="smooth", storage="quantized",
+        transform="dct", detrend="plane", fill="consistent", storage="quantized",
     ),
 }
 
