@@ -10,9 +10,12 @@ one tile covering the map.
 
     .venv/bin/python benchmarks/probe_tiles.py [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
         [--multiple 1.25] [--tiles 256 128 64]
+    .venv/bin/python benchmarks/probe_tiles.py --file mars_gale_1m.tif --relief 0.001
 
-The target is the DEM error that makes the points' vertical RMSE ``multiple``
-times the gridding floor. Prints a table; nothing here fails.
+For a point cloud the target is the DEM error that makes the points' vertical
+RMSE ``multiple`` times the gridding floor; a GeoTIFF DEM (from dems/) is coded
+on its own pixel grid to an RMSE of ``relief`` times the standard deviation of
+its heights, as in bench_anchors.py. Prints a table; nothing here fails.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import dftpcc  # noqa: E402
 from common import DEFAULT_DATA, warnings_as_notes  # noqa: E402
 from dftpcc import coding, spectrum  # noqa: E402
+from dftpcc.formats import read_raster_dem  # noqa: E402
 from dftpcc.grid import fill_empty, fit_grid, rasterize  # noqa: E402
 
 PLANE_BYTES = 24
@@ -69,26 +73,35 @@ def main() -> int:
     ap.add_argument("--resolution", type=float, default=0.5)
     ap.add_argument("--classes", type=int, nargs="*", default=[2])
     ap.add_argument("--multiple", type=float, default=1.25)
+    ap.add_argument("--relief", type=float, default=0.001, help="DEM target as a fraction of the relief")
     ap.add_argument("--tiles", type=int, nargs="+", default=[256, 128, 64])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     args = ap.parse_args()
-    with warnings_as_notes([]):
-        points = dftpcc.read(args.data / "pointclouds" / args.file, classes=args.classes or None).points
-        dem = rasterize(points, fit_grid(points, args.resolution))
-    target = dem.gridding_rmse * math.sqrt(args.multiple ** 2 - 1)
-    print(f"{args.file}, grid {dem.grid.rows} x {dem.grid.cols}; target DEM RMSE {1e3 * target:.2f} mm "
-          f"({args.multiple}x the {1e3 * dem.gridding_rmse:.1f} mm floor on the points)\n")
+    if args.file.lower().endswith((".tif", ".tiff")):
+        heights, mask, *_ = read_raster_dem(args.data / "dems" / args.file)
+        target = args.relief * float(np.std(heights[mask]))
+        print(f"{args.file}, grid {heights.shape[0]} x {heights.shape[1]}; target DEM RMSE {1e3 * target:.2f} mm "
+              f"({args.relief:g} of the relief)\n")
+    else:
+        with warnings_as_notes([]):
+            points = dftpcc.read(args.data / "pointclouds" / args.file, classes=args.classes or None).points
+            dem = rasterize(points, fit_grid(points, args.resolution))
+        heights, mask = dem.heights, dem.mask
+        target = dem.gridding_rmse * math.sqrt(args.multiple ** 2 - 1)
+        print(f"{args.file}, grid {dem.grid.rows} x {dem.grid.cols}; target DEM RMSE {1e3 * target:.2f} mm "
+              f"({args.multiple}x the {1e3 * dem.gridding_rmse:.1f} mm floor on the points)\n")
     print("| tile | step mm | DEM RMSE mm | coefficient + plane bytes | vs one tile |")
     print("|---|---|---|---|---|")
     base = None
-    for tile in [max(dem.grid.shape)] + args.tiles:
+    whole = max(heights.shape)
+    for tile in [whole] + args.tiles:
         lo, hi = target * 1e-2, target * 1e2
         while hi / lo > 1.01:
             mid = math.sqrt(lo * hi)
-            lo, hi = (mid, hi) if code_tiled(dem.heights, dem.mask, tile, mid)[1] <= target else (lo, mid)
-        size, err = code_tiled(dem.heights, dem.mask, tile, lo)
+            lo, hi = (mid, hi) if code_tiled(heights, mask, tile, mid)[1] <= target else (lo, mid)
+        size, err = code_tiled(heights, mask, tile, lo)
         base = base or size
-        label = f"{tile} (whole map)" if size == base and tile == max(dem.grid.shape) else str(tile)
+        label = f"{tile} (whole map)" if tile == whole else str(tile)
         print(f"| {label} | {1e3 * lo:.1f} | {1e3 * err:.2f} | {size:,} | {size / base:.3f} |")
     return 0
 
