@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench bench-anchors bench-borders fuzz reproduce clean
+.PHONY: demo test bench bench-anchors bench-borders bench-ratecontrol fuzz reproduce clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,10 @@ bench: $(STAMP)
 # Rate-distortion against Draco, JPEG2000, LERC, SZ3 and LAZ (~7 min on the shared 2-core box; ARGS=--quick ~2 min).
 bench-anchors: $(STAMP)
 	$(BIN)/python benchmarks/bench_anchors.py $(ARGS)
+
+# Rate control per target, smooth against consistent fill (~2 min): rewrites its section of docs/benchmarks.md.
+bench-ratecontrol: $(STAMP)
+	$(BIN)/python benchmarks/bench_ratecontrol.py $(ARGS)
 
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)

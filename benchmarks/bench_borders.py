@@ -71,9 +71,10 @@ CONFIGS = [
     ("DFT (paper), no detrend", dict(transform="dft", detrend="none"), None),
     ("DFT + plane", dict(transform="dft", detrend="plane"), None),
     ("DCT (mirrored DFT), no detrend", dict(transform="dct", detrend="none"), None),
-    ("DCT + plane [default]", dict(transform="dct", detrend="plane"), None),
+    ("DCT + plane [default: consistent fill]", dict(transform="dct", detrend="plane"), None),
+    ("DCT + plane, push-pull fill only", dict(transform="dct", detrend="plane", fill="smooth"), None),
     ("DCT + plane, zero fill", dict(transform="dct", detrend="plane", fill="zero"), None),
-    ("DCT + plane, POCS fill", dict(transform="dct", detrend="plane"), pocs_fill),
+    ("DCT + plane, sparsifying POCS fill", dict(transform="dct", detrend="plane", fill="smooth"), pocs_fill),
     ("DCT + plane, zstd instead of ANS", dict(transform="dct", detrend="plane", coder="zstd"), None),
 ]
 DEFAULT = 3
