@@ -12,7 +12,6 @@ Targets are printed as PASS/MISS; nothing here fails.
 
 from __future__ import annotations
 
-import argparse
 import io
 import math
 import sys
@@ -30,9 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import dftpcc  # noqa: E402
 from common import (  # noqa: E402
-    DEFAULT_DATA, FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load,
+    FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load,
     load_average, lower_hull,
-    finish_run, library_label, markdown_table, median_time, pick_cases, verdict, warnings_as_notes,
+    finish_run, library_label, markdown_table, median_time, pick_cases, run_arguments, verdict, warnings_as_notes,
 )
 from dftpcc.grid import Grid, fit_grid, rasterize  # noqa: E402
 
@@ -582,15 +581,8 @@ def plot(m: dict, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="coarser sweeps (about a quarter of the settings)")
-    ap.add_argument("--files", nargs="+", metavar="NAME", help="file names (or prefixes) to run")
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding pointclouds/ and dems/")
+    ap = run_arguments(__doc__.split("\n\n")[0], "coarser sweeps (about a quarter of the settings)")
     ap.add_argument("--no-figures", action="store_true", help="do not write docs/figures/bench_rd_*.png")
-    docs = ap.add_mutually_exclusive_group()
-    docs.add_argument("--docs", action="store_true", default=None,
-                      help="rewrite this script's section of docs/benchmarks.md (default: only on a full run)")
-    docs.add_argument("--no-docs", dest="docs", action="store_false")
     args = ap.parse_args(argv)
     sweeps = dict(compact_cutoffs=COMPACT_CUTOFFS, compact_steps=COMPACT_STEPS, paper_cutoffs=PAPER_CUTOFFS,
                   draco_bits=DRACO_BITS, jpeg2k_psnr=JPEG2K_PSNR, error_bounds=ERROR_BOUNDS)

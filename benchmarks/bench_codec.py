@@ -11,7 +11,6 @@ are printed as PASS/MISS; nothing here fails.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -21,8 +20,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import dftpcc  # noqa: E402
 from common import (  # noqa: E402
-    DEFAULT_DATA, GROUND, Case, bits_at, fmt_bits, load, load_average, lower_hull, markdown_table, median_time,
-    finish_run, median_times, library_label, pick_cases, rmse, shared_grid, verdict, warnings_as_notes,
+    GROUND, Case, bits_at, fmt_bits, load, load_average, lower_hull, markdown_table, median_time,
+    finish_run, median_times, library_label, pick_cases, rmse, run_arguments, shared_grid, verdict,
+    warnings_as_notes,
 )
 
 CASES = (
@@ -161,15 +161,8 @@ def targets(measured: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help=f"cutoffs {QUICK_CUTOFFS} and {QUICK_REPEATS} repeats")
-    ap.add_argument("--files", nargs="+", metavar="NAME", help="file names (or prefixes) to run")
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding pointclouds/ and dems/")
+    ap = run_arguments(__doc__.split("\n\n")[0], f"cutoffs {QUICK_CUTOFFS} and {QUICK_REPEATS} repeats")
     ap.add_argument("--repeats", type=int, help="timed runs per measurement (median quoted)")
-    docs = ap.add_mutually_exclusive_group()
-    docs.add_argument("--docs", action="store_true", default=None,
-                      help="rewrite this script's section of docs/benchmarks.md (default: only on a full run)")
-    docs.add_argument("--no-docs", dest="docs", action="store_false")
     args = ap.parse_args(argv)
     cutoffs = QUICK_CUTOFFS if args.quick else CUTOFFS
     repeats = args.repeats or (QUICK_REPEATS if args.quick else REPEATS)

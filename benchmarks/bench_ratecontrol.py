@@ -19,7 +19,6 @@ floor; there the unit is 0.1 % of the RMS relief.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -29,8 +28,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import dftpcc  # noqa: E402
-from common import (DEFAULT_DATA, GROUND, Case, finish_run, load, load_average, library_label,  # noqa: E402
-                    markdown_table, median_time, pick_cases, shared_grid, verdict, warnings_as_notes)
+from common import (GROUND, Case, finish_run, load, load_average, library_label,  # noqa: E402
+                    markdown_table, median_time, pick_cases, run_arguments, shared_grid, verdict,
+                    warnings_as_notes)
 
 CASES = (
     Case("field_gentle_ign.laz", 0.5, (GROUND,), "gentle"),
@@ -111,14 +111,7 @@ def with_ratios(rows: list[list]) -> list[list]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="one run per measurement instead of a median of 3")
-    ap.add_argument("--files", nargs="+", metavar="NAME", help="file names (or prefixes) to run")
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding pointclouds/ and dems/")
-    docs = ap.add_mutually_exclusive_group()
-    docs.add_argument("--docs", action="store_true", default=None,
-                      help="rewrite this script's section of docs/benchmarks.md (default: only on a full run)")
-    docs.add_argument("--no-docs", dest="docs", action="store_false")
+    ap = run_arguments(__doc__.split("\n\n")[0], "one run per measurement instead of a median of 3")
     args = ap.parse_args(argv)
     repeats = QUICK_REPEATS if args.quick else REPEATS
     t0 = time.perf_counter()

@@ -346,6 +346,19 @@ def library_label() -> str:
     return f"dftpcc {dftpcc.__version__} imported from {where}"
 
 
+def run_arguments(description: str, quick_help: str) -> argparse.ArgumentParser:
+    """The options every benchmark that writes a docs section shares: --quick, --files, --data, --docs."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--quick", action="store_true", help=quick_help)
+    ap.add_argument("--files", nargs="+", metavar="NAME", help="file names (or prefixes) to run")
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding pointclouds/ and dems/")
+    docs = ap.add_mutually_exclusive_group()
+    docs.add_argument("--docs", action="store_true", default=None,
+                      help="rewrite this script's section of docs/benchmarks.md (default: only on a full run)")
+    docs.add_argument("--no-docs", dest="docs", action="store_false")
+    return ap
+
+
 def finish_run(parts: list[str], args: argparse.Namespace, key: str, title: str, run_time_note: str) -> None:
     """End a benchmark: print its run-time line, and write its docs section on a full
     run (neither --quick nor --files) or when --docs asks for it."""
