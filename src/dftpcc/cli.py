@@ -135,7 +135,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
     with _progress(not args.quiet, COMPRESS_STAGES) as on_stage:
         cmap = compress_file(args.input, args.output, resolution=args.resolution, cutoff=args.cutoff,
                              profile=args.profile, format=args.format, classes=args.classes,
-                             drop_nonfinite=args.drop_nonfinite,
+                             drop_nonfinite=args.drop_nonfinite, chunk_points=args.chunk_points,
                              on_stage=on_stage, **options)
     if not args.quiet:
         info = cmap.info()
@@ -298,6 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--coder", choices=("ans", "zstd"), help="entropy coder of the coefficients (default ans)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop points with NaN or infinite coordinates instead of refusing the file")
+    p.add_argument("--chunk-points", type=_positive_int, metavar="N",
+                   help="read LAS/LAZ/PLY/NPY N points at a time, so memory holds the grid and one chunk "
+                        "(automatic when the cloud would not fit in half the available memory)")
     p.add_argument("--format", help="input format if the extension does not tell")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=cmd_compress)

@@ -12,24 +12,60 @@ from .codec import DEFAULT_CUTOFF, Stage, _noop, compress, encode_dem
 from .container import CompressedMap, atomic_write
 from .container import open as open_map
 from .errors import InvalidInputError
-from .formats import format_of, read, read_raster_dem, write, write_geotiff
-from .grid import DEM, Grid
+from .formats import (CHUNKED_FORMATS, DEFAULT_CHUNK_POINTS, format_of, open_chunked, read, read_raster_dem,
+                      stored_point_count, write, write_geotiff)
+from .grid import DEM, CloudSummary, Grid, available_memory, rasterize_chunks
 from .params import make_params
 
-__all__ = ["compress_file", "decompress_file", "dem_from_geotiff"]
+__all__ = ["compress_file", "decompress_file", "dem_from_geotiff", "reads_in_chunks"]
 
 #: Pixels whose sides differ by less than this fraction count as square.
 SQUARE_TOLERANCE = 1e-9
 
 
+#: Peak memory of compressing a cloud held in memory, bytes per point read
+#: (the reader's records, x y z in float64, cell indices and distances),
+#: 69 B measured by benchmarks/bench_memory.py on a 22.7 M-point LAZ, with headroom.
+IN_MEMORY_BYTES_PER_POINT = 100
+#: A cloud is read in chunks when holding it would take more than this
+#: share of the memory available.
+MEMORY_SHARE = 0.5
+
+
+def reads_in_chunks(src: str | os.PathLike[str], format: str | None = None,  # noqa: A002
+                    chunk_points: int | None = None) -> bool:
+    """Whether :func:`compress_file` reads ``src`` in chunks.
+
+    Always when ``chunk_points`` is given (the format must allow it);
+    otherwise when the file's header says it holds more points than
+    :data:`MEMORY_SHARE` of the available memory can compress in one piece.
+    """
+    fmt = format_of(src, format)
+    if chunk_points is not None:
+        if fmt not in CHUNKED_FORMATS:
+            raise InvalidInputError(f"{src}: {fmt} files cannot be read in chunks; chunked reading supports "
+                                    f"{', '.join(f.upper() for f in CHUNKED_FORMATS)}")
+        return True
+    if fmt not in CHUNKED_FORMATS:
+        return False
+    stored, memory = stored_point_count(src, fmt), available_memory()
+    return bool(stored and memory and stored * IN_MEMORY_BYTES_PER_POINT > MEMORY_SHARE * memory)
+
+
 def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
                   resolution: float | str = "auto", cutoff: float | None = None, profile: str = "compact",
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
-                  drop_nonfinite: bool = False, on_stage: Stage = _noop, **options: Any) -> CompressedMap:
+                  drop_nonfinite: bool = False, chunk_points: int | None = None, on_stage: Stage = _noop,
+                  **options: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
     Parameters are those of :func:`dftpcc.compress` and :func:`dftpcc.read`.
     A GeoTIFF source with ``resolution='auto'`` is coded on its own pixel grid.
+    A cloud too large to hold in memory (LAS, LAZ, PLY, NPY) is read in
+    chunks of ``chunk_points`` (default :data:`~dftpcc.formats.DEFAULT_CHUNK_POINTS`),
+    three or four passes over the file, so memory holds the grid and one chunk
+    (:func:`reads_in_chunks`); giving ``chunk_points`` forces it. The file is
+    the same up to float round-off. ``aggregate='median'`` cannot be chunked.
 
     Returns
     -------
@@ -42,6 +78,10 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
         params = make_params(resolution=dem.grid.resolution, cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff,
                              profile=profile, **options)
         data = encode_dem(dem, params, crs=crs, on_stage=on_stage, cutoff_given=cutoff is not None)
+    elif reads_in_chunks(src, format, chunk_points):
+        data = _compress_chunked(src, resolution=resolution, cutoff=cutoff, profile=profile, format=format,
+                                 classes=classes, drop_nonfinite=drop_nonfinite,
+                                 chunk_points=chunk_points or DEFAULT_CHUNK_POINTS, on_stage=on_stage, **options)
     else:
         cloud = read(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite)
         data = compress(cloud.points, resolution=resolution, cutoff=cutoff, profile=profile,
@@ -49,6 +89,34 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
     on_stage("write")
     atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
     return open_map(data)
+
+
+def _compress_chunked(src: str | os.PathLike[str], *, resolution: float | str, cutoff: float | None,
+                      profile: str, format: str | None, classes: Sequence[int] | None,  # noqa: A002
+                      drop_nonfinite: bool, chunk_points: int, on_stage: Stage, **options: Any) -> bytes:
+    """:func:`dftpcc.compress` of a cloud read in chunks: summary, [auto resolution], heights, spread."""
+    # Parameters checked before the first pass over a file that may take minutes to read.
+    params = make_params(resolution=1.0 if resolution == "auto" else resolution,
+                         cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff, profile=profile, **options)
+    if params.aggregate == "median":
+        raise InvalidInputError("aggregate 'median' needs all of a cell's points at once; "
+                                "a cloud read in chunks can use mean, min or max")
+    cloud = open_chunked(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
+                         chunk_points=chunk_points)
+    summary = CloudSummary(hull=params.frame == "oriented")
+    for points in cloud.chunks():
+        summary.add(points)
+    if not summary.count:
+        if cloud.dropped:
+            raise InvalidInputError(f"{src}: all {cloud.dropped:,} points have NaN or infinite coordinates")
+        raise InvalidInputError(f"{src}: no points" + (" of the selected classes" if classes else ""))
+    if resolution == "auto":
+        params = params.replace(resolution=summary.auto_resolution(cloud.chunks))
+    on_stage("grid")
+    grid = summary.fit_grid(params.resolution, frame=params.frame)
+    dem = rasterize_chunks(cloud.chunks, grid, aggregate=params.aggregate)
+    return encode_dem(dem, params, point_count=summary.count, crs=cloud.crs, on_stage=on_stage,
+                      cutoff_given=cutoff is not None)
 
 
 def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,

@@ -24,7 +24,8 @@ from .errors import InvalidInputError, UnsupportedFormatError
 from .grid import DEM, Grid
 from .grid import drop_nonfinite as _drop_nonfinite  # read() has a keyword of that name
 
-__all__ = ["PointCloud", "read", "write", "read_raster_dem", "write_geotiff", "FORMATS", "format_of"]
+__all__ = ["PointCloud", "ChunkedCloud", "read", "open_chunked", "write", "read_raster_dem", "write_geotiff", "FORMATS",
+           "format_of"]
 
 #: Extension -> format name.
 FORMATS = {
@@ -127,8 +128,13 @@ def _read_las(path: Path, classes: Sequence[int] | None) -> PointCloud:
                            np.asarray(las.z, dtype=np.float64)])
     if classes is not None:
         pts = pts[np.isin(np.asarray(las.classification), np.asarray(list(classes)))]
+    return PointCloud(pts, _las_crs(list(las.header.vlrs) + list(getattr(las, "evlrs", None) or [])))
+
+
+def _las_crs(records: Sequence[Any]) -> dict[str, Any]:
+    """The CRS dict of a LAS file's (E)VLRs: its WKT and its georeferencing records, raw."""
     vlrs, wkt = [], None
-    for vlr in list(las.header.vlrs) + list(getattr(las, "evlrs", None) or []):
+    for vlr in records:
         if getattr(vlr, "user_id", "") != _LAS_CRS_USER:
             continue
         data = vlr.record_data_bytes() if hasattr(vlr, "record_data_bytes") else bytes(vlr.record_data)
@@ -136,10 +142,7 @@ def _read_las(path: Path, classes: Sequence[int] | None) -> PointCloud:
                      "data": base64.b64encode(data).decode("ascii")})
         if vlr.record_id == _WKT_RECORD:
             wkt = data.rstrip(b"\0").decode("utf-8", "replace")
-    crs: dict[str, Any] = {}
-    if vlrs:
-        crs = {"wkt": wkt, "las_vlrs": vlrs}
-    return PointCloud(pts, crs)
+    return {"wkt": wkt, "las_vlrs": vlrs} if vlrs else {}
 
 
 def _read_ply(path: Path) -> PointCloud:
@@ -153,8 +156,12 @@ def _read_ply(path: Path) -> PointCloud:
     if not {"x", "y", "z"} <= set(names):
         raise InvalidInputError(f"{path}: PLY vertices lack x, y or z")
     pts = np.column_stack([np.asarray(v[c], dtype=np.float64) for c in "xyz"])
-    wkt = next((c[len("crs "):] for c in ply.comments if c.startswith("crs ")), None)
-    return PointCloud(pts, {"wkt": wkt} if wkt else {})
+    return PointCloud(pts, _ply_crs(ply.comments))
+
+
+def _ply_crs(comments: Sequence[str]) -> dict[str, Any]:
+    wkt = next((c[len("crs "):] for c in comments if c.startswith("crs ")), None)
+    return {"wkt": wkt} if wkt else {}
 
 
 def _read_pcd(path: Path) -> PointCloud:
@@ -192,6 +199,155 @@ def _read_npy(path: Path) -> PointCloud:
     if arr.ndim != 2 or arr.shape[1] < 3:
         raise InvalidInputError(f"{path}: expected an (N, 3) array, got shape {arr.shape}")
     return PointCloud(arr[:, :3])
+
+
+#: Formats :func:`open_chunked` reads chunk by chunk.
+CHUNKED_FORMATS = ("las", "laz", "ply", "npy")
+#: Points per chunk unless told otherwise (about 24 MB of float64 x, y, z).
+DEFAULT_CHUNK_POINTS = 1_000_000
+
+
+@dataclass
+class ChunkedCloud:
+    """A point cloud file read chunk by chunk, as many passes as the caller needs.
+
+    Made by :func:`open_chunked`. Each call of :meth:`chunks` reads the file
+    again, so memory holds one chunk, not the cloud.
+
+    Attributes
+    ----------
+    path : Path
+    format : str
+    crs : dict
+        As :attr:`PointCloud.crs`.
+    stored_points : int
+        Points in the file, before class selection.
+    """
+
+    path: Path
+    format: str
+    crs: dict[str, Any]
+    stored_points: int
+    classes: Sequence[int] | None = None
+    drop_nonfinite: bool = False
+    chunk_points: int = DEFAULT_CHUNK_POINTS
+    #: Rows dropped as non-finite in the last complete pass.
+    dropped: int = 0
+
+    def chunks(self) -> Iterator[np.ndarray]:
+        """One pass over the file: finite (n, 3) float64 arrays of the selected points.
+
+        Raises
+        ------
+        InvalidInputError
+            A row with a NaN or infinite coordinate (unless ``drop_nonfinite``),
+            or a file that stops being readable part way.
+        """
+        from .grid import nonfinite_error
+
+        row, dropped = 0, 0
+        try:
+            for pts in self._raw_chunks():
+                finite = np.isfinite(pts).all(axis=1)
+                if not finite.all():
+                    if not self.drop_nonfinite:
+                        raise nonfinite_error(row + np.flatnonzero(~finite), f"the {self.stored_points:,} in the file")
+                    dropped += int(pts.shape[0] - finite.sum())
+                    pts = pts[finite]
+                row += pts.shape[0]
+                yield pts
+        except InvalidInputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
+            raise InvalidInputError(f"{self.path}: cannot read as {self.format}: {exc}") from None
+        self.dropped = dropped
+
+    def _raw_chunks(self) -> Iterator[np.ndarray]:
+        n = self.chunk_points
+        if self.format in ("las", "laz"):
+            import laspy
+
+            wanted = None if self.classes is None else np.asarray(list(self.classes))
+            with laspy.open(self.path) as fh:
+                for part in fh.chunk_iterator(n):
+                    pts = np.column_stack([np.asarray(part.x, dtype=np.float64), np.asarray(part.y, dtype=np.float64),
+                                           np.asarray(part.z, dtype=np.float64)])
+                    yield pts if wanted is None else pts[np.isin(np.asarray(part.classification), wanted)]
+        else:
+            xyz, _ = _mapped_xyz(self.path, self.format)
+            for start in range(0, self.stored_points, n):
+                yield np.column_stack([np.asarray(c[start:start + n], dtype=np.float64) for c in xyz])
+
+
+def _mapped_xyz(path: Path, fmt: str) -> tuple[list[np.ndarray], dict[str, Any]]:
+    """x, y and z of a PLY or NPY file as arrays mapped from disk (read as sliced), and its CRS."""
+    if fmt == "npy":
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        if arr.dtype.names:
+            return [arr[c] for c in "xyz"], {}
+        if arr.ndim != 2 or arr.shape[1] < 3:
+            raise InvalidInputError(f"{path}: expected an (N, 3) array, got shape {arr.shape}")
+        return [arr[:, k] for k in range(3)], {}
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path), mmap=True)  # binary vertex data stays on disk
+    if "vertex" not in ply:
+        raise InvalidInputError(f"{path}: PLY file has no vertex element")
+    data = ply["vertex"].data
+    if not {"x", "y", "z"} <= set(data.dtype.names or ()):
+        raise InvalidInputError(f"{path}: PLY vertices lack x, y or z")
+    return [data[c] for c in "xyz"], _ply_crs(ply.comments)
+
+
+def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
+                 classes: Sequence[int] | None = None, drop_nonfinite: bool = False,
+                 chunk_points: int = DEFAULT_CHUNK_POINTS) -> ChunkedCloud:
+    """Open a point cloud to read it chunk by chunk (:data:`CHUNKED_FORMATS`).
+
+    Reads the header (and CRS) only. Parameters as :func:`read`, plus
+    ``chunk_points``, the points per chunk.
+
+    Raises
+    ------
+    InvalidInputError
+        Missing or unreadable file, a format that cannot be read in chunks,
+        a bad ``chunk_points``.
+    """
+    path = Path(path)
+    fmt = format_of(path, format)
+    if fmt not in CHUNKED_FORMATS:
+        raise InvalidInputError(f"{path}: {fmt} files cannot be read in chunks; chunked reading supports "
+                                f"{', '.join(f.upper() for f in CHUNKED_FORMATS)}")
+    if not path.is_file():
+        raise InvalidInputError(f"{path}: no such file")
+    if classes is not None and fmt not in ("las", "laz"):
+        raise InvalidInputError("classes can only be selected in LAS/LAZ files")
+    if not (isinstance(chunk_points, int) and chunk_points > 0):
+        raise InvalidInputError(f"chunk_points must be a positive integer, got {chunk_points!r}")
+    try:
+        if fmt in ("las", "laz"):
+            import laspy
+
+            with laspy.open(path) as fh:
+                header = fh.header
+                records = list(header.vlrs) + list(getattr(header, "evlrs", None) or [])
+                stored, crs = int(header.point_count), _las_crs(records)
+        else:
+            xyz, crs = _mapped_xyz(path, fmt)
+            stored = len(xyz[0])
+    except InvalidInputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
+        raise InvalidInputError(f"{path}: cannot read as {fmt}: {exc}") from None
+    return ChunkedCloud(path, fmt, crs, stored, classes, drop_nonfinite, chunk_points)
+
+
+def stored_point_count(path: str | os.PathLike[str], format: str | None = None) -> int | None:  # noqa: A002
+    """Points a file holds, from its header, for the formats read in chunks; else None."""
+    try:
+        return open_chunked(path, format=format).stored_points
+    except InvalidInputError:
+        return None
 
 
 def read_raster_dem(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, Any, dict[str, Any]]:

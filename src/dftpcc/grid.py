@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from typing import Callable, Iterable
 
 import numpy as np
 from scipy import ndimage
@@ -26,9 +27,11 @@ __all__ = [
     "drop_nonfinite",
     "fit_grid",
     "rasterize",
+    "rasterize_chunks",
     "fill_empty",
     "fit_plane",
     "auto_resolution",
+    "CloudSummary",
     "cell_limit",
     "gridding_rmse",
 ]
@@ -267,12 +270,16 @@ def _check_points(points: np.ndarray) -> np.ndarray:
         return points
     finite = np.isfinite(points).all(axis=1)
     if not finite.all():
-        bad = np.flatnonzero(~finite)
-        shown = ", ".join(str(int(i)) for i in bad[:_ROWS_SHOWN]) + (", ..." if bad.size > _ROWS_SHOWN else "")
-        raise InvalidInputError(
-            f"{bad.size} of {points.shape[0]} point(s) have NaN or infinite coordinates (rows {shown}); "
-            f"drop them first (dftpcc.grid.drop_nonfinite, or read(..., drop_nonfinite=True))")
+        raise nonfinite_error(np.flatnonzero(~finite), points.shape[0])
     return points
+
+
+def nonfinite_error(bad_rows: np.ndarray, total: int | str) -> InvalidInputError:
+    """The error for NaN or infinite coordinates in ``bad_rows`` of ``total`` points."""
+    shown = ", ".join(str(int(i)) for i in bad_rows[:_ROWS_SHOWN]) + (", ..." if bad_rows.size > _ROWS_SHOWN else "")
+    return InvalidInputError(
+        f"{bad_rows.size} of {total} point(s) have NaN or infinite coordinates (rows {shown}); "
+        f"drop them first (dftpcc.grid.drop_nonfinite, or read(..., drop_nonfinite=True))")
 
 
 def drop_nonfinite(points: np.ndarray) -> tuple[np.ndarray, int]:
@@ -338,25 +345,35 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
         resolve cells of ``resolution``.
     """
     points = _check_points(points)
-    if not (math.isfinite(resolution) and resolution > 0):
-        raise InvalidInputError(f"resolution must be a positive number of metres, got {resolution!r}")
+    _check_resolution(resolution)
     angle = _min_area_angle(points[:, :2]) if frame == "oriented" else 0.0
-    c, s = math.cos(angle), math.sin(angle)
+    # Each extreme once, column by column: over millions of strided values every pass counts.
+    x_lo, x_hi, y_lo, y_hi = (float(f(points[:, k])) for k in (0, 1) for f in (np.min, np.max))
     if angle:
+        c, s = math.cos(angle), math.sin(angle)
         u = c * points[:, 0] + s * points[:, 1]
         v = -s * points[:, 0] + c * points[:, 1]
+        local = (float(u.min()), float(u.max()), float(v.min()), float(v.max()))
     else:  # the paper's frame: no arithmetic over millions of points
-        u, v = points[:, 0], points[:, 1]
+        local = (x_lo, x_hi, y_lo, y_hi)
+    return _grid_around((x_lo, x_hi, y_lo, y_hi), local, angle, float(points[:, 2].mean()), resolution)
+
+
+def _check_resolution(resolution: float) -> None:
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise InvalidInputError(f"resolution must be a positive number of metres, got {resolution!r}")
+
+
+def _grid_around(xy_extremes: tuple[float, float, float, float], local: tuple[float, float, float, float],
+                 angle: float, z0: float, resolution: float) -> Grid:
+    """The grid of ``resolution`` cells covering ``local`` = (umin, umax, vmin, vmax) in the frame
+    rotated by ``angle``; ``xy_extremes`` = (x_lo, x_hi, y_lo, y_hi) for the precision check."""
+    c, s = math.cos(angle), math.sin(angle)
     # A rotated frame recomputes local coordinates from a rotated origin; a
     # margin of a millionth of a cell keeps round-off from pushing the
     # extreme points outside the grid.
     margin = ROTATED_MARGIN * resolution if angle else 0.0
-    # Each extreme once, column by column: over millions of strided values every pass counts.
-    x_lo, x_hi, y_lo, y_hi = (float(f(points[:, k])) for k in (0, 1) for f in (np.min, np.max))
-    if angle:
-        umin, umax, vmin, vmax = float(u.min()), float(u.max()), float(v.min()), float(v.max())
-    else:
-        umin, umax, vmin, vmax = x_lo, x_hi, y_lo, y_hi
+    umin, umax, vmin, vmax = local
     umin, vmin, umax, vmax = umin - margin, vmin - margin, umax + margin, vmax + margin
     # Sizes in floats first: a tiny resolution or a huge extent must give a
     # clear refusal, not an overflow or an attempt to allocate.
@@ -366,7 +383,7 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
         cols_f = float(np.floor((umax - umin) / resolution + LATTICE_TOLERANCE)) + 1.0
         rows_f = float(np.floor((vmax - vmin) / resolution + LATTICE_TOLERANCE)) + 1.0
     _check_grid_size(rows_f, cols_f, resolution)
-    _check_precision(max(abs(x_lo), abs(x_hi), abs(y_lo), abs(y_hi)), resolution)
+    _check_precision(max(abs(e) for e in xy_extremes), resolution)
     rows, cols = int(rows_f), int(cols_f)
     # Whole cells overhang the points' extent; split the overhang evenly on
     # both sides. Points on a lattice of the cell size (a DEM's pixel
@@ -375,8 +392,7 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
     umin -= (cols * resolution - (umax - umin)) / 2.0
     vmin -= (rows * resolution - (vmax - vmin)) / 2.0
     x0, y0 = c * umin - s * vmin, s * umin + c * vmin
-    return Grid(x0=x0, y0=y0, z0=float(points[:, 2].mean()), resolution=float(resolution),
-                rows=rows, cols=cols, angle=angle)
+    return Grid(x0=x0, y0=y0, z0=z0, resolution=float(resolution), rows=rows, cols=cols, angle=angle)
 
 
 def available_memory() -> int | None:
@@ -462,50 +478,127 @@ def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean") -> DEM
         Heights relative to ``grid.z0`` in metres; 0 in empty cells.
     """
     points = _check_points(points)
-    idx = grid.flat_index(points)
-    keep = idx >= 0
-    if not keep.all():
-        idx, points = idx[keep], points[keep]
-    z = points[:, 2] - grid.z0
-    count = np.bincount(idx, minlength=grid.size)
-    mask = count > 0
-    if aggregate == "mean":
-        total = np.bincount(idx, weights=z, minlength=grid.size)
-        heights = np.divide(total, count, out=np.zeros(grid.size), where=mask)
-    elif aggregate in ("min", "max"):
-        heights = np.full(grid.size, np.inf if aggregate == "min" else -np.inf)
-        (np.minimum if aggregate == "min" else np.maximum).at(heights, idx, z)
-        heights[~mask] = 0.0
-    elif aggregate == "median":
+    idx, z = _cells_of(points, grid)
+    if aggregate == "median":
+        count = np.bincount(idx, minlength=grid.size)
+        mask = count > 0
         heights = np.zeros(grid.size)
         labels = np.flatnonzero(mask)
         heights[labels] = ndimage.median(z, labels=idx, index=labels)
     else:
-        raise InvalidInputError(f"aggregate must be mean, median, min or max; got {aggregate!r}")
-    dz = z - heights[idx]
-    sq = np.multiply(dz, dz, out=dz)  # squared distances: all that is needed from here on
-    spread = _height_spread(sq, idx, grid.resolution)
-    if spread.fraction >= MULTI_HEIGHT_WARN_FRACTION:
-        warnings.warn(spread.describe(), MultiHeightWarning, stacklevel=2)
-    return DEM(grid=grid, heights=heights.reshape(grid.shape), mask=mask.reshape(grid.shape),
-               counts=count.reshape(grid.shape), gridding_rmse=float(np.sqrt(np.mean(sq))),
-               spread=spread)
+        cells = _CellHeights(grid.size, aggregate)
+        cells.add(idx, z)
+        count, heights, mask = cells.count, cells.heights(), cells.count > 0
+    spread = _SpreadCounter(grid)
+    spread.add(idx, z, heights)
+    return spread.dem(heights, mask, count)
 
 
-def _height_spread(sq: np.ndarray, idx: np.ndarray, resolution: float) -> HeightSpread:
-    """``sq``: squared vertical distance of each point to its cell's height."""
-    tolerance = MULTI_HEIGHT_TOLERANCE_CELLS * resolution
-    far = sq > tolerance * tolerance
-    n_far = int(np.count_nonzero(far))
-    return HeightSpread(
-        tolerance_m=tolerance,
-        points=int(sq.size),
-        unrepresented_points=n_far,
-        # bincount, not unique: O(n) instead of a sort over millions of points
-        unrepresented_cells=int(np.count_nonzero(np.bincount(idx[far]))) if n_far else 0,
-        unrepresented_rmse_m=math.sqrt(float(np.sum(sq, where=far)) / n_far) if n_far else 0.0,
-        max_distance_m=math.sqrt(float(sq.max())) if sq.size else 0.0,
-    )
+def rasterize_chunks(chunks: Callable[[], Iterable[np.ndarray]], grid: Grid, *, aggregate: str = "mean") -> DEM:
+    """:func:`rasterize` for a cloud read chunk by chunk, in two passes.
+
+    Memory holds the grid's per-cell arrays and one chunk, not the cloud.
+
+    Parameters
+    ----------
+    chunks : callable
+        Each call starts a new pass: an iterable of finite (n, 3) float64
+        arrays that together are the cloud.
+    grid : Grid
+    aggregate : {'mean', 'min', 'max'}
+        A median needs all of a cell's points at once, so it is refused.
+    """
+    if aggregate == "median":
+        raise InvalidInputError("aggregate 'median' needs all of a cell's points at once; "
+                                "a cloud read in chunks can use mean, min or max")
+    cells = _CellHeights(grid.size, aggregate)
+    for points in chunks():
+        cells.add(*_cells_of(points, grid))
+    heights, mask = cells.heights(), cells.count > 0
+    # Second pass: each point against its cell's final height.
+    spread = _SpreadCounter(grid)
+    for points in chunks():
+        spread.add(*_cells_of(points, grid), heights)
+    return spread.dem(heights, mask, cells.count)
+
+
+def _cells_of(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Flat cell index and height above ``grid.z0`` of the points inside ``grid``."""
+    idx = grid.flat_index(points)
+    keep = idx >= 0
+    if not keep.all():
+        idx, points = idx[keep], points[keep]
+    return idx, points[:, 2] - grid.z0
+
+
+class _CellHeights:
+    """Count and mean, minimum or maximum height per cell, accumulated over chunks of points."""
+
+    def __init__(self, size: int, aggregate: str):
+        if aggregate not in ("mean", "min", "max"):
+            raise InvalidInputError(f"aggregate must be mean, median, min or max; got {aggregate!r}")
+        self.aggregate, self.size = aggregate, size
+        self.count = np.zeros(size, dtype=np.int64)
+        fill = {"mean": 0.0, "min": np.inf, "max": -np.inf}[aggregate]
+        self.acc = np.full(size, fill)
+
+    def add(self, idx: np.ndarray, z: np.ndarray) -> None:
+        self.count += np.bincount(idx, minlength=self.size)
+        if self.aggregate == "mean":
+            self.acc += np.bincount(idx, weights=z, minlength=self.size)
+        else:
+            (np.minimum if self.aggregate == "min" else np.maximum).at(self.acc, idx, z)
+
+    def heights(self) -> np.ndarray:
+        mask = self.count > 0
+        if self.aggregate == "mean":
+            return np.divide(self.acc, self.count, out=np.zeros(self.size), where=mask)
+        return np.where(mask, self.acc, 0.0)
+
+
+class _SpreadCounter:
+    """How far points lie from their cell's height, accumulated over chunks: the gridding RMSE
+    and the :class:`HeightSpread`."""
+
+    def __init__(self, grid: Grid):
+        self.grid = grid
+        self.tolerance = MULTI_HEIGHT_TOLERANCE_CELLS * grid.resolution
+        self.points = self.far_points = 0
+        self.sq_sum = self.far_sq_sum = self.max_sq = 0.0
+        self.far_cells: np.ndarray | None = None  # allocated at the first far point
+
+    def add(self, idx: np.ndarray, z: np.ndarray, heights: np.ndarray) -> None:
+        dz = z - heights[idx]
+        sq = np.multiply(dz, dz, out=dz)  # squared distances: all that is needed from here on
+        self.points += sq.size
+        self.sq_sum += float(sq.sum())
+        if sq.size:
+            self.max_sq = max(self.max_sq, float(sq.max()))
+        far = sq > self.tolerance * self.tolerance
+        n_far = int(np.count_nonzero(far))
+        if n_far:
+            self.far_points += n_far
+            self.far_sq_sum += float(np.sum(sq, where=far))
+            if self.far_cells is None:
+                self.far_cells = np.zeros(self.grid.size, dtype=bool)
+            self.far_cells[idx[far]] = True
+
+    def dem(self, heights: np.ndarray, mask: np.ndarray, count: np.ndarray) -> DEM:
+        """The DEM, with its gridding RMSE and spread; warns when the spread is large."""
+        spread = HeightSpread(
+            tolerance_m=self.tolerance,
+            points=self.points,
+            unrepresented_points=self.far_points,
+            unrepresented_cells=int(np.count_nonzero(self.far_cells)) if self.far_cells is not None else 0,
+            unrepresented_rmse_m=math.sqrt(self.far_sq_sum / self.far_points) if self.far_points else 0.0,
+            max_distance_m=math.sqrt(self.max_sq),
+        )
+        if spread.fraction >= MULTI_HEIGHT_WARN_FRACTION:
+            warnings.warn(spread.describe(), MultiHeightWarning, stacklevel=3)
+        shape = self.grid.shape
+        return DEM(grid=self.grid, heights=heights.reshape(shape), mask=mask.reshape(shape),
+                   counts=count.reshape(shape), gridding_rmse=math.sqrt(self.sq_sum / self.points) if self.points
+                   else 0.0, spread=spread)
 
 
 def gridding_rmse(points: np.ndarray, dem: DEM) -> float:
@@ -614,22 +707,118 @@ def auto_resolution(points: np.ndarray) -> float:
     """
     points = _check_points(points)
     xy = points[:, :2]
-    extent = np.ptp(xy, axis=0)
+    lo = xy.min(axis=0)
+    extent = xy.max(axis=0) - lo
+    trial, line = _auto_trial(extent, points.shape[0])
+    if line:
+        return trial
+    cols = np.floor((xy[:, 0] - lo[0]) / trial).astype(np.int64)
+    rows = np.floor((xy[:, 1] - lo[1]) / trial).astype(np.int64)
+    occupied = np.unique(rows * (int(cols.max()) + 1) + cols).size
+    return _auto_from_occupied(points.shape[0], occupied, trial)
+
+
+def _auto_trial(extent: np.ndarray, n: int) -> tuple[float, bool]:
+    """The trial cell size for :func:`auto_resolution`, or (resolution, True) for a line of points."""
     area = float(extent[0] * extent[1])
     if not math.isfinite(area):
         raise InvalidInputError(f"cannot choose a resolution automatically: the points span "
                                 f"{extent[0]:.3g} x {extent[1]:.3g} m; give a resolution in metres")
     if float(extent.max()) <= 0:
         raise InvalidInputError(
-            f"cannot choose a resolution automatically: all {points.shape[0]:,} point(s) lie at one x, y "
+            f"cannot choose a resolution automatically: all {n:,} point(s) lie at one x, y "
             f"position; give a resolution in metres (the map is then a single cell)")
     if area <= 0:
         # A line along x or y (a transect): density along its length.
-        spacing = float(extent.max()) / (points.shape[0] - 1)
-        return AUTO_POINTS_PER_CELL * spacing
-    trial = math.sqrt(area / points.shape[0])
-    cols = np.floor((xy[:, 0] - xy[:, 0].min()) / trial).astype(np.int64)
-    rows = np.floor((xy[:, 1] - xy[:, 1].min()) / trial).astype(np.int64)
-    occupied = np.unique(rows * (int(cols.max()) + 1) + cols).size
-    density = points.shape[0] / (occupied * trial * trial)
+        spacing = float(extent.max()) / (n - 1)
+        return AUTO_POINTS_PER_CELL * spacing, True
+    return math.sqrt(area / n), False
+
+
+def _auto_from_occupied(n: int, occupied: int, trial: float) -> float:
+    density = n / (occupied * trial * trial)
     return float(math.sqrt(AUTO_POINTS_PER_CELL / density))
+
+
+class CloudSummary:
+    """What fitting a grid needs to know of a cloud read in chunks, gathered in one pass.
+
+    Attributes
+    ----------
+    count : int
+        Points seen.
+    z_sum : float
+        Sum of their heights (the projection plane is their mean).
+    extremes : list of float
+        x_lo, x_hi, y_lo, y_hi.
+    hull : ndarray, shape (k, 2), or None
+        With ``hull=True``: the vertices of the convex hull of x, y so far
+        (an oriented frame is fitted to them).
+    """
+
+    def __init__(self, *, hull: bool = False):
+        self.count, self.z_sum = 0, 0.0
+        self.extremes = [math.inf, -math.inf, math.inf, -math.inf]
+        self.hull: np.ndarray | None = np.zeros((0, 2)) if hull else None
+
+    def add(self, points: np.ndarray) -> None:
+        if not points.shape[0]:
+            return
+        self.count += points.shape[0]
+        self.z_sum += float(points[:, 2].sum())
+        lo = [float(points[:, k].min()) for k in (0, 1)]
+        hi = [float(points[:, k].max()) for k in (0, 1)]
+        e = self.extremes
+        self.extremes = [min(e[0], lo[0]), max(e[1], hi[0]), min(e[2], lo[1]), max(e[3], hi[1])]
+        if self.hull is not None:
+            self.hull = _hull_vertices(np.vstack([self.hull, points[:, :2]]))
+
+    def fit_grid(self, resolution: float, *, frame: str = "axis") -> Grid:
+        """:func:`fit_grid` for the cloud summarised here (same grid, up to float round-off)."""
+        if not self.count:
+            raise InvalidInputError("the point cloud is empty")
+        _check_resolution(resolution)
+        x_lo, x_hi, y_lo, y_hi = self.extremes
+        angle = 0.0
+        local = (x_lo, x_hi, y_lo, y_hi)
+        if frame == "oriented":
+            if self.hull is None:
+                raise ValueError("an oriented frame needs CloudSummary(hull=True)")
+            angle = _min_area_angle(self.hull)
+            if angle:  # a linear function is extreme at the hull's vertices
+                c, s = math.cos(angle), math.sin(angle)
+                u = c * self.hull[:, 0] + s * self.hull[:, 1]
+                v = -s * self.hull[:, 0] + c * self.hull[:, 1]
+                local = (float(u.min()), float(u.max()), float(v.min()), float(v.max()))
+        return _grid_around((x_lo, x_hi, y_lo, y_hi), local, angle, self.z_sum / self.count, resolution)
+
+    def auto_resolution(self, chunks: Callable[[], Iterable[np.ndarray]]) -> float:
+        """:func:`auto_resolution` for the cloud summarised here; one more pass over ``chunks``."""
+        if not self.count:
+            raise InvalidInputError("the point cloud is empty")
+        x_lo, x_hi, y_lo, y_hi = self.extremes
+        trial, line = _auto_trial(np.array([x_hi - x_lo, y_hi - y_lo]), self.count)
+        if line:
+            return trial
+        cols = int(np.floor((x_hi - x_lo) / trial)) + 1
+        rows = int(np.floor((y_hi - y_lo) / trial)) + 1
+        occupied = np.zeros(rows * cols, dtype=bool)  # about one byte per point
+        for points in chunks():
+            c = np.floor((points[:, 0] - x_lo) / trial).astype(np.int64)
+            r = np.floor((points[:, 1] - y_lo) / trial).astype(np.int64)
+            occupied[r * cols + c] = True
+        return _auto_from_occupied(self.count, int(np.count_nonzero(occupied)), trial)
+
+
+def _hull_vertices(xy: np.ndarray) -> np.ndarray:
+    """The points of ``xy`` on its convex hull (all of them when the hull is degenerate and small)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if xy.shape[0] <= 3:
+        return xy
+    try:
+        return xy[ConvexHull(xy - xy.mean(axis=0)).vertices]
+    except (QhullError, ValueError):
+        # Collinear points: the two ends of the line are what any frame needs.
+        order = np.lexsort((xy[:, 1], xy[:, 0]))
+        return xy[[order[0], order[-1]]]
