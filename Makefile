@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench bench-anchors bench-borders bench-ratecontrol fuzz reproduce clean
+.PHONY: demo test bench bench-anchors bench-borders bench-ratecontrol bench-memory fuzz reproduce clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,10 @@ bench-anchors: $(STAMP)
 # Rate control per target, smooth against consistent fill (~2 min): rewrites its section of docs/benchmarks.md.
 bench-ratecontrol: $(STAMP)
 	$(BIN)/python benchmarks/bench_ratecontrol.py $(ARGS)
+
+# Peak memory of a large cloud read whole and in chunks (~1 min, temporary LAZ files of up to 22.7 M points).
+bench-memory: $(STAMP)
+	$(BIN)/python benchmarks/bench_memory.py $(ARGS)
 
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)

@@ -25,7 +25,7 @@ SQUARE_TOLERANCE = 1e-9
 
 #: Peak memory of compressing a cloud held in memory, bytes per point read
 #: (the reader's records, x y z in float64, cell indices and distances),
-#: 69 B measured by benchmarks/bench_memory.py on a 22.7 M-point LAZ, with headroom.
+#: 76-79 B measured by benchmarks/bench_memory.py on LAZ files of 2.8-22.7 M points, with headroom.
 IN_MEMORY_BYTES_PER_POINT = 100
 #: A cloud is read in chunks when holding it would take more than this
 #: share of the memory available.

@@ -251,7 +251,7 @@ class ChunkedCloud:
                 finite = np.isfinite(pts).all(axis=1)
                 if not finite.all():
                     if not self.drop_nonfinite:
-                        raise nonfinite_error(row + np.flatnonzero(~finite), f"the {self.stored_points:,} in the file")
+                        raise nonfinite_error(row + np.flatnonzero(~finite), f"the file's {self.stored_points:,}")
                     dropped += int(pts.shape[0] - finite.sum())
                     pts = pts[finite]
                 row += pts.shape[0]
