@@ -135,7 +135,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
     with _progress(not args.quiet, COMPRESS_STAGES) as on_stage:
         cmap = compress_file(args.input, args.output, resolution=args.resolution, cutoff=args.cutoff,
                              profile=args.profile, format=args.format, classes=args.classes,
-                             drop_nonfinite=args.drop_nonfinite, chunk_points=args.chunk_points,
+                             drop_nonfinite=args.drop_nonfinite, chunk_points=args.chunk_points, topic=args.topic,
                              on_stage=on_stage, **options)
     if not args.quiet:
         info = cmap.info()
@@ -268,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("compress", help="point cloud -> .dftpc", description=(
         "Grid a point cloud into a DEM, low-pass its spectrum and write a .dftpc file. "
-        "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .tif"))
+        "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .tif, and ROS bags (.bag, or a ROS 2 bag folder)"))
     p.add_argument("input")
     p.add_argument("output", help="the .dftpc file to write")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto",
@@ -298,6 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--coder", choices=("ans", "zstd"), help="entropy coder of the coefficients (default ans)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop points with NaN or infinite coordinates instead of refusing the file")
+    p.add_argument("--topic", help="ROS bag: the sensor_msgs/PointCloud2 topic to read (default: the only one)")
     p.add_argument("--chunk-points", type=_positive_int, metavar="N",
                    help="read LAS/LAZ/PLY/NPY N points at a time, so memory holds the grid and one chunk "
                         "(automatic when the cloud would not fit in half the available memory)")

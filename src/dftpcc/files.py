@@ -55,11 +55,12 @@ def reads_in_chunks(src: str | os.PathLike[str], format: str | None = None,  # n
 def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
                   resolution: float | str = "auto", cutoff: float | None = None, profile: str = "compact",
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
-                  drop_nonfinite: bool = False, chunk_points: int | None = None, on_stage: Stage = _noop,
-                  **options: Any) -> CompressedMap:
+                  drop_nonfinite: bool = False, chunk_points: int | None = None, topic: str | None = None,
+                  on_stage: Stage = _noop, **options: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
-    Parameters are those of :func:`dftpcc.compress` and :func:`dftpcc.read`.
+    Parameters are those of :func:`dftpcc.compress` and :func:`dftpcc.read`
+    (``topic``: the PointCloud2 topic of a ROS bag).
     A GeoTIFF source with ``resolution='auto'`` is coded on its own pixel grid.
     A cloud too large to hold in memory (LAS, LAZ, PLY, NPY) is read in
     chunks of ``chunk_points`` (default :data:`~dftpcc.formats.DEFAULT_CHUNK_POINTS`),
@@ -80,10 +81,10 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
         data = encode_dem(dem, params, crs=crs, on_stage=on_stage, cutoff_given=cutoff is not None)
     elif reads_in_chunks(src, format, chunk_points):
         data = _compress_chunked(src, resolution=resolution, cutoff=cutoff, profile=profile, format=format,
-                                 classes=classes, drop_nonfinite=drop_nonfinite,
+                                 classes=classes, drop_nonfinite=drop_nonfinite, topic=topic,
                                  chunk_points=chunk_points or DEFAULT_CHUNK_POINTS, on_stage=on_stage, **options)
     else:
-        cloud = read(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite)
+        cloud = read(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite, topic=topic)
         data = compress(cloud.points, resolution=resolution, cutoff=cutoff, profile=profile,
                         crs=cloud.crs, on_stage=on_stage, **options)
     on_stage("write")
@@ -93,7 +94,8 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
 
 def _compress_chunked(src: str | os.PathLike[str], *, resolution: float | str, cutoff: float | None,
                       profile: str, format: str | None, classes: Sequence[int] | None,  # noqa: A002
-                      drop_nonfinite: bool, chunk_points: int, on_stage: Stage, **options: Any) -> bytes:
+                      drop_nonfinite: bool, topic: str | None, chunk_points: int, on_stage: Stage,
+                      **options: Any) -> bytes:
     """:func:`dftpcc.compress` of a cloud read in chunks: summary, [auto resolution], heights, spread."""
     # Parameters checked before the first pass over a file that may take minutes to read.
     params = make_params(resolution=1.0 if resolution == "auto" else resolution,
@@ -102,7 +104,7 @@ def _compress_chunked(src: str | os.PathLike[str], *, resolution: float | str, c
         raise InvalidInputError("aggregate 'median' needs all of a cell's points at once; "
                                 "a cloud read in chunks can use mean, min or max")
     cloud = open_chunked(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
-                         chunk_points=chunk_points)
+                         chunk_points=chunk_points, topic=topic)
     summary = CloudSummary(hull=params.frame == "oriented")
     for points in cloud.chunks():
         summary.add(points)

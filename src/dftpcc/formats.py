@@ -20,7 +20,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from .errors import InvalidInputError, UnsupportedFormatError
+from . import rosbag
+from .errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
 from .grid import DEM, Grid
 from .grid import drop_nonfinite as _drop_nonfinite  # read() has a keyword of that name
 
@@ -32,6 +33,7 @@ FORMATS = {
     ".las": "las", ".laz": "laz", ".ply": "ply", ".pcd": "pcd",
     ".xyz": "xyz", ".txt": "xyz", ".csv": "csv", ".npy": "npy",
     ".tif": "tif", ".tiff": "tif",
+    ".bag": "rosbag", ".db3": "rosbag", ".mcap": "rosbag",
 }
 #: LAS VLRs that carry georeferencing (LASF_Projection).
 _LAS_CRS_USER = "LASF_Projection"
@@ -61,6 +63,8 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
         if fmt not in set(FORMATS.values()):
             raise UnsupportedFormatError(f"unknown format {fmt!r}; known: {', '.join(sorted(set(FORMATS.values())))}")
         return fmt
+    if Path(path).is_dir() and (Path(path) / "metadata.yaml").is_file():
+        return "rosbag"  # a ROS 2 bag is a folder
     ext = Path(path).suffix.lower()
     if ext not in FORMATS:
         raise UnsupportedFormatError(
@@ -70,21 +74,25 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
 
 
 def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
-         classes: Sequence[int] | None = None, drop_nonfinite: bool = False) -> PointCloud:
+         classes: Sequence[int] | None = None, drop_nonfinite: bool = False,
+         topic: str | None = None) -> PointCloud:
     """Read a point cloud.
 
     Parameters
     ----------
     path : path
     format : str, optional
-        ``las``, ``laz``, ``ply``, ``pcd``, ``xyz``, ``csv``, ``npy`` or
+        ``las``, ``laz``, ``ply``, ``pcd``, ``xyz``, ``csv``, ``npy``,
         ``tif`` (every valid pixel of a GeoTIFF DEM becomes a point at its
-        centre); default from the extension.
+        centre) or ``rosbag`` (a ROS 1 ``.bag`` or a ROS 2 bag folder, see
+        :mod:`dftpcc.rosbag`); default from the extension.
     classes : sequence of int, optional
         LAS/LAZ only: keep points of these classification codes (2 = ground).
     drop_nonfinite : bool
         Drop rows with a NaN or infinite coordinate instead of returning
         them (compression refuses them). Default: keep them.
+    topic : str, optional
+        ROS bags only: the PointCloud2 topic (default: the bag's only one).
 
     Raises
     ------
@@ -93,18 +101,17 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
     """
     path = Path(path)
     fmt = format_of(path, format)
-    if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
-    if classes is not None and fmt not in ("las", "laz"):
-        raise InvalidInputError("classes can only be selected in LAS/LAZ files")
+    _check_source(path, fmt, classes, topic)
     reader = {"las": _read_las, "laz": _read_las, "ply": _read_ply, "pcd": _read_pcd,
-              "xyz": _read_text, "csv": _read_text, "npy": _read_npy, "tif": _read_tif}[fmt]
+              "xyz": _read_text, "csv": _read_text, "npy": _read_npy, "tif": _read_tif}.get(fmt)
     try:
         if fmt in ("las", "laz"):
             cloud = reader(path, classes)
+        elif fmt == "rosbag":
+            cloud = PointCloud(rosbag.read_bag(path, topic))
         else:
             cloud = reader(path)
-    except InvalidInputError:
+    except (InvalidInputError, MissingDependencyError):
         raise
     except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
         raise InvalidInputError(f"{path}: cannot read as {fmt}: {exc}") from None
@@ -118,6 +125,18 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
     if cloud.points.shape[0] == 0:
         raise InvalidInputError(f"{path}: no points" + (" of the selected classes" if classes else ""))
     return cloud
+
+
+def _check_source(path: Path, fmt: str, classes: Sequence[int] | None, topic: str | None) -> None:
+    """The checks every reader shares: the file exists, the options fit the format."""
+    if fmt == "rosbag":
+        rosbag.bag_folder(path)  # a file or a ROS 2 folder
+    elif not path.is_file():
+        raise InvalidInputError(f"{path}: no such file")
+    if classes is not None and fmt not in ("las", "laz"):
+        raise InvalidInputError("classes can only be selected in LAS/LAZ files")
+    if topic is not None and fmt != "rosbag":
+        raise InvalidInputError("a topic can only be chosen in ROS bags")
 
 
 def _read_las(path: Path, classes: Sequence[int] | None) -> PointCloud:
@@ -202,7 +221,7 @@ def _read_npy(path: Path) -> PointCloud:
 
 
 #: Formats :func:`open_chunked` reads chunk by chunk.
-CHUNKED_FORMATS = ("las", "laz", "ply", "npy")
+CHUNKED_FORMATS = ("las", "laz", "ply", "npy", "rosbag")
 #: Points per chunk unless told otherwise (about 24 MB of float64 x, y, z).
 DEFAULT_CHUNK_POINTS = 1_000_000
 
@@ -220,15 +239,17 @@ class ChunkedCloud:
     format : str
     crs : dict
         As :attr:`PointCloud.crs`.
-    stored_points : int
-        Points in the file, before class selection.
+    stored_points : int or None
+        Points in the file, before class selection (None for a ROS bag,
+        whose messages would all have to be read to count them).
     """
 
     path: Path
     format: str
     crs: dict[str, Any]
-    stored_points: int
+    stored_points: int | None
     classes: Sequence[int] | None = None
+    topic: str | None = None
     drop_nonfinite: bool = False
     chunk_points: int = DEFAULT_CHUNK_POINTS
     #: Rows dropped as non-finite in the last complete pass.
@@ -251,12 +272,13 @@ class ChunkedCloud:
                 finite = np.isfinite(pts).all(axis=1)
                 if not finite.all():
                     if not self.drop_nonfinite:
-                        raise nonfinite_error(row + np.flatnonzero(~finite), f"the file's {self.stored_points:,}")
+                        total = "the file's" + (f" {self.stored_points:,}" if self.stored_points is not None else "")
+                        raise nonfinite_error(row + np.flatnonzero(~finite), total)
                     dropped += int(pts.shape[0] - finite.sum())
                     pts = pts[finite]
                 row += pts.shape[0]
                 yield pts
-        except InvalidInputError:
+        except (InvalidInputError, MissingDependencyError):
             raise
         except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
             raise InvalidInputError(f"{self.path}: cannot read as {self.format}: {exc}") from None
@@ -273,6 +295,8 @@ class ChunkedCloud:
                     pts = np.column_stack([np.asarray(part.x, dtype=np.float64), np.asarray(part.y, dtype=np.float64),
                                            np.asarray(part.z, dtype=np.float64)])
                     yield pts if wanted is None else pts[np.isin(np.asarray(part.classification), wanted)]
+        elif self.format == "rosbag":
+            yield from rosbag.bag_chunks(self.path, self.topic, n)
         else:
             xyz, _ = _mapped_xyz(self.path, self.format)
             for start in range(0, self.stored_points, n):
@@ -301,7 +325,7 @@ def _mapped_xyz(path: Path, fmt: str) -> tuple[list[np.ndarray], dict[str, Any]]
 
 def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
                  classes: Sequence[int] | None = None, drop_nonfinite: bool = False,
-                 chunk_points: int = DEFAULT_CHUNK_POINTS) -> ChunkedCloud:
+                 chunk_points: int = DEFAULT_CHUNK_POINTS, topic: str | None = None) -> ChunkedCloud:
     """Open a point cloud to read it chunk by chunk (:data:`CHUNKED_FORMATS`).
 
     Reads the header (and CRS) only. Parameters as :func:`read`, plus
@@ -318,10 +342,7 @@ def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # 
     if fmt not in CHUNKED_FORMATS:
         raise InvalidInputError(f"{path}: {fmt} files cannot be read in chunks; chunked reading supports "
                                 f"{', '.join(f.upper() for f in CHUNKED_FORMATS)}")
-    if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
-    if classes is not None and fmt not in ("las", "laz"):
-        raise InvalidInputError("classes can only be selected in LAS/LAZ files")
+    _check_source(path, fmt, classes, topic)
     if not (isinstance(chunk_points, int) and chunk_points > 0):
         raise InvalidInputError(f"chunk_points must be a positive integer, got {chunk_points!r}")
     try:
@@ -332,6 +353,8 @@ def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # 
                 header = fh.header
                 records = list(header.vlrs) + list(getattr(header, "evlrs", None) or [])
                 stored, crs = int(header.point_count), _las_crs(records)
+        elif fmt == "rosbag":
+            stored, crs = None, {}
         else:
             xyz, crs = _mapped_xyz(path, fmt)
             stored = len(xyz[0])
@@ -339,7 +362,7 @@ def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # 
         raise
     except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
         raise InvalidInputError(f"{path}: cannot read as {fmt}: {exc}") from None
-    return ChunkedCloud(path, fmt, crs, stored, classes, drop_nonfinite, chunk_points)
+    return ChunkedCloud(path, fmt, crs, stored, classes, topic, drop_nonfinite, chunk_points)
 
 
 def stored_point_count(path: str | os.PathLike[str], format: str | None = None) -> int | None:  # noqa: A002
@@ -399,6 +422,8 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
     fmt = format_of(path, format)
     if fmt == "tif":
         raise UnsupportedFormatError("a GeoTIFF holds a DEM, not points: use write_geotiff")
+    if fmt == "rosbag":
+        raise UnsupportedFormatError("ROS bags are read, not written: write .ply, .pcd, .las or .npy")
     points = np.asarray(points, dtype=np.float64)
     writer = {"las": _write_las, "laz": _write_las, "ply": _write_ply, "pcd": _write_pcd,
               "xyz": _write_text, "csv": _write_text, "npy": _write_npy}[fmt]
