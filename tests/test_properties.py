@@ -79,7 +79,7 @@ def parameters(draw, points: np.ndarray) -> dict:
         options["detrend"] = draw(st.sampled_from(["none", "plane"]))
         if draw(st.booleans()):
             options["step"] = draw(st.sampled_from([0.001, 0.01, 0.1]))
-    options["fill"] = draw(st.sampled_from(["smooth", "zero"]))
+    options["fill"] = draw(st.sampled_from(["consistent", "smooth", "zero"]))
     options["frame"] = draw(st.sampled_from(["axis", "oriented"]))
     options["aggregate"] = draw(st.sampled_from(["mean", "median", "min", "max"]))
     return options
@@ -135,6 +135,27 @@ def test_round_trip_and_stated_errors_hold(case):
     _assert_states(stats["dem_max_error_m"], float(np.abs(err).max()))
     assert cmap.header.point_count == points.shape[0]
     assert cmap.header.cell_count == rows.size
+
+
+@SETTINGS
+@given(cases(), st.sampled_from([0.3, 1.0, 3.0]))
+def test_rate_control_keeps_its_promise_and_the_consistent_fill_never_costs_more(case, factor):
+    points, options = case
+    keep = {k: options[k] for k in ("resolution", "frame", "aggregate")}
+    dem = _gridded(points, keep)
+    target = factor * max(float(np.std(dem.heights[dem.mask])), 1e-3) / 10
+    files = {}
+    for fill in ("smooth", "consistent"):
+        data = _compress(points, dict(keep, target_rmse=target, fill=fill))
+        cmap = dftpcc.open(data)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            err = (cmap.read_dem().heights - dem.heights)[dem.mask]
+        assert float(np.sqrt(np.mean(err**2))) <= target * (1 + REL) + ABS
+        assert cmap.header.stats["dem_rmse_m"] <= target * (1 + REL) + ABS
+        files[fill] = cmap.header.stats["coef_bytes"]
+    # The refilled search is kept only when it is smaller.
+    assert files["consistent"] <= files["smooth"], files
 
 
 @SETTINGS

@@ -140,3 +140,23 @@ def test_bag_mistakes_fail_clearly(tmp_path, terrain, monkeypatch):
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # as if the extra were not installed
     with pytest.raises(MissingDependencyError, match=r"dftpcc\[ros\]"):
         dftpcc.read(bag)
+
+
+def test_inconsistent_messages_fail_clearly(tmp_path, terrain):
+    def short_data(ts):
+        msg = _message(ts, terrain[:100])
+        msg.data = msg.data[:-7]  # fewer bytes than width x point_step
+        return [msg]
+
+    def field_outside_the_point(ts):
+        msg = _message(ts, terrain[:100])
+        msg.fields[2].offset = msg.point_step  # z beyond the record
+        return [msg]
+
+    for name, make in (("short", short_data), ("outside", field_outside_the_point)):
+        bag = write_bag(tmp_path / name, {"/map": make})
+        with pytest.raises(InvalidInputError, match=r"/map: (a PointCloud2 message is inconsistent|PointCloud2 field z at byte 16 does not fit)"):
+            dftpcc.read(bag)
+        with pytest.raises(InvalidInputError):
+            files.compress_file(bag, tmp_path / f"{name}.dftpc", resolution=0.5, chunk_points=50)
+        assert not (tmp_path / f"{name}.dftpc").exists()

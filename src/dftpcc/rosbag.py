@@ -89,15 +89,18 @@ def pointcloud2_xyz(msg: Any) -> np.ndarray:
     if not {"x", "y", "z"} <= set(fields):
         raise InvalidInputError(f"a PointCloud2 message has no x, y or z field (fields: {', '.join(fields)})")
     order = ">" if msg.is_bigendian else "<"
+    step = int(msg.point_step)
     names, formats, offsets = [], [], []
     for name in "xyz":
         f = fields[name]
         if f.datatype not in _FIELD_TYPES:
             raise InvalidInputError(f"PointCloud2 field {name} has unknown datatype {f.datatype}")
+        kind = order + _FIELD_TYPES[f.datatype]
+        if not 0 <= f.offset <= step - np.dtype(kind).itemsize:
+            raise InvalidInputError(f"PointCloud2 field {name} at byte {f.offset} does not fit in a {step}-byte point")
         names.append(name)
-        formats.append(order + _FIELD_TYPES[f.datatype])
+        formats.append(kind)
         offsets.append(f.offset)
-    step = int(msg.point_step)
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
     width, height, row_step = int(msg.width), int(msg.height), int(msg.row_step)
     data = np.asarray(msg.data, dtype=np.uint8)
@@ -130,7 +133,10 @@ def _clouds(path: Path, topic: str | None) -> Iterator[np.ndarray]:
                 raise InvalidInputError(
                     f"{path}: messages on {connection.topic} are in frames {frame!r} and {msg.header.frame_id!r}; "
                     f"dftpcc applies no transform tree, so a map must be recorded in one frame")
-            yield pointcloud2_xyz(msg)
+            try:
+                yield pointcloud2_xyz(msg)
+            except InvalidInputError as exc:
+                raise InvalidInputError(f"{path}: {connection.topic}: {exc}") from None
 
 
 def read_bag(path: str | Path, topic: str | None = None) -> np.ndarray:
