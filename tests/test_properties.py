@@ -159,6 +159,45 @@ def test_rate_control_keeps_its_promise_and_the_consistent_fill_never_costs_more
 
 
 @SETTINGS
+@given(cases(), st.integers(1, 3000))
+def test_a_cloud_read_in_chunks_gives_the_dem_of_a_whole_read(tmp_path_factory, case, chunk):
+    from dftpcc.files import compress_file
+    from dftpcc.formats import open_chunked
+    from dftpcc.grid import CloudSummary, rasterize_chunks
+
+    points, options = case
+    assume(options["aggregate"] != "median")  # refused in chunks
+    src = tmp_path_factory.mktemp("chunks") / "cloud.npy"
+    np.save(src, points)
+    cloud = open_chunked(src, chunk_points=chunk)
+    summary = CloudSummary(hull=options["frame"] == "oriented")
+    for part in cloud.chunks():
+        summary.add(part)
+    whole = _gridded(points, options)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MultiHeightWarning)
+        grid = summary.fit_grid(options["resolution"], frame=options["frame"])
+        chunked = rasterize_chunks(cloud.chunks, grid, aggregate=options["aggregate"])
+    g = whole.grid
+    assert (grid.rows, grid.cols) == (g.rows, g.cols)
+    scale = 1.0 + float(np.abs(points).max())
+    assert (grid.x0, grid.y0, grid.z0, grid.angle) == pytest.approx((g.x0, g.y0, g.z0, g.angle), rel=0,
+                                                                    abs=1e-9 * scale)
+    np.testing.assert_array_equal(chunked.mask, whole.mask)
+    np.testing.assert_array_equal(chunked.counts, whole.counts)
+    np.testing.assert_allclose(chunked.heights + grid.z0, whole.heights + g.z0, rtol=0, atol=1e-9 * scale)
+    assert chunked.gridding_rmse == pytest.approx(whole.gridding_rmse, rel=1e-6, abs=1e-9 * scale)
+    assert chunked.spread.unrepresented_points == whole.spread.unrepresented_points
+    # And the file: the same cells, the same points.
+    kept = {k: v for k, v in options.items() if k != "resolution"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m = compress_file(src, src.with_suffix(".dftpc"), resolution=options["resolution"], chunk_points=chunk, **kept)
+    assert m.header.point_count == points.shape[0]
+    assert m.header.cell_count == int(whole.mask.sum())
+
+
+@SETTINGS
 @given(cases())
 def test_same_input_same_bytes(case):
     points, options = case

@@ -12,8 +12,8 @@ from .codec import DEFAULT_CUTOFF, Stage, _noop, compress, encode_dem
 from .container import CompressedMap, atomic_write
 from .container import open as open_map
 from .errors import InvalidInputError
-from .formats import (CHUNKED_FORMATS, DEFAULT_CHUNK_POINTS, format_of, open_chunked, read, read_raster_dem,
-                      stored_point_count, write, write_geotiff)
+from .formats import (CHUNKED_FORMATS, DEFAULT_CHUNK_POINTS, check_chunkable, format_of, open_chunked, read,
+                      read_raster_dem, stored_point_count, write, write_geotiff)
 from .grid import DEM, CloudSummary, Grid, available_memory, rasterize_chunks
 from .params import make_params
 
@@ -37,14 +37,12 @@ def reads_in_chunks(src: str | os.PathLike[str], format: str | None = None,  # n
     """Whether :func:`compress_file` reads ``src`` in chunks.
 
     Always when ``chunk_points`` is given (the format must allow it);
-    otherwise when the file's header says it holds more points than
-    :data:`MEMORY_SHARE` of the available memory can compress in one piece.
+    otherwise when the file holds more points (:func:`~dftpcc.formats.stored_point_count`)
+    than :data:`MEMORY_SHARE` of the available memory can compress in one piece.
     """
     fmt = format_of(src, format)
     if chunk_points is not None:
-        if fmt not in CHUNKED_FORMATS:
-            raise InvalidInputError(f"{src}: {fmt} files cannot be read in chunks; chunked reading supports "
-                                    f"{', '.join(f.upper() for f in CHUNKED_FORMATS)}")
+        check_chunkable(src, format)
         return True
     if fmt not in CHUNKED_FORMATS:
         return False

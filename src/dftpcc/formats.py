@@ -338,10 +338,7 @@ def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # 
         a bad ``chunk_points``.
     """
     path = Path(path)
-    fmt = format_of(path, format)
-    if fmt not in CHUNKED_FORMATS:
-        raise InvalidInputError(f"{path}: {fmt} files cannot be read in chunks; chunked reading supports "
-                                f"{', '.join(f.upper() for f in CHUNKED_FORMATS)}")
+    fmt = check_chunkable(path, format)
     _check_source(path, fmt, classes, topic)
     if not (isinstance(chunk_points, int) and chunk_points > 0):
         raise InvalidInputError(f"chunk_points must be a positive integer, got {chunk_points!r}")
@@ -365,11 +362,27 @@ def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # 
     return ChunkedCloud(path, fmt, crs, stored, classes, topic, drop_nonfinite, chunk_points)
 
 
+def check_chunkable(path: str | os.PathLike[str], format: str | None = None) -> str:  # noqa: A002
+    """The format of ``path``, or a clear error if :func:`open_chunked` cannot read it."""
+    fmt = format_of(path, format)
+    if fmt not in CHUNKED_FORMATS:
+        raise InvalidInputError(f"{path}: {fmt} files cannot be read in chunks; chunked reading supports "
+                                f"{', '.join(f.upper() for f in CHUNKED_FORMATS)}")
+    return fmt
+
+
 def stored_point_count(path: str | os.PathLike[str], format: str | None = None) -> int | None:  # noqa: A002
-    """Points a file holds, from its header, for the formats read in chunks; else None."""
+    """Points a file holds, for the formats read in chunks; else None.
+
+    From the header for LAS, LAZ, PLY and NPY. A ROS bag has no such count:
+    its size over 12 bytes (one float32 x, y, z, the smallest point a
+    PointCloud2 holds) bounds it from above.
+    """
     try:
+        if format_of(path, format) == "rosbag":
+            return rosbag.size_bound(path) // 12
         return open_chunked(path, format=format).stored_points
-    except InvalidInputError:
+    except (InvalidInputError, OSError):
         return None
 
 

@@ -50,6 +50,12 @@ def bag_folder(path: str | Path) -> Path:
     return path
 
 
+def size_bound(path: str | Path) -> int:
+    """Bytes of the bag (the files of a ROS 2 bag folder), an upper bound of its point data."""
+    folder = bag_folder(path)
+    return sum(f.stat().st_size for f in folder.iterdir() if f.is_file()) if folder.is_dir() else folder.stat().st_size
+
+
 @contextmanager
 def _open(path: Path, topic: str | None) -> Iterator[tuple[Any, list[Any]]]:
     """The reader and the connections of the chosen PointCloud2 topic."""
