@@ -395,7 +395,7 @@ def _rate_control(spec: _Spectrum, params: Params, point_count: int, fixed_bytes
 
 def _rate_control_refilled(spec: _Spectrum, params: Params, point_count: int, fixed_bytes: int,
                            cutoff_given: bool) -> tuple[_Spectrum, _Choice]:
-    """Rate control, then (``fill='consistent'``) a second choice at the same cutoff with the empty cells refilled.
+    """Rate control, then (``fill='consistent'``) a second choice at the same cutoff, empty cells refilled.
 
     For an RMSE target the step is searched again upwards, refilling at each
     step tried: a fill consistent with the coded map lowers the error on the
@@ -427,7 +427,8 @@ def _rate_control_refilled(spec: _Spectrum, params: Params, point_count: int, fi
 
 
 def _refilled_for_rmse(spec: _Spectrum, first: _Trial, target: float) -> tuple[_Spectrum, _Trial]:
-    """The coarsest step from ``first.step`` up to :data:`REFILL_STEP_RANGE` times it whose refilled map meets ``target``."""
+    """The coarsest step from ``first.step`` up to :data:`REFILL_STEP_RANGE` times it whose
+    refilled map meets ``target`` (``first`` itself when even its own step does not)."""
 
     def attempt(step: float) -> tuple[_Spectrum, _Trial]:
         other = spec.refilled(spec.trial(first.cutoff, step))

@@ -62,7 +62,8 @@ def _open(path: Path, topic: str | None) -> Iterator[tuple[Any, list[Any]]]:
     try:
         from rosbags.highlevel import AnyReader
     except ImportError:
-        raise MissingDependencyError(f"reading ROS bags needs rosbags, which is not installed: {INSTALL_HINT}") from None
+        raise MissingDependencyError(
+            f"reading ROS bags needs rosbags, which is not installed: {INSTALL_HINT}") from None
     try:
         reader = AnyReader([bag_folder(path)])
         reader.open()
