@@ -172,3 +172,16 @@ def test_memory_holds_one_chunk_not_the_cloud(tmp_path):
         growth[chunk] = int(out.stdout.strip())
     assert growth[0] > 96e6, growth  # the whole cloud was held
     assert growth[200_000] < 0.3 * growth[0], growth
+
+
+def test_a_truncated_file_read_in_chunks_fails_clearly(tmp_path, small_terrain):
+    laz = tmp_path / "cut.laz"
+    laz.write_bytes(data_file(FIELD).read_bytes()[:1_500_000])  # the header promises more points
+    npy = tmp_path / "cut.npy"
+    np.save(npy, small_terrain)
+    npy.write_bytes(npy.read_bytes()[:5_000])
+    for src, fmt in ((laz, "laz"), (npy, "npy")):
+        out = tmp_path / f"{fmt}.dftpc"
+        with pytest.raises(InvalidInputError, match=f"cannot read as {fmt}"):
+            files.compress_file(src, out, resolution=0.5, chunk_points=50_000)
+        assert not out.exists()
