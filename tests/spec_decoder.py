@@ -67,6 +67,19 @@ def _words(buf: bytes) -> np.ndarray:
 
 # --------------------------------------------------------------------------- container
 
+def _uleb(data: bytes, pos: int) -> tuple[int, int]:
+    """Unsigned LEB128 at ``pos`` (at most 64 bits) and the position after it."""
+    value, shift = 0, 0
+    while pos < len(data) and shift <= 63:
+        byte = data[pos]
+        pos += 1
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if not byte & 0x80:
+            return value, pos
+    raise ValueError("truncated section table")
+
+
 def _sections(data: bytes) -> dict[bytes, bytes]:
     if len(data) < 20:
         raise ValueError("not a .dftpc file: too short")
@@ -77,21 +90,31 @@ def _sections(data: bytes) -> dict[bytes, bytes]:
         raise ValueError(f"unsupported major version {major}")
     if count > MAX_SECTIONS:
         raise ValueError("too many sections")
-    table_end = 16 + 28 * count
+    entries, pos = [], 16
+    for _ in range(count):
+        if pos + 4 > len(data):
+            raise ValueError("truncated section table")
+        tag = data[pos:pos + 4]
+        tile, pos = _uleb(data, pos + 4)
+        length, pos = _uleb(data, pos)
+        if pos + 4 > len(data):
+            raise ValueError("truncated section table")
+        entries.append((tag, tile, length, struct.unpack_from("<I", data, pos)[0]))
+        pos += 4
+    table_end = pos
     if table_end + 4 > len(data):
         raise ValueError("truncated section table")
     if zlib.crc32(data[:table_end]) != struct.unpack_from("<I", data, table_end)[0]:
         raise ValueError("section table fails its checksum")
     sections: dict[bytes, bytes] = {}
-    for k in range(count):
-        tag, tile, offset, length, crc = struct.unpack_from("<4sIQQI", data, 16 + 28 * k)
+    offset = table_end + 4  # payloads follow the table in its order
+    for tag, tile, length, crc in entries:
+        start, offset = offset, offset + length
         if tile != 0 or tag in sections:  # other tiles and repeated tags are skipped
             continue
-        if offset < table_end + 4:
-            raise ValueError(f"section {tag!r} overlaps the header")
-        if offset + length > len(data):
+        if offset > len(data):
             raise ValueError(f"section {tag!r} is truncated")
-        payload = data[offset:offset + length]
+        payload = data[start:offset]
         if zlib.crc32(payload) != crc:
             raise ValueError(f"section {tag!r} fails its checksum")
         sections[tag] = payload

@@ -112,7 +112,7 @@ def test_every_prefix_decodes_progressively_or_fails_clearly(seeds):
 # --- damage ----------------------------------------------------------------------------------------
 
 def test_every_bit_flip_in_the_header_is_caught(good):
-    head_end = craft.PREAMBLE.size + len(craft.table(good)) * craft.ENTRY.size + craft.CRC.size
+    head_end = craft.head_size(good)
     for pos in range(head_end):
         for bit in range(8):
             buf = bytearray(good)
@@ -378,3 +378,20 @@ def test_the_fixed_header_of_a_small_map_is_small(seeds):
         data = seeds[name]
         header = len(data) - len(craft.section(data, b"MASK")) - len(craft.section(data, b"COEF"))
         assert header <= 310, (name, header)
+
+
+def test_a_draft_file_with_fixed_size_section_entries_is_told_to_be_recompressed(good):
+    # Pre-release builds wrote 28-byte entries (tag, u32 tile, u64 offset, u64 length, u32 crc).
+    import struct
+    import zlib
+
+    sections = craft.split(good)
+    head = 16 + 28 * len(sections) + 4
+    table, body = b"", b""
+    for tag, payload in sections:
+        table += struct.pack("<4sIQQI", tag, 0, head + len(body), len(payload), zlib.crc32(payload))
+        body += payload
+    top = good[:16] + table
+    draft = top + struct.pack("<I", zlib.crc32(top)) + body
+    with pytest.raises(UnsupportedFormatError, match="pre-release build.*re-compress it"):
+        dftpcc.open(draft)

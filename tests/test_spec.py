@@ -85,15 +85,23 @@ def chunk_kinds(payload: bytes) -> set[int]:
     return kinds
 
 
+def _uleb(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, value = value & 0x7F, value >> 7
+        out.append(byte | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
 def rebuild_file(sections: dict[bytes, bytes]) -> bytes:
     """Lay sections out as format.md describes (preamble, table, table CRC, payloads)."""
     order = [b"GEOM", b"PARM", b"CRS ", b"STAT", b"MASK", b"COEF", b"RESD"]
     tags = [t for t in order if t in sections]
-    head = 16 + 28 * len(tags) + 4
     table, body = b"", b""
     for tag in tags:
         p = sections[tag]
-        table += struct.pack("<4sIQQI", tag, 0, head + len(body), len(p), zlib.crc32(p))
+        table += tag + _uleb(0) + _uleb(len(p)) + struct.pack("<I", zlib.crc32(p))
         body += p
     top = spec_decoder.MAGIC + struct.pack("<BBHI", 1, 0, 0, len(tags)) + table
     return top + struct.pack("<I", zlib.crc32(top)) + body

@@ -1,7 +1,8 @@
 """Container stage: the ``.dftpc`` byte layout (see docs/format.md).
 
-A file is a fixed preamble, a table of sections (tag, tile, offset, length,
-CRC-32) protected by its own CRC, then the section payloads. Every section is
+A file is a fixed preamble, a table of sections (tag, tile, length, CRC-32;
+the payloads follow in table order) protected by its own CRC, then the
+section payloads. Every section is
 checked against its CRC before use, and every size is checked against the
 file length before anything is allocated; the grid a header asks for must
 also fit a decoding budget that grows with the file's size, so a small
@@ -56,7 +57,8 @@ MAGIC = b"\x89DFTPC\r\n"
 #: sections and JSON fields, which an older reader skips.
 VERSION = (1, 0)
 _PREAMBLE = struct.Struct("<8sBBHI")  # magic, major, minor, flags, section count
-_ENTRY = struct.Struct("<4sIQQI")  # tag, tile, offset, length, crc32
+# A section table entry: 4-byte tag, LEB128 tile, LEB128 payload length, u32 CRC-32.
+_LEGACY_ENTRY = struct.Struct("<4sIQQI")  # drafts of 1.0: tag, tile, offset, length, crc32
 _CRC = struct.Struct("<I")
 MAX_SECTIONS = 1024
 #: Geometry section: origin x, y, projection-plane z, resolution, rows, cols,
@@ -156,11 +158,8 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
         (b"MASK", mask_blob),
         (b"COEF", coef_blob),  # late, so a prefix of the file carries the low frequencies
     ] + ([(b"RESD", resid_blob)] if resid_blob else [])
-    offset = _PREAMBLE.size + len(sections) * _ENTRY.size + _CRC.size
-    table = []
-    for tag, payload in sections:
-        table.append(_ENTRY.pack(tag, 0, offset, len(payload), zlib.crc32(payload)))
-        offset += len(payload)
+    # Payloads follow the table in its order, so an entry needs no offset.
+    table = [tag + _leb128(0) + _leb128(len(payload)) + _CRC.pack(zlib.crc32(payload)) for tag, payload in sections]
     head = _PREAMBLE.pack(MAGIC, *VERSION, 0, len(sections)) + b"".join(table)
     data = head + _CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections)
     if g.size > cell_budget(len(data)):
@@ -171,7 +170,11 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     return data
 
 
-def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, memoryview]:
+def _table(data: memoryview) -> tuple[list[tuple[bytes, int, int, int]], int]:
+    """The section table as (tag, tile, length, crc) entries, and where the payloads start.
+
+    Checks the preamble and the table's checksum, not the payloads.
+    """
     if len(data) < _PREAMBLE.size + _CRC.size:
         raise CorruptFileError(f"not a .dftpc file: only {len(data)} bytes")
     magic, major, minor, _flags, count = _PREAMBLE.unpack_from(data, 0)
@@ -182,24 +185,61 @@ def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, me
             f".dftpc format version {major}.{minor} is not supported (this reader: {VERSION[0]}.x)")
     if count > MAX_SECTIONS:
         raise CorruptFileError(f"section table claims {count} sections, more than the {MAX_SECTIONS} allowed")
-    table_end = _PREAMBLE.size + count * _ENTRY.size
-    if len(data) < table_end + _CRC.size:
+    entries, pos = [], _PREAMBLE.size
+    for _ in range(count):
+        tile = length = None
+        if pos + 4 <= len(data):
+            tag = bytes(data[pos:pos + 4])
+            tile, pos = _read_leb128(data, pos + 4)
+        if tile is not None:
+            length, pos = _read_leb128(data, pos)
+        if length is None or pos + _CRC.size > len(data):
+            raise CorruptFileError("file is truncated inside its section table")
+        (crc,) = _CRC.unpack_from(data, pos)
+        pos += _CRC.size
+        entries.append((tag, tile, length, crc))
+    if len(data) < pos + _CRC.size:
         raise CorruptFileError("file is truncated inside its section table")
-    (crc,) = _CRC.unpack_from(data, table_end)
-    if zlib.crc32(data[:table_end]) != crc:
+    (crc,) = _CRC.unpack_from(data, pos)
+    if zlib.crc32(data[:pos]) != crc:
+        if _is_legacy_draft(data, count):
+            raise UnsupportedFormatError(
+                "this .dftpc was written by a pre-release build (a draft of format 1.0 with 28-byte section "
+                "entries); re-compress it with this version")
         raise CorruptFileError("section table fails its checksum")
+    return entries, pos + _CRC.size
+
+
+def _read_leb128(data: memoryview, pos: int) -> tuple[int | None, int]:
+    """An unsigned LEB128 integer at ``pos`` and the position after it; None when truncated or over 64 bits."""
+    value, shift = 0, 0
+    while pos < len(data) and shift <= 63:
+        byte = data[pos]
+        pos += 1
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if not byte & 0x80:
+            return value, pos
+    return None, pos
+
+
+def _is_legacy_draft(data: memoryview, count: int) -> bool:
+    end = _PREAMBLE.size + count * _LEGACY_ENTRY.size
+    return len(data) >= end + _CRC.size and _CRC.unpack_from(data, end)[0] == zlib.crc32(data[:end])
+
+
+def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, memoryview]:
+    entries, offset = _table(data)
     found: dict[bytes, memoryview] = {}
-    for i in range(count):
-        tag, tile, offset, length, crc = _ENTRY.unpack_from(data, _PREAMBLE.size + i * _ENTRY.size)
+    for tag, tile, length, crc in entries:
+        start, end = offset, offset + length
+        offset = end
         name = tag.decode("latin-1").strip()
         if tile != 0 or tag in found:
             continue  # tiles beyond 0 belong to a later layout; duplicates keep the first
-        if offset < table_end + _CRC.size:
-            raise CorruptFileError(f"section {name} overlaps the header")
-        end = offset + length
         if end > len(data):
             if tag == b"COEF" and allow_truncated_coef:
-                found[tag] = data[offset:] if offset <= len(data) else data[0:0]
+                found[tag] = data[start:] if start <= len(data) else data[0:0]
                 continue
             if tag == b"RESD" and allow_truncated_coef:
                 continue
@@ -208,7 +248,7 @@ def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, me
                     f"the first {len(data)} bytes end inside section {name}: a partial decode needs "
                     f"at least the first {end} bytes")
             raise CorruptFileError(f"file is truncated: section {name} needs bytes up to {end}, file has {len(data)}")
-        payload = data[offset:end]
+        payload = data[start:end]
         if zlib.crc32(payload) != crc:
             raise CorruptFileError(f"section {name} fails its checksum (damaged file)")
         found[tag] = payload
@@ -314,16 +354,9 @@ def _unpack_stats(payload: memoryview) -> dict[str, Any]:
             if not math.isfinite(value):
                 raise CorruptFileError(f"section STAT: field {i} is not finite")
         else:
-            value, shift = 0, 0
-            while True:
-                if pos >= len(raw) or shift > 63:
-                    raise CorruptFileError("section STAT holds a truncated or oversized integer")
-                byte = raw[pos]
-                pos += 1
-                value |= (byte & 0x7F) << shift
-                shift += 7
-                if not byte & 0x80:
-                    break
+            value, pos = _read_leb128(memoryview(raw), pos)
+            if value is None:
+                raise CorruptFileError("section STAT holds a truncated or oversized integer")
         if i in STAT_FIELDS:
             stats[STAT_FIELDS[i]] = value
     return stats
@@ -352,10 +385,8 @@ def _json_text(payload: memoryview, name: str) -> str:
 
 def _section_lengths(data: memoryview) -> dict[bytes, int]:
     """Declared payload length of each tile-0 section (the table was checked already)."""
-    (count,) = struct.unpack_from("<I", data, 12)
     out: dict[bytes, int] = {}
-    for i in range(count):
-        tag, tile, _offset, length, _crc = _ENTRY.unpack_from(data, _PREAMBLE.size + i * _ENTRY.size)
+    for tag, tile, length, _crc in _table(data)[0]:
         if tile == 0:
             out.setdefault(tag, length)
     return out

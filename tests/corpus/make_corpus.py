@@ -56,7 +56,7 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
     seeds = seed_files()
     good = seeds["compact_dct"]
     paper = seeds["paper_dft"]
-    head_end = craft.PREAMBLE.size + len(craft.table(good)) * craft.ENTRY.size + craft.CRC.size
+    head_end = craft.head_size(good)
     mask_at, coef_at = _section_start(good, b"MASK"), _section_start(good, b"COEF")
     sections = craft.split(good)
     C, R, U = "CorruptFileError", "ResourceLimitError", "UnsupportedFormatError"
@@ -95,8 +95,13 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "count_zero": (craft.join(sections, count=0), C, "section table fails its checksum"),
         "section_missing_mask": (craft.replace_section(good, b"MASK", None), C, "section MASK is missing"),
         "section_missing_geom": (craft.replace_section(good, b"GEOM", None), C, "section GEOM is missing"),
-        "offset_beyond_file": (craft.with_table_entry(good, 0, offset=1 << 40), C, "truncated: section GEOM"),
-        "offset_into_header": (craft.with_table_entry(good, 0, offset=4), C, "section GEOM overlaps the header"),
+        "geom_length_beyond_file": (craft.with_table_entry(good, 0, length=1 << 40), C, "truncated: section GEOM"),
+        # Every checksum made to match the shifted sections: the lie must be caught behind them.
+        "geom_length_shifts_the_rest": (craft.fix_crcs(craft.with_table_entry(good, 0, length=craft.table(good)[0][3] - 4)),
+                                        C, "parameter section is invalid"),
+        "length_over_64_bits": (craft.fix_table_crc(good[:craft.PREAMBLE.size + 5] + b"\xff" * 10
+                                                    + good[craft.PREAMBLE.size + 6:]), C,
+                                "truncated inside its section table|table fails its checksum"),
         "length_huge": (craft.with_table_entry(good, coef, length=(1 << 63) + 12), C, "truncated: section COEF"),
         "coef_length_claims_1gb": (craft.with_table_entry(good, coef, length=1 << 30), C, "truncated: section COEF"),
     })

@@ -16,20 +16,83 @@ import zlib
 from dftpcc import container
 
 PREAMBLE = struct.Struct("<8sBBHI")  # magic, major, minor, flags, section count
-ENTRY = struct.Struct("<4sIQQI")  # tag, tile, offset, length, crc32
 CRC = struct.Struct("<I")
 GEOM = struct.Struct("<ddddIIdQQddd")
 GEOM_FIELDS = ("x0", "y0", "z0", "resolution", "rows", "cols", "angle",
                "point_count", "cell_count", "plane_a", "plane_b", "plane_c")
 
-assert PREAMBLE.size == container._PREAMBLE.size and ENTRY.size == container._ENTRY.size
-assert GEOM.size == container._GEOM.size
+assert PREAMBLE.size == container._PREAMBLE.size and GEOM.size == container._GEOM.size
+
+
+def leb128(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, value = value & 0x7F, value >> 7
+        out.append(byte | (0x80 if value else 0))
+        if not value:
+            return bytes(out)
+
+
+def _read_leb128(data: bytes, pos: int) -> tuple[int, int] | None:
+    value, shift = 0, 0
+    while pos < len(data) and shift <= 63:
+        byte = data[pos]
+        pos += 1
+        value |= (byte & 0x7F) << shift
+        shift += 7
+        if not byte & 0x80:
+            return value, pos
+    return None
+
+
+def entry(tag: bytes, tile: int, length: int, crc: int) -> bytes:
+    """One section table entry: tag, LEB128 tile, LEB128 length, u32 CRC-32."""
+    return tag + leb128(tile) + leb128(length) + CRC.pack(crc)
+
+
+def _parse(data: bytes) -> tuple[list[tuple[bytes, int, int, int, int]], int] | None:
+    """``([(tag, tile, length, crc, crc_pos), ...], table_end)`` as far as ``data`` holds a table, else None."""
+    if len(data) < PREAMBLE.size:
+        return None
+    count = PREAMBLE.unpack_from(data, 0)[4]
+    if count > container.MAX_SECTIONS:
+        return None
+    entries, pos = [], PREAMBLE.size
+    for _ in range(count):
+        tag = data[pos:pos + 4]
+        tile = _read_leb128(data, pos + 4)
+        length = tile and _read_leb128(data, tile[1])
+        if length is None or length[1] + CRC.size > len(data):
+            return None
+        pos = length[1]
+        entries.append((tag, tile[0], length[0], CRC.unpack_from(data, pos)[0], pos))
+        pos += CRC.size
+    return entries, pos
+
+
+def _parsed(data: bytes) -> tuple[list[tuple[bytes, int, int, int, int]], int]:
+    parsed = _parse(data)
+    if parsed is None:
+        raise struct.error("no complete section table")
+    return parsed
 
 
 def table(data: bytes) -> list[tuple[bytes, int, int, int, int]]:
-    """Section table entries ``(tag, tile, offset, length, crc)`` of a well-formed file."""
-    count = PREAMBLE.unpack_from(data, 0)[4]
-    return [ENTRY.unpack_from(data, PREAMBLE.size + i * ENTRY.size) for i in range(count)]
+    """Section table entries ``(tag, tile, offset, length, crc)`` of a well-formed file (offsets derived).
+
+    Raises struct.error when ``data`` holds no complete table (as unpacking it would).
+    """
+    entries, end = _parsed(data)
+    offset, out = end + CRC.size, []
+    for tag, tile, length, crc, _pos in entries:
+        out.append((tag, tile, offset, length, crc))
+        offset += length
+    return out
+
+
+def head_size(data: bytes) -> int:
+    """Bytes of preamble, table and table CRC: where the first payload starts."""
+    return _parsed(data)[1] + CRC.size
 
 
 def split(data: bytes) -> list[tuple[bytes, bytes]]:
@@ -43,11 +106,7 @@ def join(sections: list[tuple[bytes, bytes]], *, version: tuple[int, int] = cont
 
     ``count`` overrides the section count in the preamble (a lying header).
     """
-    offset = PREAMBLE.size + len(sections) * ENTRY.size + CRC.size
-    entries = []
-    for tag, payload in sections:
-        entries.append(ENTRY.pack(tag, 0, offset, len(payload), zlib.crc32(payload)))
-        offset += len(payload)
+    entries = [entry(tag, 0, len(payload), zlib.crc32(payload)) for tag, payload in sections]
     n = len(sections) if count is None else count
     head = PREAMBLE.pack(container.MAGIC, version[0], version[1], flags, n) + b"".join(entries)
     return head + CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections)
@@ -97,24 +156,28 @@ def with_geom(data: bytes, **changes: float | int) -> bytes:
 
 
 def with_table_entry(data: bytes, index: int, **changes: int | bytes) -> bytes:
-    """The file with one section table entry changed and the table CRC fixed (payload CRCs not)."""
-    entries = table(data)
-    names = ("tag", "tile", "offset", "length", "crc")
-    entry = dict(zip(names, entries[index]))
-    entry.update(changes)
-    buf = bytearray(data)
-    ENTRY.pack_into(buf, PREAMBLE.size + index * ENTRY.size, *(entry[k] for k in names))
-    return fix_table_crc(bytes(buf))
+    """The file with one section table entry changed (tag, tile, length or crc) and the table CRC fixed.
+
+    The payloads stay where they were, so a changed length moves where the
+    reader looks for every later section: the lie a crafted file tells.
+    """
+    entries, end = _parsed(data)
+    names = ("tag", "tile", "length", "crc")
+    unknown = set(changes) - set(names)
+    if unknown:
+        raise KeyError(unknown)
+    rows = [dict(zip(names, e[:4])) for e in entries]
+    rows[index].update(changes)
+    head = data[:PREAMBLE.size] + b"".join(entry(**r) for r in rows)
+    return head + CRC.pack(zlib.crc32(head)) + data[end + CRC.size:]
 
 
 def fix_table_crc(data: bytes) -> bytes:
     """Recompute the section-table CRC (as far as the file holds a table)."""
-    if len(data) < PREAMBLE.size:
+    parsed = _parse(data)
+    if parsed is None or len(data) < parsed[1] + CRC.size:
         return data
-    count = PREAMBLE.unpack_from(data, 0)[4]
-    end = PREAMBLE.size + count * ENTRY.size
-    if count > container.MAX_SECTIONS or len(data) < end + CRC.size:
-        return data
+    end = parsed[1]
     buf = bytearray(data)
     CRC.pack_into(buf, end, zlib.crc32(data[:end]))
     return bytes(buf)
@@ -126,15 +189,14 @@ def fix_crcs(data: bytes) -> bytes:
     Lets a fuzzer's mutation reach the checks behind the checksums: a
     mutated field then looks like a crafted lie, not damage.
     """
-    if len(data) < PREAMBLE.size:
+    parsed = _parse(data)
+    if parsed is None:
         return data
-    count = PREAMBLE.unpack_from(data, 0)[4]
-    if count > container.MAX_SECTIONS or len(data) < PREAMBLE.size + count * ENTRY.size:
-        return data
+    entries, end = parsed
     buf = bytearray(data)
-    for i in range(count):
-        pos = PREAMBLE.size + i * ENTRY.size
-        tag, tile, off, length, _crc = ENTRY.unpack_from(buf, pos)
-        if off + length <= len(buf):
-            ENTRY.pack_into(buf, pos, tag, tile, off, length, zlib.crc32(bytes(buf[off:off + length])))
+    offset = end + CRC.size
+    for _tag, _tile, length, _crc, crc_pos in entries:
+        if offset + length <= len(buf):
+            CRC.pack_into(buf, crc_pos, zlib.crc32(bytes(buf[offset:offset + length])))
+        offset += length
     return fix_table_crc(bytes(buf))

@@ -298,12 +298,12 @@ class Mutator:
             return craft.join(sections)
         if choice == 3:  # a lying count
             return craft.join(sections, count=rng.choice((0, 1, len(sections) + 1, 1024, 1025, 0xFFFFFFFF)))
-        try:  # a lying entry: offset or length
+        try:  # a lying entry: length, tile or checksum
             index = rng.randrange(len(sections))
-            name = rng.choice(("offset", "length", "tile"))
-            return craft.with_table_entry(data, index, **{name: rng.choice(_INTS) & ((1 << 64) - 1 if name != "tile"
-                                                                                    else (1 << 32) - 1)})
-        except struct.error:
+            name = rng.choice(("length", "tile", "crc"))
+            value = rng.choice(_INTS) & ((1 << 32) - 1 if name == "crc" else (1 << 64) - 1)
+            return craft.with_table_entry(data, index, **{name: value})
+        except (struct.error, TypeError):
             return data
 
     def _json(self, data: bytes) -> bytes:
