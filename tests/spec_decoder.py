@@ -2,6 +2,10 @@
 
 It does not import dftpcc: it exists to show whether the format document is enough to read a file.
 ``decode(data)`` returns the rebuilt points, shape (N, 3), float64.
+
+Written by a helper that read only docs/format.md. When the section table lost its offsets
+(entries of tag, LEB128 tile and length, CRC), ``_sections`` was updated to the new table by the
+library's author, from the same document; the rest is as the helper wrote it.
 """
 
 from __future__ import annotations
