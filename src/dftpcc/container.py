@@ -147,7 +147,9 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     """
     g = header.grid
     geom = _GEOM.pack(g.x0, g.y0, g.z0, g.resolution, g.rows, g.cols, g.angle,
-                      header.point_count, header.cell_count, *header.plane) + _GEOM_Y.pack(g.resolution_y or 0.0)
+                      header.point_count, header.cell_count, *header.plane)
+    if g.resolution_y:  # square cells leave the row spacing out
+        geom += _GEOM_Y.pack(g.resolution_y)
     info = dict(header.stats, coef_count=header.coef_count)
     sections = [
         (b"GEOM", geom),

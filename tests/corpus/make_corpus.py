@@ -98,7 +98,7 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "geom_length_beyond_file": (craft.with_table_entry(good, 0, length=1 << 40), C, "truncated: section GEOM"),
         # Every checksum made to match the shifted sections: the lie must be caught behind them.
         "geom_length_shifts_the_rest": (craft.fix_crcs(craft.with_table_entry(good, 0, length=craft.table(good)[0][3] - 4)),
-                                        C, "parameter section is invalid"),
+                                        C, "geometry section is too short"),
         "length_over_64_bits": (craft.fix_table_crc(good[:craft.PREAMBLE.size + 5] + b"\xff" * 10
                                                     + good[craft.PREAMBLE.size + 6:]), C,
                                 "truncated inside its section table|table fails its checksum"),
