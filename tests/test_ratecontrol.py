@@ -154,3 +154,15 @@ def test_consistent_fill_leaves_full_maps_alone():
              for fill in ("smooth", "consistent")]
     assert stats[0]["coef_bytes"] == stats[1]["coef_bytes"]
     assert stats[0]["dem_rmse_m"] == stats[1]["dem_rmse_m"] <= 0.01
+
+
+def test_the_step_search_uses_the_headroom_of_a_gappy_map(field_ground):
+    # At a high cutoff the filled cells of the field hold more error than the
+    # whole target, so the whole-grid proxy never came down to its goal and the
+    # search kept the finest step: 10,775 bytes at 88 % of the target, where a
+    # coarse step meets it with 3,830.
+    floor = dftpcc.open(dftpcc.compress(field_ground, resolution=0.5, cutoff=0.0)).header.stats["gridding_rmse_m"]
+    target = 3 * floor
+    m = dftpcc.open(dftpcc.compress(field_ground, resolution=0.5, target_rmse=target))
+    assert 0.9 * target <= m.header.stats["dem_rmse_m"] <= target
+    assert m.params.step > 0.1  # metres: a real quantizer step, not the exact fallback

@@ -278,8 +278,11 @@ def _step_for_rmse(spec: _Spectrum, cutoff: float, target: float) -> _Trial | No
                 best = trial
             if trial.rmse > 0.97 * target:
                 break
-        # The proxy counts filled cells too; correct its goal by what we measured.
-        goal *= target / max(trial.rmse, 1e-12)
+        # The proxy counts filled cells too: aim it where this step's proxy would have
+        # to be for the occupied cells to meet the target. (Scaling the old goal instead
+        # fails when even the finest step's proxy is far above it: the filled cells of a
+        # gappy map at a high cutoff can hold more error than the whole target.)
+        goal = target * spec.proxy_rmse(cutoff, lo) / max(trial.rmse, 1e-12)
     return best
 
 
