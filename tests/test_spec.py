@@ -16,6 +16,7 @@ import pytest
 import dftpcc
 
 from . import spec_decoder
+from .fuzz import craft
 
 ATOL = 1e-9
 
@@ -85,15 +86,6 @@ def chunk_kinds(payload: bytes) -> set[int]:
     return kinds
 
 
-def _uleb(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        byte, value = value & 0x7F, value >> 7
-        out.append(byte | (0x80 if value else 0))
-        if not value:
-            return bytes(out)
-
-
 def rebuild_file(sections: dict[bytes, bytes]) -> bytes:
     """Lay sections out as format.md describes (preamble, table, table CRC, payloads)."""
     order = [b"GEOM", b"PARM", b"CRS ", b"STAT", b"MASK", b"COEF", b"RESD"]
@@ -101,7 +93,7 @@ def rebuild_file(sections: dict[bytes, bytes]) -> bytes:
     table, body = b"", b""
     for tag in tags:
         p = sections[tag]
-        table += tag + _uleb(0) + _uleb(len(p)) + struct.pack("<I", zlib.crc32(p))
+        table += craft.entry(tag, 0, len(p), zlib.crc32(p))
         body += p
     top = spec_decoder.MAGIC + struct.pack("<BBHI", 1, 0, 0, len(tags)) + table
     return top + struct.pack("<I", zlib.crc32(top)) + body

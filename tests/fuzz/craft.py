@@ -24,25 +24,13 @@ GEOM_FIELDS = ("x0", "y0", "z0", "resolution", "rows", "cols", "angle",
 assert PREAMBLE.size == container._PREAMBLE.size and GEOM.size == container._GEOM.size
 
 
-def leb128(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        byte, value = value & 0x7F, value >> 7
-        out.append(byte | (0x80 if value else 0))
-        if not value:
-            return bytes(out)
+#: Unsigned LEB128, as the container writes it.
+leb128 = container._leb128
 
 
 def _read_leb128(data: bytes, pos: int) -> tuple[int, int] | None:
-    value, shift = 0, 0
-    while pos < len(data) and shift <= 63:
-        byte = data[pos]
-        pos += 1
-        value |= (byte & 0x7F) << shift
-        shift += 7
-        if not byte & 0x80:
-            return value, pos
-    return None
+    value, end = container._read_leb128(memoryview(data), pos)
+    return None if value is None else (value, end)
 
 
 def entry(tag: bytes, tile: int, length: int, crc: int) -> bytes:
