@@ -433,17 +433,17 @@ def _refilled_for_rmse(spec: _Spectrum, first: _Trial, target: float) -> tuple[_
     """The coarsest step from ``first.step`` up to :data:`REFILL_STEP_RANGE` times it whose
     refilled map meets ``target`` (``first`` itself when even its own step does not)."""
 
-    def attempt(step: float) -> tuple[_Spectrum, _Trial]:
-        other = spec.refilled(spec.trial(first.cutoff, step))
-        return other, other.trial(first.cutoff, step)
+    def attempt(base: _Trial) -> tuple[_Spectrum, _Trial]:
+        other = spec.refilled(base)
+        return other, other.trial(base.cutoff, base.step)
 
-    best = attempt(first.step)
+    best = attempt(first)
     if best[1].rmse > target:
         return spec, first
     lo, hi = first.step, first.step * REFILL_STEP_RANGE
     for _ in range(REFILL_STEP_ITERATIONS):
         mid = math.sqrt(lo * hi)
-        found = attempt(mid)
+        found = attempt(spec.trial(first.cutoff, mid))
         if found[1].rmse <= target:
             best, lo = found, mid
         else:

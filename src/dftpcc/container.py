@@ -230,15 +230,18 @@ def _is_legacy_draft(data: memoryview, count: int) -> bool:
     return len(data) >= end + _CRC.size and _CRC.unpack_from(data, end)[0] == zlib.crc32(data[:end])
 
 
-def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, memoryview]:
+def _sections(data: memoryview, *, allow_truncated_coef: bool) -> tuple[dict[bytes, memoryview], dict[bytes, int]]:
+    """The checked payload of each tile-0 section, and the length the table declares for it."""
     entries, offset = _table(data)
     found: dict[bytes, memoryview] = {}
+    declared: dict[bytes, int] = {}
     for tag, tile, length, crc in entries:
         start, end = offset, offset + length
         offset = end
         name = tag.decode("latin-1").strip()
-        if tile != 0 or tag in found:
+        if tile != 0 or tag in declared:
             continue  # tiles beyond 0 belong to a later layout; duplicates keep the first
+        declared[tag] = length
         if end > len(data):
             if tag == b"COEF" and allow_truncated_coef:
                 found[tag] = data[start:] if start <= len(data) else data[0:0]
@@ -257,7 +260,7 @@ def _sections(data: memoryview, *, allow_truncated_coef: bool) -> dict[bytes, me
     for tag in REQUIRED:
         if tag not in found:
             raise CorruptFileError(f"section {tag.decode().strip()} is missing")
-    return found
+    return found, declared
 
 
 #: A JSON section may be stored as one zstd frame (it starts with these bytes,
@@ -383,15 +386,6 @@ def _json_text(payload: memoryview, name: str) -> str:
         return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise CorruptFileError(f"section {name} is not UTF-8: {exc}") from None
-
-
-def _section_lengths(data: memoryview) -> dict[bytes, int]:
-    """Declared payload length of each tile-0 section (the table was checked already)."""
-    out: dict[bytes, int] = {}
-    for tag, tile, length, _crc in _table(data)[0]:
-        if tile == 0:
-            out.setdefault(tag, length)
-    return out
 
 
 def _crs_for_file(crs: dict[str, Any]) -> dict[str, Any]:
@@ -549,7 +543,7 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     """
     data = memoryview(data)
     budget = _budget(len(data), max_cells)
-    found = _sections(data, allow_truncated_coef=allow_truncated_coef)
+    found, declared = _sections(data, allow_truncated_coef=allow_truncated_coef)
     geom = found[b"GEOM"]
     if len(geom) < _GEOM.size:
         raise CorruptFileError("geometry section is too short")
@@ -572,7 +566,7 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     stats = _unpack_stats(found[b"STAT"]) if b"STAT" in found else {}
     if isinstance(stats, dict):
         for key, tag in _DERIVED_STATS.items():
-            stats.setdefault(key, _section_lengths(data).get(tag, 0))
+            stats.setdefault(key, declared.get(tag, 0))
     crs = _crs_from_file(_json(found[b"CRS "], "CRS")) if b"CRS " in found else {}
     _check_stats(stats)
     _check_crs(crs)

@@ -14,7 +14,7 @@ from .container import open as open_map
 from .errors import InvalidInputError
 from .formats import (CHUNKED_FORMATS, DEFAULT_CHUNK_POINTS, check_chunkable, format_of, open_chunked, read,
                       read_raster_dem, stored_point_count, write, write_geotiff)
-from .grid import DEM, CloudSummary, Grid, available_memory, rasterize_chunks
+from .grid import DEM, CloudSummary, Grid, available_memory, check_chunked_aggregate, rasterize_chunks
 from .params import make_params
 
 __all__ = ["compress_file", "decompress_file", "dem_from_geotiff", "reads_in_chunks"]
@@ -98,9 +98,7 @@ def _compress_chunked(src: str | os.PathLike[str], *, resolution: float | str, c
     # Parameters checked before the first pass over a file that may take minutes to read.
     params = make_params(resolution=1.0 if resolution == "auto" else resolution,
                          cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff, profile=profile, **options)
-    if params.aggregate == "median":
-        raise InvalidInputError("aggregate 'median' needs all of a cell's points at once; "
-                                "a cloud read in chunks can use mean, min or max")
+    check_chunked_aggregate(params.aggregate)
     cloud = open_chunked(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
                          chunk_points=chunk_points, topic=topic)
     summary = CloudSummary(hull=params.frame == "oriented")

@@ -508,9 +508,7 @@ def rasterize_chunks(chunks: Callable[[], Iterable[np.ndarray]], grid: Grid, *, 
     aggregate : {'mean', 'min', 'max'}
         A median needs all of a cell's points at once, so it is refused.
     """
-    if aggregate == "median":
-        raise InvalidInputError("aggregate 'median' needs all of a cell's points at once; "
-                                "a cloud read in chunks can use mean, min or max")
+    check_chunked_aggregate(aggregate)
     cells = _CellHeights(grid.size, aggregate)
     for points in chunks():
         cells.add(*_cells_of(points, grid))
@@ -520,6 +518,13 @@ def rasterize_chunks(chunks: Callable[[], Iterable[np.ndarray]], grid: Grid, *, 
     for points in chunks():
         spread.add(*_cells_of(points, grid), heights)
     return spread.dem(heights, mask, cells.count)
+
+
+def check_chunked_aggregate(aggregate: str) -> None:
+    """Refuse an aggregate that cannot be gathered chunk by chunk (the median)."""
+    if aggregate == "median":
+        raise InvalidInputError("aggregate 'median' needs all of a cell's points at once; "
+                                "a cloud read in chunks can use mean, min or max")
 
 
 def _cells_of(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
@@ -706,16 +711,9 @@ def auto_resolution(points: np.ndarray) -> float:
     spacing), so an irregular footprint does not bias it.
     """
     points = _check_points(points)
-    xy = points[:, :2]
-    lo = xy.min(axis=0)
-    extent = xy.max(axis=0) - lo
-    trial, line = _auto_trial(extent, points.shape[0])
-    if line:
-        return trial
-    cols = np.floor((xy[:, 0] - lo[0]) / trial).astype(np.int64)
-    rows = np.floor((xy[:, 1] - lo[1]) / trial).astype(np.int64)
-    occupied = np.unique(rows * (int(cols.max()) + 1) + cols).size
-    return _auto_from_occupied(points.shape[0], occupied, trial)
+    summary = CloudSummary()
+    summary.add(points)
+    return summary.auto_resolution(lambda: (points,))
 
 
 def _auto_trial(extent: np.ndarray, n: int) -> tuple[float, bool]:
@@ -733,11 +731,6 @@ def _auto_trial(extent: np.ndarray, n: int) -> tuple[float, bool]:
         spacing = float(extent.max()) / (n - 1)
         return AUTO_POINTS_PER_CELL * spacing, True
     return math.sqrt(area / n), False
-
-
-def _auto_from_occupied(n: int, occupied: int, trial: float) -> float:
-    density = n / (occupied * trial * trial)
-    return float(math.sqrt(AUTO_POINTS_PER_CELL / density))
 
 
 class CloudSummary:
@@ -802,12 +795,20 @@ class CloudSummary:
             return trial
         cols = int(np.floor((x_hi - x_lo) / trial)) + 1
         rows = int(np.floor((y_hi - y_lo) / trial)) + 1
-        occupied = np.zeros(rows * cols, dtype=bool)  # about one byte per point
+        # A bitmap of the trial cells (about one byte per point); a thin footprint far
+        # off the axes spans many more cells than points, so there the ids are kept.
+        bitmap = rows * cols <= 4 * self.count + 1024
+        occupied = np.zeros(rows * cols if bitmap else 0, dtype=bool if bitmap else np.int64)
         for points in chunks():
             c = np.floor((points[:, 0] - x_lo) / trial).astype(np.int64)
             r = np.floor((points[:, 1] - y_lo) / trial).astype(np.int64)
-            occupied[r * cols + c] = True
-        return _auto_from_occupied(self.count, int(np.count_nonzero(occupied)), trial)
+            if bitmap:
+                occupied[r * cols + c] = True
+            else:
+                occupied = np.union1d(occupied, r * cols + c)
+        n_occupied = int(np.count_nonzero(occupied)) if bitmap else occupied.size
+        density = self.count / (n_occupied * trial * trial)
+        return float(math.sqrt(AUTO_POINTS_PER_CELL / density))
 
 
 def _hull_vertices(xy: np.ndarray) -> np.ndarray:
