@@ -1,0 +1,98 @@
+"""Digests of the files the codec writes on ../shared/data: what a refactor must not change.
+
+Each real file is compressed through the public API with the default
+options, the paper profile, each rate-control target and the footprint
+mask; the SHA-256 of every ``.dftpc`` (or the error class and message,
+when a case is refused) is written to ``tests/digests.json`` with
+``--write`` and compared with it otherwise. tests/test_digests.py runs
+the same comparison on the smaller files.
+
+    python scripts/digests.py            # compare (exit 1 on any change)
+    python scripts/digests.py --write    # record after a deliberate change
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import dftpcc
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+RECORD = ROOT / "tests" / "digests.json"
+
+#: Real files (path under ../shared/data) and whether they are large (over 2 M points).
+FILES = {
+    "pointclouds/field_gentle_ign.laz": False,
+    "pointclouds/mountain_arid_alirt.las": False,
+    "pointclouds/redrocks_rough.ply": False,
+    "pointclouds/coastal_plain_ign.laz": False,
+    "pointclouds/rural_valley_ign.laz": False,
+    "pointclouds/urban_autzen.laz": False,
+    "pointclouds/forest_hills_topography.laz": False,
+    "pointclouds/forest_slope_bcts_2.8M.laz": True,
+    "pointclouds/rolling_strip_raleigh_2.3M.laz": True,
+    "dems/mars_gale_1m.tif": False,
+    "dems/moon_kepler_lola_48m.tif": False,
+    "dems/mars_korolev_mola.tif": False,
+    "dems/earth_bigtujunga_srtm30.tif": False,
+    "dems/earth_davos_10m.tif": False,
+    "dems/earth_heidelberg_25m.tif": False,
+}
+
+#: Option sets (keyword arguments of dftpcc.compress_file).
+CASES = {
+    "default": {},
+    "paper": {"profile": "paper"},
+    "target_rmse": {"target_rmse": 0.05},
+    "target_max_error": {"target_max_error": 0.1},
+    "target_bpp": {"target_bpp": 1.0},
+    "footprint": {"mask": "footprint"},
+}
+
+
+def digest(name: str, options: dict) -> str:
+    """SHA-256 of the file ``compress_file`` writes, or ``error: Class: message``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out.dftpc"
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                dftpcc.compress_file(DATA / name, out, **options)
+        except dftpcc.DftpccError as exc:
+            return f"error: {type(exc).__name__}: {exc}"
+        return hashlib.sha256(out.read_bytes()).hexdigest()
+
+
+def measure(include_large: bool = True) -> dict[str, str]:
+    return {f"{name}|{case}": digest(name, options)
+            for name, large in FILES.items() if include_large or not large
+            for case, options in CASES.items()}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--write", action="store_true", help="record the digests instead of comparing")
+    parser.add_argument("--small", action="store_true", help="leave out the two files over 2 M points")
+    args = parser.parse_args()
+    found = measure(include_large=not args.small)
+    if args.write:
+        RECORD.write_text(json.dumps(found, indent=1, sort_keys=True) + "\n")
+        print(f"{len(found)} digests -> {RECORD}")
+        return 0
+    recorded = json.loads(RECORD.read_text())
+    changed = [key for key, value in found.items() if recorded.get(key) != value]
+    for key in changed:
+        print(f"changed: {key}: {recorded.get(key)} -> {found[key]}")
+    print(f"{len(found) - len(changed)} of {len(found)} files unchanged")
+    return 1 if changed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
