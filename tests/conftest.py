@@ -38,6 +38,6 @@ def redrocks() -> np.ndarray:
 @pytest.fixture(scope="session")
 def small_terrain() -> np.ndarray:
     """A small deterministic built-in terrain (about 14 000 points, 40 m square)."""
-    from dftpcc.terrain import regolith_plain
+    from dftpcc.experiments.terrain import regolith_plain
 
     return regolith_plain(20_000, size=40.0, craters=4, rocks=30, seed=3)

@@ -13,7 +13,7 @@ import pytest
 import dftpcc
 from dftpcc import files
 from dftpcc.errors import InvalidInputError, MultiHeightWarning
-from dftpcc.formats import open_chunked
+from dftpcc.io import open_chunked
 from dftpcc.grid import CloudSummary, fit_grid, rasterize, rasterize_chunks
 
 from .conftest import data_file
@@ -127,10 +127,10 @@ def test_what_cannot_be_chunked_is_refused_clearly(tmp_path, small_terrain):
 def test_chunked_reading_starts_by_itself_when_memory_is_short(tmp_path, small_terrain, monkeypatch):
     npy = tmp_path / "t.npy"
     np.save(npy, small_terrain)
-    monkeypatch.setattr(files, "available_memory", lambda: 10 ** 12)
+    monkeypatch.setattr(dftpcc.limits, "available_memory", lambda: 10 ** 12)
     assert not files.reads_in_chunks(npy)
     # Less memory than the points would need held whole.
-    monkeypatch.setattr(files, "available_memory", lambda: small_terrain.shape[0] * files.IN_MEMORY_BYTES_PER_POINT)
+    monkeypatch.setattr(dftpcc.limits, "available_memory", lambda: small_terrain.shape[0] * dftpcc.limits.IN_MEMORY_BYTES_PER_POINT)
     assert files.reads_in_chunks(npy)
     assert not files.reads_in_chunks(tmp_path / "t.pcd")  # a format read whole
 

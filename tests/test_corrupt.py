@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import dftpcc
-from dftpcc import cli, codec, container
+from dftpcc import cli, container, encoder, limits
 from dftpcc.errors import (
     CorruptFileError,
     DftpccError,
@@ -153,15 +153,15 @@ def test_a_small_file_cannot_ask_for_gigabytes(good):
 
 
 def test_budget_grows_with_the_file_and_has_a_hard_cap():
-    assert container.cell_budget(0) == container.FREE_CELLS
-    assert container.cell_budget(50_000) == 50_000 * container.CELLS_PER_BYTE
-    assert container.cell_budget(10**12) == dftpcc.grid.MAX_CELLS
+    assert limits.cell_budget(0) == limits.FREE_CELLS
+    assert limits.cell_budget(50_000) == 50_000 * limits.CELLS_PER_BYTE
+    assert limits.cell_budget(10**12) == dftpcc.limits.MAX_CELLS
 
 
 def test_a_trusted_large_map_opens_with_max_cells(monkeypatch, good):
     # Shrink the budget so a small real map plays the part of a huge one.
-    monkeypatch.setattr(container, "FREE_CELLS", 10)
-    monkeypatch.setattr(container, "CELLS_PER_BYTE", 0)
+    monkeypatch.setattr(limits, "FREE_CELLS", 10)
+    monkeypatch.setattr(limits, "CELLS_PER_BYTE", 0)
     cells = dftpcc.open(good, max_cells=10**6).grid.size
     with pytest.raises(ResourceLimitError, match=f"max_cells={cells}"):
         dftpcc.open(good)
@@ -187,8 +187,8 @@ def test_progressive_budget_follows_the_whole_file(tmp_path, monkeypatch, good):
     path = tmp_path / "m.dftpc"
     path.write_bytes(good)
     cells = dftpcc.open(good).grid.size
-    monkeypatch.setattr(container, "FREE_CELLS", 1)
-    monkeypatch.setattr(container, "CELLS_PER_BYTE", cells / len(good) * (1 + 1e-6))  # just enough
+    monkeypatch.setattr(limits, "FREE_CELLS", 1)
+    monkeypatch.setattr(limits, "CELLS_PER_BYTE", cells / len(good) * (1 + 1e-6))  # just enough
     cut = len(good) - 3  # inside the coefficients
     assert dftpcc.open(path, max_bytes=cut).grid.size == cells
     with pytest.raises(ResourceLimitError):
@@ -339,14 +339,14 @@ def test_cli_shows_warnings_as_one_line(monkeypatch, capsys, tmp_path, good):
 @pytest.mark.parametrize("profile,transform,cutoff", [("compact", "dct", 0.0), ("paper", "dft", 0.99)])
 def test_the_largest_grid_a_small_file_gets_decodes_within_a_second(profile, transform, cutoff):
     # A flat map is the most compressible input: the costliest decode a tiny file can ask for.
-    from dftpcc.grid import DEM, Grid
+    from dftpcc.dem import DEM, Grid
 
-    side = int(np.sqrt(container.FREE_CELLS))
+    side = int(np.sqrt(limits.FREE_CELLS))
     grid = Grid(0.0, 0.0, 0.0, 1.0, side, side)
     dem = DEM(grid, np.zeros(grid.shape), np.ones(grid.shape, bool), gridding_rmse=0.0)
-    data = codec.encode_dem(dem, dftpcc.make_params(resolution=1.0, cutoff=cutoff, profile=profile,
+    data = encoder.encode_dem(dem, dftpcc.make_params(resolution=1.0, cutoff=cutoff, profile=profile,
                                                      transform=transform))
-    assert len(data) < 10_000 and grid.size <= container.cell_budget(len(data))
+    assert len(data) < 10_000 and grid.size <= limits.cell_budget(len(data))
     seconds = []
     for _ in range(2):  # best of two: a timing, not a benchmark
         t0 = time.perf_counter()

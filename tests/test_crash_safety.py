@@ -23,8 +23,8 @@ import pytest
 
 import dftpcc
 from dftpcc import cli
-from dftpcc.container import atomic_write
-from dftpcc.terrain import regolith_plain
+from dftpcc.io.atomic import atomic_write
+from dftpcc.experiments.terrain import regolith_plain
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -108,7 +108,7 @@ def test_killed_compress_keeps_the_previous_file(tmp_path, setup, sig):
 WRITER = """
 import sys, time
 from pathlib import Path
-from dftpcc.container import atomic_write
+from dftpcc.io.atomic import atomic_write
 
 def slow(tmp):
     with open(tmp, "wb") as fh:

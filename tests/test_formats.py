@@ -9,7 +9,7 @@ import pytest
 
 import dftpcc
 from dftpcc.errors import InvalidInputError, UnsupportedFormatError
-from dftpcc.formats import format_of
+from dftpcc.io import format_of
 
 from .conftest import data_file
 

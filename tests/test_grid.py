@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from dftpcc.errors import InvalidInputError
-from dftpcc.grid import MAX_CELLS, auto_resolution, fill_empty, fit_grid, fit_plane, plane_values, rasterize
+from dftpcc.fill import fill_empty, fit_plane, plane_values
+from dftpcc.grid import auto_resolution, fit_grid, rasterize
+from dftpcc.limits import MAX_CELLS
 
 
 def test_grid_is_minimum_bounding_rectangle_at_centroid_height():
@@ -70,7 +72,7 @@ def test_fill_keeps_occupied_cells_and_is_smooth():
 
 def test_plane_fit_recovers_a_plane():
     yy, xx = np.mgrid[0:20, 0:30]
-    from dftpcc.grid import DEM, Grid
+    from dftpcc.dem import DEM, Grid
 
     dem = DEM(Grid(0, 0, 0, 1.0, 20, 30), 1.5 + 0.1 * xx - 0.2 * yy, np.ones((20, 30), bool))
     plane = fit_plane(dem)

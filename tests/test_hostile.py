@@ -17,13 +17,8 @@ import pytest
 
 import dftpcc
 from dftpcc.errors import InvalidInputError, MultiHeightWarning
-from dftpcc.grid import (
-    MULTI_HEIGHT_TOLERANCE_CELLS,
-    auto_resolution,
-    drop_nonfinite,
-    fit_grid,
-    rasterize,
-)
+from dftpcc.dem import MULTI_HEIGHT_TOLERANCE_CELLS, drop_nonfinite
+from dftpcc.grid import auto_resolution, fit_grid, rasterize
 
 PROFILES = [dict(profile="compact"), dict(profile="paper"), dict(profile="compact", transform="dft"),
             dict(profile="compact", frame="oriented")]
@@ -239,13 +234,13 @@ def test_a_grid_that_would_not_fit_in_memory_is_refused_with_the_numbers():
     assert "PB of memory" in message and "at least 1100 m" in message
     assert peak < 1 << 20  # refused before allocating anything grid-sized
     # The suggested resolution fits.
-    assert fit_grid(pts, 1100.0).size <= dftpcc.grid.MAX_CELLS
+    assert fit_grid(pts, 1100.0).size <= dftpcc.limits.MAX_CELLS
 
 
 def test_the_memory_limit_follows_the_machine(monkeypatch):
-    from dftpcc import grid
+    from dftpcc import limits
 
-    monkeypatch.setattr(grid, "available_memory", lambda: 128 * 1000 * grid.ENCODE_BYTES_PER_CELL)
+    monkeypatch.setattr(limits, "available_memory", lambda: 128 * 1000 * limits.ENCODE_BYTES_PER_CELL)
     pts = np.array([[0.0, 0.0, 0.0], [999.0, 999.0, 1.0]])  # a million cells at 1 m
     with pytest.raises(InvalidInputError, match=r"exceeds the 128,000 cells that the available memory"):
         fit_grid(pts, 1.0)

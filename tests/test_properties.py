@@ -24,7 +24,8 @@ from hypothesis import strategies as st
 
 import dftpcc
 from dftpcc.errors import CorruptFileError, MultiHeightWarning
-from dftpcc.grid import MULTI_HEIGHT_TOLERANCE_CELLS, drop_nonfinite, fit_grid, rasterize
+from dftpcc.dem import MULTI_HEIGHT_TOLERANCE_CELLS, drop_nonfinite
+from dftpcc.grid import fit_grid, rasterize
 
 #: Relative and absolute tolerance of "equal" for errors measured twice in float64.
 REL, ABS = 1e-9, 1e-12
@@ -162,7 +163,7 @@ def test_rate_control_keeps_its_promise_and_the_consistent_fill_never_costs_more
 @given(cases(), st.integers(1, 3000))
 def test_a_cloud_read_in_chunks_gives_the_dem_of_a_whole_read(tmp_path_factory, case, chunk):
     from dftpcc.files import compress_file
-    from dftpcc.formats import open_chunked
+    from dftpcc.io import open_chunked
     from dftpcc.grid import CloudSummary, rasterize_chunks
 
     points, options = case
@@ -280,7 +281,7 @@ def test_same_bytes_in_another_process_with_other_thread_counts(tmp_path):
     import subprocess
     import sys
 
-    from dftpcc.terrain import regolith_plain
+    from dftpcc.experiments.terrain import regolith_plain
 
     points = regolith_plain(20_000, size=30.0, seed=4)
     np.save(tmp_path / "p.npy", points)

@@ -45,9 +45,9 @@ def _load(name, resolution, classes):
         dem, _ = dem_from_geotiff(path)
 
         def encode(**options):
-            from dftpcc.codec import encode_dem
+            from dftpcc.encoder import encode_dem
 
-            return encode_dem(dem, make_params(resolution=dem.grid.resolution, **options), cutoff_given=False)
+            return encode_dem(dem, make_params(resolution=dem.grid.resolution, **options))
 
         return dem, dem.mask.sum(), encode
     points = dftpcc.read(path, classes=classes).points

@@ -167,8 +167,8 @@ def test_a_large_bag_is_read_in_chunks_by_itself(tmp_path, terrain, monkeypatch)
     bag = write_bag(tmp_path / "run", {"/map": lambda ts: [_message(ts, p) for p in np.array_split(terrain, 4)]})
     # A bag has no point count; its size over 12 B a point bounds it.
     assert files.stored_point_count(bag) >= terrain.shape[0]
-    monkeypatch.setattr(files, "available_memory", lambda: 10 ** 12)
+    monkeypatch.setattr(dftpcc.limits, "available_memory", lambda: 10 ** 12)
     assert not files.reads_in_chunks(bag)
-    monkeypatch.setattr(files, "available_memory", lambda: terrain.shape[0] * files.IN_MEMORY_BYTES_PER_POINT)
+    monkeypatch.setattr(dftpcc.limits, "available_memory", lambda: terrain.shape[0] * dftpcc.limits.IN_MEMORY_BYTES_PER_POINT)
     assert files.reads_in_chunks(bag)
     assert files.compress_file(bag, tmp_path / "m.dftpc", resolution=0.5).header.point_count == terrain.shape[0]

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import dftpcc
-from dftpcc import figures, sweep
+from dftpcc import cli
+from dftpcc.experiments import evaluate, figures, sweep
 from dftpcc.cli import main
 from dftpcc.errors import InvalidInputError, MissingDependencyError
 
@@ -20,15 +21,15 @@ CUTOFFS = (0.0, 0.3, 0.6, 0.8, 0.9, 0.95)
 
 
 def test_parse_cutoffs():
-    assert sweep.parse_cutoffs("0.8,0.95") == (0.8, 0.95)
-    assert sweep.parse_cutoffs("0.95, 0.8, 0.8") == (0.8, 0.95)
-    assert sweep.parse_cutoffs("0,0.1,...,0.95") == pytest.approx(
+    assert cli.parse_cutoffs("0.8,0.95") == (0.8, 0.95)
+    assert cli.parse_cutoffs("0.95, 0.8, 0.8") == (0.8, 0.95)
+    assert cli.parse_cutoffs("0,0.1,...,0.95") == pytest.approx(
         (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95))
-    assert sweep.parse_cutoffs("0,0.05,...,0.95") == pytest.approx(sweep.DEFAULT_CUTOFFS)
+    assert cli.parse_cutoffs("0,0.05,...,0.95") == pytest.approx(sweep.DEFAULT_CUTOFFS)
     assert len(sweep.DEFAULT_CUTOFFS) == 20
     for bad in ("", "a", "1.0", "-0.1", "...,0.9", "0.5,...,0.9", "0.5,0.4,...,0.9", "0,0.1,..."):
         with pytest.raises(InvalidInputError):
-            sweep.parse_cutoffs(bad)
+            cli.parse_cutoffs(bad)
 
 
 def test_one_resolution_or_one_per_input():
@@ -99,14 +100,14 @@ def test_evaluate_a_compressed_file_or_its_rebuilt_cloud(tmp_path, small_terrain
     np.save(src, small_terrain)
     dftpcc.compress_file(src, packed, resolution=0.5, cutoff=0.8)
     dftpcc.decompress_file(packed, rebuilt)
-    a = sweep.evaluate_files(src, packed)
-    b = sweep.evaluate_files(src, rebuilt)
+    a = evaluate.evaluate_files(src, packed)
+    b = evaluate.evaluate_files(src, rebuilt)
     assert a["bits_per_point"] == pytest.approx(8 * packed.stat().st_size / small_terrain.shape[0])
     assert a["points_in_header"] == small_terrain.shape[0]
     assert "bits_per_point" not in b
     for key in ("paper_rmse_m", "vertical_rmse_m", "d1_rmse_m", "chamfer_m", "hausdorff_m"):
         assert a[key] == pytest.approx(b[key], rel=1e-9), key
-    assert sweep.is_compressed(packed) and not sweep.is_compressed(rebuilt)
+    assert dftpcc.mapfile.is_dftpc(packed) and not dftpcc.mapfile.is_dftpc(rebuilt)
 
 
 def test_cli_evaluate_table_and_json(tmp_path, small_terrain, capsys):

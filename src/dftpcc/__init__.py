@@ -2,9 +2,13 @@
 
 Pipeline, one module per stage::
 
-    formats (read) -> grid (DEM) -> spectrum (transform, low-pass)
-    -> coding (quantize, entropy-code) -> container (.dftpc bytes)
-    -> codec.decode_dem -> rebuild (points) -> metrics (measure)
+    io (read) -> grid (DEM) -> fill, spectrum (condition, transform, low-pass)
+    -> encoder (analysis, ratecontrol, residual; coding, occupancy) -> container (.dftpc bytes)
+    -> decoder -> rebuild (points) -> metrics (measure)
+
+``mapfile.open`` reads a file through container, decoder and rebuild;
+``files`` joins io to the codec; ``experiments`` holds the paper's sweep
+and comparison on top; ``cli`` is the command line.
 
 Most users need only :func:`compress`, :func:`decompress`, :func:`compress_file`,
 :func:`decompress_file`, :func:`open`, :func:`read` and :func:`write`.
@@ -12,17 +16,22 @@ Most users need only :func:`compress`, :func:`decompress`, :func:`compress_file`
 
 from __future__ import annotations
 
-from .codec import compress, decompress
-from .container import CompressedMap, open
+from .decoder import decompress
+from .encoder import compress
 from .errors import (
     CorruptFileError,
     DftpccError,
+    DftpccWarning,
     InvalidInputError,
+    LargeGridWarning,
     MissingDependencyError,
+    MultiHeightWarning,
+    ResourceLimitError,
     UnsupportedFormatError,
 )
 from .files import compress_file, decompress_file
-from .formats import PointCloud, read, write
+from .io import PointCloud, read, write
+from .mapfile import CompressedMap, open
 from .params import PROFILES, Params, make_params
 
 __version__ = "0.1.0"
@@ -45,5 +54,9 @@ __all__ = [
     "CorruptFileError",
     "UnsupportedFormatError",
     "MissingDependencyError",
+    "ResourceLimitError",
+    "DftpccWarning",
+    "MultiHeightWarning",
+    "LargeGridWarning",
     "__version__",
 ]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import sys
@@ -19,6 +20,7 @@ from contextlib import contextmanager
 from typing import Any, Iterator, Sequence
 
 from . import __version__
+from .params import CHOICES, PROFILES, check_cutoff
 from .errors import (
     CorruptFileError,
     DftpccError,
@@ -27,6 +29,8 @@ from .errors import (
     ResourceLimitError,
     UnsupportedFormatError,
 )
+
+Row = dict[str, Any]
 
 #: Exit status per failure, most specific first (documented in docs/errors.md).
 EXIT_CODES: list[tuple[type[BaseException], int]] = [
@@ -62,9 +66,10 @@ def _cutoff(text: str) -> float:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {value}")
-    return value
+    try:
+        return check_cutoff(value)
+    except InvalidInputError:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {value}") from None
 
 
 def _positive(text: str) -> float:
@@ -169,7 +174,7 @@ def _target_text(p: dict) -> str:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from .container import open as open_map
+    from .mapfile import open as open_map
 
     with open_map(args.input, max_cells=args.max_cells) as cmap:
         info = cmap.info()
@@ -203,7 +208,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from .experiments.demo import run_demo
 
     run_demo(n_points=args.points, resolution=args.resolution, out=args.out, seed=args.seed)
     return 0
@@ -217,8 +222,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _cutoffs(text: str) -> tuple[float, ...]:
-    from .sweep import parse_cutoffs
-
     try:
         return parse_cutoffs(text)
     except InvalidInputError as exc:
@@ -230,15 +233,15 @@ def _resolutions(text: str) -> list[float | str]:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .sweep import evaluate_files, format_metrics, jsonable
+    from .experiments.evaluate import evaluate_files
 
-    result = evaluate_files(args.original, args.candidate, classes=args.classes)
+    result = evaluate_files(args.original, args.candidate, classes=args.classes, max_cells=args.max_cells)
     print(json.dumps(jsonable(result), indent=2, sort_keys=True) if args.json else format_metrics(result))
     return 0
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from .sweep import format_row, run_sweep, terrains
+    from .experiments.sweep import run_sweep, terrains
 
     inputs = terrains(args.input, args.resolution, classes=args.classes)
     show = (lambda row: None) if args.quiet else (lambda row: print(format_row(row), flush=True))
@@ -250,12 +253,118 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from .sweep import compare_file
+    from .experiments.compare import compare_file
 
     path = compare_file(args.original, out=args.out, cutoffs=args.cutoffs, resolution=args.resolution,
                         profile=args.profile, classes=args.classes)
     print(path)
     return 0
+
+
+#: Cutoffs closer than this are the same cutoff (parsing "0,0.1,...,0.9").
+CUTOFF_TOLERANCE = 1e-9
+
+
+def parse_cutoffs(text: str) -> tuple[float, ...]:
+    """Cutoff ratios from ``"0,0.5,0.8"``; ``"0,0.1,...,0.9"`` expands the progression.
+
+    An item ``...`` continues the arithmetic progression of the two values
+    before it up to the value after it (which is included).
+
+    Returns
+    -------
+    tuple of float
+        Sorted, unique, each in [0, 1).
+
+    Raises
+    ------
+    InvalidInputError
+        Not numbers, a value outside [0, 1), or a ``...`` without two values
+        before it and one after it.
+    """
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    values: list[float] = []
+    i = 0
+    while i < len(items):
+        item = items[i]
+        if item in ("...", "\u2026"):
+            if len(values) < 2 or i + 1 >= len(items):
+                raise InvalidInputError(f"'...' needs two cutoffs before it and one after: {text!r}")
+            step = values[-1] - values[-2]
+            stop = _cutoff_value(items[i + 1], text)
+            if step <= 0:
+                raise InvalidInputError(f"'...' needs increasing cutoffs before it: {text!r}")
+            count = int(math.floor((stop - values[-1]) / step + CUTOFF_TOLERANCE))
+            start = values[-1]
+            values.extend(round(start + step * k, 10) for k in range(1, count + 1))
+            i += 1
+            continue
+        values.append(_cutoff_value(item, text))
+        i += 1
+    if not values:
+        raise InvalidInputError("no cutoff given")
+    unique: list[float] = []
+    for v in sorted(values):
+        if not unique or v - unique[-1] > CUTOFF_TOLERANCE:
+            unique.append(v)
+    return tuple(unique)
+
+
+def _cutoff_value(item: str, text: str) -> float:
+    try:
+        value = float(item)
+    except ValueError:
+        raise InvalidInputError(f"cutoffs must be numbers separated by commas, got {text!r}") from None
+    if not 0.0 <= value < 1.0:
+        raise InvalidInputError(f"a cutoff ratio is in [0, 1), got {value}")
+    return value
+
+
+def format_row(row: Row) -> str:
+    """One line of progress for a sweep row."""
+    return (f"{row['terrain']:<24} f_c {row['cutoff']:<5g} {row['bytes']:>11,} B "
+            f"{row['bits_per_point']:>9.4f} bits/pt  RMSE {row['paper_rmse_m']:.4f} m  "
+            f"D1 {row['d1_rmse_m']:.4f} m  [{row['encode_s'] + row['decode_s'] + row['metrics_s']:.2f} s]")
+
+
+#: How :func:`format_metrics` shows each metric: label, unit, scale.
+_TABLE = (
+    ("points_original", "original points", "", None),
+    ("points_rebuilt", "rebuilt points", "", None),
+    ("points_in_header", "points the file was made from", "", None),
+    ("bytes", "compressed size", "bytes", None),
+    ("bits_per_point", "bits per point", "bits", ".4f"),
+    ("paper_rmse_m", "paper RMSE (own cell, vertical)", "m", ".4f"),
+    ("paper_rmse_3d_m", "paper RMSE (own cell, 3D)", "m", ".4f"),
+    ("vertical_rmse_m", "vertical error RMSE", "m", ".4f"),
+    ("vertical_p95_m", "vertical error 95th percentile", "m", ".4f"),
+    ("vertical_max_m", "vertical error max", "m", ".4f"),
+    ("d1_rmse_m", "D1 point-to-point RMSE (symmetric)", "m", ".4f"),
+    ("d1_rmse_forward_m", "  original -> rebuilt", "m", ".4f"),
+    ("d1_rmse_backward_m", "  rebuilt -> original", "m", ".4f"),
+    ("d1_psnr_db", "D1 PSNR", "dB", ".2f"),
+    ("psnr_peak_m", "  PSNR peak (bounding-box diagonal)", "m", ".3f"),
+    ("chamfer_m", "Chamfer distance", "m", ".4f"),
+    ("hausdorff_m", "Hausdorff distance", "m", ".4f"),
+)
+
+
+def format_metrics(result: Row) -> str:
+    """The result of :func:`evaluate_files` as an aligned table, one metric a line."""
+    lines = []
+    width = max(len(label) for _, label, _, _ in _TABLE)
+    for key, label, unit, fmt in _TABLE:
+        if key not in result:
+            continue
+        value = result[key]
+        text = f"{value:,}" if fmt is None else format(value, fmt)
+        lines.append(f"{label:<{width}}  {text:>14} {unit}".rstrip())
+    return "\n".join(lines)
+
+
+def jsonable(result: Row) -> Row:
+    """A copy with non-finite numbers (an infinite PSNR) as None, for strict JSON."""
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -283,19 +392,19 @@ def build_parser() -> argparse.ArgumentParser:
                         help="every occupied cell within this error (adds a residual layer)")
     target.add_argument("--target-bpp", type=_positive, metavar="BITS",
                         help="most accurate file of at most this many bits per original point")
-    p.add_argument("--profile", choices=("compact", "paper"), default="compact",
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact",
                    help="compact (default): detrended DCT, quantized, entropy-coded; paper: the published method")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classification codes, e.g. 2 for ground")
-    p.add_argument("--aggregate", choices=("mean", "median", "min", "max"), help="cell height from its points (default mean)")
-    p.add_argument("--frame", choices=("axis", "oriented"), help="axis-aligned or minimum-area rotated grid (default axis)")
-    p.add_argument("--transform", choices=("dft", "dct"), help="override the profile's transform")
-    p.add_argument("--detrend", choices=("none", "plane"), help="override the profile's detrending")
-    p.add_argument("--fill", choices=("consistent", "smooth", "zero"),
+    p.add_argument("--aggregate", choices=CHOICES["aggregate"], help="cell height from its points (default mean)")
+    p.add_argument("--frame", choices=CHOICES["frame"], help="axis-aligned or minimum-area rotated grid (default axis)")
+    p.add_argument("--transform", choices=CHOICES["transform"], help="override the profile's transform")
+    p.add_argument("--detrend", choices=CHOICES["detrend"], help="override the profile's detrending")
+    p.add_argument("--fill", choices=CHOICES["fill"],
                    help="how empty cells are filled before the transform (compact default: consistent)")
     p.add_argument("--step", type=_positive, help="quantizer step in metres (default: automatic)")
-    p.add_argument("--mask", choices=("exact", "footprint"),
+    p.add_argument("--mask", choices=CHOICES["mask"],
                    help="exact (default): rebuild occupied cells only; footprint: also the gaps the map encloses")
-    p.add_argument("--coder", choices=("ans", "zstd"), help="entropy coder of the coefficients (default ans)")
+    p.add_argument("--coder", choices=CHOICES["coder"], help="entropy coder of the coefficients (default ans)")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop points with NaN or infinite coordinates instead of refusing the file")
     p.add_argument("--topic", help="ROS bag: the sensor_msgs/PointCloud2 topic to read (default: the only one)")
@@ -351,7 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 0,0.05,...,0.95)")
     p.add_argument("--resolution", "-r", type=_resolutions, default=["auto"],
                    help="DEM cell size in metres (or 'auto'): one for all inputs, or comma-separated, one per input")
-    p.add_argument("--profile", choices=("compact", "paper"), default="compact")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ inputs: keep only these classes, e.g. 2 for ground")
     p.add_argument("--out", "-o", required=True, help="folder for sweep.csv and sweep.png")
     p.add_argument("--quiet", "-q", action="store_true")
@@ -361,7 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("original")
     p.add_argument("--cutoffs", type=_cutoffs, default="0.8,0.95", help="cutoff ratios to show (default 0.8,0.95)")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto", help="DEM cell size in metres, or 'auto'")
-    p.add_argument("--profile", choices=("compact", "paper"), default="compact")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
     p.add_argument("--out", "-o", required=True, help="folder for the PNG")
     p.set_defaults(func=cmd_compare)

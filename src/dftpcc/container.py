@@ -18,14 +18,11 @@ import base64
 import binascii
 import json
 import math
-import os
-import secrets
 import struct
 import warnings
 import zlib
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 import zstandard
@@ -37,7 +34,8 @@ from .errors import (
     ResourceLimitError,
     UnsupportedFormatError,
 )
-from .grid import MAX_CELLS, Grid
+from .dem import Grid
+from .limits import DECODE_BYTES_PER_CELL, MAX_CELLS, cell_budget
 from .params import Params
 
 __all__ = [
@@ -46,10 +44,7 @@ __all__ = [
     "Header",
     "pack",
     "unpack",
-    "CompressedMap",
-    "open",
-    "atomic_write",
-    "cell_budget",
+    "cells_allowed",
 ]
 
 MAGIC = b"\x89DFTPC\r\n"
@@ -68,20 +63,6 @@ _GEOM = struct.Struct("<ddddIIdQQddd")
 _GEOM_Y = struct.Struct("<d")
 #: Sections the reader needs; unknown tags are skipped.
 REQUIRED = (b"GEOM", b"PARM", b"MASK", b"COEF")
-
-# Decoding budget. Decoding costs memory and time in proportion to the grid
-# (rows x cols), whatever the file's size, so a header's grid is checked
-# against what the file's size justifies before anything is allocated.
-#: Any file may ask for a grid this large (cells): the costliest such grid
-#: decodes in under half a second and 200 MB.
-FREE_CELLS = 1 << 21
-#: Beyond FREE_CELLS a file must hold at least one byte per this many cells.
-#: Maps of real terrain hold 5 to 100 cells per byte (measured on the
-#: project's survey data, cutoffs 0.8 to 0.99); only a near-constant surface
-#: compresses harder, and it can be opened with ``max_cells``.
-CELLS_PER_BYTE = 1024
-#: Peak memory to decode one cell, bytes (54 to 81 B measured), for messages.
-DECODE_BYTES_PER_CELL = 96
 #: Largest coordinate, height, grid extent or quantizer step a header may
 #: state, metres (about 7 astronomical units): beyond it a number is not a
 #: map coordinate but a damaged or crafted field, and it could overflow.
@@ -96,14 +77,6 @@ _VLR_MAX_ID = 0xFFFF
 _VLR_MAX_BYTES = 0xFFFF
 _VLR_DESCRIPTION = 32
 
-
-def cell_budget(file_size: int) -> int:
-    """Largest grid (cells) a ``.dftpc`` file of ``file_size`` bytes may ask for by default.
-
-    ``max(FREE_CELLS, CELLS_PER_BYTE * file_size)``, capped at
-    :data:`~dftpcc.grid.MAX_CELLS` (the largest grid the encoder builds).
-    """
-    return int(min(MAX_CELLS, max(FREE_CELLS, CELLS_PER_BYTE * file_size)))
 
 
 @dataclass
@@ -542,7 +515,7 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
         Another major version of the format.
     """
     data = memoryview(data)
-    budget = _budget(len(data), max_cells)
+    budget = cells_allowed(len(data), max_cells)
     found, declared = _sections(data, allow_truncated_coef=allow_truncated_coef)
     geom = found[b"GEOM"]
     if len(geom) < _GEOM.size:
@@ -585,205 +558,11 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     return header, {tag: found[tag] for tag in (b"MASK", b"COEF", b"RESD") if tag in found}
 
 
-def _budget(file_size: int, max_cells: int | None) -> int:
+def cells_allowed(file_size: int, max_cells: int | None) -> int:
+    """The largest grid a file of ``file_size`` bytes may ask for: ``max_cells`` if given
+    (never over :data:`~dftpcc.limits.MAX_CELLS`), else :func:`~dftpcc.limits.cell_budget`."""
     if max_cells is None:
         return cell_budget(file_size)
     if not _is_count(max_cells) or max_cells == 0:
         raise InvalidInputError(f"max_cells must be a positive whole number, got {max_cells!r}")
     return min(max_cells, MAX_CELLS)
-
-
-class CompressedMap:
-    """A ``.dftpc`` map opened for reading; use :func:`open`.
-
-    The header is parsed and checked on opening; the mask and coefficients
-    are decoded only when :meth:`read_points` or :meth:`read_dem` asks.
-    """
-
-    def __init__(self, data: bytes, name: str = "<bytes>", *, max_bytes: int | None = None,
-                 max_cells: int | None = None, file_size: int | None = None):
-        self.name = name
-        # With max_bytes the budget follows the whole file, which exists, not the prefix read.
-        self.size = len(data) if file_size is None else file_size
-        if max_bytes is not None:
-            if max_bytes <= 0:
-                raise InvalidInputError(f"max_bytes must be positive, got {max_bytes}")
-            data = data[:max_bytes]
-        self._data = data
-        self._partial = max_bytes is not None
-        self.header, self._blobs = unpack(data, allow_truncated_coef=self._partial,
-                                          max_cells=_budget(self.size, max_cells))
-
-    # Context-manager protocol, like rasterio.open: nothing to release but
-    # the buffer, yet `with dftpcc.open(...) as m:` reads naturally.
-    def __enter__(self) -> "CompressedMap":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._data = b""
-
-    @property
-    def params(self) -> Params:
-        return self.header.params
-
-    @property
-    def grid(self) -> Grid:
-        return self.header.grid
-
-    @property
-    def crs(self) -> dict[str, Any]:
-        return self.header.crs
-
-    def read_dem(self, *, cutoff: float | None = None):
-        """The rebuilt DEM (see :func:`dftpcc.codec.decode_dem`).
-
-        Raises
-        ------
-        CorruptFileError
-            A section fails to decode, or decodes to non-finite heights.
-        """
-        from .codec import decode_dem
-
-        return decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
-
-    def read_points(self, *, cutoff: float | None = None) -> np.ndarray:
-        """The rebuilt cloud, shape (cells, 3), float64, original frame (metres)."""
-        from .rebuild import dem_to_points
-
-        return dem_to_points(self.read_dem(cutoff=cutoff))
-
-    def info(self) -> dict[str, Any]:
-        """Header, parameters and sizes as plain JSON-ready data."""
-        h = self.header
-        g = h.grid
-        return {
-            "file": self.name,
-            "bytes": self.size,
-            "format_version": f"{VERSION[0]}.{VERSION[1]}",
-            "points_original": h.point_count,
-            "points_rebuilt": h.cell_count,
-            "bits_per_point": 8.0 * self.size / h.point_count if h.point_count else None,
-            "grid": {"rows": g.rows, "cols": g.cols, "resolution_m": g.resolution,
-                     "origin": [g.x0, g.y0], "z0_m": g.z0, "angle_rad": g.angle},
-            "params": json.loads(h.params.to_json()),
-            "plane": list(h.plane),
-            "crs": (h.crs.get("wkt") or ("LAS GeoKeys" if h.crs.get("las_vlrs") else None)),
-            "stats": h.stats,
-        }
-
-
-def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | None = None,  # noqa: A001
-         max_cells: int | None = None) -> CompressedMap:
-    """Open a compressed map from a path, a binary file object or bytes.
-
-    Parameters
-    ----------
-    source : path, file-like or bytes
-    max_bytes : int, optional
-        Read only the first ``max_bytes`` bytes, as if the rest had not been
-        received yet; the map decodes from the low frequencies it holds.
-    max_cells : int, optional
-        Largest grid (rows x cols) to accept. By default a file may ask for
-        :func:`cell_budget` of its size; raise it for a trusted file that
-        :class:`~dftpcc.errors.ResourceLimitError` refused.
-
-    Raises
-    ------
-    InvalidInputError
-        The path does not exist or is not a file, or a bad argument.
-    CorruptFileError
-        The content is not a valid ``.dftpc`` stream.
-    ResourceLimitError
-        The header asks for a grid over the budget.
-    UnsupportedFormatError
-        Another major version of the format.
-    """
-    if isinstance(source, (bytes, bytearray, memoryview)):
-        return CompressedMap(bytes(source), max_bytes=max_bytes, max_cells=max_cells)
-    if hasattr(source, "read"):
-        return CompressedMap(source.read(), getattr(source, "name", "<stream>"), max_bytes=max_bytes,
-                             max_cells=max_cells)
-    path = Path(source)
-    if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
-    with path.open("rb") as fh:
-        size = os.fstat(fh.fileno()).st_size
-        data = fh.read() if max_bytes is None else fh.read(max_bytes)
-    return CompressedMap(data, str(path), max_bytes=max_bytes, max_cells=max_cells, file_size=max(size, len(data)))
-
-
-#: Temporary files of :func:`atomic_write`: ``.NAME.PID.TOKEN.tmpSUFFIX``.
-_TMP_MARK = ".tmp"
-
-
-def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
-    """Create ``path`` through a temporary file in the same folder, renamed into place.
-
-    ``write(tmp_path)`` receives the temporary path. The file is flushed to
-    disk, renamed over ``path`` in one step (``os.replace``) and the folder
-    entry synced, so ``path`` holds either its previous content or the whole
-    new one, never a partial file. If ``write`` raises or the process is
-    interrupted (Ctrl-C, SIGTERM under the CLI) the temporary file is
-    removed; only a process killed outright (SIGKILL, power loss) leaves it,
-    under a hidden name, and the next write to ``path`` removes it.
-    """
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise InvalidInputError(f"{path}: folder {folder} does not exist")
-    _remove_stale_temporaries(folder, path.name)
-    tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}{path.suffix}"
-    try:
-        write(tmp)
-        with tmp.open("rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        _sync_folder(folder)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def _sync_folder(folder: Path) -> None:
-    # The rename is durable only once the folder entry is on disk too.
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass  # some file systems cannot sync a folder; the rename is still atomic
-    finally:
-        os.close(fd)
-
-
-def _remove_stale_temporaries(folder: Path, name: str) -> None:
-    """Remove temporaries of ``name`` left by writers that were killed outright."""
-    prefix = f".{name}."
-    try:
-        candidates = [p for p in folder.iterdir() if p.name.startswith(prefix) and _TMP_MARK in p.name]
-    except OSError:
-        return
-    for candidate in candidates:
-        pid = candidate.name[len(prefix):].split(".", 1)[0]
-        if pid.isdigit() and not _alive(int(pid)):
-            try:
-                candidate.unlink()
-            except OSError:
-                pass
-
-
-def _alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, OSError):
-        return True  # exists but not ours, or cannot tell: leave its file alone
-    return True

@@ -8,14 +8,17 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .codec import DEFAULT_CUTOFF, Stage, _noop, compress, encode_dem
-from .container import CompressedMap, atomic_write
-from .container import open as open_map
+from .dem import DEM, Grid
+from .encoder import Stage, compress, encode_dem, no_stage, params_of
 from .errors import InvalidInputError
-from .formats import (CHUNKED_FORMATS, DEFAULT_CHUNK_POINTS, check_chunkable, format_of, open_chunked, read,
-                      read_raster_dem, stored_point_count, write, write_geotiff)
-from .grid import DEM, CloudSummary, Grid, available_memory, check_chunked_aggregate, rasterize_chunks
-from .params import make_params
+from .grid import CloudSummary, check_chunked_aggregate, rasterize_chunks
+from .io import (CHUNKED_FORMATS, DEFAULT_CHUNK_POINTS, atomic_write, check_chunkable, format_of, open_chunked, read,
+                 read_raster_dem, stored_point_count, write, write_geotiff)
+from .limits import holds_in_memory
+from .mapfile import CompressedMap
+from .mapfile import open as open_map
+from .rebuild import dem_to_points
+from .params import Params
 
 __all__ = ["compress_file", "decompress_file", "dem_from_geotiff", "reads_in_chunks"]
 
@@ -23,22 +26,13 @@ __all__ = ["compress_file", "decompress_file", "dem_from_geotiff", "reads_in_chu
 SQUARE_TOLERANCE = 1e-9
 
 
-#: Peak memory of compressing a cloud held in memory, bytes per point read
-#: (the reader's records, x y z in float64, cell indices and distances),
-#: 76-79 B measured by benchmarks/bench_memory.py on LAZ files of 2.8-22.7 M points, with headroom.
-IN_MEMORY_BYTES_PER_POINT = 100
-#: A cloud is read in chunks when holding it would take more than this
-#: share of the memory available.
-MEMORY_SHARE = 0.5
-
-
 def reads_in_chunks(src: str | os.PathLike[str], format: str | None = None,  # noqa: A002
                     chunk_points: int | None = None) -> bool:
     """Whether :func:`compress_file` reads ``src`` in chunks.
 
     Always when ``chunk_points`` is given (the format must allow it);
-    otherwise when the file holds more points (:func:`~dftpcc.formats.stored_point_count`)
-    than :data:`MEMORY_SHARE` of the available memory can compress in one piece.
+    otherwise when the file holds more points (:func:`~dftpcc.io.stored_point_count`)
+    than the available memory can compress in one piece (:func:`~dftpcc.limits.holds_in_memory`).
     """
     fmt = format_of(src, format)
     if chunk_points is not None:
@@ -46,22 +40,21 @@ def reads_in_chunks(src: str | os.PathLike[str], format: str | None = None,  # n
         return True
     if fmt not in CHUNKED_FORMATS:
         return False
-    stored, memory = stored_point_count(src, fmt), available_memory()
-    return bool(stored and memory and stored * IN_MEMORY_BYTES_PER_POINT > MEMORY_SHARE * memory)
+    stored = stored_point_count(src, fmt)
+    return bool(stored) and not holds_in_memory(stored)
 
 
-def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
-                  resolution: float | str = "auto", cutoff: float | None = None, profile: str = "compact",
+def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], params: Params | None = None, *,
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
                   drop_nonfinite: bool = False, chunk_points: int | None = None, topic: str | None = None,
-                  on_stage: Stage = _noop, **options: Any) -> CompressedMap:
+                  on_stage: Stage = no_stage, **shortcuts: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
     Parameters are those of :func:`dftpcc.compress` and :func:`dftpcc.read`
     (``topic``: the PointCloud2 topic of a ROS bag).
     A GeoTIFF source with ``resolution='auto'`` is coded on its own pixel grid.
     A cloud too large to hold in memory (LAS, LAZ, PLY, NPY) is read in
-    chunks of ``chunk_points`` (default :data:`~dftpcc.formats.DEFAULT_CHUNK_POINTS`),
+    chunks of ``chunk_points`` (default :data:`~dftpcc.io.DEFAULT_CHUNK_POINTS`),
     three or four passes over the file, so memory holds the grid and one chunk
     (:func:`reads_in_chunks`); giving ``chunk_points`` forces it. The file is
     the same up to float round-off. ``aggregate='median'`` cannot be chunked.
@@ -71,33 +64,27 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
     CompressedMap
         The written map, opened (header parsed).
     """
+    # Parameters checked before the first pass over a file that may take minutes to read.
+    params = params_of(params, shortcuts)
     on_stage("read")
-    if format_of(src, format) == "tif" and resolution == "auto":
+    if format_of(src, format) == "tif" and params.resolution == "auto":
         dem, crs = dem_from_geotiff(src)
-        params = make_params(resolution=dem.grid.resolution, cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff,
-                             profile=profile, **options)
-        data = encode_dem(dem, params, crs=crs, on_stage=on_stage, cutoff_given=cutoff is not None)
+        data = encode_dem(dem, params, crs=crs, on_stage=on_stage)
     elif reads_in_chunks(src, format, chunk_points):
-        data = _compress_chunked(src, resolution=resolution, cutoff=cutoff, profile=profile, format=format,
-                                 classes=classes, drop_nonfinite=drop_nonfinite, topic=topic,
-                                 chunk_points=chunk_points or DEFAULT_CHUNK_POINTS, on_stage=on_stage, **options)
+        data = _compress_chunked(src, params, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
+                                 topic=topic, chunk_points=chunk_points or DEFAULT_CHUNK_POINTS, on_stage=on_stage)
     else:
         cloud = read(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite, topic=topic)
-        data = compress(cloud.points, resolution=resolution, cutoff=cutoff, profile=profile,
-                        crs=cloud.crs, on_stage=on_stage, **options)
+        data = compress(cloud.points, params, crs=cloud.crs, on_stage=on_stage)
     on_stage("write")
     atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
     return open_map(data)
 
 
-def _compress_chunked(src: str | os.PathLike[str], *, resolution: float | str, cutoff: float | None,
-                      profile: str, format: str | None, classes: Sequence[int] | None,  # noqa: A002
-                      drop_nonfinite: bool, topic: str | None, chunk_points: int, on_stage: Stage,
-                      **options: Any) -> bytes:
+def _compress_chunked(src: str | os.PathLike[str], params: Params, *, format: str | None,  # noqa: A002
+                      classes: Sequence[int] | None, drop_nonfinite: bool, topic: str | None, chunk_points: int,
+                      on_stage: Stage) -> bytes:
     """:func:`dftpcc.compress` of a cloud read in chunks: summary, [auto resolution], heights, spread."""
-    # Parameters checked before the first pass over a file that may take minutes to read.
-    params = make_params(resolution=1.0 if resolution == "auto" else resolution,
-                         cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff, profile=profile, **options)
     check_chunked_aggregate(params.aggregate)
     cloud = open_chunked(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
                          chunk_points=chunk_points, topic=topic)
@@ -108,13 +95,11 @@ def _compress_chunked(src: str | os.PathLike[str], *, resolution: float | str, c
         if cloud.dropped:
             raise InvalidInputError(f"{src}: all {cloud.dropped:,} points have NaN or infinite coordinates")
         raise InvalidInputError(f"{src}: no points" + (" of the selected classes" if classes else ""))
-    if resolution == "auto":
-        params = params.replace(resolution=summary.auto_resolution(cloud.chunks))
+    resolution = summary.auto_resolution(cloud.chunks) if params.resolution == "auto" else params.resolution
     on_stage("grid")
-    grid = summary.fit_grid(params.resolution, frame=params.frame)
+    grid = summary.fit_grid(resolution, frame=params.frame)
     dem = rasterize_chunks(cloud.chunks, grid, aggregate=params.aggregate)
-    return encode_dem(dem, params, point_count=summary.count, crs=cloud.crs, on_stage=on_stage,
-                      cutoff_given=cutoff is not None)
+    return encode_dem(dem, params, point_count=summary.count, crs=cloud.crs, on_stage=on_stage)
 
 
 def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
@@ -135,8 +120,6 @@ def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
         dem = cmap.read_dem(cutoff=cutoff)
         crs = cmap.crs
-    from .rebuild import dem_to_points
-
     points = dem_to_points(dem)
     if fmt == "tif":
         write_geotiff(dst, dem, crs=crs)

@@ -3,56 +3,35 @@
 As in the paper, points are projected on a horizontal plane at the height of
 their centroid, inside the minimum bounding rectangle (axis-aligned, or
 optionally rotated to minimum area); each cell of ``resolution`` metres holds
-one height. Cells no point fell in are recorded in an occupancy mask and
-filled smoothly so the transform sees no artificial cliff.
+one height. Cells no point fell in are recorded in the occupancy mask; filling
+them for the transform is the spectrum stage's job (:mod:`dftpcc.fill`).
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass
 from typing import Callable, Iterable
 
 import numpy as np
 from scipy import ndimage
 
+from .dem import DEM, MULTI_HEIGHT_TOLERANCE_CELLS, Grid, HeightSpread, as_points
 from .errors import InvalidInputError, MultiHeightWarning
+from .limits import check_grid_size
 
 __all__ = [
-    "Grid",
-    "DEM",
-    "HeightSpread",
-    "MAX_CELLS",
-    "drop_nonfinite",
     "fit_grid",
     "rasterize",
     "rasterize_chunks",
-    "fill_empty",
-    "fit_plane",
+    "check_chunked_aggregate",
     "auto_resolution",
     "CloudSummary",
-    "cell_limit",
-    "gridding_rmse",
 ]
-
-#: Largest grid dftpcc builds in memory (cells). A float64 DEM this size is
-#: 800 MB and the transform needs a few such arrays.
-MAX_CELLS = 100_000_000
-
-#: Peak memory of compressing one cell, bytes: the DEM, its mask, counts,
-#: fill, transform and synthesis arrays (about 90 B measured for the
-#: compact profile, 120 B for the paper's complex DFT), rounded up.
-ENCODE_BYTES_PER_CELL = 128
 
 #: Float64 resolves a coordinate ``x`` to about ``x * 2**-52``; a grid needs
 #: that to be below this fraction of a cell, or cells blur into each other.
 COORDINATE_PRECISION_CELLS = 1e-3
-
-#: A point farther than this many cell sizes (vertically) from its cell's
-#: height is one the DEM cannot represent: a wall, an overhang, a tree.
-#: Even a 45 degree slope stays within 0.71 cells of a cell's mean height.
-MULTI_HEIGHT_TOLERANCE_CELLS = 1.0
 
 #: Warn (:class:`~dftpcc.errors.MultiHeightWarning`) when at least this
 #: fraction of the points cannot be represented.
@@ -66,242 +45,6 @@ ROTATED_MARGIN = 1e-6
 
 #: ``auto`` resolution aims at this many points per occupied cell.
 AUTO_POINTS_PER_CELL = 4.0
-
-
-@dataclass(frozen=True)
-class Grid:
-    """Geometry of a DEM: where cell (row, col) lies in the original frame.
-
-    A point ``p`` has local coordinates ``R(-angle) @ (p.xy - origin)``;
-    column ``floor(u / resolution)``, row ``floor(v / dy)``. Row 0 is
-    at the smallest local v (south for an axis-aligned grid). Heights in the
-    DEM are relative to ``z0``, the centroid height of the cloud (the paper's
-    projection plane).
-
-    Attributes
-    ----------
-    x0, y0 : float
-        Origin (corner of cell (0, 0)) in the input's horizontal unit (metres).
-    z0 : float
-        Height of the projection plane, metres.
-    resolution : float
-        Cell size, metres (along u; along v too unless ``resolution_y``).
-    rows, cols : int
-        Shape of the DEM.
-    angle : float
-        Rotation of the grid's u axis from the x axis, radians.
-    resolution_y : float, optional
-        Cell size along v in metres when cells are not square (GeoTIFF DEMs
-        on a latitude/longitude grid); None for square cells.
-    """
-
-    x0: float
-    y0: float
-    z0: float
-    resolution: float
-    rows: int
-    cols: int
-    angle: float = 0.0
-    resolution_y: float | None = None
-
-    @property
-    def dy(self) -> float:
-        """Cell size along v (rows), metres."""
-        return self.resolution if self.resolution_y is None else self.resolution_y
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return (self.rows, self.cols)
-
-    @property
-    def size(self) -> int:
-        return self.rows * self.cols
-
-    def _rotation(self) -> tuple[float, float]:
-        return math.cos(self.angle), math.sin(self.angle)
-
-    def to_local(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Local (u, v) coordinates in metres of points ``xy`` of shape (N, 2+)."""
-        dx = xy[:, 0] - self.x0
-        dy = xy[:, 1] - self.y0
-        if self.angle == 0.0:
-            return dx, dy
-        c, s = self._rotation()
-        return c * dx + s * dy, -s * dx + c * dy
-
-    def cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Row and column (int64) of each point; may fall outside the grid."""
-        u, v = self.to_local(xy)
-        return np.floor(v * (1.0 / self.dy)).astype(np.int64), np.floor(u * (1.0 / self.resolution)).astype(np.int64)
-
-    def flat_index(self, xy: np.ndarray) -> np.ndarray:
-        """Row-major cell index of each point, -1 where it lies outside the grid."""
-        # The hot loop of gridding: in-place float arithmetic, one conversion,
-        # as few passes over millions of points as numpy allows.
-        u, v = self.to_local(xy)
-        u = np.multiply(u, 1.0 / self.resolution)
-        v = np.multiply(v, 1.0 / self.dy)
-        np.floor(u, out=u)
-        np.floor(v, out=v)
-        outside = (u < 0) | (u >= self.cols) | (v < 0) | (v >= self.rows)
-        v *= self.cols
-        v += u  # exact: cell counts are far below 2**53
-        idx = v.astype(np.int64)
-        if outside.any():
-            idx[outside] = -1
-        return idx
-
-    def centres(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World x, y of the centres of cells ``(rows, cols)``."""
-        u = (cols + 0.5) * self.resolution
-        v = (rows + 0.5) * self.dy
-        if self.angle == 0.0:
-            return self.x0 + u, self.y0 + v
-        c, s = self._rotation()
-        return self.x0 + c * u - s * v, self.y0 + s * u + c * v
-
-
-@dataclass(frozen=True)
-class HeightSpread:
-    """How far a cloud is from having one height per cell.
-
-    A DEM keeps one height per cell; points far above or below it (a
-    vertical wall, an overhang, vegetation over ground) are flattened.
-
-    Attributes
-    ----------
-    tolerance_m : float
-        A point farther than this from its cell's height (metres) is counted
-        as unrepresented (:data:`MULTI_HEIGHT_TOLERANCE_CELLS` cell sizes).
-    points : int
-        Points gridded.
-    unrepresented_points : int
-        Points farther than ``tolerance_m`` from their cell's height.
-    unrepresented_cells : int
-        Cells holding at least one such point.
-    unrepresented_rmse_m : float
-        RMS distance of those points to their cell's height, metres (0 if none).
-    max_distance_m : float
-        Largest distance of any point to its cell's height, metres.
-    """
-
-    tolerance_m: float
-    points: int
-    unrepresented_points: int
-    unrepresented_cells: int
-    unrepresented_rmse_m: float
-    max_distance_m: float
-
-    @property
-    def fraction(self) -> float:
-        """Fraction of the points the DEM cannot represent, in [0, 1]."""
-        return self.unrepresented_points / self.points if self.points else 0.0
-
-    def as_stats(self) -> dict[str, float | int]:
-        """The figures as flat JSON-ready fields, for a file's STAT section."""
-        return {
-            "unrepresented_fraction": self.fraction,
-            "unrepresented_points": self.unrepresented_points,
-            "unrepresented_cells": self.unrepresented_cells,
-            "unrepresented_rmse_m": self.unrepresented_rmse_m,
-            "unrepresented_tolerance_m": self.tolerance_m,
-            "max_point_distance_m": self.max_distance_m,
-        }
-
-    def describe(self) -> str:
-        """One sentence for a warning or a summary line."""
-        return (f"{100 * self.fraction:.2f} % of the points ({self.unrepresented_points:,} of "
-                f"{self.points:,}, in {self.unrepresented_cells:,} cell(s)) lie more than "
-                f"{self.tolerance_m:g} m ({MULTI_HEIGHT_TOLERANCE_CELLS:g} cell) above or below their cell's height, by "
-                f"{self.unrepresented_rmse_m:.3g} m RMS and up to {self.max_distance_m:.3g} m: a DEM "
-                f"keeps one height per cell, so walls, overhangs and vegetation are flattened "
-                f"(keep ground points only, e.g. LAS class 2, or use finer cells)")
-
-
-@dataclass
-class DEM:
-    """A gridded map: heights relative to ``grid.z0`` plus which cells had points.
-
-    Attributes
-    ----------
-    grid : Grid
-    heights : ndarray, shape (rows, cols), float64
-        Height above the projection plane in metres; empty cells hold 0
-        until :func:`fill_empty` is applied.
-    mask : ndarray, shape (rows, cols), bool
-        True where at least one point fell.
-    counts : ndarray, shape (rows, cols), int, optional
-        Points per cell (known when the DEM was gridded from points).
-    gridding_rmse : float, optional
-        RMS vertical distance in metres of the points to their cell's height:
-        with ``mean`` cells, the floor no codec storing this DEM goes below.
-    spread : HeightSpread, optional
-        Points the DEM cannot represent (known when gridded from points).
-    """
-
-    grid: Grid
-    heights: np.ndarray
-    mask: np.ndarray
-    counts: np.ndarray | None = None
-    gridding_rmse: float | None = None
-    spread: HeightSpread | None = None
-
-
-#: How many offending row numbers an error message lists.
-_ROWS_SHOWN = 5
-
-
-def _as_xyz(points: np.ndarray) -> np.ndarray:
-    points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] < 3:
-        raise InvalidInputError(f"points must have shape (N, 3), got {points.shape}")
-    if points.dtype.kind not in "biuf":
-        raise InvalidInputError(f"points must be real numbers, got dtype {points.dtype}")
-    return np.asarray(points[:, :3], dtype=np.float64)
-
-
-def _check_points(points: np.ndarray) -> np.ndarray:
-    points = _as_xyz(points)
-    if points.shape[0] == 0:
-        raise InvalidInputError("the point cloud is empty")
-    # One sum is finite exactly when every value is (or when a huge value
-    # overflowed it): the exact row-wise check runs only then.
-    if np.isfinite(points.sum()):
-        return points
-    finite = np.isfinite(points).all(axis=1)
-    if not finite.all():
-        raise nonfinite_error(np.flatnonzero(~finite), points.shape[0])
-    return points
-
-
-def nonfinite_error(bad_rows: np.ndarray, total: int | str) -> InvalidInputError:
-    """The error for NaN or infinite coordinates in ``bad_rows`` of ``total`` points."""
-    shown = ", ".join(str(int(i)) for i in bad_rows[:_ROWS_SHOWN]) + (", ..." if bad_rows.size > _ROWS_SHOWN else "")
-    return InvalidInputError(
-        f"{bad_rows.size} of {total} point(s) have NaN or infinite coordinates (rows {shown}); "
-        f"drop them first (dftpcc.grid.drop_nonfinite, or read(..., drop_nonfinite=True))")
-
-
-def drop_nonfinite(points: np.ndarray) -> tuple[np.ndarray, int]:
-    """The rows of ``points`` whose x, y and z are all finite.
-
-    Compression refuses NaN or infinite coordinates, since silently losing
-    points hides a broken sensor or reader; this is the explicit opt-in.
-
-    Parameters
-    ----------
-    points : array_like, shape (N, 3)
-
-    Returns
-    -------
-    points : ndarray, shape (M, 3), float64
-        The finite rows, in their order.
-    dropped : int
-        ``N - M``.
-    """
-    points = _as_xyz(points)
-    finite = np.isfinite(points).all(axis=1)
-    return points[finite], int(points.shape[0] - finite.sum())
 
 
 def _min_area_angle(xy: np.ndarray) -> float:
@@ -344,7 +87,7 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
         resolution that fits), or coordinates too large for float64 to
         resolve cells of ``resolution``.
     """
-    points = _check_points(points)
+    points = as_points(points)
     _check_resolution(resolution)
     angle = _min_area_angle(points[:, :2]) if frame == "oriented" else 0.0
     # Each extreme once, column by column: over millions of strided values every pass counts.
@@ -382,7 +125,7 @@ def _grid_around(xy_extremes: tuple[float, float, float, float], local: tuple[fl
         # counts as whole, so the last lattice point gets its own cell.
         cols_f = float(np.floor((umax - umin) / resolution + LATTICE_TOLERANCE)) + 1.0
         rows_f = float(np.floor((vmax - vmin) / resolution + LATTICE_TOLERANCE)) + 1.0
-    _check_grid_size(rows_f, cols_f, resolution)
+    check_grid_size(rows_f, cols_f, resolution)
     _check_precision(max(abs(e) for e in xy_extremes), resolution)
     rows, cols = int(rows_f), int(cols_f)
     # Whole cells overhang the points' extent; split the overhang evenly on
@@ -393,65 +136,6 @@ def _grid_around(xy_extremes: tuple[float, float, float, float], local: tuple[fl
     vmin -= (rows * resolution - (vmax - vmin)) / 2.0
     x0, y0 = c * umin - s * vmin, s * umin + c * vmin
     return Grid(x0=x0, y0=y0, z0=z0, resolution=float(resolution), rows=rows, cols=cols, angle=angle)
-
-
-def available_memory() -> int | None:
-    """Bytes of memory the system can still give this process (Linux), else ``None``."""
-    try:
-        with open("/proc/meminfo", encoding="ascii") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def cell_limit() -> int:
-    """Largest grid (cells) compression will build here: :data:`MAX_CELLS`, or less
-    when the available memory cannot hold :data:`ENCODE_BYTES_PER_CELL` per cell."""
-    memory = available_memory()
-    return MAX_CELLS if memory is None else max(1, min(MAX_CELLS, memory // ENCODE_BYTES_PER_CELL))
-
-
-def _size(nbytes: float) -> str:
-    for unit, scale in (("PB", 1e15), ("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
-        if nbytes >= scale:
-            return f"{nbytes / scale:,.1f} {unit}"
-    return f"{nbytes / 1e3:,.1f} kB"
-
-
-def _count(n: float) -> str:
-    return f"{n:,.0f}" if n < 1e15 else f"{n:.3g}"
-
-
-#: Headroom on a suggested resolution for the extra row and column a grid takes.
-ROUNDING_MARGIN = 0.01
-
-
-def _round_up(value: float, digits: int = 2) -> float:
-    """``value`` rounded up to ``digits`` significant digits (a resolution to suggest)."""
-    scale = 10.0 ** (math.floor(math.log10(value)) - digits + 1)
-    return float(f"{math.ceil(value / scale) * scale:.{digits}g}")
-
-
-def _check_grid_size(rows: float, cols: float, resolution: float) -> None:
-    cells = rows * cols
-    limit = cell_limit()
-    if math.isfinite(cells) and cells <= limit:
-        return
-    if not math.isfinite(cells):
-        raise InvalidInputError(
-            f"the points span about {_count((cols - 1) * resolution)} x {_count((rows - 1) * resolution)} m: "
-            f"at {resolution:g} m that is more cells than can be counted; use a coarser resolution")
-    why = (f"the {MAX_CELLS:,}-cell limit" if limit == MAX_CELLS else
-           f"the {limit:,} cells that the available memory ({_size(available_memory() or 0)}) holds")
-    # Cells scale with 1/resolution**2: the coarsest step that fits, rounded up.
-    need = resolution * math.sqrt(cells / limit) * (1 + ROUNDING_MARGIN)
-    hint = f"use a resolution of at least {_round_up(need):g} m"
-    raise InvalidInputError(
-        f"a {_count(rows)} x {_count(cols)} grid ({_count(cells)} cells) at {resolution:g} m would need "
-        f"about {_size(cells * ENCODE_BYTES_PER_CELL)} of memory and exceeds {why}; {hint}")
 
 
 def _check_precision(largest: float, resolution: float) -> None:
@@ -477,7 +161,7 @@ def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean") -> DEM
     DEM
         Heights relative to ``grid.z0`` in metres; 0 in empty cells.
     """
-    points = _check_points(points)
+    points = as_points(points)
     idx, z = _cells_of(points, grid)
     if aggregate == "median":
         count = np.bincount(idx, minlength=grid.size)
@@ -606,111 +290,13 @@ class _SpreadCounter:
                    else 0.0, spread=spread)
 
 
-def gridding_rmse(points: np.ndarray, dem: DEM) -> float:
-    """RMS vertical distance in metres of each point to its own cell's height.
-
-    With ``aggregate='mean'`` this is the floor: the error no codec that
-    stores this DEM can go below. Points outside the grid are ignored.
-    """
-    points = _check_points(points)
-    idx = dem.grid.flat_index(points)
-    keep = idx >= 0
-    dz = points[keep, 2] - dem.grid.z0 - dem.heights.ravel()[idx[keep]]
-    return float(np.sqrt(np.mean(dz * dz))) if dz.size else 0.0
-
-
-def fit_plane(dem: DEM) -> tuple[float, float, float]:
-    """Least-squares plane ``a + b*col + c*row`` (metres) through the occupied cells."""
-    rows, cols = np.nonzero(dem.mask)
-    if rows.size < 3:
-        return (float(dem.heights[dem.mask].mean()) if rows.size else 0.0, 0.0, 0.0)
-    # Normal equations on centred coordinates: 3 x 3, well conditioned, and
-    # a few passes over the cells instead of a least-squares solve on them.
-    x, y, z = cols.astype(float), rows.astype(float), dem.heights[rows, cols]
-    mx, my, mz = x.mean(), y.mean(), z.mean()
-    x -= mx
-    y -= my
-    z = z - mz
-    normal = np.array([[x @ x, x @ y], [x @ y, y @ y]])
-    rhs = np.array([x @ z, y @ z])
-    try:
-        b, c = np.linalg.solve(normal, rhs)
-    except np.linalg.LinAlgError:  # all cells on one line: fit along it only
-        b, c = np.linalg.lstsq(normal, rhs, rcond=None)[0]
-    return float(mz - b * mx - c * my), float(b), float(c)
-
-
-def plane_values(plane: tuple[float, float, float], shape: tuple[int, int]) -> np.ndarray:
-    """The plane of :func:`fit_plane` evaluated on a grid of ``shape``."""
-    a, b, c = plane
-    rows = np.arange(shape[0], dtype=float)[:, None]
-    cols = np.arange(shape[1], dtype=float)[None, :]
-    return a + b * cols + c * rows
-
-
-def fill_empty(heights: np.ndarray, mask: np.ndarray, *, method: str = "smooth") -> np.ndarray:
-    """Heights with empty cells filled, occupied cells untouched.
-
-    ``zero`` leaves 0 (the projection plane). ``smooth`` is push-pull
-    interpolation: occupied cells are averaged down a pyramid, and each
-    level's empty cells take the bilinearly upsampled coarser level, so a
-    hole is bridged by a smooth surface and adds little high-frequency
-    energy to the spectrum.
-
-    Parameters
-    ----------
-    heights : ndarray, shape (rows, cols)
-    mask : ndarray of bool, same shape
-    method : {'smooth', 'zero'}
-    """
-    out = np.where(mask, heights, 0.0)
-    if method == "zero" or mask.all() or not mask.any():
-        return out
-    if method != "smooth":
-        raise InvalidInputError(f"fill must be 'smooth' or 'zero', got {method!r}")
-    return _push_pull(out, mask.astype(np.float64))
-
-
-def _upsample2(a: np.ndarray, axis: int) -> np.ndarray:
-    """Linear 2x upsampling along ``axis`` with cell-centred samples, edges clamped."""
-    a = np.moveaxis(a, axis, 0)
-    before = np.concatenate([a[:1], a[:-1]])
-    after = np.concatenate([a[1:], a[-1:]])
-    out = np.empty((2 * a.shape[0],) + a.shape[1:])
-    out[0::2] = 0.75 * a + 0.25 * before
-    out[1::2] = 0.75 * a + 0.25 * after
-    return np.moveaxis(out, 0, axis)
-
-
-def _push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    if weights.min() >= 1.0:
-        return values  # nothing to fill at this level (coarse levels of a dense map)
-    if min(values.shape) <= 1 and values.size <= 2:
-        total = weights.sum()
-        mean = (values * weights).sum() / total if total else 0.0
-        return np.where(weights > 0, values, mean)
-    # Pull: average the known values over 2x2 blocks (pad odd sizes by edge).
-    r, c = values.shape
-    pr, pc = r % 2, c % 2
-    v = np.pad(values * weights, ((0, pr), (0, pc)))
-    w = np.pad(weights, ((0, pr), (0, pc)))
-    wsum = w.reshape(v.shape[0] // 2, 2, v.shape[1] // 2, 2).sum(axis=(1, 3))
-    vsum = v.reshape(v.shape[0] // 2, 2, v.shape[1] // 2, 2).sum(axis=(1, 3))
-    coarse_v = np.divide(vsum, wsum, out=np.zeros_like(vsum), where=wsum > 0)
-    coarse = _push_pull(coarse_v, np.minimum(wsum, 1.0))
-    # Push: bilinear upsampling of the filled coarse level back to this size.
-    up = _upsample2(_upsample2(coarse, 0), 1)[:r, :c]
-    wc = np.minimum(weights, 1.0)
-    return wc * values + (1.0 - wc) * up
-
-
 def auto_resolution(points: np.ndarray) -> float:
     """A cell size in metres giving about :data:`AUTO_POINTS_PER_CELL` points per occupied cell.
 
     The density is measured on the occupied area (a trial grid at the mean
     spacing), so an irregular footprint does not bias it.
     """
-    points = _check_points(points)
+    points = as_points(points)
     summary = CloudSummary()
     summary.add(points)
     return summary.auto_resolution(lambda: (points,))
@@ -823,3 +409,4 @@ def _hull_vertices(xy: np.ndarray) -> np.ndarray:
         # Collinear points: the two ends of the line are what any frame needs.
         order = np.lexsort((xy[:, 1], xy[:, 0]))
         return xy[[order[0], order[-1]]]
+

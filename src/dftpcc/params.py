@@ -15,7 +15,10 @@ from typing import Any
 
 from .errors import InvalidInputError
 
-__all__ = ["Params", "PROFILES", "make_params"]
+__all__ = ["Params", "PROFILES", "CHOICES", "DEFAULT_CUTOFF", "make_params", "check_cutoff"]
+
+#: Cutoff ratio used when neither a cutoff nor a rate-control target is given.
+DEFAULT_CUTOFF = 0.8
 
 AGGREGATES = ("mean", "median", "min", "max")
 FRAMES = ("axis", "oriented")
@@ -25,6 +28,11 @@ FILLS = ("zero", "smooth", "consistent")
 STORAGES = ("complex64", "quantized")
 CODERS = ("ans", "zstd")
 MASKS = ("exact", "footprint")
+#: The allowed values of every field that takes a name (the CLI offers these).
+CHOICES: dict[str, tuple[str, ...]] = {
+    "aggregate": AGGREGATES, "frame": FRAMES, "transform": TRANSFORMS, "detrend": DETRENDS,
+    "fill": FILLS, "storage": STORAGES, "coder": CODERS, "mask": MASKS,
+}
 
 
 @dataclass(frozen=True)
@@ -33,10 +41,14 @@ class Params:
 
     Attributes
     ----------
-    resolution : float
-        Cell size of the DEM in metres (same unit as x and y).
-    cutoff : float
-        Cutoff ratio ``f_c = 1 - r / r_M`` in [0, 1); 0 keeps every coefficient.
+    resolution : float or 'auto'
+        Cell size of the DEM in metres (same unit as x and y); ``auto`` aims
+        at a few points per cell (a GeoTIFF keeps its own pixels). A file
+        records the resolution of its grid.
+    cutoff : float or None
+        Cutoff ratio ``f_c = 1 - r / r_M`` in [0, 1); 0 keeps every
+        coefficient. None: chosen by rate control when a target is set,
+        else :data:`DEFAULT_CUTOFF`. A file records the cutoff used.
     profile : str
         Name of the preset the other fields came from (``paper`` or ``compact``).
     aggregate : str
@@ -84,8 +96,8 @@ class Params:
         original point.
     """
 
-    resolution: float
-    cutoff: float = 0.8
+    resolution: float | str = "auto"
+    cutoff: float | None = None
     profile: str = "compact"
     aggregate: str = "mean"
     frame: str = "axis"
@@ -102,19 +114,11 @@ class Params:
     target_bpp: float = 0.0
 
     def __post_init__(self) -> None:
-        _check_positive("resolution", self.resolution)
-        if not (isinstance(self.cutoff, (int, float)) and 0.0 <= self.cutoff < 1.0):
-            raise InvalidInputError(f"cutoff must be in [0, 1), got {self.cutoff!r}")
-        for name, allowed in (
-            ("aggregate", AGGREGATES),
-            ("frame", FRAMES),
-            ("transform", TRANSFORMS),
-            ("detrend", DETRENDS),
-            ("fill", FILLS),
-            ("storage", STORAGES),
-            ("coder", CODERS),
-            ("mask", MASKS),
-        ):
+        if self.resolution != "auto":
+            _check_positive("resolution", self.resolution)
+        if self.cutoff is not None:
+            check_cutoff(self.cutoff)
+        for name, allowed in CHOICES.items():
             value = getattr(self, name)
             if value not in allowed:
                 raise InvalidInputError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
@@ -134,8 +138,13 @@ class Params:
 
     @property
     def has_target(self) -> bool:
-        """True when rate control chooses the cutoff and the step."""
+        """True when rate control chooses the step (and the cutoff, unless one is given)."""
         return self.target_rmse > 0 or self.target_max_error > 0 or self.target_bpp > 0
+
+    @property
+    def cutoff_or_default(self) -> float:
+        """The cutoff without rate control: the one given, else :data:`DEFAULT_CUTOFF`."""
+        return DEFAULT_CUTOFF if self.cutoff is None else self.cutoff
 
     def replace(self, **changes: Any) -> "Params":
         """A copy with some fields changed (validated again)."""
@@ -152,6 +161,13 @@ class Params:
         known = {f.name for f in dataclasses.fields(cls)}
         # Fields written by a newer minor version are ignored, not fatal.
         return cls(**{k: v for k, v in data.items() if k in known})
+
+
+def check_cutoff(value: Any) -> float:
+    """``value`` if it is a cutoff ratio in [0, 1), else :class:`InvalidInputError`."""
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0.0 <= value < 1.0):
+        raise InvalidInputError(f"cutoff must be in [0, 1), got {value!r}")
+    return float(value)
 
 
 def _check_positive(name: str, value: Any) -> None:
@@ -171,15 +187,16 @@ PROFILES: dict[str, dict[str, Any]] = {
 }
 
 
-def make_params(*, resolution: float, cutoff: float = 0.8, profile: str = "compact", **overrides: Any) -> Params:
+def make_params(*, resolution: float | str = "auto", cutoff: float | None = None, profile: str = "compact",
+                **overrides: Any) -> Params:
     """Build :class:`Params` from a profile name plus explicit overrides.
 
     Parameters
     ----------
-    resolution : float
+    resolution : float or 'auto'
         DEM cell size in metres.
-    cutoff : float
-        Cutoff ratio f_c in [0, 1).
+    cutoff : float, optional
+        Cutoff ratio f_c in [0, 1); default: chosen by rate control, or :data:`DEFAULT_CUTOFF`.
     profile : str
         ``compact`` (default) or ``paper``.
     **overrides

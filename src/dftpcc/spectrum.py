@@ -39,6 +39,8 @@ __all__ = [
     "corner",
     "kept_order",
     "kept_count",
+    "values_per_coefficient",
+    "mse_per_squared_error",
 ]
 
 #: Worker threads for scipy.fft; -1 uses every core.
@@ -137,9 +139,33 @@ def kept_order(lay: Layout, cutoff: float = 0.0) -> tuple[np.ndarray, np.ndarray
     return _ORDER_CACHE[key]
 
 
-def kept_count(lay: Layout, cutoff: float) -> int:
-    """How many coefficients lie inside the circle of ``cutoff``."""
+def kept_count(lay: Layout, cutoff: float, sorted_radii: np.ndarray | None = None) -> int:
+    """How many coefficients lie inside the circle of ``cutoff``.
+
+    ``sorted_radii``: the radii of :func:`kept_order` for a smaller cutoff,
+    if the caller has them (a binary search instead of a pass over the grid).
+    """
+    if sorted_radii is not None:
+        return int(np.searchsorted(sorted_radii, _limit(lay, cutoff), side="right"))
     return int(np.count_nonzero(lay.radius <= _limit(lay, cutoff)))
+
+
+def values_per_coefficient(lay: Layout, storage: str) -> int:
+    """Reals stored per coefficient: 2 for the quantized half spectrum (real and
+    imaginary parts interleaved, each with its coefficient's frequency), else 1."""
+    return 2 if lay.kind == "half" and storage == "quantized" else 1
+
+
+def mse_per_squared_error(lay: Layout) -> float:
+    """Parseval: mean squared height error per cell (m^2) per unit of summed squared
+    coefficient error, for the stored values of ``lay``.
+
+    ``dct`` and ``half`` are orthonormal (``half`` counts each stored
+    coefficient for its conjugate twin too); ``full`` is the paper's
+    unnormalised DFT, whose inverse divides by N*M.
+    """
+    n = lay.shape[0] * lay.shape[1]
+    return {"dct": 1.0 / n, "half": 2.0 / n, "full": 1.0 / (n * n)}[lay.kind]
 
 
 def forward(values: np.ndarray, lay: Layout) -> np.ndarray:

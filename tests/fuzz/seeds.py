@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 import dftpcc
-from dftpcc.terrain import regolith_plain
+from dftpcc.experiments.terrain import regolith_plain
 
 #: name -> compress() options. Small grids (at most ~40 x 40 cells) keep
 #: each decode around a millisecond, so a fuzzer runs many inputs a second.

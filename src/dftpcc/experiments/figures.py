@@ -14,8 +14,9 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from scipy import ndimage
 
-from .errors import InvalidInputError, MissingDependencyError
-from .grid import DEM, fill_empty
+from ..dem import DEM
+from ..errors import InvalidInputError, MissingDependencyError
+from ..fill import fill_empty
 
 __all__ = ["require_matplotlib", "plot_sweep", "plot_compare", "choose_window"]
 

@@ -21,9 +21,10 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from . import rosbag
-from .errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
-from .grid import DEM, Grid
-from .grid import drop_nonfinite as _drop_nonfinite  # read() has a keyword of that name
+from ..dem import DEM, Grid, nonfinite_error
+from ..dem import drop_nonfinite as _drop_nonfinite  # read() has a keyword of that name
+from ..errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
+from .atomic import atomic_write
 
 __all__ = ["PointCloud", "ChunkedCloud", "read", "open_chunked", "write", "read_raster_dem", "write_geotiff", "FORMATS",
            "format_of"]
@@ -264,8 +265,6 @@ class ChunkedCloud:
             A row with a NaN or infinite coordinate (unless ``drop_nonfinite``),
             or a file that stops being readable part way.
         """
-        from .grid import nonfinite_error
-
         row, dropped = 0, 0
         try:
             for pts in self._raw_chunks():
@@ -430,8 +429,6 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
     OSError
         The file system refused (permissions, disk full).
     """
-    from .container import atomic_write
-
     fmt = format_of(path, format)
     if fmt == "tif":
         raise UnsupportedFormatError("a GeoTIFF holds a DEM, not points: use write_geotiff")
@@ -514,8 +511,6 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
     """Write a DEM as a float32 GeoTIFF (north-up), empty cells as nodata (NaN)."""
     import rasterio
     from rasterio.transform import Affine
-
-    from .container import atomic_write
 
     grid: Grid = dem.grid
     heights = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]

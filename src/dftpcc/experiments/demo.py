@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .codec import compress, decompress
-from .container import open as open_map
+from ..decoder import decompress
+from ..encoder import compress
+from ..mapfile import open as open_map
 from .terrain import regolith_plain
 
 __all__ = ["run_demo"]

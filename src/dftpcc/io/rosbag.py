@@ -23,7 +23,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from .errors import InvalidInputError, MissingDependencyError
+from ..errors import InvalidInputError, MissingDependencyError
 
 __all__ = ["POINTCLOUD2", "bag_folder", "pointcloud2_xyz", "read_bag", "bag_chunks"]
 

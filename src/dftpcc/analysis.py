@@ -1,0 +1,155 @@
+"""The encoder's view of one DEM: conditioned and transformed once, then tried at many (cutoff, step).
+
+:class:`Analysis` holds what does not change between trials (the plane, the
+filled DEM's sorted transform, the frequency of every stored value);
+:meth:`Analysis.trial` quantizes a prefix of the spectrum and rebuilds the
+DEM the decoder will see, so rate control (:mod:`dftpcc.ratecontrol`) can
+measure a candidate exactly before it is coded.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import coding, spectrum
+from .dem import DEM
+from .fill import fill_empty, fit_plane, footprint, plane_values
+from .params import Params
+
+__all__ = ["Analysis", "Trial", "REFILL_ROUNDS"]
+
+#: Rounds of refilling the empty cells from the rebuilt map (fill='consistent');
+#: measured on the field and coastal plain, a third round gains nothing.
+REFILL_ROUNDS = 2
+
+
+@dataclass
+class Trial:
+    """One (cutoff, step) tried against a spectrum."""
+
+    cutoff: float
+    step: float
+    stream: np.ndarray  # what gets entropy-coded (int64 or complex64)
+    heights: np.ndarray  # the DEM the decoder will rebuild (relative to z0)
+    rmse: float  # on occupied cells, metres
+    max_error: float  # on occupied cells, metres
+
+
+class Analysis:
+    """What does not change between trials: detrended, filled DEM and its sorted transform.
+
+    Parameters
+    ----------
+    dem : DEM
+    params : Params
+    searching : bool
+        Whether trials may ask for any cutoff (rate control choosing it);
+        otherwise only ``params.cutoff_or_default``'s circle is transformed and sorted.
+    """
+
+    def __init__(self, dem: DEM, params: Params, *, searching: bool):
+        self.dem, self.params = dem, params
+        self.mask = dem.mask
+        self.kept_cells = footprint(dem.mask) if params.mask == "footprint" else dem.mask
+        self.plane = fit_plane(dem) if params.detrend == "plane" else (0.0, 0.0, 0.0)
+        self.trend = plane_values(self.plane, dem.grid.shape) if params.detrend == "plane" else 0.0
+        # A consistent fill starts from the smooth one (see refilled()).
+        fill = "smooth" if params.fill == "consistent" else params.fill
+        filled = fill_empty(dem.heights - self.trend, dem.mask, method=fill)
+        self.lay = spectrum.layout(params.transform, params.storage, dem.grid.shape)
+        order, radii, angles = spectrum.kept_order(self.lay, 0.0 if searching else params.cutoff_or_default)
+        self.order = order
+        self.coefs = self._sorted_transform(filled)
+        # Frequency of every stored value (a complex one may be stored as two reals).
+        self.radii = radii
+        per_coef = spectrum.values_per_coefficient(self.lay, params.storage)
+        self.radius = np.repeat(radii, per_coef)
+        self.angle = np.repeat(angles, per_coef)
+        self.parseval = spectrum.mse_per_squared_error(self.lay)
+
+    def _sorted_transform(self, filled: np.ndarray) -> np.ndarray:
+        return spectrum.forward(filled, self.lay).ravel()[self.order]
+
+    @property
+    def refillable(self) -> bool:
+        """Whether ``fill='consistent'`` has empty cells to refill."""
+        return self.params.fill == "consistent" and not bool(self.mask.all())
+
+    def refilled(self, trial: Trial) -> Analysis:
+        """This analysis with the empty cells refilled from what ``trial`` rebuilds there.
+
+        The decoder never shows empty cells (or shows them rebuilt, with
+        ``mask='footprint'``), so any fill is as good as another except in
+        bits. Refilling them with the rebuilt map, quantizing again and
+        repeating (a Gerchberg-Papoulis iteration) drives the fill towards
+        heights the coded spectrum already holds, which needs fewer
+        coefficients at the same step than the smooth interpolation.
+        """
+        out = copy.copy(self)
+        data = self.dem.heights - self.trend
+        for round_ in range(REFILL_ROUNDS):
+            if round_:
+                trial = out.trial(trial.cutoff, trial.step)
+            out.coefs = out._sorted_transform(np.where(self.mask, data, trial.heights - self.trend))
+        return out
+
+    def count(self, cutoff: float) -> int:
+        """Coefficients kept at ``cutoff``."""
+        return spectrum.kept_count(self.lay, cutoff, self.radii)
+
+    def reals(self, n: int) -> np.ndarray:
+        kept = self.coefs[:n]
+        return kept.view(np.float64) if np.iscomplexobj(kept) else kept
+
+    def tiny_step(self) -> float:
+        """A step fine enough that quantization is negligible next to any sensible target (0 unquantized)."""
+        scale = float(np.abs(self.reals(min(self.coefs.size, 1))).max()) if self.coefs.size else 1.0
+        return max(scale, 1.0) * 1e-9 if self.params.storage == "quantized" else 0.0
+
+    def synthesise(self, values: np.ndarray) -> np.ndarray:
+        """Heights (relative to z0) from the first ``len(values)`` sorted coefficients."""
+        coefs = np.zeros(self.lay.coef_shape, dtype=values.dtype)
+        coefs.ravel()[self.order[: values.size]] = values
+        return spectrum.inverse(coefs, self.lay) + self.trend
+
+    def quantized(self, cutoff: float, step: float) -> np.ndarray:
+        """The integers a quantized trial at (cutoff, step) codes, without rebuilding the DEM."""
+        return coding.quantize(self.reals(self.count(cutoff)), coding.short_step(step), self.params.deadzone)
+
+    def trial(self, cutoff: float, step: float) -> Trial:
+        """Quantize the coefficients inside ``cutoff`` with ``step`` and rebuild the DEM from them."""
+        n = self.count(cutoff)
+        step = coding.short_step(step)
+        if self.params.storage == "complex64":
+            stream = self.coefs[:n].astype(np.complex64)
+            decoded = stream.astype(np.complex128)
+        else:
+            stream = self.quantized(cutoff, step)
+            decoded = coding.dequantize(stream, step)
+            if np.iscomplexobj(self.coefs):
+                decoded = decoded.view(np.complex128)
+        heights = self.synthesise(decoded)
+        err = (heights - self.dem.heights)[self.mask]
+        return Trial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))), float(np.abs(err).max()))
+
+    def proxy_rmse(self, cutoff: float, step: float) -> float:
+        """Whole-grid RMSE predicted in the coefficient domain, without an inverse transform."""
+        n = self.count(cutoff)
+        reals = self.reals(n)
+        dropped = self.reals(self.coefs.size)[reals.size:]
+        err = reals - coding.dequantize(coding.quantize(reals, step, self.params.deadzone), step)
+        total = float(np.dot(err, err)) + float(np.dot(dropped, dropped))
+        return math.sqrt(total * self.parseval)
+
+    def encode(self, trial: Trial, *, exhaustive: bool = True) -> bytes:
+        """The COEF section of ``trial``."""
+        return self.encode_stream(trial.stream, exhaustive=exhaustive)
+
+    def encode_stream(self, stream: np.ndarray, *, exhaustive: bool = True) -> bytes:
+        n = stream.size
+        return coding.encode_coefficients(stream, radius=self.radius[:n], angle=self.angle[:n],
+                                          coder=self.params.coder, exhaustive=exhaustive)

@@ -1,0 +1,188 @@
+"""Encode stage: a DEM (or a point cloud, gridded first) becomes ``.dftpc`` bytes.
+
+:func:`encode_dem` analyses the DEM once (:mod:`dftpcc.analysis`), codes
+the occupancy mask, then either quantizes at the given cutoff and step or
+lets rate control (:mod:`dftpcc.ratecontrol`) choose them for a target, and
+packs the file with the errors it promises (:mod:`dftpcc.container`).
+:func:`compress` is the same for points: grid, rasterize, encode.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from . import coding, occupancy, ratecontrol
+from .analysis import Analysis
+from .container import Header, pack
+from .dem import DEM
+from .errors import InvalidInputError
+from .grid import auto_resolution, fit_grid, rasterize
+from .params import Params, make_params
+from .ratecontrol import Choice
+from .residual import residual
+
+__all__ = ["compress", "encode_dem", "grid_points", "params_of", "Stage", "no_stage", "QUANT_FLOOR_FRACTION"]
+
+#: With an automatic step, quantization may add this fraction of the
+#: gridding error (RMS, metres) to the rebuilt DEM ...
+QUANT_FLOOR_FRACTION = 0.5
+#: ... but never less than this, for DEMs gridded from one point per cell.
+MIN_QUANT_RMSE = 0.001
+#: What a file records of the points its DEM cannot represent (DEM.spread).
+SPREAD_STATS = ("unrepresented_fraction", "unrepresented_rmse_m")
+#: First guess of the bytes a file needs besides mask and coefficients
+#: (section table, parameters, statistics, CRS) when sizing to a target.
+HEADER_ESTIMATE = 600
+#: Bytes the statistics section may grow by between two candidates.
+STATS_SLACK = 64
+#: Attempts at meeting a size target after measuring the real overhead.
+BUDGET_ROUNDS = 3
+
+#: A progress callback: called with the name of each stage as it starts.
+Stage = Callable[[str], None]
+
+
+def no_stage(_: str) -> None:
+    """The progress callback that shows nothing."""
+
+
+def params_of(params: Params | None, shortcuts: dict[str, Any]) -> Params:
+    """``params``, or :func:`~dftpcc.params.make_params` of ``shortcuts``, with ``shortcuts`` applied."""
+    if params is None:
+        return make_params(**shortcuts)
+    if "profile" in shortcuts:
+        raise InvalidInputError("a profile is a preset of Params fields: give it to make_params, not with params")
+    return params.replace(**{k: v for k, v in shortcuts.items() if v is not None}) if shortcuts else params
+
+
+def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str, Any] | None = None,
+             on_stage: Stage = no_stage, **shortcuts: Any) -> bytes:
+    """Compress a terrain point cloud into ``.dftpc`` bytes.
+
+    Parameters
+    ----------
+    points : array_like, shape (N, 3)
+        x, y, z in metres; float64 keeps coordinates of 1e7 m exact.
+    params : Params, optional
+        How to compress; default :func:`~dftpcc.params.make_params` of the shortcuts.
+    crs : dict, optional
+        Coordinate reference system to carry along (see :mod:`dftpcc.io`).
+    on_stage : callable, optional
+        Called with the name of each stage as it starts (progress display).
+    **shortcuts
+        :class:`~dftpcc.params.Params` fields (and ``profile`` when no
+        ``params`` is given): ``resolution`` (metres or ``'auto'``),
+        ``cutoff`` (f_c = 1 - r/r_M in [0, 1), paper eq. 2; default 0.8,
+        or chosen by rate control when a target is given), ``step``
+        (metres), ``aggregate``, ``frame``, ``transform``, ``fill``,
+        ``coder``, ``mask``, and the rate-control targets ``target_rmse``
+        (metres), ``target_max_error`` (metres), ``target_bpp`` (bits per point).
+
+    Returns
+    -------
+    bytes
+
+    Raises
+    ------
+    InvalidInputError
+        Empty or non-finite cloud, bad parameter, grid too large, target
+        out of reach.
+    """
+    on_stage("grid")
+    params = params_of(params, shortcuts)
+    points = np.asarray(points)
+    return encode_dem(grid_points(points, params), params, point_count=int(points.shape[0]), crs=crs,
+                      on_stage=on_stage)
+
+
+def grid_points(points: np.ndarray, params: Params) -> DEM:
+    """The DEM of ``points`` at ``params.resolution`` (chosen when ``'auto'``), frame and aggregate."""
+    resolution = auto_resolution(points) if params.resolution == "auto" else params.resolution
+    return rasterize(points, fit_grid(points, resolution, frame=params.frame), aggregate=params.aggregate)
+
+
+def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
+               crs: dict[str, Any] | None = None, on_stage: Stage = no_stage) -> bytes:
+    """Code an already gridded DEM (e.g. a GeoTIFF) with ``params``.
+
+    Parameters
+    ----------
+    dem : DEM
+        Heights relative to ``dem.grid.z0`` (metres) and occupancy.
+    params : Params
+        With a target set, rate control chooses the step, and the cutoff
+        unless ``params.cutoff`` is given. The resolution is the grid's.
+    point_count : int, optional
+        Points of the original cloud (for bits per point); default: occupied cells.
+    """
+    if not dem.mask.any():
+        raise InvalidInputError("the map has no occupied cell")
+    params = params.replace(resolution=dem.grid.resolution)
+    point_count = int(dem.mask.sum()) if point_count is None else point_count
+    on_stage("spectrum")
+    an = Analysis(dem, params, searching=params.has_target and params.cutoff is None)
+    mask_blob = occupancy.encode_mask(an.kept_cells)
+
+    on_stage("encode")
+    if not params.has_target:
+        cutoff, step = params.cutoff_or_default, params.step
+        if params.storage == "quantized" and step == 0.0:
+            target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
+            step = coding.choose_step(an.reals(an.count(cutoff)), target_rmse=target,
+                                      n_cells=dem.grid.size, deadzone=params.deadzone)
+        # No refill without a target: at a fixed step it lowers the error by a
+        # few per cent rather than the size, for two more transforms.
+        trial = an.trial(cutoff, step)
+        return _pack(Choice(an, trial, an.encode(trial)), params, mask_blob, point_count, crs, on_stage)
+    # Rate control. For a size target the header's own bytes count too: start
+    # from an estimate, then shrink the budget by any overshoot.
+    overhead = len(mask_blob) + HEADER_ESTIMATE
+    for _ in range(BUDGET_ROUNDS):
+        choice = ratecontrol.choose(an, params, point_count, overhead)
+        data = _pack(choice, params, mask_blob, point_count, crs, on_stage)
+        if params.target_bpp <= 0 or 8 * len(data) <= params.target_bpp * point_count:
+            return data
+        # Measured now: everything but the coefficients, plus room for the
+        # statistics' digits to change with the next candidate.
+        overhead = len(data) - choice.size + STATS_SLACK
+    raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be met with these settings")
+
+
+def _pack(choice: Choice, params: Params, mask_blob: bytes, point_count: int, crs: dict[str, Any] | None,
+          on_stage: Stage) -> bytes:
+    """Measure what the decoder will rebuild and pack the file with those figures."""
+    an, trial = choice.analysis, choice.trial
+    params = params.replace(cutoff=trial.cutoff, step=trial.step)
+    dem, occupied = an.dem, an.mask
+    floor = dem.gridding_rmse or 0.0
+    heights = trial.heights
+    if choice.residual is not None:
+        _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, params.target_max_error)
+    err = (heights - dem.heights)[occupied]
+    stats: dict[str, Any] = {
+        "dem_rmse_m": float(np.sqrt(np.mean(err * err))),
+        "dem_max_error_m": float(np.abs(err).max()),
+        "gridding_rmse_m": floor,
+        "mask_bytes": len(mask_blob),
+        "coef_bytes": len(choice.coefs),
+        "residual_bytes": len(choice.residual_blob),
+        "cells_interpolated": int(an.kept_cells.sum()) - int(occupied.sum()),
+    }
+    spread = dem.spread
+    if spread is not None and spread.unrepresented_points:
+        # Walls, overhangs, vegetation: what one height per cell could not hold.
+        # Two figures say it; the rest of DEM.spread would cost a small map
+        # more header than its coefficients.
+        full = spread.as_stats()
+        stats.update({key: full[key] for key in SPREAD_STATS})
+    if dem.counts is not None and params.aggregate == "mean":
+        # Per cell, points scatter about their mean, so the errors add in quadrature.
+        weighted = float(np.sum(dem.counts[occupied] * err * err)) / max(int(dem.counts.sum()), 1)
+        stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
+    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(an.kept_cells.sum()),
+                    plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.count(params.cutoff))
+    on_stage("container")
+    return pack(header, mask_blob, choice.coefs, choice.residual_blob)

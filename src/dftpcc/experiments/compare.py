@@ -1,0 +1,78 @@
+"""The paper's Fig. 6 on any terrain: original and rebuilt maps side by side, with their errors."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from .. import metrics
+from ..dem import DEM
+from ..encoder import encode_dem, grid_points
+from ..mapfile import open as open_map
+from ..params import make_params
+from ..rebuild import dem_to_points
+from .evaluate import load_points
+from .figures import plot_compare, require_matplotlib
+
+__all__ = ["COMPARE_CUTOFFS", "compare_points", "compare_file"]
+
+#: Fig. 6 of the paper shows these two cutoffs.
+COMPARE_CUTOFFS: tuple[float, ...] = (0.8, 0.95)
+
+Row = dict[str, Any]
+
+
+def compare_points(points: np.ndarray, *, cutoffs: Sequence[float] = COMPARE_CUTOFFS,
+                   resolution: float | str = "auto", profile: str = "compact",
+                   **options: Any) -> tuple[DEM, dict[float, DEM], dict[float, Row]]:
+    """The original DEM and the DEMs a decoder rebuilds at each cutoff.
+
+    Returns
+    -------
+    original : DEM
+        The cloud gridded at ``resolution`` (what every rebuilt map is compared to).
+    rebuilt : dict
+        Cutoff -> decoded DEM.
+    figures : dict
+        Cutoff -> ``bytes``, ``bits_per_point``, ``paper_rmse_m`` (metres).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    params = make_params(resolution=resolution, profile=profile, **options)
+    dem = grid_points(points, params)
+    rebuilt: dict[float, DEM] = {}
+    figures: dict[float, Row] = {}
+    interpolator = None
+    for cutoff in cutoffs:
+        data = encode_dem(dem, params.replace(cutoff=float(cutoff)), point_count=int(points.shape[0]))
+        rebuilt[cutoff] = open_map(data).read_dem()
+        cloud = dem_to_points(rebuilt[cutoff])
+        interpolator = interpolator or metrics.xy_interpolator(cloud, points)
+        figures[cutoff] = {"bytes": len(data),
+                           "bits_per_point": metrics.bits_per_point(len(data), points.shape[0]),
+                           "paper_rmse_m": metrics.paper_rmse(points, cloud, interpolator=interpolator)}
+    return dem, rebuilt, figures
+
+
+def compare_file(path: str | os.PathLike[str], *, out: str | os.PathLike[str],
+                 cutoffs: Sequence[float] = COMPARE_CUTOFFS, resolution: float | str = "auto",
+                 profile: str = "compact", classes: Sequence[int] | None = None,
+                 label: str | None = None, **options: Any) -> Path:
+    """Fig. 6 of the paper for one file: ``<out>/<name>_compare_<profile>.png``.
+
+    Original and rebuilt maps side by side (hillshaded height colour), a
+    close-up window, and the error of each rebuilt DEM against the original
+    one (metres). Needs matplotlib.
+    """
+    require_matplotlib()
+    name = label or Path(path).stem
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    cloud = load_points(path, classes=classes)
+    original, rebuilt, figures = compare_points(cloud.points, cutoffs=cutoffs, resolution=resolution,
+                                                profile=profile, **options)
+    return plot_compare(original, rebuilt, folder / f"{name}_compare_{profile}.png", figures=figures,
+                        title=f"{name}: {cloud.points.shape[0]:,} points, "
+                              f"{original.grid.resolution:g} m cells, {profile} profile")

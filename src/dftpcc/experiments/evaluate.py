@@ -1,0 +1,57 @@
+"""Every error metric between an original cloud and a compressed or rebuilt map, from files."""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Sequence
+
+from .. import metrics
+from ..io import PointCloud, format_of, read
+from ..mapfile import is_dftpc
+from ..mapfile import open as open_map
+
+__all__ = ["load_points", "evaluate_files"]
+
+Row = dict[str, Any]
+
+
+def load_points(path: str | os.PathLike[str], *, classes: Sequence[int] | None = None) -> PointCloud:
+    """Read a cloud, keeping ``classes`` when the file is LAS/LAZ (other formats have none)."""
+    keep = classes if classes is not None and format_of(path) in ("las", "laz") else None
+    return read(path, classes=keep)
+
+
+def evaluate_files(original: str | os.PathLike[str], candidate: str | os.PathLike[str], *,
+                   classes: Sequence[int] | None = None, max_cells: int | None = None) -> Row:
+    """Every metric of :func:`dftpcc.metrics.evaluate` between two files.
+
+    Parameters
+    ----------
+    original : path
+        The reference cloud.
+    candidate : path
+        A ``.dftpc`` file (decoded here; bits per point from its size over
+        the original's points) or any point cloud file (a rebuilt map).
+    classes : sequence of int, optional
+        LAS/LAZ classes of the original to keep (use what was compressed).
+    max_cells : int, optional
+        Largest grid a ``.dftpc`` candidate may ask for (see :func:`dftpcc.open`).
+
+    Returns
+    -------
+    dict
+        The metrics (metres, dB, bits per point) plus ``original``,
+        ``candidate`` and, for a ``.dftpc``, ``points_in_header``: the point
+        count the file was made from.
+    """
+    ref = load_points(original, classes=classes).points
+    extra: Row = {"original": str(original), "candidate": str(candidate)}
+    if is_dftpc(candidate):
+        with open_map(candidate, max_cells=max_cells) as cmap:
+            rebuilt = cmap.read_points()
+            size = cmap.size
+            extra["points_in_header"] = cmap.header.point_count
+        result = metrics.evaluate(ref, rebuilt, compressed_bytes=size)
+    else:
+        result = metrics.evaluate(ref, read(candidate).points)
+    return {**extra, **result}

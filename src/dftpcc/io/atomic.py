@@ -1,0 +1,91 @@
+"""Atomic writes: a file appears complete or not at all.
+
+Every writer of dftpcc (``.dftpc``, point clouds, GeoTIFF) goes through
+:func:`atomic_write`, so an interrupted run or a failing writer never leaves
+a partial or corrupt output file under the user's name.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from pathlib import Path
+from typing import Any
+
+from ..errors import InvalidInputError
+
+__all__ = ["atomic_write"]
+
+
+#: Temporary files of :func:`atomic_write`: ``.NAME.PID.TOKEN.tmpSUFFIX``.
+_TMP_MARK = ".tmp"
+
+
+def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
+    """Create ``path`` through a temporary file in the same folder, renamed into place.
+
+    ``write(tmp_path)`` receives the temporary path. The file is flushed to
+    disk, renamed over ``path`` in one step (``os.replace``) and the folder
+    entry synced, so ``path`` holds either its previous content or the whole
+    new one, never a partial file. If ``write`` raises or the process is
+    interrupted (Ctrl-C, SIGTERM under the CLI) the temporary file is
+    removed; only a process killed outright (SIGKILL, power loss) leaves it,
+    under a hidden name, and the next write to ``path`` removes it.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise InvalidInputError(f"{path}: folder {folder} does not exist")
+    _remove_stale_temporaries(folder, path.name)
+    tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}{path.suffix}"
+    try:
+        write(tmp)
+        with tmp.open("rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        _sync_folder(folder)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _sync_folder(folder: Path) -> None:
+    # The rename is durable only once the folder entry is on disk too.
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems cannot sync a folder; the rename is still atomic
+    finally:
+        os.close(fd)
+
+
+def _remove_stale_temporaries(folder: Path, name: str) -> None:
+    """Remove temporaries of ``name`` left by writers that were killed outright."""
+    prefix = f".{name}."
+    try:
+        candidates = [p for p in folder.iterdir() if p.name.startswith(prefix) and _TMP_MARK in p.name]
+    except OSError:
+        return
+    for candidate in candidates:
+        pid = candidate.name[len(prefix):].split(".", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            try:
+                candidate.unlink()
+            except OSError:
+                pass
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists but not ours, or cannot tell: leave its file alone
+    return True

@@ -1,0 +1,232 @@
+"""Rate control: the cutoff and quantizer step that meet a target, found by trials.
+
+Three targets, three functions over one :class:`~dftpcc.analysis.Analysis`:
+:func:`for_rmse` (the smallest file within an RMSE), :func:`for_max_error`
+(the smallest file, residual layer included, with every cell within a bound)
+and :func:`for_bpp` (the most accurate file within a size). Each tries the
+cutoffs of :func:`cutoffs` and searches the step at each; :func:`choose` runs
+the one the parameters ask for, then, with ``fill='consistent'``, tries the
+chosen cutoff again with the empty cells refilled and keeps the better file.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .analysis import Analysis, Trial
+from .errors import InvalidInputError
+from .params import Params
+from .residual import encode_residual, residual
+
+__all__ = ["Choice", "choose", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES"]
+
+#: Cutoff ratios rate control tries.
+CUTOFF_CANDIDATES = (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97)
+#: Bisection iterations on the quantizer step (log scale).
+STEP_ITERATIONS = 18
+#: Rounds of measuring the true error and correcting the step search.
+CALIBRATION_ROUNDS = 4
+#: An RMSE search stops calibrating once a step meets the target to within this fraction.
+CLOSE_ENOUGH = 0.97
+#: Rate control stops raising the cutoff once a file is this much larger than the best.
+GIVE_UP_FACTOR = 1.3
+#: Quantizer steps tried per cutoff for a maximum-error target, as multiples of it.
+MAX_ERROR_STEP_FACTORS = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+#: With a consistent fill, an RMSE target is searched again for a step up to
+#: this much coarser than the one found with the smooth fill, ...
+REFILL_STEP_RANGE = 1.25
+#: ... in this many bisections (each a refill: about five transforms).
+REFILL_STEP_ITERATIONS = 4
+
+
+@dataclass
+class Choice:
+    """A candidate file's coded content: the trial, its COEF section and any residual layer."""
+
+    analysis: Analysis
+    trial: Trial
+    coefs: bytes
+    residual: np.ndarray | None = None
+    residual_blob: bytes = b""
+
+    @property
+    def size(self) -> int:
+        """Bytes of the coded sections that vary with the choice."""
+        return len(self.coefs) + len(self.residual_blob)
+
+
+def cutoffs(params: Params) -> tuple[float, ...]:
+    """The cutoffs to try: the one given, else :data:`CUTOFF_CANDIDATES`."""
+    return CUTOFF_CANDIDATES if params.cutoff is None else (params.cutoff,)
+
+
+def step_for_rmse(an: Analysis, cutoff: float, target: float) -> Trial | None:
+    """The coarsest step at ``cutoff`` whose rebuilt DEM is within ``target`` RMSE (occupied cells)."""
+    exact = an.trial(cutoff, an.tiny_step())
+    if exact.rmse > target:
+        return None
+    if an.params.storage != "quantized":
+        return exact  # nothing to choose but the cutoff
+    best = exact
+    goal = target
+    for _ in range(CALIBRATION_ROUNDS):
+        lo, hi = an.tiny_step(), max(target, 1e-9) * 1e4
+        for _ in range(STEP_ITERATIONS):
+            mid = math.sqrt(lo * hi)
+            if an.proxy_rmse(cutoff, mid) <= goal:
+                lo = mid
+            else:
+                hi = mid
+        trial = an.trial(cutoff, lo)
+        if trial.rmse <= target:
+            if trial.step > best.step:
+                best = trial
+            if trial.rmse > CLOSE_ENOUGH * target:
+                break
+        # The proxy counts filled cells too: aim it where this step's proxy would have
+        # to be for the occupied cells to meet the target. (Scaling the old goal instead
+        # fails when even the finest step's proxy is far above it: the filled cells of a
+        # gappy map at a high cutoff can hold more error than the whole target.)
+        goal = target * an.proxy_rmse(cutoff, lo) / max(trial.rmse, 1e-12)
+    return best
+
+
+def for_rmse(an: Analysis, params: Params) -> Choice:
+    """The smallest file whose DEM RMSE is at most ``params.target_rmse``."""
+    best: Choice | None = None
+    for cutoff in cutoffs(params):
+        trial = step_for_rmse(an, cutoff, params.target_rmse)
+        if trial is None:
+            continue
+        blob = an.encode(trial, exhaustive=False)
+        if best is None or len(blob) < best.size:
+            best = Choice(an, trial, blob)
+        elif len(blob) > GIVE_UP_FACTOR * best.size:
+            break  # past the best cutoff: sizes only grow from here
+    if best is None:
+        raise InvalidInputError(f"target RMSE {params.target_rmse} m cannot be reached")
+    return best
+
+
+def for_max_error(an: Analysis, params: Params) -> Choice:
+    """The smallest file, residual layer included, with every occupied cell within ``params.target_max_error``."""
+    bound = params.target_max_error
+    steps = [bound * f for f in MAX_ERROR_STEP_FACTORS] if params.storage == "quantized" else [0.0]
+    best: Choice | None = None
+    for cutoff in cutoffs(params):
+        for step in steps:
+            trial = an.trial(cutoff, step)
+            q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
+            choice = Choice(an, trial, an.encode(trial, exhaustive=False), q, encode_residual(q, params.coder))
+            if best is None or choice.size < best.size:
+                best = choice
+    assert best is not None  # at least one cutoff and one step were tried
+    return best
+
+
+def for_bpp(an: Analysis, params: Params, budget: int) -> Choice:
+    """The most accurate file whose COEF section fits in ``budget`` bytes."""
+    best: Choice | None = None
+    for cutoff in cutoffs(params):
+        if params.storage == "quantized":
+            # Sizes only: the DEM is rebuilt once, for the step found.
+            lo, hi = an.tiny_step() * 1e3, 1e4
+            found = None
+            for _ in range(STEP_ITERATIONS):
+                mid = math.sqrt(lo * hi)
+                blob = an.encode_stream(an.quantized(cutoff, mid), exhaustive=False)
+                if len(blob) <= budget:
+                    found, hi = (mid, blob), mid
+                else:
+                    lo = mid
+            if found is None:
+                continue
+            trial, blob = an.trial(cutoff, found[0]), found[1]
+        else:
+            trial = an.trial(cutoff, 0.0)
+            blob = an.encode(trial, exhaustive=False)
+            if len(blob) > budget:
+                continue
+        if best is None or trial.rmse < best.trial.rmse:
+            best = Choice(an, trial, blob)
+    if best is None:
+        raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be reached with these settings")
+    return best
+
+
+def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice:
+    """The choice for the target in ``params``, its COEF section coded with the best band layout per chunk."""
+    if params.target_rmse > 0:
+        choice = for_rmse(an, params)
+    elif params.target_max_error > 0:
+        choice = for_max_error(an, params)
+    else:
+        budget = int(params.target_bpp * point_count / 8) - fixed_bytes
+        if budget <= 0:
+            raise InvalidInputError(
+                f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header (CRS "
+                f"included) alone need {8 * fixed_bytes / point_count:.4f} bits/point")
+        choice = for_bpp(an, params, budget)
+    # The search sized candidates with one band layout; the file gets the best per chunk.
+    choice.coefs = an.encode(choice.trial)
+    return choice
+
+
+def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice:
+    """Rate control, then (``fill='consistent'``) a second choice at the same cutoff, empty cells refilled.
+
+    For an RMSE target the step is searched again upwards, refilling at each
+    step tried: a fill consistent with the coded map lowers the error on the
+    occupied cells, so a coarser step meets the target. For the other
+    targets the search is repeated on the analysis refilled at the first
+    choice. The better of the two is kept: the smaller file for an error
+    target, the more accurate one for a size target.
+
+    Parameters
+    ----------
+    point_count : int
+        Points of the original cloud (for a bits-per-point target).
+    fixed_bytes : int
+        Bytes of the file besides its COEF section (for a bits-per-point target).
+    """
+    first = _search(an, params, point_count, fixed_bytes)
+    if not an.refillable:
+        return first
+    if params.target_rmse > 0:
+        if params.storage != "quantized":
+            return first  # no step to search
+        other, trial = _refilled_for_rmse(an, first.trial, params.target_rmse)
+        second = Choice(other, trial, other.encode(trial))
+    else:
+        other = an.refilled(first.trial)
+        try:
+            second = _search(other, params.replace(cutoff=first.trial.cutoff), point_count, fixed_bytes)
+        except InvalidInputError:
+            return first  # nothing at this cutoff meets the target with the new fill
+    better = second.trial.rmse < first.trial.rmse if params.target_bpp > 0 else second.size < first.size
+    return second if better else first
+
+
+def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analysis, Trial]:
+    """The coarsest step from ``first.step`` up to :data:`REFILL_STEP_RANGE` times it whose
+    refilled map meets ``target`` (``first`` itself when even its own step does not)."""
+
+    def attempt(base: Trial) -> tuple[Analysis, Trial]:
+        other = an.refilled(base)
+        return other, other.trial(base.cutoff, base.step)
+
+    best = attempt(first)
+    if best[1].rmse > target:
+        return an, first
+    lo, hi = first.step, first.step * REFILL_STEP_RANGE
+    for _ in range(REFILL_STEP_ITERATIONS):
+        mid = math.sqrt(lo * hi)
+        found = attempt(an.trial(first.cutoff, mid))
+        if found[1].rmse <= target:
+            best, lo = found, mid
+        else:
+            hi = mid
+    return best
