@@ -3,6 +3,9 @@
 
     python scripts/reproduce.py          (or: make reproduce)
 
+It imports the installed dftpcc (``pip install -e .``, as ``make`` does), not
+the ``src/`` folder next to it.
+
 Runs the paper's experiment (a sweep of the cutoff ratio, its Fig. 5, and maps
 side by side, its Fig. 6) on flat, rough and artificial terrain with the
 ``paper`` and the default ``compact`` profile, checks the paper's three claims
@@ -26,7 +29,6 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "src"))
 
 import dftpcc  # noqa: E402
 from scipy.stats import spearmanr  # noqa: E402
