@@ -3,6 +3,9 @@
 
     python scripts/reproduce.py          (or: make reproduce)
 
+It imports the installed dftpcc (``pip install -e .``, as ``make`` does), not
+the ``src/`` folder next to it.
+
 Runs the paper's experiment (a sweep of the cutoff ratio, its Fig. 5, and maps
 side by side, its Fig. 6) on flat, rough and artificial terrain with the
 ``paper`` and the default ``compact`` profile, checks the paper's three claims
@@ -16,6 +19,7 @@ import argparse
 import math
 import os
 import platform
+import string
 import subprocess
 import sys
 import time
@@ -26,7 +30,6 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "src"))
 
 import dftpcc  # noqa: E402
 from scipy.stats import spearmanr  # noqa: E402
@@ -252,346 +255,478 @@ def axis_cut_cutoff(rows_x_cols: tuple[int, int]) -> float:
 
 # ---------------------------------------------------------------------------------------------
 # Writing
+#
+# The document is the template scripts/templates/reproduction.md; its ``${name}`` placeholders
+# are filled by the functions below, one per section. Sentences that depend on the measurements
+# (verdicts, optional remarks) come from small functions of their own. The template is plain
+# string.Template text: a literal dollar sign in its prose is written $$.
+
+TEMPLATE = Path(__file__).resolve().parent / "templates" / "reproduction.md"
+
+
+@dataclass(frozen=True)
+class Run:
+    """What one run measured, as ``write_doc`` gets it, with the groups of terrains the sections use."""
+
+    cases: Sequence[Case]
+    rows: dict[str, list[Row]]
+    wall: dict[tuple[str, str], float]
+    control: dict[str, list[Row]]
+    pictures: dict[tuple[str, str], Path]
+    started: float
+    load_start: float
+    version: str
+
+    def of_kind(self, kind: str) -> list[str]:
+        return [c.label for c in self.cases if c.kind == kind]
+
+    @property
+    def labels(self) -> list[str]:
+        return [c.label for c in self.cases]
+
+    @property
+    def flat(self) -> list[str]:
+        return self.of_kind("flat")
+
+    @property
+    def rough(self) -> list[str]:
+        return self.of_kind("rough")
+
+    @property
+    def natural(self) -> list[str]:
+        return self.flat + self.rough
+
+    @property
+    def artificial(self) -> list[str]:
+        return self.of_kind("artificial")
+
+    def first(self, label: str) -> Row:
+        """The paper profile's row at f_c = 0: the map as gridded, before any frequency is removed."""
+        return at(self.rows["paper"], label, 0.0)
+
+    @property
+    def scattered(self) -> list[Case]:
+        """Clouds whose points are spread inside their cells (D1 at f_c = 0 of at least SCATTERED cells)."""
+        return [c for c in self.cases if self.first(c.label)["d1_rmse_m"] >= SCATTERED * c.resolution]
+
+    def grid(self, label: str) -> tuple[int, int]:
+        return int(self.first(label)["grid_rows"]), int(self.first(label)["grid_cols"])
+
+
+def fill(template: str, values: dict[str, str]) -> str:
+    """``template`` with its ``$name`` and ``${name}`` placeholders replaced by ``values``.
+
+    A placeholder without a value and a value without a placeholder are both errors, so
+    the template and the functions that fill it cannot drift apart unnoticed.
+    """
+    tpl = string.Template(template)
+    names = {m.group("named") or m.group("braced") for m in tpl.pattern.finditer(template)} - {None}
+    unused = sorted(set(values) - names)
+    if unused:
+        raise KeyError(f"{TEMPLATE.name} has no placeholder for {', '.join(unused)}")
+    return tpl.substitute(values)
+
+
+def lines(*parts: str) -> str:
+    """The non-empty ``parts``, one a line (a list of bullets)."""
+    return "\n".join(p for p in parts if p)
+
+
+def paragraphs(*parts: str) -> str:
+    """The non-empty ``parts``, as paragraphs: an optional sentence that is empty leaves no blank line."""
+    return "\n\n".join(p for p in parts if p)
+
+
+def g(value: float) -> str:
+    """A setting as the prose quotes it (0.9, 1.5, 5)."""
+    return f"{value:g}"
 
 
 def verdict(ok: bool) -> str:
     return "**holds**" if ok else "**does not hold**"
 
 
+def added_at(rows: Sequence[Row], label: str, cutoff: float) -> float:
+    """Error the codec adds on top of the gridding floor for ``label`` at ``cutoff``, metres."""
+    r = at(rows, label, cutoff)
+    return added(r["paper_rmse_m"], r["gridding_rmse_m"])
+
+
+def artificial_worse(run: Run) -> bool:
+    """At f_c = 0.8, is every artificial terrain's RMSE above every natural one's, on both profiles?"""
+    return all(at(run.rows[p], lab, 0.8)["paper_rmse_m"]
+               > max(at(run.rows[p], x, 0.8)["paper_rmse_m"] for x in run.natural)
+               for p in PROFILES for lab in run.artificial)
+
+
+def floor_comes_first(run: Run) -> bool:
+    """At f_c = 0.8, is every artificial terrain's gridding floor larger than what the codec adds to it?"""
+    return all(at(run.rows[p], lab, 0.8)["gridding_rmse_m"] > added_at(run.rows[p], lab, 0.8)
+               for p in PROFILES for lab in run.artificial)
+
+
+# Settings and the opening paragraph
+
+
+def settings_values() -> dict[str, str]:
+    """The experiment's fixed settings, quoted throughout the document."""
+    return {"prefix": PREFIX, "first_cutoff": g(CUTOFFS[0]), "last_cutoff": g(CUTOFFS[-1]),
+            "cutoff_step": g(CUTOFFS[1] - CUTOFFS[0]), "n_cutoffs": str(len(CUTOFFS)), "knee": g(KNEE),
+            "sharp_factor": g(SHARP_FACTOR), "growth_cutoff": g(SHOWN[2]), "scattered": g(SCATTERED),
+            "control_resolution": g(CONTROL_RESOLUTION), "even_spread": fmt(EVEN_SPREAD_OFFSET, 2),
+            "quant_floor_fraction": g(QUANT_FLOOR_FRACTION), "square_axis_cut": fmt(axis_cut_cutoff((1, 1)), 2)}
+
+
+def header_values(run: Run) -> dict[str, str]:
+    """Opening paragraph: how, when and where the document was made."""
+    return {"command": COMMAND, "date": f"{datetime.now(timezone.utc):%Y-%m-%d}",
+            "dftpcc_version": dftpcc.__version__, "git_version": run.version,
+            "python_version": platform.python_version(), "cores": str(os.cpu_count()),
+            "elapsed": f"{time.perf_counter() - run.started:.0f}"}
+
+
+# Summary
+
+
+def claim1_cell(res: dict[str, Any]) -> str:
+    return "holds" if not res["failing"] else f"holds only below `f_c` = {min(res['failing']):g}"
+
+
+def claim2_cell(own: dict[str, Any], control: dict[str, Any]) -> str:
+    n = len(CUTOFFS)
+    return (f"{'holds' if own['count'] == n else 'partly'} ({own['count']}/{n} cutoffs; "
+            f"{control['count']}/{n} on equal {CONTROL_RESOLUTION:g} m cells)")
+
+
+def claim3_cell(res: dict[str, dict[str, float]]) -> str:
+    sharp = sum(v["ratio"] >= SHARP_FACTOR for v in res.values())
+    return f"{'holds' if sharp == len(res) else 'partly'} ({sharp}/{len(res)} terrains)"
+
+
+def claim2_why(own: dict[str, dict[str, Any]], control: dict[str, dict[str, Any]]) -> str:
+    """Whether the order of rough over flat survives the floor and equal cells, on both profiles."""
+    if all(control[p]["count"] == len(CUTOFFS) and all(n == m for n, m in own[p]["added_pairs"].values())
+           for p in PROFILES):
+        return ("The rough maps were gridded on coarser cells, which raises the gridding floor, but the order "
+                "also holds for the error added above the floor and on equal cells, so it is not the cell "
+                "size or the floor alone.")
+    return ("The order depends on the cell size or on the gridding floor: see the error added above the floor "
+            "and the control on equal cells.")
+
+
+def d1_finding(run: Run) -> str:
+    """The bullet on point-to-point metrics; none when no cloud has points spread inside its cells."""
+    if not run.scattered:
+        return ""
+    pairs = [(p, c.label) for p in PROFILES for c in run.scattered]
+    slower = sum(d1_growth(run.rows[p], lab) < rmse_growth(run.rows[p], lab) for p, lab in pairs)
+    return (f"- Point-to-point metrics (D1, Chamfer, the 3D version of the paper's RMSE) are dominated by the "
+            f"horizontal distance from a point to its cell centre ({fmt(EVEN_SPREAD_OFFSET, 2)} cell sizes RMS "
+            f"for evenly spread points). On the clouds with points spread inside their cells, D1 grows less "
+            f"than the paper's RMSE from `f_c` = 0 to {SHOWN[2]:g} in {slower} of {len(pairs)} terrain and "
+            "profile pairs (table under *What was run*). For a DEM codec, quote vertical errors.")
+
+
+def built_up_finding(floor_first: bool) -> str:
+    if floor_first:
+        return ("- Much of the error on built-up terrain is in the DEM before any frequency is removed: one "
+                "height per cell cannot hold a roof and the ground beside it. The cutoff is not the main source "
+                "of that error.")
+    return "- On built-up terrain the low-pass, not the DEM, causes most of the error."
+
+
+def summary_values(run: Run) -> dict[str, str]:
+    """The summary table's verdict cells and the further findings under it."""
+    c1 = {p: claim_same_way(run.rows[p], run.labels) for p in PROFILES}
+    c2 = {p: claim_rough_above_flat(run.rows[p], run.flat, run.rough) for p in PROFILES}
+    c2_control = {p: claim_rough_above_flat(run.control[p], run.flat, run.rough) for p in PROFILES}
+    c3 = {p: claim_sharp_rise(run.rows[p], run.labels) for p in PROFILES}
+    values = {"claim2_summary_why": claim2_why(c2, c2_control),
+              "findings": lines(d1_finding(run), built_up_finding(floor_comes_first(run)))}
+    for p in PROFILES:
+        values[f"claim1_summary_{p}"] = claim1_cell(c1[p])
+        values[f"claim2_summary_{p}"] = claim2_cell(c2[p], c2_control[p])
+        values[f"claim3_summary_{p}"] = claim3_cell(c3[p])
+    return values
+
+
+# What was run
+
+
+def corner_clouds(run: Run) -> str:
+    """A sentence for each DEM read as a cloud whose D1 is half a cell diagonal (points on cell corners)."""
+    return "".join(f"{c.label} (a DEM read as a cloud) has every point on a cell corner, half a cell diagonal "
+                   f"({fmt(math.sqrt(0.5), 2)} cell sizes) from the centre. "
+                   for c in run.cases if c.file.endswith(".tif")
+                   and abs(run.first(c.label)["d1_rmse_m"] / c.resolution - math.sqrt(0.5)) < CORNER_TOLERANCE)
+
+
+def what_was_run_values(run: Run) -> dict[str, str]:
+    """The terrains, their gridding floor, and how the metrics compare at f_c = 0."""
+    cases = []
+    for c in run.cases:
+        r = run.first(c.label)
+        cases.append([c.label, c.kind, f"`{c.file}`" + (f" class {','.join(map(str, c.classes))}" if c.classes else ""),
+                      c.note, f"{int(r['points_original']):,}", f"{c.resolution:g}",
+                      f"{int(r['grid_rows'])} x {int(r['grid_cols'])}",
+                      f"{int(r['points_rebuilt']):,} ({r['points_rebuilt'] / (r['grid_rows'] * r['grid_cols']):.0%})",
+                      fmt(r["points_original"] / r["points_rebuilt"], 2), fmt(r["gridding_rmse_m"])])
+    metrics = [[c.label, f"{c.resolution:g}", fmt(run.first(c.label)["paper_rmse_m"]),
+                fmt(run.first(c.label)["paper_rmse_3d_m"]), fmt(run.first(c.label)["d1_rmse_m"]),
+                fmt(run.first(c.label)["d1_rmse_m"] / c.resolution, 2)] for c in run.cases]
+    mid = SHOWN[2]
+    growth = []
+    for c in run.scattered:
+        for p in PROFILES:
+            rows = run.rows[p]
+            r0, r_mid = at(rows, c.label, 0.0), at(rows, c.label, mid)
+            growth.append([c.label, p, fmt(r0["d1_rmse_m"]), fmt(r_mid["d1_rmse_m"]), fmt(d1_growth(rows, c.label), 3),
+                           fmt(r0["paper_rmse_m"]), fmt(r_mid["paper_rmse_m"]), fmt(rmse_growth(rows, c.label), 3)])
+    return {
+        "cases_table": table(["terrain", "kind", "file", "what", "points", "cell (m)", "grid", "occupied cells",
+                              "points/cell", "gridding floor (m)"], cases),
+        "metrics_table": table(["terrain", "cell (m)", "RMSE, vertical (m)", "RMSE, 3D (m)",
+                                "D1 point-to-point RMSE (m)", "D1 / cell size"], metrics),
+        "corner_clouds": corner_clouds(run),
+        "growth_table": table(["terrain", "profile", "D1 at 0 (m)", f"D1 at {mid:g} (m)", "D1 growth",
+                               "paper RMSE at 0 (m)", f"paper RMSE at {mid:g} (m)", "RMSE growth"], growth),
+    }
+
+
+# Claim 1
+
+
+def claim1_verdict(res: dict[str, Any]) -> str:
+    spread = res["spread"]
+    if not res["failing"]:
+        return (f"Verdict: {verdict(True)}: the relative sizes stay within a factor {SAME_WAY_FACTOR:g} of "
+                f"each other at every cutoff (largest spread {fmt(max(spread), 2)}x).")
+    first_fail = min(res["failing"])
+    below = sum(fc < first_fail for fc in CUTOFFS)
+    return (f"Verdict: **holds only below `f_c` = {first_fail:g}** ({below} of {len(CUTOFFS)} cutoffs), "
+            f"where the relative sizes stay within a factor {SAME_WAY_FACTOR:g} of each other. Beyond, they "
+            f"spread up to {fmt(max(spread), 2)}x (at `f_c` = {CUTOFFS[spread.index(max(spread))]:g}).")
+
+
+def claim1_rises(rows: Sequence[Row], res: dict[str, Any]) -> str:
+    """Where bits grow from one cutoff to the next; nothing when they fall at every step."""
+    rises = {lab: fcs for lab, fcs in res["rises"].items() if fcs}
+    if not rises:
+        return ""
+    bits = {lab: series(rows, lab, "bits_per_point") for lab in rises}
+    most = max(max(b / a - 1 for a, b in zip(bits[lab], bits[lab][1:])) for lab in rises)
+    return ("Bits do not fall at every step: "
+            + "; ".join(f"{lab} grows at `f_c` = {', '.join(f'{fc:g}' for fc in fcs)}" for lab, fcs in rises.items())
+            + f" (by at most {fmt(most * 100, 2)} %: the automatic quantizer step is chosen anew at each cutoff).")
+
+
+def claim1_values(run: Run) -> dict[str, str]:
+    """Per profile, the size relative to f_c = 0 on every terrain, and the verdict."""
+    values = {}
+    for p in PROFILES:
+        res = claim_same_way(run.rows[p], run.labels)
+        body = [[lab, fmt(at(run.rows[p], lab, 0.0)["bits_per_point"])]
+                + [fmt(res["relative"][lab][CUTOFFS.index(fc)]) for fc in SHOWN[1:]] for lab in res["relative"]]
+        body.append(["spread", ""] + [fmt(res["spread"][CUTOFFS.index(fc)], 2) for fc in SHOWN[1:]])
+        header = ["terrain", "bits/point at 0"] + [f"relative at {fc:g}" for fc in SHOWN[1:]]
+        values[f"claim1_table_{p}"] = table(header, body)
+        values[f"claim1_verdict_{p}"] = paragraphs(claim1_verdict(res), claim1_rises(run.rows[p], res))
+    return values
+
+
+def claim1_paper_why_values(run: Run) -> dict[str, str]:
+    """Why the paper profile's sizes follow one curve: the coefficient cost, the mask's share, bits at 0."""
+    rows = run.rows["paper"]
+    per_coef = [8 * r["coef_bytes"] / r["coef_count"] for r in rows if r["coef_count"]]
+    last = CUTOFFS[-1]
+    return {"coef_bits_min": fmt(min(per_coef), 4), "coef_bits_max": fmt(max(per_coef), 4),
+            "mask_shares": ", ".join(f"{lab} {at(rows, lab, last)['mask_bytes'] / at(rows, lab, last)['bytes']:.0%}"
+                                     for lab in run.labels),
+            "paper_bits_at_zero": ", ".join(f"{lab} {fmt(at(rows, lab, 0.0)['bits_per_point'])}" for lab in run.labels)}
+
+
+def mask_heavy(rows: Sequence[Row], labels: Sequence[str]) -> str:
+    """A clause naming the terrains whose mask outweighs their coefficients at f_c = 0, if any."""
+    heavy = [lab for lab in labels if at(rows, lab, 0.0)["mask_bytes"] > at(rows, lab, 0.0)["coef_bytes"]]
+    return f"; on {', '.join(heavy)} the mask outweighs all the coefficients even at `f_c` = 0" if heavy else ""
+
+
+def claim1_compact_why_values(run: Run) -> dict[str, str]:
+    """Why the compact profile's sizes follow the content: the quantizer step against the relative size."""
+    rows = run.rows["compact"]
+    relative = claim_same_way(rows, run.labels)["relative"]
+    mid = CUTOFFS.index(SHOWN[2])
+    body = [[lab, fmt(at(rows, lab, 0.0)["step_m"]), f"{int(at(rows, lab, 0.0)['bytes']):,}",
+             f"{int(at(rows, lab, 0.0)['mask_bytes']):,}", f"{int(at(rows, lab, 0.0)['coef_bytes']):,}",
+             fmt(relative[lab][mid])] for lab in run.labels]
+    rho = spearmanr([at(rows, lab, 0.0)["step_m"] for lab in run.labels],
+                    [relative[lab][mid] for lab in run.labels]).statistic
+    return {"compact_bytes_table": table(["terrain", "step (m)", "bytes at 0", "mask bytes", "coefficient bytes",
+                                          f"relative size at {SHOWN[2]:g}"], body),
+            "step_correlation": f"{rho:.2f}", "mask_heavy": mask_heavy(rows, run.labels),
+            "compact_added_at_zero": ", ".join(f"{fmt(added_at(rows, lab, 0.0))} m on {lab}" for lab in run.labels)}
+
+
+# Claim 2
+
+
+def claim2_verdict(res: dict[str, Any]) -> str:
+    return (f"Verdict: {verdict(res['count'] == len(CUTOFFS))}: every rough terrain has a higher RMSE than "
+            f"every flat terrain at {res['count']} of {len(CUTOFFS)} cutoffs. Counting only the error added "
+            f"on top of the floor (at the cutoffs where it exceeds {NOTHING_ADDED * 1000:g} mm on either map), "
+            "rough is above flat at "
+            + ", ".join(f"{n} of {m} cutoffs for {r} vs {f}" for (f, r), (n, m) in res["added_pairs"].items()) + ".")
+
+
+def control_verdict(res: dict[str, Any]) -> str:
+    return (f"{verdict(res['count'] == len(CUTOFFS))}, at {res['count']} of {len(CUTOFFS)} cutoffs every rough "
+            "terrain is above every flat one.")
+
+
+def claim2_values(run: Run) -> dict[str, str]:
+    """Per profile, RMSE and added error by terrain with the verdict, and the same on equal cells."""
+    values = {"natural_cells": ", ".join(f"{c.label} {c.resolution:g} m" for c in run.cases if c.kind != "artificial")}
+    by_kind = [(c.label, kind) for kind in ("flat", "rough", "artificial") for c in run.cases if c.kind == kind]
+    for p in PROFILES:
+        rows, control = run.rows[p], run.control[p]
+        values[f"claim2_table_{p}"] = table(
+            ["terrain", "kind"] + [f"`f_c` {fc:g}" for fc in SHOWN],
+            [[lab, kind] + [f"{fmt(at(rows, lab, fc)['paper_rmse_m'])} ({fmt(added_at(rows, lab, fc))})"
+                            for fc in SHOWN] for lab, kind in by_kind])
+        values[f"claim2_verdict_{p}"] = claim2_verdict(claim_rough_above_flat(rows, run.flat, run.rough))
+        values[f"control_table_{p}"] = table(
+            ["terrain", f"floor (m), {CONTROL_RESOLUTION:g} m cells"] + [f"`f_c` {fc:g}" for fc in SHOWN],
+            [[lab, fmt(at(control, lab, 0.0)["gridding_rmse_m"])] + [fmt(at(control, lab, fc)["paper_rmse_m"])
+                                                                     for fc in SHOWN] for lab in run.natural])
+        values[f"control_verdict_{p}"] = control_verdict(claim_rough_above_flat(control, run.flat, run.rough))
+    return values
+
+
+# Claim 3
+
+
+def claim3_verdict(res: dict[str, dict[str, float]]) -> str:
+    sharp = [lab for lab, v in res.items() if v["ratio"] >= SHARP_FACTOR]
+    blunt = [lab for lab in res if lab not in sharp]
+    return (f"Verdict: {verdict(not blunt)} on {len(sharp)} of {len(res)} terrains"
+            + (f" (not on {', '.join(blunt)})" if blunt else "") + ".")
+
+
+def axis_cut_row(run: Run, label: str) -> list[str]:
+    """Added error at the last cutoff before the circle cuts an axis and two steps after, per profile."""
+    knee = axis_cut_cutoff(run.grid(label))
+    before = max(fc for fc in CUTOFFS if fc <= knee)
+    after = CUTOFFS[min(CUTOFFS.index(before) + 2, len(CUTOFFS) - 1)]
+    cells = [label, fmt(knee, 3), f"{before:g} -> {after:g}"]
+    for p in PROFILES:
+        a, b = (added_at(run.rows[p], label, fc) for fc in (before, after))
+        cells += [f"{fmt(a)} -> {fmt(b)}", fmt(b / a, 2) if a > 0 else "n/a"]
+    return cells
+
+
+def claim3_values(run: Run) -> dict[str, str]:
+    """Per profile, the slopes before and after the knee with the verdict; the wavelengths; the axis cut."""
+    last = CUTOFFS[-1]
+    values = {}
+    for p in PROFILES:
+        res = claim_sharp_rise(run.rows[p], run.labels)
+        values[f"claim3_table_{p}"] = table(
+            ["terrain", "RMSE 0.8 (m)", f"RMSE {KNEE:g} (m)", f"RMSE {last:g} (m)",
+             f"mean slope 0-{KNEE:g} (m per unit f_c)", f"slope 0.8-{KNEE:g}", f"slope {KNEE:g}-{last:g}",
+             "after / mean before", "after / 0.8-0.9"],
+            [[lab, fmt(v["rmse_08"]), fmt(v["rmse_knee"]), fmt(v["rmse_last"]), fmt(v["slope_before"]),
+              fmt(v["local_before"]), fmt(v["slope_after"]), fmt(v["ratio"], 2), fmt(v["local_ratio"], 2)]
+             for lab, v in res.items()])
+        values[f"claim3_verdict_{p}"] = claim3_verdict(res)
+    shown = (0.5, 0.8, 0.9, 0.95)
+    values["wavelength_table"] = table(
+        ["terrain", "grid"] + [f"`f_c` {fc:g}" for fc in shown],
+        [[c.label, "{} x {}".format(*run.grid(c.label))]
+         + [f"{fmt(shortest_wavelength_cells(run.grid(c.label), fc), 3)} cells = "
+            f"{fmt(shortest_wavelength_cells(run.grid(c.label), fc) * c.resolution, 3)} m" for fc in shown]
+         for c in run.cases])
+    values["axis_cut_table"] = table(
+        ["terrain", "axis cut from `f_c`", "`f_c`", "paper: added error (m)", "paper: ratio",
+         "compact: added error (m)", "compact: ratio"], [axis_cut_row(run, lab) for lab in run.labels])
+    return values
+
+
+# Artificial structures
+
+
+def artificial_bullet(run: Run, label: str, profile: str) -> str:
+    rows = run.rows[profile]
+    r8 = at(rows, label, 0.8)
+    flat8 = max(at(rows, f, 0.8)["paper_rmse_m"] for f in run.flat)
+    rough8 = max(at(rows, r, 0.8)["paper_rmse_m"] for r in run.rough)
+    return (f"- {label}, {profile} profile, `f_c` = 0.8: RMSE {fmt(r8['paper_rmse_m'])} m against at most "
+            f"{fmt(flat8)} m on flat and {fmt(rough8)} m on rough terrain; its gridding floor alone is "
+            f"{fmt(r8['gridding_rmse_m'])} m, and the codec adds {fmt(added_at(rows, label, 0.8))} m to it.")
+
+
+def artificial_worse_sentence(worse: bool) -> str:
+    return ("It does: the RMSE is above every natural terrain's. " if worse else
+            "On our data it is not worse than every natural terrain at `f_c` = 0.8. ")
+
+
+def floor_first_sentence(floor_first: bool) -> str:
+    return ("Most of the error is there before any frequency is removed (the floor is larger than what "
+            "the low-pass adds): " if floor_first else "")
+
+
+def artificial_values(run: Run) -> dict[str, str]:
+    """The built-up terrain's error against the natural ones, and what causes it."""
+    return {"artificial_rmse": paragraphs(*(lines(*(artificial_bullet(run, lab, p) for p in PROFILES))
+                                            for lab in run.artificial)),
+            "artificial_worse": artificial_worse_sentence(artificial_worse(run)),
+            "artificial_floor_first": floor_first_sentence(floor_comes_first(run))}
+
+
+# Fig. 6 and timings
+
+
+def fig6_values(run: Run) -> dict[str, str]:
+    return {"pictures": paragraphs(*(f"**{label}, {profile} profile**\n\n![{label} {profile}](figures/{path.name})"
+                                     for (label, profile), path in run.pictures.items()))}
+
+
+def field_timing(run: Run, profile: str) -> str:
+    """Where the time of one sweep goes, on the first terrain."""
+    field = run.cases[0].label
+    fr = [r for r in run.rows[profile] if r["terrain"] == field]
+    n = len(fr)
+    return (f"- {field}, {profile}: per cutoff on average {sum(r['encode_s'] for r in fr) / n:.2f} s encoding, "
+            f"{sum(r['decode_s'] for r in fr) / n:.2f} s decoding, {sum(r['metrics_s'] for r in fr) / n:.2f} s "
+            f"for all metrics (two k-d tree queries over {int(fr[0]['points_original']):,} and "
+            f"{int(fr[0]['points_rebuilt']):,} points); gridding once: {fr[0]['grid_s']:.2f} s.")
+
+
+def timings_values(run: Run) -> dict[str, str]:
+    """Wall time of every sweep, the machine's load around the run, and one sweep broken down."""
+    return {"load_start": f"{run.load_start:.1f}", "load_end": f"{load_average():.1f}",
+            "timings_table": table(["terrain", "points"] + list(PROFILES),
+                                   [[c.label, f"{int(run.first(c.label)['points_original']):,}"]
+                                    + [f"{run.wall[(p, c.label)]:.1f}" for p in PROFILES] for c in run.cases]),
+            "field_timings": lines(*(field_timing(run, p) for p in PROFILES))}
+
+
+SECTIONS = (header_values, summary_values, what_was_run_values, claim1_values, claim1_paper_why_values,
+            claim1_compact_why_values, claim2_values, claim3_values, artificial_values, fig6_values,
+            timings_values)
+
+
 def write_doc(cases: Sequence[Case], rows: dict[str, list[Row]], wall: dict[tuple[str, str], float],
               control: dict[str, list[Row]], pictures: dict[tuple[str, str], Path], started: float,
               load_start: float, version: str) -> str:
-    flat = [c.label for c in cases if c.kind == "flat"]
-    rough = [c.label for c in cases if c.kind == "rough"]
-    natural = flat + rough
-    artificial = [c.label for c in cases if c.kind == "artificial"]
-    out: list[str] = []
-    w = out.append
-    first = {c.label: at(rows["paper"], c.label, 0.0) for c in cases}
-    field = cases[0].label
-
-    w("# Reproducing the paper's experiment on real terrain\n")
-    w(f"Generated by `{COMMAND}` (or `make reproduce`). Do not edit by hand: every number below comes "
-      f"from that run, made on {datetime.now(timezone.utc):%Y-%m-%d} with dftpcc {dftpcc.__version__} "
-      f"(git {version}), Python {platform.python_version()}, {os.cpu_count()} cores, "
-      f"in {time.perf_counter() - started:.0f} s. The run also writes the figures and the full tables "
-      f"(`docs/figures/{PREFIX}*.png`, `docs/figures/{PREFIX}sweep_<profile>.csv`, one row per terrain "
-      f"and cutoff with every metric, size and timing).\n")
-    w("The paper (Suzuki et al.) compresses a terrain map by gridding it into a DEM, taking its 2D DFT, "
-      "keeping the coefficients inside a circle of radius `r = (1 - f_c) r_M` and inverting. Its evidence "
-      "is a sweep of the cutoff ratio `f_c` on a flat and a rocky Mars-like terrain (its Fig. 5, RMSE and "
-      "bits per point) and maps at `f_c` = 0.8 and 0.95 (its Fig. 6). We run the same experiment on real "
-      "survey data with the `paper` profile (the method as published: DFT, raw complex64 coefficients "
-      "inside the circle) and the default `compact` profile (plane removed, DCT, quantized and "
-      "entropy-coded).\n")
-
-    intro_end = len(out)
-    w("## What was run\n")
-    w(f"Cutoffs {CUTOFFS[0]:g} to {CUTOFFS[-1]:g} in steps of {CUTOFFS[1] - CUTOFFS[0]:g}, both profiles, "
-      "each map gridded once and coded at every cutoff with the real encoder; the sizes are those of the "
-      "`.dftpc` files and the errors those of what the decoder rebuilds.\n")
-    body = []
-    for c in cases:
-        r = first[c.label]
-        body.append([c.label, c.kind, f"`{c.file}`" + (f" class {','.join(map(str, c.classes))}" if c.classes else ""),
-                     c.note, f"{int(r['points_original']):,}", f"{c.resolution:g}",
-                     f"{int(r['grid_rows'])} x {int(r['grid_cols'])}",
-                     f"{int(r['points_rebuilt']):,} ({r['points_rebuilt'] / (r['grid_rows'] * r['grid_cols']):.0%})",
-                     fmt(r["points_original"] / r["points_rebuilt"], 2), fmt(r["gridding_rmse_m"])])
-    w(table(["terrain", "kind", "file", "what", "points", "cell (m)", "grid", "occupied cells",
-             "points/cell", "gridding floor (m)"], body) + "\n")
-    w("The *gridding floor* is the RMS distance of the points to their cell's mean height: the error of "
-      "the uncompressed DEM, which no codec that stores this DEM can go below.\n")
-    w("**The paper's RMSE (its eq. 4-5) needs a partner for every original point**, but the rebuilt map "
-      "has one point per occupied cell. We pair each original point with the rebuilt point of its own "
-      "cell (the one nearest in x, y) and count the vertical difference: the DEM puts every rebuilt point "
-      "at its cell centre whatever the cutoff, so the horizontal offset does not depend on the cutoff "
-      "and would only add a constant that hides what the cutoff does. The table shows that constant: "
-      "the same pairing with the full 3D distance, at `f_c` = 0 (paper profile).\n")
-    w(table(["terrain", "cell (m)", "RMSE, vertical (m)", "RMSE, 3D (m)", "D1 point-to-point RMSE (m)",
-             "D1 / cell size"],
-            [[c.label, f"{c.resolution:g}", fmt(first[c.label]["paper_rmse_m"]),
-              fmt(first[c.label]["paper_rmse_3d_m"]), fmt(first[c.label]["d1_rmse_m"]),
-              fmt(first[c.label]["d1_rmse_m"] / c.resolution, 2)] for c in cases]) + "\n")
-    w("The MPEG D1 metric (symmetric nearest-neighbour RMSE) has the same floor for the same reason. "
-      f"Points spread evenly in a cell lie {fmt(EVEN_SPREAD_OFFSET, 2)} cell sizes from its centre RMS "
-      "(`sqrt(1/6)`), so D1 measures mostly the resolution, not the low-pass. "
-      + "".join(f"{c.label} (a DEM read as a cloud) has every point on a cell corner, half a cell diagonal "
-                f"({fmt(math.sqrt(0.5), 2)} cell sizes) from the centre. "
-                for c in cases if c.file.endswith(".tif")
-                and abs(first[c.label]["d1_rmse_m"] / c.resolution - math.sqrt(0.5)) < CORNER_TOLERANCE)
-      + "All metrics are in the CSV files. The claims below use the paper's RMSE.\n")
-    scattered = [c for c in cases if at(rows["paper"], c.label, 0.0)["d1_rmse_m"] >= SCATTERED * c.resolution]
-    w(f"How much each metric grows from `f_c` = 0 to {SHOWN[2]:g} on the clouds whose points are spread "
-      "inside their cells (D1 at `f_c` = 0 is at least "
-      f"{SCATTERED:g} cell sizes):\n")
-    w(table(["terrain", "profile", "D1 at 0 (m)", f"D1 at {SHOWN[2]:g} (m)", "D1 growth",
-             "paper RMSE at 0 (m)", f"paper RMSE at {SHOWN[2]:g} (m)", "RMSE growth"],
-            [[c.label, p, fmt(at(rows[p], c.label, 0.0)["d1_rmse_m"]), fmt(at(rows[p], c.label, SHOWN[2])["d1_rmse_m"]),
-              fmt(d1_growth(rows[p], c.label), 3), fmt(at(rows[p], c.label, 0.0)["paper_rmse_m"]),
-              fmt(at(rows[p], c.label, SHOWN[2])["paper_rmse_m"]), fmt(rmse_growth(rows[p], c.label), 3)]
-             for c in scattered for p in PROFILES]) + "\n")
-
-    w("## Fig. 5: bits per point and RMSE against the cutoff ratio\n")
-    for profile in PROFILES:
-        w(f"![{profile} profile](figures/{PREFIX}sweep_{profile}.png)\n")
-
-    w("## Claim 1: bits per point fall with the cutoff about the same way on every terrain\n")
-    c1 = {p: claim_same_way(rows[p], [c.label for c in cases]) for p in PROFILES}
-    for profile in PROFILES:
-        res = c1[profile]
-        w(f"**{profile} profile.** Size at each cutoff relative to `f_c` = 0 (bits per point at `f_c` "
-          f"over bits per point at 0), and the spread across terrains (largest over smallest):\n")
-        body = [[lab, fmt(at(rows[profile], lab, 0.0)["bits_per_point"])]
-                + [fmt(res["relative"][lab][CUTOFFS.index(fc)]) for fc in SHOWN[1:]] for lab in res["relative"]]
-        body.append(["spread", ""] + [fmt(res["spread"][CUTOFFS.index(fc)], 2) for fc in SHOWN[1:]])
-        w(table(["terrain", "bits/point at 0"] + [f"relative at {fc:g}" for fc in SHOWN[1:]], body) + "\n")
-        if not res["failing"]:
-            w(f"Verdict: {verdict(True)}: the relative sizes stay within a factor {SAME_WAY_FACTOR:g} of "
-              f"each other at every cutoff (largest spread {fmt(max(res['spread']), 2)}x).\n")
-        else:
-            first_fail = min(res["failing"])
-            below = sum(fc < first_fail for fc in CUTOFFS)
-            w(f"Verdict: **holds only below `f_c` = {first_fail:g}** ({below} of {len(CUTOFFS)} cutoffs), "
-              f"where the relative sizes stay within a factor {SAME_WAY_FACTOR:g} of each other. Beyond, they "
-              f"spread up to {fmt(max(res['spread']), 2)}x (at `f_c` = "
-              f"{CUTOFFS[res['spread'].index(max(res['spread']))]:g}).\n")
-        rises = {lab: fcs for lab, fcs in res["rises"].items() if fcs}
-        if rises:
-            w("Bits do not fall at every step: " + "; ".join(
-                f"{lab} grows at `f_c` = {', '.join(f'{fc:g}' for fc in fcs)}" for lab, fcs in rises.items())
-              + " (by at most "
-              + fmt(max(max(b / a - 1 for a, b in zip(series(rows[profile], lab, "bits_per_point"),
-                                                       series(rows[profile], lab, "bits_per_point")[1:]))
-                        for lab in rises) * 100, 2)
-              + " %: the automatic quantizer step is chosen anew at each cutoff).\n")
-    paper_rows = rows["paper"]
-    per_coef = [8 * r["coef_bytes"] / r["coef_count"] for r in paper_rows if r["coef_count"]]
-    mask_share = {lab: at(paper_rows, lab, CUTOFFS[-1])["mask_bytes"] / at(paper_rows, lab, CUTOFFS[-1])["bytes"]
-                  for lab in c1["paper"]["relative"]}
-    w(f"*Why, paper profile.* The paper stores every kept coefficient as a complex64 number: the "
-      f"coefficient section costs {fmt(min(per_coef), 4)} to {fmt(max(per_coef), 4)} bits per kept "
-      "coefficient on every terrain and cutoff (64 bits plus chunk headers). The size is therefore the "
-      "number of coefficients inside the circle, which depends only on the grid's shape and the cutoff, "
-      "never on the terrain. That alone explains why the paper saw the same curve for both terrains: it "
-      "is geometry, not a property of gentle terrain. "
-      "What spreads the curves at high cutoffs is what does not shrink: the occupancy mask and the "
-      f"header. At `f_c` = {CUTOFFS[-1]:g} the mask is "
-      + ", ".join(f"{lab} {share:.0%}" for lab, share in mask_share.items())
-      + " of the file. Absolute bits per point differ as well: they scale with cells per original point "
-      + "(at `f_c` = 0: "
-      + ", ".join(f"{lab} {fmt(at(paper_rows, lab, 0.0)['bits_per_point'])}" for lab in mask_share) + ").\n")
-    compact_rows = rows["compact"]
-    w("*Why, compact profile.* A quantized, entropy-coded coefficient costs what its information "
-      "costs. High frequencies that the quantizer already zeroes are almost free, so removing them with "
-      "the cutoff saves little. The table gives the quantizer step and how the bytes split at `f_c` = 0:\n")
-    w(table(["terrain", "step (m)", "bytes at 0", "mask bytes", "coefficient bytes",
-             f"relative size at {SHOWN[2]:g}"],
-            [[lab, fmt(at(compact_rows, lab, 0.0)["step_m"]), f"{int(at(compact_rows, lab, 0.0)['bytes']):,}",
-              f"{int(at(compact_rows, lab, 0.0)['mask_bytes']):,}", f"{int(at(compact_rows, lab, 0.0)['coef_bytes']):,}",
-              fmt(c1["compact"]["relative"][lab][CUTOFFS.index(SHOWN[2])])] for lab in c1["compact"]["relative"]])
-      + "\n")
-    labels = list(c1["compact"]["relative"])
-    steps = [at(compact_rows, lab, 0.0)["step_m"] for lab in labels]
-    rel8 = [c1["compact"]["relative"][lab][CUTOFFS.index(SHOWN[2])] for lab in labels]
-    rho = spearmanr(steps, rel8).statistic
-    mask_heavy = [lab for lab in labels
-                  if at(compact_rows, lab, 0.0)["mask_bytes"] > at(compact_rows, lab, 0.0)["coef_bytes"]]
-    w(f"The automatic step is set from the gridding floor (a quantization error of "
-      f"{QUANT_FLOOR_FRACTION:g} x the floor), so it is large where the floor is large: rough terrain on "
-      "coarse cells, and built terrain. A large step has already zeroed most high frequencies before "
-      f"the cutoff removes them. Across the terrains, the rank correlation between the step and the "
-      f"relative size at {SHOWN[2]:g} is {rho:.2f}"
-      + (f"; on {', '.join(mask_heavy)} the mask outweighs all the coefficients even at `f_c` = 0"
-         if mask_heavy else "") + ".\n")
-    extra = {lab: added(at(compact_rows, lab, 0.0)["paper_rmse_m"], at(compact_rows, lab, 0.0)["gridding_rmse_m"])
-             for lab in labels}
-    w("The same step costs accuracy before any frequency is removed: at `f_c` = 0 the compact profile "
-      "adds " + ", ".join(f"{fmt(v)} m on {lab}" for lab, v in extra.items())
-      + " to the gridding floor (the paper profile adds nothing there, see claim 2).\n")
-    w("## Claim 2: RMSE is higher on rough than on flat terrain at every cutoff\n")
-    for profile in PROFILES:
-        res = claim_rough_above_flat(rows[profile], flat, rough)
-        w(f"**{profile} profile.** The paper's RMSE (m) and, in brackets, the part the codec adds on top of "
-          "the gridding floor (`sqrt(RMSE^2 - floor^2)`):\n")
-        w(table(["terrain", "kind"] + [f"`f_c` {fc:g}" for fc in SHOWN],
-                [[lab, kind] + [f"{fmt(at(rows[profile], lab, fc)['paper_rmse_m'])} "
-                                f"({fmt(added(at(rows[profile], lab, fc)['paper_rmse_m'], at(rows[profile], lab, fc)['gridding_rmse_m']))})"
-                                for fc in SHOWN]
-                 for lab, kind in [(x, "flat") for x in flat] + [(x, "rough") for x in rough]
-                 + [(x, "artificial") for x in artificial]]) + "\n")
-        w(f"Verdict: {verdict(res['count'] == len(CUTOFFS))}: every rough terrain has a higher RMSE than "
-          f"every flat terrain at {res['count']} of {len(CUTOFFS)} cutoffs. Counting only the error added "
-          f"on top of the floor (at the cutoffs where it exceeds {NOTHING_ADDED * 1000:g} mm on either map), "
-          "rough is above flat at "
-          + ", ".join(f"{n} of {m} cutoffs for {r} vs {f}" for (f, r), (n, m) in res["added_pairs"].items())
-          + ".\n")
-    w(f"*Why, and a control.* The terrains were gridded at their own cell sizes ({', '.join(f'{c.label} {c.resolution:g} m' for c in cases if c.kind != 'artificial')}), "
-      "and the cutoff removes wavelengths measured in cells (see claim 3), so on coarser cells it removes "
-      "longer, metre-high features, and the gridding floor itself is larger. To separate the terrain "
-      f"from the cell size, the same sweep with every natural terrain on {CONTROL_RESOLUTION:g} m cells:\n")
-    for profile in PROFILES:
-        res = claim_rough_above_flat(control[profile], flat, rough)
-        w(table(["terrain", f"floor (m), {CONTROL_RESOLUTION:g} m cells"] + [f"`f_c` {fc:g}" for fc in SHOWN],
-                [[lab, fmt(at(control[profile], lab, 0.0)["gridding_rmse_m"])]
-                 + [fmt(at(control[profile], lab, fc)["paper_rmse_m"]) for fc in SHOWN] for lab in natural]) + "\n")
-        w(f"{profile} profile, {CONTROL_RESOLUTION:g} m cells: {verdict(res['count'] == len(CUTOFFS))}, at "
-          f"{res['count']} of {len(CUTOFFS)} cutoffs every rough terrain is above every flat one.\n")
-
-    w(f"## Claim 3: RMSE rises sharply past `f_c` = {KNEE:g}\n")
-    w(f"We call the rise sharp when the RMSE slope over [{KNEE:g}, {CUTOFFS[-1]:g}] is at least "
-      f"{SHARP_FACTOR:g} times its mean slope over [0, {KNEE:g}]. The table also gives the slope over "
-      f"[0.8, {KNEE:g}], to show whether the curve bends only after {KNEE:g}.\n")
-    for profile in PROFILES:
-        res = claim_sharp_rise(rows[profile], [c.label for c in cases])
-        w(f"**{profile} profile.**\n")
-        w(table(["terrain", "RMSE 0.8 (m)", f"RMSE {KNEE:g} (m)", f"RMSE {CUTOFFS[-1]:g} (m)",
-                 f"mean slope 0-{KNEE:g} (m per unit f_c)", f"slope 0.8-{KNEE:g}", f"slope {KNEE:g}-{CUTOFFS[-1]:g}",
-                 "after / mean before", "after / 0.8-0.9"],
-                [[lab, fmt(v["rmse_08"]), fmt(v["rmse_knee"]), fmt(v["rmse_last"]), fmt(v["slope_before"]),
-                  fmt(v["local_before"]), fmt(v["slope_after"]), fmt(v["ratio"], 2), fmt(v["local_ratio"], 2)]
-                 for lab, v in res.items()]) + "\n")
-        sharp = [lab for lab, v in res.items() if v["ratio"] >= SHARP_FACTOR]
-        w(f"Verdict: {verdict(len(sharp) == len(res))} on {len(sharp)} of {len(res)} terrains"
-          + (f" (not on {', '.join(lab for lab in res if lab not in sharp)})" if len(sharp) < len(res) else "")
-          + ".\n")
-    grids = {c.label: (int(first[c.label]["grid_rows"]), int(first[c.label]["grid_cols"])) for c in cases}
-    w("*Why.* The cutoff is a wavelength in cells. A DFT frequency of k pixels on a side of n cells is a "
-      "wavelength of n/k cells, and the circle keeps k up to `(1 - f_c) r_M`, so the shortest wavelength "
-      "kept grows like `1/(1 - f_c)`: it doubles from 0.8 to 0.9 and doubles again from 0.9 to 0.95. "
-      "Equal steps of `f_c` near 1 remove ever wider bands of the terrain's large features. The "
-      "shortest wavelength kept along the grid's shorter side, in cells and in metres, is:\n")
-    w(table(["terrain", "grid"] + [f"`f_c` {fc:g}" for fc in (0.5, 0.8, 0.9, 0.95)],
-            [[c.label, f"{grids[c.label][0]} x {grids[c.label][1]}"]
-             + [f"{fmt(shortest_wavelength_cells(grids[c.label], fc), 3)} cells = "
-                f"{fmt(shortest_wavelength_cells(grids[c.label], fc) * c.resolution, 3)} m"
-                for fc in (0.5, 0.8, 0.9, 0.95)] for c in cases]) + "\n")
-    knees = {lab: axis_cut_cutoff(g) for lab, g in grids.items()}
-    w("The paper profile has a second knee the paper does not report, where the circle starts to cut "
-      "an axis of the spectrum (`f_c = 1 - max(n, m) / hypot(n, m)` for an n x m grid). From there on, the "
-      "periodic DFT loses the high frequencies of the jump between opposite borders of the map (the DFT "
-      "treats the map as tiled), and ringing spreads from the borders, as the Fig. 6 error maps show. "
-      "The error the codec adds on top of the floor, at the last cutoff before that point and two steps "
-      "after it:\n")
-    body = []
-    for lab, knee in knees.items():
-        before = max(fc for fc in CUTOFFS if fc <= knee)
-        after = CUTOFFS[min(CUTOFFS.index(before) + 2, len(CUTOFFS) - 1)]
-        cells = [lab, fmt(knee, 3), f"{before:g} -> {after:g}"]
-        for profile in PROFILES:
-            a, b = (added(at(rows[profile], lab, fc)["paper_rmse_m"], at(rows[profile], lab, fc)["gridding_rmse_m"])
-                    for fc in (before, after))
-            cells += [f"{fmt(a)} -> {fmt(b)}", fmt(b / a, 2) if a > 0 else "n/a"]
-        body.append(cells)
-    w(table(["terrain", "axis cut from `f_c`", "`f_c`", "paper: added error (m)", "paper: ratio",
-             "compact: added error (m)", "compact: ratio"], body) + "\n")
-    w("## Artificial structures\n")
-    for lab in artificial:
-        for profile in PROFILES:
-            r8 = at(rows[profile], lab, 0.8)
-            flat8 = max(at(rows[profile], f, 0.8)["paper_rmse_m"] for f in flat)
-            rough8 = max(at(rows[profile], r, 0.8)["paper_rmse_m"] for r in rough)
-            w(f"- {lab}, {profile} profile, `f_c` = 0.8: RMSE {fmt(r8['paper_rmse_m'])} m against at most "
-              f"{fmt(flat8)} m on flat and {fmt(rough8)} m on rough terrain; its gridding floor alone is "
-              f"{fmt(r8['gridding_rmse_m'])} m, and the codec adds "
-              f"{fmt(added(r8['paper_rmse_m'], r8['gridding_rmse_m']))} m to it.")
-        w("")
-    worse = all(at(rows[p], lab, 0.8)["paper_rmse_m"] > max(at(rows[p], x, 0.8)["paper_rmse_m"] for x in natural)
-                for p in PROFILES for lab in artificial)
-    floor_first = all(at(rows[p], lab, 0.8)["gridding_rmse_m"]
-                      > added(at(rows[p], lab, 0.8)["paper_rmse_m"], at(rows[p], lab, 0.8)["gridding_rmse_m"])
-                      for p in PROFILES for lab in artificial)
-    w("The paper expects the method to fare worse on built-up areas. "
-      + ("It does: the RMSE is above every natural terrain's. " if worse else
-         "On our data it is not worse than every natural terrain at `f_c` = 0.8. ")
-      + ("Most of the error is there before any frequency is removed (the floor is larger than what "
-         "the low-pass adds): " if floor_first else "")
-      + "a DEM keeps one height per cell, so roofs, walls and tree crowns over the ground in the same "
-      "cell are averaged into one height. Use ground points only (LAS class 2) to map the terrain "
-      "under the buildings.\n")
-
-    w("## Fig. 6: original and rebuilt maps side by side\n")
-    w("Each picture shows, from left to right, the original cloud gridded at the map's cell size and the "
-      "maps rebuilt at `f_c` = 0.8 and 0.95. The first row is the whole map, hillshaded and coloured by "
-      "height. The second row is a close-up of the red box, which is placed where the error at 0.95 is "
-      "largest. The third row is the error of each rebuilt DEM against the original one.\n")
-    for (label, profile), path in pictures.items():
-        w(f"**{label}, {profile} profile**\n\n![{label} {profile}](figures/{path.name})\n")
-
-    summary_at = len(out)
-    w("## Summary: the paper's claims against our measurements\n")
-    c2 = {p: claim_rough_above_flat(rows[p], flat, rough) for p in PROFILES}
-    c2_control = {p: claim_rough_above_flat(control[p], flat, rough) for p in PROFILES}
-    c3 = {p: claim_sharp_rise(rows[p], [c.label for c in cases]) for p in PROFILES}
-
-    def claim1_cell(profile: str) -> str:
-        failing = c1[profile]["failing"]
-        return "holds" if not failing else f"holds only below `f_c` = {min(failing):g}"
-
-    def claim2_cell(profile: str) -> str:
-        own, same = c2[profile]["count"], c2_control[profile]["count"]
-        return (f"{'holds' if own == len(CUTOFFS) else 'partly'} ({own}/{len(CUTOFFS)} cutoffs; "
-                f"{same}/{len(CUTOFFS)} on equal {CONTROL_RESOLUTION:g} m cells)")
-
-    def claim3_cell(profile: str) -> str:
-        sharp = sum(v["ratio"] >= SHARP_FACTOR for v in c3[profile].values())
-        return f"{'holds' if sharp == len(c3[profile]) else 'partly'} ({sharp}/{len(c3[profile])} terrains)"
-
-    w(table(["claim", "paper profile", "compact profile", "why"], [
-        ["(1) bits per point fall with `f_c` the same way on every terrain", claim1_cell("paper"),
-         claim1_cell("compact"),
-         "With raw complex64 storage, size = coefficients inside the circle, a property of the grid's "
-         "shape only; the fixed mask and header spread the curves once the coefficients are few. With "
-         "entropy coding, size follows content: a terrain whose quantizer step is large saves little "
-         "from the cutoff."],
-        ["(2) RMSE higher on rough than on flat terrain at every `f_c`", claim2_cell("paper"), claim2_cell("compact"),
-         ("The rough maps were gridded on coarser cells, which raises the gridding floor, but the order "
-          "also holds for the error added above the floor and on equal cells, so it is not the cell "
-          "size or the floor alone."
-          if all(c2_control[p]["count"] == len(CUTOFFS) and all(n == m for n, m in c2[p]["added_pairs"].values())
-                 for p in PROFILES) else
-          "The order depends on the cell size or on the gridding floor: see the error added above the floor "
-          "and the control on equal cells.")],
-        [f"(3) RMSE rises sharply past `f_c` = {KNEE:g}", claim3_cell("paper"), claim3_cell("compact"),
-         "The shortest wavelength kept grows like `1/(1 - f_c)`, so equal steps of `f_c` near 1 remove ever "
-         "wider bands, on every terrain. The paper's periodic DFT also has an earlier knee, where the "
-         f"circle first cuts an axis of the spectrum ({fmt(axis_cut_cutoff((1, 1)), 2)} on a square grid)."],
-    ]) + "\n")
-    w("Two further findings bear on how to read the paper's numbers:\n")
-    pairs_d1 = [(p, c.label) for p in PROFILES for c in scattered]
-    slower = sum(d1_growth(rows[p], lab) < rmse_growth(rows[p], lab) for p, lab in pairs_d1)
-    if scattered:
-        w(f"- Point-to-point metrics (D1, Chamfer, the 3D version of the paper's RMSE) are dominated by the "
-          f"horizontal distance from a point to its cell centre ({fmt(EVEN_SPREAD_OFFSET, 2)} cell sizes RMS "
-          f"for evenly spread points). On the clouds with points spread inside their cells, D1 grows less "
-          f"than the paper's RMSE from `f_c` = 0 to {SHOWN[2]:g} in {slower} of {len(pairs_d1)} terrain and "
-          "profile pairs (table under *What was run*). For a DEM codec, quote vertical errors.")
-    w("- Much of the error on built-up terrain is in the DEM before any frequency is removed: one "
-      "height per cell cannot hold a roof and the ground beside it. The cutoff is not the main source "
-      "of that error.\n" if floor_first else
-      "- On built-up terrain the low-pass, not the DEM, causes most of the error.\n")
-
-    # The summary is computed last but read first: move it up, after the introduction.
-    summary = out[summary_at:]
-    del out[summary_at:]
-    out[intro_end:intro_end] = summary
-    w("## Timings\n")
-    w(f"Wall time of each {len(CUTOFFS)}-cutoff sweep in this run, including reading the file, gridding, "
-      f"encoding, decoding and every metric (seconds, {os.cpu_count()} cores; the 1-minute load "
-      f"average was {load_start:.1f} when the run began and {load_average():.1f} at its end, so other "
-      "work shared the cores whenever it is above the core count):\n")
-    w(table(["terrain", "points"] + list(PROFILES),
-            [[c.label, f"{int(first[c.label]['points_original']):,}"] + [f"{wall[(p, c.label)]:.1f}" for p in PROFILES]
-             for c in cases]) + "\n")
-    for profile in PROFILES:
-        fr = [r for r in rows[profile] if r["terrain"] == field]
-        n = len(fr)
-        w(f"- {field}, {profile}: per cutoff on average {sum(r['encode_s'] for r in fr) / n:.2f} s encoding, "
-          f"{sum(r['decode_s'] for r in fr) / n:.2f} s decoding, {sum(r['metrics_s'] for r in fr) / n:.2f} s "
-          f"for all metrics (two k-d tree queries over {int(fr[0]['points_original']):,} and "
-          f"{int(fr[0]['points_rebuilt']):,} points); gridding once: {fr[0]['grid_s']:.2f} s.")
-    w("")
-    return "\n".join(out)
+    """docs/reproduction.md: the template filled from this run's measurements."""
+    run = Run(cases, rows, wall, control, pictures, started, load_start, version)
+    values = settings_values()
+    for section in SECTIONS:
+        more = section(run)
+        if values.keys() & more.keys():
+            raise KeyError(f"{section.__name__} fills {', '.join(sorted(values.keys() & more.keys()))} again")
+        values.update(more)
+    return fill(TEMPLATE.read_text(encoding="utf-8"), values)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
