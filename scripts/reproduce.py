@@ -29,15 +29,16 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from scipy.stats import spearmanr
+
+import dftpcc
+from dftpcc import spectrum
+from dftpcc.encoder import QUANT_FLOOR_FRACTION
+from dftpcc.experiments.compare import compare_file
+from dftpcc.experiments.figures import plot_sweep
+from dftpcc.experiments.sweep import DEFAULT_CUTOFFS, Terrain, sweep, write_csv
+
 REPO = Path(__file__).resolve().parents[1]
-
-import dftpcc  # noqa: E402
-from scipy.stats import spearmanr  # noqa: E402
-
-from dftpcc import spectrum  # noqa: E402
-from dftpcc.codec import QUANT_FLOOR_FRACTION  # noqa: E402
-from dftpcc.figures import plot_sweep  # noqa: E402
-from dftpcc.sweep import DEFAULT_CUTOFFS, Terrain, compare_file, sweep, write_csv  # noqa: E402
 
 COMMAND = "python scripts/reproduce.py"
 DATA = REPO.parent / "shared" / "data"
@@ -102,6 +103,8 @@ def fmt(value: float, digits: int = 3) -> str:
         return "n/a"
     if value == 0:
         return "0"
+    if math.isinf(value):
+        return "∞" if value > 0 else "-∞"
     magnitude = math.floor(math.log10(abs(value)))
     if -4 <= magnitude < 6:
         decimals = max(0, digits - 1 - magnitude)
@@ -671,7 +674,7 @@ def artificial_worse_sentence(worse: bool) -> str:
 
 def floor_first_sentence(floor_first: bool) -> str:
     return ("Most of the error is there before any frequency is removed (the floor is larger than what "
-            "the low-pass adds): " if floor_first else "")
+            "the low-pass adds): a DEM keeps" if floor_first else "A DEM keeps")
 
 
 def artificial_values(run: Run) -> dict[str, str]:
