@@ -104,6 +104,36 @@ def test_cutoff_given_with_a_target_fixes_the_cutoff(field_ground):
     assert m.header.stats["dem_rmse_m"] <= 0.03
 
 
+def test_a_fixed_cutoff_under_a_target_searches_the_step_only(tmp_path):
+    # A newcomer's report: --cutoff 0.5 with --target-rmse wrote 566,822 B at a step of 0.000 mm,
+    # where rate control choosing the same cutoff 0.5 wrote 21,630 B: the step search ignored
+    # the energy the low-pass drops when only the kept circle was sorted.
+    from dftpcc.cli import main
+
+    src = data_file("pointclouds/field_gentle_ign.laz")
+    chosen, fixed = tmp_path / "chosen.dftpc", tmp_path / "fixed.dftpc"
+    assert main(["compress", str(src), str(chosen), "--classes", "2", "-r", "0.5", "--target-rmse", "0.02", "-q"]) == 0
+    cutoff = dftpcc.open(chosen).params.cutoff
+    assert main(["compress", str(src), str(fixed), "--classes", "2", "-r", "0.5", "--target-rmse", "0.02",
+                 "--cutoff", str(cutoff), "-q"]) == 0
+    a, b = dftpcc.open(chosen), dftpcc.open(fixed)
+    assert b.params.cutoff == cutoff
+    assert b.header.stats["dem_rmse_m"] <= 0.02
+    assert b.size <= 1.02 * a.size  # the same search at the same cutoff (measured: equal)
+
+
+def test_a_target_out_of_reach_at_a_fixed_cutoff_says_what_to_change(tmp_path, capsys):
+    from dftpcc.cli import main
+
+    src = data_file("pointclouds/field_gentle_ign.laz")
+    code = main(["compress", str(src), str(tmp_path / "x.dftpc"), "--classes", "2", "-r", "0.5",
+                 "--target-rmse", "0.02", "--cutoff", "0.8", "-q"])
+    err = capsys.readouterr().err
+    assert code == 3 and not (tmp_path / "x.dftpc").exists()
+    assert "cannot be reached at cutoff 0.8: the low-pass alone leaves 0.024 m" in err
+    assert "lower the cutoff" in err and len(err.strip().splitlines()) == 1
+
+
 def test_unreachable_targets_fail_clearly(small_terrain):
     with pytest.raises(dftpcc.InvalidInputError, match="cannot be reached"):
         dftpcc.compress(small_terrain, resolution=0.5, target_bpp=0.0001)

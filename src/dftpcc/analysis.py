@@ -72,7 +72,18 @@ class Analysis:
         self.parseval = spectrum.mse_per_squared_error(self.lay)
 
     def _sorted_transform(self, filled: np.ndarray) -> np.ndarray:
-        return spectrum.forward(filled, self.lay).ravel()[self.order]
+        """The kept coefficients of ``filled``, sorted; also sets :attr:`outside_energy`."""
+        full = spectrum.forward(filled, self.lay).ravel()
+        #: Squared magnitude of the coefficients outside the sorted circle (0 when searching):
+        #: what any trial loses to the low-pass, for :meth:`proxy_rmse`.
+        self.outside_energy = 0.0
+        if self.order.size < full.size:
+            outside = np.ones(full.size, dtype=bool)
+            outside[self.order] = False
+            rest = full[outside]
+            rest = rest.view(np.float64) if np.iscomplexobj(rest) else rest
+            self.outside_energy = float(np.dot(rest, rest))
+        return full[self.order]
 
     @property
     def refillable(self) -> bool:
@@ -137,12 +148,16 @@ class Analysis:
         return Trial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))), float(np.abs(err).max()))
 
     def proxy_rmse(self, cutoff: float, step: float) -> float:
-        """Whole-grid RMSE predicted in the coefficient domain, without an inverse transform."""
+        """Whole-grid RMSE predicted in the coefficient domain, without an inverse transform.
+
+        Counts the quantization error of the kept coefficients and the energy
+        of every coefficient the low-pass drops, sorted or not.
+        """
         n = self.count(cutoff)
         reals = self.reals(n)
         dropped = self.reals(self.coefs.size)[reals.size:]
         err = reals - coding.dequantize(coding.quantize(reals, step, self.params.deadzone), step)
-        total = float(np.dot(err, err)) + float(np.dot(dropped, dropped))
+        total = float(np.dot(err, err)) + float(np.dot(dropped, dropped)) + self.outside_energy
         return math.sqrt(total * self.parseval)
 
     def encode(self, trial: Trial, *, exhaustive: bool = True) -> bytes:

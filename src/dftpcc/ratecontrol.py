@@ -107,8 +107,20 @@ def for_rmse(an: Analysis, params: Params) -> Choice:
         elif len(blob) > GIVE_UP_FACTOR * best.size:
             break  # past the best cutoff: sizes only grow from here
     if best is None:
-        raise InvalidInputError(f"target RMSE {params.target_rmse} m cannot be reached")
+        raise InvalidInputError(_rmse_out_of_reach(an, params))
     return best
+
+
+def _rmse_out_of_reach(an: Analysis, params: Params) -> str:
+    """Why no cutoff tried meets the RMSE target, and what to change."""
+    cutoff = min(cutoffs(params))
+    floor = an.trial(cutoff, an.tiny_step()).rmse
+    if params.cutoff is not None:
+        return (f"target RMSE {params.target_rmse:g} m cannot be reached at cutoff {cutoff:g}: the low-pass alone "
+                f"leaves {floor:.3g} m; lower the cutoff, leave it out so rate control chooses it, or ask for "
+                f"at least {floor:.3g} m")
+    return (f"target RMSE {params.target_rmse:g} m cannot be reached: even every coefficient at the finest step "
+            f"leaves {floor:.3g} m ({params.storage} storage); ask for at least that")
 
 
 def for_max_error(an: Analysis, params: Params) -> Choice:
@@ -153,7 +165,12 @@ def for_bpp(an: Analysis, params: Params, budget: int) -> Choice:
         if best is None or trial.rmse < best.trial.rmse:
             best = Choice(an, trial, blob)
     if best is None:
-        raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be reached with these settings")
+        where = f"at cutoff {params.cutoff:g}" if params.cutoff is not None else "at any cutoff"
+        hint = ("raise the target, or leave the cutoff out so rate control may choose a higher one"
+                if params.cutoff is not None else "raise the target")
+        raise InvalidInputError(f"target {params.target_bpp:g} bits/point cannot be reached {where}: the "
+                                f"coefficients need more than the {budget:,} bytes left after the mask and "
+                                f"header, even at the coarsest step; {hint}")
     return best
 
 
