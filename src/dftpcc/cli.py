@@ -21,6 +21,7 @@ from typing import Any, Iterator, Sequence
 
 from . import __version__
 from .params import CHOICES, PROFILES, check_cutoff
+from .units import length
 from .errors import (
     CorruptFileError,
     DftpccError,
@@ -107,26 +108,65 @@ def _positive_int(text: str) -> int:
 
 
 @contextmanager
-def _progress(enabled: bool, stages: Sequence[str]) -> Iterator:
+def _progress(enabled: bool, stages: Sequence[str], *, verbose: bool = False) -> Iterator:
+    """A progress bar over ``stages`` (on stderr, unless disabled); with ``verbose``, each
+    stage's wall time is printed on stderr when it ends."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(stages), disable=not enabled or None, leave=False, file=sys.stderr,
                bar_format="{desc:<10} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
-    seen: list[str] = []
+    seen: list[tuple[str, float]] = []
+
+    def report() -> None:
+        if verbose and seen:
+            name, start = seen[-1]
+            bar.write(f"dftpcc: {name}: {time.perf_counter() - start:.2f} s", file=sys.stderr)
 
     def on_stage(name: str) -> None:
         if seen:
             bar.update(1)
-        seen.append(name)
+            report()
+        seen.append((name, time.perf_counter()))
         bar.set_description_str(name)
 
     try:
         yield on_stage
+        report()
     finally:
         bar.close()
 
 
 COMPRESS_STAGES = ("read", "grid", "spectrum", "encode", "container", "write")
+
+
+def _say(args: argparse.Namespace, *lines: str) -> None:
+    """Print unless ``--quiet``."""
+    if not args.quiet:
+        for line in lines:
+            print(line)
+
+
+def _errors_text(stats: dict[str, Any], unit: str) -> str:
+    """The errors a file promises, lengths scaled to their size."""
+    text = (f"DEM RMSE {length(stats.get('dem_rmse_m'), unit)}, max {length(stats.get('dem_max_error_m'), unit)}")
+    if "vertical_rmse_m" in stats:
+        text += (f"; points: vertical RMSE {length(stats['vertical_rmse_m'], unit)} "
+                 f"(gridding floor {length(stats.get('gridding_rmse_m'), unit)})")
+    return text
+
+
+def _choice_text(p: dict[str, Any], unit: str) -> str:
+    """Which cutoff and step the file uses, and who chose them."""
+    quantized = p["storage"] == "quantized"
+    step = f", step {length(p['step'], unit)}" if quantized else ""
+    target = _target_text(p, unit)
+    if target:
+        chosen = ("step" if p["cutoff_given"] else "cutoff and step" if quantized else "cutoff")
+        return f"cutoff {p['cutoff']:g}{step} ({chosen} chosen by rate control for {target})"
+    how = ["cutoff given" if p["cutoff_given"] else "default cutoff"]
+    if quantized:
+        how.append("step given" if p["step_given"] else "automatic step")
+    return f"cutoff {p['cutoff']:g}{step} ({', '.join(how)})"
 
 
 def cmd_compress(args: argparse.Namespace) -> int:
@@ -137,21 +177,22 @@ def cmd_compress(args: argparse.Namespace) -> int:
                    target_rmse=args.target_rmse, target_max_error=args.target_max_error,
                    target_bpp=args.target_bpp)
     t0 = time.perf_counter()
-    with _progress(not args.quiet, COMPRESS_STAGES) as on_stage:
+    with _progress(not args.quiet, COMPRESS_STAGES, verbose=args.verbose) as on_stage:
         cmap = compress_file(args.input, args.output, resolution=args.resolution, cutoff=args.cutoff,
                              profile=args.profile, format=args.format, classes=args.classes,
                              drop_nonfinite=args.drop_nonfinite, chunk_points=args.chunk_points, topic=args.topic,
                              on_stage=on_stage, **options)
-    if not args.quiet:
-        info = cmap.info()
-        stats = info["stats"]
-        line = (f"{args.output}: {info['bytes']:,} bytes, {info['bits_per_point']:.3f} bits/point, "
-                f"{info['points_original']:,} points -> {info['points_rebuilt']:,} cells, "
-                f"DEM RMSE {stats['dem_rmse_m'] * 1000:.1f} mm")
-        if "vertical_rmse_m" in stats:
-            line += (f", vertical RMSE {stats['vertical_rmse_m'] * 1000:.1f} mm "
-                     f"(floor {stats.get('gridding_rmse_m', float('nan')) * 1000:.1f} mm)")
-        print(line + f" [{time.perf_counter() - t0:.2f} s]")
+    info = cmap.info()
+    if args.verbose:
+        print(f"dftpcc: parameters {json.dumps(info['params'], sort_keys=True)}", file=sys.stderr)
+    unit = info["units"]["horizontal"]
+    params = dict(info["params"], cutoff_given=args.cutoff is not None, step_given=args.step is not None)
+    _say(args,
+         f"{args.output}: {info['bytes']:,} bytes, {info['bits_per_point']:.4g} bits/point "
+         f"({info['points_original']:,} points -> {info['points_rebuilt']:,} cells of "
+         f"{length(info['grid']['resolution_m'], unit)}) [{time.perf_counter() - t0:.2f} s]",
+         f"  {_choice_text(params, info['units']['vertical'])}",
+         f"  promises {_errors_text(info['stats'], info['units']['vertical'])}")
     return 0
 
 
@@ -160,17 +201,31 @@ def cmd_decompress(args: argparse.Namespace) -> int:
 
     points = decompress_file(args.input, args.output, format=args.format, max_bytes=args.max_bytes,
                              cutoff=args.cutoff, max_cells=args.max_cells)
-    if not args.quiet:
-        print(f"{args.output}: {points.shape[0]:,} points")
+    if str(args.output).lower().endswith((".tif", ".tiff")):
+        from .mapfile import open as open_map
+
+        with open_map(args.input, max_cells=args.max_cells, max_bytes=args.max_bytes) as cmap:
+            g = cmap.grid
+        _say(args, f"{args.output}: a {g.rows:,} x {g.cols:,} raster, {points.shape[0]:,} valid pixels")
+    else:
+        _say(args, f"{args.output}: {points.shape[0]:,} points")
     return 0
 
 
-def _target_text(p: dict) -> str:
-    for key, text in (("target_rmse", "DEM RMSE <= {} m"), ("target_max_error", "max error <= {} m"),
-                      ("target_bpp", "<= {} bits/point")):
-        if p.get(key, 0) > 0:
-            return text.format(p[key]) + " (cutoff and step chosen by rate control)"
-    return "none (cutoff and step as given)"
+def _target_text(p: dict, unit: str = "m") -> str:
+    """The rate-control target of parameters ``p``, or '' when there is none."""
+    if p.get("target_rmse", 0) > 0:
+        return f"DEM RMSE <= {length(p['target_rmse'], unit)}"
+    if p.get("target_max_error", 0) > 0:
+        return f"max error <= {length(p['target_max_error'], unit)}"
+    if p.get("target_bpp", 0) > 0:
+        return f"<= {p['target_bpp']:g} bits/point"
+    return ""
+
+
+def _coordinate(value: float, unit: str) -> str:
+    """A coordinate to about a millimetre (a millionth of a degree on a geographic grid)."""
+    return f"{value:.6f}°" if unit == "°" else f"{value:,.3f} {unit}"
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -178,29 +233,36 @@ def cmd_info(args: argparse.Namespace) -> int:
 
     with open_map(args.input, max_cells=args.max_cells) as cmap:
         info = cmap.info()
+    if args.quiet:
+        return 0  # the header was read and checked: the exit status says whether it is valid
     if args.json:
         print(json.dumps(info, indent=2, sort_keys=True))
         return 0
-    g, p, s = info["grid"], info["params"], info["stats"]
+    g, p, s, u = info["grid"], info["params"], info["stats"], info["units"]
+    h, v = u["horizontal"], u["vertical"]
+    cells = f"{length(g['resolution_m'], h)}"
+    if g.get("resolution_y_m"):
+        cells = f"{length(g['resolution_m'], h)} x {length(g['resolution_y_m'], h)}"
+    if u["geographic"]:
+        cells += " of longitude x latitude"
+    target = _target_text(p, v)
     rows = [
         ("file", f"{info['file']} ({info['bytes']:,} bytes, format {info['format_version']})"),
         ("points", f"{info['points_original']:,} original, {info['points_rebuilt']:,} rebuilt"),
-        ("bits/point", f"{info['bits_per_point']:.4f}"),
-        ("grid", f"{g['rows']} x {g['cols']} cells of {g['resolution_m']} m, angle {g['angle_rad']:.4f} rad"),
-        ("origin", f"x {g['origin'][0]:.3f}, y {g['origin'][1]:.3f}, z0 {g['z0_m']:.3f}"),
+        ("bits/point", f"{info['bits_per_point']:.4g}"),
+        ("grid", f"{g['rows']:,} x {g['cols']:,} cells of {cells}, angle {g['angle_rad']:.4g} rad"),
+        ("origin", f"x {_coordinate(g['origin'][0], h)}, y {_coordinate(g['origin'][1], h)}; "
+                   f"heights about z0 {g['z0_m']:,.3f} {v}"),
         ("profile", f"{p['profile']} (transform {p['transform']}, storage {p['storage']}, "
                     f"detrend {p['detrend']}, fill {p['fill']})"),
-        ("cutoff", f"{p['cutoff']}" + (f", step {p['step'] * 1000:.3f} mm" if p["storage"] == "quantized" else "")),
-        ("target", _target_text(p)),
-        ("DEM error", f"RMSE {s.get('dem_rmse_m', float('nan')) * 1000:.2f} mm, "
-                      f"max {s.get('dem_max_error_m', float('nan')) * 1000:.2f} mm"),
-        ("sections", f"mask {s.get('mask_bytes')} B, coefficients {s.get('coef_bytes')} B ({s.get('coef_count')} values)"
-                     + (f", residual {s['residual_bytes']} B" if s.get("residual_bytes") else "")),
-        ("CRS", (info["crs"] or "none")[:70]),
+        ("cutoff", f"{p['cutoff']:g}" + (f", step {length(p['step'], v)}" if p["storage"] == "quantized" else "")),
+        ("target", f"{target} (cutoff and step chosen by rate control)" if target else "none (cutoff and step as given)"),
+        ("errors", _errors_text(s, v)),
+        ("sections", f"mask {s.get('mask_bytes'):,} B, coefficients {s.get('coef_bytes'):,} B "
+                     f"({s.get('coef_count'):,} values)"
+                     + (f", residual {s['residual_bytes']:,} B" if s.get("residual_bytes") else "")),
+        ("CRS", u["crs"] or "none"),
     ]
-    if "vertical_rmse_m" in s:
-        rows.insert(8, ("point error", f"vertical RMSE {s['vertical_rmse_m'] * 1000:.2f} mm, "
-                                       f"gridding floor {s.get('gridding_rmse_m', float('nan')) * 1000:.2f} mm"))
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")
@@ -210,7 +272,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from .experiments.demo import run_demo
 
-    run_demo(n_points=args.points, resolution=args.resolution, out=args.out, seed=args.seed)
+    run_demo(n_points=args.points, resolution=args.resolution, out=args.out, seed=args.seed,
+             show=(lambda _line: None) if args.quiet else print)
     return 0
 
 
@@ -236,7 +299,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from .experiments.evaluate import evaluate_files
 
     result = evaluate_files(args.original, args.candidate, classes=args.classes, max_cells=args.max_cells)
-    print(json.dumps(jsonable(result), indent=2, sort_keys=True) if args.json else format_metrics(result))
+    _say(args, json.dumps(jsonable(result), indent=2, sort_keys=True) if args.json else format_metrics(result))
     return 0
 
 
@@ -257,7 +320,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
     path = compare_file(args.original, out=args.out, cutoffs=args.cutoffs, resolution=args.resolution,
                         profile=args.profile, classes=args.classes)
-    print(path)
+    _say(args, str(path))
     return 0
 
 
@@ -367,7 +430,19 @@ def jsonable(result: Row) -> Row:
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.items()}
 
 
+def _common_flags() -> argparse.ArgumentParser:
+    """Flags every command takes."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--quiet", "-q", action="store_true", help="print nothing but errors (no progress or summary)")
+    common.add_argument("--verbose", "-v", action="store_true",
+                        help="also print the parameters used and the time of each stage on stderr")
+    common.add_argument("--no-warnings", action="store_true",
+                        help="do not print warnings (a result that is valid but may not be what you expect)")
+    return common
+
+
 def build_parser() -> argparse.ArgumentParser:
+    common = _common_flags()
     parser = _Parser(
         prog="dftpcc",
         description="Compress terrain point cloud maps by low-pass filtering the DFT of their DEM.")
@@ -375,10 +450,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
-    p = sub.add_parser("compress", help="point cloud -> .dftpc", description=(
+    p = sub.add_parser("compress", parents=[common], help="point cloud -> .dftpc", description=(
         "Grid a point cloud into a DEM, low-pass its spectrum and write a .dftpc file. "
         "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .tif, and ROS bags (.bag, or a ROS 2 bag folder)"))
-    p.add_argument("input")
+    p.add_argument("input", help="the point cloud or GeoTIFF DEM to compress")
     p.add_argument("output", help="the .dftpc file to write")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto",
                    help="DEM cell size in metres, or 'auto' (default: about 4 points per cell; "
@@ -412,49 +487,53 @@ def build_parser() -> argparse.ArgumentParser:
                    help="read LAS/LAZ/PLY/NPY N points at a time, so memory holds the grid and one chunk "
                         "(automatic when the cloud would not fit in half the available memory)")
     p.add_argument("--format", help="input format if the extension does not tell")
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     p.set_defaults(func=cmd_compress)
 
-    p = sub.add_parser("decompress", help=".dftpc -> point cloud or GeoTIFF DEM", description=(
+    p = sub.add_parser("decompress", parents=[common], help=".dftpc -> point cloud or GeoTIFF DEM", description=(
         "Rebuild the map. Output format from the extension: .las .laz .ply .pcd .xyz .txt .csv .npy, "
         "or .tif for the rebuilt DEM."))
-    p.add_argument("input")
-    p.add_argument("output")
+    p.add_argument("input", help="the .dftpc file to decode")
+    p.add_argument("output", help="the point cloud or GeoTIFF (.tif) file to write")
     p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
     p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",
                    help="decode a trusted file whose grid is larger than a file of its size may ask for")
     p.add_argument("--format", help="output format if the extension does not tell")
-    p.add_argument("--quiet", "-q", action="store_true")
     p.set_defaults(func=cmd_decompress)
 
-    p = sub.add_parser("info", help="header, parameters and sizes, without decoding")
-    p.add_argument("input")
+    p = sub.add_parser("info", parents=[common], help="header, parameters and sizes, without decoding",
+                       description="Show how a .dftpc file was made, what it holds and the errors it promises, "
+                                   "without decoding its map.")
+    p.add_argument("input", help="the .dftpc file")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",
                    help="read a trusted file whose grid is larger than a file of its size may ask for")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("demo", help="run the whole pipeline on a built-in terrain and print a table")
+    p = sub.add_parser("demo", parents=[common], help="run the whole pipeline on a built-in terrain and print a table",
+                       description="Generate a synthetic regolith plain, compress it at several cutoffs and "
+                                   "rate-control targets, decode it and print sizes and errors.")
     p.add_argument("--points", type=_positive_int, default=300_000, help="points to generate (default 300000)")
     p.add_argument("--resolution", type=_positive, default=0.25, help="cell size in metres (default 0.25)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="folder to write the demo cloud and its .dftpc files to")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("evaluate", help="every error metric between an original and a compressed or rebuilt map",
+    p = sub.add_parser("evaluate", parents=[common], help="every error metric between an original and a compressed or rebuilt map",
                        description="Compare ORIGINAL with a .dftpc file (decoded here; bits per point from its "
                                    "size) or any rebuilt point cloud file. Distances in metres.")
-    p.add_argument("original")
-    p.add_argument("candidate", metavar="COMPRESSED_OR_REBUILT")
+    p.add_argument("original", help="the point cloud that was compressed")
+    p.add_argument("candidate", metavar="COMPRESSED_OR_REBUILT", help="a .dftpc file, or a rebuilt point cloud")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes of ORIGINAL (as compressed)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",
                    help="read a trusted file whose grid is larger than a file of its size may ask for")
     p.set_defaults(func=cmd_evaluate)
 
-    p = sub.add_parser("sweep", help="compress at many cutoffs: sweep.csv and sweep.png (the paper's Fig. 5)")
-    p.add_argument("input", nargs="+")
+    p = sub.add_parser("sweep", parents=[common], help="compress at many cutoffs: sweep.csv and sweep.png (the paper's Fig. 5)",
+                       description="Compress each input at every cutoff, decode, measure, and write sweep.csv "
+                                   "and sweep.png (bits per point and RMSE against the cutoff).")
+    p.add_argument("input", nargs="+", help="point clouds or GeoTIFF DEMs")
     p.add_argument("--cutoffs", type=_cutoffs, default="0,0.05,...,0.95",
                    help="comma-separated cutoff ratios; '0,0.1,...,0.9' continues a progression "
                         "(default 0,0.05,...,0.95)")
@@ -463,11 +542,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ inputs: keep only these classes, e.g. 2 for ground")
     p.add_argument("--out", "-o", required=True, help="folder for sweep.csv and sweep.png")
-    p.add_argument("--quiet", "-q", action="store_true")
     p.set_defaults(func=cmd_sweep)
 
-    p = sub.add_parser("compare", help="original and rebuilt maps side by side (the paper's Fig. 6)")
-    p.add_argument("original")
+    p = sub.add_parser("compare", parents=[common], help="original and rebuilt maps side by side (the paper's Fig. 6)",
+                       description="Draw the original map and the maps rebuilt at each cutoff, with their errors, "
+                                   "into one PNG.")
+    p.add_argument("original", help="a point cloud or GeoTIFF DEM")
     p.add_argument("--cutoffs", type=_cutoffs, default="0.8,0.95", help="cutoff ratios to show (default 0.8,0.95)")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto", help="DEM cell size in metres, or 'auto'")
     p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
@@ -507,6 +587,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     with warnings.catch_warnings(), _stop_signals_raise():
         warnings.showwarning = _show_warning
+        if args.no_warnings:
+            warnings.simplefilter("ignore")
         try:
             return args.func(args)
         except KeyboardInterrupt:

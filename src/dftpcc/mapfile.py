@@ -7,6 +7,7 @@ and checked at once, the map decoded (:mod:`dftpcc.decoder`) and rebuilt
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -20,6 +21,7 @@ from .dem import DEM, Grid
 from .errors import InvalidInputError
 from .params import Params
 from .rebuild import dem_to_points
+from .units import units_of
 
 __all__ = ["CompressedMap", "open", "is_dftpc"]
 
@@ -94,7 +96,10 @@ class CompressedMap:
             "points_rebuilt": h.cell_count,
             "bits_per_point": 8.0 * self.size / h.point_count if h.point_count else None,
             "grid": {"rows": g.rows, "cols": g.cols, "resolution_m": g.resolution,
-                     "origin": [g.x0, g.y0], "z0_m": g.z0, "angle_rad": g.angle},
+                     "resolution_y_m": g.resolution_y, "origin": [g.x0, g.y0], "z0_m": g.z0,
+                     "angle_rad": g.angle},
+            # The "_m" fields are in these units: metres unless the CRS says otherwise.
+            "units": dataclasses.asdict(units_of(h.crs)),
             "params": json.loads(h.params.to_json()),
             "plane": list(h.plane),
             "crs": (h.crs.get("wkt") or ("LAS GeoKeys" if h.crs.get("las_vlrs") else None)),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -21,18 +22,19 @@ DEMO_TARGET_FLOORS = 1.0
 DEMO_PREFIXES = (0.1, 0.25, 0.5, 1.0)
 
 
-def run_demo(*, n_points: int = 300_000, resolution: float = 0.25, out: str | None = None, seed: int = 0) -> list[dict]:
+def run_demo(*, n_points: int = 300_000, resolution: float = 0.25, out: str | None = None, seed: int = 0,
+             show: Callable[[str], None] = print) -> list[dict]:
     """Compress the built-in regolith plain with both profiles at several cutoffs; print a table.
 
     Returns the rows printed (one dict per profile and cutoff).
     """
     points = regolith_plain(n_points, seed=seed)
-    print(f"built-in terrain: regolith plain, {points.shape[0]:,} points, {resolution} m cells "
+    show(f"built-in terrain: regolith plain, {points.shape[0]:,} points, {resolution} m cells "
           f"(seed {seed})")
     header = (f"{'profile':<8} {'f_c':>5} {'bytes':>10} {'bits/pt':>8} {'vert RMSE mm':>12} "
               f"{'x floor':>7} {'enc ms':>7} {'dec ms':>7}")
-    print(header)
-    print("-" * len(header))
+    show(header)
+    show("-" * len(header))
     rows = []
     folder = Path(out) if out else None
     if folder:
@@ -50,12 +52,12 @@ def run_demo(*, n_points: int = 300_000, resolution: float = 0.25, out: str | No
                        vertical_rmse_m=stats["vertical_rmse_m"], floor_m=stats["gridding_rmse_m"],
                        encode_s=t1 - t0, decode_s=t2 - t1)
             rows.append(row)
-            print(f"{profile:<8} {cutoff:>5.2f} {len(data):>10,} {row['bpp']:>8.3f} "
+            show(f"{profile:<8} {cutoff:>5.2f} {len(data):>10,} {row['bpp']:>8.3f} "
                   f"{row['vertical_rmse_m'] * 1000:>12.1f} {row['vertical_rmse_m'] / row['floor_m']:>7.2f} "
                   f"{row['encode_s'] * 1000:>7.0f} {row['decode_s'] * 1000:>7.0f}")
             if folder:
                 (folder / f"demo_{profile}_fc{cutoff:.2f}.dftpc").write_bytes(data)
-    print("vert RMSE: each point against its cell's rebuilt height; floor: against its cell's mean "
+    show("vert RMSE: each point against its cell's rebuilt height; floor: against its cell's mean "
           "(the best any DEM at this resolution can do).")
 
     floor = rows[0]["floor_m"]
@@ -63,18 +65,18 @@ def run_demo(*, n_points: int = 300_000, resolution: float = 0.25, out: str | No
     t0 = time.perf_counter()
     data = compress(points, resolution=resolution, target_rmse=target)
     m = open_map(data)
-    print(f"\nrate control, --target-rmse {target * 1000:.1f} mm: chose f_c {m.params.cutoff}, step "
+    show(f"\nrate control, --target-rmse {target * 1000:.1f} mm: chose f_c {m.params.cutoff}, step "
           f"{m.params.step * 1000:.1f} mm -> {len(data):,} bytes ({8 * len(data) / points.shape[0]:.3f} bits/pt), "
           f"DEM RMSE {m.header.stats['dem_rmse_m'] * 1000:.1f} mm [{time.perf_counter() - t0:.1f} s]")
     full = open_map(data).read_dem()
     coef_bytes = m.header.stats["coef_bytes"]
     head = len(data) - coef_bytes  # everything before the coefficients (mask included) must arrive
-    print("progressive decoding of that file: header and mask, then a part of the coefficients, as if "
+    show("progressive decoding of that file: header and mask, then a part of the coefficients, as if "
           "the rest had not arrived:")
     for fraction in DEMO_PREFIXES:
         n = head + int(coef_bytes * fraction)
         dem = open_map(data, max_bytes=n).read_dem()
         err = (dem.heights - full.heights)[full.mask]
-        print(f"  first {n:>7,} bytes ({fraction:4.0%} of the coefficients): RMSE "
+        show(f"  first {n:>7,} bytes ({fraction:4.0%} of the coefficients): RMSE "
               f"{np.sqrt(np.mean(err * err)) * 1000:7.1f} mm from the full decode")
     return rows
