@@ -18,6 +18,7 @@ __all__ = [
     "DftpccWarning",
     "MultiHeightWarning",
     "LargeGridWarning",
+    "InputMismatchWarning",
 ]
 
 
@@ -64,3 +65,7 @@ class MultiHeightWarning(DftpccWarning):
 
 class LargeGridWarning(DftpccWarning):
     """A map was written that readers refuse by default (see :class:`ResourceLimitError`)."""
+
+
+class InputMismatchWarning(DftpccWarning):
+    """A map is measured against other points than it was made from (a different point count)."""

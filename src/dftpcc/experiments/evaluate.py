@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Any, Sequence
 
 from .. import metrics
+from ..errors import InputMismatchWarning, InvalidInputError
 from ..io import PointCloud, format_of, read
 from ..mapfile import is_dftpc
 from ..mapfile import open as open_map
@@ -44,13 +46,24 @@ def evaluate_files(original: str | os.PathLike[str], candidate: str | os.PathLik
         ``candidate`` and, for a ``.dftpc``, ``points_in_header``: the point
         count the file was made from.
     """
+    if is_dftpc(original) and not is_dftpc(candidate):
+        raise InvalidInputError(f"{original} is a compressed map and {candidate} is not: the original point cloud "
+                                f"comes first (dftpcc evaluate ORIGINAL COMPRESSED_OR_REBUILT); swap them")
+    if is_dftpc(original):
+        raise InvalidInputError(f"{original}: the original must be a point cloud, not a .dftpc file")
     ref = load_points(original, classes=classes).points
     extra: Row = {"original": str(original), "candidate": str(candidate)}
     if is_dftpc(candidate):
         with open_map(candidate, max_cells=max_cells) as cmap:
             rebuilt = cmap.read_points()
             size = cmap.size
-            extra["points_in_header"] = cmap.header.point_count
+            made_from = extra["points_in_header"] = cmap.header.point_count
+        if made_from != ref.shape[0]:
+            warnings.warn(
+                f"{candidate} was made from {made_from:,} points but {original} gives {ref.shape[0]:,}"
+                + (" with these classes" if classes else "") + ": the errors are measured against other points "
+                "than were compressed (give the --classes the map was compressed with)", InputMismatchWarning,
+                stacklevel=2)
         result = metrics.evaluate(ref, rebuilt, compressed_bytes=size)
     else:
         result = metrics.evaluate(ref, read(candidate).points)
