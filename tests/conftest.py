@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +13,18 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def data_file(name: str) -> Path:
-    """Path of a file in ../shared/data, skipping the test when it is absent."""
+    """Path of a file in ../shared/data.
+
+    When it is absent the test is skipped on a developer's machine, but fails
+    under CI (the ``CI`` environment variable set to anything non-empty): CI
+    has the data, so a missing file there is a broken checkout or a renamed
+    file, and silently skipping would hide every real-data test.
+    """
     path = DATA / name
     if not path.is_file():
+        if os.environ.get("CI"):
+            pytest.fail(f"real data {name} not found at {path} (CI is set, so real data is required)",
+                        pytrace=False)
         pytest.skip(f"real data {name} not found at {path}")
     return path
 

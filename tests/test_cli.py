@@ -26,13 +26,13 @@ def cloud_file(tmp_path, small_terrain):
     return path
 
 
-def test_compress_info_decompress(tmp_path, cloud_file, capsys):
+def test_compress_info_decompress(tmp_path, cloud_file, small_terrain, capsys):
     out = tmp_path / "t.dftpc"
     assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "-c", "0.8", "-q"]) == 0
     assert main(["info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["params"]["cutoff"] == 0.8 and info["params"]["profile"] == "compact"
-    assert info["points_original"] == 0 or info["points_original"] > 0
+    assert info["points_original"] == small_terrain.shape[0]
     assert main(["info", str(out)]) == 0
     assert "bits/point" in capsys.readouterr().out
     for ext in (".las", ".ply", ".npy", ".tif"):
@@ -56,11 +56,19 @@ def test_geotiff_in_and_out(tmp_path):
     assert main(["decompress", str(out), str(tmp_path / "gale.tif"), "-q"]) == 0
     import rasterio
 
+    stats = m.header.stats
     with rasterio.open(src) as a, rasterio.open(tmp_path / "gale.tif") as b:
         assert a.crs == b.crs
         assert a.transform.almost_equals(b.transform)
-        diff = b.read(1) - a.read(1)
-        assert np.sqrt(np.nanmean(diff**2)) < 0.5
+        original, back = a.read(1), b.read(1)
+    assert np.isfinite(original).all() and np.isfinite(back).all()  # no nodata pixel in this file
+    diff = back.astype(np.float64) - original
+    # The GeoTIFF holds the rebuilt heights as float32: at -4,470 m that rounds
+    # each by up to half a float32 spacing (0.24 mm), which adds in quadrature
+    # to the 4.4 mm the file states: +0.048 % measured, so 0.1 % allowed.
+    half_spacing = float(np.spacing(np.float32(np.abs(original).max()))) / 2
+    assert np.sqrt(np.mean(diff**2)) == pytest.approx(stats["dem_rmse_m"], rel=1e-3)
+    assert np.abs(diff).max() <= stats["dem_max_error_m"] + half_spacing
 
 
 def test_demo_runs(capsys):

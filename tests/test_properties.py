@@ -6,6 +6,8 @@
   significant digits the header keeps (so they stay upper bounds).
 * The same input and parameters give byte-identical files.
 * Any prefix of a file decodes progressively or fails with CorruptFileError.
+* A maximum-error target holds on every occupied cell, against heights
+  computed cell by cell with numpy; a size target is never exceeded.
 * Gridding keeps every point inside its grid and measures its spread exactly.
 
 Examples are small (at most ~50 x 50 cells) so the whole file runs in
@@ -19,7 +21,7 @@ import warnings
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, assume, event, given, settings
 from hypothesis import strategies as st
 
 import dftpcc
@@ -159,6 +161,87 @@ def test_rate_control_keeps_its_promise_and_the_consistent_fill_never_costs_more
     assert files["consistent"] <= files["smooth"], files
 
 
+def _cell_heights(points: np.ndarray, grid, aggregate: str) -> tuple[np.ndarray, np.ndarray]:
+    """Absolute height of each cell of ``grid`` from its points, and which cells have points.
+
+    An oracle independent of the library's gridding: plain numpy per cell,
+    through the public map's own grid (``flat_index``).
+    """
+    idx = grid.flat_index(points)
+    assert (idx >= 0).all()
+    order = np.argsort(idx, kind="stable")
+    cells, starts = np.unique(idx[order], return_index=True)
+    reduce = {"mean": np.mean, "median": np.median, "min": np.min, "max": np.max}[aggregate]
+    z = points[order, 2]
+    heights = np.zeros(grid.rows * grid.cols)
+    heights[cells] = [reduce(part) for part in np.split(z, starts[1:])]
+    mask = np.zeros(grid.rows * grid.cols, bool)
+    mask[cells] = True
+    return heights.reshape(grid.rows, grid.cols), mask.reshape(grid.rows, grid.cols)
+
+
+#: Round-off of the oracle's cell heights against the codec's (float64 means of
+#: heights up to ~4,000 m, taken relative to another origin): metres per metre
+#: of the largest absolute height.
+ORACLE_ROUND_OFF = 1e-12
+
+
+@SETTINGS
+@given(cases(), st.sampled_from([0.1, 0.3, 1.0, 3.0]), st.sampled_from(["exact", "footprint"]))
+def test_a_max_error_target_bounds_every_occupied_cell(case, factor, mask):
+    points, options = case
+    options = {k: v for k, v in options.items() if k not in ("cutoff", "step")}  # rate control chooses them
+    relief = float(np.ptp(points[:, 2]))
+    bound = factor * max(relief, 1e-3) / 20
+    data = _compress(points, dict(options, target_max_error=bound, mask=mask))
+    cmap = dftpcc.open(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rebuilt = cmap.read_dem()
+    heights, occupied = _cell_heights(points, rebuilt.grid, options["aggregate"])
+    # Footprint maps also rebuild enclosed empty cells; every occupied one is there.
+    assert (rebuilt.mask >= occupied).all()
+    if mask == "exact":
+        np.testing.assert_array_equal(rebuilt.mask, occupied)
+    err = (rebuilt.heights + rebuilt.grid.z0 - heights)[occupied]
+    slack = ORACLE_ROUND_OFF * (1.0 + float(np.abs(points[:, 2]).max()))
+    assert float(np.abs(err).max()) <= bound + slack, (float(np.abs(err).max()), bound)
+    assert cmap.header.stats["dem_max_error_m"] <= bound
+    assert cmap.params.target_max_error == bound
+
+
+#: The size search budgets this many bytes of header besides the mask before
+#: it has measured the real header (encoder.HEADER_ESTIMATE): more than a small
+#: map's whole file, so it refuses targets below it even when a file would fit.
+HEADER_FIRST_GUESS = 600
+
+
+@SETTINGS
+@given(cases(), st.floats(0.5, 3.0))
+def test_a_size_target_is_never_exceeded(case, factor):
+    points, options = case
+    options = {k: v for k, v in options.items() if k not in ("cutoff", "step")}
+    n = points.shape[0]
+    default = _compress(points, options)
+    # From half to three times what the default file plus the search's first
+    # guess of the header need: at factor >= 1 the default file itself fits.
+    target = factor * 8 * (len(default) + HEADER_FIRST_GUESS) / n
+    try:
+        data = _compress(points, dict(options, target_bpp=target))
+    except dftpcc.InvalidInputError as exc:
+        assert factor < 1.0, (factor, str(exc))
+        assert "cannot be" in str(exc), str(exc)
+        event("refused below the search's first header guess")
+        return
+    event("met")
+    assert 8 * len(data) <= target * n, (8 * len(data) / n, target)
+    cmap = dftpcc.open(data)
+    assert cmap.header.point_count == n and cmap.params.target_bpp == target
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert dftpcc.decompress(data).shape == (cmap.header.cell_count, 3)
+
+
 @SETTINGS
 @given(cases(), st.integers(1, 3000))
 def test_a_cloud_read_in_chunks_gives_the_dem_of_a_whole_read(tmp_path_factory, case, chunk):
@@ -189,6 +272,8 @@ def test_a_cloud_read_in_chunks_gives_the_dem_of_a_whole_read(tmp_path_factory, 
     np.testing.assert_allclose(chunked.heights + grid.z0, whole.heights + g.z0, rtol=0, atol=1e-9 * scale)
     assert chunked.gridding_rmse == pytest.approx(whole.gridding_rmse, rel=1e-6, abs=1e-9 * scale)
     assert chunked.spread.unrepresented_points == whole.spread.unrepresented_points
+    # Distances of points to their cell's height: as exact as the heights themselves.
+    assert chunked.spread.max_distance_m == pytest.approx(whole.spread.max_distance_m, rel=0, abs=1e-9 * scale)
     # And the file: the same cells, the same points.
     kept = {k: v for k, v in options.items() if k != "resolution"}
     with warnings.catch_warnings():

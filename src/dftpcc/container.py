@@ -439,7 +439,10 @@ def _check_geometry(geom: tuple, budget: int, file_size: int) -> None:
 
 
 def _check_params(params: Params, res: float) -> None:
-    if not math.isclose(params.resolution, res, rel_tol=1e-9):
+    # Params may leave these open for the encoder to choose ('auto', None); a file states them.
+    if params.cutoff is None:
+        raise CorruptFileError("parameter section states no cutoff")
+    if not _is_number(params.resolution) or not math.isclose(params.resolution, res, rel_tol=1e-9):
         raise CorruptFileError(f"parameter resolution {params.resolution!r} m disagrees with the grid's {res!r} m")
     if params.storage == "quantized" and not 0.0 < params.step <= MAX_COORDINATE_M:
         raise CorruptFileError(f"quantizer step {params.step!r} m is not in (0, {MAX_COORDINATE_M:g}]")

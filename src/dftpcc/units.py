@@ -62,7 +62,8 @@ def units_of(crs: dict[str, Any] | None) -> Units:
         label = f"{authority[0]}:{authority[1]}" if authority else _wkt_name(wkt)
         if parsed.is_geographic:
             return Units("°", "m", True, label)
-        symbol = _SYMBOLS.get(str(parsed.linear_units).lower(), str(parsed.linear_units))
+        unit = str(parsed.linear_units).lower()
+        symbol = "m" if unit in ("unknown", "") else _SYMBOLS.get(unit, unit)  # unnamed: metres, as without a CRS
         return Units(symbol, symbol, False, label)
     except Exception:  # noqa: BLE001 - an unparseable WKT is shown by name, lengths in metres
         return Units(crs=_wkt_name(wkt))

@@ -5,7 +5,9 @@ For every input the decoder must (docs/errors.md, "Fuzzing"):
 * raise nothing but :class:`dftpcc.DftpccError` subclasses (no IndexError,
   no struct.error, no OverflowError, no MemoryError ...);
 * decode to finite points when it does not raise;
-* finish within :data:`TIME_LIMIT_S`;
+* finish within :data:`TIME_LIMIT_S` (a campaign) or within a number of
+  Python events (the CI test, which must not depend on the machine's speed:
+  see tests/workbound.py);
 * allocate at most :data:`DECODE_BYTES_PER_CELL` per cell of the grid the
   header was validated to have, plus a few bytes per input byte.
 
@@ -56,21 +58,23 @@ if __name__ == "__main__" and "--atheris" in sys.argv:  # pragma: no cover - nee
 
 try:  # as part of the test package, or run as a script from this folder
     from . import craft
+    from ..workbound import WorkLimitExceeded, measure_work
     from .seeds import seed_files
 except ImportError:  # pragma: no cover - script mode
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]
     import craft  # type: ignore[no-redef]
     from seeds import seed_files  # type: ignore[no-redef]
+    from workbound import WorkLimitExceeded, measure_work  # type: ignore[no-redef]
 
 import dftpcc
-from dftpcc import container
+from dftpcc import container, limits
 
 #: No input may take longer to decode (seconds).
 TIME_LIMIT_S = 1.0
 #: An input still running after this many seconds is aborted as a hang.
 WATCHDOG_S = 10.0
 #: Allowed allocation: per cell of the validated grid ...
-DECODE_BYTES_PER_CELL = container.DECODE_BYTES_PER_CELL
+DECODE_BYTES_PER_CELL = limits.DECODE_BYTES_PER_CELL
 #: ... plus per byte of input (copies of the input and its sections) ...
 BYTES_PER_INPUT_BYTE = 16
 #: ... plus a fixed allowance for interpreter and library overhead.
@@ -92,11 +96,12 @@ class _Hang(Exception):
 
 @dataclass
 class Outcome:
-    kind: str  # "decoded", "refused" (a DftpccError), or a failure: "crash", "slow", "memory", "nonfinite"
+    kind: str  # "decoded", "refused" (a DftpccError), or a failure: "crash", "slow", "runaway", "memory", "nonfinite"
     detail: str = ""
     seconds: float = 0.0
     peak_bytes: int = 0
     allowed_bytes: int = 0
+    events: int = 0  # Python events of the decode, when counted
 
     @property
     def failed(self) -> bool:
@@ -123,19 +128,28 @@ def _on_alarm(_signum, _frame):
     raise _Hang()
 
 
-def check(data: bytes, *, trace_memory: bool = True, time_limit: float | None = TIME_LIMIT_S) -> Outcome:
+def check(data: bytes, *, trace_memory: bool = True, time_limit: float | None = TIME_LIMIT_S,
+          max_events: int | None = None, watchdog: float | None = WATCHDOG_S) -> Outcome:
     """Decode ``data`` and classify what happened (see the module docstring).
 
     The time is that of a plain decode; with ``trace_memory`` the input is
     decoded a second time under tracemalloc (which slows numpy-heavy code
-    several times over) to measure its peak allocation.
+    several times over) to measure its peak allocation. Without a
+    ``time_limit`` there is no plain decode: the traced one alone, which also
+    counts Python events when ``max_events`` is given and stops the decode as
+    "runaway" past it. ``watchdog=None`` sets no alarm (nothing timed at all).
     """
-    outcome, cells = _run(data, trace=False)
+    if time_limit is None and trace_memory:
+        outcome = Outcome("decoded")
+    else:
+        outcome, cells = _run(data, trace=False, max_events=max_events, watchdog=watchdog)
     if not outcome.failed and time_limit is not None and outcome.seconds > time_limit:
         outcome.kind, outcome.detail = "slow", f"{outcome.seconds:.2f} s"
     if trace_memory and outcome.kind in ("decoded", "refused"):
-        traced, cells = _run(data, trace=True)
-        outcome.peak_bytes = traced.peak_bytes
+        traced, cells = _run(data, trace=True, max_events=max_events, watchdog=watchdog)
+        if time_limit is None:
+            outcome.kind, outcome.detail, outcome.seconds = traced.kind, traced.detail, traced.seconds
+        outcome.peak_bytes, outcome.events = traced.peak_bytes, traced.events
         outcome.allowed_bytes = BYTES_PER_INPUT_BYTE * len(data) + SLACK_BYTES + DECODE_BYTES_PER_CELL * cells
         if traced.failed and traced.kind != "slow":  # tracing is slow: time comes from the plain run
             outcome.kind, outcome.detail = traced.kind, traced.detail
@@ -145,21 +159,31 @@ def check(data: bytes, *, trace_memory: bool = True, time_limit: float | None = 
     return outcome
 
 
-def _run(data: bytes, *, trace: bool) -> tuple[Outcome, int]:
+def _run(data: bytes, *, trace: bool, max_events: int | None = None,
+         watchdog: float | None = WATCHDOG_S) -> tuple[Outcome, int]:
     validated: list[int] = []
     if trace:
         tracemalloc.start()
         tracemalloc.reset_peak()
-    previous = signal.signal(signal.SIGALRM, _on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, WATCHDOG_S)
+    if watchdog is not None:
+        previous = signal.signal(signal.SIGALRM, _on_alarm)
+        signal.setitimer(signal.ITIMER_REAL, watchdog)
+    counter = measure_work(max_events, trace_memory=False) if trace and max_events is not None else None
+    work = counter.__enter__() if counter is not None else None
     t0 = time.perf_counter()
     try:
-        points = _decode(data, validated)
+        try:
+            points = _decode(data, validated)
+        finally:
+            if counter is not None:
+                counter.__exit__(None, None, None)
         outcome = Outcome("decoded")
         if not np.isfinite(points).all():
             outcome = Outcome("nonfinite", "decoded points are not finite")
+    except WorkLimitExceeded:
+        outcome = Outcome("runaway", f"more than {max_events:,} Python events")
     except _Hang:
-        outcome = Outcome("slow", f"still running after {WATCHDOG_S} s")
+        outcome = Outcome("slow", f"still running after {watchdog} s")
     except dftpcc.DftpccError as exc:
         outcome = Outcome("refused", f"{type(exc).__name__}: {exc}")
     except MemoryError:
@@ -167,9 +191,12 @@ def _run(data: bytes, *, trace: bool) -> tuple[Outcome, int]:
     except Exception as exc:  # noqa: BLE001 - exactly what the fuzzer looks for
         outcome = Outcome("crash", "".join(traceback.format_exception(exc)))
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
+        if watchdog is not None:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, previous)
     outcome.seconds = time.perf_counter() - t0
+    if work is not None:
+        outcome.events = work.events
     if trace:
         outcome.peak_bytes = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
@@ -365,6 +392,7 @@ class Campaign:
     total_seconds: float = 0.0
     max_peak_bytes: int = 0
     max_peak_fraction: float = 0.0
+    max_events: int = 0
     seconds: list[float] = field(default_factory=list)
 
     def add(self, data: bytes, outcome: Outcome, save_to: Path | None) -> None:
@@ -379,6 +407,7 @@ class Campaign:
         if not outcome.failed:
             self.max_passing_seconds = max(self.max_passing_seconds, outcome.seconds)
         self.max_peak_bytes = max(self.max_peak_bytes, outcome.peak_bytes)
+        self.max_events = max(self.max_events, outcome.events)
         if outcome.allowed_bytes:
             self.max_peak_fraction = max(self.max_peak_fraction, outcome.peak_bytes / outcome.allowed_bytes)
         if outcome.failed:
@@ -403,13 +432,18 @@ class Campaign:
             "slowest_input_prefix_hex": self.max_seconds_input,
             "peak_traced_bytes_max": self.max_peak_bytes,
             "peak_over_allowed_max": round(self.max_peak_fraction, 4),
+            "python_events_max": self.max_events,
             "max_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         }
 
 
 def run(iterations: int, *, seed: int = 0, time_budget: float | None = None, save_to: Path | None = None,
-        trace_memory: bool = True, progress: bool = False) -> dict:
-    """Run the built-in engine; returns the report (see :meth:`Campaign.report`)."""
+        trace_memory: bool = True, progress: bool = False, time_limit: float | None = TIME_LIMIT_S,
+        max_events: int | None = None, watchdog: float | None = WATCHDOG_S) -> dict:
+    """Run the built-in engine; returns the report (see :meth:`Campaign.report`).
+
+    ``time_limit``, ``max_events`` and ``watchdog`` are those of :func:`check`.
+    """
     rng = random.Random(seed)
     seeds = list(seed_files().values())
     mutate = Mutator(seeds, rng)
@@ -419,7 +453,8 @@ def run(iterations: int, *, seed: int = 0, time_budget: float | None = None, sav
     start = time.perf_counter()
     for i in range(iterations):
         data = inputs[i] if i < len(inputs) else mutate()
-        campaign.add(data, check(data, trace_memory=trace_memory), save_to)
+        campaign.add(data, check(data, trace_memory=trace_memory, time_limit=time_limit, max_events=max_events,
+                                 watchdog=watchdog), save_to)
         if time_budget is not None and time.perf_counter() - start > time_budget:
             break
         if progress and (i + 1) % 10_000 == 0:
