@@ -114,7 +114,7 @@ def _progress(enabled: bool, stages: Sequence[str], *, verbose: bool = False) ->
     from tqdm import tqdm
 
     bar = tqdm(total=len(stages), disable=not enabled or None, leave=False, file=sys.stderr,
-               bar_format="{desc:<10} {bar} {n_fmt}/{total_fmt} [{elapsed}]")
+               bar_format="{desc:<10} {bar} {percentage:3.0f}% [{elapsed}]")
     seen: list[tuple[str, float]] = []
 
     def report() -> None:
@@ -122,9 +122,13 @@ def _progress(enabled: bool, stages: Sequence[str], *, verbose: bool = False) ->
             name, start = seen[-1]
             bar.write(f"dftpcc: {name}: {time.perf_counter() - start:.2f} s", file=sys.stderr)
 
-    def on_stage(name: str) -> None:
+    def on_stage(name: str, done: float | None = None) -> None:
+        if done is not None:  # within a long stage: move the bar by the fraction done
+            bar.n = max(0, len(seen) - 1) + min(max(done, 0.0), 1.0)
+            bar.refresh()
+            return
         if seen:
-            bar.update(1)
+            bar.n = len(seen)
             report()
         seen.append((name, time.perf_counter()))
         bar.set_description_str(name)

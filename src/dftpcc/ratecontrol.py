@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -40,6 +41,16 @@ MAX_ERROR_STEP_FACTORS = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 REFILL_STEP_RANGE = 1.25
 #: ... in this many bisections (each a refill: about five transforms).
 REFILL_STEP_ITERATIONS = 4
+#: Share of rate control's time the first search takes (for progress display; the refill takes the rest).
+FIRST_SEARCH_SHARE = 0.8
+
+
+#: Told the fraction of a search done, in [0, 1] (progress display).
+Progress = Callable[[float], None]
+
+
+def _no_progress(_: float) -> None:
+    pass
 
 
 @dataclass
@@ -94,10 +105,12 @@ def step_for_rmse(an: Analysis, cutoff: float, target: float) -> Trial | None:
     return best
 
 
-def for_rmse(an: Analysis, params: Params) -> Choice:
+def for_rmse(an: Analysis, params: Params, progress: Progress = _no_progress) -> Choice:
     """The smallest file whose DEM RMSE is at most ``params.target_rmse``."""
     best: Choice | None = None
-    for cutoff in cutoffs(params):
+    tried = cutoffs(params)
+    for i, cutoff in enumerate(tried):
+        progress(i / len(tried))
         trial = step_for_rmse(an, cutoff, params.target_rmse)
         if trial is None:
             continue
@@ -123,12 +136,14 @@ def _rmse_out_of_reach(an: Analysis, params: Params) -> str:
             f"leaves {floor:.3g} m ({params.storage} storage); ask for at least that")
 
 
-def for_max_error(an: Analysis, params: Params) -> Choice:
+def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progress) -> Choice:
     """The smallest file, residual layer included, with every occupied cell within ``params.target_max_error``."""
     bound = params.target_max_error
     steps = [bound * f for f in MAX_ERROR_STEP_FACTORS] if params.storage == "quantized" else [0.0]
     best: Choice | None = None
-    for cutoff in cutoffs(params):
+    tried = cutoffs(params)
+    for i, cutoff in enumerate(tried):
+        progress(i / len(tried))
         for step in steps:
             trial = an.trial(cutoff, step)
             q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
@@ -139,10 +154,12 @@ def for_max_error(an: Analysis, params: Params) -> Choice:
     return best
 
 
-def for_bpp(an: Analysis, params: Params, budget: int) -> Choice:
+def for_bpp(an: Analysis, params: Params, budget: int, progress: Progress = _no_progress) -> Choice:
     """The most accurate file whose COEF section fits in ``budget`` bytes."""
     best: Choice | None = None
-    for cutoff in cutoffs(params):
+    tried = cutoffs(params)
+    for i, cutoff in enumerate(tried):
+        progress(i / len(tried))
         if params.storage == "quantized":
             # Sizes only: the DEM is rebuilt once, for the step found.
             lo, hi = an.tiny_step() * 1e3, 1e4
@@ -174,25 +191,27 @@ def for_bpp(an: Analysis, params: Params, budget: int) -> Choice:
     return best
 
 
-def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice:
+def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
+            progress: Progress = _no_progress) -> Choice:
     """The choice for the target in ``params``, its COEF section coded with the best band layout per chunk."""
     if params.target_rmse > 0:
-        choice = for_rmse(an, params)
+        choice = for_rmse(an, params, progress)
     elif params.target_max_error > 0:
-        choice = for_max_error(an, params)
+        choice = for_max_error(an, params, progress)
     else:
         budget = int(params.target_bpp * point_count / 8) - fixed_bytes
         if budget <= 0:
             raise InvalidInputError(
                 f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header (CRS "
                 f"included) alone need {8 * fixed_bytes / point_count:.4f} bits/point")
-        choice = for_bpp(an, params, budget)
+        choice = for_bpp(an, params, budget, progress)
     # The search sized candidates with one band layout; the file gets the best per chunk.
     choice.coefs = an.encode(choice.trial)
     return choice
 
 
-def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice:
+def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
+           progress: Progress = _no_progress) -> Choice:
     """Rate control, then (``fill='consistent'``) a second choice at the same cutoff, empty cells refilled.
 
     For an RMSE target the step is searched again upwards, refilling at each
@@ -208,8 +227,11 @@ def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> 
         Points of the original cloud (for a bits-per-point target).
     fixed_bytes : int
         Bytes of the file besides its COEF section (for a bits-per-point target).
+    progress : callable, optional
+        Told the fraction done: the first search is 80 % of the work, the refill the rest.
     """
-    first = _search(an, params, point_count, fixed_bytes)
+    first = _search(an, params, point_count, fixed_bytes, lambda f: progress(FIRST_SEARCH_SHARE * f))
+    progress(FIRST_SEARCH_SHARE)
     if not an.refillable:
         return first
     if params.target_rmse > 0:
