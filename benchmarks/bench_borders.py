@@ -7,7 +7,7 @@ the bytes each remedy needs (rate control picks cutoff and step for a
 target DEM RMSE), and draws the error map of the paper's DFT next to the
 default's at the same cutoff.
 
-    python benchmarks/bench_borders.py [--quick] > docs/borders.md
+    .venv/bin/python -m benchmarks.bench_borders [--quick] > docs/borders.md
 
 Prints a table (bits per original point at 3 error levels per file and
 configuration, and each configuration's ratio to the default) and writes
@@ -144,7 +144,7 @@ def main(argv=None) -> int:
     files = FILES[:2] if args.quick else FILES
     t0 = time.perf_counter()
     print(f"# Border handling, hole filling and coder at equal error (dftpcc {dftpcc.__version__})\n")
-    print("Made by `python benchmarks/bench_borders.py > docs/borders.md` "
+    print("Made by `.venv/bin/python -m benchmarks.bench_borders > docs/borders.md` "
           f"on {time.strftime('%Y-%m-%d')}. Bits per original point; rate control picks cutoff and step "
           "for each target DEM RMSE (in brackets: size relative to the default).\n")
     print("![error maps](figures/borders_error_map.png)\n")
