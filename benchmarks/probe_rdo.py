@@ -31,9 +31,11 @@ from pathlib import Path
 import numpy as np
 
 import dftpcc
+from dftpcc import coding
+from dftpcc.analysis import Analysis
+from dftpcc.encoder import grid_points
+
 from benchmarks.common import DEFAULT_DATA, warnings_as_notes
-from dftpcc import codec, coding
-from dftpcc.grid import fit_grid, rasterize
 
 RULES = (("dead zone", 0.0), ("dead zone", 0.1), ("dead zone", 0.2), ("dead zone", 0.3),
          ("RDO", 0.05), ("RDO", 0.1), ("RDO", 0.2), ("band step", 0.5), ("band step", 1.0), ("band step", -0.3))
@@ -82,9 +84,9 @@ def main() -> int:
     args = ap.parse_args()
     with warnings_as_notes([]):
         points = dftpcc.read(args.data / "pointclouds" / args.file, classes=args.classes or None).points
-        params = codec.resolve_params(points, resolution=args.resolution, cutoff=args.cutoff)
-        dem = rasterize(points, fit_grid(points, params.resolution))
-    spec = codec._Spectrum(dem, params, searching=False)
+        params = dftpcc.make_params(resolution=args.resolution, cutoff=args.cutoff)
+        dem = grid_points(points, params)
+    spec = Analysis(dem, params, searching=False)
     n = spec.count(args.cutoff)
     x, radius, angle = spec.reals(n), spec.radius[:n], spec.angle[:n]
     bands = coding.band_ids(radius, angle, 0)
