@@ -18,20 +18,21 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# Bits, error and speed per profile and cutoff (ARGS=--quick for fewer cutoffs and repeats).
 bench: $(STAMP)
-	$(BIN)/python benchmarks/bench_codec.py
+	$(BIN)/python -m benchmarks.bench_codec $(ARGS)
 
 # Rate-distortion against Draco, JPEG2000, LERC, SZ3 and LAZ (~7 min on the shared 2-core box; ARGS=--quick ~2 min).
 bench-anchors: $(STAMP)
-	$(BIN)/python benchmarks/bench_anchors.py $(ARGS)
+	$(BIN)/python -m benchmarks.bench_anchors $(ARGS)
 
 # Rate control per target, smooth against consistent fill (~2 min): rewrites its section of docs/benchmarks.md.
 bench-ratecontrol: $(STAMP)
-	$(BIN)/python benchmarks/bench_ratecontrol.py $(ARGS)
+	$(BIN)/python -m benchmarks.bench_ratecontrol $(ARGS)
 
 # Peak memory of a large cloud read whole and in chunks (~1 min, temporary LAZ files of up to 22.7 M points).
 bench-memory: $(STAMP)
-	$(BIN)/python benchmarks/bench_memory.py $(ARGS)
+	$(BIN)/python -m benchmarks.bench_memory $(ARGS)
 
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)
@@ -39,7 +40,7 @@ reproduce: $(STAMP)
 
 # Border handling, fill and coder at equal error (~4 min): rewrites docs/borders.md.
 bench-borders: $(STAMP)
-	$(BIN)/python benchmarks/bench_borders.py > docs/borders.md
+	$(BIN)/python -m benchmarks.bench_borders > docs/borders.md
 
 # The decoder fuzz campaign (100,000 inputs, ~2 min); the test suite runs a short one.
 fuzz: $(STAMP)

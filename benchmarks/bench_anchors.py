@@ -7,14 +7,13 @@ samples (log-log) is each codec's frontier, and the bits it needs at fixed
 error levels are read off it by log-log interpolation, as in ANCHORS.md.
 Targets are printed as PASS/MISS; nothing here fails.
 
-    .venv/bin/python benchmarks/bench_anchors.py [--quick] [--files field mars ...]
+    .venv/bin/python -m benchmarks.bench_anchors [--quick] [--files field mars ...]
 """
 
 from __future__ import annotations
 
 import io
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,15 +24,15 @@ import zstandard
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import dftpcc
+from dftpcc.dem import Grid
+from dftpcc.grid import fit_grid, rasterize
 
-import dftpcc  # noqa: E402
-from common import (  # noqa: E402
+from benchmarks.common import (
     FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load,
     load_average, lower_hull,
     finish_run, library_label, markdown_table, median_time, pick_cases, run_arguments, verdict, warnings_as_notes,
 )
-from dftpcc.grid import Grid, fit_grid, rasterize  # noqa: E402
 
 CASES = (
     Case("field_gentle_ign.laz", 0.5, (GROUND,), "gentle"),

@@ -6,20 +6,17 @@ multiple of the gridding floor), in-memory compress/decompress times (medians)
 and throughput, and compact's bits over paper's at the same error. Targets
 are printed as PASS/MISS; nothing here fails.
 
-    .venv/bin/python benchmarks/bench_codec.py [--quick] [--files field redrocks ...]
+    .venv/bin/python -m benchmarks.bench_codec [--quick] [--files field redrocks ...]
 """
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
+import dftpcc
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import dftpcc  # noqa: E402
-from common import (  # noqa: E402
+from benchmarks.common import (
     GROUND, Case, bits_at, fmt_bits, load, load_average, lower_hull, markdown_table, median_time,
     finish_run, median_times, library_label, pick_cases, rmse, run_arguments, shared_grid, verdict,
     warnings_as_notes,

@@ -6,7 +6,7 @@ in a temporary folder, never in the repository. Each compression runs in a
 fresh process that reports its own peak resident memory (VmHWM, Linux) above
 what it held after importing dftpcc.
 
-    .venv/bin/python benchmarks/bench_memory.py [--quick] [--copies 1 4 8] [--docs | --no-docs]
+    .venv/bin/python -m benchmarks.bench_memory [--quick] [--copies 1 4 8] [--docs | --no-docs]
 
 Prints a table; writes its section of docs/benchmarks.md on a full run.
 """
@@ -23,9 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from common import finish_run, library_label, load_average, markdown_table, run_arguments  # noqa: E402
+from benchmarks.common import finish_run, library_label, load_average, markdown_table, run_arguments
 
 SOURCE = "forest_slope_bcts_2.8M.laz"
 RESOLUTION = 0.5

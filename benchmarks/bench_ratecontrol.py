@@ -8,7 +8,7 @@ refilled from the coded map). Reports the cutoff and step chosen, the file
 size, the error the file states, whether the promise holds, and the median
 wall time; every figure is measured in this run.
 
-    .venv/bin/python benchmarks/bench_ratecontrol.py [--quick] [--files NAME ...] [--docs | --no-docs]
+    .venv/bin/python -m benchmarks.bench_ratecontrol [--quick] [--files NAME ...] [--docs | --no-docs]
 
 Targets are set from each map's gridding floor (the RMS distance of its
 points to their cell's mean): DEM RMSE 0.75x and 2x the floor (points at
@@ -19,18 +19,16 @@ floor; there the unit is 0.1 % of the RMS relief.
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import dftpcc
 
-import dftpcc  # noqa: E402
-from common import (GROUND, Case, finish_run, load, load_average, library_label,  # noqa: E402
-                    markdown_table, median_time, pick_cases, run_arguments, shared_grid, verdict,
-                    warnings_as_notes)
+from benchmarks.common import (GROUND, Case, finish_run, load, load_average, library_label,
+                               markdown_table, median_time, pick_cases, run_arguments, shared_grid, verdict,
+                               warnings_as_notes)
 
 CASES = (
     Case("field_gentle_ign.laz", 0.5, (GROUND,), "gentle"),

@@ -2,7 +2,7 @@
 
 The scripts measure, they never assert: targets are printed as PASS/MISS.
 Everything here uses only dftpcc's public API (``read``, ``grid.fit_grid``,
-``grid.rasterize``) plus numpy/scipy.
+``grid.rasterize``, the ``dem.Grid`` and ``dem.DEM`` types) plus numpy/scipy.
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import dftpcc
-from dftpcc.grid import DEM, Grid, fit_grid, rasterize
+from dftpcc.dem import DEM, Grid
+from dftpcc.grid import fit_grid, rasterize
 
 REPO = Path(__file__).resolve().parent.parent
 #: Real data lives beside the checkout (CI layout: ../shared/data); never copied into the repo.
@@ -325,10 +326,15 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
 
 
 def command_line() -> str:
+    """The command that ran this benchmark, as typed from the repository root."""
     args = [a if re.fullmatch(r"[\w./=,:@+-]+", a) else repr(a) for a in sys.argv[1:]]
-    script = os.path.relpath(sys.argv[0], REPO) if os.path.isabs(sys.argv[0]) else sys.argv[0]
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    if spec is not None and spec.name:  # python -m benchmarks.NAME
+        script = ["-m", spec.name]
+    else:
+        script = [os.path.relpath(sys.argv[0], REPO) if os.path.isabs(sys.argv[0]) else sys.argv[0]]
     env = [f"PYTHONPATH={os.environ['PYTHONPATH']}"] if os.environ.get("PYTHONPATH") else []
-    return " ".join([*env, ".venv/bin/python", script, *args])
+    return " ".join([*env, ".venv/bin/python", *script, *args])
 
 
 def library_label() -> str:

@@ -13,7 +13,7 @@ cost), against the same with the contexts the file format uses now.
   MASK kind 2. Richer: those x the count in a 7 x 3 causal window x the
   density over the 8 rows above (8 classes each).
 
-    .venv/bin/python benchmarks/probe_contexts.py [--multiple 1.25 3] [--relief 0.001 0.01]
+    .venv/bin/python -m benchmarks.probe_contexts [--multiple 1.25 3] [--relief 0.001 0.01]
 
 Prints a table; nothing here fails.
 """
@@ -28,14 +28,14 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import dftpcc
+from dftpcc import coding, occupancy, spectrum
+from dftpcc.fill import fill_empty
+from dftpcc.grid import fit_grid, rasterize
+from dftpcc.io import read_raster_dem
 
-import dftpcc  # noqa: E402
-from common import DEFAULT_DATA, warnings_as_notes  # noqa: E402
-from dftpcc import coding, occupancy, spectrum  # noqa: E402
-from dftpcc.formats import read_raster_dem  # noqa: E402
-from dftpcc.grid import fill_empty, fit_grid, rasterize  # noqa: E402
-from probe_tiles import code_tiled  # noqa: E402
+from benchmarks.common import DEFAULT_DATA, warnings_as_notes
+from benchmarks.probe_tiles import code_tiled
 
 #: (file, resolution, classes) as in bench_anchors.py; a .tif is read from dems/.
 FILES = (("field_gentle_ign.laz", 0.5, [2]), ("coastal_plain_ign.laz", 2.0, [2]), ("mars_gale_1m.tif", None, None))

@@ -13,7 +13,7 @@ coefficients with the library's coder and compare sizes:
   is given the integers as they are, so its size is what such a file would
   need apart from the per-band step table).
 
-    .venv/bin/python benchmarks/probe_rdo.py [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
+    .venv/bin/python -m benchmarks.probe_rdo [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
         [--cutoff 0.2 --multiple 1.25]
 
 The target is the DEM error that makes the points' vertical RMSE ``multiple``
@@ -30,12 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import dftpcc
+from dftpcc import coding
+from dftpcc.analysis import Analysis
+from dftpcc.encoder import grid_points
 
-import dftpcc  # noqa: E402
-from common import DEFAULT_DATA, warnings_as_notes  # noqa: E402
-from dftpcc import codec, coding  # noqa: E402
-from dftpcc.grid import fit_grid, rasterize  # noqa: E402
+from benchmarks.common import DEFAULT_DATA, warnings_as_notes
 
 RULES = (("dead zone", 0.0), ("dead zone", 0.1), ("dead zone", 0.2), ("dead zone", 0.3),
          ("RDO", 0.05), ("RDO", 0.1), ("RDO", 0.2), ("band step", 0.5), ("band step", 1.0), ("band step", -0.3))
@@ -84,9 +84,9 @@ def main() -> int:
     args = ap.parse_args()
     with warnings_as_notes([]):
         points = dftpcc.read(args.data / "pointclouds" / args.file, classes=args.classes or None).points
-        params = codec.resolve_params(points, resolution=args.resolution, cutoff=args.cutoff)
-        dem = rasterize(points, fit_grid(points, params.resolution))
-    spec = codec._Spectrum(dem, params, searching=False)
+        params = dftpcc.make_params(resolution=args.resolution, cutoff=args.cutoff)
+        dem = grid_points(points, params)
+    spec = Analysis(dem, params, searching=False)
     n = spec.count(args.cutoff)
     x, radius, angle = spec.reals(n), spec.radius[:n], spec.angle[:n]
     bands = coding.band_ids(radius, angle, 0)

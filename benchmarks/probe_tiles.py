@@ -8,9 +8,9 @@ searched so that the rebuilt DEM meets the same RMSE (occupied cells), and the
 coefficient bytes (plus 24 B of plane per tile, no mask) are compared with
 one tile covering the map.
 
-    .venv/bin/python benchmarks/probe_tiles.py [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
+    .venv/bin/python -m benchmarks.probe_tiles [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
         [--multiple 1.25] [--tiles 256 128 64]
-    .venv/bin/python benchmarks/probe_tiles.py --file mars_gale_1m.tif --relief 0.001
+    .venv/bin/python -m benchmarks.probe_tiles --file mars_gale_1m.tif --relief 0.001
 
 For a point cloud the target is the DEM error that makes the points' vertical
 RMSE ``multiple`` times the gridding floor; a GeoTIFF DEM (from dems/) is coded
@@ -27,13 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import dftpcc
+from dftpcc import coding, spectrum
+from dftpcc.fill import fill_empty
+from dftpcc.grid import fit_grid, rasterize
+from dftpcc.io import read_raster_dem
 
-import dftpcc  # noqa: E402
-from common import DEFAULT_DATA, warnings_as_notes  # noqa: E402
-from dftpcc import coding, spectrum  # noqa: E402
-from dftpcc.formats import read_raster_dem  # noqa: E402
-from dftpcc.grid import fill_empty, fit_grid, rasterize  # noqa: E402
+from benchmarks.common import DEFAULT_DATA, warnings_as_notes
 
 PLANE_BYTES = 24
 
