@@ -1,4 +1,4 @@
-"""Atomic writes: a file appears complete or not at all.
+"""Atomic writes, the last step of every output: a file appears complete or not at all.
 
 Every writer of dftpcc (``.dftpc``, point clouds, GeoTIFF) goes through
 :func:`atomic_write`, so an interrupted run or a failing writer never leaves
@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import os
 import secrets
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from ..errors import InvalidInputError
 
-__all__ = ["atomic_write"]
+__all__ = ["atomic_write", "writer_errors"]
 
 
 #: Temporary files of :func:`atomic_write`: ``.NAME.PID.TOKEN.tmpSUFFIX``.
@@ -47,6 +48,17 @@ def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+@contextmanager
+def writer_errors(path: str | os.PathLike[str], fmt: str) -> Iterator[None]:
+    """Third-party writers raise anything on what they cannot represent: one clear error instead."""
+    try:
+        yield
+    except (InvalidInputError, OSError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - laspy, plyfile, pypcd4, rasterio have no common error
+        raise InvalidInputError(f"{path}: cannot write as {fmt}: {exc}") from None
 
 
 def _sync_folder(folder: Path) -> None:
