@@ -5,13 +5,14 @@ from __future__ import annotations
 import base64
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
 
 import dftpcc
 from dftpcc import files
-from dftpcc.errors import InvalidInputError, UnsupportedFormatError
+from dftpcc.errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
 from dftpcc.io import FORMATS, REGISTRY, Reader, format_of, open_reader
 
 from .conftest import data_file
@@ -117,6 +118,7 @@ def test_every_format_has_a_reader_and_every_extension_a_format():
                 entry.writer_function()
         else:
             assert callable(entry.writer_function())
+    assert format_of("map.DRC") == "drc"
 
 
 def test_importing_dftpcc_leaves_the_format_libraries_to_first_use():
@@ -179,3 +181,31 @@ def test_a_geotiff_with_classes_topic_or_chunks_is_refused_before_any_work(tmp_p
         with pytest.raises(InvalidInputError, match=message):
             files.compress_file(src, out, **option)
     assert not out.exists()
+
+
+# --- Draco ----------------------------------------------------------------------------------------
+
+#: MANIFEST.md: redrocks_rough.ply is the decoded .drc plus this offset (metres, to the millimetre).
+REDROCKS_OFFSET = np.array([-0.0154, -0.3536, 92.709])
+
+
+def test_a_draco_file_reads_as_the_ply_it_was_decoded_to(tmp_path):
+    pytest.importorskip("DracoPy", reason="the 'draco' extra is not installed")
+    drc = dftpcc.read(data_file("pointclouds/redrocks_rough.drc"))
+    ply = dftpcc.read(data_file("pointclouds/redrocks_rough.ply")).points
+    assert drc.points.shape == ply.shape == (43_041, 3) and drc.crs == {}
+    np.testing.assert_allclose(drc.points + REDROCKS_OFFSET, ply, rtol=0, atol=1e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # rough terrain: multi-height cells
+        cmap = files.compress_file(data_file("pointclouds/redrocks_rough.drc"), tmp_path / "r.dftpc", resolution=5.0)
+    assert cmap.header.point_count == 43_041
+    with pytest.raises(InvalidInputError, match="drc files cannot be read in chunks"):
+        files.compress_file(data_file("pointclouds/redrocks_rough.drc"), tmp_path / "r.dftpc", chunk_points=1000)
+    with pytest.raises(UnsupportedFormatError, match="Draco files are read, not written"):
+        dftpcc.write(tmp_path / "out.drc", BIG)
+
+
+def test_a_draco_file_without_dracopy_says_how_to_install_it(monkeypatch):
+    monkeypatch.setitem(sys.modules, "DracoPy", None)  # as if the extra were not installed
+    with pytest.raises(MissingDependencyError, match=r"needs DracoPy.*pip install 'dftpcc\[draco\]'"):
+        dftpcc.read(data_file("pointclouds/redrocks_rough.drc"))

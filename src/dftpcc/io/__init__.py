@@ -93,6 +93,8 @@ REGISTRY: dict[str, Format] = {f.name: f for f in (
     Format("xyz", (".xyz", ".txt"), "text", "TextReader", "write_text"),
     Format("csv", (".csv",), "text", "TextReader", "write_text"),
     Format("npy", (".npy",), "npy", "NpyReader", "write_npy", streams=True),
+    Format("drc", (".drc",), "drc", "DracoReader",
+           not_written="Draco files are read, not written: write .ply, .pcd, .las or .npy"),
     Format("tif", (".tif", ".tiff"), "geotiff", "GeoTiffReader", dem_writer="write_geotiff",
            not_written="a GeoTIFF holds a DEM, not points: use write_geotiff"),
     Format("rosbag", (".bag", ".db3", ".mcap"), "rosbag", "BagReader",
@@ -233,7 +235,7 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
     path : path
     format : str, optional
         ``las``, ``laz``, ``ply``, ``pcd``, ``xyz``, ``csv``, ``npy``,
-        ``tif`` (every valid
+        ``drc`` (Draco, with the optional DracoPy), ``tif`` (every valid
         pixel of a GeoTIFF DEM becomes a point at its centre) or ``rosbag``
         (a ROS 1 ``.bag`` or a ROS 2 bag folder, see :mod:`dftpcc.io.rosbag`);
         default from the extension.
@@ -296,7 +298,7 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
     Raises
     ------
     UnsupportedFormatError
-        A format dftpcc only reads (GeoTIFF, ROS bags).
+        A format dftpcc only reads (GeoTIFF, ROS bags, Draco).
     InvalidInputError
         The writer cannot represent the points or the CRS (e.g. a LAS
         record over 64 KiB, a WKT a PLY comment cannot hold), or the folder
