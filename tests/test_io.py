@@ -12,8 +12,9 @@ import pytest
 
 import dftpcc
 from dftpcc import files
+from dftpcc.cli import main
 from dftpcc.errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
-from dftpcc.io import FORMATS, REGISTRY, Reader, format_of, open_reader
+from dftpcc.io import FORMATS, REGISTRY, Reader, format_of, open_chunked, open_reader
 
 from .conftest import data_file
 
@@ -209,3 +210,30 @@ def test_a_draco_file_without_dracopy_says_how_to_install_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "DracoPy", None)  # as if the extra were not installed
     with pytest.raises(MissingDependencyError, match=r"needs DracoPy.*pip install 'dftpcc\[draco\]'"):
         dftpcc.read(data_file("pointclouds/redrocks_rough.drc"))
+
+
+# --- NPY: real numbers only -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind", ["plain", "structured"])
+def test_a_complex_npy_is_refused_on_every_path(tmp_path, capsys, kind):
+    # The API refused complex points, the CLI took their real part with numpy's ComplexWarning.
+    src = tmp_path / "c.npy"
+    if kind == "plain":
+        np.save(src, BIG.astype(np.complex128))
+    else:
+        rec = np.zeros(3, dtype=[("x", "c16"), ("y", "c16"), ("z", "c16")])
+        rec["x"], rec["y"], rec["z"] = BIG.T
+        np.save(src, rec)
+    out = tmp_path / "c.dftpc"
+    message = "points must be real numbers, got dtype complex128"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning on the way
+        for attempt in (lambda: dftpcc.read(src),
+                        lambda: open_chunked(src),
+                        lambda: files.compress_file(src, out, resolution=1.0),
+                        lambda: files.compress_file(src, out, resolution=1.0, chunk_points=2)):
+            with pytest.raises(InvalidInputError, match=message):
+                attempt()
+        assert main(["compress", str(src), str(out), "-r", "1", "-q"]) == 3
+    assert message in capsys.readouterr().err
+    assert not out.exists()

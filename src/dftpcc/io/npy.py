@@ -1,4 +1,8 @@
-"""NPY point clouds (numpy): an (N, 3+) array or a structured one with x, y, z fields, mapped and read in chunks."""
+"""NPY point clouds (numpy): an (N, 3+) array or a structured one with x, y, z fields, mapped and read in chunks.
+
+Only real numbers are points: a complex or object array is refused, as
+:func:`dftpcc.compress` refuses one.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +15,9 @@ from ..errors import InvalidInputError
 from .reader import Reader, xyz_columns
 
 __all__ = ["NpyReader", "write_npy"]
+
+#: numpy kinds that are coordinates: boolean, signed, unsigned, float (as :func:`dftpcc.dem.as_points`).
+_REAL_KINDS = "biuf"
 
 
 class NpyReader(Reader):
@@ -30,6 +37,9 @@ class NpyReader(Reader):
             raise InvalidInputError(f"{self.path}: expected an (N, 3) array, got shape {arr.shape}")
         else:
             columns = [arr[:, k] for k in range(3)]
+        for column in columns:
+            if column.dtype.kind not in _REAL_KINDS:
+                raise InvalidInputError(f"{self.path}: points must be real numbers, got dtype {column.dtype}")
         return columns
 
     def _raw_chunks(self, n: int | None) -> Iterator[np.ndarray]:
