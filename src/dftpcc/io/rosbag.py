@@ -107,18 +107,27 @@ def _open(path: Path, topic: str | None) -> Iterator[tuple[Any, list[Any]]]:
         raise InvalidInputError(f"{path}: cannot read as a ROS bag: {exc}") from None
     try:
         clouds = sorted({c.topic for c in reader.connections if c.msgtype in POINTCLOUD2})
+        if not clouds:
+            raise InvalidInputError(f"{path}: the bag has no PointCloud2 topic ({_topics(reader.connections)})")
         if topic is None:
             if len(clouds) != 1:
-                found = ", ".join(clouds) if clouds else "none"
                 raise InvalidInputError(f"{path}: choose the PointCloud2 topic to read with --topic "
-                                        f"(PointCloud2 topics in the bag: {found})")
+                                        f"(PointCloud2 topics in the bag: {', '.join(clouds)})")
             topic = clouds[0]
         elif topic not in clouds:
             raise InvalidInputError(f"{path}: no PointCloud2 topic {topic!r} in the bag "
-                                    f"(PointCloud2 topics: {', '.join(clouds) or 'none'})")
+                                    f"(PointCloud2 topics: {', '.join(clouds)})")
         yield reader, [c for c in reader.connections if c.topic == topic and c.msgtype in POINTCLOUD2]
     finally:
         reader.close()
+
+
+def _topics(connections: Any) -> str:
+    """The topics of a bag with their message types, for an error message."""
+    topics = sorted({(c.topic, c.msgtype) for c in connections})
+    if not topics:
+        return "it has no topics at all"
+    return "its topics: " + ", ".join(f"{topic} ({msgtype})" for topic, msgtype in topics)
 
 
 def pointcloud2_xyz(msg: Any) -> np.ndarray:
