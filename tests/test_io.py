@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import base64
+import errno
+import os
 import subprocess
 import sys
 import warnings
@@ -237,3 +239,55 @@ def test_a_complex_npy_is_refused_on_every_path(tmp_path, capsys, kind):
         assert main(["compress", str(src), str(out), "-r", "1", "-q"]) == 3
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+# --- failing writes: one line naming the output ---------------------------------------------------
+
+_LIMITED = """
+import resource, signal, sys
+from dftpcc.cli import main
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit then fails with EFBIG
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]), int(sys.argv[1])))
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="file size limit set with setrlimit (Linux)")
+@pytest.mark.parametrize("out", ["gale.tif", "gale.ply", "gale.las", "again.dftpc"])
+def test_a_write_the_system_refuses_is_one_line_naming_the_output(tmp_path, out):
+    # A file size limit fails writes as a full disk does, inside GDAL too (which printed its own
+    # lines of libtiff text and then "Write failed. See previous exception for details.").
+    src = data_file("dems/mars_gale_1m.tif")
+    cmap = tmp_path / "gale.dftpc"
+    files.compress_file(src, cmap)
+    target = tmp_path / out
+    argv = ["compress", str(src), str(target)] if out.endswith(".dftpc") else ["decompress", str(cmap), str(target)]
+    limit = cmap.stat().st_size // 2  # every output here is larger than this
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
+    result = subprocess.run([sys.executable, "-c", _LIMITED, str(limit), *argv, "-q"], capture_output=True,
+                            text=True, timeout=300, env=env)
+    assert result.returncode == 7, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0] == f"dftpcc: error: [Errno {errno.EFBIG}] {os.strerror(errno.EFBIG)}: '{target}'"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gale.dftpc"]  # no partial file, no temporary
+
+
+def test_a_full_disk_names_the_users_file_not_the_temporary(tmp_path, monkeypatch):
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    dem = dftpcc.open(dftpcc.compress(BIG, resolution=100.0)).read_dem()
+    monkeypatch.setattr(dftpcc.io.atomic.os, "fsync", full)
+    for target, attempt in ((tmp_path / "p.ply", lambda t: dftpcc.write(t, BIG)),
+                            (tmp_path / "p.npy", lambda t: dftpcc.write(t, BIG)),
+                            (tmp_path / "d.tif", lambda t: dftpcc.io.write_geotiff(t, dem)),
+                            (tmp_path / "m.dftpc", lambda t: files.compress_file(data_file(
+                                "pointclouds/mountain_arid_alirt.las"), t, resolution=5.0))):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with pytest.raises(OSError) as failure:
+                attempt(target)
+        assert failure.value.errno == errno.ENOSPC and failure.value.filename == str(target)
+        assert str(failure.value) == f"[Errno {errno.ENOSPC}] No space left on device: '{target}'"
+    assert list(tmp_path.iterdir()) == []

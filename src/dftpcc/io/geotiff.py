@@ -14,6 +14,7 @@ from typing import Any, ClassVar, Iterator
 
 import numpy as np
 import rasterio
+from rasterio.io import MemoryFile
 from rasterio.transform import Affine
 
 from ..dem import DEM, Grid
@@ -137,7 +138,7 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
     InvalidInputError
         A CRS GDAL cannot parse, a missing output folder.
     OSError
-        The file system refused (permissions, disk full).
+        The file system refused (permissions, disk full), naming ``path``.
     """
     grid: Grid = dem.grid
     heights = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
@@ -150,10 +151,14 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
     wkt = (crs or {}).get("wkt")
 
     def _write(tmp: Path) -> None:
-        with rasterio.open(tmp, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1,
-                           dtype="float32", nodata=float("nan"), transform=transform,
-                           crs=wkt or None) as dst:
-            dst.write(heights, 1)
+        # GDAL encodes in memory and Python writes the bytes: a full disk is then an OSError with its
+        # errno, not lines of libtiff text on stderr and an exception that says "see previous".
+        with MemoryFile() as mem:
+            with mem.open(driver="GTiff", height=grid.rows, width=grid.cols, count=1, dtype="float32",
+                          nodata=float("nan"), transform=transform, crs=wkt or None) as dst:
+                dst.write(heights, 1)
+            with open(tmp, "wb") as fh:
+                fh.write(mem.getbuffer())
 
     with writer_errors(path, "tif"):
         atomic_write(path, _write)
