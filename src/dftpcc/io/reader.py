@@ -18,7 +18,7 @@ import numpy as np
 from ..dem import nonfinite_error
 from ..errors import InvalidInputError, MissingDependencyError
 
-__all__ = ["PointCloud", "Reader", "DEFAULT_CHUNK_POINTS", "xyz_columns", "one_line"]
+__all__ = ["PointCloud", "Reader", "DEFAULT_CHUNK_POINTS", "xyz_columns"]
 
 #: Points per chunk unless told otherwise (about 24 MB of float64 x, y, z).
 DEFAULT_CHUNK_POINTS = 1_000_000
@@ -44,11 +44,6 @@ class PointCloud:
 
     points: np.ndarray
     crs: dict[str, Any] = field(default_factory=dict)
-
-
-def one_line(text: object) -> str:
-    """``text`` on one line: third-party libraries (GDAL above all) explain themselves over several."""
-    return " ".join(str(text).split())
 
 
 def xyz_columns(columns: Sequence[np.ndarray], start: int = 0, stop: int | None = None) -> np.ndarray:
