@@ -124,17 +124,9 @@ def pick_cases(cases: Sequence[Case], wanted: Sequence[str] | None) -> list[Case
 
 def _sample_dem(path: Path) -> np.ndarray:
     """One point per valid pixel at its centre, as ``dftpcc.read`` does (metres)."""
-    import rasterio
-
-    with rasterio.open(path) as src:
-        band = src.read(1, masked=True)
-        t = src.transform
-    valid = ~np.ma.getmaskarray(band)
-    heights = np.asarray(band.data, dtype=np.float64)
-    rows, cols = np.nonzero(valid & np.isfinite(heights))
-    x = t.c + t.a * (cols + 0.5) + t.b * (rows + 0.5)
-    y = t.f + t.d * (cols + 0.5) + t.e * (rows + 0.5)
-    return np.column_stack([x, y, heights[rows, cols]])
+    geotiff = dftpcc.io.geotiff  # the library's own GeoTIFF reading, imported on first use
+    heights, valid, transform, _ = geotiff.read_raster_dem(path)
+    return geotiff.pixel_centres(heights, valid, transform)
 
 
 def _pixel_width(path: Path) -> float:

@@ -124,6 +124,33 @@ def test_what_cannot_be_chunked_is_refused_clearly(tmp_path, small_terrain):
     assert not (tmp_path / "t.dftpc").exists()
 
 
+def test_a_median_needs_the_whole_cloud_which_is_read_whole_when_it_fits(tmp_path, small_terrain, monkeypatch):
+    npy = tmp_path / "t.npy"
+    np.save(npy, small_terrain)
+    out = tmp_path / "t.dftpc"
+    whole = dftpcc.compress(small_terrain, resolution=0.5, aggregate="median")
+    assert files.compress_file(npy, out, resolution=0.5, aggregate="median") is not None
+    assert out.read_bytes() == whole  # the one-chunk read is the whole-cloud computation
+    out.unlink()
+    # A cloud too large for memory is read in chunks, where a median is refused before any pass.
+    monkeypatch.setattr(dftpcc.limits, "available_memory", lambda: small_terrain.shape[0] * dftpcc.limits.IN_MEMORY_BYTES_PER_POINT)
+    monkeypatch.setattr(files.Reader, "chunks", lambda *a, **k: pytest.fail("the file was read"))
+    with pytest.raises(InvalidInputError, match="aggregate 'median' needs all of a cell's points"):
+        files.compress_file(npy, out, resolution=0.5, aggregate="median")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("options", [{}, {"frame": "oriented"}, {"aggregate": "max", "target_rmse": 0.01}])
+def test_a_file_read_whole_gives_the_bytes_of_the_points_compressed(tmp_path, small_terrain, options):
+    # compress_file grids the one chunk through the summary of chunked reading: it must be exact.
+    for ext in (".npy", ".ply", ".las"):
+        src = tmp_path / f"t{ext}"
+        dftpcc.write(src, small_terrain)
+        points = dftpcc.read(src).points
+        files.compress_file(src, tmp_path / "t.dftpc", **options)
+        assert (tmp_path / "t.dftpc").read_bytes() == dftpcc.compress(points, **options), ext
+
+
 def test_chunked_reading_starts_by_itself_when_memory_is_short(tmp_path, small_terrain, monkeypatch):
     npy = tmp_path / "t.npy"
     np.save(npy, small_terrain)

@@ -118,6 +118,25 @@ def test_the_topic_must_be_chosen_among_several(tmp_path, terrain, capsys):
     assert not (tmp_path / "n.dftpc").exists()
 
 
+def test_a_bag_without_pointcloud2_says_so_and_lists_its_topics(tmp_path):
+    # It used to suggest --topic, which cannot help: there is no cloud to choose.
+    from rosbags.rosbag2 import Writer
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    path = tmp_path / "chatter"
+    with Writer(path, version=9) as writer:
+        for topic, msgtype, msg in (("/chatter", "std_msgs/msg/String", ts.types["std_msgs/msg/String"](data="hi")),
+                                    ("/count", "std_msgs/msg/Int32", ts.types["std_msgs/msg/Int32"](data=3))):
+            conn = writer.add_connection(topic, msgtype, typestore=ts)
+            writer.write(conn, 10**9, ts.serialize_cdr(msg, msgtype))
+    expected = (r"the bag has no PointCloud2 topic \(its topics: /chatter \(std_msgs/msg/String\), "
+                r"/count \(std_msgs/msg/Int32\)\)$")
+    for topic in (None, "/chatter"):
+        with pytest.raises(InvalidInputError, match=expected) as refused:
+            dftpcc.read(path, topic=topic)
+        assert "--topic" not in str(refused.value)
+
+
 def test_messages_in_different_frames_are_refused(tmp_path, terrain):
     bag = write_bag(tmp_path / "frames", {"/cloud": lambda ts: [_message(ts, terrain[:50], frame="map"),
                                                                  _message(ts, terrain[50:99], frame="velodyne")]})

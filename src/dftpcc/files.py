@@ -1,29 +1,40 @@
-"""File-level helpers: read a cloud, compress it, write the ``.dftpc``; and back."""
+"""Files in, files out: join the read stage (:mod:`dftpcc.io`) to the codec.
+
+:func:`compress_file` opens a reader, grids its chunks (one chunk when the cloud fits
+in memory) or takes a raster's own DEM, encodes and writes the ``.dftpc``;
+:func:`decompress_file` decodes one and writes the points or a GeoTIFF.
+"""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from .dem import DEM, Grid
-from .encoder import Stage, compress, encode_dem, no_stage, params_of
-from .errors import InvalidInputError
-from .grid import CloudSummary, check_chunked_aggregate, rasterize_chunks
-from .io import (CHUNKED_FORMATS, DEFAULT_CHUNK_POINTS, atomic_write, check_chunkable, format_of, open_chunked, read,
-                 read_raster_dem, stored_point_count, write, write_geotiff)
+from . import io
+from .dem import DEM
+from .encoder import Stage, encode_dem, no_stage, params_of
+from .grid import CloudSummary, check_chunked_aggregate, rasterize, rasterize_chunks
+from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, format_of, open_reader, write
 from .limits import holds_in_memory
 from .mapfile import CompressedMap
 from .mapfile import open as open_map
-from .rebuild import dem_to_points
 from .params import Params
+from .rebuild import dem_to_points
 
-__all__ = ["compress_file", "decompress_file", "dem_from_geotiff", "reads_in_chunks"]
+__all__ = ["compress_file", "decompress_file", "dem_from_geotiff", "reads_in_chunks", "stored_point_count"]
 
-#: Pixels whose sides differ by less than this fraction count as square.
-SQUARE_TOLERANCE = 1e-9
+
+def stored_point_count(src: str | os.PathLike[str], format: str | None = None) -> int | None:  # noqa: A002
+    """:func:`dftpcc.io.stored_point_count`: points a file holds (a ROS bag: a bound), for the formats read in chunks."""
+    return io.stored_point_count(src, format)
+
+
+def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]:
+    """:func:`dftpcc.io.geotiff.dem_from_geotiff`: a GeoTIFF DEM on its own pixel grid, and its CRS."""
+    return io.dem_from_geotiff(path)
 
 
 def reads_in_chunks(src: str | os.PathLike[str], format: str | None = None,  # noqa: A002
@@ -34,14 +45,20 @@ def reads_in_chunks(src: str | os.PathLike[str], format: str | None = None,  # n
     otherwise when the file holds more points (:func:`~dftpcc.io.stored_point_count`)
     than the available memory can compress in one piece (:func:`~dftpcc.limits.holds_in_memory`).
     """
-    fmt = format_of(src, format)
-    if chunk_points is not None:
-        check_chunkable(src, format)
-        return True
-    if fmt not in CHUNKED_FORMATS:
-        return False
-    stored = stored_point_count(src, fmt)
-    return bool(stored) and not holds_in_memory(stored)
+    if chunk_points is None and not io.REGISTRY[format_of(src, format)].streams:
+        return False  # read whole whatever its size: no need to open it
+    with open_reader(src, format=format, chunk_points=chunk_points) as reader:
+        return _chunk_size(reader) is not None
+
+
+def _chunk_size(reader: Reader) -> int | None:
+    """Points per chunk to compress from ``reader``: None (the whole cloud, one chunk) when it fits in memory."""
+    if reader.chunk_points is not None:
+        return reader.chunk_points
+    bound = reader.points_bound
+    if reader.streams and bound and not holds_in_memory(bound):
+        return DEFAULT_CHUNK_POINTS
+    return None
 
 
 def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], params: Params | None = None, *,
@@ -50,56 +67,80 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], para
                   on_stage: Stage = no_stage, **shortcuts: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
-    Parameters are those of :func:`dftpcc.compress` and :func:`dftpcc.read`
-    (``topic``: the PointCloud2 topic of a ROS bag).
-    A GeoTIFF source with ``resolution='auto'`` is coded on its own pixel grid.
-    A cloud too large to hold in memory (LAS, LAZ, PLY, NPY) is read in
-    chunks of ``chunk_points`` (default :data:`~dftpcc.io.DEFAULT_CHUNK_POINTS`),
-    three or four passes over the file, so memory holds the grid and one chunk
-    (:func:`reads_in_chunks`); giving ``chunk_points`` forces it. The file is
-    the same up to float round-off. ``aggregate='median'`` cannot be chunked.
+    Parameters
+    ----------
+    src, dst : path
+    params : Params, optional
+        As :func:`dftpcc.compress`, as are ``**shortcuts``.
+    format, classes, drop_nonfinite, topic
+        As :func:`dftpcc.read` (``topic``: the PointCloud2 topic of a ROS bag).
+    chunk_points : int, optional
+        Read the cloud in chunks of this many points (LAS, LAZ, PLY, NPY,
+        ROS bags). By default a cloud is read whole when it fits in memory
+        (:func:`~dftpcc.limits.holds_in_memory` of its header's count), else
+        in chunks of :data:`~dftpcc.io.DEFAULT_CHUNK_POINTS`: three or four
+        passes over the file, memory holding the grid and one chunk. The map
+        is the same up to float round-off; ``aggregate='median'`` needs the
+        whole cloud and is refused in chunks.
+    on_stage : callable, optional
+        Called with the name of each stage as it starts.
+
+    A GeoTIFF source with ``resolution='auto'`` is coded on its own pixel
+    grid; with a resolution, its pixel centres are gridded as points.
 
     Returns
     -------
     CompressedMap
         The written map, opened (header parsed).
+
+    Raises
+    ------
+    InvalidInputError
+        As :func:`dftpcc.compress` and :func:`dftpcc.read`; an option the
+        format cannot honour (``classes``, ``topic``, ``chunk_points``) or a
+        median in chunks, before the file is read.
     """
-    # Parameters checked before the first pass over a file that may take minutes to read.
+    # Parameters and options checked before the first pass over a file that may take minutes to read.
     params = params_of(params, shortcuts)
     on_stage("read")
-    if format_of(src, format) == "tif" and params.resolution == "auto":
-        dem, crs = dem_from_geotiff(src)
-        data = encode_dem(dem, params, crs=crs, on_stage=on_stage)
-    elif reads_in_chunks(src, format, chunk_points):
-        data = _compress_chunked(src, params, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
-                                 topic=topic, chunk_points=chunk_points or DEFAULT_CHUNK_POINTS, on_stage=on_stage)
-    else:
-        cloud = read(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite, topic=topic)
-        data = compress(cloud.points, params, crs=cloud.crs, on_stage=on_stage)
+    with open_reader(src, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
+                     chunk_points=chunk_points) as reader:
+        if reader.own_grid and params.resolution == "auto":
+            data = encode_dem(reader.dem(), params, crs=reader.crs, on_stage=on_stage)
+        else:
+            dem, count = _grid(reader, params, on_stage)
+            data = encode_dem(dem, params, point_count=count, crs=reader.crs, on_stage=on_stage)
     on_stage("write")
     atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
     return open_map(data)
 
 
-def _compress_chunked(src: str | os.PathLike[str], params: Params, *, format: str | None,  # noqa: A002
-                      classes: Sequence[int] | None, drop_nonfinite: bool, topic: str | None, chunk_points: int,
-                      on_stage: Stage) -> bytes:
-    """:func:`dftpcc.compress` of a cloud read in chunks: summary, [auto resolution], heights, spread."""
-    check_chunked_aggregate(params.aggregate)
-    cloud = open_chunked(src, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
-                         chunk_points=chunk_points, topic=topic)
+def _grid(reader: Reader, params: Params, on_stage: Stage) -> tuple[DEM, int]:
+    """Summarise the reader's chunks, [choose the resolution], fit the grid, rasterize; and the points read.
+
+    A cloud that fits in memory is one chunk, read once and held: that is the
+    whole-cloud computation exactly (the same sums, extremes and cell
+    heights), and any aggregate, the median included, applies to it.
+    """
+    n = _chunk_size(reader)
+    if n is None:
+        parts = list(reader.chunks(None))
+        held = [np.concatenate(parts)] if len(parts) > 1 else parts
+        chunks: Callable[[], Iterable[np.ndarray]] = lambda: iter(held)  # noqa: E731
+    else:
+        check_chunked_aggregate(params.aggregate)
+        chunks = lambda: reader.chunks(n)  # noqa: E731 - a new pass over the file at each call
     summary = CloudSummary(hull=params.frame == "oriented")
-    for points in cloud.chunks():
+    for points in chunks():
         summary.add(points)
     if not summary.count:
-        if cloud.dropped:
-            raise InvalidInputError(f"{src}: all {cloud.dropped:,} points have NaN or infinite coordinates")
-        raise InvalidInputError(f"{src}: no points" + (" of the selected classes" if classes else ""))
-    resolution = summary.auto_resolution(cloud.chunks) if params.resolution == "auto" else params.resolution
+        raise reader.empty_error()
+    resolution = summary.auto_resolution(chunks) if params.resolution == "auto" else params.resolution
     on_stage("grid")
     grid = summary.fit_grid(resolution, frame=params.frame)
-    dem = rasterize_chunks(cloud.chunks, grid, aggregate=params.aggregate)
-    return encode_dem(dem, params, point_count=summary.count, crs=cloud.crs, on_stage=on_stage)
+    if n is None:
+        return rasterize(held[0], grid, aggregate=params.aggregate), summary.count
+    return rasterize_chunks(chunks, grid, aggregate=params.aggregate), summary.count
 
 
 def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
@@ -114,42 +155,15 @@ def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
     Returns
     -------
     ndarray, shape (cells, 3)
-        The rebuilt points.
+        The rebuilt points, metres.
     """
     fmt = format_of(dst, format)
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
         dem = cmap.read_dem(cutoff=cutoff)
         crs = cmap.crs
     points = dem_to_points(dem)
-    if fmt == "tif":
-        write_geotiff(dst, dem, crs=crs)
+    if io.REGISTRY[fmt].dem_writer:
+        io.write_dem(dst, dem, crs=crs, format=fmt)
     else:
         write(dst, points, crs=crs, format=fmt)
     return points
-
-
-def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]:
-    """A north-up GeoTIFF DEM as a :class:`DEM` on its own pixel grid.
-
-    Raises
-    ------
-    InvalidInputError
-        Rotated or east-to-west pixels (read it as points instead, with a
-        resolution), or no valid pixel.
-    """
-    heights, valid, t, crs = read_raster_dem(path)
-    if t.b != 0 or t.d != 0 or t.a <= 0:
-        raise InvalidInputError(f"{path}: pixels are rotated or flipped; give a --resolution to grid its points")
-    if not valid.any():
-        raise InvalidInputError(f"{path}: every pixel is nodata")
-    rows, cols = heights.shape
-    # Grid rows run south to north; a north-up file's row 0 is the northern edge.
-    flipped = t.e < 0
-    h = heights[::-1] if flipped else heights
-    m = valid[::-1] if flipped else valid
-    y0 = t.f + t.e * rows if flipped else t.f
-    z0 = float(h[m].mean())
-    # Planetary DEMs often have slightly (or very) non-square pixels: keep both spacings.
-    res_y = abs(t.e) if abs(abs(t.e) - t.a) > SQUARE_TOLERANCE * t.a else None
-    grid = Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=rows, cols=cols, resolution_y=res_y)
-    return DEM(grid=grid, heights=np.where(m, h - z0, 0.0), mask=m, gridding_rmse=0.0), crs

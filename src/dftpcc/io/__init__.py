@@ -1,68 +1,143 @@
-"""Read stage (and the final write): point clouds and DEMs in the formats users have.
+"""Read stage (and the final write): point clouds and DEMs in the formats users have, one module per format.
 
-LAS/LAZ (laspy + lazrs), PLY (plyfile), PCD (pypcd4), XYZ/CSV/TXT (numpy),
-NPY, and GeoTIFF DEMs (rasterio). The format comes from the file extension
-unless named. Coordinates stay float64. A CRS travels as a dict
-``{"wkt": str | None, "las_vlrs": [...]}``: the WKT when the source has one,
-and the raw LAS georeferencing records so a LAS -> .dftpc -> LAS round trip
-gives back the very same records.
+:data:`REGISTRY` maps each format to the module that reads (and writes) it,
+imported on first use; :func:`open_reader` opens a file as a
+:class:`~dftpcc.io.reader.Reader` that knows its count, CRS and chunks, and
+:func:`read` is its one-chunk read. Coordinates stay float64. A CRS travels
+as a dict ``{"wkt": str | None, "las_vlrs": [...]}``: the WKT when the source
+has one, and the raw LAS georeferencing records (see :mod:`dftpcc.io.las`).
 """
 
 from __future__ import annotations
 
-import base64
 import os
-import warnings
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from importlib import import_module
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from types import ModuleType
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from . import rosbag
-from ..dem import DEM, Grid, nonfinite_error
-from ..dem import drop_nonfinite as _drop_nonfinite  # read() has a keyword of that name
 from ..errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
-from .atomic import atomic_write
+from .atomic import atomic_write, writer_errors
+from .reader import DEFAULT_CHUNK_POINTS, PointCloud, Reader
 
-__all__ = ["PointCloud", "ChunkedCloud", "read", "open_chunked", "write", "read_raster_dem", "write_geotiff", "FORMATS",
-           "format_of"]
+if TYPE_CHECKING:
+    from ..dem import DEM
+    from .geotiff import dem_from_geotiff, read_raster_dem, write_geotiff
 
-#: Extension -> format name.
-FORMATS = {
-    ".las": "las", ".laz": "laz", ".ply": "ply", ".pcd": "pcd",
-    ".xyz": "xyz", ".txt": "xyz", ".csv": "csv", ".npy": "npy",
-    ".tif": "tif", ".tiff": "tif",
-    ".bag": "rosbag", ".db3": "rosbag", ".mcap": "rosbag",
-}
-#: LAS VLRs that carry georeferencing (LASF_Projection).
-_LAS_CRS_USER = "LASF_Projection"
-_WKT_RECORD = 2112
+__all__ = ["PointCloud", "Reader", "ChunkedCloud", "Format", "REGISTRY", "FORMATS", "CHUNKED_FORMATS",
+           "DEFAULT_CHUNK_POINTS", "format_of", "open_reader", "open_chunked", "check_chunkable", "read",
+           "stored_point_count", "write", "write_dem", "write_geotiff", "read_raster_dem", "dem_from_geotiff", "atomic_write"]
+
+#: A point writer: ``write(tmp_path, points (N, 3) float64, crs dict, format name)``.
+PointWriter = Callable[[Path, np.ndarray, "dict[str, Any]", str], None]
 
 
-@dataclass
-class PointCloud:
-    """Points and the georeferencing they came with.
+@dataclass(frozen=True)
+class Format:
+    """One entry of the registry: a format, its extensions, and where its reader and writer live.
 
     Attributes
     ----------
-    points : ndarray, shape (N, 3), float64
-        x, y, z in the file's units (metres for dftpcc's defaults).
-    crs : dict
-        ``{"wkt": ..., "las_vlrs": [...]}``; empty when the file has none.
+    name : str
+        The format name (``--format``).
+    extensions : tuple of str
+        File extensions that mean this format, lower case with the dot.
+    module : str
+        The module of :mod:`dftpcc.io` holding its reader (and writer),
+        imported the first time the format is used.
+    reader : str
+        Its :class:`~dftpcc.io.reader.Reader` class.
+    writer : str or None
+        Its point writer function; None for a format dftpcc does not write points in.
+    dem_writer : str or None
+        Its DEM writer function, for a raster format (``write(path, dem, *, crs)``).
+    not_written : str
+        What to say to someone writing points in a format dftpcc only reads.
+    streams : bool
+        Whether its reader reads from disk chunk by chunk, so that memory
+        holds one chunk (:data:`CHUNKED_FORMATS`); other readers read the
+        file whole, then slice it.
     """
 
-    points: np.ndarray
-    crs: dict[str, Any] = field(default_factory=dict)
+    name: str
+    extensions: tuple[str, ...]
+    module: str
+    reader: str
+    writer: str | None = None
+    dem_writer: str | None = None
+    not_written: str = ""
+    streams: bool = False
+
+    def load(self) -> ModuleType:
+        """The format's module (imported on first use: rasterio alone takes a fifth of a second)."""
+        return import_module(f"{__name__}.{self.module}")
+
+    def reader_class(self) -> type[Reader]:
+        return getattr(self.load(), self.reader)
+
+    def writer_function(self) -> PointWriter:
+        if self.writer is None:
+            raise UnsupportedFormatError(self.not_written)
+        return getattr(self.load(), self.writer)
+
+
+#: Format name -> its entry.
+REGISTRY: dict[str, Format] = {f.name: f for f in (
+    Format("las", (".las",), "las", "LasReader", "write_las", streams=True),
+    Format("laz", (".laz",), "las", "LasReader", "write_las", streams=True),
+    Format("ply", (".ply",), "ply", "PlyReader", "write_ply", streams=True),
+    Format("pcd", (".pcd",), "pcd", "PcdReader", "write_pcd"),
+    Format("xyz", (".xyz", ".txt"), "text", "TextReader", "write_text"),
+    Format("csv", (".csv",), "text", "TextReader", "write_text"),
+    Format("npy", (".npy",), "npy", "NpyReader", "write_npy", streams=True),
+    Format("drc", (".drc",), "drc", "DracoReader",
+           not_written="Draco files are read, not written: write .ply, .pcd, .las or .npy"),
+    Format("tif", (".tif", ".tiff"), "geotiff", "GeoTiffReader", dem_writer="write_geotiff",
+           not_written="a GeoTIFF holds a DEM, not points: use write_geotiff"),
+    Format("rosbag", (".bag", ".db3", ".mcap"), "rosbag", "BagReader",
+           not_written="ROS bags are read, not written: write .ply, .pcd, .las or .npy", streams=True),
+)}
+#: Extension -> format name.
+FORMATS: dict[str, str] = {ext: f.name for f in REGISTRY.values() for ext in f.extensions}
+#: Formats read chunk by chunk from disk (:func:`open_chunked`).
+CHUNKED_FORMATS: tuple[str, ...] = tuple(name for name, f in REGISTRY.items() if f.streams)
+
+#: Functions of a format module offered here, imported on first use (see :func:`__getattr__`).
+_LAZY = {"write_geotiff": "geotiff", "read_raster_dem": "geotiff", "dem_from_geotiff": "geotiff"}
+
+
+#: The format modules, imported on first use too (``dftpcc.io.las`` works without an import).
+_MODULES = {f.module for f in REGISTRY.values()}
+
+
+def __getattr__(name: str) -> Any:
+    # The GeoTIFF functions live with rasterio in io/geotiff.py, imported when first asked for.
+    if name in _LAZY:
+        return getattr(import_module(f"{__name__}.{_LAZY[name]}"), name)
+    if name in _MODULES:
+        return import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY) | _MODULES)
 
 
 def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
-    """The format name of ``path`` from ``fmt`` or its extension."""
+    """The format name of ``path``: ``fmt`` when given, else from its extension (a folder: a ROS 2 bag).
+
+    Raises
+    ------
+    UnsupportedFormatError
+        An unknown format name or extension.
+    """
     if fmt:
         fmt = fmt.lower().lstrip(".")
-        if fmt not in set(FORMATS.values()):
-            raise UnsupportedFormatError(f"unknown format {fmt!r}; known: {', '.join(sorted(set(FORMATS.values())))}")
+        if fmt not in REGISTRY:
+            raise UnsupportedFormatError(f"unknown format {fmt!r}; known: {', '.join(sorted(REGISTRY))}")
         return fmt
     if Path(path).is_dir() and (Path(path) / "metadata.yaml").is_file():
         return "rosbag"  # a ROS 2 bag is a folder
@@ -74,19 +149,96 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
     return FORMATS[ext]
 
 
+def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
+                classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
+                chunk_points: int | None = None) -> Reader:
+    """Open a point cloud (or GeoTIFF DEM) file for reading, as laspy's ``open`` does: the header only.
+
+    Parameters
+    ----------
+    path : path
+    format : str, optional
+        A name of :data:`REGISTRY`; default from the extension (:func:`format_of`).
+    classes : sequence of int, optional
+        LAS/LAZ only: keep points of these classification codes (2 = ground).
+    topic : str, optional
+        ROS bags only: the PointCloud2 topic (default: the bag's only one).
+    drop_nonfinite : bool
+        Drop rows with a NaN or infinite coordinate instead of refusing
+        (:meth:`~Reader.chunks`) or returning them (:meth:`~Reader.read`).
+    chunk_points : int, optional
+        Points per chunk of :meth:`~Reader.chunks`; only for the formats
+        read in chunks (:data:`CHUNKED_FORMATS`). Default: one chunk.
+
+    Returns
+    -------
+    Reader
+        A context manager; ``stored_points``, ``crs``, ``chunks(n)``, ``read()``.
+
+    Raises
+    ------
+    UnsupportedFormatError
+        An unknown format or extension.
+    InvalidInputError
+        Missing or unreadable file, an option the format cannot honour,
+        ``chunk_points`` for a format read whole, a bad ``chunk_points``.
+    MissingDependencyError
+        The format needs an optional package that is not installed.
+    """
+    path = Path(path)
+    fmt = format_of(path, format)
+    if chunk_points is not None:
+        check_chunkable(path, fmt)
+    entry = REGISTRY[fmt]
+    return entry.reader_class()(path, format=fmt, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
+                                chunk_points=chunk_points, streams=entry.streams)
+
+
+def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
+                 classes: Sequence[int] | None = None, drop_nonfinite: bool = False,
+                 chunk_points: int = DEFAULT_CHUNK_POINTS, topic: str | None = None) -> Reader:
+    """:func:`open_reader` for a cloud to read chunk by chunk (:data:`CHUNKED_FORMATS`).
+
+    ``chunk_points`` defaults to :data:`DEFAULT_CHUNK_POINTS`; each call of
+    the reader's ``chunks()`` reads the file again, so memory holds one chunk.
+
+    Raises
+    ------
+    InvalidInputError
+        As :func:`open_reader`, and a format that cannot be read in chunks.
+    """
+    check_chunkable(path, format)
+    return open_reader(path, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
+                       chunk_points=chunk_points)
+
+
+#: The name :func:`open_chunked` returned before readers were per format.
+ChunkedCloud = Reader
+
+
+def check_chunkable(path: str | os.PathLike[str], format: str | None = None) -> str:  # noqa: A002
+    """The format of ``path``, or a clear error if it cannot be read chunk by chunk."""
+    fmt = format_of(path, format)
+    if not REGISTRY[fmt].streams:
+        raise InvalidInputError(f"{path}: {fmt} files cannot be read in chunks; chunked reading supports "
+                                f"{', '.join(f.upper() for f in CHUNKED_FORMATS)}")
+    return fmt
+
+
 def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
          classes: Sequence[int] | None = None, drop_nonfinite: bool = False,
          topic: str | None = None) -> PointCloud:
-    """Read a point cloud.
+    """Read a point cloud whole.
 
     Parameters
     ----------
     path : path
     format : str, optional
         ``las``, ``laz``, ``ply``, ``pcd``, ``xyz``, ``csv``, ``npy``,
-        ``tif`` (every valid pixel of a GeoTIFF DEM becomes a point at its
-        centre) or ``rosbag`` (a ROS 1 ``.bag`` or a ROS 2 bag folder, see
-        :mod:`dftpcc.rosbag`); default from the extension.
+        ``drc`` (Draco, with the optional DracoPy), ``tif`` (every valid
+        pixel of a GeoTIFF DEM becomes a point at its centre) or ``rosbag``
+        (a ROS 1 ``.bag`` or a ROS 2 bag folder, see :mod:`dftpcc.io.rosbag`);
+        default from the extension.
     classes : sequence of int, optional
         LAS/LAZ only: keep points of these classification codes (2 = ground).
     drop_nonfinite : bool
@@ -95,279 +247,19 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
     topic : str, optional
         ROS bags only: the PointCloud2 topic (default: the bag's only one).
 
-    Raises
-    ------
-    InvalidInputError
-        Missing or unreadable file, no x/y/z, or no point left.
-    """
-    path = Path(path)
-    fmt = format_of(path, format)
-    _check_source(path, fmt, classes, topic)
-    reader = {"las": _read_las, "laz": _read_las, "ply": _read_ply, "pcd": _read_pcd,
-              "xyz": _read_text, "csv": _read_text, "npy": _read_npy, "tif": _read_tif}.get(fmt)
-    try:
-        if fmt in ("las", "laz"):
-            cloud = reader(path, classes)
-        elif fmt == "rosbag":
-            cloud = PointCloud(rosbag.read_bag(path, topic))
-        else:
-            cloud = reader(path)
-    except (InvalidInputError, MissingDependencyError):
-        raise
-    except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
-        raise InvalidInputError(f"{path}: cannot read as {fmt}: {exc}") from None
-    pts = cloud.points
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InvalidInputError(f"{path}: expected x, y, z columns, got shape {pts.shape}")
-    if drop_nonfinite and pts.shape[0]:
-        cloud.points, dropped = _drop_nonfinite(pts)
-        if cloud.points.shape[0] == 0:
-            raise InvalidInputError(f"{path}: all {dropped:,} points have NaN or infinite coordinates")
-    if cloud.points.shape[0] == 0:
-        raise InvalidInputError(f"{path}: no points" + (" of the selected classes" if classes else ""))
-    return cloud
-
-
-def _check_source(path: Path, fmt: str, classes: Sequence[int] | None, topic: str | None) -> None:
-    """The checks every reader shares: the file exists, the options fit the format."""
-    if fmt == "rosbag":
-        rosbag.bag_folder(path)  # a file or a ROS 2 folder
-    elif not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
-    if classes is not None and fmt not in ("las", "laz"):
-        raise InvalidInputError("classes can only be selected in LAS/LAZ files")
-    if topic is not None and fmt != "rosbag":
-        raise InvalidInputError("a topic can only be chosen in ROS bags")
-
-
-def _read_las(path: Path, classes: Sequence[int] | None) -> PointCloud:
-    import laspy
-
-    las = laspy.read(path)
-    pts = np.column_stack([np.asarray(las.x, dtype=np.float64), np.asarray(las.y, dtype=np.float64),
-                           np.asarray(las.z, dtype=np.float64)])
-    if classes is not None:
-        pts = pts[np.isin(np.asarray(las.classification), np.asarray(list(classes)))]
-    return PointCloud(pts, _las_crs(list(las.header.vlrs) + list(getattr(las, "evlrs", None) or [])))
-
-
-def _las_crs(records: Sequence[Any]) -> dict[str, Any]:
-    """The CRS dict of a LAS file's (E)VLRs: its WKT and its georeferencing records, raw."""
-    vlrs, wkt = [], None
-    for vlr in records:
-        if getattr(vlr, "user_id", "") != _LAS_CRS_USER:
-            continue
-        data = vlr.record_data_bytes() if hasattr(vlr, "record_data_bytes") else bytes(vlr.record_data)
-        vlrs.append({"record_id": int(vlr.record_id), "description": str(vlr.description),
-                     "data": base64.b64encode(data).decode("ascii")})
-        if vlr.record_id == _WKT_RECORD:
-            wkt = data.rstrip(b"\0").decode("utf-8", "replace")
-    return {"wkt": wkt, "las_vlrs": vlrs} if vlrs else {}
-
-
-def _read_ply(path: Path) -> PointCloud:
-    from plyfile import PlyData
-
-    ply = PlyData.read(str(path))
-    if "vertex" not in ply:
-        raise InvalidInputError(f"{path}: PLY file has no vertex element")
-    v = ply["vertex"]
-    names = v.data.dtype.names or ()
-    if not {"x", "y", "z"} <= set(names):
-        raise InvalidInputError(f"{path}: PLY vertices lack x, y or z")
-    pts = np.column_stack([np.asarray(v[c], dtype=np.float64) for c in "xyz"])
-    return PointCloud(pts, _ply_crs(ply.comments))
-
-
-def _ply_crs(comments: Sequence[str]) -> dict[str, Any]:
-    wkt = next((c[len("crs "):] for c in comments if c.startswith("crs ")), None)
-    return {"wkt": wkt} if wkt else {}
-
-
-def _read_pcd(path: Path) -> PointCloud:
-    from pypcd4 import PointCloud as PCD
-
-    pc = PCD.from_path(path)
-    fields = list(pc.fields)
-    if not {"x", "y", "z"} <= set(fields):
-        raise InvalidInputError(f"{path}: PCD lacks x, y or z fields")
-    arr = pc.numpy(("x", "y", "z"))
-    return PointCloud(np.asarray(arr, dtype=np.float64))
-
-
-def _read_text(path: Path) -> PointCloud:
-    with path.open("r", encoding="utf-8", errors="replace") as fh:
-        first = fh.readline()
-    delimiter = "," if "," in first else None
-    skip = 0
-    try:
-        [float(t) for t in (first.split(",") if delimiter else first.split())[:3]]
-    except ValueError:
-        skip = 1  # a header line
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # an empty file is reported as "no points"
-        data = np.loadtxt(path, delimiter=delimiter, skiprows=skip, usecols=(0, 1, 2), ndmin=2,
-                          dtype=np.float64)
-    return PointCloud(data)
-
-
-def _read_npy(path: Path) -> PointCloud:
-    arr = np.load(path, allow_pickle=False)
-    if arr.dtype.names:
-        arr = np.column_stack([arr[c] for c in "xyz"])
-    arr = np.asarray(arr, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] < 3:
-        raise InvalidInputError(f"{path}: expected an (N, 3) array, got shape {arr.shape}")
-    return PointCloud(arr[:, :3])
-
-
-#: Formats :func:`open_chunked` reads chunk by chunk.
-CHUNKED_FORMATS = ("las", "laz", "ply", "npy", "rosbag")
-#: Points per chunk unless told otherwise (about 24 MB of float64 x, y, z).
-DEFAULT_CHUNK_POINTS = 1_000_000
-
-
-@dataclass
-class ChunkedCloud:
-    """A point cloud file read chunk by chunk, as many passes as the caller needs.
-
-    Made by :func:`open_chunked`. Each call of :meth:`chunks` reads the file
-    again, so memory holds one chunk, not the cloud.
-
-    Attributes
-    ----------
-    path : Path
-    format : str
-    crs : dict
-        As :attr:`PointCloud.crs`.
-    stored_points : int or None
-        Points in the file, before class selection (None for a ROS bag,
-        whose messages would all have to be read to count them).
-    """
-
-    path: Path
-    format: str
-    crs: dict[str, Any]
-    stored_points: int | None
-    classes: Sequence[int] | None = None
-    topic: str | None = None
-    drop_nonfinite: bool = False
-    chunk_points: int = DEFAULT_CHUNK_POINTS
-    #: Rows dropped as non-finite in the last complete pass.
-    dropped: int = 0
-
-    def chunks(self) -> Iterator[np.ndarray]:
-        """One pass over the file: finite (n, 3) float64 arrays of the selected points.
-
-        Raises
-        ------
-        InvalidInputError
-            A row with a NaN or infinite coordinate (unless ``drop_nonfinite``),
-            or a file that stops being readable part way.
-        """
-        row, dropped = 0, 0
-        try:
-            for pts in self._raw_chunks():
-                finite = np.isfinite(pts).all(axis=1)
-                if not finite.all():
-                    if not self.drop_nonfinite:
-                        total = "the file's" + (f" {self.stored_points:,}" if self.stored_points is not None else "")
-                        raise nonfinite_error(row + np.flatnonzero(~finite), total)
-                    dropped += int(pts.shape[0] - finite.sum())
-                    pts = pts[finite]
-                row += pts.shape[0]
-                yield pts
-        except (InvalidInputError, MissingDependencyError):
-            raise
-        except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
-            raise InvalidInputError(f"{self.path}: cannot read as {self.format}: {exc}") from None
-        self.dropped = dropped
-
-    def _raw_chunks(self) -> Iterator[np.ndarray]:
-        n = self.chunk_points
-        if self.format in ("las", "laz"):
-            import laspy
-
-            wanted = None if self.classes is None else np.asarray(list(self.classes))
-            with laspy.open(self.path) as fh:
-                for part in fh.chunk_iterator(n):
-                    pts = np.column_stack([np.asarray(part.x, dtype=np.float64), np.asarray(part.y, dtype=np.float64),
-                                           np.asarray(part.z, dtype=np.float64)])
-                    yield pts if wanted is None else pts[np.isin(np.asarray(part.classification), wanted)]
-        elif self.format == "rosbag":
-            yield from rosbag.bag_chunks(self.path, self.topic, n)
-        else:
-            xyz, _ = _mapped_xyz(self.path, self.format)
-            for start in range(0, self.stored_points, n):
-                yield np.column_stack([np.asarray(c[start:start + n], dtype=np.float64) for c in xyz])
-
-
-def _mapped_xyz(path: Path, fmt: str) -> tuple[list[np.ndarray], dict[str, Any]]:
-    """x, y and z of a PLY or NPY file as arrays mapped from disk (read as sliced), and its CRS."""
-    if fmt == "npy":
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
-        if arr.dtype.names:
-            return [arr[c] for c in "xyz"], {}
-        if arr.ndim != 2 or arr.shape[1] < 3:
-            raise InvalidInputError(f"{path}: expected an (N, 3) array, got shape {arr.shape}")
-        return [arr[:, k] for k in range(3)], {}
-    from plyfile import PlyData
-
-    ply = PlyData.read(str(path), mmap=True)  # binary vertex data stays on disk
-    if "vertex" not in ply:
-        raise InvalidInputError(f"{path}: PLY file has no vertex element")
-    data = ply["vertex"].data
-    if not {"x", "y", "z"} <= set(data.dtype.names or ()):
-        raise InvalidInputError(f"{path}: PLY vertices lack x, y or z")
-    return [data[c] for c in "xyz"], _ply_crs(ply.comments)
-
-
-def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
-                 classes: Sequence[int] | None = None, drop_nonfinite: bool = False,
-                 chunk_points: int = DEFAULT_CHUNK_POINTS, topic: str | None = None) -> ChunkedCloud:
-    """Open a point cloud to read it chunk by chunk (:data:`CHUNKED_FORMATS`).
-
-    Reads the header (and CRS) only. Parameters as :func:`read`, plus
-    ``chunk_points``, the points per chunk.
+    Returns
+    -------
+    PointCloud
+        x, y, z (N, 3) float64 in the file's units, and its CRS.
 
     Raises
     ------
     InvalidInputError
-        Missing or unreadable file, a format that cannot be read in chunks,
-        a bad ``chunk_points``.
+        Missing or unreadable file, no x/y/z, an option the format cannot
+        honour, or no point left.
     """
-    path = Path(path)
-    fmt = check_chunkable(path, format)
-    _check_source(path, fmt, classes, topic)
-    if not (isinstance(chunk_points, int) and chunk_points > 0):
-        raise InvalidInputError(f"chunk_points must be a positive integer, got {chunk_points!r}")
-    try:
-        if fmt in ("las", "laz"):
-            import laspy
-
-            with laspy.open(path) as fh:
-                header = fh.header
-                records = list(header.vlrs) + list(getattr(header, "evlrs", None) or [])
-                stored, crs = int(header.point_count), _las_crs(records)
-        elif fmt == "rosbag":
-            stored, crs = None, {}
-        else:
-            xyz, crs = _mapped_xyz(path, fmt)
-            stored = len(xyz[0])
-    except InvalidInputError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - third-party readers raise anything on bad files
-        raise InvalidInputError(f"{path}: cannot read as {fmt}: {exc}") from None
-    return ChunkedCloud(path, fmt, crs, stored, classes, topic, drop_nonfinite, chunk_points)
-
-
-def check_chunkable(path: str | os.PathLike[str], format: str | None = None) -> str:  # noqa: A002
-    """The format of ``path``, or a clear error if :func:`open_chunked` cannot read it."""
-    fmt = format_of(path, format)
-    if fmt not in CHUNKED_FORMATS:
-        raise InvalidInputError(f"{path}: {fmt} files cannot be read in chunks; chunked reading supports "
-                                f"{', '.join(f.upper() for f in CHUNKED_FORMATS)}")
-    return fmt
+    with open_reader(path, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite) as reader:
+        return reader.read()
 
 
 def stored_point_count(path: str | os.PathLike[str], format: str | None = None) -> int | None:  # noqa: A002
@@ -378,40 +270,12 @@ def stored_point_count(path: str | os.PathLike[str], format: str | None = None) 
     PointCloud2 holds) bounds it from above.
     """
     try:
-        if format_of(path, format) == "rosbag":
-            return rosbag.size_bound(path) // 12
-        return open_chunked(path, format=format).stored_points
-    except (InvalidInputError, OSError):
+        if not REGISTRY[format_of(path, format)].streams:
+            return None
+        with open_reader(path, format=format) as reader:
+            return reader.points_bound
+    except (InvalidInputError, MissingDependencyError, OSError):
         return None
-
-
-def read_raster_dem(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, Any, dict[str, Any]]:
-    """A GeoTIFF DEM as (heights, valid mask, affine transform, crs dict).
-
-    Heights are float64, rows as stored (north-up files have row 0 at the top).
-    """
-    import rasterio
-
-    try:
-        with rasterio.open(path) as src:
-            band = src.read(1, masked=True)
-            crs = {"wkt": src.crs.to_wkt()} if src.crs else {}
-            transform = src.transform
-    except Exception as exc:  # noqa: BLE001 - GDAL raises its own errors on bad files
-        raise InvalidInputError(f"{path}: cannot read as a GeoTIFF DEM: {exc}") from None
-    # Integer DEMs (int16 SRTM, MOLA) cannot hold NaN: convert before filling nodata.
-    heights = np.asarray(band.astype(np.float64).filled(np.nan), dtype=np.float64)
-    valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
-    return heights, valid, transform, crs
-
-
-def _read_tif(path: Path) -> PointCloud:
-    heights, valid, transform, crs = read_raster_dem(path)
-    rows, cols = np.nonzero(valid)
-    a, b, c, d, e, f = transform.a, transform.b, transform.c, transform.d, transform.e, transform.f
-    x = c + a * (cols + 0.5) + b * (rows + 0.5)
-    y = f + d * (cols + 0.5) + e * (rows + 0.5)
-    return PointCloud(np.column_stack([x, y, heights[rows, cols]]), crs)
 
 
 def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, Any] | None = None,
@@ -421,114 +285,45 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
     The file appears complete or not at all (temporary file, then rename).
     For a DEM as GeoTIFF use :func:`write_geotiff`.
 
+    Parameters
+    ----------
+    path : path
+    points : array_like, shape (N, 3)
+        x, y, z in metres.
+    crs : dict, optional
+        Written where the format has room for it (LAS records, a PLY comment).
+    format : str, optional
+        Default from the extension.
+
     Raises
     ------
+    UnsupportedFormatError
+        A format dftpcc only reads (GeoTIFF, ROS bags, Draco).
     InvalidInputError
         The writer cannot represent the points or the CRS (e.g. a LAS
-        record over 64 KiB, a WKT a PLY comment cannot hold).
+        record over 64 KiB, a WKT a PLY comment cannot hold), or the folder
+        does not exist.
     OSError
-        The file system refused (permissions, disk full).
+        The file system refused (permissions, disk full); the message names ``path``.
     """
     fmt = format_of(path, format)
-    if fmt == "tif":
-        raise UnsupportedFormatError("a GeoTIFF holds a DEM, not points: use write_geotiff")
-    if fmt == "rosbag":
-        raise UnsupportedFormatError("ROS bags are read, not written: write .ply, .pcd, .las or .npy")
+    writer = REGISTRY[fmt].writer_function()
     points = np.asarray(points, dtype=np.float64)
-    writer = {"las": _write_las, "laz": _write_las, "ply": _write_ply, "pcd": _write_pcd,
-              "xyz": _write_text, "csv": _write_text, "npy": _write_npy}[fmt]
-    with _writer_errors(path, fmt):
+    with writer_errors(path, fmt):
         atomic_write(path, lambda tmp: writer(tmp, points, crs or {}, fmt))
 
 
-@contextmanager
-def _writer_errors(path: str | os.PathLike[str], fmt: str) -> Iterator[None]:
-    """Third-party writers raise anything on what they cannot represent: one clear error instead."""
-    try:
-        yield
-    except (InvalidInputError, OSError):
-        raise
-    except Exception as exc:  # noqa: BLE001 - laspy, plyfile, pypcd4, rasterio have no common error
-        raise InvalidInputError(f"{path}: cannot write as {fmt}: {exc}") from None
+def write_dem(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | None = None,
+              format: str | None = None) -> None:  # noqa: A002
+    """Write a DEM to ``path`` in a raster format (GeoTIFF: :func:`~dftpcc.io.geotiff.write_geotiff`).
 
-
-#: LAS output stores coordinates as integers of this many metres.
-LAS_SCALE = 0.001
-
-
-def _write_las(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
-    import laspy
-    from laspy.vlrs.vlr import VLR
-
-    vlrs = [VLR(user_id=_LAS_CRS_USER, record_id=v["record_id"], description=v.get("description", ""),
-                record_data=base64.b64decode(v["data"])) for v in crs.get("las_vlrs", [])]
-    has_wkt = any(v.record_id == _WKT_RECORD for v in vlrs)
-    if not vlrs and crs.get("wkt"):
-        vlrs = [VLR(user_id=_LAS_CRS_USER, record_id=_WKT_RECORD, description="OGC WKT",
-                    record_data=crs["wkt"].encode() + b"\0")]
-        has_wkt = True
-    # LAS 1.4 point format 6 requires WKT; GeoTIFF keys go in a 1.2 file.
-    header = laspy.LasHeader(point_format=6 if has_wkt or not vlrs else 0,
-                             version="1.4" if has_wkt or not vlrs else "1.2")
-    if has_wkt:
-        header.global_encoding.wkt = True
-    header.vlrs.extend(vlrs)
-    header.scales = np.array([LAS_SCALE] * 3)
-    header.offsets = np.floor(points.min(axis=0)) if points.size else np.zeros(3)
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
-    las.classification = np.full(points.shape[0], 2, dtype=np.uint8)  # a terrain model: ground
-    with open(tmp, "wb") as fh:
-        las.write(fh, do_compress=(fmt == "laz"))
-
-
-def _write_ply(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
-    from plyfile import PlyData, PlyElement
-
-    vertex = np.empty(points.shape[0], dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
-    vertex["x"], vertex["y"], vertex["z"] = points[:, 0], points[:, 1], points[:, 2]
-    comments = ["made by dftpcc"] + ([f"crs {crs['wkt']}"] if crs.get("wkt") else [])
-    PlyData([PlyElement.describe(vertex, "vertex")], text=False, comments=comments).write(str(tmp))
-
-
-def _write_pcd(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
-    from pypcd4 import PointCloud as PCD
-
-    PCD.from_points(points, ("x", "y", "z"), (np.float64, np.float64, np.float64)).save(tmp)
-
-
-def _write_text(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
-    np.savetxt(tmp, points, fmt="%.6f", delimiter="," if fmt == "csv" else " ",
-               header="x,y,z" if fmt == "csv" else "", comments="")
-
-
-def _write_npy(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
-    with open(tmp, "wb") as fh:
-        np.save(fh, points)
-
-
-def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | None = None) -> None:
-    """Write a DEM as a float32 GeoTIFF (north-up), empty cells as nodata (NaN)."""
-    import rasterio
-    from rasterio.transform import Affine
-
-    grid: Grid = dem.grid
-    heights = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
-    import math
-
-    c, s = math.cos(grid.angle), math.sin(grid.angle)
-    r, dy = grid.resolution, grid.dy
-    # Row 0 of the file is the last grid row (largest v): flip v.
-    top_x = grid.x0 - s * grid.rows * dy
-    top_y = grid.y0 + c * grid.rows * dy
-    transform = Affine(c * r, s * dy, top_x, s * r, -c * dy, top_y)
-    wkt = (crs or {}).get("wkt")
-
-    def _write(tmp: Path) -> None:
-        with rasterio.open(tmp, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1,
-                           dtype="float32", nodata=float("nan"), transform=transform,
-                           crs=wkt or None) as dst:
-            dst.write(heights, 1)
-
-    with _writer_errors(path, "tif"):
-        atomic_write(path, _write)
+    Raises
+    ------
+    UnsupportedFormatError
+        A format that holds points, not a DEM.
+    """
+    fmt = format_of(path, format)
+    entry = REGISTRY[fmt]
+    if entry.dem_writer is None:
+        raise UnsupportedFormatError(f"{path}: {fmt} files hold points, not a DEM: write points with write()")
+    getattr(entry.load(), entry.dem_writer)(path, dem, crs=crs)

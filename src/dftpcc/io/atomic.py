@@ -1,20 +1,22 @@
-"""Atomic writes: a file appears complete or not at all.
+"""Atomic writes, the last step of every output: a file appears complete or not at all.
 
 Every writer of dftpcc (``.dftpc``, point clouds, GeoTIFF) goes through
 :func:`atomic_write`, so an interrupted run or a failing writer never leaves
-a partial or corrupt output file under the user's name.
+a partial or corrupt output file under the user's name, and a failure is one
+error naming that file (:func:`writer_errors` for third-party writers).
 """
 
 from __future__ import annotations
 
 import os
 import secrets
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from ..errors import InvalidInputError
 
-__all__ = ["atomic_write"]
+__all__ = ["atomic_write", "writer_errors"]
 
 
 #: Temporary files of :func:`atomic_write`: ``.NAME.PID.TOKEN.tmpSUFFIX``.
@@ -31,6 +33,14 @@ def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
     interrupted (Ctrl-C, SIGTERM under the CLI) the temporary file is
     removed; only a process killed outright (SIGKILL, power loss) leaves it,
     under a hidden name, and the next write to ``path`` removes it.
+
+    Raises
+    ------
+    InvalidInputError
+        The folder of ``path`` does not exist.
+    OSError
+        The file system refused (permissions, disk full): the error of the
+        same class and errno, naming ``path`` rather than the temporary file.
     """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
@@ -44,9 +54,36 @@ def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
         _sync_folder(folder)
+    except OSError as exc:
+        raise _naming(path, tmp, exc) from exc
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def _naming(path: Path, tmp: Path, exc: OSError) -> OSError:
+    """``exc`` as one line about ``path``: writers report the temporary file, or no file at all."""
+    text = " ".join(str(exc.strerror or exc).split())  # GDAL explains itself over several lines
+    text = text.replace(str(tmp), str(path))
+    if exc.errno is None:
+        return OSError(f"{path}: cannot write: {text}")
+    return OSError(exc.errno, text, str(path))  # the subclass of the errno (PermissionError, ...)
+
+
+@contextmanager
+def writer_errors(path: str | os.PathLike[str], fmt: str) -> Iterator[None]:
+    """Third-party writers raise anything on what they cannot represent: one clear error naming ``path``.
+
+    :class:`InvalidInputError` and :class:`OSError` pass as they are (see
+    :func:`atomic_write`); anything else becomes an :class:`InvalidInputError`
+    ``PATH: cannot write as FMT: ...`` on one line.
+    """
+    try:
+        yield
+    except (InvalidInputError, OSError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - laspy, plyfile, pypcd4, rasterio have no common error
+        raise InvalidInputError(f"{path}: cannot write as {fmt}: {' '.join(str(exc).split())}") from None
 
 
 def _sync_folder(folder: Path) -> None:

@@ -1,4 +1,4 @@
-"""Read stage for ROS bags: the ``sensor_msgs/PointCloud2`` messages of one topic, as one cloud.
+"""ROS bags: the ``sensor_msgs/PointCloud2`` messages of one topic, read as one cloud, message by message.
 
 A SLAM system records its map (or its registered scans, already in the map
 frame) as PointCloud2 messages; dftpcc reads every message of one topic and
@@ -19,18 +19,47 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, ClassVar, Iterator
 
 import numpy as np
 
 from ..errors import InvalidInputError, MissingDependencyError
+from .reader import Reader
 
-__all__ = ["POINTCLOUD2", "bag_folder", "pointcloud2_xyz", "read_bag", "bag_chunks"]
+__all__ = ["POINTCLOUD2", "BagReader", "bag_folder", "pointcloud2_xyz", "read_bag", "bag_chunks", "size_bound"]
 
 POINTCLOUD2 = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
 #: PointField datatype codes -> numpy types.
 _FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 INSTALL_HINT = "pip install 'dftpcc[ros]' (the rosbags package)"
+#: Bytes of the smallest point a PointCloud2 holds (float32 x, y, z): a bag's size over it bounds its points.
+SMALLEST_POINT_BYTES = 12
+
+
+class BagReader(Reader):
+    """A ROS 1 ``.bag`` or a ROS 2 bag folder: the PointCloud2 messages of ``topic``, whole messages per chunk.
+
+    A bag has no point count (:attr:`stored_points` is None); its size over
+    :data:`SMALLEST_POINT_BYTES` bounds it (:attr:`points_bound`).
+    """
+
+    options: ClassVar[frozenset[str]] = frozenset({"topic"})
+
+    def _locate(self) -> None:
+        bag_folder(self.path)  # a file, or a ROS 2 folder
+
+    def _open(self) -> None:
+        _any_reader()  # a missing package is said before any work
+
+    @property
+    def points_bound(self) -> int | None:
+        return size_bound(self.path) // SMALLEST_POINT_BYTES
+
+    def _raw_chunks(self, n: int | None) -> Iterator[np.ndarray]:
+        if n is None:
+            yield read_bag(self.path, self.topic)
+        else:
+            yield from bag_chunks(self.path, self.topic, n)
 
 
 def bag_folder(path: str | Path) -> Path:
@@ -51,21 +80,26 @@ def bag_folder(path: str | Path) -> Path:
 
 
 def size_bound(path: str | Path) -> int:
-    """Bytes of the bag (the files of a ROS 2 bag folder), an upper bound of its point data."""
+    """Bytes of the bag (the files of a ROS 2 bag folder), an upper bound of its point data (bytes)."""
     folder = bag_folder(path)
     return sum(f.stat().st_size for f in folder.iterdir() if f.is_file()) if folder.is_dir() else folder.stat().st_size
+
+
+def _any_reader() -> Any:
+    """rosbags' reader of every bag version, or the error saying how to install it."""
+    try:
+        from rosbags.highlevel import AnyReader
+    except ImportError:
+        raise MissingDependencyError(
+            f"reading ROS bags needs rosbags, which is not installed: {INSTALL_HINT}") from None
+    return AnyReader
 
 
 @contextmanager
 def _open(path: Path, topic: str | None) -> Iterator[tuple[Any, list[Any]]]:
     """The reader and the connections of the chosen PointCloud2 topic."""
     try:
-        from rosbags.highlevel import AnyReader
-    except ImportError:
-        raise MissingDependencyError(
-            f"reading ROS bags needs rosbags, which is not installed: {INSTALL_HINT}") from None
-    try:
-        reader = AnyReader([bag_folder(path)])
+        reader = _any_reader()([bag_folder(path)])
         reader.open()
     except InvalidInputError:
         raise
@@ -73,18 +107,27 @@ def _open(path: Path, topic: str | None) -> Iterator[tuple[Any, list[Any]]]:
         raise InvalidInputError(f"{path}: cannot read as a ROS bag: {exc}") from None
     try:
         clouds = sorted({c.topic for c in reader.connections if c.msgtype in POINTCLOUD2})
+        if not clouds:
+            raise InvalidInputError(f"{path}: the bag has no PointCloud2 topic ({_topics(reader.connections)})")
         if topic is None:
             if len(clouds) != 1:
-                found = ", ".join(clouds) if clouds else "none"
                 raise InvalidInputError(f"{path}: choose the PointCloud2 topic to read with --topic "
-                                        f"(PointCloud2 topics in the bag: {found})")
+                                        f"(PointCloud2 topics in the bag: {', '.join(clouds)})")
             topic = clouds[0]
         elif topic not in clouds:
             raise InvalidInputError(f"{path}: no PointCloud2 topic {topic!r} in the bag "
-                                    f"(PointCloud2 topics: {', '.join(clouds) or 'none'})")
+                                    f"(PointCloud2 topics: {', '.join(clouds)})")
         yield reader, [c for c in reader.connections if c.topic == topic and c.msgtype in POINTCLOUD2]
     finally:
         reader.close()
+
+
+def _topics(connections: Any) -> str:
+    """The topics of a bag with their message types, for an error message."""
+    topics = sorted({(c.topic, c.msgtype) for c in connections})
+    if not topics:
+        return "it has no topics at all"
+    return "its topics: " + ", ".join(f"{topic} ({msgtype})" for topic, msgtype in topics)
 
 
 def pointcloud2_xyz(msg: Any) -> np.ndarray:

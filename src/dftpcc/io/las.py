@@ -1,0 +1,93 @@
+"""LAS and LAZ point clouds (laspy, with lazrs for LAZ): read chunk by chunk, written at millimetres.
+
+A CRS travels as the file's ``LASF_Projection`` records, raw, so a
+LAS -> .dftpc -> LAS round trip gives back the very same records; their WKT,
+when one is there, is the ``wkt`` of the CRS dict.
+"""
+
+from __future__ import annotations
+
+import base64
+from pathlib import Path
+from typing import Any, ClassVar, Iterator, Sequence
+
+import laspy
+import numpy as np
+from laspy.vlrs.vlr import VLR
+
+from .reader import Reader
+
+__all__ = ["LasReader", "write_las", "LAS_SCALE"]
+
+#: LAS VLRs that carry georeferencing (LASF_Projection).
+_LAS_CRS_USER = "LASF_Projection"
+_WKT_RECORD = 2112
+#: LAS output stores coordinates as integers of this many metres.
+LAS_SCALE = 0.001
+#: The classification code of what dftpcc writes: a terrain model is ground.
+GROUND = 2
+
+
+class LasReader(Reader):
+    """A LAS or LAZ file: the count and CRS from its header, the points in chunks of its records.
+
+    ``classes`` keeps points of those classification codes (2 = ground);
+    :attr:`stored_points` counts every point, before that selection.
+    """
+
+    options: ClassVar[frozenset[str]] = frozenset({"classes"})
+
+    def _open(self) -> None:
+        with laspy.open(self.path) as fh:
+            header = fh.header
+            self.stored_points = int(header.point_count)
+            self.crs = las_crs(list(header.vlrs) + list(getattr(header, "evlrs", None) or []))
+
+    def _raw_chunks(self, n: int | None) -> Iterator[np.ndarray]:
+        wanted = None if self.classes is None else np.asarray(list(self.classes))
+        with laspy.open(self.path) as fh:
+            for part in fh.chunk_iterator(n or max(int(fh.header.point_count), 1)):
+                pts = np.column_stack([np.asarray(part.x, dtype=np.float64), np.asarray(part.y, dtype=np.float64),
+                                       np.asarray(part.z, dtype=np.float64)])
+                yield pts if wanted is None else pts[np.isin(np.asarray(part.classification), wanted)]
+
+
+def las_crs(records: Sequence[Any]) -> dict[str, Any]:
+    """The CRS dict of a LAS file's (E)VLRs: its WKT and its georeferencing records, raw."""
+    vlrs, wkt = [], None
+    for vlr in records:
+        if getattr(vlr, "user_id", "") != _LAS_CRS_USER:
+            continue
+        data = vlr.record_data_bytes() if hasattr(vlr, "record_data_bytes") else bytes(vlr.record_data)
+        vlrs.append({"record_id": int(vlr.record_id), "description": str(vlr.description),
+                     "data": base64.b64encode(data).decode("ascii")})
+        if vlr.record_id == _WKT_RECORD:
+            wkt = data.rstrip(b"\0").decode("utf-8", "replace")
+    return {"wkt": wkt, "las_vlrs": vlrs} if vlrs else {}
+
+
+def write_las(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
+    """Write ``points`` (metres) as LAS, or LAZ when ``fmt`` is ``laz``, at :data:`LAS_SCALE` metres.
+
+    The CRS's LAS records go back as they came; a WKT alone makes a LAS 1.4
+    file (point format 6, which requires WKT); GeoTIFF keys a LAS 1.2 file.
+    """
+    vlrs = [VLR(user_id=_LAS_CRS_USER, record_id=v["record_id"], description=v.get("description", ""),
+                record_data=base64.b64decode(v["data"])) for v in crs.get("las_vlrs", [])]
+    has_wkt = any(v.record_id == _WKT_RECORD for v in vlrs)
+    if not vlrs and crs.get("wkt"):
+        vlrs = [VLR(user_id=_LAS_CRS_USER, record_id=_WKT_RECORD, description="OGC WKT",
+                    record_data=crs["wkt"].encode() + b"\0")]
+        has_wkt = True
+    header = laspy.LasHeader(point_format=6 if has_wkt or not vlrs else 0,
+                             version="1.4" if has_wkt or not vlrs else "1.2")
+    if has_wkt:
+        header.global_encoding.wkt = True
+    header.vlrs.extend(vlrs)
+    header.scales = np.array([LAS_SCALE] * 3)
+    header.offsets = np.floor(points.min(axis=0)) if points.size else np.zeros(3)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    las.classification = np.full(points.shape[0], GROUND, dtype=np.uint8)
+    with open(tmp, "wb") as fh:
+        las.write(fh, do_compress=(fmt == "laz"))
