@@ -192,3 +192,84 @@ def test_a_closed_output_pipe_stops_quietly(tmp_path, cloud_file):
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 141
     assert err == b""
+
+
+def _no_reading(monkeypatch):
+    """Make any attempt to read the input fail loudly: output checks must come first."""
+    import dftpcc.files
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the input was read before the output was checked")
+
+    monkeypatch.setattr(dftpcc.files, "open_reader", refuse)
+
+
+def test_an_unwritable_output_is_refused_before_the_input_is_read(tmp_path, cloud_file, capsys, monkeypatch):
+    import errno
+
+    import dftpcc.io.atomic as atomic
+
+    _no_reading(monkeypatch)
+    real_open = atomic.os.open
+
+    def read_only(path, *args, **kwargs):  # a read-only folder, as a non-root user meets it
+        if str(path).startswith(str(tmp_path / "ro")):
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real_open(path, *args, **kwargs)
+
+    (tmp_path / "ro").mkdir()
+    monkeypatch.setattr(atomic.os, "open", read_only)
+    assert main(["compress", str(cloud_file), str(tmp_path / "ro" / "x.dftpc")]) == 7
+    err = capsys.readouterr().err
+    assert err == f"dftpcc: error: [Errno 13] Permission denied: '{tmp_path / 'ro' / 'x.dftpc'}'\n"  # the user's path
+    assert main(["compress", str(cloud_file), str(tmp_path)]) == 3
+    assert "is a folder" in capsys.readouterr().err
+    assert main(["compress", str(cloud_file), str(tmp_path / "nowhere" / "x.dftpc")]) == 3
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["decompress", str(cloud_file), str(tmp_path / "ro" / "x.ply")]) == 7
+
+
+def test_a_write_protected_output_needs_force(tmp_path, cloud_file, capsys):
+    out = tmp_path / "x.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "-q"]) == 0
+    out.chmod(0o444)
+    before = out.read_bytes()
+    assert main(["compress", str(cloud_file), str(out), "-r", "1", "-q"]) == 3
+    assert "write-protected; use --force" in capsys.readouterr().err and out.read_bytes() == before
+    assert main(["compress", str(cloud_file), str(out), "-r", "1", "-q", "--force"]) == 0
+    assert out.read_bytes() != before
+
+
+def test_a_compressed_output_named_like_a_point_cloud_is_refused(tmp_path, cloud_file, capsys, monkeypatch):
+    _no_reading(monkeypatch)
+    assert main(["compress", str(cloud_file), str(tmp_path / "out.ply")]) == 3
+    err = capsys.readouterr().err
+    assert "would be written under the .ply extension" in err and "--force" in err
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_standard_input_and_output_as_dash(tmp_path, cloud_file, small_terrain):
+    import subprocess
+    import sys
+
+    xyz = tmp_path / "t.xyz"
+    dftpcc.write(xyz, small_terrain)
+    dftpcc_cmd = [sys.executable, "-m", "dftpcc"]
+    packed = subprocess.run(dftpcc_cmd + ["compress", "-", "-", "--format", "xyz", "-r", "0.5", "-q"],
+                            input=xyz.read_bytes(), capture_output=True, check=True).stdout
+    direct = tmp_path / "d.dftpc"
+    assert main(["compress", str(xyz), str(direct), "-r", "0.5", "-q"]) == 0
+    assert packed == direct.read_bytes()  # the stream is the file
+    rebuilt = subprocess.run(dftpcc_cmd + ["decompress", "-", "-", "--format", "npy"], input=packed,
+                             capture_output=True, check=True)
+    import io
+
+    assert np.array_equal(np.load(io.BytesIO(rebuilt.stdout)), dftpcc.decompress(packed))
+    assert b"points" in rebuilt.stderr  # the summary goes to stderr when the map goes to stdout
+    via_dev = subprocess.run(dftpcc_cmd + ["compress", "/dev/stdin", str(tmp_path / "s.dftpc"), "--format", "xyz",
+                                           "-r", "0.5", "-q"], input=xyz.read_bytes(), capture_output=True)
+    assert via_dev.returncode == 0, via_dev.stderr
+    assert (tmp_path / "s.dftpc").read_bytes() == packed
+    no_format = subprocess.run(dftpcc_cmd + ["compress", "-", str(tmp_path / "n.dftpc")], input=b"",
+                               capture_output=True)
+    assert no_format.returncode == 3 and b"name its format" in no_format.stderr

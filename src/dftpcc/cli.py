@@ -144,10 +144,17 @@ COMPRESS_STAGES = ("read", "grid", "spectrum", "encode", "container", "write")
 
 
 def _say(args: argparse.Namespace, *lines: str) -> None:
-    """Print unless ``--quiet``."""
+    """Print unless ``--quiet``; on stderr when the output itself goes to standard output."""
     if not args.quiet:
         for line in lines:
-            print(line)
+            print(line, file=sys.stderr if getattr(args, "output", None) == "-" else sys.stdout)
+
+
+def _stream(name: str, mode: str) -> Any:
+    """``-`` as standard input (``mode='r'``) or output (``'w'``), as pdal and laszip take it; else the name."""
+    if name != "-":
+        return name
+    return sys.stdin.buffer if mode == "r" else sys.stdout.buffer
 
 
 def _errors_text(stats: dict[str, Any], unit: str) -> str:
@@ -182,7 +189,8 @@ def cmd_compress(args: argparse.Namespace) -> int:
                    target_bpp=args.target_bpp)
     t0 = time.perf_counter()
     with _progress(not args.quiet, COMPRESS_STAGES, verbose=args.verbose) as on_stage:
-        cmap = compress_file(args.input, args.output, resolution=args.resolution, cutoff=args.cutoff,
+        cmap = compress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
+                             resolution=args.resolution, cutoff=args.cutoff,
                              profile=args.profile, format=args.format, classes=args.classes,
                              drop_nonfinite=args.drop_nonfinite, chunk_points=args.chunk_points, topic=args.topic,
                              on_stage=on_stage, **options)
@@ -203,9 +211,10 @@ def cmd_compress(args: argparse.Namespace) -> int:
 def cmd_decompress(args: argparse.Namespace) -> int:
     from .files import decompress_file
 
-    points = decompress_file(args.input, args.output, format=args.format, max_bytes=args.max_bytes,
+    points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
+                             format=args.format, max_bytes=args.max_bytes,
                              cutoff=args.cutoff, max_cells=args.max_cells)
-    if str(args.output).lower().endswith((".tif", ".tiff")):
+    if str(args.output).lower().endswith((".tif", ".tiff")) or args.format in ("tif", "tiff"):
         from .mapfile import open as open_map
 
         with open_map(args.input, max_cells=args.max_cells, max_bytes=args.max_bytes) as cmap:
@@ -457,8 +466,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("compress", parents=[common], help="point cloud -> .dftpc", description=(
         "Grid a point cloud into a DEM, low-pass its spectrum and write a .dftpc file. "
         "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .tif, and ROS bags (.bag, or a ROS 2 bag folder)"))
-    p.add_argument("input", help="the point cloud or GeoTIFF DEM to compress")
-    p.add_argument("output", help="the .dftpc file to write")
+    p.add_argument("input", help="the point cloud or GeoTIFF DEM to compress ('-': standard input, with --format)")
+    p.add_argument("output", help="the .dftpc file to write ('-': standard output)")
+    p.add_argument("--force", "-f", action="store_true",
+                   help="replace a write-protected output, or write under another format's extension")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto",
                    help="DEM cell size in metres, or 'auto' (default: about 4 points per cell; "
                         "a GeoTIFF keeps its own pixels)")
@@ -496,8 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("decompress", parents=[common], help=".dftpc -> point cloud or GeoTIFF DEM", description=(
         "Rebuild the map. Output format from the extension: .las .laz .ply .pcd .xyz .txt .csv .npy, "
         "or .tif for the rebuilt DEM."))
-    p.add_argument("input", help="the .dftpc file to decode")
-    p.add_argument("output", help="the point cloud or GeoTIFF (.tif) file to write")
+    p.add_argument("input", help="the .dftpc file to decode ('-': standard input)")
+    p.add_argument("output", help="the point cloud or GeoTIFF (.tif) file to write ('-': standard output, with --format)")
+    p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output file")
     p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
     p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",

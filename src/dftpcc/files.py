@@ -8,17 +8,22 @@ in memory) or takes a raster's own DEM, encodes and writes the ``.dftpc``;
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import IO, Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
 from . import io
+from .container import unpack
 from .dem import DEM
 from .encoder import Stage, encode_dem, no_stage, params_of
 from .grid import CloudSummary, check_chunked_aggregate, rasterize, rasterize_chunks
-from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, format_of, open_reader, write
-from .limits import holds_in_memory
+from .errors import InvalidInputError
+from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, check_output, format_of, open_reader, write
+from .limits import MAX_CELLS, holds_in_memory
 from .mapfile import CompressedMap
 from .mapfile import open as open_map
 from .params import Params
@@ -61,15 +66,62 @@ def _chunk_size(reader: Reader) -> int | None:
     return None
 
 
-def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], params: Params | None = None, *,
+#: A path, or a binary stream (standard input or output, an open file).
+Source = str | os.PathLike[str] | IO[bytes]
+
+
+def _is_stream(target: Any) -> bool:
+    return hasattr(target, "read") or hasattr(target, "write")
+
+
+@contextmanager
+def _as_path(src: Source, format: str | None) -> Iterator[str | os.PathLike[str]]:  # noqa: A002
+    """``src`` as a path readers can open: a stream or a pipe (``/dev/stdin``) is copied to a temporary file."""
+    if not _is_stream(src) and (Path(src).is_file() or Path(src).is_dir() or not Path(src).exists()):
+        yield src  # a file, a ROS 2 bag folder, or a missing path the reader reports
+        return
+    if format is None:
+        raise InvalidInputError(f"{getattr(src, 'name', src)}: a stream has no extension; name its format "
+                                f"(--format npy, xyz, las, ...)")
+    name = format_of(f"x.{format}", format)
+    ext = next(e for e, f in io.FORMATS.items() if f == name)
+    with tempfile.TemporaryDirectory(prefix="dftpcc-") as tmp:
+        path = Path(tmp) / f"stream{ext}"
+        with path.open("wb") as out:
+            if _is_stream(src):
+                shutil.copyfileobj(src, out)
+            else:
+                with open(src, "rb") as fh:
+                    shutil.copyfileobj(fh, out)
+        yield path
+
+
+def check_compressed_output(dst: Source, *, force: bool = False) -> None:
+    """Refuse, before any work, a ``.dftpc`` output that cannot be written or is named like another format.
+
+    A name with a point-cloud or raster extension (``out.ply``) would hold a
+    ``.dftpc`` under a misleading name: refused unless ``force``.
+    """
+    if _is_stream(dst):
+        return
+    ext = Path(dst).suffix.lower()
+    if ext in io.FORMATS and not force:
+        raise InvalidInputError(f"{dst}: a .dftpc file would be written under the {ext} extension of another "
+                                f"format; name it .dftpc (to rebuild a {ext} file use decompress), or use --force")
+    check_output(dst, force=force)
+
+
+def compress_file(src: Source, dst: Source, params: Params | None = None, *,
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
                   drop_nonfinite: bool = False, chunk_points: int | None = None, topic: str | None = None,
-                  on_stage: Stage = no_stage, **shortcuts: Any) -> CompressedMap:
+                  force: bool = False, on_stage: Stage = no_stage, **shortcuts: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
     Parameters
     ----------
-    src, dst : path
+    src, dst : path or binary stream
+        A stream (standard input or output) or a pipe is read or written
+        whole; reading one needs ``format``.
     params : Params, optional
         As :func:`dftpcc.compress`, as are ``**shortcuts``.
     format, classes, drop_nonfinite, topic
@@ -102,17 +154,22 @@ def compress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], para
     """
     # Parameters and options checked before the first pass over a file that may take minutes to read.
     params = params_of(params, shortcuts)
+    check_compressed_output(dst, force=force)
     on_stage("read")
-    with open_reader(src, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
-                     chunk_points=chunk_points) as reader:
+    with _as_path(src, format) as path, open_reader(path, format=format, classes=classes, topic=topic,
+                                                    drop_nonfinite=drop_nonfinite, chunk_points=chunk_points) as reader:
         if reader.own_grid and params.resolution == "auto":
             data = encode_dem(reader.dem(), params, crs=reader.crs, on_stage=on_stage)
         else:
             dem, count = _grid(reader, params, on_stage)
             data = encode_dem(dem, params, point_count=count, crs=reader.crs, on_stage=on_stage)
     on_stage("write")
-    atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
-    return open_map(data)
+    if _is_stream(dst):
+        dst.write(data)
+        dst.flush()
+    else:
+        atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
+    return open_map(data, max_cells=_trusted(data))
 
 
 def _grid(reader: Reader, params: Params, on_stage: Stage) -> tuple[DEM, int]:
@@ -143,9 +200,14 @@ def _grid(reader: Reader, params: Params, on_stage: Stage) -> tuple[DEM, int]:
     return rasterize_chunks(chunks, grid, aggregate=params.aggregate), summary.count
 
 
-def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
+def _trusted(data: bytes) -> int:
+    """The grid size of a map we just wrote: opening our own output needs no decompression-bomb budget."""
+    return unpack(data, max_cells=MAX_CELLS)[0].grid.size
+
+
+def decompress_file(src: Source, dst: Source, *,
                     format: str | None = None, max_bytes: int | None = None,  # noqa: A002
-                    cutoff: float | None = None, max_cells: int | None = None) -> np.ndarray:
+                    cutoff: float | None = None, max_cells: int | None = None, force: bool = False) -> np.ndarray:
     """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
 
     The output format comes from ``dst``'s extension; ``.tif`` writes the
@@ -157,13 +219,41 @@ def decompress_file(src: str | os.PathLike[str], dst: str | os.PathLike[str], *,
     ndarray, shape (cells, 3)
         The rebuilt points, metres.
     """
-    fmt = format_of(dst, format)
+    if _is_stream(dst) and format is None:
+        raise InvalidInputError("a stream has no extension: name the output format (--format xyz, npy, ply, ...)")
+    fmt = format_of("x" if _is_stream(dst) else dst, format)
+    if not _is_stream(dst):
+        check_output(dst, force=force)
+    if not _is_stream(src) and Path(src).exists() and not Path(src).is_file():
+        with open(src, "rb") as fh:  # a pipe such as /dev/stdin
+            src = _Buffer(fh.read(), str(src))
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
         dem = cmap.read_dem(cutoff=cutoff)
         crs = cmap.crs
     points = dem_to_points(dem)
-    if io.REGISTRY[fmt].dem_writer:
-        io.write_dem(dst, dem, crs=crs, format=fmt)
-    else:
-        write(dst, points, crs=crs, format=fmt)
+    with tempfile.TemporaryDirectory(prefix="dftpcc-") if _is_stream(dst) else _nothing() as tmp:
+        target = Path(tmp) / f"out.{fmt}" if _is_stream(dst) else dst
+        if io.REGISTRY[fmt].dem_writer:
+            io.write_dem(target, dem, crs=crs, format=fmt)
+        else:
+            write(target, points, crs=crs, format=fmt)
+        if _is_stream(dst):
+            with open(target, "rb") as fh:
+                shutil.copyfileobj(fh, dst)
+            dst.flush()
     return points
+
+
+class _Buffer:
+    """Bytes read from a pipe, with the pipe's name for messages."""
+
+    def __init__(self, data: bytes, name: str):
+        self.data, self.name = data, name
+
+    def read(self) -> bytes:
+        return self.data
+
+
+@contextmanager
+def _nothing() -> Iterator[None]:
+    yield None

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from ..errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
-from .atomic import atomic_write, writer_errors
+from .atomic import atomic_write, check_output, writer_errors
 from .reader import DEFAULT_CHUNK_POINTS, PointCloud, Reader
 
 if TYPE_CHECKING:
@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 
 __all__ = ["PointCloud", "Reader", "ChunkedCloud", "Format", "REGISTRY", "FORMATS", "CHUNKED_FORMATS",
            "DEFAULT_CHUNK_POINTS", "format_of", "open_reader", "open_chunked", "check_chunkable", "read",
-           "stored_point_count", "write", "write_dem", "write_geotiff", "read_raster_dem", "dem_from_geotiff", "atomic_write"]
+           "stored_point_count", "write", "write_dem", "write_geotiff", "read_raster_dem", "dem_from_geotiff", "atomic_write", "check_output"]
 
 #: A point writer: ``write(tmp_path, points (N, 3) float64, crs dict, format name)``.
 PointWriter = Callable[[Path, np.ndarray, "dict[str, Any]", str], None]

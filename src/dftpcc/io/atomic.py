@@ -16,7 +16,7 @@ from typing import Any, Iterator
 
 from ..errors import InvalidInputError
 
-__all__ = ["atomic_write", "writer_errors"]
+__all__ = ["atomic_write", "writer_errors", "check_output"]
 
 
 #: Temporary files of :func:`atomic_write`: ``.NAME.PID.TOKEN.tmpSUFFIX``.
@@ -59,6 +59,42 @@ def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def check_output(path: str | os.PathLike[str], *, force: bool = False) -> Path:
+    """Refuse, before any work, an output path that :func:`atomic_write` could not fill.
+
+    Checks that ``path`` is not a folder or a special file, that its folder
+    exists and takes a new file (by creating and removing one: permissions,
+    read-only file systems and ``/proc`` all answer that), and that an
+    existing file is not write-protected, unless ``force``, as ``cp -f`` and
+    ``gdal_translate`` users expect.
+
+    Raises
+    ------
+    InvalidInputError
+        A folder, a special file, a missing folder, or a write-protected file without ``force``.
+    OSError
+        The folder refuses a new file (the error's class and errno, naming ``path``).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise InvalidInputError(f"{path}: is a folder; give the name of the file to write")
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise InvalidInputError(f"{path}: folder {folder} does not exist")
+    if path.exists() or path.is_symlink():
+        if not path.is_file():
+            raise InvalidInputError(f"{path}: not a regular file; give the name of a file to write")
+        if not path.stat().st_mode & 0o222 and not force:
+            raise InvalidInputError(f"{path}: the file is write-protected; use --force (force=True) to replace it")
+    probe = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}"
+    try:
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+        os.unlink(probe)
+    except OSError as exc:
+        raise _naming(path, probe, exc) from exc
+    return path
 
 
 def _naming(path: Path, tmp: Path, exc: OSError) -> OSError:
