@@ -128,7 +128,7 @@ def test_cli_sweep_writes_csv_and_figure(tmp_path, capsys):
     rocks = data_file("pointclouds/redrocks_rough.ply")
     mountain = data_file("pointclouds/mountain_arid_alirt.las")
     out = tmp_path / "out"
-    code = main(["sweep", str(rocks), str(mountain), "-r", "5,2", "--classes", "2",
+    code = main(["sweep", str(rocks), str(mountain), "-r", "5,2",
                  "--cutoffs", "0,0.45,...,0.9,0.95", "--profile", "paper", "-o", str(out)])
     assert code == 0
     rows = sweep.read_csv(out / "sweep.csv")
@@ -195,3 +195,21 @@ def test_evaluate_against_other_points_than_were_compressed_warns(tmp_path, caps
     assert "was made from 35,318 points but" in err and "gives 38,367" in err and "--classes" in err
     assert main(["evaluate", str(src), str(packed), "--classes", "2"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_sweep_and_compare_make_the_map_compress_makes(tmp_path, capsys):
+    # A newcomer's report: on a GeoTIFF, sweep and compare resampled to about 2 x 2 pixels while
+    # compress kept the pixel grid; sweep ignored --classes on a PLY where compress refuses it.
+    gale = data_file("dems/mars_gale_1m.tif")
+    assert main(["compress", str(gale), str(tmp_path / "g.dftpc"), "-q"]) == 0
+    packed = dftpcc.open(tmp_path / "g.dftpc")
+    assert main(["sweep", str(gale), "--cutoffs", "0.8", "-o", str(tmp_path / "s"), "-q"]) == 0
+    (row,) = sweep.read_csv(tmp_path / "s" / "sweep.csv")
+    assert (row["grid_rows"], row["grid_cols"]) == (packed.grid.rows, packed.grid.cols)
+    assert row["resolution_m"] == packed.grid.resolution
+    assert row["bytes"] == packed.size  # the very file compress writes
+    rocks = data_file("pointclouds/redrocks_rough.ply")
+    for command in (["sweep", str(rocks), "-o", str(tmp_path / "r")], ["compare", str(rocks), "-o", str(tmp_path / "c")],
+                    ["compress", str(rocks), str(tmp_path / "r.dftpc")]):
+        assert main(command + ["--classes", "2"]) == 3
+        assert "classes can only be selected in LAS/LAZ files" in capsys.readouterr().err

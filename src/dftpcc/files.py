@@ -29,7 +29,7 @@ from .mapfile import open as open_map
 from .params import Params
 from .rebuild import dem_to_points
 
-__all__ = ["compress_file", "decompress_file", "dem_from_geotiff", "reads_in_chunks", "stored_point_count"]
+__all__ = ["compress_file", "decompress_file", "read_dem", "check_compressed_output", "dem_from_geotiff", "reads_in_chunks", "stored_point_count"]
 
 
 def stored_point_count(src: str | os.PathLike[str], format: str | None = None) -> int | None:  # noqa: A002
@@ -156,13 +156,10 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
     params = params_of(params, shortcuts)
     check_compressed_output(dst, force=force)
     on_stage("read")
-    with _as_path(src, format) as path, open_reader(path, format=format, classes=classes, topic=topic,
-                                                    drop_nonfinite=drop_nonfinite, chunk_points=chunk_points) as reader:
-        if reader.own_grid and params.resolution == "auto":
-            data = encode_dem(reader.dem(), params, crs=reader.crs, on_stage=on_stage)
-        else:
-            dem, count = _grid(reader, params, on_stage)
-            data = encode_dem(dem, params, point_count=count, crs=reader.crs, on_stage=on_stage)
+    with _as_path(src, format) as path:
+        dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic,
+                                   drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage)
+    data = encode_dem(dem, params, point_count=count, crs=crs, on_stage=on_stage)
     on_stage("write")
     if _is_stream(dst):
         dst.write(data)
@@ -170,6 +167,30 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
     else:
         atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
     return open_map(data, max_cells=_trusted(data))
+
+
+def read_dem(src: str | os.PathLike[str], params: Params, *, format: str | None = None,  # noqa: A002
+             classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
+             chunk_points: int | None = None, on_stage: Stage = no_stage) -> tuple[DEM, int, dict[str, Any]]:
+    """The DEM :func:`compress_file` codes for ``src``: a raster's own grid (resolution ``'auto'``),
+    or the cloud gridded at ``params``; with the points it came from and the CRS.
+
+    Every command that turns a file into a map (compress, sweep, compare) goes through here.
+
+    Returns
+    -------
+    dem : DEM
+    point_count : int
+        Points read (pixels, for a raster's own grid).
+    crs : dict
+    """
+    with open_reader(src, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
+                     chunk_points=chunk_points) as reader:
+        if reader.own_grid and params.resolution == "auto":
+            dem = reader.dem()
+            return dem, int(dem.mask.sum()), reader.crs
+        dem, count = _grid(reader, params, on_stage)
+        return dem, count, reader.crs
 
 
 def _grid(reader: Reader, params: Params, on_stage: Stage) -> tuple[DEM, int]:

@@ -11,10 +11,11 @@ import numpy as np
 from .. import metrics
 from ..dem import DEM
 from ..encoder import encode_dem, grid_points
+from ..files import read_dem
+from ..io import read
 from ..mapfile import open as open_map
 from ..params import make_params
 from ..rebuild import dem_to_points
-from .evaluate import load_points
 from .figures import plot_compare, require_matplotlib
 
 __all__ = ["COMPARE_CUTOFFS", "compare_points", "compare_file"]
@@ -26,9 +27,12 @@ Row = dict[str, Any]
 
 
 def compare_points(points: np.ndarray, *, cutoffs: Sequence[float] = COMPARE_CUTOFFS,
-                   resolution: float | str = "auto", profile: str = "compact",
+                   resolution: float | str = "auto", profile: str = "compact", dem: DEM | None = None,
                    **options: Any) -> tuple[DEM, dict[float, DEM], dict[float, Row]]:
     """The original DEM and the DEMs a decoder rebuilds at each cutoff.
+
+    ``dem``: the map to code when the caller has it (:func:`dftpcc.files.read_dem`);
+    default ``points`` gridded at ``resolution``.
 
     Returns
     -------
@@ -41,7 +45,7 @@ def compare_points(points: np.ndarray, *, cutoffs: Sequence[float] = COMPARE_CUT
     """
     points = np.asarray(points, dtype=np.float64)
     params = make_params(resolution=resolution, profile=profile, **options)
-    dem = grid_points(points, params)
+    dem = grid_points(points, params) if dem is None else dem
     rebuilt: dict[float, DEM] = {}
     figures: dict[float, Row] = {}
     interpolator = None
@@ -70,8 +74,10 @@ def compare_file(path: str | os.PathLike[str], *, out: str | os.PathLike[str],
     name = label or Path(path).stem
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
-    cloud = load_points(path, classes=classes)
-    original, rebuilt, figures = compare_points(cloud.points, cutoffs=cutoffs, resolution=resolution,
+    params = make_params(resolution=resolution, profile=profile, **options)
+    dem, _, _ = read_dem(path, params, classes=classes)  # what compress codes: a GeoTIFF on its own pixels
+    cloud = read(path, classes=classes)
+    original, rebuilt, figures = compare_points(cloud.points, cutoffs=cutoffs, resolution=resolution, dem=dem,
                                                 profile=profile, **options)
     return plot_compare(original, rebuilt, folder / f"{name}_compare_{profile}.png", figures=figures,
                         title=f"{name}: {cloud.points.shape[0]:,} points, "

@@ -8,19 +8,13 @@ from typing import Any, Sequence
 
 from .. import metrics
 from ..errors import InputMismatchWarning, InvalidInputError
-from ..io import PointCloud, format_of, read
+from ..io import read
 from ..mapfile import is_dftpc
 from ..mapfile import open as open_map
 
-__all__ = ["load_points", "evaluate_files"]
+__all__ = ["evaluate_files"]
 
 Row = dict[str, Any]
-
-
-def load_points(path: str | os.PathLike[str], *, classes: Sequence[int] | None = None) -> PointCloud:
-    """Read a cloud, keeping ``classes`` when the file is LAS/LAZ (other formats have none)."""
-    keep = classes if classes is not None and format_of(path) in ("las", "laz") else None
-    return read(path, classes=keep)
 
 
 def evaluate_files(original: str | os.PathLike[str], candidate: str | os.PathLike[str], *,
@@ -51,7 +45,7 @@ def evaluate_files(original: str | os.PathLike[str], candidate: str | os.PathLik
                                 f"comes first (dftpcc evaluate ORIGINAL COMPRESSED_OR_REBUILT); swap them")
     if is_dftpc(original):
         raise InvalidInputError(f"{original}: the original must be a point cloud, not a .dftpc file")
-    ref = load_points(original, classes=classes).points
+    ref = read(original, classes=classes).points
     extra: Row = {"original": str(original), "candidate": str(candidate)}
     if is_dftpc(candidate):
         with open_map(candidate, max_cells=max_cells) as cmap:

@@ -25,11 +25,13 @@ import numpy as np
 
 from .. import metrics
 from ..encoder import encode_dem, grid_points
+from ..dem import DEM
 from ..errors import InvalidInputError
+from ..files import read_dem
+from ..io import read
 from ..mapfile import open as open_map
 from ..params import make_params
 from ..rebuild import dem_to_points
-from .evaluate import load_points
 from .figures import plot_sweep
 
 __all__ = ["DEFAULT_CUTOFFS", "SWEEP_COLUMNS", "Terrain", "terrains", "sweep_points", "sweep", "write_csv",
@@ -70,7 +72,7 @@ class Terrain:
     resolution : float or 'auto'
         DEM cell size in metres.
     classes : tuple of int, optional
-        LAS/LAZ classification codes to keep (2 = ground); ignored for other formats.
+        LAS/LAZ classification codes to keep (2 = ground); other formats refuse them, as compress does.
     label : str, optional
         Name in the CSV and the legend; default the file name without extension.
     """
@@ -110,7 +112,8 @@ def terrains(paths: Sequence[str | os.PathLike[str]], resolutions: Sequence[floa
 
 def sweep_points(points: np.ndarray, *, cutoffs: Iterable[float] = DEFAULT_CUTOFFS,
                  resolution: float | str = "auto", profile: str = "compact", label: str = "",
-                 source: str = "", on_row: OnRow = _noop, **options: Any) -> list[Row]:
+                 source: str = "", on_row: OnRow = _noop, dem: DEM | None = None, crs: dict[str, Any] | None = None,
+                 **options: Any) -> list[Row]:
     """Compress one cloud at every cutoff and measure each result.
 
     Parameters
@@ -126,6 +129,11 @@ def sweep_points(points: np.ndarray, *, cutoffs: Iterable[float] = DEFAULT_CUTOF
         Terrain name and input path written in each row.
     on_row : callable, optional
         Called with each row as soon as it is measured (progress display).
+    dem : DEM, optional
+        The map to code, when the caller has it (:func:`dftpcc.files.read_dem`,
+        as compress makes it); default: ``points`` gridded at ``resolution``.
+    crs : dict, optional
+        Carried in each file, as compress does, so the sizes are those of the files it writes.
     **options
         Other :class:`~dftpcc.params.Params` fields.
 
@@ -140,7 +148,7 @@ def sweep_points(points: np.ndarray, *, cutoffs: Iterable[float] = DEFAULT_CUTOF
     t0 = time.perf_counter()
     points = np.asarray(points, dtype=np.float64)
     params = make_params(resolution=resolution, profile=profile, **options)
-    dem = grid_points(points, params)
+    dem = grid_points(points, params) if dem is None else dem
     grid = dem.grid
     tree = metrics.build_tree(points)
     grid_s = time.perf_counter() - t0
@@ -149,7 +157,7 @@ def sweep_points(points: np.ndarray, *, cutoffs: Iterable[float] = DEFAULT_CUTOF
     rows = []
     for cutoff in cutoffs:
         t0 = time.perf_counter()
-        data = encode_dem(dem, params.replace(cutoff=cutoff), point_count=int(points.shape[0]))
+        data = encode_dem(dem, params.replace(cutoff=cutoff), point_count=int(points.shape[0]), crs=crs)
         t1 = time.perf_counter()
         cmap = open_map(data)
         rebuilt = dem_to_points(cmap.read_dem())
@@ -182,8 +190,11 @@ def sweep(terrains: Iterable[Terrain], *, cutoffs: Iterable[float] = DEFAULT_CUT
     cutoffs = tuple(cutoffs)
     rows: list[Row] = []
     for terrain in terrains:
-        cloud = load_points(terrain.path, classes=terrain.classes)
-        rows.extend(sweep_points(cloud.points, cutoffs=cutoffs, resolution=terrain.resolution,
+        # The map compress would code (a GeoTIFF on its own pixels), measured against the points read.
+        params = make_params(resolution=terrain.resolution, profile=profile, **options)
+        dem, _, crs = read_dem(terrain.path, params, classes=terrain.classes)
+        cloud = read(terrain.path, classes=terrain.classes)
+        rows.extend(sweep_points(cloud.points, cutoffs=cutoffs, resolution=terrain.resolution, dem=dem, crs=crs,
                                  profile=profile, label=terrain.name, source=str(terrain.path),
                                  on_row=on_row, **options))
     return rows
