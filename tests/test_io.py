@@ -291,3 +291,21 @@ def test_a_full_disk_names_the_users_file_not_the_temporary(tmp_path, monkeypatc
         assert failure.value.errno == errno.ENOSPC and failure.value.filename == str(target)
         assert str(failure.value) == f"[Errno {errno.ENOSPC}] No space left on device: '{target}'"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_geotiff_outputs_are_tiled_and_compressed(tmp_path):
+    import rasterio
+
+    from dftpcc.cli import main
+
+    src = data_file("dems/moon_kepler_lola_48m.tif")
+    assert main(["compress", str(src), str(tmp_path / "k.dftpc"), "-q"]) == 0
+    assert main(["decompress", str(tmp_path / "k.dftpc"), str(tmp_path / "k.tif"), "-q"]) == 0
+    with rasterio.open(tmp_path / "k.tif") as out:
+        assert out.compression == rasterio.enums.Compression.deflate
+        assert out.block_shapes == [(256, 256)]
+        assert out.tags(ns="IMAGE_STRUCTURE").get("PREDICTOR") == "3"
+        heights = out.read(1, masked=True)
+    assert (tmp_path / "k.tif").stat().st_size < 0.7 * 804 * 804 * 4  # measured 0.58 of the raw float32 raster
+    rebuilt = dftpcc.open(tmp_path / "k.dftpc").read_dem()
+    assert int(heights.count()) == int(rebuilt.mask.sum())

@@ -128,10 +128,18 @@ class GeoTiffReader(Reader):
         yield from self._slices(points, n)
 
 
-def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | None = None) -> None:
+#: How a GeoTIFF output is laid out and compressed by default: tiled, DEFLATE with the
+#: floating-point predictor (GDAL's PREDICTOR=3), which GIS tools read everywhere.
+GEOTIFF_CREATION = {"tiled": True, "blockxsize": 256, "blockysize": 256, "compress": "deflate", "predictor": 3}
+
+
+def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | None = None,
+                  creation: dict[str, Any] | None = None) -> None:
     """Write a DEM as a float32 GeoTIFF (north-up), empty cells as nodata (NaN).
 
     Heights are written in metres above the DEM's datum (``grid.z0`` added back).
+    ``creation``: GDAL creation options (default :data:`GEOTIFF_CREATION`; ``{}``
+    for an uncompressed strip layout); tiles larger than the raster are left out.
 
     Raises
     ------
@@ -149,13 +157,16 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
     top_y = grid.y0 + c * grid.rows * dy
     transform = Affine(c * r, s * dy, top_x, s * r, -c * dy, top_y)
     wkt = (crs or {}).get("wkt")
+    options = dict(GEOTIFF_CREATION if creation is None else creation)
+    if options.get("tiled") and min(grid.rows, grid.cols) < options.get("blockxsize", 256):
+        options = {k: v for k, v in options.items() if k not in ("tiled", "blockxsize", "blockysize")}
 
     def _write(tmp: Path) -> None:
         # GDAL encodes in memory and Python writes the bytes: a full disk is then an OSError with its
         # errno, not lines of libtiff text on stderr and an exception that says "see previous".
         with MemoryFile() as mem:
             with mem.open(driver="GTiff", height=grid.rows, width=grid.cols, count=1, dtype="float32",
-                          nodata=float("nan"), transform=transform, crs=wkt or None) as dst:
+                          nodata=float("nan"), transform=transform, crs=wkt or None, **options) as dst:
                 dst.write(heights, 1)
             with open(tmp, "wb") as fh:
                 fh.write(mem.getbuffer())
