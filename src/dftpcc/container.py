@@ -45,6 +45,7 @@ __all__ = [
     "pack",
     "unpack",
     "cells_allowed",
+    "check_max_bytes",
 ]
 
 MAGIC = b"\x89DFTPC\r\n"
@@ -561,8 +562,19 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
 def cells_allowed(file_size: int, max_cells: int | None) -> int:
     """The largest grid a file of ``file_size`` bytes may ask for: ``max_cells`` if given
     (never over :data:`~dftpcc.limits.MAX_CELLS`), else :func:`~dftpcc.limits.cell_budget`."""
+    check_max_cells(max_cells)
     if max_cells is None:
         return cell_budget(file_size)
-    if not _is_count(max_cells) or max_cells == 0:
-        raise InvalidInputError(f"max_cells must be a positive whole number, got {max_cells!r}")
     return min(max_cells, MAX_CELLS)
+
+
+def check_max_cells(max_cells: Any) -> None:
+    """Refuse a ``max_cells`` argument that is not None or a positive whole number."""
+    if max_cells is not None and (not _is_count(max_cells) or max_cells == 0):
+        raise InvalidInputError(f"max_cells must be a positive whole number, got {max_cells!r}")
+
+
+def check_max_bytes(max_bytes: Any) -> None:
+    """Refuse a ``max_bytes`` argument that is not None or a positive whole number of bytes."""
+    if max_bytes is not None and (not _is_count(max_bytes) or max_bytes == 0):
+        raise InvalidInputError(f"max_bytes must be a positive whole number of bytes, got {max_bytes!r}")
