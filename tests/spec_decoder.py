@@ -71,17 +71,23 @@ def _words(buf: bytes) -> np.ndarray:
 
 # --------------------------------------------------------------------------- container
 
-def _uleb(data: bytes, pos: int) -> tuple[int, int]:
-    """Unsigned LEB128 at ``pos`` (at most 64 bits) and the position after it."""
-    value, shift = 0, 0
-    while pos < len(data) and shift <= 63:
-        byte = data[pos]
-        pos += 1
-        value |= (byte & 0x7F) << shift
-        shift += 7
+def _uleb(data: bytes, pos: int, where: str = "section table") -> tuple[int, int]:
+    """Unsigned LEB128 at ``pos`` and the position after it.
+
+    format.md: at most 10 bytes and a value below 2**64 (a tenth byte is 0 or 1 and ends it);
+    anything wider is refused, never reduced.
+    """
+    value = 0
+    for k in range(10):
+        if pos + k >= len(data):
+            raise ValueError(f"{where} is truncated")
+        byte = data[pos + k]
+        value |= (byte & 0x7F) << (7 * k)
         if not byte & 0x80:
-            return value, pos
-    raise ValueError("truncated section table")
+            if value >= 1 << 64:
+                break
+            return value, pos + k + 1
+    raise ValueError(f"{where} holds an integer wider than 64 bits")
 
 
 def _sections(data: bytes) -> dict[bytes, bytes]:
@@ -165,18 +171,7 @@ def _stat(p: bytes) -> dict:
             if fid in STAT_FLOAT_IDS:
                 stats[STAT_FLOAT_IDS[fid]] = float(v)
         else:
-            v, shift = 0, 0
-            while True:
-                if i >= len(p) or shift > 63:
-                    raise ValueError("section STAT holds a truncated or oversized integer")
-                b = p[i]
-                i += 1
-                v |= (b & 0x7F) << shift
-                shift += 7
-                if not b & 0x80:
-                    break
-            if v >= 1 << 64:
-                raise ValueError("section STAT holds an oversized integer")
+            v, i = _uleb(p, i, "section STAT")
             if fid in STAT_INT_IDS:
                 stats[STAT_INT_IDS[fid]] = v
     return stats

@@ -8,12 +8,17 @@ the section table, the bytes after the last section, and the writer applying the
 from __future__ import annotations
 
 import io
+import zlib
 
+import numpy as np
 import pytest
 
 import dftpcc
-from dftpcc.errors import InvalidInputError
+from dftpcc import container
+from dftpcc.errors import CorruptFileError, InvalidInputError
 
+from . import spec_decoder
+from .fuzz import craft
 from .fuzz.seeds import seed_files
 
 
@@ -60,3 +65,53 @@ def test_a_negative_max_bytes_does_not_read_the_whole_file(tmp_path, good):
     path.write_bytes(good)
     with pytest.raises(InvalidInputError, match="max_bytes must be a positive"):
         dftpcc.open(path, max_bytes=-1)
+
+
+# --- LEB128 integers of the section table and STAT: at most 64 bits -----------------------------------
+
+def _entry_index(data: bytes, tag: bytes) -> int:
+    return [t for t, *_ in craft.table(data)].index(tag)
+
+
+@pytest.mark.parametrize("field,value", [("tile", 1 << 64), ("tile", (1 << 70) + 5), ("length", (1 << 64) + 3)])
+def test_a_table_integer_wider_than_64_bits_is_refused(good, field, value):
+    # A tile of 2**64 used to be read as a tile other than 0: the CRS section was
+    # skipped and the map lost its CRS without a word.
+    crafted = craft.with_table_entry(good, _entry_index(good, b"CRS "), **{field: value})
+    with pytest.raises(CorruptFileError, match="wider than 64 bits"):
+        dftpcc.open(crafted)
+    with pytest.raises(ValueError, match="wider than 64 bits"):
+        spec_decoder.decode(crafted)
+
+
+def test_an_endless_leb128_is_refused_as_too_wide(good):
+    at = craft.PREAMBLE.size + 4  # the first entry's tile
+    crafted = craft.fix_table_crc(good[:at] + b"\x80" * 10 + b"\x00" + good[at + 1:])
+    with pytest.raises(CorruptFileError, match="wider than 64 bits"):
+        dftpcc.open(crafted)
+    with pytest.raises(ValueError, match="wider than 64 bits"):
+        spec_decoder.decode(crafted)
+
+
+def test_the_widest_64_bit_tile_is_read_and_skipped(good):
+    # Ten bytes and a value below 2**64 is a valid tile number: a later tiled layout's.
+    sections = craft.split(good)
+    extra = b"future tile"
+    entries = [craft.entry(t, 0, len(p), zlib.crc32(p)) for t, p in sections]
+    entries.append(craft.entry(b"GEOM", (1 << 64) - 1, len(extra), zlib.crc32(extra)))
+    head = craft.PREAMBLE.pack(container.MAGIC, 1, 0, 0, len(entries)) + b"".join(entries)
+    tiled = head + craft.CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections) + extra
+    assert len(craft.leb128((1 << 64) - 1)) == 10
+    np.testing.assert_array_equal(dftpcc.decompress(tiled), dftpcc.decompress(good))
+    np.testing.assert_array_equal(spec_decoder.decode(tiled), spec_decoder.decode(good))
+    assert dftpcc.open(tiled).crs == dftpcc.open(good).crs
+
+
+def test_a_stat_integer_wider_than_64_bits_is_refused(good):
+    stat = craft.section(good, b"STAT")
+    wide = stat + bytes([200]) + b"\xff" * 9 + b"\x02"  # id 200 (an integer), value 2**64 + ...
+    crafted = craft.replace_section(good, b"STAT", wide)
+    with pytest.raises(CorruptFileError, match="STAT holds an integer wider than 64 bits"):
+        dftpcc.open(crafted)
+    with pytest.raises(ValueError, match="wider than 64 bits"):
+        spec_decoder.decode(crafted)

@@ -162,13 +162,16 @@ def _table(data: memoryview) -> tuple[list[tuple[bytes, int, int, int]], int]:
     if count > MAX_SECTIONS:
         raise CorruptFileError(f"section table claims {count} sections, more than the {MAX_SECTIONS} allowed")
     entries, pos = [], _PREAMBLE.size
-    for _ in range(count):
+    for index in range(count):
         tile = length = None
-        if pos + 4 <= len(data):
-            tag = bytes(data[pos:pos + 4])
-            tile, pos = _read_leb128(data, pos + 4)
-        if tile is not None:
-            length, pos = _read_leb128(data, pos)
+        try:
+            if pos + 4 <= len(data):
+                tag = bytes(data[pos:pos + 4])
+                tile, pos = _read_leb128(data, pos + 4)
+            if tile is not None:
+                length, pos = _read_leb128(data, pos)
+        except _TooWide:
+            raise CorruptFileError(f"section table entry {index} holds an integer wider than 64 bits") from None
         if length is None or pos + _CRC.size > len(data):
             raise CorruptFileError("file is truncated inside its section table")
         (crc,) = _CRC.unpack_from(data, pos)
@@ -186,16 +189,34 @@ def _table(data: memoryview) -> tuple[list[tuple[bytes, int, int, int]], int]:
     return entries, pos + _CRC.size
 
 
+#: An unsigned LEB128 integer holds at most 64 bits: ten groups of 7 bits, the
+#: tenth byte holding only bit 63 (0 or 1) and ending the value.
+LEB128_MAX_BYTES = 10
+_U64_LIMIT = 1 << 64
+
+
+class _TooWide(Exception):
+    """A LEB128 integer of more than 64 bits (callers name where it was)."""
+
+
 def _read_leb128(data: memoryview, pos: int) -> tuple[int | None, int]:
-    """An unsigned LEB128 integer at ``pos`` and the position after it; None when truncated or over 64 bits."""
-    value, shift = 0, 0
-    while pos < len(data) and shift <= 63:
+    """An unsigned LEB128 integer at ``pos`` and the position after it; None when the data ends inside it.
+
+    Raises :class:`_TooWide` for more than :data:`LEB128_MAX_BYTES` bytes or a
+    value of 2**64 or more (docs/format.md: a reader refuses those).
+    """
+    value, shift, end = 0, 0, min(len(data), pos + LEB128_MAX_BYTES)
+    while pos < end:
         byte = data[pos]
         pos += 1
         value |= (byte & 0x7F) << shift
         shift += 7
         if not byte & 0x80:
+            if value >= _U64_LIMIT:
+                raise _TooWide()
             return value, pos
+    if shift >= 7 * LEB128_MAX_BYTES:  # ten bytes, all saying more follows
+        raise _TooWide()
     return None, pos
 
 
@@ -333,9 +354,12 @@ def _unpack_stats(payload: memoryview) -> dict[str, Any]:
             if not math.isfinite(value):
                 raise CorruptFileError(f"section STAT: field {i} is not finite")
         else:
-            value, pos = _read_leb128(memoryview(raw), pos)
+            try:
+                value, pos = _read_leb128(memoryview(raw), pos)
+            except _TooWide:
+                raise CorruptFileError("section STAT holds an integer wider than 64 bits") from None
             if value is None:
-                raise CorruptFileError("section STAT holds a truncated or oversized integer")
+                raise CorruptFileError("section STAT is truncated")
         if i in STAT_FIELDS:
             stats[STAT_FIELDS[i]] = value
     return stats

@@ -101,7 +101,10 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
                                         C, "geometry section is too short"),
         "length_over_64_bits": (craft.fix_table_crc(good[:craft.PREAMBLE.size + 5] + b"\xff" * 10
                                                     + good[craft.PREAMBLE.size + 6:]), C,
-                                "truncated inside its section table|table fails its checksum"),
+                                "entry 0 holds an integer wider than 64 bits"),
+        # A tile of 2**64 once read as "another tile": the CRS section was skipped, the CRS lost.
+        "tile_over_64_bits": (craft.with_table_entry(seeds["with_crs"], [e[0] for e in craft.table(
+            seeds["with_crs"])].index(b"CRS "), tile=1 << 64), C, "wider than 64 bits"),
         "length_huge": (craft.with_table_entry(good, coef, length=(1 << 63) + 12), C, "truncated: section COEF"),
         "coef_length_claims_1gb": (craft.with_table_entry(good, coef, length=1 << 30), C, "truncated: section COEF"),
     })
@@ -166,7 +169,8 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "stat_binary_nan": (_raw_section(good, b"STAT", b"\x01\x00" + struct.pack("<f", float("nan"))), C,
                             "not finite"),
         "stat_binary_endless_int": (_raw_section(good, b"STAT", b"\x01\x80" + b"\xff" * 12), C,
-                                    "truncated or oversized integer"),
+                                    "STAT holds an integer wider than 64 bits"),
+        "stat_binary_cut_int": (_raw_section(good, b"STAT", b"\x01\x80\xff"), C, "STAT is truncated"),
         "stat_binary_no_coef_count": (_raw_section(good, b"STAT", b"\x01\x07" + struct.pack("<f", 1.0)), C,
                                       "coefficient count is missing"),
         "crs_not_object": (_raw_section(seeds["with_crs"], b"CRS ", "\"EPSG:4326\""), C, "CRS must be a JSON object"),

@@ -29,7 +29,11 @@ leb128 = container._leb128
 
 
 def _read_leb128(data: bytes, pos: int) -> tuple[int, int] | None:
-    value, end = container._read_leb128(memoryview(data), pos)
+    """``(value, end)``, or None where the reader would refuse the integer (cut short, over 64 bits)."""
+    try:
+        value, end = container._read_leb128(memoryview(data), pos)
+    except container._TooWide:
+        return None
     return None if value is None else (value, end)
 
 
