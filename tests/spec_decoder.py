@@ -116,6 +116,10 @@ def _sections(data: bytes) -> dict[bytes, bytes]:
         raise ValueError("truncated section table")
     if zlib.crc32(data[:table_end]) != struct.unpack_from("<I", data, table_end)[0]:
         raise ValueError("section table fails its checksum")
+    # The file ends where its last payload ends: bytes after it are refused.
+    end = table_end + 4 + sum(length for _tag, _tile, length, _crc in entries)
+    if len(data) > end:
+        raise ValueError(f"{len(data) - end} bytes after the last section")
     sections: dict[bytes, bytes] = {}
     offset = table_end + 4  # payloads follow the table in its order
     for tag, tile, length, crc in entries:

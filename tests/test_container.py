@@ -15,7 +15,7 @@ import pytest
 
 import dftpcc
 from dftpcc import container
-from dftpcc.errors import CorruptFileError, InvalidInputError
+from dftpcc.errors import CorruptFileError, InvalidInputError, ResourceLimitError
 
 from . import spec_decoder
 from .fuzz import craft
@@ -115,3 +115,47 @@ def test_a_stat_integer_wider_than_64_bits_is_refused(good):
         dftpcc.open(crafted)
     with pytest.raises(ValueError, match="wider than 64 bits"):
         spec_decoder.decode(crafted)
+
+
+# --- a file ends where its last section ends ------------------------------------------------------------
+
+@pytest.mark.parametrize("extra", [b"\x00", b"\n", b"x" * 100], ids=["zero", "newline", "junk"])
+def test_bytes_after_the_last_section_are_refused(good, extra):
+    with pytest.raises(CorruptFileError, match=rf"{len(extra)} trailing byte\(s\) after the last section, "
+                                               f"which ends at byte {len(good):,}"):
+        dftpcc.open(good + extra)
+    with pytest.raises(ValueError, match="after the last section"):
+        spec_decoder.decode(good + extra)
+
+
+def test_two_files_joined_are_refused_not_read_as_the_first(seeds):
+    joined = seeds["compact_dct"] + seeds["paper_dft"]
+    with pytest.raises(CorruptFileError, match="two files joined"):
+        dftpcc.decompress(joined)
+    with pytest.raises(ValueError):
+        spec_decoder.decode(joined)
+
+
+def test_a_prefix_is_not_trailing_data_but_a_prefix_past_the_end_is_the_whole_file(tmp_path, seeds):
+    data = seeds["compact_dct"]
+    whole = dftpcc.decompress(data)
+    # Progressive decoding: any prefix, up to and beyond the file's length, is judged as a prefix.
+    assert dftpcc.decompress(data, max_bytes=len(data) - 1).shape == whole.shape
+    np.testing.assert_array_equal(dftpcc.decompress(data, max_bytes=len(data) + 10), whole)
+    path = tmp_path / "joined.dftpc"
+    path.write_bytes(data + b"tail")
+    assert dftpcc.open(path, max_bytes=len(data) - 1).grid == dftpcc.open(data).grid
+    np.testing.assert_array_equal(dftpcc.open(path, max_bytes=len(data)).read_points(), whole)
+    with pytest.raises(CorruptFileError, match="1 trailing byte"):
+        dftpcc.open(path, max_bytes=len(data) + 1)
+    with pytest.raises(CorruptFileError, match="4 trailing byte"):
+        dftpcc.open(path)
+
+
+def test_trailing_bytes_cannot_buy_a_larger_decoding_budget(good):
+    # Padding a small file would raise the cells it may ask for (1024 per byte).
+    bomb = craft.with_geom(good, rows=4000, cols=4000)
+    with pytest.raises(ResourceLimitError):
+        dftpcc.open(bomb)
+    with pytest.raises(CorruptFileError, match="trailing byte"):
+        dftpcc.open(bomb + bytes(20_000))

@@ -228,6 +228,14 @@ def _is_legacy_draft(data: memoryview, count: int) -> bool:
 def _sections(data: memoryview, *, allow_truncated_coef: bool) -> tuple[dict[bytes, memoryview], dict[bytes, int]]:
     """The checked payload of each tile-0 section, and the length the table declares for it."""
     entries, offset = _table(data)
+    # The file ends where its last payload ends (format.md): bytes after it are no
+    # part of this map, and reading on silently would hide them. A prefix read on
+    # purpose ends earlier, so it passes; one past the end is the whole file.
+    end = offset + sum(length for _tag, _tile, length, _crc in entries)
+    if len(data) > end:
+        raise CorruptFileError(
+            f"{len(data) - end:,} trailing byte(s) after the last section, which ends at byte {end:,} "
+            f"(two files joined, or data appended in transfer?)")
     found: dict[bytes, memoryview] = {}
     declared: dict[bytes, int] = {}
     for tag, tile, length, crc in entries:

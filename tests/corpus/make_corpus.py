@@ -97,8 +97,13 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "section_missing_geom": (craft.replace_section(good, b"GEOM", None), C, "section GEOM is missing"),
         "geom_length_beyond_file": (craft.with_table_entry(good, 0, length=1 << 40), C, "truncated: section GEOM"),
         # Every checksum made to match the shifted sections: the lie must be caught behind them.
-        "geom_length_shifts_the_rest": (craft.fix_crcs(craft.with_table_entry(good, 0, length=craft.table(good)[0][3] - 4)),
+        # (The last section grows by as much, so the file still ends where the table says.)
+        "geom_length_shifts_the_rest": (craft.fix_crcs(craft.with_table_entry(craft.with_table_entry(
+            good, 0, length=craft.table(good)[0][3] - 4), coef, length=craft.table(good)[coef][3] + 4)),
                                         C, "geometry section is too short"),
+        # Bytes after the last section: the file ends where the table says.
+        "trailing_zeros": (good + bytes(8), C, r"8 trailing byte\(s\) after the last section"),
+        "two_files_joined": (good + seeds["paper_dft"], C, "two files joined"),
         "length_over_64_bits": (craft.fix_table_crc(good[:craft.PREAMBLE.size + 5] + b"\xff" * 10
                                                     + good[craft.PREAMBLE.size + 6:]), C,
                                 "entry 0 holds an integer wider than 64 bits"),
