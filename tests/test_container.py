@@ -8,6 +8,8 @@ the section table, the bytes after the last section, and the writer applying the
 from __future__ import annotations
 
 import io
+import json
+import struct
 import zlib
 
 import numpy as np
@@ -159,3 +161,24 @@ def test_trailing_bytes_cannot_buy_a_larger_decoding_budget(good):
         dftpcc.open(bomb)
     with pytest.raises(CorruptFileError, match="trailing byte"):
         dftpcc.open(bomb + bytes(20_000))
+
+
+# --- drafts of format 1.0 are not read ------------------------------------------------------------------
+# Pre-release builds wrote three things this reader no longer knows: 28-byte section
+# entries, a JSON STAT and COEF kind 2 (tests/test_coding.py). Nobody holds such files;
+# they are refused as any foreign file is, with a message that names what is wrong.
+
+def test_a_draft_table_of_28_byte_entries_is_refused_as_corrupt(good):
+    sections = craft.split(good)
+    head = craft.PREAMBLE.size + 28 * len(sections) + craft.CRC.size
+    table, body = b"", b""
+    for tag, payload in sections:  # tag, u32 tile, u64 offset, u64 length, u32 crc
+        table += struct.pack("<4sIQQI", tag, 0, head + len(body), len(payload), zlib.crc32(payload))
+        body += payload
+    top = good[:craft.PREAMBLE.size] + table
+    draft = top + craft.CRC.pack(zlib.crc32(top)) + body
+    with pytest.raises(CorruptFileError, match="section table fails its checksum") as info:
+        dftpcc.open(draft)
+    assert not isinstance(info.value, ResourceLimitError)
+    with pytest.raises(ValueError, match="section table fails its checksum"):
+        spec_decoder.decode(draft)

@@ -54,7 +54,6 @@ MAGIC = b"\x89DFTPC\r\n"
 VERSION = (1, 0)
 _PREAMBLE = struct.Struct("<8sBBHI")  # magic, major, minor, flags, section count
 # A section table entry: 4-byte tag, LEB128 tile, LEB128 payload length, u32 CRC-32.
-_LEGACY_ENTRY = struct.Struct("<4sIQQI")  # drafts of 1.0: tag, tile, offset, length, crc32
 _CRC = struct.Struct("<I")
 MAX_SECTIONS = 1024
 #: Geometry section: origin x, y, projection-plane z, resolution, rows, cols,
@@ -181,10 +180,6 @@ def _table(data: memoryview) -> tuple[list[tuple[bytes, int, int, int]], int]:
         raise CorruptFileError("file is truncated inside its section table")
     (crc,) = _CRC.unpack_from(data, pos)
     if zlib.crc32(data[:pos]) != crc:
-        if _is_legacy_draft(data, count):
-            raise UnsupportedFormatError(
-                "this .dftpc was written by a pre-release build (a draft of format 1.0 with 28-byte section "
-                "entries); re-compress it with this version")
         raise CorruptFileError("section table fails its checksum")
     return entries, pos + _CRC.size
 
@@ -218,11 +213,6 @@ def _read_leb128(data: memoryview, pos: int) -> tuple[int | None, int]:
     if shift >= 7 * LEB128_MAX_BYTES:  # ten bytes, all saying more follows
         raise _TooWide()
     return None, pos
-
-
-def _is_legacy_draft(data: memoryview, count: int) -> bool:
-    end = _PREAMBLE.size + count * _LEGACY_ENTRY.size
-    return len(data) >= end + _CRC.size and _CRC.unpack_from(data, end)[0] == zlib.crc32(data[:end])
 
 
 def _sections(data: memoryview, *, allow_truncated_coef: bool) -> tuple[dict[bytes, memoryview], dict[bytes, int]]:
