@@ -158,9 +158,9 @@ def _geom(p: bytes) -> dict:
 
 def _stat(p: bytes) -> dict:
     if not p:
-        raise ValueError("STAT is empty")
-    if p[0] != 1:  # earlier writers: a JSON object
-        return _json(p)
+        raise ValueError("section STAT is empty")
+    if p[0] != 1:  # binary is the only coding
+        raise ValueError(f"section STAT has unknown coding {p[0]}")
     stats, i = {}, 1
     while i < len(p):
         fid = p[i]

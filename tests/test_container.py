@@ -14,6 +14,7 @@ import zlib
 
 import numpy as np
 import pytest
+import zstandard
 
 import dftpcc
 from dftpcc import container
@@ -182,3 +183,23 @@ def test_a_draft_table_of_28_byte_entries_is_refused_as_corrupt(good):
     assert not isinstance(info.value, ResourceLimitError)
     with pytest.raises(ValueError, match="section table fails its checksum"):
         spec_decoder.decode(draft)
+
+
+@pytest.mark.parametrize("coding", ["text", "zstd"])
+def test_a_json_stat_of_the_drafts_is_refused(good, coding):
+    stats = {k: v for k, v in dftpcc.open(good).header.stats.items() if not k.endswith("_bytes")}
+    text = json.dumps(stats).encode()
+    payload = text if coding == "text" else zstandard.ZstdCompressor().compress(text)
+    crafted = craft.replace_section(good, b"STAT", payload)
+    with pytest.raises(CorruptFileError, match=f"section STAT has unknown coding {payload[0]:#04x}"):
+        dftpcc.open(crafted)
+    with pytest.raises(ValueError, match="section STAT has unknown coding"):
+        spec_decoder.decode(crafted)
+
+
+def test_an_empty_stat_is_refused(good):
+    crafted = craft.replace_section(good, b"STAT", b"")
+    with pytest.raises(CorruptFileError, match="section STAT is empty"):
+        dftpcc.open(crafted)
+    with pytest.raises(ValueError, match="section STAT is empty"):
+        spec_decoder.decode(crafted)

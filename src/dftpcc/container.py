@@ -69,9 +69,6 @@ REQUIRED = (b"GEOM", b"PARM", b"MASK", b"COEF")
 MAX_COORDINATE_M = 1e12
 #: Largest plane term ``|a| + |b|*cols + |c|*rows`` a header may state, metres.
 MAX_PLANE_M = 1e18
-#: STAT fields that must be numbers when present (others are free-form).
-_STAT_NUMBERS = ("dem_rmse_m", "dem_max_error_m", "gridding_rmse_m", "vertical_rmse_m")
-_STAT_COUNTS = ("mask_bytes", "coef_bytes")
 #: LAS variable-length records: 16-bit record id and length, 32-byte description.
 _VLR_MAX_ID = 0xFFFF
 _VLR_MAX_BYTES = 0xFFFF
@@ -295,8 +292,8 @@ def _params_from_file(text: str, resolution: float) -> Params:
 #: Binary STAT: a marker byte, then records of a u8 field id and its value:
 #: ids below 128 hold a float32 (errors rounded up to the next float32, so a
 #: stated error stays an upper bound), ids from 128 an unsigned LEB128 integer.
-#: A reader skips ids it does not know. JSON STAT (first byte ``{`` or a zstd
-#: frame) is read too.
+#: A reader skips ids it does not know. The first byte is the coding: binary
+#: is the only one (a reader refuses another).
 STAT_BINARY = 0x01
 STAT_FIELDS: dict[int, str] = {
     0: "dem_rmse_m", 1: "dem_max_error_m", 2: "gridding_rmse_m", 3: "vertical_rmse_m",
@@ -337,8 +334,11 @@ def _pack_stats(stats: dict[str, Any]) -> bytes:
 
 def _unpack_stats(payload: memoryview) -> dict[str, Any]:
     raw = bytes(payload)
-    if not raw or raw[0] != STAT_BINARY:
-        return _json(payload, "STAT")
+    if not raw:
+        raise CorruptFileError("section STAT is empty")
+    if raw[0] != STAT_BINARY:
+        raise CorruptFileError(f"section STAT has unknown coding {raw[0]:#04x} (binary STAT starts with "
+                               f"{STAT_BINARY:#04x})")
     stats: dict[str, Any] = {}
     pos = 1
     while pos < len(raw):
@@ -427,10 +427,6 @@ def _json(payload: memoryview, name: str) -> Any:
         raise CorruptFileError(f"section {name} nests JSON too deeply") from None
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def _is_count(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
@@ -466,17 +462,6 @@ def _check_params(params: Params, res: float) -> None:
         raise CorruptFileError(f"parameter resolution {params.resolution!r} m disagrees with the grid's {res!r} m")
     if params.storage == "quantized" and not 0.0 < params.step <= MAX_COORDINATE_M:
         raise CorruptFileError(f"quantizer step {params.step!r} m is not in (0, {MAX_COORDINATE_M:g}]")
-
-
-def _check_stats(stats: Any) -> None:
-    if not isinstance(stats, dict):
-        raise CorruptFileError("section STAT must be a JSON object")
-    for key in _STAT_NUMBERS:
-        if key in stats and not _is_number(stats[key]):
-            raise CorruptFileError(f"section STAT: {key} must be a number, got {stats[key]!r:.40}")
-    for key in _STAT_COUNTS:
-        if key in stats and not _is_count(stats[key]):
-            raise CorruptFileError(f"section STAT: {key} must be a count, got {stats[key]!r:.40}")
 
 
 def _check_crs(crs: Any) -> None:
@@ -560,11 +545,9 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     if params.mask == "exact" and npoints < ncells:
         raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
     stats = _unpack_stats(found[b"STAT"]) if b"STAT" in found else {}
-    if isinstance(stats, dict):
-        for key, tag in _DERIVED_STATS.items():
-            stats.setdefault(key, declared.get(tag, 0))
+    for key, tag in _DERIVED_STATS.items():
+        stats.setdefault(key, declared.get(tag, 0))
     crs = _crs_from_file(_json(found[b"CRS "], "CRS")) if b"CRS " in found else {}
-    _check_stats(stats)
     _check_crs(crs)
     coef_count = stats.get("coef_count")
     if not _is_count(coef_count) or coef_count > rows * cols:

@@ -153,29 +153,31 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "parm_storage_swapped": (_json_section(good, b"PARM", storage="complex64"), C, None),
         "parm_cutoff_changed": (_json_section(good, b"PARM", cutoff=0.5), C, None),
     })
-    # Lying statistics and CRS.
+    # Lying statistics (binary records, the only STAT coding) and CRS.
+    stat = craft.section(good, b"STAT")
     out.update({
-        "stat_not_object": (_raw_section(good, b"STAT", "[]"), C, "STAT must be a JSON object"),
-        "stat_zstd_bomb": (_raw_section(good, b"STAT", zstandard.ZstdCompressor(level=19).compress(
-            b"[" + b" " * 2_000_000 + b"]")), C, "declares more than"),
+        "stat_empty": (_raw_section(good, b"STAT", b""), C, "STAT is empty"),
+        "stat_json_of_a_draft": (_raw_section(good, b"STAT", json.dumps(craft.stat_of(good))), C,
+                                 "STAT has unknown coding 0x7b"),
+        "stat_zstd_json_of_a_draft": (_raw_section(good, b"STAT", zstandard.ZstdCompressor(level=19).compress(
+            json.dumps(craft.stat_of(good)).encode())), C, "STAT has unknown coding 0x28"),
         "parm_zstd_garbage": (_raw_section(good, b"PARM", b"\x28\xb5\x2f\xfd" + bytes(40)), C,
                               "parameter section is invalid"),
-        "stat_deep_nesting": (_raw_section(good, b"STAT", "[" * 15_000), C, "too deeply"),
-        "stat_no_coef_count": (_raw_section(good, b"STAT", "{}"), C, "coefficient count"),
-        "stat_coef_count_negative": (_json_section(good, b"STAT", coef_count=-1), C, "coefficient count"),
-        "stat_coef_count_bool": (_json_section(good, b"STAT", coef_count=True), C, "coefficient count"),
-        "stat_coef_count_huge": (_json_section(good, b"STAT", coef_count=2**62), C, "coefficient count"),
-        "stat_coef_count_off_by_one": (_json_section(good, b"STAT", coef_count=craft.json_of(
-            good, b"STAT")["coef_count"] + 1), C, None),
-        "stat_rmse_is_object": (_json_section(good, b"STAT", dem_rmse_m={}), C, "dem_rmse_m must be a number"),
-        "stat_bytes_negative": (_json_section(good, b"STAT", mask_bytes=-5), C, "mask_bytes must be a count"),
-        # Binary STAT (what dftpcc writes): a record cut short, a NaN error, an endless integer.
+        "parm_zstd_bomb": (_raw_section(good, b"PARM", zstandard.ZstdCompressor(level=19).compress(
+            b"[" + b" " * 2_000_000 + b"]")), C, "declares more than"),
+        "crs_deep_nesting": (_raw_section(seeds["with_crs"], b"CRS ", "[" * 15_000), C, "too deeply"),
+        "stat_coef_count_huge": (craft.with_stat(good, coef_count=2**62), C, "coefficient count"),
+        "stat_coef_count_largest": (craft.with_stat(good, coef_count=2**64 - 1), C, "coefficient count"),
+        "stat_coef_count_off_by_one": (craft.with_stat(good, coef_count=craft.stat_of(good)["coef_count"] + 1),
+                                       C, None),
+        # A record cut short, a NaN error, an endless integer, a record without its value.
         "stat_binary_cut_float": (_raw_section(good, b"STAT", b"\x01\x00\x00\x00"), C, "STAT is truncated"),
         "stat_binary_nan": (_raw_section(good, b"STAT", b"\x01\x00" + struct.pack("<f", float("nan"))), C,
                             "not finite"),
         "stat_binary_endless_int": (_raw_section(good, b"STAT", b"\x01\x80" + b"\xff" * 12), C,
                                     "STAT holds an integer wider than 64 bits"),
         "stat_binary_cut_int": (_raw_section(good, b"STAT", b"\x01\x80\xff"), C, "STAT is truncated"),
+        "stat_binary_id_without_value": (_raw_section(good, b"STAT", stat + b"\x81"), C, "STAT is truncated"),
         "stat_binary_no_coef_count": (_raw_section(good, b"STAT", b"\x01\x07" + struct.pack("<f", 1.0)), C,
                                       "coefficient count is missing"),
         "crs_not_object": (_raw_section(seeds["with_crs"], b"CRS ", "\"EPSG:4326\""), C, "CRS must be a JSON object"),
