@@ -203,3 +203,15 @@ def test_an_empty_stat_is_refused(good):
         dftpcc.open(crafted)
     with pytest.raises(ValueError, match="section STAT is empty"):
         spec_decoder.decode(crafted)
+
+
+@pytest.mark.parametrize("field,value,message", [("cutoff", None, "states no cutoff"),
+                                                  ("resolution", "auto", "parameter resolution")])
+def test_a_file_must_state_what_params_may_leave_open(seeds, field, value, message):
+    # Params takes cutoff=None and resolution='auto' for the encoder to choose; a file states
+    # both. Found by the fuzzer: a PARM with "cutoff": null decoded into a TypeError.
+    good = seeds["compact_dft"]
+    parm = craft.json_of(good, b"PARM")
+    parm[field] = value
+    with pytest.raises(CorruptFileError, match=message):
+        dftpcc.open(craft.with_json(good, b"PARM", parm)).read_points()

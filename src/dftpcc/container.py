@@ -427,6 +427,10 @@ def _json(payload: memoryview, name: str) -> Any:
         raise CorruptFileError(f"section {name} nests JSON too deeply") from None
 
 
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _is_count(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
@@ -458,7 +462,10 @@ def _check_geometry(geom: tuple, budget: int, file_size: int) -> None:
 
 
 def _check_params(params: Params, res: float) -> None:
-    if not math.isclose(params.resolution, res, rel_tol=1e-9):
+    # Params may leave these open for the encoder to choose ('auto', None); a file states them.
+    if params.cutoff is None:
+        raise CorruptFileError("parameter section states no cutoff")
+    if not _is_number(params.resolution) or not math.isclose(params.resolution, res, rel_tol=1e-9):
         raise CorruptFileError(f"parameter resolution {params.resolution!r} m disagrees with the grid's {res!r} m")
     if params.storage == "quantized" and not 0.0 < params.step <= MAX_COORDINATE_M:
         raise CorruptFileError(f"quantizer step {params.step!r} m is not in (0, {MAX_COORDINATE_M:g}]")
