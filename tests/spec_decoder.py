@@ -311,7 +311,7 @@ def _table_model(max_abs: int, code: int):
     return constriction.stream.model.Categorical(np.array(f, dtype=np.float64) / (1 << 24), perfect=False)
 
 
-def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray, table: bool) -> np.ndarray:
+def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray) -> np.ndarray:
     if len(p) < 9:
         raise ValueError("ANS chunk is truncated")
     layout, max_abs, side = struct.unpack_from("<BII", p, 0)
@@ -322,9 +322,9 @@ def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray, tabl
             + np.minimum(np.floor(angle * sectors).astype(np.int64), sectors - 1))
     lo, hi = int(band.min()), int(band.max())
     nbands = hi - lo + 1
-    if table and side == nbands:  # kind 3 stores few codes raw
+    if side == nbands:  # few codes are stored raw
         codes = np.frombuffer(p[9:9 + side], np.uint8)
-    elif table and side > nbands:
+    elif side > nbands:
         raise ValueError("ANS chunk has too many bytes of band scales")
     else:
         codes = np.frombuffer(_zstd(p[9:9 + side], nbands), np.uint8)
@@ -335,12 +335,7 @@ def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray, tabl
     out = np.zeros(count, np.int64)
     for c in np.unique(code[code > 0]):
         sel = np.flatnonzero(code == c)
-        if table:
-            out[sel] = coder.decode(_table_model(max_abs, int(c)), len(sel)) - max_abs
-        else:
-            scale = max(2.0 ** ((int(c) - 128) / 8), 0.05)
-            model = constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
-            out[sel] = coder.decode(model, len(sel))
+        out[sel] = coder.decode(_table_model(max_abs, int(c)), len(sel)) - max_abs
     return out
 
 
@@ -377,8 +372,8 @@ def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray) -> np.n
             values.append(np.frombuffer(body, "<c8").astype(np.complex128))
         elif kind == 0:
             values.append(_zstd_chunk(body, count))
-        elif kind in (2, 3):
-            values.append(_ans_chunk(body, count, radius[start:stop], angle[start:stop], table=kind == 3))
+        elif kind == 3:
+            values.append(_ans_chunk(body, count, radius[start:stop], angle[start:stop]))
         else:
             raise ValueError(f"coefficient chunk has unknown kind {kind}")
     if len(kinds) > 1:

@@ -215,3 +215,12 @@ def test_a_file_must_state_what_params_may_leave_open(seeds, field, value, messa
     parm[field] = value
     with pytest.raises(CorruptFileError, match=message):
         dftpcc.open(craft.with_json(good, b"PARM", parm)).read_points()
+
+
+def test_a_file_with_coef_kind_2_of_the_drafts_is_refused(seeds):
+    good = seeds["compact_dct"]
+    draft = craft.with_chunk_kind(good, b"COEF", 2)
+    with pytest.raises(CorruptFileError, match="coefficient chunk 0 has unknown kind 2"):
+        dftpcc.open(draft).read_points()
+    with pytest.raises(ValueError, match="unknown kind 2"):
+        spec_decoder.decode(draft)

@@ -51,8 +51,9 @@ _CHUNK = struct.Struct("<IIII")  # count, nbytes, crc32, element kind
 #: Element kinds inside a chunk.
 KIND_INT = 0  # zigzag byte planes, zstd
 KIND_COMPLEX64 = 1  # raw little-endian complex64 (the paper)
-KIND_ANS = 2  # constriction's QuantizedLaplace per band, ANS-coded (read only)
 KIND_ANS_TABLE = 3  # two-sided geometric per band from integer tables, ANS-coded
+# (Kind 2, ANS with constriction's QuantizedLaplace, was written only by pre-release
+# drafts; it is refused as any unknown kind.)
 #: Ways to cut a chunk into frequency bands, one scale each:
 #: (ring width in DFT frequency pixels, angular sectors). The encoder keeps,
 #: per chunk, the one that codes it smallest (side information included):
@@ -236,10 +237,6 @@ def _scale_of(codes: np.ndarray) -> np.ndarray:
     return np.where(codes > 0, np.maximum(2.0 ** ((codes.astype(np.float64) - SCALE_BIAS) / SCALE_STEPS), MIN_SCALE), 0.0)
 
 
-def _laplace(max_abs: int, scale: float):
-    return constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
-
-
 #: Probabilities of the table models are integers out of 2**TABLE_BITS.
 TABLE_BITS = 24
 
@@ -391,7 +388,7 @@ def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive
     return min((_encode_ans_with(q, b, max_abs) for b in candidates), key=len)
 
 
-def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str, *, table: bool) -> np.ndarray:
+def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str) -> np.ndarray:
     if len(payload) < _ANS_HEAD.size:
         raise CorruptFileError(f"{what} is too short")
     layout, max_abs, side_len = _ANS_HEAD.unpack_from(payload, 0)
@@ -404,9 +401,9 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     if len(payload) < end or (len(payload) - end) % 4:
         raise CorruptFileError(f"{what} has a wrong length")
     side = payload[_ANS_HEAD.size:end]
-    if table and side_len == ncodes:  # raw codes (kind 3 only)
+    if side_len == ncodes:  # few bands: raw codes
         codes = np.frombuffer(side, dtype=np.uint8)
-    elif table and side_len > ncodes:
+    elif side_len > ncodes:
         raise CorruptFileError(f"{what} has {side_len} bytes of band scales for {ncodes} bands")
     else:
         codes = np.frombuffer(unzstd(zstandard.ZstdDecompressor(), side, ncodes, what), dtype=np.uint8)
@@ -415,15 +412,12 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     out = np.zeros(bands.size, dtype=np.int64)
     words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
     groups = _groups(codes[bands - lo])
-    if table and len(groups) * (2 * max_abs + 1) > table_budget(bands.size):
+    if len(groups) * (2 * max_abs + 1) > table_budget(bands.size):
         raise CorruptFileError(f"{what} asks for larger probability tables than its {bands.size} values allow")
     try:
         coder = constriction.stream.stack.AnsCoder(words)
         for code, where in groups:
-            if table:
-                out[where] = coder.decode(_table_model(max_abs, code), where.size) - max_abs
-            else:
-                out[where] = coder.decode(_laplace(max_abs, float(_scale_of(np.array([code]))[0])), where.size)
+            out[where] = coder.decode(_table_model(max_abs, code), where.size) - max_abs
     except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
         raise CorruptFileError(f"{what} does not decode: {exc}") from None
     if np.abs(out).max(initial=0) > max_abs:
@@ -524,11 +518,10 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
         elif kind == KIND_INT:
             raw = unzstd(dctx, payload, 1 + 8 * count, what)
             parts.append(_unpack_ints(raw, count))
-        elif kind in (KIND_ANS, KIND_ANS_TABLE):
+        elif kind == KIND_ANS_TABLE:
             if radius is None or angle is None or radius.size < stop:
                 raise CorruptFileError(f"{what} is ANS-coded but no frequencies are known")
-            parts.append(_decode_ans(payload, radius[start:stop], angle[start:stop], what,
-                                     table=kind == KIND_ANS_TABLE))
+            parts.append(_decode_ans(payload, radius[start:stop], angle[start:stop], what))
         else:
             raise CorruptFileError(f"{what} has unknown kind {kind}")
     if not parts:

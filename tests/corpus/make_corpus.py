@@ -200,6 +200,8 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "coef_random": (craft.replace_section(good, b"COEF", bytes(range(256)) * 4), C, None),
         "coef_chunk_count_huge": (craft.replace_section(good, b"COEF", b"\xff\xff\xff\xff" +
                                                         craft.section(good, b"COEF")[4:]), C, None),
+        # COEF kind 2 (ANS with Laplace models) existed only in pre-release drafts.
+        "coef_kind_2_of_a_draft": (craft.with_chunk_kind(good, b"COEF", 2), C, None),
         "coef_of_paper_file": (craft.replace_section(good, b"COEF", craft.section(paper, b"COEF")), C, None),
         "coef_swapped_with_mask": (craft.replace_section(craft.replace_section(good, b"COEF", craft.section(
             good, b"MASK")), b"MASK", craft.section(good, b"COEF")), C, None),

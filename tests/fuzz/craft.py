@@ -221,3 +221,15 @@ def fix_crcs(data: bytes) -> bytes:
             CRC.pack_into(buf, crc_pos, zlib.crc32(bytes(buf[offset:offset + length])))
         offset += length
     return fix_table_crc(bytes(buf))
+
+
+def with_chunk_kind(data: bytes, tag: bytes, kind: int) -> bytes:
+    """The file with every chunk header of the COEF-like section ``tag`` stating ``kind``
+    (payloads unchanged; a chunk's CRC covers its payload only), CRCs fixed."""
+    payload = bytearray(section(data, tag))
+    (count,), pos = struct.unpack_from("<I", payload, 0), 4
+    for _ in range(count):
+        nbytes = struct.unpack_from("<I", payload, pos + 4)[0]
+        struct.pack_into("<I", payload, pos + 12, kind)
+        pos += 16 + nbytes
+    return replace_section(data, tag, bytes(payload))
