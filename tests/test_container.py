@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import struct
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ import zstandard
 
 import dftpcc
 from dftpcc import container
+from dftpcc.dem import Grid
 from dftpcc.errors import CorruptFileError, InvalidInputError, ResourceLimitError
 
 from . import spec_decoder
@@ -224,3 +227,94 @@ def test_a_file_with_coef_kind_2_of_the_drafts_is_refused(seeds):
         dftpcc.open(draft).read_points()
     with pytest.raises(ValueError, match="unknown kind 2"):
         spec_decoder.decode(draft)
+
+
+# --- the writer applies the reader's checks: no file is written that dftpcc refuses -----------------
+
+@pytest.fixture(scope="module")
+def cloud_file(tmp_path_factory) -> Path:
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0, 50, (2, 4000))
+    path = tmp_path_factory.mktemp("cloud") / "cloud.npy"
+    np.save(path, np.c_[x, y, 100 + 0.05 * x + np.sin(y / 5) + rng.normal(0, 0.01, x.size)])
+    return path
+
+
+@pytest.mark.parametrize("option,message", [
+    (["--step", "1e300"], r"quantizer step must be .* at most 1e\+12 m.*got 1e\+300"),
+    (["--step", "2e12"], r"quantizer step must be .* at most 1e\+12 m"),
+    (["--target-max-error", "1e300"], r"target_max_error must be .* at most 1e\+12 m"),
+    (["--target-rmse", "1e300"], r"target_rmse must be .* at most 1e\+12 m"),
+])
+def test_the_cli_refuses_a_step_or_target_the_reader_would_refuse_before_any_work(
+        capsys, monkeypatch, tmp_path, cloud_file, option, message):
+    # It used to write the whole file, then fail to open it and exit 5 as if the input were corrupt.
+    from dftpcc import cli, files
+
+    read = []
+    monkeypatch.setattr(files, "read", lambda *a, **k: read.append(a) or pytest.fail("the cloud was read"))
+    out = tmp_path / "out.dftpc"
+    assert cli.main(["compress", str(cloud_file), str(out), "-r", "1", *option]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.search(message, err[0]), err
+    assert not out.exists() and not read
+
+
+@pytest.mark.parametrize("target", [{"target_rmse": 1e9}, {"target_max_error": 1e11}, {"target_max_error": 1e12}])
+def test_a_huge_but_allowed_target_writes_a_file_the_reader_opens(cloud_file, target):
+    # Rate control tries steps up to 1e4 times an RMSE target and 16 times a maximum
+    # error: above 1e12 m they are held at the largest step a file states.
+    points = np.load(cloud_file)
+    data = dftpcc.compress(points, resolution=1.0, **target)
+    with dftpcc.open(data) as m:
+        assert 0 < m.params.step <= container.MAX_COORDINATE_M
+        assert np.isfinite(m.read_points()).all()
+
+
+def test_a_grid_beyond_the_coordinate_limit_is_refused_before_any_work(monkeypatch):
+    from dftpcc import analysis, encoder
+
+    monkeypatch.setattr(analysis.Analysis, "__init__", lambda *a, **k: pytest.fail("the DEM was analysed"))
+    points = np.random.default_rng(1).uniform(0, 100, (500, 3)) + [5e12, 0.0, 0.0]
+    with pytest.raises(InvalidInputError, match=r"cannot write this map: .*origin beyond 1e\+12 m"):
+        encoder.compress(points, resolution=10.0)
+
+
+def _header(**changes) -> container.Header:
+    grid = Grid(x0=0.0, y0=0.0, z0=0.0, resolution=1.0, rows=4, cols=5)
+    fields = dict(grid=grid, params=dftpcc.make_params(resolution=1.0, cutoff=0.5, step=0.01),
+                  point_count=20, cell_count=20, coef_count=7, stats={"dem_rmse_m": 0.1})
+    fields.update(changes)
+    return container.Header(**fields)
+
+
+def test_pack_writes_what_unpack_reads():
+    data = container.pack(_header(), b"mask", b"coef")
+    header, blobs = container.unpack(data)
+    assert (header.grid, header.coef_count, blobs[b"MASK"].tobytes()) == (_header().grid, 7, b"mask")
+
+
+@pytest.mark.parametrize("changes,message", [
+    (dict(grid=Grid(x0=2e12, y0=0.0, z0=0.0, resolution=1.0, rows=4, cols=5)), "origin beyond"),
+    (dict(grid=Grid(x0=0.0, y0=0.0, z0=-3e12, resolution=1.0, rows=4, cols=5)), "origin beyond"),
+    (dict(grid=Grid(x0=0.0, y0=0.0, z0=0.0, resolution=3e11, rows=4, cols=5)), "extends beyond"),
+    (dict(grid=Grid(x0=0.0, y0=0.0, z0=0.0, resolution=1.0, rows=4, cols=5, resolution_y=1e12)),
+     "rows of 1e\\+12 m extend beyond"),
+    (dict(grid=Grid(x0=0.0, y0=0.0, z0=0.0, resolution=1.0, rows=20_000, cols=10_000)), "cell limit of the format"),
+    (dict(plane=(0.0, 1e18, 0.0)), "detrending plane"),
+    (dict(plane=(float("nan"), 0.0, 0.0)), "non-finite"),
+    (dict(cell_count=21), "with 21 occupied cells"),
+    (dict(cell_count=0), "with 0 occupied cells"),
+    (dict(point_count=3), "3 original points for 20 occupied cells"),
+    (dict(coef_count=21), "coefficient count"),
+    (dict(params=dftpcc.make_params(resolution=1.0, cutoff=0.5)), "quantizer step 0.0 m"),
+    (dict(params=dftpcc.make_params(resolution=2.0, cutoff=0.5, step=0.01)), "disagrees with the grid"),
+    (dict(params=dftpcc.make_params(resolution=1.0, step=0.01)), "states no cutoff"),
+    (dict(crs={"las_vlrs": [{"record_id": 70000, "description": "", "data": ""}]}), "LAS record 0"),
+    (dict(crs={"wkt": "x" * (2 << 20)}), "more than the 1048576 bytes a reader accepts"),
+    (dict(stats={"dem_rmse_m": float("inf")}), "dem_rmse_m"),
+    (dict(stats={"dem_max_error_m": 1e39}), "dem_max_error_m"),
+])
+def test_pack_refuses_a_header_the_reader_would_refuse(changes, message):
+    with pytest.raises(InvalidInputError, match=f"cannot write this map: .*{message}"):
+        container.pack(_header(**changes), b"mask", b"coef")

@@ -32,6 +32,7 @@ with warnings.catch_warnings():
     import constriction
 
 from .errors import CorruptFileError
+from .params import MAX_COORDINATE_M
 
 __all__ = [
     "quantize",
@@ -108,11 +109,14 @@ STEP_DIGITS = 6
 
 
 def short_step(step: float) -> float:
-    """The largest number of :data:`STEP_DIGITS` significant digits not above
-    ``step``: the file states it in a few characters, and a finer step only
-    lowers the error."""
+    """The largest step a file can state that is not above ``step``: at most
+    :data:`~dftpcc.params.MAX_COORDINATE_M`, in :data:`STEP_DIGITS` significant
+    digits. The file states it in a few characters, and a finer step only
+    lowers the error (rate control may search steps beyond the limit for a
+    huge target; they are held at it)."""
     if not (math.isfinite(step) and step > 0.0):
         return step
+    step = min(step, MAX_COORDINATE_M)
     short = float(f"{step:.{STEP_DIGITS}g}")
     while short > step:
         short = float(f"{short - 10.0 ** (math.floor(math.log10(short)) - STEP_DIGITS + 1):.{STEP_DIGITS}g}")

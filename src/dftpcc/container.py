@@ -36,7 +36,7 @@ from .errors import (
 )
 from .dem import Grid
 from .limits import DECODE_BYTES_PER_CELL, MAX_CELLS, cell_budget
-from .params import Params
+from .params import MAX_COORDINATE_M, Params
 
 __all__ = [
     "MAGIC",
@@ -45,6 +45,8 @@ __all__ = [
     "pack",
     "unpack",
     "cells_allowed",
+    "check_grid",
+    "check_header",
     "check_max_bytes",
 ]
 
@@ -63,10 +65,8 @@ _GEOM = struct.Struct("<ddddIIdQQddd")
 _GEOM_Y = struct.Struct("<d")
 #: Sections the reader needs; unknown tags are skipped.
 REQUIRED = (b"GEOM", b"PARM", b"MASK", b"COEF")
-#: Largest coordinate, height, grid extent or quantizer step a header may
-#: state, metres (about 7 astronomical units): beyond it a number is not a
-#: map coordinate but a damaged or crafted field, and it could overflow.
-MAX_COORDINATE_M = 1e12
+#: MAX_COORDINATE_M (from params, which checks steps and targets against it):
+#: the largest coordinate, height, grid extent or quantizer step a header may state.
 #: Largest plane term ``|a| + |b|*cols + |c|*rows`` a header may state, metres.
 MAX_PLANE_M = 1e18
 #: LAS variable-length records: 16-bit record id and length, 32-byte description.
@@ -109,12 +109,80 @@ class Header:
     coef_count: int = 0
 
 
+def check_grid(grid: Grid, *, point_count: int, cell_count: int, params: Params,
+               plane: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+    """Refuse, before any work, a map whose geometry the reader would refuse.
+
+    The reader's checks on GEOM (origin, extent, plane, cells, points,
+    row spacing; not the decoding budget, which a writer only warns about),
+    run on what the writer is about to state.
+
+    Raises
+    ------
+    InvalidInputError
+        "cannot write this map: <what the reader would say>".
+    """
+    with _as_writer():
+        _check_grid(grid, point_count, cell_count, params, plane)
+
+
+def check_header(header: Header) -> None:
+    """Refuse a header :func:`unpack` would refuse, so no file is written that dftpcc cannot read.
+
+    The reader's checks on geometry, parameters, coefficient count and CRS;
+    :func:`pack` runs them first, and also refuses statistics or JSON sections
+    the reader could not take.
+
+    Raises
+    ------
+    InvalidInputError
+        "cannot write this map: <what the reader would say>".
+    """
+    g = header.grid
+    with _as_writer():
+        _check_grid(g, header.point_count, header.cell_count, header.params, header.plane)
+        _check_params(header.params, g.resolution)
+        _check_coef_count(header.coef_count, g.size)
+        _check_crs(header.crs)
+
+
+def _check_grid(grid: Grid, point_count: int, cell_count: int, params: Params,
+                plane: tuple[float, float, float]) -> None:
+    if not (_is_count(point_count) and point_count < _U64_LIMIT):
+        raise CorruptFileError(f"point count {point_count!r} does not fit the header's 64 bits")
+    fields = (grid.x0, grid.y0, grid.z0, grid.resolution, grid.rows, grid.cols, grid.angle,
+              point_count, cell_count, *plane)
+    # The budget is the reader's default, not a limit of the format: a writer warns (see pack).
+    _check_geometry(fields, MAX_CELLS, 0)
+    _check_points(params, point_count, cell_count)
+    _check_row_spacing(grid.resolution_y or 0.0, grid.rows)
+
+
+class _as_writer:
+    """Turn the reader's refusal (CorruptFileError) into the writer's (InvalidInputError)."""
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind: type | None, exc: BaseException | None, _tb: Any) -> None:
+        if isinstance(exc, CorruptFileError):
+            raise InvalidInputError(f"cannot write this map: a reader would refuse the file: {exc}") from None
+
+
 def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes = b"") -> bytes:
     """Serialise a map into ``.dftpc`` bytes.
 
     ``resid_blob`` is the optional residual layer (max-error guarantee); it
     follows the coefficients, so a prefix of the file still decodes.
+
+    Raises
+    ------
+    InvalidInputError
+        A header the reader would refuse (:func:`check_header`), or
+        statistics or JSON sections it could not take: nothing is written
+        that dftpcc cannot read.
     """
+    check_header(header)
     g = header.grid
     geom = _GEOM.pack(g.x0, g.y0, g.z0, g.resolution, g.rows, g.cols, g.angle,
                       header.point_count, header.cell_count, *header.plane)
@@ -123,8 +191,8 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     info = dict(header.stats, coef_count=header.coef_count)
     sections = [
         (b"GEOM", geom),
-        (b"PARM", _pack_json(_params_for_file(header.params))),
-    ] + ([(b"CRS ", _pack_json(_crs_for_file(header.crs)))] if header.crs else []) + [
+        (b"PARM", _pack_json(_params_for_file(header.params), "PARM")),
+    ] + ([(b"CRS ", _pack_json(_crs_for_file(header.crs), "CRS"))] if header.crs else []) + [
         (b"STAT", _pack_stats({k: v for k, v in info.items()
                                if k not in _DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
         (b"MASK", mask_blob),
@@ -328,7 +396,13 @@ def _pack_stats(stats: dict[str, Any]) -> bytes:
         if i is None:
             raise ValueError(f"statistic {name!r} has no STAT field id")
         out.append(i)
-        out += _leb128(int(value)) if i >= 128 else _f32_up(float(value))
+        if i >= 128:
+            out += _leb128(int(value))
+            continue
+        packed = _f32_up(float(value))
+        if not math.isfinite(_F32.unpack(packed)[0]):  # the reader refuses NaN and infinities
+            raise InvalidInputError(f"cannot write this map: statistic {name} = {value!r} is not a finite float32")
+        out += packed
     return bytes(out)
 
 
@@ -363,8 +437,11 @@ def _unpack_stats(payload: memoryview) -> dict[str, Any]:
     return stats
 
 
-def _pack_json(obj: Any) -> bytes:
+def _pack_json(obj: Any, name: str) -> bytes:
     raw = json.dumps(obj, sort_keys=True, separators=(",", ":")).encode("utf-8")
+    if len(raw) > MAX_JSON_BYTES:  # the reader's limit on a decompressed JSON section
+        raise InvalidInputError(f"cannot write this map: section {name} would hold {len(raw):,} bytes of JSON, "
+                                f"more than the {MAX_JSON_BYTES} bytes a reader accepts")
     packed = zstandard.ZstdCompressor(level=19).compress(raw)
     return packed if len(packed) < len(raw) else raw
 
@@ -471,6 +548,26 @@ def _check_params(params: Params, res: float) -> None:
         raise CorruptFileError(f"quantizer step {params.step!r} m is not in (0, {MAX_COORDINATE_M:g}]")
 
 
+def _check_points(params: Params, npoints: int, ncells: int) -> None:
+    # Every rebuilt cell of an exact mask held a point; a footprint mask also
+    # rebuilds enclosed empty cells, so it may have more cells than points.
+    if params.mask == "exact" and npoints < ncells:
+        raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
+
+
+def _check_coef_count(coef_count: Any, cells: int) -> None:
+    if not _is_count(coef_count) or coef_count > cells:
+        raise CorruptFileError("coefficient count is missing or implausible")
+
+
+def _check_row_spacing(res_y: float, rows: int) -> None:
+    """The optional GEOM row spacing (0 for square cells)."""
+    if not (math.isfinite(res_y) and res_y >= 0):
+        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r}")
+    if res_y * rows > MAX_COORDINATE_M:
+        raise CorruptFileError(f"grid {rows} rows of {res_y:g} m extend beyond {MAX_COORDINATE_M:g} m")
+
+
 def _check_crs(crs: Any) -> None:
     """The CRS is written back into LAS, PLY and GeoTIFF outputs, so its shape must be right."""
     if not isinstance(crs, dict):
@@ -547,23 +644,16 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     except RecursionError:
         raise CorruptFileError("parameter section nests JSON too deeply") from None
     _check_params(params, res)
-    # Every rebuilt cell of an exact mask held a point; a footprint mask also
-    # rebuilds enclosed empty cells, so it may have more cells than points.
-    if params.mask == "exact" and npoints < ncells:
-        raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
+    _check_points(params, npoints, ncells)
     stats = _unpack_stats(found[b"STAT"]) if b"STAT" in found else {}
     for key, tag in _DERIVED_STATS.items():
         stats.setdefault(key, declared.get(tag, 0))
     crs = _crs_from_file(_json(found[b"CRS "], "CRS")) if b"CRS " in found else {}
     _check_crs(crs)
     coef_count = stats.get("coef_count")
-    if not _is_count(coef_count) or coef_count > rows * cols:
-        raise CorruptFileError("coefficient count is missing or implausible")
+    _check_coef_count(coef_count, rows * cols)
     res_y = _GEOM_Y.unpack_from(geom, _GEOM.size)[0] if len(geom) >= _GEOM.size + _GEOM_Y.size else 0.0
-    if not (math.isfinite(res_y) and res_y >= 0):
-        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r}")
-    if res_y * rows > MAX_COORDINATE_M:
-        raise CorruptFileError(f"grid {rows} rows of {res_y:g} m extend beyond {MAX_COORDINATE_M:g} m")
+    _check_row_spacing(res_y, rows)
     grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
                 resolution_y=res_y or None)
     header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,

@@ -16,7 +16,7 @@ import numpy as np
 
 from . import coding, occupancy, ratecontrol
 from .analysis import Analysis
-from .container import Header, pack
+from .container import Header, check_grid, pack
 from .dem import DEM
 from .errors import InvalidInputError
 from .grid import auto_resolution, fit_grid, rasterize
@@ -122,6 +122,8 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         raise InvalidInputError("the map has no occupied cell")
     params = params.replace(resolution=dem.grid.resolution)
     point_count = int(dem.mask.sum()) if point_count is None else point_count
+    # What the reader would refuse, refused before any work.
+    check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
     on_stage("spectrum")
     an = Analysis(dem, params, searching=params.has_target and params.cutoff is None)
     mask_blob = occupancy.encode_mask(an.kept_cells)
