@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import re
 import struct
+import warnings
 import zlib
 
 import numpy as np
@@ -12,8 +14,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+import dftpcc
 from dftpcc import coding
-from dftpcc.errors import CorruptFileError
+from dftpcc.errors import CorruptFileError, InvalidInputError
 
 
 @given(hnp.arrays(np.float64, st.integers(1, 500), elements=st.floats(-1e4, 1e4)),
@@ -135,3 +138,73 @@ def test_few_band_scales_are_stored_raw_and_a_longer_side_is_refused():
     chunk = struct.pack("<IIII", values.size, len(payload), zlib.crc32(bytes(payload)), kind) + bytes(payload)
     with pytest.raises(CorruptFileError, match="bytes of band scales"):
         coding.decode_coefficients(struct.pack("<I", 1) + chunk, values.size, radius=radius, angle=angle)
+
+
+# --- the quantizer never wraps: a step too fine for the map is refused -----------------------------
+
+def test_the_quantizer_refuses_a_step_whose_integers_would_wrap():
+    values = np.array([1.0, -3.0, 250.0, 0.0])
+    finest = coding.finest_step(values)
+    q = coding.quantize(values, finest, 0.1)
+    assert q.dtype == np.int64 and 2**61 < np.abs(q).max() < 2**63 and np.sign(q[2]) == 1
+    np.testing.assert_allclose(coding.dequantize(q, finest), values, rtol=1e-12)
+    for step in (finest / 1.01, 1e-20, 1e-300, 5e-324):
+        with pytest.raises(InvalidInputError, match="too fine .* smallest workable step is"):
+            coding.quantize(values, step, 0.1)
+
+
+@given(hnp.arrays(np.float64, st.integers(1, 50), elements=st.floats(-1e15, 1e15)), st.floats(0.0, 0.45))
+@settings(max_examples=60, deadline=None)
+def test_at_the_finest_step_every_integer_fits_and_keeps_its_sign(values, deadzone):
+    step = coding.finest_step(values)
+    if not step:
+        return  # all zeros: any step
+    q = coding.quantize(values, step, deadzone)
+    assert (np.sign(q) * np.sign(values) >= 0).all()
+    # Within a step, up to float64's own rounding of integers this large (a few ulp of the value).
+    assert (np.abs(values - coding.dequantize(q, step)) <= step + 4 * np.spacing(np.abs(values))).all()
+
+
+@pytest.fixture(scope="module")
+def gentle() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0, 50, (2, 4000))
+    return np.c_[x, y, 100 + 0.05 * x + np.sin(y / 5) + rng.normal(0, 0.01, x.size)]
+
+
+@pytest.mark.parametrize("step", [1e-300, 1e-20])
+@pytest.mark.parametrize("options", [{}, {"transform": "dft"}, {"coder": "zstd"}], ids=["dct", "dft", "zstd"])
+def test_a_step_too_fine_for_the_heights_is_refused_with_the_finest_that_works(gentle, step, options):
+    # 1e-300 ended in struct.error in the ANS coder; 1e-20 wrapped the int64 quantizer
+    # with only numpy's cast warning, and wrote a worse map.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no cast warning on the way
+        with pytest.raises(InvalidInputError) as info:
+            dftpcc.compress(gentle, resolution=1.0, step=step, **options)
+    message = str(info.value)
+    assert re.search(rf"quantizer step {step:g} m is too fine for this map's height range "
+                     r"\(99\.\d+ to 103\.\d+ m\).* smallest workable step is [0-9.e+-]+ m", message), message
+    finest = float(re.search(r"smallest workable step is ([0-9.e+-]+) m", message).group(1))
+    data = dftpcc.compress(gentle, resolution=1.0, step=finest, **options)
+    assert dftpcc.open(data).params.step == finest
+    # Quantized that finely the map is the low-passed one: as good as the finest usual step.
+    usual = dftpcc.open(dftpcc.compress(gentle, resolution=1.0, step=1e-6, **options)).header.stats
+    assert dftpcc.open(data).header.stats["dem_rmse_m"] <= usual["dem_rmse_m"] * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("profile", ["compact", "paper"])
+def test_a_maximum_error_too_fine_for_the_heights_is_refused(gentle, profile):
+    with pytest.raises(InvalidInputError, match=r"target maximum error 1e-300 m is too fine for this map's height "
+                                                r"range .* smallest workable target is [0-9.e+-]+ m"):
+        dftpcc.compress(gentle, resolution=1.0, target_max_error=1e-300, profile=profile)
+
+
+def test_the_cli_says_the_step_is_too_fine_in_one_line(capsys, tmp_path, gentle):
+    from dftpcc import cli
+
+    src, out = tmp_path / "cloud.npy", tmp_path / "out.dftpc"
+    np.save(src, gentle)
+    assert cli.main(["compress", str(src), str(out), "-r", "1", "--step", "1e-300"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "too fine for this map's height range" in err[0], err
+    assert not out.exists()

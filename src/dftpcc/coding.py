@@ -31,11 +31,12 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     import constriction
 
-from .errors import CorruptFileError
+from .errors import CorruptFileError, InvalidInputError
 from .params import MAX_COORDINATE_M
 
 __all__ = [
     "quantize",
+    "finest_step",
     "dequantize",
     "choose_step",
     "encode_coefficients",
@@ -88,6 +89,15 @@ STEP_TOLERANCE = 1.02
 STEP_SAMPLE = 32768
 
 
+#: Quantized coefficients are int64: zstd chunks (kind 0) hold any of them,
+#: zigzag-mapped in up to 8 byte planes, and an ANS chunk whose values exceed
+#: MAX_ANS_SYMBOL falls back to kind 0. So the real limit is the quantizer's
+#: own cast: ``|c| / step`` must stay below 2**63, or the integers wrap.
+QUANT_LIMIT = 2.0**63
+#: Significant digits of a smallest workable step or target, as a message states it (rounded up).
+SUGGESTED_DIGITS = 3
+
+
 def quantize(values: np.ndarray, step: float, deadzone: float) -> np.ndarray:
     """Dead-zone uniform quantizer: integers ``sign(c) * floor(|c|/step + 0.5 - deadzone)``.
 
@@ -99,9 +109,39 @@ def quantize(values: np.ndarray, step: float, deadzone: float) -> np.ndarray:
         Quantizer step in metres.
     deadzone : float
         Rounding offset in steps, in [0, 0.5).
+
+    Raises
+    ------
+    InvalidInputError
+        ``step`` is so fine that an integer would pass :data:`QUANT_LIMIT`
+        (see :func:`finest_step`): the quantizer refuses rather than wrap.
     """
-    q = np.floor(np.abs(values) / step + (0.5 - deadzone))
+    with np.errstate(over="ignore"):
+        q = np.floor(np.abs(values) / step + (0.5 - deadzone))
+    if q.size and not q.max() < QUANT_LIMIT:  # also inf and NaN
+        raise InvalidInputError(
+            f"quantizer step {step:g} m is too fine for coefficients up to {float(np.abs(values).max()):g} m: "
+            f"their integers would pass 2**63 and wrap; the smallest workable step is {finest_step(values):g} m")
     return (np.sign(values) * q).astype(np.int64)
+
+
+def finest_step(values: np.ndarray) -> float:
+    """The smallest quantizer step (metres, :data:`SUGGESTED_DIGITS` significant digits)
+    at which :func:`quantize` takes ``values`` (metres) without passing :data:`QUANT_LIMIT`,
+    whatever the dead zone; 0 when every value is 0."""
+    peak = float(np.abs(values).max(initial=0.0))
+    if peak == 0.0:
+        return 0.0
+    # A hair above peak / 2**63, so that |c| / step + 0.5 rounds below 2**63.
+    return round_up(max(peak / QUANT_LIMIT * (1 + 1e-9), math.ulp(0.0)))
+
+
+def round_up(value: float, digits: int = SUGGESTED_DIGITS) -> float:
+    """``value`` (> 0) rounded up to ``digits`` significant digits, to state in a message."""
+    short = float(f"{value:.{digits - 1}e}")
+    if short < value:
+        short = float(f"{short + 10.0 ** (math.floor(math.log10(short)) - digits + 1):.{digits - 1}e}")
+    return max(short, value)
 
 
 #: Significant digits of a quantizer step as the file states it.
@@ -136,6 +176,7 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
     the grid. Found by bisection on a log scale.
     """
     values = np.asarray(values, dtype=np.float64)
+    finest = finest_step(values)  # of every value, not only the sample's
     # On long streams an evenly strided sample predicts the error well and
     # costs a fraction of the time (the file states the true error anyway).
     stride = max(1, values.size // STEP_SAMPLE)
@@ -146,7 +187,8 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
         err = values - dequantize(quantize(values, step, deadzone), step)
         return float(np.dot(err, err))
 
-    lo, hi = target_rmse * 1e-3, max(target_rmse * math.sqrt(12.0 * n_cells), 1e-12)
+    lo = max(target_rmse * 1e-3, finest)
+    hi = max(target_rmse * math.sqrt(12.0 * n_cells), 1e-12, lo)
     if sq_error(hi) <= budget:
         return hi
     for _ in range(40):
