@@ -208,3 +208,30 @@ def test_the_cli_says_the_step_is_too_fine_in_one_line(capsys, tmp_path, gentle)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "too fine for this map's height range" in err[0], err
     assert not out.exists()
+
+
+# --- heights a file cannot hold ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("z", [(-4e299, 4e299), (0.0, 3e12), (-2e12, -1.5e12)])
+def test_heights_out_of_range_are_refused_as_such(gentle, z):
+    # Heights spanning 1e300 used to be reported as a bad step ("step must be a finite number").
+    points = gentle.copy()
+    points[:, 2] = np.where(points[:, 0] > 25, z[1], z[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # refused before gridding: no overflow on the way
+        with pytest.raises(InvalidInputError, match=re.escape(f"heights are out of range: they run from {z[0]:g} to "
+                                                              f"{z[1]:g} m, and a .dftpc file holds heights within "
+                                                              "±1e+12 m")):
+            dftpcc.compress(points, resolution=1.0)
+
+
+def test_a_dem_with_heights_out_of_range_is_refused(gentle):
+    from dftpcc import encoder
+    from dftpcc.dem import DEM, Grid
+
+    grid = Grid(0.0, 0.0, 10.0, 1.0, 4, 4)
+    heights = np.zeros(grid.shape)
+    heights[0, 0] = 5e299
+    dem = DEM(grid, heights, np.ones(grid.shape, bool), gridding_rmse=0.0)
+    with pytest.raises(InvalidInputError, match=r"heights are out of range: they run from 10 to 5e\+299 m"):
+        encoder.encode_dem(dem, dftpcc.make_params(resolution=1.0))

@@ -17,14 +17,15 @@ import numpy as np
 from . import coding, occupancy, ratecontrol, spectrum
 from .analysis import Analysis
 from .container import Header, check_grid, pack
-from .dem import DEM
+from .dem import DEM, as_points
 from .errors import InvalidInputError
 from .grid import auto_resolution, fit_grid, rasterize
-from .params import Params, make_params
+from .params import MAX_COORDINATE_M, Params, make_params
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, residual
 
-__all__ = ["compress", "encode_dem", "grid_points", "params_of", "Stage", "no_stage", "QUANT_FLOOR_FRACTION"]
+__all__ = ["compress", "encode_dem", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
+           "QUANT_FLOOR_FRACTION"]
 
 #: With an automatic step, quantization may add this fraction of the
 #: gridding error (RMS, metres) to the rebuilt DEM ...
@@ -93,7 +94,8 @@ def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str,
     """
     on_stage("grid")
     params = params_of(params, shortcuts)
-    points = np.asarray(points)
+    points = as_points(points)
+    check_heights(float(points[:, 2].min()), float(points[:, 2].max()))  # before gridding overflows on them
     return encode_dem(grid_points(points, params), params, point_count=int(points.shape[0]), crs=crs,
                       on_stage=on_stage)
 
@@ -122,7 +124,9 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         raise InvalidInputError("the map has no occupied cell")
     params = params.replace(resolution=dem.grid.resolution)
     point_count = int(dem.mask.sum()) if point_count is None else point_count
-    # What the reader would refuse, refused before any work.
+    # What the reader would refuse, refused before any work: heights, then the grid.
+    occupied = dem.grid.z0 + dem.heights[dem.mask]
+    check_heights(float(occupied.min()), float(occupied.max()))
     check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
     on_stage("spectrum")
     an = Analysis(dem, params, searching=params.has_target and params.cutoff is None)
@@ -155,6 +159,14 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         # statistics' digits to change with the next candidate.
         overhead = len(data) - choice.size + STATS_SLACK
     raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be met with these settings")
+
+
+def check_heights(lowest: float, highest: float) -> None:
+    """Refuse heights (metres) outside the ±:data:`~dftpcc.params.MAX_COORDINATE_M` a file holds."""
+    if not max(abs(lowest), abs(highest)) <= MAX_COORDINATE_M:
+        raise InvalidInputError(
+            f"the heights are out of range: they run from {lowest:g} to {highest:g} m, and a .dftpc file "
+            f"holds heights within ±{MAX_COORDINATE_M:g} m")
 
 
 def _height_range(an: Analysis) -> str:
