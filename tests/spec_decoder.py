@@ -5,7 +5,9 @@ It does not import dftpcc: it exists to show whether the format document is enou
 
 Written by a helper that read only docs/format.md. When the section table lost its offsets
 (entries of tag, LEB128 tile and length, CRC), ``_sections`` was updated to the new table by the
-library's author, from the same document; the rest is as the helper wrote it.
+library's author, from the same document. Later, from the document's new rules: LEB128 of at most
+64 bits (``_uleb``), no bytes after the last section (``_sections``), and only binary STAT and
+COEF kind 3 for ANS (the drafts' JSON STAT and kind 2 refused). The rest is as the helper wrote it.
 """
 
 from __future__ import annotations
