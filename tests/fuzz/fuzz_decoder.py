@@ -350,7 +350,8 @@ class Mutator:
                       if rng.random() < 0.5 else bytes([rng.randrange(130, 256)]) + craft.leb128(rng.choice(_INTS)))
             stat = raw[:1] + record + raw[1:] if rng.random() < 0.5 else raw + record
         else:  # an integer record whose LEB128 is cut short or too wide
-            stat = raw + bytes([128]) + rng.choice((b"", b"\xff", b"\xff" * 10, b"\x80" * 9 + b"\x02", b"\x80" * 9 + b"\x01"))
+            tails = (b"", b"\xff", b"\xff" * 10, b"\x80" * 9 + b"\x02", b"\x80" * 9 + b"\x01")
+            stat = raw + bytes([128]) + rng.choice(tails)
         return craft.replace_section(data, b"STAT", stat)
 
     def _blob(self, data: bytes) -> bytes:
