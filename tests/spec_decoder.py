@@ -5,7 +5,9 @@ It does not import dftpcc: it exists to show whether the format document is enou
 
 Written by a helper that read only docs/format.md. When the section table lost its offsets
 (entries of tag, LEB128 tile and length, CRC), ``_sections`` was updated to the new table by the
-library's author, from the same document; the rest is as the helper wrote it.
+library's author, from the same document. Later, from the document's new rules: LEB128 of at most
+64 bits (``_uleb``), no bytes after the last section (``_sections``), and only binary STAT and
+COEF kind 3 for ANS (the drafts' JSON STAT and kind 2 refused). The rest is as the helper wrote it.
 """
 
 from __future__ import annotations
@@ -71,17 +73,23 @@ def _words(buf: bytes) -> np.ndarray:
 
 # --------------------------------------------------------------------------- container
 
-def _uleb(data: bytes, pos: int) -> tuple[int, int]:
-    """Unsigned LEB128 at ``pos`` (at most 64 bits) and the position after it."""
-    value, shift = 0, 0
-    while pos < len(data) and shift <= 63:
-        byte = data[pos]
-        pos += 1
-        value |= (byte & 0x7F) << shift
-        shift += 7
+def _uleb(data: bytes, pos: int, where: str = "section table") -> tuple[int, int]:
+    """Unsigned LEB128 at ``pos`` and the position after it.
+
+    format.md: at most 10 bytes and a value below 2**64 (a tenth byte is 0 or 1 and ends it);
+    anything wider is refused, never reduced.
+    """
+    value = 0
+    for k in range(10):
+        if pos + k >= len(data):
+            raise ValueError(f"{where} is truncated")
+        byte = data[pos + k]
+        value |= (byte & 0x7F) << (7 * k)
         if not byte & 0x80:
-            return value, pos
-    raise ValueError("truncated section table")
+            if value >= 1 << 64:
+                break
+            return value, pos + k + 1
+    raise ValueError(f"{where} holds an integer wider than 64 bits")
 
 
 def _sections(data: bytes) -> dict[bytes, bytes]:
@@ -110,6 +118,10 @@ def _sections(data: bytes) -> dict[bytes, bytes]:
         raise ValueError("truncated section table")
     if zlib.crc32(data[:table_end]) != struct.unpack_from("<I", data, table_end)[0]:
         raise ValueError("section table fails its checksum")
+    # The file ends where its last payload ends: bytes after it are refused.
+    end = table_end + 4 + sum(length for _tag, _tile, length, _crc in entries)
+    if len(data) > end:
+        raise ValueError(f"{len(data) - end} bytes after the last section")
     sections: dict[bytes, bytes] = {}
     offset = table_end + 4  # payloads follow the table in its order
     for tag, tile, length, crc in entries:
@@ -148,9 +160,9 @@ def _geom(p: bytes) -> dict:
 
 def _stat(p: bytes) -> dict:
     if not p:
-        raise ValueError("STAT is empty")
-    if p[0] != 1:  # earlier writers: a JSON object
-        return _json(p)
+        raise ValueError("section STAT is empty")
+    if p[0] != 1:  # binary is the only coding
+        raise ValueError(f"section STAT has unknown coding {p[0]}")
     stats, i = {}, 1
     while i < len(p):
         fid = p[i]
@@ -165,18 +177,7 @@ def _stat(p: bytes) -> dict:
             if fid in STAT_FLOAT_IDS:
                 stats[STAT_FLOAT_IDS[fid]] = float(v)
         else:
-            v, shift = 0, 0
-            while True:
-                if i >= len(p) or shift > 63:
-                    raise ValueError("section STAT holds a truncated or oversized integer")
-                b = p[i]
-                i += 1
-                v |= (b & 0x7F) << shift
-                shift += 7
-                if not b & 0x80:
-                    break
-            if v >= 1 << 64:
-                raise ValueError("section STAT holds an oversized integer")
+            v, i = _uleb(p, i, "section STAT")
             if fid in STAT_INT_IDS:
                 stats[STAT_INT_IDS[fid]] = v
     return stats
@@ -312,7 +313,7 @@ def _table_model(max_abs: int, code: int):
     return constriction.stream.model.Categorical(np.array(f, dtype=np.float64) / (1 << 24), perfect=False)
 
 
-def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray, table: bool) -> np.ndarray:
+def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray) -> np.ndarray:
     if len(p) < 9:
         raise ValueError("ANS chunk is truncated")
     layout, max_abs, side = struct.unpack_from("<BII", p, 0)
@@ -323,9 +324,9 @@ def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray, tabl
             + np.minimum(np.floor(angle * sectors).astype(np.int64), sectors - 1))
     lo, hi = int(band.min()), int(band.max())
     nbands = hi - lo + 1
-    if table and side == nbands:  # kind 3 stores few codes raw
+    if side == nbands:  # few codes are stored raw
         codes = np.frombuffer(p[9:9 + side], np.uint8)
-    elif table and side > nbands:
+    elif side > nbands:
         raise ValueError("ANS chunk has too many bytes of band scales")
     else:
         codes = np.frombuffer(_zstd(p[9:9 + side], nbands), np.uint8)
@@ -336,12 +337,7 @@ def _ans_chunk(p: bytes, count: int, radius: np.ndarray, angle: np.ndarray, tabl
     out = np.zeros(count, np.int64)
     for c in np.unique(code[code > 0]):
         sel = np.flatnonzero(code == c)
-        if table:
-            out[sel] = coder.decode(_table_model(max_abs, int(c)), len(sel)) - max_abs
-        else:
-            scale = max(2.0 ** ((int(c) - 128) / 8), 0.05)
-            model = constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
-            out[sel] = coder.decode(model, len(sel))
+        out[sel] = coder.decode(_table_model(max_abs, int(c)), len(sel)) - max_abs
     return out
 
 
@@ -378,8 +374,8 @@ def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray) -> np.n
             values.append(np.frombuffer(body, "<c8").astype(np.complex128))
         elif kind == 0:
             values.append(_zstd_chunk(body, count))
-        elif kind in (2, 3):
-            values.append(_ans_chunk(body, count, radius[start:stop], angle[start:stop], table=kind == 3))
+        elif kind == 3:
+            values.append(_ans_chunk(body, count, radius[start:stop], angle[start:stop]))
         else:
             raise ValueError(f"coefficient chunk has unknown kind {kind}")
     if len(kinds) > 1:

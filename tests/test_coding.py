@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import re
 import struct
+import warnings
 import zlib
 
 import numpy as np
@@ -12,8 +14,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+import dftpcc
 from dftpcc import coding
-from dftpcc.errors import CorruptFileError
+from dftpcc.errors import CorruptFileError, InvalidInputError
 
 
 @given(hnp.arrays(np.float64, st.integers(1, 500), elements=st.floats(-1e4, 1e4)),
@@ -66,34 +69,29 @@ def test_step_choice_meets_its_target():
     assert np.sqrt(np.sum(err2**2) / 10000) > 0.01
 
 
-def test_kind_2_chunks_of_earlier_builds_still_decode():
-    # Written here as format.md describes kind 2: Laplace models per band scale group.
-    import struct
-    import zlib
-
+def test_kind_2_chunks_of_the_drafts_are_refused():
+    # Kind 2 (ANS with constriction's QuantizedLaplace models) was written only by
+    # pre-release drafts; a reader refuses it as any kind it does not know. The chunk is
+    # made as the drafts made it, so only its kind is foreign.
     import constriction
-    import zstandard
 
     rng = np.random.default_rng(3)
-    values = np.round(rng.laplace(scale=3.0, size=700)).astype(np.int64)
+    values = np.round(rng.laplace(scale=3.0, size=200)).astype(np.int64)
     radius, angle = np.linspace(0, 30, values.size), np.zeros(values.size)
-    chunks = []
-    for start, stop in coding._chunk_bounds(values.size):
-        q = values[start:stop]
-        max_abs = int(np.abs(q).max())
-        bands = coding.band_ids(radius[start:stop], angle[start:stop], 0)
-        lo, codes = coding._band_scales(q, bands)
-        coder = constriction.stream.stack.AnsCoder()
-        for code, where in reversed(coding._groups(codes[bands - lo])):
-            scale = max(2.0 ** ((code - 128) / 8), 0.05)
-            model = constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
-            coder.encode_reverse(q[where].astype(np.int32), model)
-        side = zstandard.compress(codes.tobytes())
-        payload = struct.pack("<BII", 0, max_abs, len(side)) + side + coder.get_compressed().astype("<u4").tobytes()
-        chunks.append(struct.pack("<IIII", stop - start, len(payload), zlib.crc32(payload), coding.KIND_ANS) + payload)
-    blob = struct.pack("<I", len(chunks)) + b"".join(chunks)
-    out = coding.decode_coefficients(blob, values.size, radius=radius, angle=angle)
-    np.testing.assert_array_equal(out, values)
+    max_abs = int(np.abs(values).max())
+    bands = coding.band_ids(radius, angle, 0)
+    lo, codes = coding._band_scales(values, bands)
+    coder = constriction.stream.stack.AnsCoder()
+    for code, where in reversed(coding._groups(codes[bands - lo])):
+        scale = max(2.0 ** ((code - 128) / 8), 0.05)
+        model = constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
+        coder.encode_reverse(values[where].astype(np.int32), model)
+    side = zstandard.compress(codes.tobytes())
+    payload = struct.pack("<BII", 0, max_abs, len(side)) + side + coder.get_compressed().astype("<u4").tobytes()
+    blob = struct.pack("<I", 1) + struct.pack("<IIII", values.size, len(payload), zlib.crc32(payload), 2) + payload
+    with pytest.raises(CorruptFileError, match="coefficient chunk 0 has unknown kind 2"):
+        coding.decode_coefficients(blob, values.size, radius=radius, angle=angle)
+    assert not hasattr(coding, "KIND_ANS")
 
 
 def test_table_models_are_fixed_integers():
@@ -140,3 +138,100 @@ def test_few_band_scales_are_stored_raw_and_a_longer_side_is_refused():
     chunk = struct.pack("<IIII", values.size, len(payload), zlib.crc32(bytes(payload)), kind) + bytes(payload)
     with pytest.raises(CorruptFileError, match="bytes of band scales"):
         coding.decode_coefficients(struct.pack("<I", 1) + chunk, values.size, radius=radius, angle=angle)
+
+
+# --- the quantizer never wraps: a step too fine for the map is refused -----------------------------
+
+def test_the_quantizer_refuses_a_step_whose_integers_would_wrap():
+    values = np.array([1.0, -3.0, 250.0, 0.0])
+    finest = coding.finest_step(values)
+    q = coding.quantize(values, finest, 0.1)
+    assert q.dtype == np.int64 and 2**61 < np.abs(q).max() < 2**63 and np.sign(q[2]) == 1
+    np.testing.assert_allclose(coding.dequantize(q, finest), values, rtol=1e-12)
+    for step in (finest / 1.01, 1e-20, 1e-300, 5e-324):
+        with pytest.raises(InvalidInputError, match="too fine .* smallest workable step is"):
+            coding.quantize(values, step, 0.1)
+
+
+@given(hnp.arrays(np.float64, st.integers(1, 50), elements=st.floats(-1e15, 1e15)), st.floats(0.0, 0.45))
+@settings(max_examples=60, deadline=None)
+def test_at_the_finest_step_every_integer_fits_and_keeps_its_sign(values, deadzone):
+    step = coding.finest_step(values)
+    if not step:
+        return  # all zeros: any step
+    q = coding.quantize(values, step, deadzone)
+    assert (np.sign(q) * np.sign(values) >= 0).all()
+    # Within a step, up to float64's own rounding of integers this large (a few ulp of the value).
+    assert (np.abs(values - coding.dequantize(q, step)) <= step + 4 * np.spacing(np.abs(values))).all()
+
+
+@pytest.fixture(scope="module")
+def gentle() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0, 50, (2, 4000))
+    return np.c_[x, y, 100 + 0.05 * x + np.sin(y / 5) + rng.normal(0, 0.01, x.size)]
+
+
+@pytest.mark.parametrize("step", [1e-300, 1e-20])
+@pytest.mark.parametrize("options", [{}, {"transform": "dft"}, {"coder": "zstd"}], ids=["dct", "dft", "zstd"])
+def test_a_step_too_fine_for_the_heights_is_refused_with_the_finest_that_works(gentle, step, options):
+    # 1e-300 ended in struct.error in the ANS coder; 1e-20 wrapped the int64 quantizer
+    # with only numpy's cast warning, and wrote a worse map.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no cast warning on the way
+        with pytest.raises(InvalidInputError) as info:
+            dftpcc.compress(gentle, resolution=1.0, step=step, **options)
+    message = str(info.value)
+    assert re.search(rf"quantizer step {step:g} m is too fine for this map's height range "
+                     r"\(99\.\d+ to 103\.\d+ m\).* smallest workable step is [0-9.e+-]+ m", message), message
+    finest = float(re.search(r"smallest workable step is ([0-9.e+-]+) m", message).group(1))
+    data = dftpcc.compress(gentle, resolution=1.0, step=finest, **options)
+    assert dftpcc.open(data).params.step == finest
+    # Quantized that finely the map is the low-passed one: as good as the finest usual step.
+    usual = dftpcc.open(dftpcc.compress(gentle, resolution=1.0, step=1e-6, **options)).header.stats
+    assert dftpcc.open(data).header.stats["dem_rmse_m"] <= usual["dem_rmse_m"] * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("profile", ["compact", "paper"])
+def test_a_maximum_error_too_fine_for_the_heights_is_refused(gentle, profile):
+    with pytest.raises(InvalidInputError, match=r"target maximum error 1e-300 m is too fine for this map's height "
+                                                r"range .* smallest workable target is [0-9.e+-]+ m"):
+        dftpcc.compress(gentle, resolution=1.0, target_max_error=1e-300, profile=profile)
+
+
+def test_the_cli_says_the_step_is_too_fine_in_one_line(capsys, tmp_path, gentle):
+    from dftpcc import cli
+
+    src, out = tmp_path / "cloud.npy", tmp_path / "out.dftpc"
+    np.save(src, gentle)
+    assert cli.main(["compress", str(src), str(out), "-r", "1", "--step", "1e-300"]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "too fine for this map's height range" in err[0], err
+    assert not out.exists()
+
+
+# --- heights a file cannot hold ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("z", [(-4e299, 4e299), (0.0, 3e12), (-2e12, -1.5e12)])
+def test_heights_out_of_range_are_refused_as_such(gentle, z):
+    # Heights spanning 1e300 used to be reported as a bad step ("step must be a finite number").
+    points = gentle.copy()
+    points[:, 2] = np.where(points[:, 0] > 25, z[1], z[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # refused before gridding: no overflow on the way
+        with pytest.raises(InvalidInputError, match=re.escape(f"heights are out of range: they run from {z[0]:g} to "
+                                                              f"{z[1]:g} m, and a .dftpc file holds heights within "
+                                                              "±1e+12 m")):
+            dftpcc.compress(points, resolution=1.0)
+
+
+def test_a_dem_with_heights_out_of_range_is_refused(gentle):
+    from dftpcc import encoder
+    from dftpcc.dem import DEM, Grid
+
+    grid = Grid(0.0, 0.0, 10.0, 1.0, 4, 4)
+    heights = np.zeros(grid.shape)
+    heights[0, 0] = 5e299
+    dem = DEM(grid, heights, np.ones(grid.shape, bool), gridding_rmse=0.0)
+    with pytest.raises(InvalidInputError, match=r"heights are out of range: they run from 10 to 5e\+299 m"):
+        encoder.encode_dem(dem, dftpcc.make_params(resolution=1.0))

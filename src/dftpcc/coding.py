@@ -31,10 +31,12 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     import constriction
 
-from .errors import CorruptFileError
+from .errors import CorruptFileError, InvalidInputError
+from .params import MAX_COORDINATE_M
 
 __all__ = [
     "quantize",
+    "finest_step",
     "dequantize",
     "choose_step",
     "encode_coefficients",
@@ -51,8 +53,9 @@ _CHUNK = struct.Struct("<IIII")  # count, nbytes, crc32, element kind
 #: Element kinds inside a chunk.
 KIND_INT = 0  # zigzag byte planes, zstd
 KIND_COMPLEX64 = 1  # raw little-endian complex64 (the paper)
-KIND_ANS = 2  # constriction's QuantizedLaplace per band, ANS-coded (read only)
 KIND_ANS_TABLE = 3  # two-sided geometric per band from integer tables, ANS-coded
+# (Kind 2, ANS with constriction's QuantizedLaplace, was written only by pre-release
+# drafts; it is refused as any unknown kind.)
 #: Ways to cut a chunk into frequency bands, one scale each:
 #: (ring width in DFT frequency pixels, angular sectors). The encoder keeps,
 #: per chunk, the one that codes it smallest (side information included):
@@ -86,6 +89,15 @@ STEP_TOLERANCE = 1.02
 STEP_SAMPLE = 32768
 
 
+#: Quantized coefficients are int64: zstd chunks (kind 0) hold any of them,
+#: zigzag-mapped in up to 8 byte planes, and an ANS chunk whose values exceed
+#: MAX_ANS_SYMBOL falls back to kind 0. So the real limit is the quantizer's
+#: own cast: ``|c| / step`` must stay below 2**63, or the integers wrap.
+QUANT_LIMIT = 2.0**63
+#: Significant digits of a smallest workable step or target, as a message states it (rounded up).
+SUGGESTED_DIGITS = 3
+
+
 def quantize(values: np.ndarray, step: float, deadzone: float) -> np.ndarray:
     """Dead-zone uniform quantizer: integers ``sign(c) * floor(|c|/step + 0.5 - deadzone)``.
 
@@ -97,9 +109,39 @@ def quantize(values: np.ndarray, step: float, deadzone: float) -> np.ndarray:
         Quantizer step in metres.
     deadzone : float
         Rounding offset in steps, in [0, 0.5).
+
+    Raises
+    ------
+    InvalidInputError
+        ``step`` is so fine that an integer would pass :data:`QUANT_LIMIT`
+        (see :func:`finest_step`): the quantizer refuses rather than wrap.
     """
-    q = np.floor(np.abs(values) / step + (0.5 - deadzone))
+    with np.errstate(over="ignore"):
+        q = np.floor(np.abs(values) / step + (0.5 - deadzone))
+    if q.size and not q.max() < QUANT_LIMIT:  # also inf and NaN
+        raise InvalidInputError(
+            f"quantizer step {step:g} m is too fine for coefficients up to {float(np.abs(values).max()):g} m: "
+            f"their integers would pass 2**63 and wrap; the smallest workable step is {finest_step(values):g} m")
     return (np.sign(values) * q).astype(np.int64)
+
+
+def finest_step(values: np.ndarray) -> float:
+    """The smallest quantizer step (metres, :data:`SUGGESTED_DIGITS` significant digits)
+    at which :func:`quantize` takes ``values`` (metres) without passing :data:`QUANT_LIMIT`,
+    whatever the dead zone; 0 when every value is 0."""
+    peak = float(np.abs(values).max(initial=0.0))
+    if peak == 0.0:
+        return 0.0
+    # A hair above peak / 2**63, so that |c| / step + 0.5 rounds below 2**63.
+    return round_up(max(peak / QUANT_LIMIT * (1 + 1e-9), math.ulp(0.0)))
+
+
+def round_up(value: float, digits: int = SUGGESTED_DIGITS) -> float:
+    """``value`` (> 0) rounded up to ``digits`` significant digits, to state in a message."""
+    short = float(f"{value:.{digits - 1}e}")
+    if short < value:
+        short = float(f"{short + 10.0 ** (math.floor(math.log10(short)) - digits + 1):.{digits - 1}e}")
+    return max(short, value)
 
 
 #: Significant digits of a quantizer step as the file states it.
@@ -107,11 +149,14 @@ STEP_DIGITS = 6
 
 
 def short_step(step: float) -> float:
-    """The largest number of :data:`STEP_DIGITS` significant digits not above
-    ``step``: the file states it in a few characters, and a finer step only
-    lowers the error."""
+    """The largest step a file can state that is not above ``step``: at most
+    :data:`~dftpcc.params.MAX_COORDINATE_M`, in :data:`STEP_DIGITS` significant
+    digits. The file states it in a few characters, and a finer step only
+    lowers the error (rate control may search steps beyond the limit for a
+    huge target; they are held at it)."""
     if not (math.isfinite(step) and step > 0.0):
         return step
+    step = min(step, MAX_COORDINATE_M)
     short = float(f"{step:.{STEP_DIGITS}g}")
     while short > step:
         short = float(f"{short - 10.0 ** (math.floor(math.log10(short)) - STEP_DIGITS + 1):.{STEP_DIGITS}g}")
@@ -131,6 +176,7 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
     the grid. Found by bisection on a log scale.
     """
     values = np.asarray(values, dtype=np.float64)
+    finest = finest_step(values)  # of every value, not only the sample's
     # On long streams an evenly strided sample predicts the error well and
     # costs a fraction of the time (the file states the true error anyway).
     stride = max(1, values.size // STEP_SAMPLE)
@@ -141,7 +187,8 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
         err = values - dequantize(quantize(values, step, deadzone), step)
         return float(np.dot(err, err))
 
-    lo, hi = target_rmse * 1e-3, max(target_rmse * math.sqrt(12.0 * n_cells), 1e-12)
+    lo = max(target_rmse * 1e-3, finest)
+    hi = max(target_rmse * math.sqrt(12.0 * n_cells), 1e-12, lo)
     if sq_error(hi) <= budget:
         return hi
     for _ in range(40):
@@ -234,10 +281,6 @@ def _band_scales(q: np.ndarray, bands: np.ndarray) -> tuple[int, np.ndarray]:
 
 def _scale_of(codes: np.ndarray) -> np.ndarray:
     return np.where(codes > 0, np.maximum(2.0 ** ((codes.astype(np.float64) - SCALE_BIAS) / SCALE_STEPS), MIN_SCALE), 0.0)
-
-
-def _laplace(max_abs: int, scale: float):
-    return constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
 
 
 #: Probabilities of the table models are integers out of 2**TABLE_BITS.
@@ -391,7 +434,7 @@ def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive
     return min((_encode_ans_with(q, b, max_abs) for b in candidates), key=len)
 
 
-def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str, *, table: bool) -> np.ndarray:
+def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str) -> np.ndarray:
     if len(payload) < _ANS_HEAD.size:
         raise CorruptFileError(f"{what} is too short")
     layout, max_abs, side_len = _ANS_HEAD.unpack_from(payload, 0)
@@ -404,9 +447,9 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     if len(payload) < end or (len(payload) - end) % 4:
         raise CorruptFileError(f"{what} has a wrong length")
     side = payload[_ANS_HEAD.size:end]
-    if table and side_len == ncodes:  # raw codes (kind 3 only)
+    if side_len == ncodes:  # few bands: raw codes
         codes = np.frombuffer(side, dtype=np.uint8)
-    elif table and side_len > ncodes:
+    elif side_len > ncodes:
         raise CorruptFileError(f"{what} has {side_len} bytes of band scales for {ncodes} bands")
     else:
         codes = np.frombuffer(unzstd(zstandard.ZstdDecompressor(), side, ncodes, what), dtype=np.uint8)
@@ -415,15 +458,12 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     out = np.zeros(bands.size, dtype=np.int64)
     words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
     groups = _groups(codes[bands - lo])
-    if table and len(groups) * (2 * max_abs + 1) > table_budget(bands.size):
+    if len(groups) * (2 * max_abs + 1) > table_budget(bands.size):
         raise CorruptFileError(f"{what} asks for larger probability tables than its {bands.size} values allow")
     try:
         coder = constriction.stream.stack.AnsCoder(words)
         for code, where in groups:
-            if table:
-                out[where] = coder.decode(_table_model(max_abs, code), where.size) - max_abs
-            else:
-                out[where] = coder.decode(_laplace(max_abs, float(_scale_of(np.array([code]))[0])), where.size)
+            out[where] = coder.decode(_table_model(max_abs, code), where.size) - max_abs
     except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
         raise CorruptFileError(f"{what} does not decode: {exc}") from None
     if np.abs(out).max(initial=0) > max_abs:
@@ -524,11 +564,10 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
         elif kind == KIND_INT:
             raw = unzstd(dctx, payload, 1 + 8 * count, what)
             parts.append(_unpack_ints(raw, count))
-        elif kind in (KIND_ANS, KIND_ANS_TABLE):
+        elif kind == KIND_ANS_TABLE:
             if radius is None or angle is None or radius.size < stop:
                 raise CorruptFileError(f"{what} is ANS-coded but no frequencies are known")
-            parts.append(_decode_ans(payload, radius[start:stop], angle[start:stop], what,
-                                     table=kind == KIND_ANS_TABLE))
+            parts.append(_decode_ans(payload, radius[start:stop], angle[start:stop], what))
         else:
             raise CorruptFileError(f"{what} has unknown kind {kind}")
     if not parts:

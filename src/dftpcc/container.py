@@ -36,7 +36,7 @@ from .errors import (
 )
 from .dem import Grid
 from .limits import DECODE_BYTES_PER_CELL, MAX_CELLS, cell_budget
-from .params import Params
+from .params import MAX_COORDINATE_M, Params
 
 __all__ = [
     "MAGIC",
@@ -45,6 +45,9 @@ __all__ = [
     "pack",
     "unpack",
     "cells_allowed",
+    "check_grid",
+    "check_header",
+    "check_max_bytes",
 ]
 
 MAGIC = b"\x89DFTPC\r\n"
@@ -53,7 +56,6 @@ MAGIC = b"\x89DFTPC\r\n"
 VERSION = (1, 0)
 _PREAMBLE = struct.Struct("<8sBBHI")  # magic, major, minor, flags, section count
 # A section table entry: 4-byte tag, LEB128 tile, LEB128 payload length, u32 CRC-32.
-_LEGACY_ENTRY = struct.Struct("<4sIQQI")  # drafts of 1.0: tag, tile, offset, length, crc32
 _CRC = struct.Struct("<I")
 MAX_SECTIONS = 1024
 #: Geometry section: origin x, y, projection-plane z, resolution, rows, cols,
@@ -63,15 +65,10 @@ _GEOM = struct.Struct("<ddddIIdQQddd")
 _GEOM_Y = struct.Struct("<d")
 #: Sections the reader needs; unknown tags are skipped.
 REQUIRED = (b"GEOM", b"PARM", b"MASK", b"COEF")
-#: Largest coordinate, height, grid extent or quantizer step a header may
-#: state, metres (about 7 astronomical units): beyond it a number is not a
-#: map coordinate but a damaged or crafted field, and it could overflow.
-MAX_COORDINATE_M = 1e12
+#: MAX_COORDINATE_M (from params, which checks steps and targets against it):
+#: the largest coordinate, height, grid extent or quantizer step a header may state.
 #: Largest plane term ``|a| + |b|*cols + |c|*rows`` a header may state, metres.
 MAX_PLANE_M = 1e18
-#: STAT fields that must be numbers when present (others are free-form).
-_STAT_NUMBERS = ("dem_rmse_m", "dem_max_error_m", "gridding_rmse_m", "vertical_rmse_m")
-_STAT_COUNTS = ("mask_bytes", "coef_bytes")
 #: LAS variable-length records: 16-bit record id and length, 32-byte description.
 _VLR_MAX_ID = 0xFFFF
 _VLR_MAX_BYTES = 0xFFFF
@@ -112,12 +109,80 @@ class Header:
     coef_count: int = 0
 
 
+def check_grid(grid: Grid, *, point_count: int, cell_count: int, params: Params,
+               plane: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+    """Refuse, before any work, a map whose geometry the reader would refuse.
+
+    The reader's checks on GEOM (origin, extent, plane, cells, points,
+    row spacing; not the decoding budget, which a writer only warns about),
+    run on what the writer is about to state.
+
+    Raises
+    ------
+    InvalidInputError
+        "cannot write this map: <what the reader would say>".
+    """
+    with _as_writer():
+        _check_grid(grid, point_count, cell_count, params, plane)
+
+
+def check_header(header: Header) -> None:
+    """Refuse a header :func:`unpack` would refuse, so no file is written that dftpcc cannot read.
+
+    The reader's checks on geometry, parameters, coefficient count and CRS;
+    :func:`pack` runs them first, and also refuses statistics or JSON sections
+    the reader could not take.
+
+    Raises
+    ------
+    InvalidInputError
+        "cannot write this map: <what the reader would say>".
+    """
+    g = header.grid
+    with _as_writer():
+        _check_grid(g, header.point_count, header.cell_count, header.params, header.plane)
+        _check_params(header.params, g.resolution)
+        _check_coef_count(header.coef_count, g.size)
+        _check_crs(header.crs)
+
+
+def _check_grid(grid: Grid, point_count: int, cell_count: int, params: Params,
+                plane: tuple[float, float, float]) -> None:
+    if not (_is_count(point_count) and point_count < _U64_LIMIT):
+        raise CorruptFileError(f"point count {point_count!r} does not fit the header's 64 bits")
+    fields = (grid.x0, grid.y0, grid.z0, grid.resolution, grid.rows, grid.cols, grid.angle,
+              point_count, cell_count, *plane)
+    # The budget is the reader's default, not a limit of the format: a writer warns (see pack).
+    _check_geometry(fields, MAX_CELLS, 0)
+    _check_points(params, point_count, cell_count)
+    _check_row_spacing(grid.resolution_y or 0.0, grid.rows)
+
+
+class _as_writer:
+    """Turn the reader's refusal (CorruptFileError) into the writer's (InvalidInputError)."""
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind: type | None, exc: BaseException | None, _tb: Any) -> None:
+        if isinstance(exc, CorruptFileError):
+            raise InvalidInputError(f"cannot write this map: a reader would refuse the file: {exc}") from None
+
+
 def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes = b"") -> bytes:
     """Serialise a map into ``.dftpc`` bytes.
 
     ``resid_blob`` is the optional residual layer (max-error guarantee); it
     follows the coefficients, so a prefix of the file still decodes.
+
+    Raises
+    ------
+    InvalidInputError
+        A header the reader would refuse (:func:`check_header`), or
+        statistics or JSON sections it could not take: nothing is written
+        that dftpcc cannot read.
     """
+    check_header(header)
     g = header.grid
     geom = _GEOM.pack(g.x0, g.y0, g.z0, g.resolution, g.rows, g.cols, g.angle,
                       header.point_count, header.cell_count, *header.plane)
@@ -126,8 +191,8 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     info = dict(header.stats, coef_count=header.coef_count)
     sections = [
         (b"GEOM", geom),
-        (b"PARM", _pack_json(_params_for_file(header.params))),
-    ] + ([(b"CRS ", _pack_json(_crs_for_file(header.crs)))] if header.crs else []) + [
+        (b"PARM", _pack_json(_params_for_file(header.params), "PARM")),
+    ] + ([(b"CRS ", _pack_json(_crs_for_file(header.crs), "CRS"))] if header.crs else []) + [
         (b"STAT", _pack_stats({k: v for k, v in info.items()
                                if k not in _DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
         (b"MASK", mask_blob),
@@ -161,13 +226,16 @@ def _table(data: memoryview) -> tuple[list[tuple[bytes, int, int, int]], int]:
     if count > MAX_SECTIONS:
         raise CorruptFileError(f"section table claims {count} sections, more than the {MAX_SECTIONS} allowed")
     entries, pos = [], _PREAMBLE.size
-    for _ in range(count):
+    for index in range(count):
         tile = length = None
-        if pos + 4 <= len(data):
-            tag = bytes(data[pos:pos + 4])
-            tile, pos = _read_leb128(data, pos + 4)
-        if tile is not None:
-            length, pos = _read_leb128(data, pos)
+        try:
+            if pos + 4 <= len(data):
+                tag = bytes(data[pos:pos + 4])
+                tile, pos = _read_leb128(data, pos + 4)
+            if tile is not None:
+                length, pos = _read_leb128(data, pos)
+        except _TooWide:
+            raise CorruptFileError(f"section table entry {index} holds an integer wider than 64 bits") from None
         if length is None or pos + _CRC.size > len(data):
             raise CorruptFileError("file is truncated inside its section table")
         (crc,) = _CRC.unpack_from(data, pos)
@@ -177,35 +245,52 @@ def _table(data: memoryview) -> tuple[list[tuple[bytes, int, int, int]], int]:
         raise CorruptFileError("file is truncated inside its section table")
     (crc,) = _CRC.unpack_from(data, pos)
     if zlib.crc32(data[:pos]) != crc:
-        if _is_legacy_draft(data, count):
-            raise UnsupportedFormatError(
-                "this .dftpc was written by a pre-release build (a draft of format 1.0 with 28-byte section "
-                "entries); re-compress it with this version")
         raise CorruptFileError("section table fails its checksum")
     return entries, pos + _CRC.size
 
 
+#: An unsigned LEB128 integer holds at most 64 bits: ten groups of 7 bits, the
+#: tenth byte holding only bit 63 (0 or 1) and ending the value.
+LEB128_MAX_BYTES = 10
+_U64_LIMIT = 1 << 64
+
+
+class _TooWide(Exception):
+    """A LEB128 integer of more than 64 bits (callers name where it was)."""
+
+
 def _read_leb128(data: memoryview, pos: int) -> tuple[int | None, int]:
-    """An unsigned LEB128 integer at ``pos`` and the position after it; None when truncated or over 64 bits."""
-    value, shift = 0, 0
-    while pos < len(data) and shift <= 63:
+    """An unsigned LEB128 integer at ``pos`` and the position after it; None when the data ends inside it.
+
+    Raises :class:`_TooWide` for more than :data:`LEB128_MAX_BYTES` bytes or a
+    value of 2**64 or more (docs/format.md: a reader refuses those).
+    """
+    value, shift, end = 0, 0, min(len(data), pos + LEB128_MAX_BYTES)
+    while pos < end:
         byte = data[pos]
         pos += 1
         value |= (byte & 0x7F) << shift
         shift += 7
         if not byte & 0x80:
+            if value >= _U64_LIMIT:
+                raise _TooWide()
             return value, pos
+    if shift >= 7 * LEB128_MAX_BYTES:  # ten bytes, all saying more follows
+        raise _TooWide()
     return None, pos
-
-
-def _is_legacy_draft(data: memoryview, count: int) -> bool:
-    end = _PREAMBLE.size + count * _LEGACY_ENTRY.size
-    return len(data) >= end + _CRC.size and _CRC.unpack_from(data, end)[0] == zlib.crc32(data[:end])
 
 
 def _sections(data: memoryview, *, allow_truncated_coef: bool) -> tuple[dict[bytes, memoryview], dict[bytes, int]]:
     """The checked payload of each tile-0 section, and the length the table declares for it."""
     entries, offset = _table(data)
+    # The file ends where its last payload ends (format.md): bytes after it are no
+    # part of this map, and reading on silently would hide them. A prefix read on
+    # purpose ends earlier, so it passes; one past the end is the whole file.
+    end = offset + sum(length for _tag, _tile, length, _crc in entries)
+    if len(data) > end:
+        raise CorruptFileError(
+            f"{len(data) - end:,} trailing byte(s) after the last section, which ends at byte {end:,} "
+            f"(two files joined, or data appended in transfer?)")
     found: dict[bytes, memoryview] = {}
     declared: dict[bytes, int] = {}
     for tag, tile, length, crc in entries:
@@ -275,8 +360,8 @@ def _params_from_file(text: str, resolution: float) -> Params:
 #: Binary STAT: a marker byte, then records of a u8 field id and its value:
 #: ids below 128 hold a float32 (errors rounded up to the next float32, so a
 #: stated error stays an upper bound), ids from 128 an unsigned LEB128 integer.
-#: A reader skips ids it does not know. JSON STAT (first byte ``{`` or a zstd
-#: frame) is read too.
+#: A reader skips ids it does not know. The first byte is the coding: binary
+#: is the only one (a reader refuses another).
 STAT_BINARY = 0x01
 STAT_FIELDS: dict[int, str] = {
     0: "dem_rmse_m", 1: "dem_max_error_m", 2: "gridding_rmse_m", 3: "vertical_rmse_m",
@@ -311,14 +396,23 @@ def _pack_stats(stats: dict[str, Any]) -> bytes:
         if i is None:
             raise ValueError(f"statistic {name!r} has no STAT field id")
         out.append(i)
-        out += _leb128(int(value)) if i >= 128 else _f32_up(float(value))
+        if i >= 128:
+            out += _leb128(int(value))
+            continue
+        packed = _f32_up(float(value))
+        if not math.isfinite(_F32.unpack(packed)[0]):  # the reader refuses NaN and infinities
+            raise InvalidInputError(f"cannot write this map: statistic {name} = {value!r} is not a finite float32")
+        out += packed
     return bytes(out)
 
 
 def _unpack_stats(payload: memoryview) -> dict[str, Any]:
     raw = bytes(payload)
-    if not raw or raw[0] != STAT_BINARY:
-        return _json(payload, "STAT")
+    if not raw:
+        raise CorruptFileError("section STAT is empty")
+    if raw[0] != STAT_BINARY:
+        raise CorruptFileError(f"section STAT has unknown coding {raw[0]:#04x} (binary STAT starts with "
+                               f"{STAT_BINARY:#04x})")
     stats: dict[str, Any] = {}
     pos = 1
     while pos < len(raw):
@@ -332,16 +426,22 @@ def _unpack_stats(payload: memoryview) -> dict[str, Any]:
             if not math.isfinite(value):
                 raise CorruptFileError(f"section STAT: field {i} is not finite")
         else:
-            value, pos = _read_leb128(memoryview(raw), pos)
+            try:
+                value, pos = _read_leb128(memoryview(raw), pos)
+            except _TooWide:
+                raise CorruptFileError("section STAT holds an integer wider than 64 bits") from None
             if value is None:
-                raise CorruptFileError("section STAT holds a truncated or oversized integer")
+                raise CorruptFileError("section STAT is truncated")
         if i in STAT_FIELDS:
             stats[STAT_FIELDS[i]] = value
     return stats
 
 
-def _pack_json(obj: Any) -> bytes:
+def _pack_json(obj: Any, name: str) -> bytes:
     raw = json.dumps(obj, sort_keys=True, separators=(",", ":")).encode("utf-8")
+    if len(raw) > MAX_JSON_BYTES:  # the reader's limit on a decompressed JSON section
+        raise InvalidInputError(f"cannot write this map: section {name} would hold {len(raw):,} bytes of JSON, "
+                                f"more than the {MAX_JSON_BYTES} bytes a reader accepts")
     packed = zstandard.ZstdCompressor(level=19).compress(raw)
     return packed if len(packed) < len(raw) else raw
 
@@ -448,15 +548,24 @@ def _check_params(params: Params, res: float) -> None:
         raise CorruptFileError(f"quantizer step {params.step!r} m is not in (0, {MAX_COORDINATE_M:g}]")
 
 
-def _check_stats(stats: Any) -> None:
-    if not isinstance(stats, dict):
-        raise CorruptFileError("section STAT must be a JSON object")
-    for key in _STAT_NUMBERS:
-        if key in stats and not _is_number(stats[key]):
-            raise CorruptFileError(f"section STAT: {key} must be a number, got {stats[key]!r:.40}")
-    for key in _STAT_COUNTS:
-        if key in stats and not _is_count(stats[key]):
-            raise CorruptFileError(f"section STAT: {key} must be a count, got {stats[key]!r:.40}")
+def _check_points(params: Params, npoints: int, ncells: int) -> None:
+    # Every rebuilt cell of an exact mask held a point; a footprint mask also
+    # rebuilds enclosed empty cells, so it may have more cells than points.
+    if params.mask == "exact" and npoints < ncells:
+        raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
+
+
+def _check_coef_count(coef_count: Any, cells: int) -> None:
+    if not _is_count(coef_count) or coef_count > cells:
+        raise CorruptFileError("coefficient count is missing or implausible")
+
+
+def _check_row_spacing(res_y: float, rows: int) -> None:
+    """The optional GEOM row spacing (0 for square cells)."""
+    if not (math.isfinite(res_y) and res_y >= 0):
+        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r}")
+    if res_y * rows > MAX_COORDINATE_M:
+        raise CorruptFileError(f"grid {rows} rows of {res_y:g} m extend beyond {MAX_COORDINATE_M:g} m")
 
 
 def _check_crs(crs: Any) -> None:
@@ -535,25 +644,16 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     except RecursionError:
         raise CorruptFileError("parameter section nests JSON too deeply") from None
     _check_params(params, res)
-    # Every rebuilt cell of an exact mask held a point; a footprint mask also
-    # rebuilds enclosed empty cells, so it may have more cells than points.
-    if params.mask == "exact" and npoints < ncells:
-        raise CorruptFileError(f"header states {npoints} original points for {ncells} occupied cells")
+    _check_points(params, npoints, ncells)
     stats = _unpack_stats(found[b"STAT"]) if b"STAT" in found else {}
-    if isinstance(stats, dict):
-        for key, tag in _DERIVED_STATS.items():
-            stats.setdefault(key, declared.get(tag, 0))
+    for key, tag in _DERIVED_STATS.items():
+        stats.setdefault(key, declared.get(tag, 0))
     crs = _crs_from_file(_json(found[b"CRS "], "CRS")) if b"CRS " in found else {}
-    _check_stats(stats)
     _check_crs(crs)
     coef_count = stats.get("coef_count")
-    if not _is_count(coef_count) or coef_count > rows * cols:
-        raise CorruptFileError("coefficient count is missing or implausible")
+    _check_coef_count(coef_count, rows * cols)
     res_y = _GEOM_Y.unpack_from(geom, _GEOM.size)[0] if len(geom) >= _GEOM.size + _GEOM_Y.size else 0.0
-    if not (math.isfinite(res_y) and res_y >= 0):
-        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r}")
-    if res_y * rows > MAX_COORDINATE_M:
-        raise CorruptFileError(f"grid {rows} rows of {res_y:g} m extend beyond {MAX_COORDINATE_M:g} m")
+    _check_row_spacing(res_y, rows)
     grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
                 resolution_y=res_y or None)
     header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,
@@ -564,8 +664,19 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
 def cells_allowed(file_size: int, max_cells: int | None) -> int:
     """The largest grid a file of ``file_size`` bytes may ask for: ``max_cells`` if given
     (never over :data:`~dftpcc.limits.MAX_CELLS`), else :func:`~dftpcc.limits.cell_budget`."""
+    check_max_cells(max_cells)
     if max_cells is None:
         return cell_budget(file_size)
-    if not _is_count(max_cells) or max_cells == 0:
-        raise InvalidInputError(f"max_cells must be a positive whole number, got {max_cells!r}")
     return min(max_cells, MAX_CELLS)
+
+
+def check_max_cells(max_cells: Any) -> None:
+    """Refuse a ``max_cells`` argument that is not None or a positive whole number."""
+    if max_cells is not None and (not _is_count(max_cells) or max_cells == 0):
+        raise InvalidInputError(f"max_cells must be a positive whole number, got {max_cells!r}")
+
+
+def check_max_bytes(max_bytes: Any) -> None:
+    """Refuse a ``max_bytes`` argument that is not None or a positive whole number of bytes."""
+    if max_bytes is not None and (not _is_count(max_bytes) or max_bytes == 0):
+        raise InvalidInputError(f"max_bytes must be a positive whole number of bytes, got {max_bytes!r}")

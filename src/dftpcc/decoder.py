@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from . import coding, occupancy, spectrum
-from .container import Header, unpack
+from .container import Header, check_max_bytes, unpack
 from .dem import DEM
 from .errors import CorruptFileError, InvalidInputError
 from .fill import plane_values
@@ -107,9 +107,8 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
     ndarray, shape (cells, 3), float64
         One point per occupied cell, metres, original frame.
     """
+    check_max_bytes(max_bytes)
     if max_bytes is not None:
-        if max_bytes <= 0:
-            raise InvalidInputError(f"max_bytes must be positive, got {max_bytes}")
         data = data[:max_bytes]
     header, blobs = unpack(data, allow_truncated_coef=max_bytes is not None)
     return dem_to_points(decode_dem(header, blobs, cutoff=cutoff, allow_partial=max_bytes is not None))

@@ -14,17 +14,18 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import coding, occupancy, ratecontrol
+from . import coding, occupancy, ratecontrol, spectrum
 from .analysis import Analysis
-from .container import Header, pack
-from .dem import DEM
+from .container import Header, check_grid, pack
+from .dem import DEM, as_points
 from .errors import InvalidInputError
 from .grid import auto_resolution, fit_grid, rasterize
-from .params import Params, make_params
+from .params import MAX_COORDINATE_M, Params, make_params
 from .ratecontrol import Choice
-from .residual import residual
+from .residual import GUARANTEE_MARGIN, residual
 
-__all__ = ["compress", "encode_dem", "grid_points", "params_of", "Stage", "no_stage", "QUANT_FLOOR_FRACTION"]
+__all__ = ["compress", "encode_dem", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
+           "QUANT_FLOOR_FRACTION"]
 
 #: With an automatic step, quantization may add this fraction of the
 #: gridding error (RMS, metres) to the rebuilt DEM ...
@@ -93,7 +94,8 @@ def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str,
     """
     on_stage("grid")
     params = params_of(params, shortcuts)
-    points = np.asarray(points)
+    points = as_points(points)
+    check_heights(float(points[:, 2].min()), float(points[:, 2].max()))  # before gridding overflows on them
     return encode_dem(grid_points(points, params), params, point_count=int(points.shape[0]), crs=crs,
                       on_stage=on_stage)
 
@@ -122,8 +124,14 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         raise InvalidInputError("the map has no occupied cell")
     params = params.replace(resolution=dem.grid.resolution)
     point_count = int(dem.mask.sum()) if point_count is None else point_count
+    # What the reader would refuse, refused before any work: heights, then the grid.
+    occupied = dem.grid.z0 + dem.heights[dem.mask]
+    check_heights(float(occupied.min()), float(occupied.max()))
+    check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
     on_stage("spectrum")
     an = Analysis(dem, params, searching=params.has_target and params.cutoff is None)
+    if params.target_max_error > 0:
+        _check_max_error(an, params.target_max_error)
     mask_blob = occupancy.encode_mask(an.kept_cells)
 
     on_stage("encode")
@@ -133,6 +141,8 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
             target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
             step = coding.choose_step(an.reals(an.count(cutoff)), target_rmse=target,
                                       n_cells=dem.grid.size, deadzone=params.deadzone)
+        if params.storage == "quantized":
+            _check_step(an, cutoff, step)
         # No refill without a target: at a fixed step it lowers the error by a
         # few per cent rather than the size, for two more transforms.
         trial = an.trial(cutoff, step)
@@ -149,6 +159,50 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         # statistics' digits to change with the next candidate.
         overhead = len(data) - choice.size + STATS_SLACK
     raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be met with these settings")
+
+
+def check_heights(lowest: float, highest: float) -> None:
+    """Refuse heights (metres) outside the ±:data:`~dftpcc.params.MAX_COORDINATE_M` a file holds."""
+    if not max(abs(lowest), abs(highest)) <= MAX_COORDINATE_M:
+        raise InvalidInputError(
+            f"the heights are out of range: they run from {lowest:g} to {highest:g} m, and a .dftpc file "
+            f"holds heights within ±{MAX_COORDINATE_M:g} m")
+
+
+def _height_range(an: Analysis) -> str:
+    occupied = an.dem.grid.z0 + an.dem.heights[an.mask]
+    return f"{float(occupied.min()):.6g} to {float(occupied.max()):.6g} m"
+
+
+def _check_step(an: Analysis, cutoff: float, step: float) -> None:
+    """Refuse, before quantizing, a step so fine that the integers would wrap (see :func:`coding.finest_step`)."""
+    finest = coding.finest_step(an.reals(an.count(cutoff)))
+    if coding.short_step(step) < finest:
+        raise InvalidInputError(
+            f"quantizer step {step:g} m is too fine for this map's height range ({_height_range(an)}): its "
+            f"coefficients would quantize to integers beyond the 64-bit range; the smallest workable step is "
+            f"{finest:g} m")
+
+
+def _check_max_error(an: Analysis, bound: float) -> None:
+    """Refuse a maximum-error target so fine that rate control's steps or the residual layer's
+    integers would wrap: the finest workable target, from the coefficients and the heights."""
+    coefs = an.reals(an.coefs.size)
+    need = 0.0
+    if an.params.storage == "quantized":  # the finest step rate control tries is a fraction of the bound
+        need = coding.finest_step(coefs) / min(ratecontrol.MAX_ERROR_STEP_FACTORS)
+    # A residual is at most the height's distance from the plane plus the rebuilt map's,
+    # and no rebuilt height lies farther from the plane than the root of the energy of
+    # the coefficients (Parseval); twice that for the quantization on top.
+    spread = float(np.abs((an.dem.heights - an.trend)[an.mask]).max())
+    energy = an.dem.grid.size * spectrum.mse_per_squared_error(an.lay) * float(np.dot(coefs, coefs))
+    residuals = spread + 2.0 * math.sqrt(energy)
+    need = max(need, coding.finest_step(np.array([residuals])) / (2.0 * (1.0 - GUARANTEE_MARGIN)))
+    if bound < need:
+        raise InvalidInputError(
+            f"target maximum error {bound:g} m is too fine for this map's height range ({_height_range(an)}): "
+            f"its coefficients or residuals would quantize to integers beyond the 64-bit range; the smallest "
+            f"workable target is {coding.round_up(need):g} m")
 
 
 def _pack(choice: Choice, params: Params, mask_blob: bytes, point_count: int, crs: dict[str, Any] | None,

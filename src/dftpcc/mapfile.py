@@ -15,7 +15,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from .container import MAGIC, VERSION, cells_allowed, unpack
+from .container import MAGIC, VERSION, cells_allowed, check_max_bytes, check_max_cells, unpack
 from .decoder import decode_dem
 from .dem import DEM, Grid
 from .errors import InvalidInputError
@@ -35,12 +35,11 @@ class CompressedMap:
 
     def __init__(self, data: bytes, name: str = "<bytes>", *, max_bytes: int | None = None,
                  max_cells: int | None = None, file_size: int | None = None):
+        check_max_bytes(max_bytes)
         self.name = name
         # With max_bytes the budget follows the whole file, which exists, not the prefix read.
         self.size = len(data) if file_size is None else file_size
         if max_bytes is not None:
-            if max_bytes <= 0:
-                raise InvalidInputError(f"max_bytes must be positive, got {max_bytes}")
             data = data[:max_bytes]
         self._data = data
         self._partial = max_bytes is not None
@@ -133,6 +132,9 @@ def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | 
     UnsupportedFormatError
         Another major version of the format.
     """
+    # The arguments first (as rasterio does): a bad one is refused before the file is touched.
+    check_max_bytes(max_bytes)
+    check_max_cells(max_cells)
     if isinstance(source, (bytes, bytearray, memoryview)):
         return CompressedMap(bytes(source), max_bytes=max_bytes, max_cells=max_cells)
     if hasattr(source, "read"):

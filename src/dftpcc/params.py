@@ -15,10 +15,18 @@ from typing import Any
 
 from .errors import InvalidInputError
 
-__all__ = ["Params", "PROFILES", "CHOICES", "DEFAULT_CUTOFF", "make_params", "check_cutoff"]
+__all__ = ["Params", "PROFILES", "CHOICES", "DEFAULT_CUTOFF", "MAX_COORDINATE_M", "make_params", "check_cutoff"]
 
 #: Cutoff ratio used when neither a cutoff nor a rate-control target is given.
 DEFAULT_CUTOFF = 0.8
+
+#: Largest coordinate, height, grid extent, quantizer step or height error a
+#: ``.dftpc`` file may state, metres (about 7 astronomical units): beyond it a
+#: number is not a map coordinate but a damaged or crafted field, and it could
+#: overflow. Here because both sides use it: Params refuses a step or target
+#: beyond it when compressing and when reading a file's PARM, and the container
+#: checks the geometry against it (docs/format-validation.md).
+MAX_COORDINATE_M = 1e12
 
 AGGREGATES = ("mean", "median", "min", "max")
 FRAMES = ("axis", "oriented")
@@ -125,13 +133,14 @@ class Params:
         if self.storage == "complex64" and self.transform != "dft":
             raise InvalidInputError("complex64 storage holds the paper's complex DFT coefficients: it needs "
                                     "transform='dft' (the DCT's are real; use storage='quantized')")
-        if not (math.isfinite(self.step) and self.step >= 0):
-            raise InvalidInputError(f"step must be a finite number >= 0 metres, got {self.step!r}")
+        _check_height("quantizer step", self.step, "0 chooses it")
         if not (0.0 <= self.deadzone < 0.5):
             raise InvalidInputError(f"deadzone must be in [0, 0.5), got {self.deadzone!r}")
         targets = {name: getattr(self, name) for name in ("target_rmse", "target_max_error", "target_bpp")}
         for name, value in targets.items():
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            if name != "target_bpp":  # a height error, in metres
+                _check_height(name, value, "0 sets no target")
+            elif not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise InvalidInputError(f"{name} must be a finite number >= 0, got {value!r}")
         if sum(v > 0 for v in targets.values()) > 1:
             raise InvalidInputError("give at most one of target_rmse, target_max_error, target_bpp")
@@ -168,6 +177,13 @@ def check_cutoff(value: Any) -> float:
     if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0.0 <= value < 1.0):
         raise InvalidInputError(f"cutoff must be in [0, 1), got {value!r}")
     return float(value)
+
+
+def _check_height(name: str, value: Any, zero: str) -> None:
+    """A height in metres a file states: 0 (``zero`` says what it means) up to :data:`MAX_COORDINATE_M`."""
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0 <= value <= MAX_COORDINATE_M):
+        raise InvalidInputError(f"{name} must be a number of metres from 0 ({zero}) to at most "
+                                f"{MAX_COORDINATE_M:g} m, the largest height a .dftpc file holds; got {value!r}")
 
 
 def _check_positive(name: str, value: Any) -> None:

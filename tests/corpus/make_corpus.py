@@ -97,11 +97,19 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "section_missing_geom": (craft.replace_section(good, b"GEOM", None), C, "section GEOM is missing"),
         "geom_length_beyond_file": (craft.with_table_entry(good, 0, length=1 << 40), C, "truncated: section GEOM"),
         # Every checksum made to match the shifted sections: the lie must be caught behind them.
-        "geom_length_shifts_the_rest": (craft.fix_crcs(craft.with_table_entry(good, 0, length=craft.table(good)[0][3] - 4)),
+        # (The last section grows by as much, so the file still ends where the table says.)
+        "geom_length_shifts_the_rest": (craft.fix_crcs(craft.with_table_entry(craft.with_table_entry(
+            good, 0, length=craft.table(good)[0][3] - 4), coef, length=craft.table(good)[coef][3] + 4)),
                                         C, "geometry section is too short"),
+        # Bytes after the last section: the file ends where the table says.
+        "trailing_zeros": (good + bytes(8), C, r"8 trailing byte\(s\) after the last section"),
+        "two_files_joined": (good + seeds["paper_dft"], C, "two files joined"),
         "length_over_64_bits": (craft.fix_table_crc(good[:craft.PREAMBLE.size + 5] + b"\xff" * 10
                                                     + good[craft.PREAMBLE.size + 6:]), C,
-                                "truncated inside its section table|table fails its checksum"),
+                                "entry 0 holds an integer wider than 64 bits"),
+        # A tile of 2**64 once read as "another tile": the CRS section was skipped, the CRS lost.
+        "tile_over_64_bits": (craft.with_table_entry(seeds["with_crs"], [e[0] for e in craft.table(
+            seeds["with_crs"])].index(b"CRS "), tile=1 << 64), C, "wider than 64 bits"),
         "length_huge": (craft.with_table_entry(good, coef, length=(1 << 63) + 12), C, "truncated: section COEF"),
         "coef_length_claims_1gb": (craft.with_table_entry(good, coef, length=1 << 30), C, "truncated: section COEF"),
     })
@@ -145,28 +153,31 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "parm_storage_swapped": (_json_section(good, b"PARM", storage="complex64"), C, None),
         "parm_cutoff_changed": (_json_section(good, b"PARM", cutoff=0.5), C, None),
     })
-    # Lying statistics and CRS.
+    # Lying statistics (binary records, the only STAT coding) and CRS.
+    stat = craft.section(good, b"STAT")
     out.update({
-        "stat_not_object": (_raw_section(good, b"STAT", "[]"), C, "STAT must be a JSON object"),
-        "stat_zstd_bomb": (_raw_section(good, b"STAT", zstandard.ZstdCompressor(level=19).compress(
-            b"[" + b" " * 2_000_000 + b"]")), C, "declares more than"),
+        "stat_empty": (_raw_section(good, b"STAT", b""), C, "STAT is empty"),
+        "stat_json_of_a_draft": (_raw_section(good, b"STAT", json.dumps(craft.stat_of(good))), C,
+                                 "STAT has unknown coding 0x7b"),
+        "stat_zstd_json_of_a_draft": (_raw_section(good, b"STAT", zstandard.ZstdCompressor(level=19).compress(
+            json.dumps(craft.stat_of(good)).encode())), C, "STAT has unknown coding 0x28"),
         "parm_zstd_garbage": (_raw_section(good, b"PARM", b"\x28\xb5\x2f\xfd" + bytes(40)), C,
                               "parameter section is invalid"),
-        "stat_deep_nesting": (_raw_section(good, b"STAT", "[" * 15_000), C, "too deeply"),
-        "stat_no_coef_count": (_raw_section(good, b"STAT", "{}"), C, "coefficient count"),
-        "stat_coef_count_negative": (_json_section(good, b"STAT", coef_count=-1), C, "coefficient count"),
-        "stat_coef_count_bool": (_json_section(good, b"STAT", coef_count=True), C, "coefficient count"),
-        "stat_coef_count_huge": (_json_section(good, b"STAT", coef_count=2**62), C, "coefficient count"),
-        "stat_coef_count_off_by_one": (_json_section(good, b"STAT", coef_count=craft.json_of(
-            good, b"STAT")["coef_count"] + 1), C, None),
-        "stat_rmse_is_object": (_json_section(good, b"STAT", dem_rmse_m={}), C, "dem_rmse_m must be a number"),
-        "stat_bytes_negative": (_json_section(good, b"STAT", mask_bytes=-5), C, "mask_bytes must be a count"),
-        # Binary STAT (what dftpcc writes): a record cut short, a NaN error, an endless integer.
+        "parm_zstd_bomb": (_raw_section(good, b"PARM", zstandard.ZstdCompressor(level=19).compress(
+            b"[" + b" " * 2_000_000 + b"]")), C, "declares more than"),
+        "crs_deep_nesting": (_raw_section(seeds["with_crs"], b"CRS ", "[" * 15_000), C, "too deeply"),
+        "stat_coef_count_huge": (craft.with_stat(good, coef_count=2**62), C, "coefficient count"),
+        "stat_coef_count_largest": (craft.with_stat(good, coef_count=2**64 - 1), C, "coefficient count"),
+        "stat_coef_count_off_by_one": (craft.with_stat(good, coef_count=craft.stat_of(good)["coef_count"] + 1),
+                                       C, None),
+        # A record cut short, a NaN error, an endless integer, a record without its value.
         "stat_binary_cut_float": (_raw_section(good, b"STAT", b"\x01\x00\x00\x00"), C, "STAT is truncated"),
         "stat_binary_nan": (_raw_section(good, b"STAT", b"\x01\x00" + struct.pack("<f", float("nan"))), C,
                             "not finite"),
         "stat_binary_endless_int": (_raw_section(good, b"STAT", b"\x01\x80" + b"\xff" * 12), C,
-                                    "truncated or oversized integer"),
+                                    "STAT holds an integer wider than 64 bits"),
+        "stat_binary_cut_int": (_raw_section(good, b"STAT", b"\x01\x80\xff"), C, "STAT is truncated"),
+        "stat_binary_id_without_value": (_raw_section(good, b"STAT", stat + b"\x81"), C, "STAT is truncated"),
         "stat_binary_no_coef_count": (_raw_section(good, b"STAT", b"\x01\x07" + struct.pack("<f", 1.0)), C,
                                       "coefficient count is missing"),
         "crs_not_object": (_raw_section(seeds["with_crs"], b"CRS ", "\"EPSG:4326\""), C, "CRS must be a JSON object"),
@@ -189,6 +200,8 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
         "coef_random": (craft.replace_section(good, b"COEF", bytes(range(256)) * 4), C, None),
         "coef_chunk_count_huge": (craft.replace_section(good, b"COEF", b"\xff\xff\xff\xff" +
                                                         craft.section(good, b"COEF")[4:]), C, None),
+        # COEF kind 2 (ANS with Laplace models) existed only in pre-release drafts.
+        "coef_kind_2_of_a_draft": (craft.with_chunk_kind(good, b"COEF", 2), C, None),
         "coef_of_paper_file": (craft.replace_section(good, b"COEF", craft.section(paper, b"COEF")), C, None),
         "coef_swapped_with_mask": (craft.replace_section(craft.replace_section(good, b"COEF", craft.section(
             good, b"MASK")), b"MASK", craft.section(good, b"COEF")), C, None),

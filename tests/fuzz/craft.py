@@ -13,6 +13,8 @@ import json
 import struct
 import zlib
 
+import numpy as np
+
 from dftpcc import container
 
 PREAMBLE = struct.Struct("<8sBBHI")  # magic, major, minor, flags, section count
@@ -29,7 +31,11 @@ leb128 = container._leb128
 
 
 def _read_leb128(data: bytes, pos: int) -> tuple[int, int] | None:
-    value, end = container._read_leb128(memoryview(data), pos)
+    """``(value, end)``, or None where the reader would refuse the integer (cut short, over 64 bits)."""
+    try:
+        value, end = container._read_leb128(memoryview(data), pos)
+    except container._TooWide:
+        return None
     return None if value is None else (value, end)
 
 
@@ -117,15 +123,42 @@ def section(data: bytes, tag: bytes) -> bytes:
 
 
 def json_of(data: bytes, tag: bytes):
-    """The JSON value of section ``tag`` (stored as text, or zstd-compressed text; STAT may be binary)."""
+    """The JSON value of section ``tag`` (stored as text, or zstd-compressed text); for STAT,
+    which is binary, the fields it stores (:func:`stat_of`)."""
     if tag == b"STAT":
-        return container._unpack_stats(memoryview(section(data, tag)))
+        return stat_of(data)
     return json.loads(container._json_text(memoryview(section(data, tag)), tag.decode()))
 
 
 def with_json(data: bytes, tag: bytes, value) -> bytes:
-    """The file with section ``tag`` holding ``value`` as plain JSON text (which readers accept), CRCs fixed."""
+    """The file with section ``tag`` holding ``value`` as plain JSON text (which readers accept
+    for PARM and CRS), CRCs fixed."""
     return replace_section(data, tag, json.dumps(value).encode())
+
+
+def stat_of(data: bytes) -> dict:
+    """The fields the binary STAT section stores (not those the reader derives from the table)."""
+    return container._unpack_stats(memoryview(section(data, b"STAT")))
+
+
+def with_stat(data: bytes, **changes: float | int | None) -> bytes:
+    """The file with some STAT fields changed (None removes one), CRCs fixed.
+
+    Records are laid out as format.md says (marker byte, then id and value, ids ascending),
+    without the writer's checks, so a lie can be told: integer fields take any unsigned
+    value (wider than 64 bits too), float fields any float, NaN and infinities included.
+    """
+    ids = {name: i for i, name in container.STAT_FIELDS.items()}
+    fields = stat_of(data)
+    fields.update(changes)
+    out = bytearray([container.STAT_BINARY])
+    for name, value in sorted(fields.items(), key=lambda kv: ids[kv[0]]):
+        if value is None:
+            continue
+        i = ids[name]
+        out.append(i)
+        out += leb128(int(value)) if i >= 128 else np.float32(value).astype("<f4").tobytes()
+    return replace_section(data, b"STAT", bytes(out))
 
 
 def geom(data: bytes) -> dict[str, float | int]:
@@ -188,3 +221,15 @@ def fix_crcs(data: bytes) -> bytes:
             CRC.pack_into(buf, crc_pos, zlib.crc32(bytes(buf[offset:offset + length])))
         offset += length
     return fix_table_crc(bytes(buf))
+
+
+def with_chunk_kind(data: bytes, tag: bytes, kind: int) -> bytes:
+    """The file with every chunk header of the COEF-like section ``tag`` stating ``kind``
+    (payloads unchanged; a chunk's CRC covers its payload only), CRCs fixed."""
+    payload = bytearray(section(data, tag))
+    (count,), pos = struct.unpack_from("<I", payload, 0), 4
+    for _ in range(count):
+        nbytes = struct.unpack_from("<I", payload, pos + 4)[0]
+        struct.pack_into("<I", payload, pos + 12, kind)
+        pos += 16 + nbytes
+    return replace_section(data, tag, bytes(payload))

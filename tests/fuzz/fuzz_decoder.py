@@ -223,8 +223,8 @@ class Mutator:
         rng = self.rng
         data = rng.choice(self.seeds)
         ops = (self._flip, self._interesting_int, self._interesting_float, self._truncate, self._insert,
-               self._delete, self._splice, self._geom, self._table, self._json, self._blob)
-        weights = (4, 2, 2, 2, 1, 1, 1, 3, 2, 3, 2)
+               self._delete, self._splice, self._geom, self._table, self._json, self._stat, self._blob)
+        weights = (4, 2, 2, 2, 1, 1, 1, 3, 2, 2, 1, 2)
         for _ in range(rng.choice((1, 1, 1, 2, 3))):
             try:
                 data = rng.choices(ops, weights)[0](data)
@@ -338,7 +338,7 @@ class Mutator:
         if not sections:
             return data
         rng = self.rng
-        index = rng.choice([i for i, (t, _) in enumerate(sections) if t in (b"PARM", b"STAT", b"CRS ")] or [0])
+        index = rng.choice([i for i, (t, _) in enumerate(sections) if t in (b"PARM", b"CRS ")] or [0])
         tag, payload = sections[index]
         try:
             obj = json.loads(container._json_text(memoryview(payload), tag.decode()))
@@ -354,6 +354,32 @@ class Mutator:
             text = json.dumps(rng.choice(_JSON_VALUES))
         sections[index] = (tag, text.encode("utf-8", "surrogatepass"))
         return craft.join(sections)
+
+    def _stat(self, data: bytes) -> bytes:
+        """A binary STAT record changed: a field's value, a field dropped, a record of an id the
+        reader does not know, or an integer cut short or wider than 64 bits."""
+        try:
+            fields = craft.stat_of(data)
+            raw = craft.section(data, b"STAT")
+        except (struct.error, KeyError, dftpcc.DftpccError):
+            return data
+        rng = self.rng
+        choice = rng.randrange(4)
+        if choice < 2 and fields:
+            key = rng.choice(sorted(fields))
+            if choice == 1:
+                return craft.with_stat(data, **{key: None})
+            integer = key in ("coef_count", "cells_interpolated")
+            value = rng.choice(_INTS + ((1 << 64), (1 << 70))) if integer else rng.choice(_FLOATS)
+            return craft.with_stat(data, **{key: value})
+        if choice == 2:  # a later version's field, before or after the others
+            record = (bytes([rng.randrange(6, 128)]) + struct.pack("<f", rng.random())
+                      if rng.random() < 0.5 else bytes([rng.randrange(130, 256)]) + craft.leb128(rng.choice(_INTS)))
+            stat = raw[:1] + record + raw[1:] if rng.random() < 0.5 else raw + record
+        else:  # an integer record whose LEB128 is cut short or too wide
+            tails = (b"", b"\xff", b"\xff" * 10, b"\x80" * 9 + b"\x02", b"\x80" * 9 + b"\x01")
+            stat = raw + bytes([128]) + rng.choice(tails)
+        return craft.replace_section(data, b"STAT", stat)
 
     def _blob(self, data: bytes) -> bytes:
         sections = self._sections(data)
