@@ -9,6 +9,8 @@ import dftpcc
 from dftpcc.errors import CorruptFileError, InvalidInputError
 from dftpcc.grid import fit_grid, rasterize
 
+from .conftest import data_file
+
 FIELD_RES = 0.5  # metres, as in ANCHORS.md
 
 
@@ -205,3 +207,26 @@ def test_stated_errors_round_up_even_when_subnormal():
         (stored,) = _F32.unpack(_f32_up(value))
         assert stored >= value
         assert stored <= max(value * (1 + 2**-23), 1.5e-45)  # the next float32 up, no further
+
+
+def test_an_automatic_step_coarse_for_the_terrain_is_flagged(tmp_path, capsys):
+    # A newcomer's report: the all-returns forest got a 28 m step and metres of error, silently.
+    from dftpcc.cli import main
+
+    src = data_file("pointclouds/forest_hills_topography.laz")
+    assert main(["compress", str(src), str(tmp_path / "all.dftpc"), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "the automatic step of" in err and "keep ground points only" in err
+    assert main(["compress", str(src), str(tmp_path / "ground.dftpc"), "-q", "--classes", "2"]) == 0
+    assert "automatic step" not in capsys.readouterr().err
+    assert main(["compress", str(src), str(tmp_path / "given.dftpc"), "-q", "--step", "1"]) == 0
+    assert "automatic step" not in capsys.readouterr().err  # a step the user chose is the user's
+
+
+def test_a_size_target_reachable_on_a_small_map_is_met(small_terrain):
+    # The header estimate (600 B) used to exceed a small map's whole header, refusing targets it meets.
+    pts = small_terrain[:2500]
+    default = dftpcc.compress(pts, resolution=1.0)
+    bpp = 1.5 * 8 * len(default) / pts.shape[0]
+    data = dftpcc.compress(pts, resolution=1.0, target_bpp=bpp)
+    assert 8 * len(data) <= bpp * pts.shape[0]

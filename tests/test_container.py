@@ -252,7 +252,7 @@ def test_the_cli_refuses_a_step_or_target_the_reader_would_refuse_before_any_wor
     from dftpcc import cli, files
 
     read = []
-    monkeypatch.setattr(files, "read", lambda *a, **k: read.append(a) or pytest.fail("the cloud was read"))
+    monkeypatch.setattr(files, "open_reader", lambda *a, **k: read.append(a) or pytest.fail("the cloud was read"))
     out = tmp_path / "out.dftpc"
     assert cli.main(["compress", str(cloud_file), str(out), "-r", "1", *option]) == 3
     err = capsys.readouterr().err.strip().splitlines()

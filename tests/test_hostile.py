@@ -195,7 +195,8 @@ def test_the_command_line_prints_the_wall_warning_in_one_line(tmp_path):
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("dftpcc: warning: ") and "% of the points" in lines[0]
+    assert all(ln.startswith("dftpcc: warning: ") for ln in lines), lines  # one line per warning
+    assert sum("% of the points" in ln for ln in lines) == 1, lines
 
 
 # --- huge coordinates, huge extents ------------------------------------------------------------------

@@ -19,6 +19,8 @@ from __future__ import annotations
 from .decoder import decompress
 from .encoder import compress
 from .errors import (
+    CoarseMapWarning,
+    InputMismatchWarning,
     CorruptFileError,
     DftpccError,
     DftpccWarning,
@@ -58,5 +60,7 @@ __all__ = [
     "DftpccWarning",
     "MultiHeightWarning",
     "LargeGridWarning",
+    "InputMismatchWarning",
+    "CoarseMapWarning",
     "__version__",
 ]

@@ -10,15 +10,16 @@ packs the file with the errors it promises (:mod:`dftpcc.container`).
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any, Callable
 
 import numpy as np
 
 from . import coding, occupancy, ratecontrol, spectrum
-from .analysis import Analysis
+from .analysis import Analysis, Trial
 from .container import Header, check_grid, pack
 from .dem import DEM, as_points
-from .errors import InvalidInputError
+from .errors import CoarseMapWarning, InvalidInputError
 from .grid import auto_resolution, fit_grid, rasterize
 from .params import MAX_COORDINATE_M, Params, make_params
 from .ratecontrol import Choice
@@ -42,11 +43,19 @@ STATS_SLACK = 64
 #: Attempts at meeting a size target after measuring the real overhead.
 BUDGET_ROUNDS = 3
 
-#: A progress callback: called with the name of each stage as it starts.
-Stage = Callable[[str], None]
+#: A progress callback: called with the name of each stage as it starts, ``on_stage(name)``,
+#: and again as a long stage advances, ``on_stage(name, done)`` with ``done`` in [0, 1].
+Stage = Callable[..., None]
+#: An automatic step is flagged (CoarseMapWarning) when both its DEM RMSE and the gridding floor
+#: it follows exceed this fraction of the map's own height spread (RMS about its mean): the
+#: points scatter so much within each cell (vegetation, walls) that the step is coarse for the
+#: terrain. Measured at the defaults on ../shared/data: DEM RMSE 0.19-0.59 and floor 0.22-0.46 of
+#: the spread on the all-returns forests and coastal plain (flagged); under 0.14 on every DEM,
+#: ground-only cloud and the all-returns field (floor 0.11, not flagged).
+COARSE_ERROR_FRACTION = 0.15
 
 
-def no_stage(_: str) -> None:
+def no_stage(_: str, done: float | None = None) -> None:
     """The progress callback that shows nothing."""
 
 
@@ -146,12 +155,23 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         # No refill without a target: at a fixed step it lowers the error by a
         # few per cent rather than the size, for two more transforms.
         trial = an.trial(cutoff, step)
+        if params.step == 0.0:
+            _flag_coarse(dem, trial)
         return _pack(Choice(an, trial, an.encode(trial)), params, mask_blob, point_count, crs, on_stage)
     # Rate control. For a size target the header's own bytes count too: start
     # from an estimate, then shrink the budget by any overshoot.
     overhead = len(mask_blob) + HEADER_ESTIMATE
-    for _ in range(BUDGET_ROUNDS):
-        choice = ratecontrol.choose(an, params, point_count, overhead)
+    for round_ in range(BUDGET_ROUNDS):
+        try:
+            choice = ratecontrol.choose(an, params, point_count, overhead,
+                                        progress=lambda done: on_stage("encode", done))
+        except InvalidInputError:
+            # The estimate can exceed a small map's whole header: measure it before giving up.
+            measured = _overhead(an, params, mask_blob, point_count, crs)
+            if params.target_bpp <= 0 or round_ or measured >= overhead:
+                raise
+            overhead = measured
+            continue
         data = _pack(choice, params, mask_blob, point_count, crs, on_stage)
         if params.target_bpp <= 0 or 8 * len(data) <= params.target_bpp * point_count:
             return data
@@ -203,6 +223,25 @@ def _check_max_error(an: Analysis, bound: float) -> None:
             f"target maximum error {bound:g} m is too fine for this map's height range ({_height_range(an)}): "
             f"its coefficients or residuals would quantize to integers beyond the 64-bit range; the smallest "
             f"workable target is {coding.round_up(need):g} m")
+
+
+def _overhead(an: Analysis, params: Params, mask_blob: bytes, point_count: int, crs: dict[str, Any] | None) -> int:
+    """Bytes of the file besides its coded coefficients, measured by packing it without them."""
+    trial = an.trial(max(ratecontrol.cutoffs(params)), an.tiny_step())
+    return len(_pack(Choice(an, trial, b""), params, mask_blob, point_count, crs, no_stage)) + STATS_SLACK
+
+
+def _flag_coarse(dem: DEM, trial: Trial) -> None:
+    """Warn when an automatic step leaves a DEM error that is a large part of the map's own height spread."""
+    heights = dem.heights[dem.mask]
+    spread = float(np.sqrt(np.mean((heights - heights.mean()) ** 2))) if heights.size else 0.0
+    floor = dem.gridding_rmse or 0.0
+    if spread > 0 and min(trial.rmse, floor) > COARSE_ERROR_FRACTION * spread:
+        warnings.warn(
+            f"the automatic step of {trial.step:.3g} m (DEM RMSE {trial.rmse:.3g} m, max {trial.max_error:.3g} m) is "
+            f"coarse for a map whose heights spread by {spread:.3g} m RMS: the step follows the points' scatter "
+            f"within each cell ({dem.gridding_rmse or 0:.3g} m RMS: vegetation, walls?); keep ground points only "
+            f"(e.g. --classes 2), or give a --step or a --target-rmse", CoarseMapWarning, stacklevel=3)
 
 
 def _pack(choice: Choice, params: Params, mask_blob: bytes, point_count: int, crs: dict[str, Any] | None,

@@ -19,6 +19,7 @@ __all__ = [
     "MultiHeightWarning",
     "LargeGridWarning",
     "InputMismatchWarning",
+    "CoarseMapWarning",
 ]
 
 
@@ -69,3 +70,7 @@ class LargeGridWarning(DftpccWarning):
 
 class InputMismatchWarning(DftpccWarning):
     """A map is measured against other points than it was made from (a different point count)."""
+
+
+class CoarseMapWarning(DftpccWarning):
+    """An automatic quantizer step leaves errors beyond the map's own height spread."""
