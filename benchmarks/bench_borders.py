@@ -27,10 +27,7 @@ import numpy as np
 import scipy.fft as sfft
 
 import dftpcc
-from dftpcc import occupancy, ratecontrol, spectrum
-from dftpcc.analysis import Analysis
-from dftpcc.container import Header, pack
-from dftpcc.encoder import HEADER_ESTIMATE, SPREAD_STATS, encode_dem
+from dftpcc.encoder import encode_dem
 from dftpcc.fill import fill_empty
 from dftpcc.files import dem_from_geotiff
 from dftpcc.grid import fit_grid, rasterize
@@ -102,54 +99,9 @@ def load(name: str, resolution: float | None, classes):
 
 
 def encode(dem, overrides, fill, target):
-    """The file rate control makes for ``target``: the library's, or with ``fill`` in place of its fill."""
+    """The file rate control makes for ``target``: with the library's fill, or with ``fill`` in its place."""
     params = dftpcc.make_params(resolution=dem.grid.resolution, target_rmse=target, **overrides)
-    if fill is None:
-        return encode_dem(dem, params)
-    return encode_dem_filled(dem, params, fill)
-
-
-def encode_dem_filled(dem, params, fill):
-    """``encode_dem(dem, params)`` for an RMSE target, with the empty cells filled by ``fill``.
-
-    The library takes no fill function, so this does what encode_dem does, through
-    the public stages: analyse the DEM (the transform is then redone on ``fill``'s
-    heights, as Analysis.refilled does for its own refill), let rate control choose,
-    and pack the file with the figures encode_dem states. Checked byte for byte
-    against encode_dem with ``fill=dftpcc.fill.fill_empty``; keep it in step with
-    ``dftpcc.encoder`` (``encode_dem`` and ``_pack``) until the library offers a
-    fill hook.
-    """
-    if params.target_rmse <= 0 or params.target_max_error > 0 or params.target_bpp > 0:
-        raise ValueError("encode_dem_filled mirrors encode_dem for an RMSE target only")
-    point_count = int(dem.mask.sum())
-    an = Analysis(dem, params, searching=params.cutoff is None)
-    method = "smooth" if params.fill == "consistent" else params.fill  # as Analysis does
-    an.coefs = spectrum.forward(fill(dem.heights - an.trend, dem.mask, method=method), an.lay).ravel()[an.order]
-    mask_blob = occupancy.encode_mask(an.kept_cells)
-    choice = ratecontrol.choose(an, params, point_count, len(mask_blob) + HEADER_ESTIMATE)
-    trial = choice.trial
-    params = params.replace(cutoff=trial.cutoff, step=trial.step)
-    floor = dem.gridding_rmse or 0.0
-    err = (trial.heights - dem.heights)[dem.mask]
-    stats = {
-        "dem_rmse_m": float(np.sqrt(np.mean(err * err))),
-        "dem_max_error_m": float(np.abs(err).max()),
-        "gridding_rmse_m": floor,
-        "mask_bytes": len(mask_blob),
-        "coef_bytes": len(choice.coefs),
-        "residual_bytes": len(choice.residual_blob),
-        "cells_interpolated": int(an.kept_cells.sum()) - point_count,
-    }
-    if dem.spread is not None and dem.spread.unrepresented_points:
-        full = dem.spread.as_stats()
-        stats.update({key: full[key] for key in SPREAD_STATS})
-    if dem.counts is not None and params.aggregate == "mean":
-        weighted = float(np.sum(dem.counts[dem.mask] * err * err)) / max(int(dem.counts.sum()), 1)
-        stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
-    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(an.kept_cells.sum()),
-                    plane=an.plane, crs={}, stats=stats, coef_count=an.count(params.cutoff))
-    return pack(header, mask_blob, choice.coefs, choice.residual_blob)
+    return encode_dem(dem, params, fill=fill)
 
 
 def error_map(out: Path) -> None:

@@ -230,3 +230,16 @@ def test_a_size_target_reachable_on_a_small_map_is_met(small_terrain):
     bpp = 1.5 * 8 * len(default) / pts.shape[0]
     data = dftpcc.compress(pts, resolution=1.0, target_bpp=bpp)
     assert 8 * len(data) <= bpp * pts.shape[0]
+
+
+def test_another_fill_plugs_into_the_encoder(small_terrain):
+    # Experiments (benchmarks/bench_borders.py) try other fills of the empty cells through this hook.
+    from dftpcc.encoder import encode_dem, grid_points
+    from dftpcc.fill import fill_empty
+
+    params = dftpcc.make_params(resolution=0.5, target_rmse=0.05)
+    dem = grid_points(small_terrain, params)
+    assert encode_dem(dem, params, fill=fill_empty) == encode_dem(dem, params)
+    zeros = encode_dem(dem, params, fill=lambda h, m, method: np.where(m, h, 0.0))
+    assert zeros != encode_dem(dem, params)
+    assert dftpcc.open(zeros).header.stats["dem_rmse_m"] <= 0.05

@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -49,17 +50,20 @@ class Analysis:
     searching : bool
         Whether trials may ask for any cutoff (rate control choosing it);
         otherwise only ``params.cutoff_or_default``'s circle is transformed and sorted.
+    fill : callable, optional
+        ``fill(heights, mask, method=...)`` giving the empty cells their heights before the
+        transform (default :func:`dftpcc.fill.fill_empty`); for experiments with other fills.
     """
 
-    def __init__(self, dem: DEM, params: Params, *, searching: bool):
+    def __init__(self, dem: DEM, params: Params, *, searching: bool, fill: Callable[..., np.ndarray] | None = None):
         self.dem, self.params = dem, params
         self.mask = dem.mask
         self.kept_cells = footprint(dem.mask) if params.mask == "footprint" else dem.mask
         self.plane = fit_plane(dem) if params.detrend == "plane" else (0.0, 0.0, 0.0)
         self.trend = plane_values(self.plane, dem.grid.shape) if params.detrend == "plane" else 0.0
         # A consistent fill starts from the smooth one (see refilled()).
-        fill = "smooth" if params.fill == "consistent" else params.fill
-        filled = fill_empty(dem.heights - self.trend, dem.mask, method=fill)
+        method = "smooth" if params.fill == "consistent" else params.fill
+        filled = (fill or fill_empty)(dem.heights - self.trend, dem.mask, method=method)
         self.lay = spectrum.layout(params.transform, params.storage, dem.grid.shape)
         order, radii, angles = spectrum.kept_order(self.lay, 0.0 if searching else params.cutoff_or_default)
         self.order = order

@@ -116,7 +116,8 @@ def grid_points(points: np.ndarray, params: Params) -> DEM:
 
 
 def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
-               crs: dict[str, Any] | None = None, on_stage: Stage = no_stage) -> bytes:
+               crs: dict[str, Any] | None = None, on_stage: Stage = no_stage,
+               fill: Callable[..., np.ndarray] | None = None) -> bytes:
     """Code an already gridded DEM (e.g. a GeoTIFF) with ``params``.
 
     Parameters
@@ -128,6 +129,8 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         unless ``params.cutoff`` is given. The resolution is the grid's.
     point_count : int, optional
         Points of the original cloud (for bits per point); default: occupied cells.
+    fill : callable, optional
+        Another fill of the empty cells before the transform (see :class:`~dftpcc.analysis.Analysis`).
     """
     if not dem.mask.any():
         raise InvalidInputError("the map has no occupied cell")
@@ -138,7 +141,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     check_heights(float(occupied.min()), float(occupied.max()))
     check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
     on_stage("spectrum")
-    an = Analysis(dem, params, searching=params.has_target and params.cutoff is None)
+    an = Analysis(dem, params, searching=params.has_target and params.cutoff is None, fill=fill)
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
     mask_blob = occupancy.encode_mask(an.kept_cells)
