@@ -91,3 +91,19 @@ def test_quiet_prints_nothing_and_verbose_times_the_stages(tmp_path, capsys, sma
     for stage in ("read", "spectrum", "encode", "write"):
         assert f"dftpcc: {stage}: " in err
     assert "dftpcc: parameters {" in err
+
+
+def test_a_geographic_comparison_is_drawn_in_degrees(tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    from dftpcc.experiments import compare, figures
+
+    seen = {}
+    real = figures.plot_compare
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(compare, "plot_compare", spy)
+    path = compare.compare_file(data_file("dems/mars_korolev_mola.tif"), out=tmp_path, cutoffs=(0.8,))
+    assert path.is_file() and seen["units"].horizontal == "°" and "0.00781° cells" in seen["title"]

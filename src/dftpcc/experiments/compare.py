@@ -16,6 +16,7 @@ from ..io import read
 from ..mapfile import open as open_map
 from ..params import make_params
 from ..rebuild import dem_to_points
+from ..units import length, units_of
 from .figures import plot_compare, require_matplotlib
 
 __all__ = ["COMPARE_CUTOFFS", "compare_points", "compare_file"]
@@ -75,10 +76,11 @@ def compare_file(path: str | os.PathLike[str], *, out: str | os.PathLike[str],
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     params = make_params(resolution=resolution, profile=profile, **options)
-    dem, _, _ = read_dem(path, params, classes=classes)  # what compress codes: a GeoTIFF on its own pixels
+    dem, _, crs = read_dem(path, params, classes=classes)  # what compress codes: a GeoTIFF on its own pixels
+    units = units_of(crs)
     cloud = read(path, classes=classes)
     original, rebuilt, figures = compare_points(cloud.points, cutoffs=cutoffs, resolution=resolution, dem=dem,
                                                 profile=profile, **options)
-    return plot_compare(original, rebuilt, folder / f"{name}_compare_{profile}.png", figures=figures,
+    return plot_compare(original, rebuilt, folder / f"{name}_compare_{profile}.png", figures=figures, units=units,
                         title=f"{name}: {cloud.points.shape[0]:,} points, "
-                              f"{original.grid.resolution:g} m cells, {profile} profile")
+                              f"{length(original.grid.resolution, units.horizontal)} cells, {profile} profile")

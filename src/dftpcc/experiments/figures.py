@@ -17,6 +17,7 @@ from scipy import ndimage
 from ..dem import DEM
 from ..errors import InvalidInputError, MissingDependencyError
 from ..fill import fill_empty
+from ..units import Units
 
 __all__ = ["require_matplotlib", "plot_sweep", "plot_compare", "choose_window"]
 
@@ -164,8 +165,11 @@ def _shade(heights: np.ndarray, mask: np.ndarray, resolution: float, vmin: float
 
 def plot_compare(original: DEM, rebuilt: Mapping[float, DEM], path: str | os.PathLike[str], *,
                  figures: Mapping[float, Mapping[str, float]] | None = None,
-                 window: tuple[int, int, int] | None = None, title: str | None = None) -> Path:
+                 window: tuple[int, int, int] | None = None, title: str | None = None,
+                 units: Units = Units()) -> Path:
     """The paper's Fig. 6: the original and rebuilt maps side by side.
+
+    ``units``: what the axes (``units.horizontal``) and heights (``units.vertical``) are in.
 
     Columns: the original DEM, then one per cutoff. Rows: the whole map
     (hillshaded, coloured by height, one colour scale), a close-up window
@@ -232,7 +236,7 @@ def plot_compare(original: DEM, rebuilt: Mapping[float, DEM], path: str | os.Pat
         close.set_title(f"close-up (red box), height {wmin + grid.z0:.1f} .. {wmax + grid.z0:.1f} m", fontsize=9)
     info = axes[2, 0]
     info.axis("off")
-    info.text(0.0, 1.0, _legend_text(original, cutoffs, figures, vmin, vmax), va="top", fontsize=8,
+    info.text(0.0, 1.0, _legend_text(original, cutoffs, figures, vmin, vmax, units), va="top", fontsize=8,
               family="monospace", transform=info.transAxes)
     image = None
     for col, fc in enumerate(cutoffs, start=1):
@@ -240,13 +244,13 @@ def plot_compare(original: DEM, rebuilt: Mapping[float, DEM], path: str | os.Pat
         ax = axes[2, col]
         image = ax.imshow(err, origin="lower", extent=extent, cmap="RdBu_r", vmin=-elim, vmax=elim,
                           interpolation="nearest")
-        ax.set_title(f"error, $f_c$ = {fc:g}: rebuilt - original (m)", fontsize=9)
+        ax.set_title(f"error, $f_c$ = {fc:g}: rebuilt - original ({units.vertical})", fontsize=9)
     if image is not None:
-        fig.colorbar(image, ax=list(axes[2, 1:]), shrink=0.8, label="height error (m)")
+        fig.colorbar(image, ax=list(axes[2, 1:]), shrink=0.8, label=f"height error ({units.vertical})")
     for ax in axes.ravel():
         if ax is not info:
-            ax.set_xlabel("x - x0 (m)", fontsize=8)
-            ax.set_ylabel("y - y0 (m)", fontsize=8)
+            ax.set_xlabel(f"x - x0 ({units.horizontal})", fontsize=8)
+            ax.set_ylabel(f"y - y0 ({units.horizontal})", fontsize=8)
             ax.tick_params(labelsize=7)
     if title:
         fig.suptitle(title)
@@ -261,11 +265,12 @@ def _caption(cutoff: float, figures: Mapping[str, float] | None) -> str:
 
 
 def _legend_text(original: DEM, cutoffs: Sequence[float], figures: Mapping[float, Mapping[str, float]] | None,
-                 vmin: float, vmax: float) -> str:
+                 vmin: float, vmax: float, units: Units = Units()) -> str:
     g = original.grid
-    lines = [f"grid {g.rows} x {g.cols} cells of {g.resolution:g} m",
+    lines = [f"grid {g.rows} x {g.cols} cells of {g.resolution:g}{'' if units.horizontal == '°' else ' '}"
+             f"{units.horizontal}",
              f"occupied {int(original.mask.sum()):,} cells",
-             f"height {vmin + g.z0:.1f} .. {vmax + g.z0:.1f} m",
+             f"height {vmin + g.z0:.1f} .. {vmax + g.z0:.1f} {units.vertical}",
              "colour: height; shading: light",
              f"from the NW at {LIGHT_ALTITUDE_DEG:g} deg", ""]
     for fc in cutoffs:
