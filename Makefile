@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench bench-anchors bench-borders bench-ratecontrol bench-memory fuzz reproduce clean
+.PHONY: demo test digests bench bench-anchors bench-borders bench-ratecontrol bench-memory fuzz reproduce clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -41,6 +41,10 @@ reproduce: $(STAMP)
 # Border handling, fill and coder at equal error (~4 min): rewrites docs/borders.md.
 bench-borders: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_borders > docs/borders.md
+
+# The files the codec writes on ../shared/data, against tests/digests.json (~5 min; exact, so on the recording machine).
+digests: $(STAMP)
+	$(BIN)/python scripts/digests.py
 
 # The decoder fuzz campaign (100,000 inputs, ~2 min); the test suite runs a short one.
 fuzz: $(STAMP)

@@ -7,12 +7,17 @@ options, the paper profile, each rate-control target and the footprint mask
 2 M points; ``python scripts/digests.py`` checks all of them. A deliberate
 change of the output is recorded with ``python scripts/digests.py --write``
 and said in CHANGELOG.md.
+
+SHA-256 admits no round-off, and float results may differ in their last bit on another CPU's
+SIMD paths, so this runs where the digests were recorded: set ``DFTPCC_DIGESTS=1`` (or run
+``make digests``). ``tests/test_sizes.py`` guards the sizes on every machine, within 0.5 %.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -27,6 +32,7 @@ RECORDED = json.loads((ROOT / "tests" / "digests.json").read_text())
 SMALL = [name for name, large in digests.FILES.items() if not large]
 
 
+@pytest.mark.skipif(not os.environ.get("DFTPCC_DIGESTS"), reason="digests are exact: DFTPCC_DIGESTS=1 where recorded")
 @pytest.mark.parametrize("name", SMALL)
 def test_the_codec_writes_the_recorded_files(name):
     data_file(name)
