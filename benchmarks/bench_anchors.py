@@ -128,10 +128,14 @@ def make_raster(points: np.ndarray, resolution: float) -> Raster:
     return Raster(grid, dem.heights, filled, mask, blob)
 
 
-def raster_points(grid: Grid, mask_blob: bytes, heights: np.ndarray) -> np.ndarray:
-    """Decoded cloud of a raster anchor: one point per occupied cell, at its centre (as dftpcc)."""
+def unpack_mask(grid: Grid, mask_blob: bytes) -> np.ndarray:
+    """The occupancy of a raster anchor from its zstd-compressed bitmap."""
     raw = zstandard.ZstdDecompressor().decompress(mask_blob)
-    mask = np.unpackbits(np.frombuffer(raw, np.uint8), count=grid.size).astype(bool).reshape(grid.shape)
+    return np.unpackbits(np.frombuffer(raw, np.uint8), count=grid.size).astype(bool).reshape(grid.shape)
+
+
+def raster_points(grid: Grid, mask: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    """Decoded cloud of a raster anchor: one point per occupied cell, at its centre (as dftpcc)."""
     rows, cols = np.nonzero(mask)
     x, y = grid.centres(rows, cols)
     return np.column_stack([x, y, heights[rows, cols] + grid.z0])
@@ -218,10 +222,14 @@ def draco_codec(points: np.ndarray, bits: tuple[int, ...]) -> Codec:
 
 def raster_codec(name: str, settings: list[Any], cached: Raster, points: np.ndarray, resolution: float,
                  code: Callable[[Raster, Any], tuple[bytes, Any]],
-                 uncode: Callable[[Raster, Any], np.ndarray], describe: Callable[[Any], str]) -> Codec:
+                 uncode: Callable[[Raster, Any], Any], describe: Callable[[Any], str],
+                 own_mask: bool = False) -> Codec:
     """A raster codec wrapped to code a cloud: grid + fill + mask, then ``code`` the DEM.
 
     ``code`` returns the coded bytes and the state ``uncode`` needs (which holds those bytes first).
+    ``uncode`` returns the heights, or with ``own_mask`` (a codec that carries the
+    occupancy in its codestream, as LERC does) the heights and the mask it decoded;
+    such a codec is not charged the separate bitmap.
     """
 
     def code_bytes(inner: Any) -> bytes:
@@ -231,15 +239,21 @@ def raster_codec(name: str, settings: list[Any], cached: Raster, points: np.ndar
     def encode(setting: Any, fresh: bool) -> tuple[int, Any]:
         raster = make_raster(points, resolution) if fresh else cached
         payload, state = code(raster, setting)
-        return len(payload) + len(raster.mask_blob) + RASTER_HEADER_BYTES, (raster, state)
+        mask_bytes = 0 if own_mask else len(raster.mask_blob)
+        return len(payload) + mask_bytes + RASTER_HEADER_BYTES, (raster, state)
 
     def decode(state: Any) -> np.ndarray:
         raster, inner = state
-        return raster_points(raster.grid, raster.mask_blob, uncode(raster, inner))
+        if own_mask:
+            heights, mask = uncode(raster, inner)
+        else:
+            heights, mask = uncode(raster, inner), unpack_mask(raster.grid, raster.mask_blob)
+        return raster_points(raster.grid, mask, heights)
 
     def split(state: Any) -> dict:
         raster, inner = state
-        return {"mask": len(raster.mask_blob), "coef": len(code_bytes(inner)), "header": RASTER_HEADER_BYTES}
+        return {"mask": 0 if own_mask else len(raster.mask_blob), "coef": len(code_bytes(inner)),
+                "header": RASTER_HEADER_BYTES}
 
     return Codec(name, settings, encode, decode, describe, split=split)
 
@@ -272,13 +286,16 @@ def lerc_code(raster: Raster, max_error: float) -> tuple[bytes, Any]:
     return blob, blob
 
 
-def lerc_uncode(raster: Raster, blob: bytes) -> np.ndarray:
+def lerc_uncode(raster: Raster, blob: bytes) -> tuple[np.ndarray, np.ndarray]:
     import lerc
 
-    result, values, _valid = lerc.decode(blob)
+    result, values, valid = lerc.decode(blob)
     if result != 0:
         raise RuntimeError(f"lerc.decode failed with code {result}")
-    return np.asarray(values, dtype=np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    # lerc returns no mask when every pixel is valid.
+    mask = np.ones(values.shape, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    return values, mask
 
 
 def sz3_code(raster: Raster, bound: float) -> tuple[bytes, Any]:
@@ -409,7 +426,7 @@ def measure(loaded: Loaded, sweeps: dict) -> dict:
         raster_codec("JPEG2000", list(sweeps["jpeg2k_psnr"]), raster, points, res, jpeg2k_code, jpeg2k_uncode,
                      lambda db: f"PSNR {db} dB"),
         raster_codec("LERC", bounds, raster, points, res, lerc_code, lerc_uncode,
-                     lambda e: f"maxZError {1000 * e:.3g} mm"),
+                     lambda e: f"maxZError {1000 * e:.3g} mm", own_mask=True),
         raster_codec("SZ3", bounds, raster, points, res, sz3_code, sz3_uncode,
                      lambda e: f"abs bound {1000 * e:.3g} mm"),
         laz_codec(loaded),
@@ -604,8 +621,8 @@ def main(argv: list[str] | None = None) -> int:
         f"local origin, + {DRACO_ORIGIN_BYTES} B for that origin); JPEG2000 (imagecodecs, 16-bit DEM "
         "scaled over its range, empty cells filled from the nearest occupied one, PSNR 40–80 dB); LERC "
         "(float32 DEM + its valid mask, maxZError sweep); SZ3 (pysz, float32 filled DEM, absolute bound "
-        "sweep); the three raster anchors are also charged the zstd-19 occupancy bitmap (LERC carries its "
-        f"own mask instead) and {RASTER_HEADER_BYTES} B of grid/scale header; LAZ (laspy + lazrs, x y z "
+        "sweep); the raster anchors are charged the zstd-19 occupancy bitmap (but LERC, whose codestream "
+        f"carries its mask) and {RASTER_HEADER_BYTES} B of grid/scale header; LAZ (laspy + lazrs, x y z "
         "only) is the lossless reference. dftpcc compact sweeps f_c x step "
         f"({len(sweeps['compact_cutoffs'])} x {len(sweeps['compact_steps'])}, plus one rate-controlled file "
         "per level when the library offers `target_rmse`), paper sweeps f_c "
