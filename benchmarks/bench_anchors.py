@@ -20,19 +20,17 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import zstandard
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 import dftpcc
-from dftpcc.dem import Grid
-from dftpcc.grid import fit_grid, rasterize
+from dftpcc.grid import rasterize
 
 from benchmarks.common import (
     FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load,
     load_average, lower_hull,
     finish_run, library_label, markdown_table, median_time, pick_cases, run_arguments, verdict, warnings_as_notes,
 )
+from benchmarks.rasters import (RASTER_HEADER_BYTES, U16_MAX, Raster, make_raster, raster_points, unpack_mask)
 
 CASES = (
     Case("field_gentle_ign.laz", 0.5, (GROUND,), "gentle"),
@@ -67,17 +65,10 @@ QUICK = dict(compact_cutoffs=(0.0, 0.5, 0.7, 0.8, 0.9, 0.95), compact_steps=tupl
              paper_cutoffs=(0.0, 0.5, 0.8, 0.9, 0.95, 0.98), draco_bits=(8, 10, 12, 14, 16),
              jpeg2k_psnr=(40, 50, 60, 70, 80), error_bounds=tuple(2.0 ** k for k in range(-2, 7)))
 
-#: zstd level for the occupancy bitmap of the raster anchors (as ANCHORS.md).
-MASK_ZSTD_LEVEL = 19
-#: Side information a raster anchor needs to put its DEM back in place: grid
-#: origin, cell size, rows, cols, height offset and range, as eight 8-byte
-#: numbers. With it the JPEG2000 figures of ANCHORS.md are reproduced.
-RASTER_HEADER_BYTES = 8 * 8
 #: Draco's local origin (three float64) travels beside the Draco buffer.
 DRACO_ORIGIN_BYTES = 3 * 8
 #: LAZ reference: coordinates stored at the source's scale, or this (metres) for PLY/GeoTIFF.
 LAZ_SCALE = 0.001
-U16_MAX = 65535
 TIMING_REPEATS = 3
 #: A full run should stay under this (seconds); beyond it the script advises --quick.
 RUN_BUDGET_S = 15 * 60
@@ -88,57 +79,6 @@ ANCHORS_MD = {  # file -> (Draco, JPEG2000) bits/pt at 1.25x, 1.5x, 3x the floor
     "mountain_arid_alirt.las": ((4.832, 4.091, 4.091), (0.194, 0.170, 0.145)),
     "redrocks_rough.ply": ((4.285, 4.037, 4.037), (0.360, 0.285, 0.285)),
 }
-
-
-# --- the raster the DEM anchors code ------------------------------------------------
-
-@dataclass
-class Raster:
-    """Mean-height DEM of a cloud on dftpcc's axis-aligned grid, ready for raster codecs.
-
-    Attributes
-    ----------
-    grid : Grid
-    heights : ndarray (rows, cols), float64
-        Mean height per cell relative to ``grid.z0`` (metres); 0 where empty.
-    filled : ndarray (rows, cols), float64
-        ``heights`` with every empty cell given its nearest occupied cell's value.
-    mask : ndarray (rows, cols), bool
-    mask_blob : bytes
-        Occupancy bit-packed and zstd-compressed.
-    """
-
-    grid: Grid
-    heights: np.ndarray
-    filled: np.ndarray
-    mask: np.ndarray
-    mask_blob: bytes
-
-
-def make_raster(points: np.ndarray, resolution: float) -> Raster:
-    grid = fit_grid(points, resolution)
-    dem = rasterize(points, grid)
-    mask = dem.mask
-    if mask.all():
-        filled = dem.heights
-    else:
-        nearest = ndimage.distance_transform_edt(~mask, return_distances=False, return_indices=True)
-        filled = dem.heights[tuple(nearest)]
-    blob = zstandard.ZstdCompressor(level=MASK_ZSTD_LEVEL).compress(np.packbits(mask.ravel()).tobytes())
-    return Raster(grid, dem.heights, filled, mask, blob)
-
-
-def unpack_mask(grid: Grid, mask_blob: bytes) -> np.ndarray:
-    """The occupancy of a raster anchor from its zstd-compressed bitmap."""
-    raw = zstandard.ZstdDecompressor().decompress(mask_blob)
-    return np.unpackbits(np.frombuffer(raw, np.uint8), count=grid.size).astype(bool).reshape(grid.shape)
-
-
-def raster_points(grid: Grid, mask: np.ndarray, heights: np.ndarray) -> np.ndarray:
-    """Decoded cloud of a raster anchor: one point per occupied cell, at its centre (as dftpcc)."""
-    rows, cols = np.nonzero(mask)
-    x, y = grid.centres(rows, cols)
-    return np.column_stack([x, y, heights[rows, cols] + grid.z0])
 
 
 # --- codecs: encode(setting) -> (bytes, state); decode(state) -> points ---------------
