@@ -26,7 +26,7 @@ import dftpcc
 from dftpcc.grid import rasterize
 
 from benchmarks.common import (
-    FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load,
+    FIGURES, GROUND, MIN_ERROR, BDRate, Case, Loaded, NearestHeights, bd_rate, bits_at, fmt_bits, load,
     load_average, lower_hull,
     finish_run, library_label, markdown_table, median_time, pick_cases, run_arguments, verdict, warnings_as_notes,
 )
@@ -71,6 +71,12 @@ QUICK = dict(compact_cutoffs=(0.0, 0.5, 0.7, 0.8, 0.9, 0.95), compact_steps=tupl
              jpeg2k_psnr=(40, 50, 60, 70, 80), error_bounds=tuple(2.0 ** k for k in range(-2, 7)),
              jpegxl_distances=tuple(0.01 * 2.0 ** k for k in range(10)),
              htj2k_qsteps=tuple(1e-5 * 2.0 ** k for k in range(13)))
+
+#: A BD-rate whose two frontiers share less than this ratio of RMSE (a factor 2 = 6 dB) is marked:
+#: it averages over a sliver of the curves.
+BD_NARROW_RATIO = 2.0
+#: The codec whose BD-rate against every other is reported.
+COMPACT = "dftpcc compact"
 
 #: Draco's local origin (three float64) travels beside the Draco buffer.
 DRACO_ORIGIN_BYTES = 3 * 8
@@ -398,7 +404,7 @@ def measure(loaded: Loaded, sweeps: dict) -> dict:
     paper_settings = [(c, 0.0) for c in sweeps["paper_cutoffs"]]
     bounds = [b * unit for b in sweeps["error_bounds"]]
     codecs = [
-        dftpcc_codec("dftpcc compact", "compact", compact_settings, points, res),
+        dftpcc_codec(COMPACT, "compact", compact_settings, points, res),
         dftpcc_codec("dftpcc paper", "paper", paper_settings, points, res),
         # Not the default: also rebuilds the gaps the map encloses, so its mask costs far less.
         dftpcc_codec(FOOTPRINT, "compact", compact_settings, points, res, mask="footprint"),
@@ -432,7 +438,8 @@ def measure(loaded: Loaded, sweeps: dict) -> dict:
                                    enc_rate=enc_rate, dec_rate=dec_rate,
                                    bits=[bits_at(hull, e) for _, e in levels],
                                    seconds=time.perf_counter() - t0)
-    return dict(loaded=loaded, n=n, floor=floor, levels=levels, how=how, raster=raster, results=results)
+    bd = {name: bd_rate(r["hull"], results[COMPACT]["hull"]) for name, r in results.items() if name != COMPACT}
+    return dict(loaded=loaded, n=n, floor=floor, levels=levels, how=how, raster=raster, results=results, bd=bd)
 
 
 # --- reporting ------------------------------------------------------------------------
@@ -446,6 +453,30 @@ def best_anchor(results: dict, level: int) -> tuple[float | None, str, str]:
         if bits is not None and (best[0] is None or bits < best[0]):
             best = (bits, name, flag)
     return best
+
+
+def fmt_bd(bd: BDRate | None, *, with_range: bool = False) -> str:
+    """A BD-rate as a signed percentage; † when the shared RMSE range is narrow, — when there is none."""
+    if bd is None:
+        return "—"
+    narrow = "†" if bd.high < BD_NARROW_RATIO * bd.low else ""
+    text = f"{100 * bd.rate:+.1f} %{narrow}"
+    return text + (f" ({1000 * bd.low:.3g}–{1000 * bd.high:.3g})" if with_range else "")
+
+
+def bd_table(measured: list[dict]) -> str:
+    """BD-rate of dftpcc compact against every other codec, one row per map."""
+    names = [name for name in measured[0]["results"] if name != COMPACT]
+    rows = [[m["loaded"].case.label()] + [fmt_bd(m["bd"].get(name)) for name in names] for m in measured]
+    return ("### BD-rate of dftpcc compact against each codec\n\n"
+            "Mean difference in bits of dftpcc compact over the codec at equal vertical RMSE, over the RMSE "
+            "range both frontiers cover (negative: compact needs fewer bits). Bjøntegaard's delta rate with "
+            "piecewise-cubic interpolation: log bits against log RMSE (PSNR up to scale and offset) through "
+            "each frontier's points by a monotone cubic Hermite (PCHIP) curve, integrated over the shared "
+            f"range; not VCEG-M33's single cubic polynomial. †: the shared range is under a factor "
+            f"{BD_NARROW_RATIO:g} of RMSE; —: no shared range (the lossless LAZ has one point). The ranges are "
+            "in each file's table.\n\n"
+            + markdown_table(["file"] + names, rows))
 
 
 def ratio_cell(num: tuple[float | None, str], den: tuple[float | None, str], limit: float) -> str:
@@ -472,27 +503,29 @@ def report(m: dict) -> str:
     if loaded.notes:
         out.append("")
     header = ["codec"] + [f"bits/pt @ {label}" for label, _ in levels] + \
-        ["settings", "encode M pts/s", "decode M pts/s", "timed at"]
+        ["BD-rate of compact vs it (RMSE range mm)", "settings", "encode M pts/s", "decode M pts/s", "timed at"]
     rows = []
     for name, r in results.items():
         codec = r["codec"]
-        rows.append([name] + [fmt_bits(b, f) for b, f in r["bits"]] +
+        bd = "" if name == COMPACT else fmt_bd(m["bd"].get(name), with_range=True)
+        rows.append([name] + [fmt_bits(b, f) for b, f in r["bits"]] + [bd] +
                     [f"{len(r['samples'])}", f"{r['enc_rate'] / 1e6:.2f}", f"{r['dec_rate'] / 1e6:.2f}",
                      codec.describe(r["timed"].setting)])
     best = [best_anchor(results, i) for i in range(len(levels))]
+    blank = ["", "", "", "", ""]
     rows.append(["**best anchor**"] + [f"{fmt_bits(b, f)} {name}" if b is not None else "—" for b, name, f in best]
-                + ["", "", "", ""])
-    compact = results["dftpcc compact"]["bits"]
+                + blank)
+    compact = results[COMPACT]["bits"]
     limit = MAX_OVER_BEST[case.terrain]
     rows.append([f"compact / best anchor (≤ {limit:g})"] +
                 [ratio_cell(compact[i], (best[i][0], best[i][2]), limit) for i in range(len(levels))]
-                + ["", "", "", ""])
+                + blank)
     rows.append([f"compact / Draco (≤ {MAX_OVER_DRACO:g})"] +
                 [ratio_cell(compact[i], results["Draco"]["bits"][i], MAX_OVER_DRACO) for i in range(len(levels))]
-                + ["", "", "", ""])
+                + blank)
     rows.append([f"compact / paper (≤ {MAX_OVER_PAPER:g})"] +
                 [ratio_cell(compact[i], results["dftpcc paper"]["bits"][i], MAX_OVER_PAPER)
-                 for i in range(len(levels))] + ["", "", "", ""])
+                 for i in range(len(levels))] + blank)
     out += [markdown_table(header, rows), ""]
     out.append(split_table(m))
     return "\n".join(out)
@@ -503,7 +536,7 @@ def split_table(m: dict) -> str:
     n, results = m["n"], m["results"]
     rows = []
     for i, (label, level) in enumerate(m["levels"]):
-        for name in ("dftpcc compact", best_anchor(results, i)[1] or "JPEG2000"):
+        for name in (COMPACT, best_anchor(results, i)[1] or "JPEG2000"):
             r = results[name]
             ok = [s for s in r["on_hull"] if s.err <= level]
             if not ok:
@@ -547,7 +580,7 @@ def plot(m: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 5.2))
-    colours = {"dftpcc compact": "C3", FOOTPRINT: "C8", "dftpcc paper": "C1", "Draco": "C0", "JPEG2000": "C2", "LERC": "C4",
+    colours = {COMPACT: "C3", FOOTPRINT: "C8", "dftpcc paper": "C1", "Draco": "C0", "JPEG2000": "C2", "LERC": "C4",
                "SZ3": "C5", "JPEG XL": "C6", "HTJ2K": "C9", "LAZ (lossless)": "0.4"}
     for name, r in m["results"].items():
         c = colours.get(name)
@@ -638,6 +671,10 @@ def main(argv: list[str] | None = None) -> int:
                  + ", ".join(f"{k} {v:.0f} s" for k, v in secs.items()) + ").\n")
         parts.append(text)
         print(text, flush=True)
+    if measured:
+        table = bd_table(measured)
+        parts.append(table)
+        print(table, "\n", flush=True)
     check = anchors_md_check(measured)
     if check:
         parts.append(check)
