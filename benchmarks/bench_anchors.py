@@ -39,6 +39,9 @@ CASES = (
     Case("mountain_arid_alirt.las", 2.0, None, "rough"),
     Case("redrocks_rough.ply", 5.0, None, "rough"),
     Case("mars_gale_1m.tif", None, None, "gentle"),
+    # Alpine valley and peaks, 1.3 km of relief; with Gale and Kepler one of the DEMs of the
+    # equal-maximum-error table, so all three have BD-rates too.
+    Case("earth_davos_10m.tif", None, None, "rough"),
     # A complex crater with 6.4 km of relief: judged against the rough target.
     Case("moon_kepler_lola_48m.tif", None, None, "rough"),
 )
