@@ -4,14 +4,18 @@ For each file, every codec is swept over its quality setting; each setting
 gives (bits per original point, vertical RMSE of every original point against
 the decoded point nearest to it in x, y). The lower convex hull of those
 samples (log-log) is each codec's frontier, and the bits it needs at fixed
-error levels are read off it by log-log interpolation, as in ANCHORS.md.
-Targets are printed as PASS/MISS; nothing here fails.
+error levels are read off it by log-log interpolation, as in ANCHORS.md;
+the BD-rate of dftpcc compact against each codec averages the gap between
+the frontiers. The DEMs are then coded at equal maximum error as well
+(benchmarks/max_error.py). Targets are printed as PASS/MISS, bounds as
+PASS/FAIL; nothing here fails.
 
-    .venv/bin/python -m benchmarks.bench_anchors [--quick] [--files field mars ...]
+    .venv/bin/python -m benchmarks.bench_anchors [--quick] [--files field mars ...] [--max-error-only]
 """
 
 from __future__ import annotations
 
+import argparse
 import io
 import math
 import time
@@ -30,6 +34,7 @@ from benchmarks.common import (
     load_average, lower_hull,
     finish_run, library_label, markdown_table, median_time, pick_cases, run_arguments, verdict, warnings_as_notes,
 )
+from benchmarks import max_error
 from benchmarks.rasters import (JPEGXL_EFFORT, ONE_THREAD, RASTER_HEADER_BYTES, U16_MAX, Raster, make_raster,
                                raster_points, to_u16, unit_range, unpack_mask)
 
@@ -616,10 +621,30 @@ def plot(m: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def max_error_only(args: argparse.Namespace) -> int:
+    """The equal-maximum-error table alone, on the DEMs it names (or those of ``--files``)."""
+    t0 = time.perf_counter()
+    print(f"Measuring {library_label()}; {load_average()}.", flush=True)
+    cases = [c for c in pick_cases(CASES, args.files) if c.name in max_error.MAX_ERRORS]
+    bounded = []
+    for case in cases:
+        loaded = load(case, args.data)
+        with warnings_as_notes(loaded.notes):
+            bounded.append(max_error.measure(loaded, make_raster(loaded.points, loaded.resolution),
+                                             dftpcc_repeats=1 if args.quick else max_error.TIMING_REPEATS))
+    print(max_error.report(bounded))
+    print(f"Run time {time.perf_counter() - t0:.0f} s; {load_average()} at the end.")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = run_arguments(__doc__.split("\n\n")[0], "coarser sweeps (about a quarter of the settings)")
     ap.add_argument("--no-figures", action="store_true", help="do not write docs/figures/bench_rd_*.png")
+    ap.add_argument("--max-error-only", action="store_true",
+                    help="only the equal-maximum-error table, on its DEMs (a minute or two; writes no docs)")
     args = ap.parse_args(argv)
+    if args.max_error_only:
+        return max_error_only(args)
     sweeps = dict(compact_cutoffs=COMPACT_CUTOFFS, compact_steps=COMPACT_STEPS, paper_cutoffs=PAPER_CUTOFFS,
                   draco_bits=DRACO_BITS, jpeg2k_psnr=JPEG2K_PSNR, error_bounds=ERROR_BOUNDS,
                   jpegxl_distances=JPEGXL_DISTANCES, htj2k_qsteps=HTJ2K_QSTEPS)
@@ -659,25 +684,38 @@ def main(argv: list[str] | None = None) -> int:
         "compact ≤ 0.7x the best anchor on gentle "
         "terrain, ≤ 1.0x on rough, ≤ 0.2x Draco, ≤ 0.1x paper, at every level.")
     print(intro, "\n", flush=True)
-    measured, parts = [], [intro]
+    measured, bounded, parts = [], [], [intro]
+    # The dftpcc encode at a max-error target is a search of seconds: timed once in a quick run.
+    dftpcc_repeats = 1 if args.quick else max_error.TIMING_REPEATS
     for case in cases:
         t_case = time.perf_counter()
         loaded = load(case, args.data)
         with warnings_as_notes(loaded.notes):
             m = measure(loaded, sweeps)
         measured.append(m)
+        bound_s = 0.0
+        if case.name in max_error.MAX_ERRORS:
+            t_bound = time.perf_counter()
+            with warnings_as_notes(loaded.notes):
+                bounded.append(max_error.measure(loaded, m["raster"], dftpcc_repeats=dftpcc_repeats))
+            bound_s = time.perf_counter() - t_bound
         if not args.no_figures:
             plot(m, FIGURES / f"bench_rd_{case.stem}.png")
         text = report(m)
         secs = {name: r["seconds"] for name, r in m["results"].items()}
         text += (f"Time for this file: {time.perf_counter() - t_case:.0f} s ("
-                 + ", ".join(f"{k} {v:.0f} s" for k, v in secs.items()) + ").\n")
+                 + ", ".join(f"{k} {v:.0f} s" for k, v in secs.items())
+                 + (f"; the equal-maximum-error table {bound_s:.0f} s" if bound_s else "") + ").\n")
         parts.append(text)
         print(text, flush=True)
     if measured:
         table = bd_table(measured)
         parts.append(table)
         print(table, "\n", flush=True)
+    if bounded:
+        table = max_error.report(bounded)
+        parts.append(table)
+        print(table, flush=True)
     check = anchors_md_check(measured)
     if check:
         parts.append(check)
