@@ -723,7 +723,8 @@ def main(argv: list[str] | None = None) -> int:
     elapsed = time.perf_counter() - t0
     over = " (over the ~15 min budget: use --quick)" if elapsed > RUN_BUDGET_S else ""
     finish_run(parts, args, "bench_anchors", "Rate-distortion against the anchors (issue 3)",
-               f"Run time {elapsed:.0f} s{over}; {load_average()} at the end.")
+               f"{'Quick run (--quick: coarser sweeps, dftpcc max-error encode timed once)' if args.quick else 'Full run'}"
+               f"; run time {elapsed:.0f} s{over}; {load_average()} at the end.")
     return 0
 
 
