@@ -70,15 +70,15 @@ DRACO_BITS = tuple(range(8, 17))
 DRACO_LEVEL = 7
 JPEG2K_PSNR = tuple(range(40, 81, 5))                                # dB on the 16-bit DEM
 #: JPEG XL butteraugli distance (0 would be lossless); libjxl's own range ends at 25.
-JPEGXL_DISTANCES = tuple(0.01 * 2.0 ** (k / 2) for k in range(19))   # 0.01 .. 5.12
+JPEGXL_DISTANCES = tuple(0.01 * 2.0 ** (k / 2) for k in range(23))   # 0.01 .. 20.5
 #: HTJ2K (OpenJPH) irreversible quantization step, relative to the 16-bit range.
-HTJ2K_QSTEPS = tuple(1e-5 * 2.0 ** (k / 2) for k in range(25))       # 1e-5 .. 0.04
+HTJ2K_QSTEPS = tuple(1e-5 * 2.0 ** (k / 2) for k in range(31))       # 1e-5 .. 0.33
 ERROR_BOUNDS = tuple(2.0 ** (k / 2) for k in range(-4, 13))          # LERC / SZ3, 0.25 .. 64 units
 QUICK = dict(compact_cutoffs=(0.0, 0.5, 0.7, 0.8, 0.9, 0.95), compact_steps=tuple(2.0 ** k for k in range(-1, 9)),
              paper_cutoffs=(0.0, 0.5, 0.8, 0.9, 0.95, 0.98), draco_bits=(8, 10, 12, 14, 16),
              jpeg2k_psnr=(40, 50, 60, 70, 80), error_bounds=tuple(2.0 ** k for k in range(-2, 7)),
-             jpegxl_distances=tuple(0.01 * 2.0 ** k for k in range(10)),
-             htj2k_qsteps=tuple(1e-5 * 2.0 ** k for k in range(13)))
+             jpegxl_distances=tuple(0.01 * 2.0 ** k for k in range(12)),
+             htj2k_qsteps=tuple(1e-5 * 2.0 ** k for k in range(16)))
 
 #: A BD-rate whose two frontiers share less than this ratio of RMSE (a factor 2 = 6 dB) is marked:
 #: it averages over a sliver of the curves.
