@@ -4,14 +4,18 @@ For each file, every codec is swept over its quality setting; each setting
 gives (bits per original point, vertical RMSE of every original point against
 the decoded point nearest to it in x, y). The lower convex hull of those
 samples (log-log) is each codec's frontier, and the bits it needs at fixed
-error levels are read off it by log-log interpolation, as in ANCHORS.md.
-Targets are printed as PASS/MISS; nothing here fails.
+error levels are read off it by log-log interpolation, as in ANCHORS.md;
+the BD-rate of dftpcc compact against each codec averages the gap between
+the frontiers. The DEMs are then coded at equal maximum error as well
+(benchmarks/max_error.py). Targets are printed as PASS/MISS, bounds as
+PASS/FAIL; nothing here fails.
 
-    .venv/bin/python -m benchmarks.bench_anchors [--quick] [--files field mars ...]
+    .venv/bin/python -m benchmarks.bench_anchors [--quick] [--files field mars ...] [--max-error-only]
 """
 
 from __future__ import annotations
 
+import argparse
 import io
 import math
 import time
@@ -20,19 +24,19 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import zstandard
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 import dftpcc
-from dftpcc.dem import Grid
-from dftpcc.grid import fit_grid, rasterize
+from dftpcc.grid import rasterize
 
 from benchmarks.common import (
-    FIGURES, GROUND, MIN_ERROR, Case, Loaded, NearestHeights, bits_at, fmt_bits, load,
+    FIGURES, GROUND, MIN_ERROR, BDRate, Case, Loaded, NearestHeights, bd_rate, bits_at, fmt_bits, load,
     load_average, lower_hull,
     finish_run, library_label, markdown_table, median_time, pick_cases, run_arguments, verdict, warnings_as_notes,
 )
+from benchmarks import max_error
+from benchmarks.rasters import (JPEGXL_EFFORT, ONE_THREAD, RASTER_HEADER_BYTES, U16_MAX, Raster, make_raster,
+                               raster_points, to_u16, unit_range, unpack_mask)
 
 CASES = (
     Case("field_gentle_ign.laz", 0.5, (GROUND,), "gentle"),
@@ -40,6 +44,9 @@ CASES = (
     Case("mountain_arid_alirt.las", 2.0, None, "rough"),
     Case("redrocks_rough.ply", 5.0, None, "rough"),
     Case("mars_gale_1m.tif", None, None, "gentle"),
+    # Alpine valley and peaks, 1.3 km of relief; with Gale and Kepler one of the DEMs of the
+    # equal-maximum-error table, so all three have BD-rates too.
+    Case("earth_davos_10m.tif", None, None, "rough"),
     # A complex crater with 6.4 km of relief: judged against the rough target.
     Case("moon_kepler_lola_48m.tif", None, None, "rough"),
 )
@@ -62,22 +69,27 @@ PAPER_CUTOFFS = (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97, 0.98
 DRACO_BITS = tuple(range(8, 17))
 DRACO_LEVEL = 7
 JPEG2K_PSNR = tuple(range(40, 81, 5))                                # dB on the 16-bit DEM
+#: JPEG XL butteraugli distance (0 would be lossless); libjxl's own range ends at 25.
+JPEGXL_DISTANCES = tuple(0.01 * 2.0 ** (k / 2) for k in range(23))   # 0.01 .. 20.5
+#: HTJ2K (OpenJPH) irreversible quantization step, relative to the 16-bit range.
+HTJ2K_QSTEPS = tuple(1e-5 * 2.0 ** (k / 2) for k in range(31))       # 1e-5 .. 0.33
 ERROR_BOUNDS = tuple(2.0 ** (k / 2) for k in range(-4, 13))          # LERC / SZ3, 0.25 .. 64 units
 QUICK = dict(compact_cutoffs=(0.0, 0.5, 0.7, 0.8, 0.9, 0.95), compact_steps=tuple(2.0 ** k for k in range(-1, 9)),
              paper_cutoffs=(0.0, 0.5, 0.8, 0.9, 0.95, 0.98), draco_bits=(8, 10, 12, 14, 16),
-             jpeg2k_psnr=(40, 50, 60, 70, 80), error_bounds=tuple(2.0 ** k for k in range(-2, 7)))
+             jpeg2k_psnr=(40, 50, 60, 70, 80), error_bounds=tuple(2.0 ** k for k in range(-2, 7)),
+             jpegxl_distances=tuple(0.01 * 2.0 ** k for k in range(12)),
+             htj2k_qsteps=tuple(1e-5 * 2.0 ** k for k in range(16)))
 
-#: zstd level for the occupancy bitmap of the raster anchors (as ANCHORS.md).
-MASK_ZSTD_LEVEL = 19
-#: Side information a raster anchor needs to put its DEM back in place: grid
-#: origin, cell size, rows, cols, height offset and range, as eight 8-byte
-#: numbers. With it the JPEG2000 figures of ANCHORS.md are reproduced.
-RASTER_HEADER_BYTES = 8 * 8
+#: A BD-rate whose two frontiers share less than this ratio of RMSE (a factor 2 = 6 dB) is marked:
+#: it averages over a sliver of the curves.
+BD_NARROW_RATIO = 2.0
+#: The codec whose BD-rate against every other is reported.
+COMPACT = "dftpcc compact"
+
 #: Draco's local origin (three float64) travels beside the Draco buffer.
 DRACO_ORIGIN_BYTES = 3 * 8
 #: LAZ reference: coordinates stored at the source's scale, or this (metres) for PLY/GeoTIFF.
 LAZ_SCALE = 0.001
-U16_MAX = 65535
 TIMING_REPEATS = 3
 #: A full run should stay under this (seconds); beyond it the script advises --quick.
 RUN_BUDGET_S = 15 * 60
@@ -88,53 +100,6 @@ ANCHORS_MD = {  # file -> (Draco, JPEG2000) bits/pt at 1.25x, 1.5x, 3x the floor
     "mountain_arid_alirt.las": ((4.832, 4.091, 4.091), (0.194, 0.170, 0.145)),
     "redrocks_rough.ply": ((4.285, 4.037, 4.037), (0.360, 0.285, 0.285)),
 }
-
-
-# --- the raster the DEM anchors code ------------------------------------------------
-
-@dataclass
-class Raster:
-    """Mean-height DEM of a cloud on dftpcc's axis-aligned grid, ready for raster codecs.
-
-    Attributes
-    ----------
-    grid : Grid
-    heights : ndarray (rows, cols), float64
-        Mean height per cell relative to ``grid.z0`` (metres); 0 where empty.
-    filled : ndarray (rows, cols), float64
-        ``heights`` with every empty cell given its nearest occupied cell's value.
-    mask : ndarray (rows, cols), bool
-    mask_blob : bytes
-        Occupancy bit-packed and zstd-compressed.
-    """
-
-    grid: Grid
-    heights: np.ndarray
-    filled: np.ndarray
-    mask: np.ndarray
-    mask_blob: bytes
-
-
-def make_raster(points: np.ndarray, resolution: float) -> Raster:
-    grid = fit_grid(points, resolution)
-    dem = rasterize(points, grid)
-    mask = dem.mask
-    if mask.all():
-        filled = dem.heights
-    else:
-        nearest = ndimage.distance_transform_edt(~mask, return_distances=False, return_indices=True)
-        filled = dem.heights[tuple(nearest)]
-    blob = zstandard.ZstdCompressor(level=MASK_ZSTD_LEVEL).compress(np.packbits(mask.ravel()).tobytes())
-    return Raster(grid, dem.heights, filled, mask, blob)
-
-
-def raster_points(grid: Grid, mask_blob: bytes, heights: np.ndarray) -> np.ndarray:
-    """Decoded cloud of a raster anchor: one point per occupied cell, at its centre (as dftpcc)."""
-    raw = zstandard.ZstdDecompressor().decompress(mask_blob)
-    mask = np.unpackbits(np.frombuffer(raw, np.uint8), count=grid.size).astype(bool).reshape(grid.shape)
-    rows, cols = np.nonzero(mask)
-    x, y = grid.centres(rows, cols)
-    return np.column_stack([x, y, heights[rows, cols] + grid.z0])
 
 
 # --- codecs: encode(setting) -> (bytes, state); decode(state) -> points ---------------
@@ -218,10 +183,14 @@ def draco_codec(points: np.ndarray, bits: tuple[int, ...]) -> Codec:
 
 def raster_codec(name: str, settings: list[Any], cached: Raster, points: np.ndarray, resolution: float,
                  code: Callable[[Raster, Any], tuple[bytes, Any]],
-                 uncode: Callable[[Raster, Any], np.ndarray], describe: Callable[[Any], str]) -> Codec:
+                 uncode: Callable[[Raster, Any], Any], describe: Callable[[Any], str],
+                 own_mask: bool = False) -> Codec:
     """A raster codec wrapped to code a cloud: grid + fill + mask, then ``code`` the DEM.
 
     ``code`` returns the coded bytes and the state ``uncode`` needs (which holds those bytes first).
+    ``uncode`` returns the heights, or with ``own_mask`` (a codec that carries the
+    occupancy in its codestream, as LERC does) the heights and the mask it decoded;
+    such a codec is not charged the separate bitmap.
     """
 
     def code_bytes(inner: Any) -> bytes:
@@ -231,15 +200,21 @@ def raster_codec(name: str, settings: list[Any], cached: Raster, points: np.ndar
     def encode(setting: Any, fresh: bool) -> tuple[int, Any]:
         raster = make_raster(points, resolution) if fresh else cached
         payload, state = code(raster, setting)
-        return len(payload) + len(raster.mask_blob) + RASTER_HEADER_BYTES, (raster, state)
+        mask_bytes = 0 if own_mask else len(raster.mask_blob)
+        return len(payload) + mask_bytes + RASTER_HEADER_BYTES, (raster, state)
 
     def decode(state: Any) -> np.ndarray:
         raster, inner = state
-        return raster_points(raster.grid, raster.mask_blob, uncode(raster, inner))
+        if own_mask:
+            heights, mask = uncode(raster, inner)
+        else:
+            heights, mask = uncode(raster, inner), unpack_mask(raster.grid, raster.mask_blob)
+        return raster_points(raster.grid, mask, heights)
 
     def split(state: Any) -> dict:
         raster, inner = state
-        return {"mask": len(raster.mask_blob), "coef": len(code_bytes(inner)), "header": RASTER_HEADER_BYTES}
+        return {"mask": 0 if own_mask else len(raster.mask_blob), "coef": len(code_bytes(inner)),
+                "header": RASTER_HEADER_BYTES}
 
     return Codec(name, settings, encode, decode, describe, split=split)
 
@@ -247,9 +222,7 @@ def raster_codec(name: str, settings: list[Any], cached: Raster, points: np.ndar
 def jpeg2k_code(raster: Raster, psnr: float) -> tuple[bytes, Any]:
     import imagecodecs
 
-    lo, hi = float(raster.filled.min()), float(raster.filled.max())
-    span = hi - lo if hi > lo else 1.0
-    u16 = np.round((raster.filled - lo) / span * U16_MAX).astype(np.uint16)
+    u16, lo, span = to_u16(raster)
     blob = imagecodecs.jpeg2k_encode(u16, level=psnr)
     return blob, (blob, lo, span)
 
@@ -259,6 +232,41 @@ def jpeg2k_uncode(raster: Raster, state: Any) -> np.ndarray:
 
     blob, lo, span = state
     return imagecodecs.jpeg2k_decode(blob).astype(np.float64) / U16_MAX * span + lo
+
+
+def htj2k_code(raster: Raster, qstep: float) -> tuple[bytes, Any]:
+    import imagecodecs
+
+    u16, lo, span = to_u16(raster)
+    blob = imagecodecs.htj2k_encode(u16, level=qstep)
+    return blob, (blob, lo, span)
+
+
+def htj2k_uncode(raster: Raster, state: Any) -> np.ndarray:
+    import imagecodecs
+
+    blob, lo, span = state
+    return imagecodecs.htj2k_decode(blob).astype(np.float64) / U16_MAX * span + lo
+
+
+def jpegxl_code(raster: Raster, distance: float) -> tuple[bytes, Any]:
+    """Lossy JPEG XL of the float heights: libjxl takes float32 in its nominal range [0, 1].
+
+    (A 16-bit integer input gave the same bytes within 0.3 % and the same error.)
+    """
+    import imagecodecs
+
+    unit, lo, span = unit_range(raster)
+    blob = imagecodecs.jpegxl_encode(unit.astype(np.float32), distance=distance, effort=JPEGXL_EFFORT,
+                                     numthreads=ONE_THREAD)
+    return blob, (blob, lo, span)
+
+
+def jpegxl_uncode(raster: Raster, state: Any) -> np.ndarray:
+    import imagecodecs
+
+    blob, lo, span = state
+    return imagecodecs.jpegxl_decode(blob, numthreads=ONE_THREAD).astype(np.float64) * span + lo
 
 
 def lerc_code(raster: Raster, max_error: float) -> tuple[bytes, Any]:
@@ -272,13 +280,16 @@ def lerc_code(raster: Raster, max_error: float) -> tuple[bytes, Any]:
     return blob, blob
 
 
-def lerc_uncode(raster: Raster, blob: bytes) -> np.ndarray:
+def lerc_uncode(raster: Raster, blob: bytes) -> tuple[np.ndarray, np.ndarray]:
     import lerc
 
-    result, values, _valid = lerc.decode(blob)
+    result, values, valid = lerc.decode(blob)
     if result != 0:
         raise RuntimeError(f"lerc.decode failed with code {result}")
-    return np.asarray(values, dtype=np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    # lerc returns no mask when every pixel is valid.
+    mask = np.ones(values.shape, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    return values, mask
 
 
 def sz3_code(raster: Raster, bound: float) -> tuple[bytes, Any]:
@@ -401,15 +412,19 @@ def measure(loaded: Loaded, sweeps: dict) -> dict:
     paper_settings = [(c, 0.0) for c in sweeps["paper_cutoffs"]]
     bounds = [b * unit for b in sweeps["error_bounds"]]
     codecs = [
-        dftpcc_codec("dftpcc compact", "compact", compact_settings, points, res),
+        dftpcc_codec(COMPACT, "compact", compact_settings, points, res),
         dftpcc_codec("dftpcc paper", "paper", paper_settings, points, res),
         # Not the default: also rebuilds the gaps the map encloses, so its mask costs far less.
         dftpcc_codec(FOOTPRINT, "compact", compact_settings, points, res, mask="footprint"),
         draco_codec(points, sweeps["draco_bits"]),
         raster_codec("JPEG2000", list(sweeps["jpeg2k_psnr"]), raster, points, res, jpeg2k_code, jpeg2k_uncode,
                      lambda db: f"PSNR {db} dB"),
+        raster_codec("JPEG XL", list(sweeps["jpegxl_distances"]), raster, points, res, jpegxl_code,
+                     jpegxl_uncode, lambda d: f"distance {d:.3g}"),
+        raster_codec("HTJ2K", list(sweeps["htj2k_qsteps"]), raster, points, res, htj2k_code, htj2k_uncode,
+                     lambda q: f"qstep {q:.3g}"),
         raster_codec("LERC", bounds, raster, points, res, lerc_code, lerc_uncode,
-                     lambda e: f"maxZError {1000 * e:.3g} mm"),
+                     lambda e: f"maxZError {1000 * e:.3g} mm", own_mask=True),
         raster_codec("SZ3", bounds, raster, points, res, sz3_code, sz3_uncode,
                      lambda e: f"abs bound {1000 * e:.3g} mm"),
         laz_codec(loaded),
@@ -431,7 +446,8 @@ def measure(loaded: Loaded, sweeps: dict) -> dict:
                                    enc_rate=enc_rate, dec_rate=dec_rate,
                                    bits=[bits_at(hull, e) for _, e in levels],
                                    seconds=time.perf_counter() - t0)
-    return dict(loaded=loaded, n=n, floor=floor, levels=levels, how=how, raster=raster, results=results)
+    bd = {name: bd_rate(r["hull"], results[COMPACT]["hull"]) for name, r in results.items() if name != COMPACT}
+    return dict(loaded=loaded, n=n, floor=floor, levels=levels, how=how, raster=raster, results=results, bd=bd)
 
 
 # --- reporting ------------------------------------------------------------------------
@@ -445,6 +461,30 @@ def best_anchor(results: dict, level: int) -> tuple[float | None, str, str]:
         if bits is not None and (best[0] is None or bits < best[0]):
             best = (bits, name, flag)
     return best
+
+
+def fmt_bd(bd: BDRate | None, *, with_range: bool = False) -> str:
+    """A BD-rate as a signed percentage; † when the shared RMSE range is narrow, — when there is none."""
+    if bd is None:
+        return "—"
+    narrow = "†" if bd.high < BD_NARROW_RATIO * bd.low else ""
+    text = f"{100 * bd.rate:+.1f} %{narrow}"
+    return text + (f" ({1000 * bd.low:.3g}–{1000 * bd.high:.3g})" if with_range else "")
+
+
+def bd_table(measured: list[dict]) -> str:
+    """BD-rate of dftpcc compact against every other codec, one row per map."""
+    names = [name for name in measured[0]["results"] if name != COMPACT]
+    rows = [[m["loaded"].case.label()] + [fmt_bd(m["bd"].get(name)) for name in names] for m in measured]
+    return ("### BD-rate of dftpcc compact against each codec\n\n"
+            "Mean difference in bits of dftpcc compact over the codec at equal vertical RMSE, over the RMSE "
+            "range both frontiers cover (negative: compact needs fewer bits). Bjøntegaard's delta rate with "
+            "piecewise-cubic interpolation: log bits against log RMSE (PSNR up to scale and offset) through "
+            "each frontier's points by a monotone cubic Hermite (PCHIP) curve, integrated over the shared "
+            f"range; not VCEG-M33's single cubic polynomial. †: the shared range is under a factor "
+            f"{BD_NARROW_RATIO:g} of RMSE; —: no shared range (the lossless LAZ has one point). The ranges are "
+            "in each file's table.\n\n"
+            + markdown_table(["file"] + names, rows))
 
 
 def ratio_cell(num: tuple[float | None, str], den: tuple[float | None, str], limit: float) -> str:
@@ -471,27 +511,29 @@ def report(m: dict) -> str:
     if loaded.notes:
         out.append("")
     header = ["codec"] + [f"bits/pt @ {label}" for label, _ in levels] + \
-        ["settings", "encode M pts/s", "decode M pts/s", "timed at"]
+        ["BD-rate of compact vs it (RMSE range mm)", "settings", "encode M pts/s", "decode M pts/s", "timed at"]
     rows = []
     for name, r in results.items():
         codec = r["codec"]
-        rows.append([name] + [fmt_bits(b, f) for b, f in r["bits"]] +
+        bd = "" if name == COMPACT else fmt_bd(m["bd"].get(name), with_range=True)
+        rows.append([name] + [fmt_bits(b, f) for b, f in r["bits"]] + [bd] +
                     [f"{len(r['samples'])}", f"{r['enc_rate'] / 1e6:.2f}", f"{r['dec_rate'] / 1e6:.2f}",
                      codec.describe(r["timed"].setting)])
     best = [best_anchor(results, i) for i in range(len(levels))]
+    blank = ["", "", "", "", ""]
     rows.append(["**best anchor**"] + [f"{fmt_bits(b, f)} {name}" if b is not None else "—" for b, name, f in best]
-                + ["", "", "", ""])
-    compact = results["dftpcc compact"]["bits"]
+                + blank)
+    compact = results[COMPACT]["bits"]
     limit = MAX_OVER_BEST[case.terrain]
     rows.append([f"compact / best anchor (≤ {limit:g})"] +
                 [ratio_cell(compact[i], (best[i][0], best[i][2]), limit) for i in range(len(levels))]
-                + ["", "", "", ""])
+                + blank)
     rows.append([f"compact / Draco (≤ {MAX_OVER_DRACO:g})"] +
                 [ratio_cell(compact[i], results["Draco"]["bits"][i], MAX_OVER_DRACO) for i in range(len(levels))]
-                + ["", "", "", ""])
+                + blank)
     rows.append([f"compact / paper (≤ {MAX_OVER_PAPER:g})"] +
                 [ratio_cell(compact[i], results["dftpcc paper"]["bits"][i], MAX_OVER_PAPER)
-                 for i in range(len(levels))] + ["", "", "", ""])
+                 for i in range(len(levels))] + blank)
     out += [markdown_table(header, rows), ""]
     out.append(split_table(m))
     return "\n".join(out)
@@ -502,7 +544,7 @@ def split_table(m: dict) -> str:
     n, results = m["n"], m["results"]
     rows = []
     for i, (label, level) in enumerate(m["levels"]):
-        for name in ("dftpcc compact", best_anchor(results, i)[1] or "JPEG2000"):
+        for name in (COMPACT, best_anchor(results, i)[1] or "JPEG2000"):
             r = results[name]
             ok = [s for s in r["on_hull"] if s.err <= level]
             if not ok:
@@ -546,8 +588,8 @@ def plot(m: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 5.2))
-    colours = {"dftpcc compact": "C3", FOOTPRINT: "C8", "dftpcc paper": "C1", "Draco": "C0", "JPEG2000": "C2", "LERC": "C4",
-               "SZ3": "C5", "LAZ (lossless)": "0.4"}
+    colours = {COMPACT: "C3", FOOTPRINT: "C8", "dftpcc paper": "C1", "Draco": "C0", "JPEG2000": "C2", "LERC": "C4",
+               "SZ3": "C5", "JPEG XL": "C6", "HTJ2K": "C9", "LAZ (lossless)": "0.4"}
     for name, r in m["results"].items():
         c = colours.get(name)
         if name.startswith("LAZ"):
@@ -579,12 +621,33 @@ def plot(m: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def max_error_only(args: argparse.Namespace) -> int:
+    """The equal-maximum-error table alone, on the DEMs it names (or those of ``--files``)."""
+    t0 = time.perf_counter()
+    print(f"Measuring {library_label()}; {load_average()}.", flush=True)
+    cases = [c for c in pick_cases(CASES, args.files) if c.name in max_error.MAX_ERRORS]
+    bounded = []
+    for case in cases:
+        loaded = load(case, args.data)
+        with warnings_as_notes(loaded.notes):
+            bounded.append(max_error.measure(loaded, make_raster(loaded.points, loaded.resolution),
+                                             dftpcc_repeats=1 if args.quick else max_error.TIMING_REPEATS))
+    print(max_error.report(bounded))
+    print(f"Run time {time.perf_counter() - t0:.0f} s; {load_average()} at the end.")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = run_arguments(__doc__.split("\n\n")[0], "coarser sweeps (about a quarter of the settings)")
     ap.add_argument("--no-figures", action="store_true", help="do not write docs/figures/bench_rd_*.png")
+    ap.add_argument("--max-error-only", action="store_true",
+                    help="only the equal-maximum-error table, on its DEMs (a minute or two; writes no docs)")
     args = ap.parse_args(argv)
+    if args.max_error_only:
+        return max_error_only(args)
     sweeps = dict(compact_cutoffs=COMPACT_CUTOFFS, compact_steps=COMPACT_STEPS, paper_cutoffs=PAPER_CUTOFFS,
-                  draco_bits=DRACO_BITS, jpeg2k_psnr=JPEG2K_PSNR, error_bounds=ERROR_BOUNDS)
+                  draco_bits=DRACO_BITS, jpeg2k_psnr=JPEG2K_PSNR, error_bounds=ERROR_BOUNDS,
+                  jpegxl_distances=JPEGXL_DISTANCES, htj2k_qsteps=HTJ2K_QSTEPS)
     if args.quick:
         sweeps.update(QUICK)
     cases = pick_cases(CASES, args.files)
@@ -602,10 +665,16 @@ def main(argv: list[str] | None = None) -> int:
         "points to bytes (raster anchors include gridding, fill and mask) and back to points.\n\n"
         "Anchors: Draco (DracoPy, compression level 7, quantization 8–16 bits, float32 points about a "
         f"local origin, + {DRACO_ORIGIN_BYTES} B for that origin); JPEG2000 (imagecodecs, 16-bit DEM "
-        "scaled over its range, empty cells filled from the nearest occupied one, PSNR 40–80 dB); LERC "
+        "scaled over its range, empty cells filled from the nearest occupied one, PSNR 40–80 dB); JPEG XL "
+        f"(imagecodecs/libjxl, effort {JPEGXL_EFFORT}, lossy on the filled float heights scaled to [0, 1] "
+        "over their range, float32 being libjxl's float input and that its nominal range, butteraugli "
+        f"distance {min(sweeps['jpegxl_distances']):.3g}–{max(sweeps['jpegxl_distances']):.3g}); HTJ2K "
+        "(imagecodecs/OpenJPH, the 16-bit DEM of JPEG2000, irreversible, quantization step "
+        f"{min(sweeps['htj2k_qsteps']):.3g}–{max(sweeps['htj2k_qsteps']):.3g} of the range); LERC "
         "(float32 DEM + its valid mask, maxZError sweep); SZ3 (pysz, float32 filled DEM, absolute bound "
-        "sweep); the three raster anchors are also charged the zstd-19 occupancy bitmap (LERC carries its "
-        f"own mask instead) and {RASTER_HEADER_BYTES} B of grid/scale header; LAZ (laspy + lazrs, x y z "
+        "sweep); the raster anchors are charged the zstd-19 occupancy bitmap (but LERC, whose codestream "
+        f"carries its mask) and {RASTER_HEADER_BYTES} B of grid/scale header; codecs with a thread option "
+        "run on one thread; LAZ (laspy + lazrs, x y z "
         "only) is the lossless reference. dftpcc compact sweeps f_c x step "
         f"({len(sweeps['compact_cutoffs'])} x {len(sweeps['compact_steps'])}, plus one rate-controlled file "
         "per level when the library offers `target_rmse`), paper sweeps f_c "
@@ -615,21 +684,38 @@ def main(argv: list[str] | None = None) -> int:
         "compact ≤ 0.7x the best anchor on gentle "
         "terrain, ≤ 1.0x on rough, ≤ 0.2x Draco, ≤ 0.1x paper, at every level.")
     print(intro, "\n", flush=True)
-    measured, parts = [], [intro]
+    measured, bounded, parts = [], [], [intro]
+    # The dftpcc encode at a max-error target is a search of seconds: timed once in a quick run.
+    dftpcc_repeats = 1 if args.quick else max_error.TIMING_REPEATS
     for case in cases:
         t_case = time.perf_counter()
         loaded = load(case, args.data)
         with warnings_as_notes(loaded.notes):
             m = measure(loaded, sweeps)
         measured.append(m)
+        bound_s = 0.0
+        if case.name in max_error.MAX_ERRORS:
+            t_bound = time.perf_counter()
+            with warnings_as_notes(loaded.notes):
+                bounded.append(max_error.measure(loaded, m["raster"], dftpcc_repeats=dftpcc_repeats))
+            bound_s = time.perf_counter() - t_bound
         if not args.no_figures:
             plot(m, FIGURES / f"bench_rd_{case.stem}.png")
         text = report(m)
         secs = {name: r["seconds"] for name, r in m["results"].items()}
         text += (f"Time for this file: {time.perf_counter() - t_case:.0f} s ("
-                 + ", ".join(f"{k} {v:.0f} s" for k, v in secs.items()) + ").\n")
+                 + ", ".join(f"{k} {v:.0f} s" for k, v in secs.items())
+                 + (f"; the equal-maximum-error table {bound_s:.0f} s" if bound_s else "") + ").\n")
         parts.append(text)
         print(text, flush=True)
+    if measured:
+        table = bd_table(measured)
+        parts.append(table)
+        print(table, "\n", flush=True)
+    if bounded:
+        table = max_error.report(bounded)
+        parts.append(table)
+        print(table, flush=True)
     check = anchors_md_check(measured)
     if check:
         parts.append(check)
@@ -637,7 +723,8 @@ def main(argv: list[str] | None = None) -> int:
     elapsed = time.perf_counter() - t0
     over = " (over the ~15 min budget: use --quick)" if elapsed > RUN_BUDGET_S else ""
     finish_run(parts, args, "bench_anchors", "Rate-distortion against the anchors (issue 3)",
-               f"Run time {elapsed:.0f} s{over}; {load_average()} at the end.")
+               f"{'Quick run (--quick: coarser sweeps, dftpcc max-error encode timed once)' if args.quick else 'Full run'}"
+               f"; run time {elapsed:.0f} s{over}; {load_average()} at the end.")
     return 0
 
 
