@@ -22,7 +22,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_codec $(ARGS)
 
-# Rate-distortion against Draco, JPEG2000, LERC, SZ3 and LAZ (~7 min on the shared 2-core box; ARGS=--quick ~2 min).
+# Rate-distortion against Draco, JPEG2000, HTJ2K, JPEG XL, LERC, SZ3 and LAZ, and a table at equal maximum error (~7 min on the shared 2-core box; ARGS=--quick ~2 min).
 bench-anchors: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_anchors $(ARGS)
 
