@@ -20,7 +20,7 @@ from contextlib import contextmanager
 from typing import Any, Iterator, Sequence
 
 from . import __version__
-from .params import CHOICES, PROFILES, check_cutoff
+from .params import AUTO_TILE_CELLS, CHOICES, DEFAULT_TILE_SIZE, PROFILES, TILE_SIZES, check_cutoff, check_tile_size
 from .units import length
 from .errors import (
     CorruptFileError,
@@ -186,7 +186,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
     options = dict(aggregate=args.aggregate, frame=args.frame, transform=args.transform,
                    step=args.step, fill=args.fill, detrend=args.detrend, mask=args.mask, coder=args.coder,
                    target_rmse=args.target_rmse, target_max_error=args.target_max_error,
-                   target_bpp=args.target_bpp)
+                   target_bpp=args.target_bpp, tile_size=args.tile_size)
     t0 = time.perf_counter()
     with _progress(not args.quiet, COMPRESS_STAGES, verbose=args.verbose) as on_stage:
         cmap = compress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
@@ -213,7 +213,7 @@ def cmd_decompress(args: argparse.Namespace) -> int:
 
     points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
                              format=args.format, max_bytes=args.max_bytes,
-                             cutoff=args.cutoff, max_cells=args.max_cells)
+                             cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox)
     if str(args.output).lower().endswith((".tif", ".tiff")) or args.format in ("tif", "tiff"):
         from .mapfile import open as open_map
 
@@ -276,6 +276,11 @@ def cmd_info(args: argparse.Namespace) -> int:
                      + (f", residual {s['residual_bytes']:,} B" if s.get("residual_bytes") else "")),
         ("CRS", u["crs"] or "none"),
     ]
+    if "tiles" in info:
+        t = info["tiles"]
+        per = [x["bytes"] for x in t["tiles"]]
+        rows.append(("tiles", f"{t['tile_rows']} x {t['tile_cols']} tiles of {t['size']} cells, {t['occupied']} "
+                              f"occupied; {min(per):,} to {max(per):,} B a tile (--json lists each, with its errors)"))
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")
@@ -295,6 +300,29 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(EXIT_USAGE, f"dftpcc: error: {message} (see '{self.prog} --help')\n")
+
+
+def _bbox(text: str) -> tuple[float, float, float, float]:
+    """XMIN,YMIN,XMAX,YMAX as four finite numbers (their order is the library's to check, against the map)."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected four numbers XMIN,YMIN,XMAX,YMAX, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def _tile_size(text: str) -> int | str:
+    if text == "auto":
+        return text
+    try:
+        value = int(text)
+        check_tile_size(value)
+    except (ValueError, InvalidInputError):
+        raise argparse.ArgumentTypeError(f"expected 'auto', 0 or a whole number of cells from {TILE_SIZES[0]} "
+                                         f"to {TILE_SIZES[1]}, got {text!r}") from None
+    return value
 
 
 def _cutoffs(text: str) -> tuple[float, ...]:
@@ -495,6 +523,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mask", choices=CHOICES["mask"],
                    help="exact (default): rebuild occupied cells only; footprint: also the gaps the map encloses")
     p.add_argument("--coder", choices=CHOICES["coder"], help="entropy coder of the coefficients (default ans)")
+    p.add_argument("--tile-size", type=_tile_size, metavar="CELLS",
+                   help=f"code the map in tiles of CELLS x CELLS that decode on their own (--bbox); 0: whole; "
+                        f"default auto: tiles of {DEFAULT_TILE_SIZE} only for grids over {AUTO_TILE_CELLS:,} cells")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop points with NaN or infinite coordinates instead of refusing the file")
     p.add_argument("--topic", help="ROS bag: the sensor_msgs/PointCloud2 topic to read (default: the only one)")
@@ -512,6 +543,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output file")
     p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
     p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
+    p.add_argument("--bbox", type=_bbox, metavar="XMIN,YMIN,XMAX,YMAX",
+                   help="only this region, in the map's units and CRS (of a tiled map, only its tiles are read)")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",
                    help="decode a trusted file whose grid is larger than a file of its size may ask for")
     p.add_argument("--format", help="output format if the extension does not tell")

@@ -22,7 +22,7 @@ import struct
 import warnings
 import zlib
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import zstandard
@@ -34,16 +34,22 @@ from .errors import (
     ResourceLimitError,
     UnsupportedFormatError,
 )
-from .dem import Grid
+from .dem import Grid, TileGrid
 from .limits import DECODE_BYTES_PER_CELL, MAX_CELLS, cell_budget
 from .params import MAX_COORDINATE_M, Params
 
 __all__ = [
     "MAGIC",
     "VERSION",
+    "VERSION_TILED",
     "Header",
+    "TileIndex",
+    "Source",
     "pack",
+    "pack_tiled",
     "unpack",
+    "unpack_source",
+    "read_tile",
     "cells_allowed",
     "check_grid",
     "check_header",
@@ -54,10 +60,25 @@ MAGIC = b"\x89DFTPC\r\n"
 #: (major, minor). A reader refuses another major; a newer minor may add
 #: sections and JSON fields, which an older reader skips.
 VERSION = (1, 0)
+#: A tiled map (docs/format.md, *Tiles*).
+VERSION_TILED = (1, 1)
 _PREAMBLE = struct.Struct("<8sBBHI")  # magic, major, minor, flags, section count
 # A section table entry: 4-byte tag, LEB128 tile, LEB128 payload length, u32 CRC-32.
 _CRC = struct.Struct("<I")
 MAX_SECTIONS = 1024
+#: Sections of a tiled (1.1) file: tile 0's and three per tile.
+MAX_SECTIONS_TILED = 1 << 24
+#: Tiles of a 1.1 file, at most, and at most this many per byte of the file.
+MAX_TILES = 1 << 20
+TILES_PER_FILE_BYTE = 64
+#: rows x cols of a tiled map, at most (MAX_CELLS applies to each tile).
+MAX_TILED_CELLS = 1 << 36
+#: The tile index's coding byte.
+TIDX_CODING = 1
+_TIDX_HEAD = struct.Struct("<BIH")
+#: Sections of tile 0 a tiled file must hold, and the sections a tile holds.
+REQUIRED_TILED = (b"GEOM", b"PARM", b"STAT", b"TIDX", b"BASE")
+TILE_TAGS = (b"MASK", b"COEF", b"RESD")
 #: Geometry section: origin x, y, projection-plane z, resolution, rows, cols,
 #: angle, original point count, occupied cells, plane a, b, c; then the row
 #: spacing (0 for square cells).
@@ -96,7 +117,9 @@ class Header:
     stats : dict
         Figures measured at compression time (metres, bytes).
     coef_count : int
-        Coefficients stored.
+        Coefficients stored (of a tiled map: its base layer's).
+    tiles : TileIndex, optional
+        The tile index of a tiled (version 1.1) map.
     """
 
     grid: Grid
@@ -107,6 +130,36 @@ class Header:
     crs: dict[str, Any] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
     coef_count: int = 0
+    tiles: "TileIndex | None" = None
+
+
+@dataclass
+class TileIndex:
+    """What a tiled file says of its tiles (docs/format.md, ``TIDX``).
+
+    Attributes
+    ----------
+    tiling : TileGrid
+    overlap : int
+        Cells of its neighbours a tile's transform also spans on each side.
+    cells : ndarray of int64, shape (n,)
+        Rebuilt cells per tile (0: the tile has no sections).
+    rmse, max_error : ndarray of float, shape (n,)
+        DEM error per tile measured at compression, metres (NaN for empty tiles).
+    sections : dict
+        Tile (0-based) -> tag -> (offset, length, CRC-32) of its payloads in the file.
+    """
+
+    tiling: TileGrid
+    overlap: int
+    cells: np.ndarray
+    rmse: np.ndarray
+    max_error: np.ndarray
+    sections: dict[int, dict[bytes, tuple[int, int, int]]] = field(default_factory=dict)
+
+    def tile_bytes(self, k: int) -> int:
+        """Bytes of tile ``k``'s payloads."""
+        return sum(length for _, length, _ in self.sections.get(k, {}).values())
 
 
 def check_grid(grid: Grid, *, point_count: int, cell_count: int, params: Params,
@@ -140,6 +193,8 @@ def check_header(header: Header) -> None:
     """
     g = header.grid
     with _as_writer():
+        if header.tiles is None and header.params.tile_size not in (0, "auto"):
+            raise CorruptFileError(f"an untiled map states tiles of {header.params.tile_size} cells")
         _check_grid(g, header.point_count, header.cell_count, header.params, header.plane)
         _check_params(header.params, g.resolution)
         _check_coef_count(header.coef_count, g.size)
@@ -184,30 +239,162 @@ def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes =
     """
     check_header(header)
     g = header.grid
-    geom = _GEOM.pack(g.x0, g.y0, g.z0, g.resolution, g.rows, g.cols, g.angle,
-                      header.point_count, header.cell_count, *header.plane)
-    if g.resolution_y:  # square cells leave the row spacing out
-        geom += _GEOM_Y.pack(g.resolution_y)
-    info = dict(header.stats, coef_count=header.coef_count)
-    sections = [
-        (b"GEOM", geom),
-        (b"PARM", _pack_json(_params_for_file(header.params), "PARM")),
-    ] + ([(b"CRS ", _pack_json(_crs_for_file(header.crs), "CRS"))] if header.crs else []) + [
-        (b"STAT", _pack_stats({k: v for k, v in info.items()
-                               if k not in _DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
+    sections = _map_sections(header) + [
         (b"MASK", mask_blob),
         (b"COEF", coef_blob),  # late, so a prefix of the file carries the low frequencies
     ] + ([(b"RESD", resid_blob)] if resid_blob else [])
-    # Payloads follow the table in its order, so an entry needs no offset.
-    table = [tag + _leb128(0) + _leb128(len(payload)) + _CRC.pack(zlib.crc32(payload)) for tag, payload in sections]
-    head = _PREAMBLE.pack(MAGIC, *VERSION, 0, len(sections)) + b"".join(table)
-    data = head + _CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections)
+    data = _assemble([(tag, 0, payload) for tag, payload in sections], VERSION)
     if g.size > cell_budget(len(data)):
         warnings.warn(
             f"this map is a {g.rows} x {g.cols} grid ({g.size:,} cells) in only {len(data):,} bytes; readers "
             f"refuse such a file by default as a possible decompression bomb: open it with "
             f"dftpcc.open(..., max_cells={g.size})", LargeGridWarning, stacklevel=2)
     return data
+
+
+def _map_sections(header: Header) -> list[tuple[bytes, bytes]]:
+    """GEOM, PARM, CRS and STAT: what every file holds at tile 0."""
+    g = header.grid
+    geom = _GEOM.pack(g.x0, g.y0, g.z0, g.resolution, g.rows, g.cols, g.angle,
+                      header.point_count, header.cell_count, *header.plane)
+    if g.resolution_y:  # square cells leave the row spacing out
+        geom += _GEOM_Y.pack(g.resolution_y)
+    info = dict(header.stats, coef_count=header.coef_count)
+    return [
+        (b"GEOM", geom),
+        (b"PARM", _pack_json(_params_for_file(header.params), "PARM")),
+    ] + ([(b"CRS ", _pack_json(_crs_for_file(header.crs), "CRS"))] if header.crs else []) + [
+        (b"STAT", _pack_stats({k: v for k, v in info.items()
+                               if k not in _DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
+    ]
+
+
+def _head(entries: list[tuple[bytes, int, int, int]], version: tuple[int, int]) -> bytes:
+    """Preamble, section table and the table's CRC for (tag, tile, length, crc) entries."""
+    # Payloads follow the table in its order, so an entry needs no offset.
+    table = [tag + _leb128(tile) + _leb128(length) + _CRC.pack(crc) for tag, tile, length, crc in entries]
+    head = _PREAMBLE.pack(MAGIC, *version, 0, len(entries)) + b"".join(table)
+    return head + _CRC.pack(zlib.crc32(head))
+
+
+def _assemble(sections: list[tuple[bytes, int, bytes]], version: tuple[int, int]) -> bytes:
+    head = _head([(tag, tile, len(p), zlib.crc32(p)) for tag, tile, p in sections], version)
+    return head + b"".join(p for _, _, p in sections)
+
+
+def pack_tiled(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, bytes, bytes]]) -> bytes:
+    """Serialise a tiled map (version 1.1, docs/format.md *Tiles*).
+
+    Parameters
+    ----------
+    header : Header
+        With ``tiles`` holding the index (cells and errors per tile; its
+        ``sections`` are ignored: the writer lays them out).
+    base_blob : bytes
+        The BASE section.
+    tiles : list of (k, mask, coef, resid)
+        Each occupied tile (0-based ``k``, ascending) and its sections
+        (``resid`` empty without a maximum-error target).
+    """
+    return b"".join(tiled_parts(header, base_blob, tiles))
+
+
+def tiled_parts(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, bytes, bytes]]) -> list[bytes]:
+    """:func:`pack_tiled`'s bytes in pieces: the head (preamble, table, tile 0), then each payload.
+
+    Every check runs before anything is returned, so a caller that writes
+    the pieces as they come writes a file a reader accepts or nothing.
+    """
+    check_header(header)
+    index = header.tiles
+    if index is None:
+        raise ValueError("a tiled header needs its tile index")
+    with _as_writer():
+        _check_tiled_params(header.params, header.grid, index.tiling.size)
+        occupied = [k for k, *_ in tiles]
+        if occupied != sorted(set(occupied)) or occupied != [int(k) for k in np.flatnonzero(index.cells)]:
+            raise CorruptFileError("the tiles written are not the occupied tiles of the index")
+        if int(index.cells.sum()) != header.cell_count:
+            raise CorruptFileError("tile cells do not add up to the map's")
+    sections = _map_sections(header) + [(b"TIDX", _pack_index(index)), (b"BASE", base_blob)]
+    entries = [(tag, 0, len(p), zlib.crc32(p)) for tag, p in sections]
+    payloads = [p for _, p in sections]
+    for k, mask_blob, coef_blob, resid_blob in tiles:
+        for tag, blob in ((b"MASK", mask_blob), (b"COEF", coef_blob), (b"RESD", resid_blob)):
+            if tag == b"RESD" and not blob:
+                continue
+            entries.append((tag, k + 1, len(blob), zlib.crc32(blob)))
+            payloads.append(blob)
+    if len(entries) > MAX_SECTIONS_TILED:
+        raise InvalidInputError(f"cannot write this map: {len(entries):,} sections, more than the "
+                                f"{MAX_SECTIONS_TILED:,} a tiled file holds; choose a larger tile size")
+    head = _head(entries, VERSION_TILED)
+    return [head + b"".join(payloads[: len(sections)])] + payloads[len(sections):]
+
+
+def _pack_index(index: TileIndex) -> bytes:
+    cells = index.cells.astype("<u4")
+    occupied = index.cells > 0
+    errors = [np.frombuffer(b"".join(_f32_up(float(v)) for v in values[occupied]), dtype="<f4")
+              for values in (index.rmse, index.max_error)]
+    body = cells.view(np.uint8).reshape(-1, 4).T.tobytes() + b"".join(e.tobytes() for e in errors)
+    frame = zstandard.ZstdCompressor(level=19, write_content_size=True).compress(body)
+    return _TIDX_HEAD.pack(TIDX_CODING, index.tiling.size, index.overlap) + frame
+
+
+class Source:
+    """The bytes of a ``.dftpc`` file: in memory, or an open file read by offset (random access).
+
+    ``read(offset, length)`` returns up to ``length`` bytes (fewer at the
+    end); a tiled map opened from a path reads its header and then only the
+    tiles asked for.
+    """
+
+    def __init__(self, data: bytes | memoryview | None = None, *, file: BinaryIO | None = None,
+                 size: int | None = None):
+        self._data = memoryview(data) if data is not None else None
+        self._file = file
+        self.size = len(self._data) if self._data is not None else int(size or 0)
+        #: Bytes read so far (the random-access benchmark reports it).
+        self.bytes_read = 0
+
+    def read(self, offset: int, length: int) -> memoryview:
+        length = max(0, min(length, self.size - offset))
+        self.bytes_read += length
+        if self._data is not None:
+            return self._data[offset:offset + length]
+        assert self._file is not None
+        self._file.seek(offset)
+        return memoryview(self._file.read(length))
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+        self._data = None
+
+
+#: Bytes of a section table entry, at most: tag, two 10-byte LEB128 integers, CRC.
+_ENTRY_MAX_BYTES = 4 + 2 * 10 + 4
+#: ... and of a typical one (a tile number and a length of up to 3 LEB128 bytes each).
+_ENTRY_TYPICAL_BYTES = 4 + 3 + 3 + 4
+
+
+def _table_of(source: Source) -> tuple[list[tuple[bytes, int, int, int]], int, int]:
+    """The section table of ``source``, where the payloads start, and the minor version."""
+    pre = source.read(0, _PREAMBLE.size)
+    if len(pre) < _PREAMBLE.size:
+        return (*_table(pre), 0)  # refused as too short
+    count = min(_PREAMBLE.unpack_from(pre, 0)[4], MAX_SECTIONS_TILED + 1)
+    # Most entries are far shorter than the longest: read for a typical one first, then for the longest.
+    for per_entry in (_ENTRY_TYPICAL_BYTES, _ENTRY_MAX_BYTES):
+        prefix = source.read(0, _PREAMBLE.size + count * per_entry + _CRC.size)
+        try:
+            entries, start = _table(prefix)
+            break
+        except CorruptFileError:
+            if len(prefix) == source.size or per_entry == _ENTRY_MAX_BYTES:
+                raise
+    return entries, start, _PREAMBLE.unpack_from(pre, 0)[2]
 
 
 def _table(data: memoryview) -> tuple[list[tuple[bytes, int, int, int]], int]:
@@ -223,8 +410,9 @@ def _table(data: memoryview) -> tuple[list[tuple[bytes, int, int, int]], int]:
     if major != VERSION[0]:
         raise UnsupportedFormatError(
             f".dftpc format version {major}.{minor} is not supported (this reader: {VERSION[0]}.x)")
-    if count > MAX_SECTIONS:
-        raise CorruptFileError(f"section table claims {count} sections, more than the {MAX_SECTIONS} allowed")
+    allowed = MAX_SECTIONS if minor == 0 else MAX_SECTIONS_TILED
+    if count > allowed:
+        raise CorruptFileError(f"section table claims {count} sections, more than the {allowed} allowed")
     entries, pos = [], _PREAMBLE.size
     for index in range(count):
         tile = length = None
@@ -336,6 +524,7 @@ V1_PARAM_DEFAULTS: dict[str, Any] = {
     "cutoff": 0.8, "profile": "compact", "aggregate": "mean", "frame": "axis", "transform": "dct",
     "detrend": "plane", "fill": "consistent", "storage": "quantized", "step": 0.0, "deadzone": 0.1,
     "coder": "ans", "mask": "exact", "target_rmse": 0.0, "target_max_error": 0.0, "target_bpp": 0.0,
+    "tile_size": 0,
 }
 #: Statistics the reader derives from the section table instead of storing them.
 _DERIVED_STATS = {"mask_bytes": b"MASK", "coef_bytes": b"COEF", "residual_bytes": b"RESD"}
@@ -345,6 +534,8 @@ _OPTIONAL_STATS = ("cells_interpolated",)
 
 def _params_for_file(params: Params) -> dict[str, Any]:
     full = json.loads(params.to_json())
+    if full.get("tile_size") == "auto":  # a file states what it is: 'auto' that did not tile is 0
+        full["tile_size"] = 0
     # The resolution is GEOM's cell width; a reader takes it from there.
     return {k: v for k, v in full.items()
             if k != "resolution" and (k not in V1_PARAM_DEFAULTS or V1_PARAM_DEFAULTS[k] != v)}
@@ -512,8 +703,9 @@ def _is_count(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
-def _check_geometry(geom: tuple, budget: int, file_size: int) -> None:
-    """Geometry fields against sane limits and the decoding budget (see the constants above)."""
+def _check_geometry(geom: tuple, budget: int, file_size: int, *, limit: int = MAX_CELLS) -> None:
+    """Geometry fields against sane limits and the decoding budget (see the constants above);
+    ``limit``: the format's largest grid (:data:`MAX_TILED_CELLS` for a tiled map)."""
     (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = geom
     if not all(math.isfinite(v) for v in (x0, y0, z0, res, angle, pa, pb, pc)) or res <= 0:
         raise CorruptFileError("geometry section holds non-finite or non-positive values")
@@ -529,8 +721,8 @@ def _check_geometry(geom: tuple, budget: int, file_size: int) -> None:
     if cells > budget:
         asks = (f"refusing to decode: the header asks for a {rows:,} x {cols:,} grid ({cells:,} cells, about "
                 f"{cells * DECODE_BYTES_PER_CELL / 1e9:,.1f} GB to decode)")
-        if cells > MAX_CELLS:
-            raise ResourceLimitError(f"{asks}, more than the {MAX_CELLS:,}-cell limit of the format")
+        if cells > limit:
+            raise ResourceLimitError(f"{asks}, more than the {limit:,}-cell limit of the format")
         raise ResourceLimitError(
             f"{asks}, more than the {budget:,} cells allowed for a {file_size:,}-byte file; if you trust "
             f"this file, open it with max_cells={cells} (command line: --max-cells {cells})")
@@ -594,6 +786,20 @@ def _check_crs(crs: Any) -> None:
             raise CorruptFileError(f"section CRS: LAS record {i} is malformed")
 
 
+def _parse_params(payload: memoryview, res: float) -> Params:
+    """The PARM section, checked (a file states its cutoff, resolution and step)."""
+    try:
+        params = _params_from_file(_json_text(payload, "PARM"), res)
+    except CorruptFileError as exc:
+        raise CorruptFileError(f"parameter section is invalid: {exc}") from None
+    except (InvalidInputError, TypeError, UnicodeDecodeError, ValueError, OverflowError) as exc:
+        raise CorruptFileError(f"parameter section is invalid: {exc}") from None
+    except RecursionError:
+        raise CorruptFileError("parameter section nests JSON too deeply") from None
+    _check_params(params, res)
+    return params
+
+
 def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
            max_cells: int | None = None) -> tuple[Header, dict[bytes, memoryview]]:
     """Parse and check ``.dftpc`` bytes.
@@ -627,6 +833,8 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
         Another major version of the format.
     """
     data = memoryview(data)
+    if _is_tiled(_table(data)[0]):
+        return unpack_source(Source(data), allow_truncated_coef=allow_truncated_coef, max_cells=max_cells)
     budget = cells_allowed(len(data), max_cells)
     found, declared = _sections(data, allow_truncated_coef=allow_truncated_coef)
     geom = found[b"GEOM"]
@@ -635,15 +843,9 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     fields = _GEOM.unpack_from(geom, 0)
     _check_geometry(fields, budget, len(data))
     (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = fields
-    try:
-        params = _params_from_file(_json_text(found[b"PARM"], "PARM"), res)
-    except CorruptFileError as exc:
-        raise CorruptFileError(f"parameter section is invalid: {exc}") from None
-    except (InvalidInputError, TypeError, UnicodeDecodeError, ValueError, OverflowError) as exc:
-        raise CorruptFileError(f"parameter section is invalid: {exc}") from None
-    except RecursionError:
-        raise CorruptFileError("parameter section nests JSON too deeply") from None
-    _check_params(params, res)
+    params = _parse_params(found[b"PARM"], res)
+    if params.tile_size:
+        raise CorruptFileError(f"parameters state tiles of {params.tile_size} cells in an untiled (1.0) map")
     _check_points(params, npoints, ncells)
     stats = _unpack_stats(found[b"STAT"]) if b"STAT" in found else {}
     for key, tag in _DERIVED_STATS.items():
@@ -680,3 +882,179 @@ def check_max_bytes(max_bytes: Any) -> None:
     """Refuse a ``max_bytes`` argument that is not None or a positive whole number of bytes."""
     if max_bytes is not None and (not _is_count(max_bytes) or max_bytes == 0):
         raise InvalidInputError(f"max_bytes must be a positive whole number of bytes, got {max_bytes!r}")
+
+
+def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
+                  max_cells: int | None = None) -> tuple[Header, dict[bytes, memoryview]]:
+    """:func:`unpack` from a :class:`Source`: a tiled map reads its table and tile 0 only.
+
+    An untiled map is read whole and parsed as by :func:`unpack`. A tiled
+    one returns a header whose ``tiles`` says where each tile's sections lie
+    (read them with :func:`read_tile`) and the blobs ``b"BASE"``.
+    """
+    entries, offset, _minor = _table_of(source)
+    if not _is_tiled(entries):
+        return unpack(source.read(0, source.size), allow_truncated_coef=allow_truncated_coef, max_cells=max_cells)
+    if allow_truncated_coef:
+        raise InvalidInputError("a tiled map (format 1.1) has no progressive decoding: read it whole, or a "
+                                "region of it with bbox=")
+    end = offset + sum(length for _tag, _tile, length, _crc in entries)
+    if source.size > end:
+        raise CorruptFileError(
+            f"{source.size - end:,} trailing byte(s) after the last section, which ends at byte {end:,} "
+            f"(two files joined, or data appended in transfer?)")
+    found: dict[bytes, tuple[int, int, int]] = {}
+    tiles: dict[int, dict[bytes, tuple[int, int, int]]] = {}
+    for tag, tile, length, crc in entries:
+        start, offset = offset, offset + length
+        if tile == 0:
+            if tag in TILE_TAGS:
+                raise CorruptFileError(f"a tiled map holds no section {tag.decode().strip()} at tile 0")
+            found.setdefault(tag, (start, length, crc))
+        elif tag in TILE_TAGS:
+            tiles.setdefault(tile - 1, {}).setdefault(tag, (start, length, crc))
+    payloads: dict[bytes, memoryview] = {}
+    for tag in REQUIRED_TILED + (b"CRS ",):
+        if tag not in found:
+            if tag == b"CRS ":
+                continue
+            raise CorruptFileError(f"section {tag.decode().strip()} is missing")
+        start, length, crc = found[tag]
+        payloads[tag] = _checked(source, start, length, crc, f"section {tag.decode().strip()}")
+    geom = payloads[b"GEOM"]
+    if len(geom) < _GEOM.size:
+        raise CorruptFileError("geometry section is too short")
+    fields = _GEOM.unpack_from(geom, 0)
+    _check_geometry(fields, MAX_TILED_CELLS, source.size, limit=MAX_TILED_CELLS)
+    (x0, y0, z0, res, rows, cols, angle, npoints, ncells, pa, pb, pc) = fields
+    params = _parse_params(payloads[b"PARM"], res)
+    _check_points(params, npoints, ncells)
+    stats = _unpack_stats(payloads[b"STAT"])
+    crs = _crs_from_file(_json(payloads[b"CRS "], "CRS")) if b"CRS " in payloads else {}
+    _check_crs(crs)
+    coef_count = stats.get("coef_count")
+    _check_coef_count(coef_count, rows * cols)
+    res_y = _GEOM_Y.unpack_from(geom, _GEOM.size)[0] if len(geom) >= _GEOM.size + _GEOM_Y.size else 0.0
+    _check_row_spacing(res_y, rows)
+    grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
+                resolution_y=res_y or None)
+    index = _unpack_index(payloads[b"TIDX"], grid, params, ncells, source.size)
+    for k in tiles:
+        if k >= index.tiling.count:
+            raise CorruptFileError(f"section table names tile {k + 1}, but the map has {index.tiling.count} tiles")
+    for k in range(index.tiling.count):
+        have = set(tiles.get(k, {}))
+        need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 else set()) if index.cells[k] else set()
+        if have != need:
+            raise CorruptFileError(f"tile {k + 1} has sections {_names(have)} where its index entry needs "
+                                   f"{_names(need)}")
+    index.sections = tiles
+    for key, tag in _DERIVED_STATS.items():
+        stats.setdefault(key, sum(t.get(tag, (0, 0, 0))[1] for t in tiles.values())
+                         + (found[b"BASE"][1] if tag == b"COEF" else 0))
+    header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,
+                    plane=(pa, pb, pc), crs=crs, stats=stats, coef_count=coef_count, tiles=index)
+    return header, {b"BASE": payloads[b"BASE"]}
+
+
+def _is_tiled(entries: list[tuple[bytes, int, int, int]]) -> bool:
+    """Whether a file's table holds a tile index: the tiled layout (format 1.1)."""
+    return any(tag == b"TIDX" and tile == 0 for tag, tile, _, _ in entries)
+
+
+def _names(tags: set[bytes]) -> str:
+    return ", ".join(t.decode().strip() for t in sorted(tags)) or "none"
+
+
+def _checked(source: Source, start: int, length: int, crc: int, what: str) -> memoryview:
+    """A payload read from ``source`` and checked against the file's end and its CRC."""
+    if start + length > source.size:
+        raise CorruptFileError(f"file is truncated: {what} needs bytes up to {start + length}, file has "
+                               f"{source.size}")
+    payload = source.read(start, length)
+    if zlib.crc32(payload) != crc:
+        raise CorruptFileError(f"{what} fails its checksum (damaged file)")
+    return payload
+
+
+def read_tile(source: Source, header: Header, k: int) -> dict[bytes, memoryview]:
+    """The checked sections of tile ``k`` (0-based) of a tiled map.
+
+    Raises
+    ------
+    CorruptFileError
+        Naming the tile, when one of its sections is cut or fails its checksum.
+    """
+    assert header.tiles is not None
+    i, j = divmod(k, header.tiles.tiling.tile_cols)
+    out = {}
+    for tag, (start, length, crc) in header.tiles.sections.get(k, {}).items():
+        out[tag] = _checked(source, start, length, crc,
+                            f"tile {k + 1} (tile row {i}, column {j}): section {tag.decode().strip()}")
+    return out
+
+
+def _check_tiled_params(params: Params, grid: Grid, size: Any) -> None:
+    if not (isinstance(size, int) and 16 <= size <= 65536):
+        raise CorruptFileError(f"tile size {size!r} is not in [16, 65536]")
+    if params.tile_size != size:
+        raise CorruptFileError(f"the tile index says tiles of {size} cells, the parameters {params.tile_size!r}")
+    if max(grid.rows, grid.cols) <= size:
+        raise CorruptFileError(f"a {grid.rows} x {grid.cols} grid fits one tile of {size} cells: it is no tiled map")
+    wrong = {k: v for k, v in (("transform", params.transform), ("storage", params.storage),
+                               ("detrend", params.detrend), ("mask", params.mask))
+             if v != {"transform": "dct", "storage": "quantized", "detrend": "plane", "mask": "exact"}[k]}
+    if wrong:
+        raise CorruptFileError(f"a tiled map is coded with the DCT, quantized, a plane and an exact mask, not "
+                               f"{', '.join(f'{k}={v}' for k, v in wrong.items())}")
+    count = -(-grid.rows // size) * -(-grid.cols // size)
+    if count > MAX_TILES:
+        raise CorruptFileError(f"{count:,} tiles of {size} cells, more than the {MAX_TILES:,} a file may hold")
+
+
+def _unpack_index(payload: memoryview, grid: Grid, params: Params, ncells: int, file_size: int) -> TileIndex:
+    raw = bytes(payload)
+    if len(raw) < _TIDX_HEAD.size:
+        raise CorruptFileError("tile index is too short")
+    coding, size, overlap = _TIDX_HEAD.unpack_from(raw, 0)
+    if coding != TIDX_CODING:
+        raise CorruptFileError(f"tile index has unknown coding {coding}")
+    _check_tiled_params(params, grid, size)
+    if overlap > size // 2:
+        raise CorruptFileError(f"tile overlap {overlap} is more than half the tile size {size}")
+    tiling = TileGrid(grid.rows, grid.cols, size)
+    n = tiling.count
+    if n > TILES_PER_FILE_BYTE * file_size:
+        raise CorruptFileError(f"{n:,} tiles in a {file_size:,}-byte file: more than {TILES_PER_FILE_BYTE} "
+                               f"a byte (crafted?)")
+    frame = raw[_TIDX_HEAD.size:]
+    try:
+        declared = zstandard.frame_content_size(frame)
+    except zstandard.ZstdError as exc:
+        raise CorruptFileError(f"tile index does not decompress: {exc}") from None
+    if declared < 4 * n or declared > 12 * n:
+        raise CorruptFileError(f"tile index declares {declared} bytes, not 4 per tile and 8 per occupied tile "
+                               f"of {n} tiles")
+    try:
+        body = zstandard.ZstdDecompressor().decompress(frame, max_output_size=declared)
+    except zstandard.ZstdError as exc:
+        raise CorruptFileError(f"tile index does not decompress: {exc}") from None
+    if len(body) != declared:
+        raise CorruptFileError("tile index is shorter than it declares")
+    cells = np.frombuffer(body[: 4 * n], dtype=np.uint8).reshape(4, n).T.copy().view("<u4").ravel().astype(np.int64)
+    occupied = np.flatnonzero(cells)
+    if declared != 4 * n + 8 * occupied.size:
+        raise CorruptFileError(f"tile index holds {declared} bytes where {n} tiles, {occupied.size} occupied, "
+                               f"need {4 * n + 8 * occupied.size}")
+    for k in occupied:
+        h, w = tiling.shape(int(k))
+        if cells[k] > h * w:
+            raise CorruptFileError(f"tile {k + 1} claims {cells[k]} cells in a {h} x {w} tile")
+    if int(cells.sum()) != ncells:
+        raise CorruptFileError(f"the tiles' cells add up to {int(cells.sum())}, the map states {ncells}")
+    errors = np.frombuffer(body[4 * n:], dtype="<f4").astype(np.float64)
+    if not (np.isfinite(errors).all() and (errors >= 0).all()):
+        raise CorruptFileError("tile index holds a negative or non-finite error")
+    rmse, max_error = np.full(n, np.nan), np.full(n, np.nan)
+    rmse[occupied], max_error[occupied] = errors[: occupied.size], errors[occupied.size:]
+    return TileIndex(tiling=tiling, overlap=overlap, cells=cells, rmse=rmse, max_error=max_error)

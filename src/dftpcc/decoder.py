@@ -8,12 +8,12 @@ the plane back and, for a complete file, the residual layer.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
-from . import coding, occupancy, spectrum
-from .container import Header, check_max_bytes, unpack
+from . import coding, occupancy, spectrum, tiles
+from .container import Header, Source, check_max_bytes, read_tile, unpack
 from .dem import DEM
 from .errors import CorruptFileError, InvalidInputError
 from .fill import plane_values
@@ -21,7 +21,7 @@ from .params import check_cutoff
 from .rebuild import dem_to_points
 from .residual import decode_residual, residual_step
 
-__all__ = ["decode_dem", "decompress"]
+__all__ = ["decode_dem", "decode_tiled", "decompress"]
 
 
 def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None = None,
@@ -40,6 +40,8 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
         Accept a truncated coefficient section and decode its whole chunks.
     """
     params, grid = header.params, header.grid
+    if header.tiles is not None:
+        raise InvalidInputError("a tiled map decodes tile by tile: use decode_tiled (dftpcc.open does)")
     if cutoff is not None:
         check_cutoff(cutoff)
         if cutoff < params.cutoff:
@@ -90,6 +92,100 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     return DEM(grid=grid, heights=heights, mask=mask)
 
 
+class _Base:
+    """The decoded base layer of a tiled map: values and their frequency indices."""
+
+    def __init__(self, header: Header, blob: Any):
+        assert header.tiles is not None
+        params, grid = header.params, header.grid
+        self.i, self.j, radius, angle = tiles.base_order(grid.shape, header.tiles.tiling.size, params.cutoff)
+        if self.i.size != header.coef_count:
+            raise CorruptFileError(f"the base layer's coefficient count {header.coef_count} disagrees with the "
+                                   f"grid, tile size and cutoff ({self.i.size})")
+        q = coding.decode_coefficients(blob, self.i.size, radius=radius, angle=angle)
+        if q.dtype.kind != "i" or q.size != self.i.size:
+            raise CorruptFileError("the base layer is not one integer per coefficient")
+        self.values = coding.dequantize(q, params.step)
+
+
+def decode_tiled(header: Header, base_blob: Any, read: Callable[[int], dict[bytes, Any]], *,
+                 rows: tuple[int, int] | None = None, cols: tuple[int, int] | None = None) -> DEM:
+    """Rebuild a tiled map, or the window ``rows`` x ``cols`` (cell ranges) of it, decoding only its tiles.
+
+    Parameters
+    ----------
+    header : Header
+        Of a tiled map (``header.tiles`` set).
+    base_blob : bytes
+        The BASE section.
+    read : callable
+        ``read(k)`` gives tile ``k``'s checked sections (see :func:`dftpcc.container.read_tile`).
+    rows, cols : (start, stop), optional
+        The cells wanted; default the whole map. The DEM returned covers
+        exactly these cells (its grid is that window of the map's).
+
+    Raises
+    ------
+    CorruptFileError
+        Naming the tile whose sections are damaged.
+    """
+    assert header.tiles is not None
+    grid, index = header.grid, header.tiles
+    rows = rows or (0, grid.rows)
+    cols = cols or (0, grid.cols)
+    base = _Base(header, base_blob)
+    out_grid = grid if (rows, cols) == ((0, grid.rows), (0, grid.cols)) else \
+        grid.window(rows[0], cols[0], rows[1] - rows[0], cols[1] - cols[0])
+    heights = np.zeros(out_grid.shape)
+    mask = np.zeros(out_grid.shape, dtype=bool)
+    for k in index.tiling.touching(rows, cols):
+        if not index.cells[k]:
+            continue
+        r0, r1, c0, c1 = index.tiling.bounds(k)
+        try:
+            h, m = _decode_tile(header, base, k, read(k))
+        except CorruptFileError as exc:
+            where = f"tile {k + 1} (tile row {r0 // index.tiling.size}, column {c0 // index.tiling.size})"
+            raise CorruptFileError(str(exc) if str(exc).startswith("tile ") else f"{where}: {exc}") from None
+        # The part of the tile inside the window.
+        a, b = max(r0, rows[0]), min(r1, rows[1])
+        c, d = max(c0, cols[0]), min(c1, cols[1])
+        heights[a - rows[0]:b - rows[0], c - cols[0]:d - cols[0]] = h[a - r0:b - r0, c - c0:d - c0]
+        mask[a - rows[0]:b - rows[0], c - cols[0]:d - cols[0]] = m[a - r0:b - r0, c - c0:d - c0]
+    return DEM(grid=out_grid, heights=heights, mask=mask)
+
+
+def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Heights (relative to z0) and mask of tile ``k``."""
+    assert header.tiles is not None
+    params, grid, index = header.params, header.grid, header.tiles
+    r0, r1, c0, c1 = index.tiling.bounds(k)
+    shape = (r1 - r0, c1 - c0)
+    mask = occupancy.decode_mask(blobs[b"MASK"], shape)
+    if int(mask.sum()) != index.cells[k]:
+        raise CorruptFileError("occupancy mask disagrees with the tile index's cell count")
+    w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)
+    lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0))
+    n = spectrum.kept_count(lay, params.cutoff)
+    order, radii, angles = spectrum.kept_order(lay, params.cutoff)
+    stream = coding.decode_coefficients(blobs[b"COEF"], n, radius=radii[:n], angle=angles[:n])
+    if stream.dtype.kind != "i" or stream.size != n:
+        raise CorruptFileError("tile coefficients are not one integer per kept coefficient")
+    corner_shape, where = spectrum.corner(lay, order[:n])
+    coefs = np.zeros(corner_shape)
+    coefs.ravel()[where] = coding.dequantize(stream, params.step)
+    heights = spectrum.inverse(coefs, lay)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
+    heights += tiles.base_heights(base.values, base.i, base.j, grid.shape, (r0, r1), (c0, c1))
+    a, b, c = header.plane
+    heights += a + b * np.arange(c0, c1, dtype=float)[None, :] + c * np.arange(r0, r1, dtype=float)[:, None]
+    if b"RESD" in blobs:
+        q = decode_residual(blobs[b"RESD"], int(index.cells[k]))
+        heights[mask] += q * residual_step(params.target_max_error)
+    if not np.isfinite(heights[mask]).all():
+        raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
+    return heights, mask
+
+
 def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | None = None) -> np.ndarray:
     """Decode ``.dftpc`` bytes into a point cloud.
 
@@ -111,4 +207,9 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
     if max_bytes is not None:
         data = data[:max_bytes]
     header, blobs = unpack(data, allow_truncated_coef=max_bytes is not None)
+    if header.tiles is not None:
+        if cutoff is not None:
+            raise InvalidInputError("a tiled map (format 1.1) decodes at its own cutoff only")
+        source = Source(data)
+        return dem_to_points(decode_tiled(header, blobs[b"BASE"], lambda k: read_tile(source, header, k)))
     return dem_to_points(decode_dem(header, blobs, cutoff=cutoff, allow_partial=max_bytes is not None))

@@ -14,7 +14,7 @@ import numpy as np
 
 from .errors import InvalidInputError
 
-__all__ = ["Grid", "DEM", "HeightSpread", "as_points", "drop_nonfinite", "nonfinite_error",
+__all__ = ["Grid", "TileGrid", "DEM", "HeightSpread", "as_points", "drop_nonfinite", "nonfinite_error",
            "MULTI_HEIGHT_TOLERANCE_CELLS"]
 
 #: A point farther than this many cell sizes (vertically) from its cell's
@@ -113,6 +113,57 @@ class Grid:
             return self.x0 + u, self.y0 + v
         c, s = self._rotation()
         return self.x0 + c * u - s * v, self.y0 + s * u + c * v
+
+    def window(self, row: int, col: int, rows: int, cols: int) -> "Grid":
+        """The grid of the ``rows`` x ``cols`` cells starting at cell (``row``, ``col``) of this one."""
+        u, v = col * self.resolution, row * self.dy
+        c, s = self._rotation()
+        return Grid(x0=self.x0 + c * u - s * v, y0=self.y0 + s * u + c * v, z0=self.z0,
+                    resolution=self.resolution, rows=rows, cols=cols, angle=self.angle,
+                    resolution_y=self.resolution_y)
+
+
+@dataclass(frozen=True)
+class TileGrid:
+    """A rows x cols grid cut into square tiles of ``size`` cells (docs/format.md, *Tiles*).
+
+    Tile ``k`` (0-based, row-major; number ``k + 1`` in a file) covers rows
+    ``i*size`` to ``min(rows, (i+1)*size)`` and likewise columns, with
+    ``i, j = divmod(k, tile_cols)``.
+    """
+
+    rows: int
+    cols: int
+    size: int
+
+    @property
+    def tile_rows(self) -> int:
+        return -(-self.rows // self.size)
+
+    @property
+    def tile_cols(self) -> int:
+        return -(-self.cols // self.size)
+
+    @property
+    def count(self) -> int:
+        return self.tile_rows * self.tile_cols
+
+    def bounds(self, k: int) -> tuple[int, int, int, int]:
+        """``(row_start, row_stop, col_start, col_stop)`` of tile ``k``, cells."""
+        i, j = divmod(k, self.tile_cols)
+        s = self.size
+        return i * s, min(self.rows, (i + 1) * s), j * s, min(self.cols, (j + 1) * s)
+
+    def shape(self, k: int) -> tuple[int, int]:
+        r0, r1, c0, c1 = self.bounds(k)
+        return r1 - r0, c1 - c0
+
+    def touching(self, rows: tuple[int, int], cols: tuple[int, int]) -> list[int]:
+        """Tiles holding any cell of rows ``[rows[0], rows[1])`` and cols ``[cols[0], cols[1])``."""
+        s = self.size
+        ti = range(rows[0] // s, -(-rows[1] // s))
+        tj = range(cols[0] // s, -(-cols[1] // s))
+        return [i * self.tile_cols + j for i in ti for j in tj]
 
 
 @dataclass(frozen=True)

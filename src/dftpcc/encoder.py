@@ -17,13 +17,14 @@ import numpy as np
 
 from . import coding, occupancy, ratecontrol, spectrum
 from .analysis import Analysis, Trial
-from .container import Header, check_grid, pack
+from .container import Header, TileIndex, check_grid, pack, pack_tiled
 from .dem import DEM, as_points
 from .errors import CoarseMapWarning, InvalidInputError
 from .grid import auto_resolution, fit_grid, rasterize
-from .params import MAX_COORDINATE_M, Params, make_params
+from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
-from .residual import GUARANTEE_MARGIN, residual
+from .residual import GUARANTEE_MARGIN, encode_residual, residual
+from .tiles import TiledAnalysis
 
 __all__ = ["compress", "encode_dem", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
            "QUANT_FLOOR_FRACTION"]
@@ -134,24 +135,35 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     """
     if not dem.mask.any():
         raise InvalidInputError("the map has no occupied cell")
-    params = params.replace(resolution=dem.grid.resolution)
+    tile = tile_size_for(params, dem.grid.shape)
+    params = params.replace(resolution=dem.grid.resolution, tile_size=tile)
+    if tile:
+        _check_tiled(params)
     point_count = int(dem.mask.sum()) if point_count is None else point_count
     # What the reader would refuse, refused before any work: heights, then the grid.
     occupied = dem.grid.z0 + dem.heights[dem.mask]
     check_heights(float(occupied.min()), float(occupied.max()))
-    check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
+    if not tile:
+        check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
     on_stage("spectrum")
-    an = Analysis(dem, params, searching=params.has_target and params.cutoff is None, fill=fill)
+    searching = params.has_target and params.cutoff is None
+    an: Analysis | TiledAnalysis
+    if tile:
+        an = TiledAnalysis(dem, params, tile, searching=searching)
+    else:
+        an = Analysis(dem, params, searching=searching, fill=fill)
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
-    mask_blob = occupancy.encode_mask(an.kept_cells)
+    # A tiled map codes each tile's mask on its own; their bytes together are the mask's.
+    mask_blob: Any = ([occupancy.encode_mask(_tile_cells(dem.mask, an, k)) for k, _ in an.tiles] if tile
+                      else occupancy.encode_mask(an.kept_cells))
 
     on_stage("encode")
     if not params.has_target:
         cutoff, step = params.cutoff_or_default, params.step
         if params.storage == "quantized" and step == 0.0:
             target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
-            step = coding.choose_step(an.reals(an.count(cutoff)), target_rmse=target,
+            step = coding.choose_step(_kept(an, cutoff), target_rmse=target,
                                       n_cells=dem.grid.size, deadzone=params.deadzone)
         if params.storage == "quantized":
             _check_step(an, cutoff, step)
@@ -163,7 +175,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         return _pack(Choice(an, trial, an.encode(trial)), params, mask_blob, point_count, crs, on_stage)
     # Rate control. For a size target the header's own bytes count too: start
     # from an estimate, then shrink the budget by any overshoot.
-    overhead = len(mask_blob) + HEADER_ESTIMATE
+    overhead = _length(mask_blob) + HEADER_ESTIMATE
     for round_ in range(BUDGET_ROUNDS):
         try:
             choice = ratecontrol.choose(an, params, point_count, overhead,
@@ -184,6 +196,32 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be met with these settings")
 
 
+def _length(mask_blob: bytes | list[bytes]) -> int:
+    return sum(map(len, mask_blob)) if isinstance(mask_blob, list) else len(mask_blob)
+
+
+def _tile_cells(values: np.ndarray, an: TiledAnalysis, k: int) -> np.ndarray:
+    r0, r1, c0, c1 = an.tiling.bounds(k)
+    return values[r0:r1, c0:c1]
+
+
+def _kept(an: Analysis | TiledAnalysis, cutoff: float) -> np.ndarray:
+    """The coefficients kept at ``cutoff`` (of every tile and the base layer of a tiled map)."""
+    return an.largest(cutoff) if isinstance(an, TiledAnalysis) else an.reals(an.count(cutoff))
+
+
+def _check_tiled(params: Params) -> None:
+    """Refuse parameters a tiled map cannot be coded with (docs/format.md, *Tiles*)."""
+    wrong = {name: getattr(params, name) for name, need in
+             (("transform", "dct"), ("storage", "quantized"), ("detrend", "plane"), ("mask", "exact"))
+             if getattr(params, name) != need}
+    if wrong:
+        raise InvalidInputError(
+            f"a tiled map is coded with transform=dct, storage=quantized, detrend=plane and mask=exact (the "
+            f"compact profile); not with {', '.join(f'{k}={v}' for k, v in wrong.items())}: use tile_size=0 "
+            f"(--tile-size 0) to code this map whole")
+
+
 def check_heights(lowest: float, highest: float) -> None:
     """Refuse heights (metres) outside the ±:data:`~dftpcc.params.MAX_COORDINATE_M` a file holds."""
     if not max(abs(lowest), abs(highest)) <= MAX_COORDINATE_M:
@@ -199,7 +237,7 @@ def _height_range(an: Analysis) -> str:
 
 def _check_step(an: Analysis, cutoff: float, step: float) -> None:
     """Refuse, before quantizing, a step so fine that the integers would wrap (see :func:`coding.finest_step`)."""
-    finest = coding.finest_step(an.reals(an.count(cutoff)))
+    finest = coding.finest_step(_kept(an, cutoff))
     if coding.short_step(step) < finest:
         raise InvalidInputError(
             f"quantizer step {step:g} m is too fine for this map's height range ({_height_range(an)}): its "
@@ -247,25 +285,72 @@ def _flag_coarse(dem: DEM, trial: Trial) -> None:
             f"(e.g. --classes 2), or give a --step or a --target-rmse", CoarseMapWarning, stacklevel=3)
 
 
-def _pack(choice: Choice, params: Params, mask_blob: bytes, point_count: int, crs: dict[str, Any] | None,
-          on_stage: Stage) -> bytes:
+def _pack(choice: Choice, params: Params, mask_blob: bytes | list[bytes], point_count: int,
+          crs: dict[str, Any] | None, on_stage: Stage) -> bytes:
     """Measure what the decoder will rebuild and pack the file with those figures."""
+    if isinstance(choice.analysis, TiledAnalysis):
+        assert isinstance(mask_blob, list)
+        return _pack_tiled(choice, params, mask_blob, point_count, crs, on_stage)
+    assert isinstance(mask_blob, bytes)
     an, trial = choice.analysis, choice.trial
     params = params.replace(cutoff=trial.cutoff, step=trial.step)
     dem, occupied = an.dem, an.mask
-    floor = dem.gridding_rmse or 0.0
     heights = trial.heights
     if choice.residual is not None:
         _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, params.target_max_error)
+    stats = _stats(dem, heights, occupied, len(mask_blob), len(choice.coefs), len(choice.residual_blob),
+                   int(an.kept_cells.sum()) - int(occupied.sum()), params)
+    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(an.kept_cells.sum()),
+                    plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.count(params.cutoff))
+    on_stage("container")
+    return pack(header, mask_blob, choice.coefs, choice.residual_blob)
+
+
+def _pack_tiled(choice: Choice, params: Params, mask_blobs: list[bytes], point_count: int,
+                crs: dict[str, Any] | None, on_stage: Stage) -> bytes:
+    """:func:`_pack` of a tiled map: each tile's sections, its errors in the index, and the base layer."""
+    an, trial = choice.analysis, choice.trial
+    assert isinstance(an, TiledAnalysis)
+    params = params.replace(cutoff=trial.cutoff, step=trial.step)
+    dem, heights = an.dem, trial.heights.copy()
+    # Without coefficients (measuring the header's own bytes) every part is empty.
+    parts = an.parts(trial.stream) if choice.coefs else [b""] * (len(an.tiles) + 1)
+    n = an.tiling.count
+    cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
+    written = []
+    for (k, t), mask_blob, coef_blob in zip(an.tiles, mask_blobs, parts[1:]):
+        r0, r1, c0, c1 = an.tiling.bounds(k)
+        target, m = dem.heights[r0:r1, c0:c1], dem.mask[r0:r1, c0:c1]
+        resid_blob = b""
+        if params.target_max_error > 0:
+            q, heights[r0:r1, c0:c1] = residual(target, heights[r0:r1, c0:c1], m, m, params.target_max_error)
+            resid_blob = encode_residual(q, params.coder)
+        err = (heights[r0:r1, c0:c1] - target)[m]
+        cells[k], rmse[k], max_error[k] = int(m.sum()), math.sqrt(float(np.mean(err * err))), float(np.abs(err).max())
+        written.append((k, mask_blob, coef_blob, resid_blob))
+    stats = _stats(dem, heights, dem.mask, sum(map(len, mask_blobs)), sum(map(len, parts)),
+                   sum(len(w[3]) for w in written), 0, params)
+    index = TileIndex(tiling=an.tiling, overlap=an.overlap, cells=cells, rmse=rmse, max_error=max_error)
+    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(cells.sum()),
+                    plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.base_count(params.cutoff),
+                    tiles=index)
+    on_stage("container")
+    return pack_tiled(header, parts[0], written)
+
+
+def _stats(dem: DEM, heights: np.ndarray, occupied: np.ndarray, mask_bytes: int, coef_bytes: int,
+           residual_bytes: int, interpolated: int, params: Params) -> dict[str, Any]:
+    """The figures a file states of the map it rebuilds (docs/format.md, STAT)."""
+    floor = dem.gridding_rmse or 0.0
     err = (heights - dem.heights)[occupied]
     stats: dict[str, Any] = {
         "dem_rmse_m": float(np.sqrt(np.mean(err * err))),
         "dem_max_error_m": float(np.abs(err).max()),
         "gridding_rmse_m": floor,
-        "mask_bytes": len(mask_blob),
-        "coef_bytes": len(choice.coefs),
-        "residual_bytes": len(choice.residual_blob),
-        "cells_interpolated": int(an.kept_cells.sum()) - int(occupied.sum()),
+        "mask_bytes": mask_bytes,
+        "coef_bytes": coef_bytes,
+        "residual_bytes": residual_bytes,
+        "cells_interpolated": interpolated,
     }
     spread = dem.spread
     if spread is not None and spread.unrepresented_points:
@@ -278,7 +363,4 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes, point_count: int, cr
         # Per cell, points scatter about their mean, so the errors add in quadrature.
         weighted = float(np.sum(dem.counts[occupied] * err * err)) / max(int(dem.counts.sum()), 1)
         stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
-    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(an.kept_cells.sum()),
-                    plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.count(params.cutoff))
-    on_stage("container")
-    return pack(header, mask_blob, choice.coefs, choice.residual_blob)
+    return stats

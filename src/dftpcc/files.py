@@ -228,8 +228,12 @@ def _trusted(data: bytes) -> int:
 
 def decompress_file(src: Source, dst: Source, *,
                     format: str | None = None, max_bytes: int | None = None,  # noqa: A002
-                    cutoff: float | None = None, max_cells: int | None = None, force: bool = False) -> np.ndarray:
+                    cutoff: float | None = None, max_cells: int | None = None, force: bool = False,
+                    bbox: Sequence[float] | None = None) -> np.ndarray:
     """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
+
+    ``bbox`` (xmin, ymin, xmax, ymax, the map's units and CRS) writes only that region; of a
+    tiled map only the tiles it touches are read and decoded.
 
     The output format comes from ``dst``'s extension; ``.tif`` writes the
     rebuilt DEM as a GeoTIFF, any other the point cloud. The CRS read from
@@ -249,7 +253,7 @@ def decompress_file(src: Source, dst: Source, *,
         with open(src, "rb") as fh:  # a pipe such as /dev/stdin
             src = _Buffer(fh.read(), str(src))
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
-        dem = cmap.read_dem(cutoff=cutoff)
+        dem = cmap.read_dem(cutoff=cutoff, bbox=bbox)
         crs = cmap.crs
     points = dem_to_points(dem)
     with tempfile.TemporaryDirectory(prefix="dftpcc-") if _is_stream(dst) else _nothing() as tmp:

@@ -9,45 +9,50 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Sequence
 
 import numpy as np
 
-from .container import MAGIC, VERSION, cells_allowed, check_max_bytes, check_max_cells, unpack
-from .decoder import decode_dem
+from .container import (MAGIC, VERSION, VERSION_TILED, Source, cells_allowed, check_max_bytes, check_max_cells,
+                        read_tile, unpack_source)
+from .decoder import decode_dem, decode_tiled
 from .dem import DEM, Grid
-from .errors import InvalidInputError
+from .errors import InvalidInputError, ResourceLimitError
 from .params import Params
 from .rebuild import dem_to_points
 from .units import units_of
 
-__all__ = ["CompressedMap", "open", "is_dftpc"]
+__all__ = ["CompressedMap", "open", "is_dftpc", "check_bbox"]
 
 
 class CompressedMap:
     """A ``.dftpc`` map opened for reading; use :func:`open`.
 
     The header is parsed and checked on opening; the mask and coefficients
-    are decoded only when :meth:`read_points` or :meth:`read_dem` asks.
+    are decoded only when :meth:`read_points` or :meth:`read_dem` asks. A
+    tiled map opened from a path keeps the file open and reads only the
+    tiles a region needs (``bbox=``); close it, or use ``with``.
     """
 
-    def __init__(self, data: bytes, name: str = "<bytes>", *, max_bytes: int | None = None,
+    def __init__(self, data: bytes | Source, name: str = "<bytes>", *, max_bytes: int | None = None,
                  max_cells: int | None = None, file_size: int | None = None):
         check_max_bytes(max_bytes)
         self.name = name
+        source = data if isinstance(data, Source) else Source(data)
         # With max_bytes the budget follows the whole file, which exists, not the prefix read.
-        self.size = len(data) if file_size is None else file_size
-        if max_bytes is not None:
-            data = data[:max_bytes]
-        self._data = data
+        self.size = source.size if file_size is None else file_size
+        if max_bytes is not None and max_bytes < source.size:
+            source = Source(bytes(source.read(0, max_bytes)))
+        self._source = source
         self._partial = max_bytes is not None
-        self.header, self._blobs = unpack(data, allow_truncated_coef=self._partial,
-                                          max_cells=cells_allowed(self.size, max_cells))
+        self._max_cells = max_cells
+        self.header, self._blobs = unpack_source(source, allow_truncated_coef=self._partial,
+                                                 max_cells=cells_allowed(self.size, max_cells))
 
-    # Context-manager protocol, like rasterio.open: nothing to release but
-    # the buffer, yet `with dftpcc.open(...) as m:` reads naturally.
+    # Context-manager protocol, like rasterio.open.
     def __enter__(self) -> "CompressedMap":
         return self
 
@@ -55,7 +60,7 @@ class CompressedMap:
         self.close()
 
     def close(self) -> None:
-        self._data = b""
+        self._source.close()
 
     @property
     def params(self) -> Params:
@@ -69,28 +74,107 @@ class CompressedMap:
     def crs(self) -> dict[str, Any]:
         return self.header.crs
 
-    def read_dem(self, *, cutoff: float | None = None) -> DEM:
+    @property
+    def tiled(self) -> bool:
+        """Whether the map is coded in tiles (format 1.1), so a region decodes on its own."""
+        return self.header.tiles is not None
+
+    @property
+    def bytes_read(self) -> int:
+        """Bytes of the file read so far (header, then the tiles decoded)."""
+        return self._source.bytes_read
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """The map's extent ``(xmin, ymin, xmax, ymax)`` in its horizontal unit (the grid's corners)."""
+        g = self.grid
+        xs, ys = _corners(g, 0, g.rows, 0, g.cols)
+        return float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())
+
+    def read_dem(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None) -> DEM:
         """The rebuilt DEM (see :func:`dftpcc.decoder.decode_dem`).
+
+        Parameters
+        ----------
+        cutoff : float, optional
+            Decode at a larger cutoff than the file's (untiled maps only).
+        bbox : (xmin, ymin, xmax, ymax), optional
+            Only this region, in the map's horizontal unit and CRS: the DEM
+            of the cells it touches, with only the cells whose centre lies
+            inside it marked occupied. Of a tiled map only the tiles the box
+            touches are read and decoded.
 
         Raises
         ------
+        InvalidInputError
+            A malformed bbox, or one that misses the map (the message gives its extent).
         CorruptFileError
-            A section fails to decode, or decodes to non-finite heights.
+            A section fails to decode, or decodes to non-finite heights; of a
+            tiled map, naming the damaged tile.
         """
-        return decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
+        window = None if bbox is None else self._window(bbox)
+        if self.header.tiles is None:
+            dem = decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
+            if window is not None:
+                (r0, r1), (c0, c1) = window
+                dem = DEM(grid=dem.grid.window(r0, c0, r1 - r0, c1 - c0), heights=dem.heights[r0:r1, c0:c1],
+                          mask=dem.mask[r0:r1, c0:c1])
+        else:
+            if cutoff is not None:
+                raise InvalidInputError("a tiled map (format 1.1) decodes at its own cutoff only")
+            rows, cols = window or ((0, self.grid.rows), (0, self.grid.cols))
+            self._check_budget(rows, cols)
+            dem = decode_tiled(self.header, self._blobs[b"BASE"],
+                               lambda k: read_tile(self._source, self.header, k), rows=rows, cols=cols)
+        if bbox is not None:
+            dem = DEM(grid=dem.grid, heights=dem.heights, mask=dem.mask & _centres_inside(dem.grid, bbox))
+        return dem
 
-    def read_points(self, *, cutoff: float | None = None) -> np.ndarray:
-        """The rebuilt cloud, shape (cells, 3), float64, original frame (metres)."""
-        return dem_to_points(self.read_dem(cutoff=cutoff))
+    def read_points(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None) -> np.ndarray:
+        """The rebuilt cloud, shape (cells, 3), float64, original frame (metres); ``bbox`` as for :meth:`read_dem`."""
+        return dem_to_points(self.read_dem(cutoff=cutoff, bbox=bbox))
+
+    def _window(self, bbox: Sequence[float]) -> tuple[tuple[int, int], tuple[int, int]]:
+        """The rows and columns of the cells ``bbox`` touches, checked against the map's extent."""
+        g = self.grid
+        extent = self.bounds()
+
+        def describe() -> str:
+            return (f"the map covers x {extent[0]:.10g} to {extent[2]:.10g} and y {extent[1]:.10g} to "
+                    f"{extent[3]:.10g}")
+        try:
+            xmin, ymin, xmax, ymax = check_bbox(bbox)
+        except InvalidInputError as exc:
+            raise InvalidInputError(f"{exc}; {describe()}") from None
+        corners = np.array([[xmin, ymin], [xmax, ymin], [xmin, ymax], [xmax, ymax]])
+        u, v = g.to_local(corners)
+        c0, c1 = int(np.floor(u.min() / g.resolution)), int(np.floor(u.max() / g.resolution)) + 1
+        r0, r1 = int(np.floor(v.min() / g.dy)), int(np.floor(v.max() / g.dy)) + 1
+        c0, c1, r0, r1 = max(c0, 0), min(c1, g.cols), max(r0, 0), min(r1, g.rows)
+        if c0 >= c1 or r0 >= r1:
+            raise InvalidInputError(f"bbox {xmin:.10g},{ymin:.10g},{xmax:.10g},{ymax:.10g} lies outside the map: "
+                                    f"{describe()}")
+        return (r0, r1), (c0, c1)
+
+    def _check_budget(self, rows: tuple[int, int], cols: tuple[int, int]) -> None:
+        """Refuse decoding together more cells than the file's size justifies (format.md, *Tiles*)."""
+        assert self.header.tiles is not None
+        tiling = self.header.tiles.tiling
+        cells = sum(int(np.prod(tiling.shape(k))) for k in tiling.touching(rows, cols) if self.header.tiles.cells[k])
+        allowed = cells_allowed(self.size, self._max_cells)
+        if cells > allowed:
+            raise ResourceLimitError(
+                f"refusing to decode {cells:,} cells of tiles at once, more than the {allowed:,} allowed for a "
+                f"{self.size:,}-byte file; decode a region (bbox=) or, if you trust this file, open it with "
+                f"max_cells={cells} (command line: --max-cells {cells})")
 
     def info(self) -> dict[str, Any]:
         """Header, parameters and sizes as plain JSON-ready data."""
         h = self.header
         g = h.grid
-        return {
+        out = {
             "file": self.name,
             "bytes": self.size,
-            "format_version": f"{VERSION[0]}.{VERSION[1]}",
+            "format_version": "{}.{}".format(*(VERSION_TILED if h.tiles is not None else VERSION)),
             "points_original": h.point_count,
             "points_rebuilt": h.cell_count,
             "bits_per_point": 8.0 * self.size / h.point_count if h.point_count else None,
@@ -104,6 +188,49 @@ class CompressedMap:
             "crs": (h.crs.get("wkt") or ("LAS GeoKeys" if h.crs.get("las_vlrs") else None)),
             "stats": h.stats,
         }
+        if h.tiles is not None:
+            index = h.tiles
+            tiling = index.tiling
+            out["tiles"] = {
+                "size": tiling.size, "tile_rows": tiling.tile_rows, "tile_cols": tiling.tile_cols,
+                "count": tiling.count, "occupied": int(np.count_nonzero(index.cells)),
+                "tiles": [{"tile": k + 1, "row": k // tiling.tile_cols, "col": k % tiling.tile_cols,
+                           "cells": int(index.cells[k]), "bytes": index.tile_bytes(k),
+                           "dem_rmse_m": float(index.rmse[k]), "dem_max_error_m": float(index.max_error[k])}
+                          for k in map(int, np.flatnonzero(index.cells))],
+            }
+        return out
+
+
+def check_bbox(bbox: Any) -> tuple[float, float, float, float]:
+    """``bbox`` as four finite floats ``(xmin, ymin, xmax, ymax)`` with min <= max, else InvalidInputError."""
+    try:
+        values = tuple(float(v) for v in bbox)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"bbox must be four numbers XMIN,YMIN,XMAX,YMAX; got {bbox!r}") from None
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InvalidInputError(f"bbox must be four finite numbers XMIN,YMIN,XMAX,YMAX; got {bbox!r}")
+    xmin, ymin, xmax, ymax = values
+    if xmin > xmax or ymin > ymax:
+        raise InvalidInputError(f"bbox {xmin:.10g},{ymin:.10g},{xmax:.10g},{ymax:.10g} has "
+                                f"{'XMIN > XMAX' if xmin > xmax else 'YMIN > YMAX'}")
+    return values  # type: ignore[return-value]
+
+
+def _corners(g: Grid, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+    """World x, y of the four corners of the cells [r0, r1) x [c0, c1)."""
+    u = np.array([c0, c1, c0, c1], dtype=float) * g.resolution
+    v = np.array([r0, r0, r1, r1], dtype=float) * g.dy
+    c, s = math.cos(g.angle), math.sin(g.angle)
+    return g.x0 + c * u - s * v, g.y0 + s * u + c * v
+
+
+def _centres_inside(g: Grid, bbox: Sequence[float]) -> np.ndarray:
+    """Which cells of ``g`` have their centre inside ``bbox`` (edges included)."""
+    xmin, ymin, xmax, ymax = bbox
+    rows, cols = np.indices(g.shape)
+    x, y = g.centres(rows.ravel(), cols.ravel())
+    return ((x >= xmin) & (x <= xmax) & (y >= ymin) & (y <= ymax)).reshape(g.shape)
 
 
 def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | None = None,  # noqa: A001
@@ -143,10 +270,19 @@ def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | 
     path = Path(source)
     if not path.is_file():
         raise InvalidInputError(f"{path}: no such file")
-    with path.open("rb") as fh:
+    fh = path.open("rb")
+    try:
         size = os.fstat(fh.fileno()).st_size
-        data = fh.read() if max_bytes is None else fh.read(max_bytes)
-    return CompressedMap(data, str(path), max_bytes=max_bytes, max_cells=max_cells, file_size=max(size, len(data)))
+        if max_bytes is not None:
+            data = fh.read(max_bytes)
+            fh.close()
+            return CompressedMap(data, str(path), max_bytes=max_bytes, max_cells=max_cells,
+                                 file_size=max(size, len(data)))
+        # Read by offset: an untiled map is read whole, a tiled one tile by tile as asked.
+        return CompressedMap(Source(file=fh, size=size), str(path), max_cells=max_cells)
+    except BaseException:
+        fh.close()
+        raise
 
 
 def is_dftpc(path: str | os.PathLike[str]) -> bool:

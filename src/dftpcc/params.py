@@ -15,7 +15,8 @@ from typing import Any
 
 from .errors import InvalidInputError
 
-__all__ = ["Params", "PROFILES", "CHOICES", "DEFAULT_CUTOFF", "MAX_COORDINATE_M", "make_params", "check_cutoff"]
+__all__ = ["Params", "PROFILES", "CHOICES", "DEFAULT_CUTOFF", "MAX_COORDINATE_M", "make_params", "check_cutoff",
+           "check_tile_size", "tile_size_for", "TILE_SIZES", "DEFAULT_TILE_SIZE", "AUTO_TILE_CELLS"]
 
 #: Cutoff ratio used when neither a cutoff nor a rate-control target is given.
 DEFAULT_CUTOFF = 0.8
@@ -37,6 +38,13 @@ STORAGES = ("complex64", "quantized")
 CODERS = ("ans", "zstd")
 MASKS = ("exact", "footprint")
 #: The allowed values of every field that takes a name (the CLI offers these).
+#: Smallest and largest tile side, cells (docs/format.md: 16 to 65536).
+TILE_SIZES = (16, 65536)
+#: Tile side when ``tile_size='auto'`` tiles a map (see benchmarks/bench_tiles.py).
+DEFAULT_TILE_SIZE = 1024
+#: ``tile_size='auto'`` codes a grid of up to this many cells whole, as version 1.0.
+AUTO_TILE_CELLS = 16_000_000
+
 CHOICES: dict[str, tuple[str, ...]] = {
     "aggregate": AGGREGATES, "frame": FRAMES, "transform": TRANSFORMS, "detrend": DETRENDS,
     "fill": FILLS, "storage": STORAGES, "coder": CODERS, "mask": MASKS,
@@ -102,6 +110,11 @@ class Params:
     target_bpp : float
         If > 0, the most accurate file of at most this many bits per
         original point.
+    tile_size : int or 'auto'
+        Side of a tile in cells (``TILE_SIZES``): a grid larger than one
+        tile is coded in tiles a reader decodes one by one (docs/format.md,
+        *Tiles*). 0 codes the map whole; ``'auto'`` tiles only a grid over
+        :data:`AUTO_TILE_CELLS`, at :data:`DEFAULT_TILE_SIZE`.
     """
 
     resolution: float | str = "auto"
@@ -120,6 +133,7 @@ class Params:
     target_rmse: float = 0.0
     target_max_error: float = 0.0
     target_bpp: float = 0.0
+    tile_size: int | str = "auto"
 
     def __post_init__(self) -> None:
         if self.resolution != "auto":
@@ -144,6 +158,7 @@ class Params:
                 raise InvalidInputError(f"{name} must be a finite number >= 0, got {value!r}")
         if sum(v > 0 for v in targets.values()) > 1:
             raise InvalidInputError("give at most one of target_rmse, target_max_error, target_bpp")
+        check_tile_size(self.tile_size)
 
     @property
     def has_target(self) -> bool:
@@ -170,6 +185,24 @@ class Params:
         known = {f.name for f in dataclasses.fields(cls)}
         # Fields written by a newer minor version are ignored, not fatal.
         return cls(**{k: v for k, v in data.items() if k in known})
+
+
+def check_tile_size(value: Any) -> None:
+    """Refuse a tile size other than ``'auto'``, 0 (untiled) or a whole number of cells in :data:`TILE_SIZES`."""
+    if value == "auto" and isinstance(value, str):
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or not (
+            value == 0 or TILE_SIZES[0] <= value <= TILE_SIZES[1]):
+        raise InvalidInputError(f"tile_size must be 'auto', 0 (no tiles) or a whole number of cells from "
+                                f"{TILE_SIZES[0]} to {TILE_SIZES[1]}; got {value!r}")
+
+
+def tile_size_for(params: "Params", shape: tuple[int, int]) -> int:
+    """The tile side a map of ``shape`` is coded with: 0 when it is coded whole (one tile holds it)."""
+    size = params.tile_size
+    if size == "auto":
+        size = DEFAULT_TILE_SIZE if shape[0] * shape[1] > AUTO_TILE_CELLS else 0
+    return size if size and max(shape) > size else 0
 
 
 def check_cutoff(value: Any) -> float:

@@ -1,0 +1,268 @@
+"""Tiled maps: the base layer of the map's lowest frequencies, and tiles coded on top of it.
+
+A map larger than one tile is coded in two layers (docs/format.md, *Tiles*):
+the base layer holds the whole grid's DCT coefficients up to one cycle per
+tile, and each tile codes with its own DCT what the plane and the base layer
+leave on its cells. Both share one cutoff and one quantizer step.
+:class:`TiledAnalysis` gives rate control (:mod:`dftpcc.ratecontrol`) the same
+view of a tiled map that :class:`~dftpcc.analysis.Analysis` gives of a whole
+one, so every target works unchanged.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import coding, spectrum
+from .analysis import Analysis, Trial
+from .dem import DEM, Grid, TileGrid
+from .fill import fill_empty, fit_plane, plane_values
+from .params import Params
+
+__all__ = ["BASE_CYCLES_PER_TILE", "TILE_OVERLAP", "coded_window", "base_order", "base_basis", "base_heights", "base_coefficients",
+           "tile_grid_of", "TiledAnalysis", "TiledTrial"]
+
+#: The base layer holds the map's frequencies up to this many cycles per tile
+#: along the longer side: what a tile alone would pay for in every tile.
+BASE_CYCLES_PER_TILE = 1.0
+#: Cells of the neighbouring tiles a tile's transform also spans on each side.
+TILE_OVERLAP = 8
+#: The slack of spectrum's circle, so a coefficient exactly on it is kept everywhere.
+_SLACK = 1 + 1e-12
+
+
+def base_order(shape: tuple[int, int], tile: int, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                           np.ndarray]:
+    """The base layer's coefficients: row and column frequency indices, radii and angles, in stream order.
+
+    Every (i, j) with ``hypot(i/2, j/2)`` at most one cycle per tile and inside the cutoff's
+    circle, sorted by radius (stable; ties in row-major order of (i, j)).
+    """
+    rows, cols = shape
+    limit = min(max(rows, cols) / tile * BASE_CYCLES_PER_TILE, spectrum.radius_limit(shape, cutoff)) * _SLACK
+    ki, kj = min(rows, int(2 * limit) + 1), min(cols, int(2 * limit) + 1)
+    i, j = np.divmod(np.arange(ki * kj), kj)
+    radius = np.hypot(i / 2.0, j / 2.0)
+    inside = np.flatnonzero(radius <= limit)
+    order = inside[np.argsort(radius[inside], kind="stable")]
+    i, j = i[order], j[order]
+    angle = np.clip(np.arctan2(i.astype(float), j.astype(float)) / (math.pi / 2), 0.0, 1.0)
+    return i, j, radius[order], angle
+
+
+def base_basis(n: int, k: int, start: int, stop: int) -> np.ndarray:
+    """The first ``k`` orthonormal DCT-II basis vectors of length ``n`` at samples ``[start, stop)``: shape (stop - start, k)."""
+    samples = np.arange(start, stop, dtype=float)[:, None]
+    freq = np.arange(k, dtype=float)[None, :]
+    out = math.sqrt(2.0 / n) * np.cos(math.pi * freq * (2.0 * samples + 1.0) / (2.0 * n))
+    out[:, 0] = 1.0 / math.sqrt(n)
+    return out
+
+
+def base_heights(values: np.ndarray, i: np.ndarray, j: np.ndarray, shape: tuple[int, int],
+                 rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
+    """The base layer (metres) on the cells ``[rows[0], rows[1]) x [cols[0], cols[1])`` of a ``shape`` grid."""
+    h, w = rows[1] - rows[0], cols[1] - cols[0]
+    if values.size == 0:
+        return np.zeros((h, w))
+    ki, kj = int(i.max()) + 1, int(j.max()) + 1
+    g = np.zeros((ki, kj))
+    g[i, j] = values
+    return base_basis(shape[0], ki, *rows) @ g @ base_basis(shape[1], kj, *cols).T
+
+
+def base_coefficients(filled: np.ndarray, i: np.ndarray, j: np.ndarray, *, row_start: int = 0,
+                      rows: int | None = None) -> np.ndarray:
+    """The base coefficients (i, j) of a filled map, or a band of its rows' share of them.
+
+    The DCT is separable, so a band ``filled`` of the map's rows starting at
+    ``row_start`` contributes ``basis_rows.T @ band @ basis_cols``; the bands
+    of a map add up to its coefficients (a map larger than memory is read band
+    by band). ``rows``: the map's row count (default: the band is the map).
+    """
+    n_rows = filled.shape[0] if rows is None else rows
+    if i.size == 0:
+        return np.zeros(0)
+    ki, kj = int(i.max()) + 1, int(j.max()) + 1
+    br = base_basis(n_rows, ki, row_start, row_start + filled.shape[0])
+    bc = base_basis(filled.shape[1], kj, 0, filled.shape[1])
+    return (br.T @ filled @ bc)[i, j]
+
+
+def tile_grid_of(grid: Grid, size: int) -> TileGrid:
+    return TileGrid(grid.rows, grid.cols, size)
+
+
+def coded_window(tiling: TileGrid, k: int, overlap: int) -> tuple[int, int, int, int]:
+    """The cells tile ``k``'s transform spans: the tile and ``overlap`` cells around it, within the map."""
+    r0, r1, c0, c1 = tiling.bounds(k)
+    return (max(0, r0 - overlap), min(tiling.rows, r1 + overlap),
+            max(0, c0 - overlap), min(tiling.cols, c1 + overlap))
+
+
+@dataclass
+class TiledTrial(Trial):
+    """A trial of every tile at one (cutoff, step), with the base layer's integers."""
+
+    base: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    tiles: list[Trial] = field(default_factory=list)
+
+
+class TiledAnalysis:
+    """A tiled map conditioned once for rate control: the base layer and one Analysis per occupied tile.
+
+    Duck-types :class:`~dftpcc.analysis.Analysis` for :mod:`dftpcc.ratecontrol`:
+    a trial quantizes the base layer and every tile at the same (cutoff,
+    step) and measures the whole map; the coded stream is the base layer's
+    integers followed by each tile's, in tile order.
+
+    Parameters
+    ----------
+    dem : DEM
+        The whole map.
+    params : Params
+        ``transform='dct'``, ``storage='quantized'``, ``detrend='plane'``.
+    tile : int
+        Tile side, cells.
+    searching : bool
+        As for Analysis: whether trials may ask for any cutoff.
+    """
+
+    def __init__(self, dem: DEM, params: Params, tile: int, *, searching: bool):
+        self.dem, self.params, self.tile = dem, params, tile
+        self.overlap = TILE_OVERLAP
+        self.tiling = tile_grid_of(dem.grid, tile)
+        self.mask = self.kept_cells = dem.mask
+        self.plane = fit_plane(dem)
+        self.trend = plane_values(self.plane, dem.grid.shape)
+        self.lay = spectrum.layout("dct", "quantized", dem.grid.shape)
+        self.parseval = 1.0 / dem.grid.size
+        lowest = 0.0 if searching else params.cutoff_or_default
+        self.base_i, self.base_j, self.base_radius, self.base_angle = base_order(dem.grid.shape, tile, lowest)
+        detrended = dem.heights - self.trend
+        filled = fill_empty(detrended, dem.mask, method="smooth")
+        self.base_coefs = base_coefficients(filled, self.base_i, self.base_j)
+        rest = detrended - base_heights(self.base_coefs, self.base_i, self.base_j, dem.grid.shape,
+                                        (0, dem.grid.rows), (0, dem.grid.cols))
+        tile_params = params.replace(detrend="none", tile_size=0)
+        self.tiles: list[tuple[int, Analysis]] = []
+        for k in range(self.tiling.count):
+            r0, r1, c0, c1 = self.tiling.bounds(k)
+            if not dem.mask[r0:r1, c0:c1].any():
+                continue  # an empty tile has no sections at all
+            # A tile's transform spans its cells and a margin of its neighbours': the low-pass
+            # blurs the window's edges, and those lie outside the tile.
+            w0, w1, v0, v1 = coded_window(self.tiling, k, self.overlap)
+            sub = DEM(grid=dem.grid.window(w0, v0, w1 - w0, v1 - v0), heights=rest[w0:w1, v0:v1],
+                      mask=dem.mask[w0:w1, v0:v1])
+            self.tiles.append((k, Analysis(sub, tile_params, searching=searching)))
+        # Lengths of the parts of the last stream quantized, by its total length (see encode_stream).
+        self._splits: dict[int, list[int]] = {}
+        self._last_parts: tuple[np.ndarray, bool, list[bytes]] | None = None
+
+    # -- what rate control asks of an analysis --------------------------------------------------
+
+    def base_count(self, cutoff: float) -> int:
+        limit = min(max(self.dem.grid.shape) / self.tile * BASE_CYCLES_PER_TILE,
+                    spectrum.radius_limit(self.dem.grid.shape, cutoff)) * _SLACK
+        return int(np.searchsorted(self.base_radius, limit, side="right"))
+
+    def counts(self, cutoff: float) -> list[int]:
+        """Values per part at ``cutoff``: the base layer, then each occupied tile."""
+        return [self.base_count(cutoff)] + [an.count(cutoff) for _, an in self.tiles]
+
+    def count(self, cutoff: float) -> int:
+        return sum(self.counts(cutoff))
+
+    @property
+    def coefs(self) -> np.ndarray:
+        """Every sorted coefficient the map may store (base layer, then the tiles')."""
+        return np.concatenate([self.base_coefs] + [an.coefs for _, an in self.tiles])
+
+    def reals(self, n: int) -> np.ndarray:
+        return self.coefs[:n]
+
+    def largest(self, cutoff: float) -> np.ndarray:
+        """The values kept at ``cutoff`` (for the checks on the finest step)."""
+        parts = [self.base_coefs[: self.base_count(cutoff)]]
+        parts += [an.reals(an.count(cutoff)) for _, an in self.tiles]
+        return np.concatenate(parts)
+
+    @property
+    def refillable(self) -> bool:
+        return any(an.refillable for _, an in self.tiles)
+
+    def tiny_step(self) -> float:
+        scale = max([float(np.abs(self.base_coefs[:1]).max(initial=0.0))]
+                    + [float(np.abs(an.reals(min(an.coefs.size, 1))).max(initial=0.0)) for _, an in self.tiles])
+        return max(scale, 1.0) * 1e-9
+
+    def quantized(self, cutoff: float, step: float) -> np.ndarray:
+        step = coding.short_step(step)
+        base = coding.quantize(self.base_coefs[: self.base_count(cutoff)], step, self.params.deadzone)
+        parts = [base] + [an.quantized(cutoff, step) for _, an in self.tiles]
+        stream = np.concatenate(parts)
+        self._splits[stream.size] = [p.size for p in parts]
+        return stream
+
+    def trial(self, cutoff: float, step: float) -> TiledTrial:
+        step = coding.short_step(step)
+        grid = self.dem.grid
+        nb = self.base_count(cutoff)
+        base = coding.quantize(self.base_coefs[:nb], step, self.params.deadzone)
+        heights = self.trend + base_heights(coding.dequantize(base, step), self.base_i[:nb], self.base_j[:nb],
+                                            grid.shape, (0, grid.rows), (0, grid.cols))
+        trials = []
+        for k, an in self.tiles:
+            t = an.trial(cutoff, step)
+            r0, r1, c0, c1 = self.tiling.bounds(k)
+            w0, _, v0, _ = coded_window(self.tiling, k, self.overlap)
+            heights[r0:r1, c0:c1] += t.heights[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
+            trials.append(t)
+        err = (heights - self.dem.heights)[self.mask]
+        stream = np.concatenate([base] + [t.stream for t in trials])
+        self._splits[stream.size] = [base.size] + [t.stream.size for t in trials]
+        return TiledTrial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))),
+                          float(np.abs(err).max()), base=base, tiles=trials)
+
+    def proxy_rmse(self, cutoff: float, step: float) -> float:
+        nb = self.base_count(cutoff)
+        kept = self.base_coefs[:nb]
+        err = kept - coding.dequantize(coding.quantize(kept, step, self.params.deadzone), step)
+        total = float(np.dot(err, err))
+        for _, an in self.tiles:
+            total += an.proxy_rmse(cutoff, step) ** 2 / an.parseval
+        return math.sqrt(total * self.parseval)
+
+    def refilled(self, trial: TiledTrial) -> "TiledAnalysis":
+        out = copy.copy(self)
+        out.tiles = [(k, an.refilled(t) if an.refillable else an) for (k, an), t in zip(self.tiles, trial.tiles)]
+        out._splits, out._last_parts = {}, None
+        return out
+
+    def encode(self, trial: Trial, *, exhaustive: bool = True) -> bytes:
+        return self.encode_stream(trial.stream, exhaustive=exhaustive)
+
+    def encode_stream(self, stream: np.ndarray, *, exhaustive: bool = True) -> bytes:
+        """All parts' COEF sections joined (rate control only needs their size; :meth:`parts` splits them)."""
+        return b"".join(self.parts(stream, exhaustive=exhaustive))
+
+    def parts(self, stream: np.ndarray, *, exhaustive: bool = True) -> list[bytes]:
+        """The BASE section and each occupied tile's COEF section of ``stream``."""
+        memo = self._last_parts
+        if memo is not None and memo[0] is stream and memo[1] == exhaustive:
+            return memo[2]  # rate control's final encode, asked again by the packer
+        sizes = self._splits[stream.size]
+        bounds = np.cumsum([0] + sizes)
+        pieces = [stream[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+        base = pieces[0]
+        out = [coding.encode_coefficients(base, radius=self.base_radius[: base.size],
+                                          angle=self.base_angle[: base.size], coder=self.params.coder,
+                                          exhaustive=exhaustive)]
+        out += [an.encode_stream(piece, exhaustive=exhaustive) for (_, an), piece in zip(self.tiles, pieces[1:])]
+        self._last_parts = (stream, exhaustive, out)
+        return out
