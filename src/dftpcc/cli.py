@@ -193,7 +193,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
                              resolution=args.resolution, cutoff=args.cutoff,
                              profile=args.profile, format=args.format, classes=args.classes,
                              drop_nonfinite=args.drop_nonfinite, chunk_points=args.chunk_points, topic=args.topic,
-                             on_stage=on_stage, **options)
+                             pose_topic=args.pose_topic, on_stage=on_stage, **options)
     info = cmap.info()
     if args.verbose:
         print(f"dftpcc: parameters {json.dumps(info['params'], sort_keys=True)}", file=sys.stderr)
@@ -210,7 +210,13 @@ def cmd_compress(args: argparse.Namespace) -> int:
 
 def cmd_decompress(args: argparse.Namespace) -> int:
     from .files import decompress_file
+    from .io.rosmap import is_bag_output
 
+    if is_bag_output(args.output, args.format):
+        return _decompress_bag(args)
+    if args.topic or args.grid_map:
+        raise InvalidInputError(f"{args.output}: --topic and --grid-map apply to a ROS 2 bag output, a folder: "
+                                f"end its name with / (out_bag/) or give --format rosbag")
     points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
                              format=args.format, max_bytes=args.max_bytes,
                              cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox)
@@ -222,6 +228,21 @@ def cmd_decompress(args: argparse.Namespace) -> int:
         _say(args, f"{args.output}: a {g.rows:,} x {g.cols:,} raster, {points.shape[0]:,} valid pixels")
     else:
         _say(args, f"{args.output}: {points.shape[0]:,} points")
+    return 0
+
+
+def _decompress_bag(args: argparse.Namespace) -> int:
+    """``decompress MAP out_bag/``: the rebuilt map as a ROS 2 bag (PointCloud2, and a GridMap with --grid-map)."""
+    from .io.rosmap import DEFAULT_TOPIC, check_bag_output, grid_map_topic, write_map_bag
+    from .mapfile import open as open_map
+
+    check_bag_output(args.output, force=args.force)  # before decoding
+    with open_map(_stream(args.input, "r"), max_bytes=args.max_bytes, max_cells=args.max_cells) as cmap:
+        dem = cmap.read_dem(cutoff=args.cutoff)
+    topic = args.topic or DEFAULT_TOPIC
+    points = write_map_bag(args.output, dem, topic=topic, grid_map=args.grid_map, force=args.force)
+    grid = f", GridMap {dem.grid.rows:,} x {dem.grid.cols:,} on {grid_map_topic(topic)}" if args.grid_map else ""
+    _say(args, f"{args.output}: ROS 2 bag, {points.shape[0]:,} points on {topic}{grid}")
     return 0
 
 
@@ -528,7 +549,12 @@ def build_parser() -> argparse.ArgumentParser:
                         f"default auto: tiles of {DEFAULT_TILE_SIZE} only for grids over {AUTO_TILE_CELLS:,} cells")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop points with NaN or infinite coordinates instead of refusing the file")
-    p.add_argument("--topic", help="ROS bag: the sensor_msgs/PointCloud2 topic to read (default: the only one)")
+    p.add_argument("--topic", "--points-topic", dest="topic",
+                   help="ROS bag: the sensor_msgs/PointCloud2 topic to read (default: the only one)")
+    p.add_argument("--pose-topic", metavar="TOPIC",
+                   help="ROS bag of scans in the sensor frame: the topic of their poses (nav_msgs/Odometry, "
+                        "geometry_msgs/PoseStamped or /tf), interpolated at each scan's stamp; the map is "
+                        "built in the poses' frame")
     p.add_argument("--chunk-points", type=_positive_int, metavar="N",
                    help="read LAS/LAZ/PLY/NPY N points at a time, so memory holds the grid and one chunk "
                         "(automatic when the cloud would not fit in half the available memory)")
@@ -537,7 +563,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("decompress", parents=[common], help=".dftpc -> point cloud or GeoTIFF DEM", description=(
         "Rebuild the map. Output format from the extension: .las .laz .ply .pcd .xyz .txt .csv .npy, "
-        "or .tif for the rebuilt DEM."))
+        "or .tif for the rebuilt DEM; a name ending in / (out_bag/) writes a ROS 2 bag."))
     p.add_argument("input", help="the .dftpc file to decode ('-': standard input)")
     p.add_argument("output", help="the point cloud or GeoTIFF (.tif) file to write ('-': standard output, with --format)")
     p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output file")
@@ -547,6 +573,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="only this region, in the map's units and CRS (of a tiled map, only its tiles are read)")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",
                    help="decode a trusted file whose grid is larger than a file of its size may ask for")
+    p.add_argument("--topic", help="ROS 2 bag output (a folder: out_bag/, or --format rosbag): the "
+                                   "sensor_msgs/PointCloud2 topic of the map (default /map)")
+    p.add_argument("--grid-map", action="store_true",
+                   help="ROS 2 bag output: also the DEM as a grid_map_msgs/GridMap elevation layer on TOPIC/grid_map")
     p.add_argument("--format", help="output format if the extension does not tell")
     p.set_defaults(func=cmd_decompress)
 

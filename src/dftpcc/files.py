@@ -114,7 +114,8 @@ def check_compressed_output(dst: Source, *, force: bool = False) -> None:
 def compress_file(src: Source, dst: Source, params: Params | None = None, *,
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
                   drop_nonfinite: bool = False, chunk_points: int | None = None, topic: str | None = None,
-                  force: bool = False, on_stage: Stage = no_stage, **shortcuts: Any) -> CompressedMap:
+                  force: bool = False, on_stage: Stage = no_stage, pose_topic: str | None = None,
+                  **shortcuts: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
     Parameters
@@ -124,8 +125,9 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         whole; reading one needs ``format``.
     params : Params, optional
         As :func:`dftpcc.compress`, as are ``**shortcuts``.
-    format, classes, drop_nonfinite, topic
-        As :func:`dftpcc.read` (``topic``: the PointCloud2 topic of a ROS bag).
+    format, classes, drop_nonfinite, topic, pose_topic
+        As :func:`dftpcc.read` (``topic``: the PointCloud2 topic of a ROS bag;
+        ``pose_topic``: the poses of its scans, recorded in the sensor frame).
     chunk_points : int, optional
         Read the cloud in chunks of this many points (LAS, LAZ, PLY, NPY,
         ROS bags). By default a cloud is read whole when it fits in memory
@@ -157,7 +159,7 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
     check_compressed_output(dst, force=force)
     on_stage("read")
     with _as_path(src, format) as path:
-        dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic,
+        dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic,
                                    drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage)
     data = encode_dem(dem, params, point_count=count, crs=crs, on_stage=on_stage)
     on_stage("write")
@@ -171,7 +173,8 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
 
 def read_dem(src: str | os.PathLike[str], params: Params, *, format: str | None = None,  # noqa: A002
              classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
-             chunk_points: int | None = None, on_stage: Stage = no_stage) -> tuple[DEM, int, dict[str, Any]]:
+             chunk_points: int | None = None, on_stage: Stage = no_stage,
+             pose_topic: str | None = None) -> tuple[DEM, int, dict[str, Any]]:
     """The DEM :func:`compress_file` codes for ``src``: a raster's own grid (resolution ``'auto'``),
     or the cloud gridded at ``params``; with the points it came from and the CRS.
 
@@ -185,7 +188,7 @@ def read_dem(src: str | os.PathLike[str], params: Params, *, format: str | None 
     crs : dict
     """
     with open_reader(src, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
-                     chunk_points=chunk_points) as reader:
+                     chunk_points=chunk_points, pose_topic=pose_topic) as reader:
         if reader.own_grid and params.resolution == "auto":
             dem = reader.dem()
             return dem, int(dem.mask.sum()), reader.crs

@@ -98,7 +98,9 @@ REGISTRY: dict[str, Format] = {f.name: f for f in (
     Format("tif", (".tif", ".tiff"), "geotiff", "GeoTiffReader", dem_writer="write_geotiff",
            not_written="a GeoTIFF holds a DEM, not points: use write_geotiff"),
     Format("rosbag", (".bag", ".db3", ".mcap"), "rosbag", "BagReader",
-           not_written="ROS bags are read, not written: write .ply, .pcd, .las or .npy", streams=True),
+           not_written="ROS bags are read, not written by write(): a ROS 2 bag folder of the map is "
+                       "written by dftpcc.io.rosmap.write_map_bag (dftpcc decompress MAP out_bag/); "
+                       "write .ply, .pcd, .las or .npy", streams=True),
 )}
 #: Extension -> format name.
 FORMATS: dict[str, str] = {ext: f.name for f in REGISTRY.values() for ext in f.extensions}
@@ -151,7 +153,7 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
 
 def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
                 classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
-                chunk_points: int | None = None) -> Reader:
+                chunk_points: int | None = None, pose_topic: str | None = None) -> Reader:
     """Open a point cloud (or GeoTIFF DEM) file for reading, as laspy's ``open`` does: the header only.
 
     Parameters
@@ -163,6 +165,10 @@ def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # n
         LAS/LAZ only: keep points of these classification codes (2 = ground).
     topic : str, optional
         ROS bags only: the PointCloud2 topic (default: the bag's only one).
+    pose_topic : str, optional
+        ROS bags only: the poses (``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped``
+        or ``/tf``) of scans recorded in the sensor frame; each scan is placed
+        in the poses' frame at its stamp (:func:`dftpcc.io.rosbag.posed_scans`).
     drop_nonfinite : bool
         Drop rows with a NaN or infinite coordinate instead of refusing
         (:meth:`~Reader.chunks`) or returning them (:meth:`~Reader.read`).
@@ -191,7 +197,7 @@ def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # n
         check_chunkable(path, fmt)
     entry = REGISTRY[fmt]
     return entry.reader_class()(path, format=fmt, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
-                                chunk_points=chunk_points, streams=entry.streams)
+                                chunk_points=chunk_points, streams=entry.streams, pose_topic=pose_topic)
 
 
 def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
@@ -227,7 +233,7 @@ def check_chunkable(path: str | os.PathLike[str], format: str | None = None) -> 
 
 def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
          classes: Sequence[int] | None = None, drop_nonfinite: bool = False,
-         topic: str | None = None) -> PointCloud:
+         topic: str | None = None, pose_topic: str | None = None) -> PointCloud:
     """Read a point cloud whole.
 
     Parameters
@@ -246,6 +252,8 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
         them (compression refuses them). Default: keep them.
     topic : str, optional
         ROS bags only: the PointCloud2 topic (default: the bag's only one).
+    pose_topic : str, optional
+        ROS bags only: the poses of scans in the sensor frame (as :func:`open_reader`).
 
     Returns
     -------
@@ -258,7 +266,8 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
         Missing or unreadable file, no x/y/z, an option the format cannot
         honour, or no point left.
     """
-    with open_reader(path, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite) as reader:
+    with open_reader(path, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
+                     pose_topic=pose_topic) as reader:
         return reader.read()
 
 

@@ -27,6 +27,7 @@ DEFAULT_CHUNK_POINTS = 1_000_000
 _OPTION_HOME = {
     "classes": "classes can only be selected in LAS/LAZ files",
     "topic": "a topic can only be chosen in ROS bags",
+    "pose_topic": "poses can only be read from ROS bags",
 }
 
 
@@ -69,6 +70,9 @@ class Reader:
         Classification codes to keep, for the formats that have them.
     topic : str, optional
         The PointCloud2 topic, for ROS bags.
+    pose_topic : str, optional
+        The topic of the scans' poses, for ROS bags of scans in the sensor
+        frame (see :mod:`dftpcc.io.rosbag`).
     drop_nonfinite : bool
         Drop rows with a NaN or infinite coordinate rather than refuse them.
     chunk_points : int, optional
@@ -101,12 +105,13 @@ class Reader:
 
     def __init__(self, path: str | os.PathLike[str], *, format: str,  # noqa: A002
                  classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
-                 chunk_points: int | None = None, streams: bool = False):
+                 chunk_points: int | None = None, streams: bool = False, pose_topic: str | None = None):
         self.path, self.format = Path(path), format
         self.classes, self.topic, self.drop_nonfinite = classes, topic, drop_nonfinite
+        self.pose_topic = pose_topic
         self.streams = streams
         self._locate()
-        for name, value in (("classes", classes), ("topic", topic)):
+        for name, value in (("classes", classes), ("topic", topic), ("pose_topic", pose_topic)):
             if value is not None and name not in self.options:
                 raise InvalidInputError(f"{self.path}: the {name} option does not apply to {format} files; "
                                         f"{_OPTION_HOME[name]}")
