@@ -1,0 +1,215 @@
+"""Tiled maps (format 1.1): the base layer and tiles, rate control over the whole map, no seams,
+random access by bbox, and the refusals (docs/format.md, *Tiles*)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+import dftpcc
+from dftpcc import tiles
+from dftpcc.container import Source
+from dftpcc.dem import DEM, Grid, TileGrid
+from dftpcc.encoder import encode_dem
+from dftpcc.errors import CorruptFileError, InvalidInputError
+from dftpcc.files import read_dem
+from dftpcc.params import make_params
+
+from .conftest import data_file
+
+#: Cells within this distance of an internal tile edge are the seam (issue 12: ratio at most 1.2).
+SEAM_CELLS = 2
+SEAM_RATIO = 1.2
+
+
+@pytest.fixture(scope="module")
+def gale() -> tuple[DEM, int, dict]:
+    return read_dem(data_file("dems/mars_gale_1m.tif"), make_params())
+
+
+def _terrain(rows: int = 300, cols: int = 260, seed: int = 3, gaps: bool = True) -> DEM:
+    """Rolling hills with a slope, and (``gaps``) an empty disc and an empty corner."""
+    rng = np.random.default_rng(seed)
+    r, c = np.mgrid[0:rows, 0:cols].astype(float)
+    h = 0.02 * c + 0.01 * r + 2 * np.sin(r / 23) * np.cos(c / 31) + 0.05 * rng.standard_normal((rows, cols))
+    mask = np.ones((rows, cols), dtype=bool)
+    if gaps:
+        mask &= (r - 150) ** 2 + (c - 100) ** 2 > 30 ** 2
+        mask[:70, 190:] = False  # a whole empty tile at 64 cells
+    grid = Grid(x0=500.0, y0=1000.0, z0=10.0, resolution=0.5, rows=rows, cols=cols)
+    return DEM(grid=grid, heights=np.where(mask, h, 0.0), mask=mask)
+
+
+def _decoded(data: bytes) -> DEM:
+    return dftpcc.open(data).read_dem()
+
+
+def _seam_ratio(dem: DEM, rebuilt: DEM, size: int) -> float:
+    err = np.where(dem.mask, rebuilt.heights - dem.heights, np.nan)
+    r, c = np.arange(dem.grid.rows), np.arange(dem.grid.cols)
+    near = (((r % size) < SEAM_CELLS) | ((r % size) >= size - SEAM_CELLS))[:, None] | \
+        (((c % size) < SEAM_CELLS) | ((c % size) >= size - SEAM_CELLS))[None, :]
+    border = ((r < SEAM_CELLS) | (r >= dem.grid.rows - SEAM_CELLS))[:, None] | \
+        ((c < SEAM_CELLS) | (c >= dem.grid.cols - SEAM_CELLS))[None, :]
+    seam, rest = err[near & ~border], err[~near]
+    return float(np.sqrt(np.nanmean(seam ** 2)) / np.sqrt(np.nanmean(rest ** 2)))
+
+
+def test_tile_grid_covers_the_map_once():
+    tg = TileGrid(300, 260, 64)
+    assert (tg.tile_rows, tg.tile_cols, tg.count) == (5, 5, 25)
+    seen = np.zeros((300, 260), dtype=int)
+    for k in range(tg.count):
+        r0, r1, c0, c1 = tg.bounds(k)
+        seen[r0:r1, c0:c1] += 1
+    assert (seen == 1).all()
+    assert tg.touching((60, 70), (0, 1)) == [0, 5]
+
+
+def test_base_basis_is_the_orthonormal_dct():
+    from scipy.fft import idct
+    n, k = 37, 5
+    basis = tiles.base_basis(n, k, 0, n)
+    eye = np.eye(k)
+    expected = np.stack([idct(np.pad(eye[i], (0, n - k)), type=2, norm="ortho") for i in range(k)], axis=1)
+    np.testing.assert_allclose(basis, expected, atol=1e-12)
+
+
+def test_a_map_in_one_tile_is_written_as_today(gale):
+    dem, n, crs = gale
+    whole = encode_dem(dem, make_params(tile_size=0, cutoff=0.8), point_count=n, crs=crs)
+    one_tile = encode_dem(dem, make_params(tile_size=512, cutoff=0.8), point_count=n, crs=crs)
+    assert one_tile == whole
+    assert whole[9] == 0  # format 1.0
+
+
+def test_tiled_round_trip_and_stated_errors():
+    dem = _terrain()
+    data = encode_dem(dem, make_params(tile_size=64, cutoff=0.8, step=0.01))
+    assert data[9] == 1  # format 1.1
+    m = dftpcc.open(data)
+    assert m.tiled and m.header.tiles.tiling.count == 25
+    rebuilt = m.read_dem()
+    np.testing.assert_array_equal(rebuilt.mask, dem.mask)
+    err = (rebuilt.heights - dem.heights)[dem.mask]
+    assert np.sqrt(np.mean(err ** 2)) <= m.header.stats["dem_rmse_m"] * (1 + 1e-6)
+    assert np.abs(err).max() <= m.header.stats["dem_max_error_m"] * (1 + 1e-6)
+    info = m.info()["tiles"]
+    tg = m.header.tiles.tiling
+    occupied = [k for k in range(tg.count) if dem.mask[tg.bounds(k)[0]:tg.bounds(k)[1], tg.bounds(k)[2]:tg.bounds(k)[3]].any()]
+    assert info["occupied"] == len(occupied) == 23  # the two empty corner tiles have no sections
+    for t in info["tiles"]:
+        r0, r1, c0, c1 = m.header.tiles.tiling.bounds(t["tile"] - 1)
+        e = (rebuilt.heights - dem.heights)[r0:r1, c0:c1][dem.mask[r0:r1, c0:c1]]
+        assert np.abs(e).max() <= t["dem_max_error_m"] * (1 + 1e-6)
+    # Points: the same as dftpcc.decompress of the bytes, in row-major order of the map.
+    np.testing.assert_allclose(dftpcc.decompress(data), m.read_points())
+
+
+@pytest.mark.parametrize("target", [dict(target_rmse=0.08), dict(target_max_error=0.15), dict(target_bpp=0.8)])
+def test_rate_control_holds_over_the_tiled_map(target):
+    dem = _terrain()
+    data = encode_dem(dem, make_params(tile_size=64, **target), point_count=int(dem.mask.sum()))
+    err = (_decoded(data).heights - dem.heights)[dem.mask]
+    if "target_rmse" in target:
+        assert np.sqrt(np.mean(err ** 2)) <= target["target_rmse"]
+    elif "target_max_error" in target:
+        assert np.abs(err).max() <= target["target_max_error"]
+    else:
+        assert 8 * len(data) <= target["target_bpp"] * dem.mask.sum()
+
+
+def test_no_seams_on_a_real_map(gale):
+    """Issue 12: cells within 2 cells of a tile edge against the others, RMSE ratio at most 1.2."""
+    dem, n, crs = gale
+    for target in (dict(target_rmse=0.05), dict(target_max_error=0.2)):
+        data = encode_dem(dem, make_params(tile_size=128, **target), point_count=n, crs=crs)
+        assert _seam_ratio(dem, _decoded(data), 128) <= SEAM_RATIO, target
+
+
+def test_a_bbox_reads_and_decodes_only_its_tiles(tmp_path):
+    dem = _terrain()
+    path = tmp_path / "t.dftpc"
+    path.write_bytes(encode_dem(dem, make_params(tile_size=64, cutoff=0.8, step=0.01)))
+    whole = dftpcc.open(path).read_dem()
+    with dftpcc.open(path) as m:
+        header_bytes = m.bytes_read
+        g = m.grid
+        # The centre of tile (1, 1): cells 64..127 both ways.
+        bbox = (g.x0 + 70 * g.resolution, g.y0 + 70 * g.dy, g.x0 + 120 * g.resolution, g.y0 + 120 * g.dy)
+        part = m.read_dem(bbox=bbox)
+        tile_bytes = m.header.tiles.tile_bytes(1 * 5 + 1)
+        assert m.bytes_read - header_bytes == tile_bytes
+        assert m.bytes_read < m.size / 4  # one tile of 25, and the header
+    rows, cols = part.grid.rows, part.grid.cols
+    r0 = round((part.grid.y0 - g.y0) / g.dy)
+    c0 = round((part.grid.x0 - g.x0) / g.resolution)
+    np.testing.assert_allclose(part.heights[part.mask], whole.heights[r0:r0 + rows, c0:c0 + cols][part.mask])
+    points = dftpcc.open(path).read_points(bbox=bbox)
+    assert points.shape[0] == int(part.mask.sum()) > 0
+    assert (points[:, 0] >= bbox[0]).all() and (points[:, 0] <= bbox[2]).all()
+    assert (points[:, 1] >= bbox[1]).all() and (points[:, 1] <= bbox[3]).all()
+
+
+def test_a_damaged_tile_outside_the_bbox_does_not_stop_it():
+    dem = _terrain()
+    data = bytearray(encode_dem(dem, make_params(tile_size=64, cutoff=0.8, step=0.01)))
+    m = dftpcc.open(bytes(data))
+    start, length, _ = m.header.tiles.sections[24][b"COEF"]  # the last tile
+    data[start + length // 2] ^= 0xFF
+    damaged = dftpcc.open(bytes(data))
+    g = damaged.grid
+    bbox = (g.x0 + 1, g.y0 + 1, g.x0 + 20, g.y0 + 20)
+    assert damaged.read_points(bbox=bbox).shape[0] > 0
+    with pytest.raises(CorruptFileError, match=r"tile 25 \(tile row 4, column 4\).*checksum"):
+        damaged.read_dem()
+
+
+def test_bad_bboxes_are_refused_with_the_extent():
+    m = dftpcc.open(encode_dem(_terrain(), make_params(tile_size=64, cutoff=0.8, step=0.01)))
+    with pytest.raises(InvalidInputError, match=r"XMIN > XMAX.*the map covers x 500"):
+        m.read_dem(bbox=(600, 1000, 550, 1100))
+    with pytest.raises(InvalidInputError, match=r"outside the map.*the map covers"):
+        m.read_dem(bbox=(0, 0, 10, 10))
+    with pytest.raises(InvalidInputError, match="four"):
+        m.read_dem(bbox=(0, 0, 10))
+
+
+def test_tiles_need_the_compact_profile_and_decode_whole():
+    dem = _terrain(gaps=False)
+    with pytest.raises(InvalidInputError, match="tile"):
+        encode_dem(dem, make_params(profile="paper", tile_size=64))
+    data = encode_dem(dem, make_params(tile_size=64, cutoff=0.8, step=0.01))
+    with pytest.raises(InvalidInputError, match="progressive"):
+        dftpcc.open(data, max_bytes=len(data) // 2)
+    with pytest.raises(InvalidInputError, match="cutoff"):
+        dftpcc.open(data).read_dem(cutoff=0.9)
+
+
+def test_cli_tile_size_bbox_and_info(tmp_path):
+    src = data_file("dems/mars_gale_1m.tif")
+    out = tmp_path / "g.dftpc"
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "dftpcc", *args], capture_output=True, text=True)
+
+    assert run("compress", str(src), str(out), "--tile-size", "128", "--cutoff", "0.8", "-q").returncode == 0
+    info = run("info", str(out), "--json")
+    assert '"occupied"' in info.stdout and '"format_version": "1.1"' in info.stdout
+    m = dftpcc.open(out)
+    x0, y0, x1, y1 = m.bounds()
+    m.close()
+    part = tmp_path / "part.xyz"
+    box = f"{x0 + 10},{y0 + 10},{x0 + 60},{y0 + 60}"
+    assert run("decompress", str(out), str(part), "--bbox", box, "-q").returncode == 0
+    assert 2000 < len(part.read_text().splitlines()) < 2700  # about 50 x 50 one-metre cells
+    bad = run("decompress", str(out), str(tmp_path / "b.xyz"), "--bbox", "1,2,3")
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1
+    swapped = run("decompress", str(out), str(tmp_path / "b.xyz"), "--bbox", f"{x1},{y0},{x0},{y1}")
+    assert swapped.returncode == 3 and "the map covers" in swapped.stderr
+    assert not (tmp_path / "b.xyz").exists()
+    assert run("compress", str(src), str(tmp_path / "x.dftpc"), "--tile-size", "7").returncode == 2
