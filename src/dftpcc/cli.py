@@ -25,6 +25,7 @@ from .units import length
 from .errors import (
     CorruptFileError,
     DftpccError,
+    ClusterError,
     InvalidInputError,
     MissingDependencyError,
     ResourceLimitError,
@@ -40,6 +41,7 @@ EXIT_CODES: list[tuple[type[BaseException], int]] = [
     (ResourceLimitError, 8),
     (CorruptFileError, 5),
     (MissingDependencyError, 6),
+    (ClusterError, 10),
     (DftpccError, 1),
     (OSError, 7),
     (MemoryError, 9),
@@ -193,6 +195,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
                              resolution=args.resolution, cutoff=args.cutoff,
                              profile=args.profile, format=args.format, classes=args.classes,
                              drop_nonfinite=args.drop_nonfinite, chunk_points=args.chunk_points, topic=args.topic,
+                             workers=args.workers, scheduler=args.scheduler,
                              pose_topic=args.pose_topic, on_stage=on_stage, **options)
     info = cmap.info()
     if args.verbose:
@@ -219,7 +222,8 @@ def cmd_decompress(args: argparse.Namespace) -> int:
                                 f"end its name with / (out_bag/) or give --format rosbag")
     points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
                              format=args.format, max_bytes=args.max_bytes,
-                             cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox)
+                             cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox,
+                             workers=args.workers, scheduler=args.scheduler)
     if str(args.output).lower().endswith((".tif", ".tiff")) or args.format in ("tif", "tiff"):
         from .mapfile import open as open_map
 
@@ -321,6 +325,14 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(EXIT_USAGE, f"dftpcc: error: {message} (see '{self.prog} --help')\n")
+
+
+def _add_cluster_flags(p: argparse.ArgumentParser, verb: str) -> None:
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive_int, metavar="N",
+                       help=f"{verb} a tiled map's tiles on a local dask cluster of N processes (dftpcc[dask])")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help=f"{verb} a tiled map's tiles on the running dask scheduler at ADDRESS (tcp://host:8786)")
 
 
 def _bbox(text: str) -> tuple[float, float, float, float]:
@@ -559,6 +571,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="read LAS/LAZ/PLY/NPY N points at a time, so memory holds the grid and one chunk "
                         "(automatic when the cloud would not fit in half the available memory)")
     p.add_argument("--format", help="input format if the extension does not tell")
+    _add_cluster_flags(p, "code")
     p.set_defaults(func=cmd_compress)
 
     p = sub.add_parser("decompress", parents=[common], help=".dftpc -> point cloud or GeoTIFF DEM", description=(
@@ -578,6 +591,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid-map", action="store_true",
                    help="ROS 2 bag output: also the DEM as a grid_map_msgs/GridMap elevation layer on TOPIC/grid_map")
     p.add_argument("--format", help="output format if the extension does not tell")
+    _add_cluster_flags(p, "decode")
     p.set_defaults(func=cmd_decompress)
 
     p = sub.add_parser("info", parents=[common], help="header, parameters and sizes, without decoding",

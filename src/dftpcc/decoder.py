@@ -109,7 +109,8 @@ class _Base:
 
 
 def decode_tiled(header: Header, base_blob: Any, read: Callable[[int], dict[bytes, Any]], *,
-                 rows: tuple[int, int] | None = None, cols: tuple[int, int] | None = None) -> DEM:
+                 rows: tuple[int, int] | None = None, cols: tuple[int, int] | None = None,
+                 map_tiles: Callable[..., list] | None = None) -> DEM:
     """Rebuild a tiled map, or the window ``rows`` x ``cols`` (cell ranges) of it, decoding only its tiles.
 
     Parameters
@@ -123,6 +124,9 @@ def decode_tiled(header: Header, base_blob: Any, read: Callable[[int], dict[byte
     rows, cols : (start, stop), optional
         The cells wanted; default the whole map. The DEM returned covers
         exactly these cells (its grid is that window of the map's).
+    map_tiles : callable, optional
+        ``map_tiles(func, items, *args)``: where the tiles are decoded (default in this process;
+        see :func:`dftpcc.cluster.executor`). The sections are read here, the decoding mapped.
 
     Raises
     ------
@@ -138,21 +142,32 @@ def decode_tiled(header: Header, base_blob: Any, read: Callable[[int], dict[byte
         grid.window(rows[0], cols[0], rows[1] - rows[0], cols[1] - cols[0])
     heights = np.zeros(out_grid.shape)
     mask = np.zeros(out_grid.shape, dtype=bool)
-    for k in index.tiling.touching(rows, cols):
-        if not index.cells[k]:
-            continue
+    wanted = [k for k in index.tiling.touching(rows, cols) if index.cells[k]]
+    jobs = [(k, {tag: bytes(blob) for tag, blob in read(k).items()}) for k in wanted]
+    decoded = (map_tiles or _serial)(_decode_job, jobs, header, base)
+    for k, (h, m) in zip(wanted, decoded):
         r0, r1, c0, c1 = index.tiling.bounds(k)
-        try:
-            h, m = _decode_tile(header, base, k, read(k))
-        except CorruptFileError as exc:
-            where = f"tile {k + 1} (tile row {r0 // index.tiling.size}, column {c0 // index.tiling.size})"
-            raise CorruptFileError(str(exc) if str(exc).startswith("tile ") else f"{where}: {exc}") from None
         # The part of the tile inside the window.
         a, b = max(r0, rows[0]), min(r1, rows[1])
         c, d = max(c0, cols[0]), min(c1, cols[1])
         heights[a - rows[0]:b - rows[0], c - cols[0]:d - cols[0]] = h[a - r0:b - r0, c - c0:d - c0]
         mask[a - rows[0]:b - rows[0], c - cols[0]:d - cols[0]] = m[a - r0:b - r0, c - c0:d - c0]
     return DEM(grid=out_grid, heights=heights, mask=mask)
+
+
+def _serial(func: Callable[..., Any], items: list, *args: Any) -> list:
+    return [func(item, *args) for item in items]
+
+
+def _decode_job(job: tuple[int, dict[bytes, bytes]], header: Header, base: _Base) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_decode_tile` of ``(k, sections)``, its errors naming the tile."""
+    k, blobs = job
+    try:
+        return _decode_tile(header, base, k, blobs)
+    except CorruptFileError as exc:
+        assert header.tiles is not None
+        i, j = divmod(k, header.tiles.tiling.tile_cols)
+        raise CorruptFileError(f"tile {k + 1} (tile row {i}, column {j}): {exc}") from None
 
 
 def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -> tuple[np.ndarray, np.ndarray]:

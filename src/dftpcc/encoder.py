@@ -24,7 +24,7 @@ from .grid import auto_resolution, fit_grid, rasterize
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
-from .tiles import TiledAnalysis
+from .tiles import TileCode, TiledAnalysis, code_tile
 
 __all__ = ["compress", "encode_dem", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
            "QUANT_FLOOR_FRACTION"]
@@ -118,7 +118,8 @@ def grid_points(points: np.ndarray, params: Params) -> DEM:
 
 def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
                crs: dict[str, Any] | None = None, on_stage: Stage = no_stage,
-               fill: Callable[..., np.ndarray] | None = None) -> bytes:
+               fill: Callable[..., np.ndarray] | None = None,
+               map_tiles: Callable[..., list] | None = None) -> bytes:
     """Code an already gridded DEM (e.g. a GeoTIFF) with ``params``.
 
     Parameters
@@ -132,6 +133,9 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         Points of the original cloud (for bits per point); default: occupied cells.
     fill : callable, optional
         Another fill of the empty cells before the transform (see :class:`~dftpcc.analysis.Analysis`).
+    map_tiles : callable, optional
+        ``map_tiles(func, items, *args)``: how the tiles of a tiled map are coded (default in this
+        process; :func:`dftpcc.cluster.executor` gives one on a dask cluster). The bytes are the same.
     """
     if not dem.mask.any():
         raise InvalidInputError("the map has no occupied cell")
@@ -172,7 +176,8 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         trial = an.trial(cutoff, step)
         if params.step == 0.0:
             _flag_coarse(dem, trial)
-        return _pack(Choice(an, trial, an.encode(trial)), params, mask_blob, point_count, crs, on_stage)
+        coefs = b"" if tile else an.encode(trial)  # a tiled map codes its tiles when packing
+        return _pack(Choice(an, trial, coefs), params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles)
     # Rate control. For a size target the header's own bytes count too: start
     # from an estimate, then shrink the budget by any overshoot.
     overhead = _length(mask_blob) + HEADER_ESTIMATE
@@ -187,7 +192,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
                 raise
             overhead = measured
             continue
-        data = _pack(choice, params, mask_blob, point_count, crs, on_stage)
+        data = _pack(choice, params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles)
         if params.target_bpp <= 0 or 8 * len(data) <= params.target_bpp * point_count:
             return data
         # Measured now: everything but the coefficients, plus room for the
@@ -269,7 +274,8 @@ def _check_max_error(an: Analysis, bound: float) -> None:
 def _overhead(an: Analysis, params: Params, mask_blob: bytes, point_count: int, crs: dict[str, Any] | None) -> int:
     """Bytes of the file besides its coded coefficients, measured by packing it without them."""
     trial = an.trial(max(ratecontrol.cutoffs(params)), an.tiny_step())
-    return len(_pack(Choice(an, trial, b""), params, mask_blob, point_count, crs, no_stage)) + STATS_SLACK
+    return len(_pack(Choice(an, trial, b""), params, mask_blob, point_count, crs, no_stage,
+                     header_only=True)) + STATS_SLACK
 
 
 def _flag_coarse(dem: DEM, trial: Trial) -> None:
@@ -286,11 +292,13 @@ def _flag_coarse(dem: DEM, trial: Trial) -> None:
 
 
 def _pack(choice: Choice, params: Params, mask_blob: bytes | list[bytes], point_count: int,
-          crs: dict[str, Any] | None, on_stage: Stage) -> bytes:
-    """Measure what the decoder will rebuild and pack the file with those figures."""
+          crs: dict[str, Any] | None, on_stage: Stage, *, map_tiles: Callable[..., list] | None = None,
+          header_only: bool = False) -> bytes:
+    """Measure what the decoder will rebuild and pack the file with those figures
+    (``header_only``: a tiled map without its tiles' coefficients, to measure the rest)."""
     if isinstance(choice.analysis, TiledAnalysis):
         assert isinstance(mask_blob, list)
-        return _pack_tiled(choice, params, mask_blob, point_count, crs, on_stage)
+        return _pack_tiled(choice, params, mask_blob, point_count, crs, on_stage, map_tiles, header_only)
     assert isinstance(mask_blob, bytes)
     an, trial = choice.analysis, choice.trial
     params = params.replace(cutoff=trial.cutoff, step=trial.step)
@@ -307,35 +315,62 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | list[bytes], point_
 
 
 def _pack_tiled(choice: Choice, params: Params, mask_blobs: list[bytes], point_count: int,
-                crs: dict[str, Any] | None, on_stage: Stage) -> bytes:
-    """:func:`_pack` of a tiled map: each tile's sections, its errors in the index, and the base layer."""
+                crs: dict[str, Any] | None, on_stage: Stage, map_tiles: Callable[..., list] | None = None,
+                header_only: bool = False) -> bytes:
+    """:func:`_pack` of a tiled map: the base layer, then every tile coded on its own at the
+    chosen cutoff and step (:func:`~dftpcc.tiles.code_tile`, through ``map_tiles``), with its errors
+    in the index."""
     an, trial = choice.analysis, choice.trial
     assert isinstance(an, TiledAnalysis)
     params = params.replace(cutoff=trial.cutoff, step=trial.step)
-    dem, heights = an.dem, trial.heights.copy()
-    # Without coefficients (measuring the header's own bytes) every part is empty.
-    parts = an.parts(trial.stream) if choice.coefs else [b""] * (len(an.tiles) + 1)
+    dem = an.dem
     n = an.tiling.count
     cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
-    written = []
-    for (k, t), mask_blob, coef_blob in zip(an.tiles, mask_blobs, parts[1:]):
-        r0, r1, c0, c1 = an.tiling.bounds(k)
-        target, m = dem.heights[r0:r1, c0:c1], dem.mask[r0:r1, c0:c1]
-        resid_blob = b""
-        if params.target_max_error > 0:
-            q, heights[r0:r1, c0:c1] = residual(target, heights[r0:r1, c0:c1], m, m, params.target_max_error)
-            resid_blob = encode_residual(q, params.coder)
-        err = (heights[r0:r1, c0:c1] - target)[m]
-        cells[k], rmse[k], max_error[k] = int(m.sum()), math.sqrt(float(np.mean(err * err))), float(np.abs(err).max())
-        written.append((k, mask_blob, coef_blob, resid_blob))
-    stats = _stats(dem, heights, dem.mask, sum(map(len, mask_blobs)), sum(map(len, parts)),
-                   sum(len(w[3]) for w in written), 0, params)
+    if not header_only:
+        q = an.base_at(params.cutoff, params.step)
+        base_blob = an.base_blob(q)
+        on_stage("encode tiles")
+        codes = (map_tiles or serial_map)(code_tile, an.jobs(q, params.step), params, an.refill_step)
+    else:  # measuring the header's own bytes: every tile without coefficients
+        base_blob = b""
+        codes = [TileCode(k, blob, b"", b"", int(_tile_cells(dem.mask, an, k).sum()), 0.0, 0.0)
+                 for (k, _), blob in zip(an.tiles, mask_blobs)]
+    for c in codes:
+        cells[c.k], rmse[c.k], max_error[c.k] = c.cells, c.rmse, c.max_error
+    occupied = int(cells.sum())
+    stats = _tiled_stats(dem, codes, occupied, base_blob, params)
     index = TileIndex(tiling=an.tiling, overlap=an.overlap, cells=cells, rmse=rmse, max_error=max_error)
-    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(cells.sum()),
+    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=occupied,
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.base_count(params.cutoff),
                     tiles=index)
     on_stage("container")
-    return pack_tiled(header, parts[0], written)
+    return pack_tiled(header, base_blob, [(c.k, c.mask, c.coef, c.resid) for c in codes])
+
+
+def serial_map(func: Callable[..., Any], items: list, *args: Any) -> list:
+    return [func(item, *args) for item in items]
+
+
+def _tiled_stats(dem: DEM, codes: list[TileCode], occupied: int, base_blob: bytes, params: Params) -> dict[str, Any]:
+    """The whole map's figures from its tiles' (docs/format.md, STAT)."""
+    floor = dem.gridding_rmse or 0.0
+    stats: dict[str, Any] = {
+        "dem_rmse_m": math.sqrt(sum(c.squared_error for c in codes) / occupied),
+        "dem_max_error_m": max(c.max_error for c in codes),
+        "gridding_rmse_m": floor,
+        "mask_bytes": sum(len(c.mask) for c in codes),
+        "coef_bytes": len(base_blob) + sum(len(c.coef) for c in codes),
+        "residual_bytes": sum(len(c.resid) for c in codes),
+        "cells_interpolated": 0,
+    }
+    spread = dem.spread
+    if spread is not None and spread.unrepresented_points:
+        full = spread.as_stats()
+        stats.update({key: full[key] for key in SPREAD_STATS})
+    if dem.counts is not None and params.aggregate == "mean":
+        weighted = sum(c.weighted_squared_error for c in codes) / max(int(dem.counts.sum()), 1)
+        stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
+    return stats
 
 
 def _stats(dem: DEM, heights: np.ndarray, occupied: np.ndarray, mask_bytes: int, coef_bytes: int,

@@ -15,6 +15,7 @@ __all__ = [
     "ResourceLimitError",
     "UnsupportedFormatError",
     "MissingDependencyError",
+    "ClusterError",
     "DftpccWarning",
     "MultiHeightWarning",
     "LargeGridWarning",
@@ -50,6 +51,10 @@ class ResourceLimitError(CorruptFileError):
 
 class MissingDependencyError(DftpccError, ImportError):
     """An optional package needed for this operation is not installed."""
+
+
+class ClusterError(DftpccError):
+    """A dask cluster could not do the work: unreachable, a worker died, or no worker left."""
 
 
 class DftpccWarning(UserWarning):

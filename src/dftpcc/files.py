@@ -17,6 +17,7 @@ from typing import IO, Any, Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from . import io
+from .cluster import check_executor, executor
 from .container import unpack
 from .dem import DEM
 from .encoder import Stage, encode_dem, no_stage, params_of
@@ -115,6 +116,7 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
                   drop_nonfinite: bool = False, chunk_points: int | None = None, topic: str | None = None,
                   force: bool = False, on_stage: Stage = no_stage, pose_topic: str | None = None,
+                  workers: int | None = None, scheduler: str | None = None,
                   **shortcuts: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
@@ -138,6 +140,10 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         whole cloud and is refused in chunks.
     on_stage : callable, optional
         Called with the name of each stage as it starts.
+    workers, scheduler : optional
+        Code a tiled map's tiles on a local dask cluster of ``workers``
+        processes, or on the running scheduler at ``scheduler``
+        (:func:`dftpcc.cluster.executor`); the file is byte-identical.
 
     A GeoTIFF source with ``resolution='auto'`` is coded on its own pixel
     grid; with a resolution, its pixel centres are gridded as points.
@@ -157,11 +163,13 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
     # Parameters and options checked before the first pass over a file that may take minutes to read.
     params = params_of(params, shortcuts)
     check_compressed_output(dst, force=force)
+    check_executor(workers, scheduler)
     on_stage("read")
     with _as_path(src, format) as path:
         dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic,
                                    drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage)
-    data = encode_dem(dem, params, point_count=count, crs=crs, on_stage=on_stage)
+    with executor(workers, scheduler) as map_tiles:
+        data = encode_dem(dem, params, point_count=count, crs=crs, on_stage=on_stage, map_tiles=map_tiles)
     on_stage("write")
     if _is_stream(dst):
         dst.write(data)
@@ -232,11 +240,13 @@ def _trusted(data: bytes) -> int:
 def decompress_file(src: Source, dst: Source, *,
                     format: str | None = None, max_bytes: int | None = None,  # noqa: A002
                     cutoff: float | None = None, max_cells: int | None = None, force: bool = False,
-                    bbox: Sequence[float] | None = None) -> np.ndarray:
+                    bbox: Sequence[float] | None = None, workers: int | None = None,
+                    scheduler: str | None = None) -> np.ndarray:
     """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
 
     ``bbox`` (xmin, ymin, xmax, ymax, the map's units and CRS) writes only that region; of a
-    tiled map only the tiles it touches are read and decoded.
+    tiled map only the tiles it touches are read and decoded. ``workers`` or ``scheduler``
+    decode a tiled map's tiles on a dask cluster, as for :func:`compress_file`.
 
     The output format comes from ``dst``'s extension; ``.tif`` writes the
     rebuilt DEM as a GeoTIFF, any other the point cloud. The CRS read from
@@ -252,11 +262,13 @@ def decompress_file(src: Source, dst: Source, *,
     fmt = format_of("x" if _is_stream(dst) else dst, format)
     if not _is_stream(dst):
         check_output(dst, force=force)
+    check_executor(workers, scheduler)
     if not _is_stream(src) and Path(src).exists() and not Path(src).is_file():
         with open(src, "rb") as fh:  # a pipe such as /dev/stdin
             src = _Buffer(fh.read(), str(src))
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
-        dem = cmap.read_dem(cutoff=cutoff, bbox=bbox)
+        with executor(workers, scheduler) if cmap.tiled else _nothing() as map_tiles:
+            dem = cmap.read_dem(cutoff=cutoff, bbox=bbox, map_tiles=map_tiles)
         crs = cmap.crs
     points = dem_to_points(dem)
     with tempfile.TemporaryDirectory(prefix="dftpcc-") if _is_stream(dst) else _nothing() as tmp:

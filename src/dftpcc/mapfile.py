@@ -12,7 +12,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, BinaryIO, Sequence
+from typing import Any, BinaryIO, Callable, Sequence
 
 import numpy as np
 
@@ -90,7 +90,8 @@ class CompressedMap:
         xs, ys = _corners(g, 0, g.rows, 0, g.cols)
         return float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())
 
-    def read_dem(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None) -> DEM:
+    def read_dem(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None,
+                 map_tiles: Callable[..., list] | None = None) -> DEM:
         """The rebuilt DEM (see :func:`dftpcc.decoder.decode_dem`).
 
         Parameters
@@ -102,6 +103,8 @@ class CompressedMap:
             of the cells it touches, with only the cells whose centre lies
             inside it marked occupied. Of a tiled map only the tiles the box
             touches are read and decoded.
+        map_tiles : callable, optional
+            Where a tiled map's tiles are decoded (:func:`dftpcc.cluster.executor`).
 
         Raises
         ------
@@ -124,7 +127,8 @@ class CompressedMap:
             rows, cols = window or ((0, self.grid.rows), (0, self.grid.cols))
             self._check_budget(rows, cols)
             dem = decode_tiled(self.header, self._blobs[b"BASE"],
-                               lambda k: read_tile(self._source, self.header, k), rows=rows, cols=cols)
+                               lambda k: read_tile(self._source, self.header, k), rows=rows, cols=cols,
+                               map_tiles=map_tiles)
         if bbox is not None:
             dem = DEM(grid=dem.grid, heights=dem.heights, mask=dem.mask & _centres_inside(dem.grid, bbox))
         return dem

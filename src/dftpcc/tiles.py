@@ -17,13 +17,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import coding, spectrum
+from . import coding, occupancy, spectrum
 from .analysis import Analysis, Trial
 from .dem import DEM, Grid, TileGrid
 from .fill import fill_empty, fit_plane, plane_values
 from .params import Params
+from .residual import encode_residual, residual
 
-__all__ = ["BASE_CYCLES_PER_TILE", "TILE_OVERLAP", "coded_window", "base_order", "base_basis", "base_heights", "base_coefficients",
+__all__ = ["BASE_CYCLES_PER_TILE", "TILE_OVERLAP", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
            "tile_grid_of", "TiledAnalysis", "TiledTrial"]
 
 #: The base layer holds the map's frequencies up to this many cycles per tile
@@ -146,8 +147,9 @@ class TiledAnalysis:
         detrended = dem.heights - self.trend
         filled = fill_empty(detrended, dem.mask, method="smooth")
         self.base_coefs = base_coefficients(filled, self.base_i, self.base_j)
-        rest = detrended - base_heights(self.base_coefs, self.base_i, self.base_j, dem.grid.shape,
-                                        (0, dem.grid.rows), (0, dem.grid.cols))
+        self.base_exact = base_heights(self.base_coefs, self.base_i, self.base_j, dem.grid.shape,
+                                       (0, dem.grid.rows), (0, dem.grid.cols))
+        rest = self.rest = detrended - self.base_exact
         tile_params = params.replace(detrend="none", tile_size=0)
         self.tiles: list[tuple[int, Analysis]] = []
         for k in range(self.tiling.count):
@@ -163,6 +165,33 @@ class TiledAnalysis:
         # Lengths of the parts of the last stream quantized, by its total length (see encode_stream).
         self._splits: dict[int, list[int]] = {}
         self._last_parts: tuple[np.ndarray, bool, list[bytes]] | None = None
+        #: The step of the trial whose rebuilt map refilled the empty cells (None: smooth fill).
+        self.refill_step: float | None = None
+
+    def base_at(self, cutoff: float, step: float) -> np.ndarray:
+        """The base layer's integers at (cutoff, step)."""
+        return coding.quantize(self.base_coefs[: self.base_count(cutoff)], coding.short_step(step),
+                               self.params.deadzone)
+
+    def base_blob(self, q: np.ndarray) -> bytes:
+        """The BASE section of the base layer's integers ``q``."""
+        return coding.encode_coefficients(q, radius=self.base_radius[: q.size], angle=self.base_angle[: q.size],
+                                          coder=self.params.coder)
+
+    def jobs(self, q: np.ndarray, step: float) -> list[TileJob]:
+        """One :class:`TileJob` per occupied tile, against the base layer ``q`` decoded at ``step``."""
+        grid = self.dem.grid
+        decoded = base_heights(coding.dequantize(q, coding.short_step(step)), self.base_i[: q.size],
+                               self.base_j[: q.size], grid.shape, (0, grid.rows), (0, grid.cols))
+        out = []
+        for k, _ in self.tiles:
+            r0, r1, c0, c1 = self.tiling.bounds(k)
+            w0, w1, v0, v1 = coded_window(self.tiling, k, self.overlap)
+            counts = None if self.dem.counts is None else self.dem.counts[r0:r1, c0:c1]
+            out.append(TileJob(k, self.rest[w0:w1, v0:v1], self.dem.mask[w0:w1, v0:v1],
+                               (r0 - w0, r1 - w0, c0 - v0, c1 - v0),
+                               decoded[r0:r1, c0:c1] - self.base_exact[r0:r1, c0:c1], counts))
+        return out
 
     # -- what rate control asks of an analysis --------------------------------------------------
 
@@ -240,6 +269,7 @@ class TiledAnalysis:
 
     def refilled(self, trial: TiledTrial) -> "TiledAnalysis":
         out = copy.copy(self)
+        out.refill_step = trial.step
         out.tiles = [(k, an.refilled(t) if an.refillable else an) for (k, an), t in zip(self.tiles, trial.tiles)]
         out._splits, out._last_parts = {}, None
         return out
@@ -266,3 +296,81 @@ class TiledAnalysis:
         out += [an.encode_stream(piece, exhaustive=exhaustive) for (_, an), piece in zip(self.tiles, pieces[1:])]
         self._last_parts = (stream, exhaustive, out)
         return out
+
+
+@dataclass
+class TileJob:
+    """What coding one tile needs, and nothing of the rest of the map (it travels to a worker).
+
+    Attributes
+    ----------
+    k : int
+        Tile (0-based).
+    rest : ndarray
+        Heights of the tile's coded window minus the plane and the exact base layer, metres.
+    mask : ndarray of bool
+        Occupied cells of the window.
+    inner : (r0, r1, c0, c1)
+        The tile's own cells within the window.
+    base_error : ndarray
+        The decoded base layer minus the exact one on the tile's cells, metres.
+    counts : ndarray, optional
+        Points per cell of the tile (for the points' vertical error).
+    """
+
+    k: int
+    rest: np.ndarray
+    mask: np.ndarray
+    inner: tuple[int, int, int, int]
+    base_error: np.ndarray
+    counts: np.ndarray | None = None
+
+
+@dataclass
+class TileCode:
+    """One tile coded: its sections and the errors it leaves (metres)."""
+
+    k: int
+    mask: bytes
+    coef: bytes
+    resid: bytes
+    cells: int
+    squared_error: float
+    max_error: float
+    weighted_squared_error: float = 0.0  # sum of points per cell x squared error
+
+    @property
+    def rmse(self) -> float:
+        return math.sqrt(self.squared_error / self.cells)
+
+
+#: Where a tile's window sits: tiles are coded on a grid of their own, unit cells (only shapes matter).
+_WINDOW_GRID = dict(x0=0.0, y0=0.0, z0=0.0, resolution=1.0)
+
+
+def code_tile(job: TileJob, params: Params, refill_step: float | None = None) -> TileCode:
+    """Code one tile at ``params.cutoff`` and ``params.step``: a pure function of the job, so the
+    bytes are the same whichever process or machine runs it.
+
+    ``refill_step``: with ``fill='consistent'``, the step of the trial whose rebuilt heights refill
+    the window's empty cells (as rate control chose it); None keeps the smooth fill.
+    """
+    tile_params = params.replace(detrend="none", tile_size=0)
+    sub = DEM(grid=Grid(rows=job.rest.shape[0], cols=job.rest.shape[1], **_WINDOW_GRID),
+              heights=job.rest, mask=job.mask)
+    an = Analysis(sub, tile_params, searching=False)
+    if refill_step is not None and an.refillable:
+        an = an.refilled(an.trial(params.cutoff, refill_step))
+    trial = an.trial(params.cutoff, params.step)
+    r0, r1, c0, c1 = job.inner
+    target = job.rest[r0:r1, c0:c1]
+    mask = job.mask[r0:r1, c0:c1]
+    rebuilt = trial.heights[r0:r1, c0:c1] + job.base_error
+    resid = b""
+    if params.target_max_error > 0:
+        q, rebuilt = residual(target, rebuilt, mask, mask, params.target_max_error)
+        resid = encode_residual(q, params.coder)
+    err = (rebuilt - target)[mask]
+    weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
+    return TileCode(job.k, occupancy.encode_mask(mask), an.encode(trial), resid, int(mask.sum()),
+                    float(np.dot(err, err)), float(np.abs(err).max()), weighted)

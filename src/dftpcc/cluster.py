@@ -1,0 +1,141 @@
+"""Where the tiles of a map are coded: in this process, or on a dask.distributed cluster.
+
+Tiles code independently (:func:`dftpcc.tiles.code_tile` is a pure function
+of one tile's data), so a tiled map is a ``map`` over its tiles. :func:`executor`
+gives that map: the built-in one, a :class:`distributed.LocalCluster` of
+``workers`` processes, or a running scheduler at ``scheduler``. The results
+are gathered in tile order, so the file is byte-identical whichever runs it.
+Needs the optional ``distributed`` package (``pip install 'dftpcc[dask]'``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator, Sequence
+
+from .errors import ClusterError, InvalidInputError, MissingDependencyError
+
+__all__ = ["Map", "executor", "serial", "CONNECT_TIMEOUT_S", "NO_WORKER_TIMEOUT_S"]
+
+INSTALL_HINT = "pip install 'dftpcc[dask]' (dask.distributed)"
+#: Seconds to wait for a scheduler to answer before giving up.
+CONNECT_TIMEOUT_S = 10
+#: Seconds a computation may wait with no worker at all before it is abandoned.
+NO_WORKER_TIMEOUT_S = 30
+#: How often the wait for results checks that workers are left, seconds.
+POLL_S = 1.0
+#: Times the scheduler retries a task whose worker died before giving up on it (dask's
+#: ``allowed-failures``): a tile that kills its workers fails the run quickly.
+ALLOWED_FAILURES = 1
+
+#: ``map(func, items, *args)``: ``[func(item, *args) for item in items]``, in order.
+Map = Callable[..., list]
+
+
+def serial(func: Callable[..., Any], items: Sequence[Any], *args: Any) -> list:
+    """The map of this process."""
+    return [func(item, *args) for item in items]
+
+
+def check_executor(workers: int | None, scheduler: str | None) -> None:
+    """Refuse, before any work, workers and a scheduler together or a worker count below 1."""
+    if workers is not None and scheduler is not None:
+        raise InvalidInputError("give workers (a local cluster) or a scheduler address, not both")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise InvalidInputError(f"workers must be a whole number >= 1, got {workers!r}")
+    if scheduler is not None and (not isinstance(scheduler, str) or not scheduler):
+        raise InvalidInputError(f"scheduler must be an address such as tcp://host:8786, got {scheduler!r}")
+
+
+@contextmanager
+def executor(workers: int | None = None, scheduler: str | None = None) -> Iterator[Map]:
+    """A map over tiles: serial by default, else on a local cluster or a running scheduler.
+
+    Raises
+    ------
+    MissingDependencyError
+        ``distributed`` is not installed.
+    ClusterError
+        The scheduler cannot be reached, a worker died on a tile, or no
+        worker is left: in a bounded time (:data:`CONNECT_TIMEOUT_S`,
+        :data:`NO_WORKER_TIMEOUT_S`), never a hang.
+    """
+    check_executor(workers, scheduler)
+    if workers is None and scheduler is None:
+        yield serial
+        return
+    try:
+        import dask
+        import distributed
+    except ImportError:
+        raise MissingDependencyError(f"parallel coding needs dask.distributed: {INSTALL_HINT}") from None
+    with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES,
+                          "distributed.comm.timeouts.connect": f"{CONNECT_TIMEOUT_S}s"}):
+        cluster = None
+        try:
+            if scheduler is None:
+                # Processes, one thread each: the tiles' numpy work holds the GIL in places.
+                cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                   dashboard_address=None, silence_logs=logging.ERROR)
+                client = distributed.Client(cluster, timeout=CONNECT_TIMEOUT_S)
+            else:
+                client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError, RuntimeError) as exc:  # RuntimeError: a local worker failed to start
+            if cluster is not None:
+                cluster.close()
+            where = f"scheduler {scheduler}" if scheduler else f"a local cluster of {workers} workers"
+            raise ClusterError(f"cannot reach {where} within {CONNECT_TIMEOUT_S} s: {exc}") from None
+        try:
+            yield lambda func, items, *args: _gather(client, func, items, args)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
+def _cancelled() -> tuple[type[BaseException], ...]:
+    """The exceptions of a future the cluster gave up on (their names vary across distributed releases)."""
+    import distributed.client as dc
+    return tuple(getattr(dc, name) for name in ("FutureCancelledError", "FuturesCancelledError") if hasattr(dc, name))
+
+
+def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: tuple) -> list:
+    """``func(item, *args)`` for every item on the cluster, in order; a dead worker or an empty
+    cluster ends in :class:`ClusterError`."""
+    import distributed
+
+    # The tiles' data travel to the workers as data, not inside the task graph.
+    futures = client.map(func, client.scatter(list(items)), *[[a] * len(items) for a in args], pure=False)
+    idle_since: float | None = None
+    cancelled = _cancelled()
+    try:
+        while True:
+            try:
+                distributed.wait(futures, timeout=POLL_S)
+                break
+            except TimeoutError:  # not all done yet: check that someone is working on them
+                pass
+            if any(f.status == "error" for f in futures):
+                break  # gather raises it below
+            pending = [f for f in futures if f.status == "pending"]
+            workers = client.scheduler_info().get("workers", {})
+            if workers:
+                idle_since = None
+            elif idle_since is None:
+                idle_since = time.monotonic()
+            elif time.monotonic() - idle_since > NO_WORKER_TIMEOUT_S:
+                raise ClusterError(f"no dask worker left for {NO_WORKER_TIMEOUT_S} s with {len(pending)} tile(s) "
+                                   f"to code; nothing was written")
+        return client.gather(futures)
+    except cancelled as exc:
+        # The scheduler forgets a tile whose worker died past the allowed failures.
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ClusterError(f"a dask worker died or the cluster dropped a tile ({first}); nothing was written") from None
+    except distributed.KilledWorker as exc:
+        raise ClusterError(f"a dask worker died while coding a tile ({exc}); nothing was written") from None
+    except (OSError, TimeoutError) as exc:
+        raise ClusterError(f"lost the dask scheduler: {exc}; nothing was written") from None
+    finally:
+        client.cancel(futures)
