@@ -221,6 +221,27 @@ def test_round_trip_within_the_bound(seed, rows, cols, dtype, bound, scale, offs
         assert _max_error(back, values) <= bound * (1 + CHECK_SLACK)
 
 
+@FLOAT_SETTINGS
+@given(seed=st.integers(0, 2**32 - 1), rows=st.integers(1, 12), cols=st.integers(1, 12),
+       dtype=st.sampled_from(["int16", "uint16", "int32"]), bound=st.floats(0.1, 20.0),
+       scale=st.floats(0.5, 300.0), nodata=st.booleans())
+def test_integers_round_to_whole_units_within_the_bound(seed, rows, cols, dtype, bound, scale, nodata):
+    rng = np.random.default_rng(seed)
+    info = np.iinfo(dtype)
+    middle = (int(info.min) + int(info.max)) // 2
+    values = np.clip(middle + scale * np.cumsum(rng.normal(size=(rows, cols)), axis=1), info.min, info.max)
+    values = np.rint(values).astype(dtype)
+    fill = info.max if nodata else None  # the top of the range: no data
+    if nodata:
+        values[rng.random((rows, cols)) < 0.3] = fill
+    _, back = _round_trip(values, bound, fill_value=fill)
+    assert back.dtype == np.dtype(dtype)
+    if nodata:
+        assert np.array_equal(back == fill, values == fill)
+    err = np.abs(back.astype(np.int64) - values.astype(np.int64))
+    assert err.max() <= math.floor(bound)
+
+
 # --- what the codecs refuse ------------------------------------------------------------------
 
 def test_refusals_are_clear():

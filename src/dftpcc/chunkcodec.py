@@ -12,7 +12,9 @@ No data
     none), exactly. Zarr pads a partial edge chunk with the fill value, so the
     padding costs only its share of the mask. A float chunk with NaN cells in
     an array whose fill value is a number is refused: both would decode to the
-    same value. A chunk with no data at all is coded as a 16-byte
+    same value. Choose a fill value outside the heights' range (NaN, -32768): a
+    valid height within the bound of it may decode to it, and readers would
+    take that cell for no data. A chunk with no data at all is coded as a 16-byte
     :data:`NO_DATA_MAGIC` record (magic, then rows and columns as u32 LE).
 
 Data types and the bound
