@@ -1,7 +1,8 @@
 """dftpcc as a Zarr v3 and a numcodecs codec: real DEMs written and read back within the bound.
 
-The codecs are registered explicitly here (the entry points register them only
-once dftpcc is installed from this tree; ``test_entry_points*`` check those).
+Importing the codec modules registers them (as zarr's and numcodecs' own codecs do);
+the entry points do it without an import once dftpcc is installed from this tree
+(``test_entry_points*`` check those).
 """
 
 from __future__ import annotations
@@ -38,13 +39,6 @@ CHUNK = 128
 #: Relative slack on a float bound: none is needed, the codec keeps it exactly; this only
 #: absorbs the float64 subtraction of the check itself at heights of -4400 m.
 CHECK_SLACK = 1e-12
-
-
-@pytest.fixture(scope="module", autouse=True)
-def registered():
-    """Both codecs findable by name, as the entry points make them once installed."""
-    zarr.registry.register_codec(CODEC_NAME, DftpccCodec)
-    numcodecs.register_codec(Dftpcc)
 
 
 def _read_dem(name: str) -> tuple[np.ndarray, float | None]:
@@ -90,6 +84,25 @@ def test_mars_gale_through_xarray_and_dask_keeps_the_bound():
     decoded = opened.values
     assert np.array_equal(np.isnan(decoded), np.isnan(heights))
     assert _chunk_bytes(store) < heights.nbytes / 4
+
+
+def test_dask_distributed_workers_read_the_chunks_in_parallel(tmp_path):
+    """Two worker processes decode Gale's chunks from a store on disk (the codec travels by
+    pickle and registers itself there on import) and the result equals a serial read."""
+    distributed = pytest.importorskip("distributed")
+    heights, _ = _read_dem("mars_gale_1m.tif")
+    path = tmp_path / "gale.zarr"
+    xr.DataArray(heights, dims=("y", "x"), name="height").to_dataset().to_zarr(
+        path, consolidated=False, encoding={"height": {
+            "serializer": DftpccCodec(max_error=0.2), "compressors": None, "chunks": (CHUNK, CHUNK)}})
+    serial = xr.open_zarr(path, consolidated=False)["height"].compute(scheduler="synchronous")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  silence_logs=40) as cluster, distributed.Client(cluster):
+        lazy = xr.open_zarr(path, consolidated=False)["height"]
+        parallel = lazy.compute()
+        worst = float(np.abs(lazy - heights).max().compute())
+    assert np.array_equal(parallel.values, serial.values)
+    assert 0 < worst <= 0.2
 
 
 def test_moon_kepler_int16_rounds_to_whole_metres():
@@ -296,7 +309,7 @@ def test_configurations_round_trip():
     assert v3.to_dict() == {"name": "dftpcc", "configuration": {"max_error": 0.25, "cell_size": 2.0,
                                                                 "profile": "paper", "cutoff": 0.5}}
     assert pickle.loads(pickle.dumps(v3)) == v3  # dask.distributed ships codecs to workers
-    assert zarr.registry.get_codec_class("dftpcc") is DftpccCodec
+    assert zarr.registry.get_codec_class("dftpcc") is DftpccCodec  # registered by importing it
 
     v2 = Dftpcc(max_error=0.25, dtype="float32", fill_value=-32767.0)
     again = numcodecs.get_codec(v2.get_config())

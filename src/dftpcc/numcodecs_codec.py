@@ -21,6 +21,7 @@ from .errors import InvalidInputError, MissingDependencyError
 try:
     from numcodecs.abc import Codec
     from numcodecs.compat import ndarray_copy
+    from numcodecs.registry import register_codec
 except ImportError:
     raise MissingDependencyError(f"the numcodecs codec needs numcodecs, which is not installed: {INSTALL_HINT}") from None
 
@@ -103,3 +104,7 @@ class Dftpcc(Codec):
         config = self.get_config()
         del config["id"]
         return f"{type(self).__name__}({', '.join(f'{k}={v!r}' for k, v in config.items())})"
+
+
+# As numcodecs does for its own codecs: importing the module registers the codec.
+register_codec(Dftpcc)

@@ -26,6 +26,7 @@ from .params import Params
 try:
     from zarr.abc.codec import ArrayBytesCodec
     from zarr.core.common import parse_named_configuration
+    from zarr.registry import register_codec
 except ImportError:
     raise MissingDependencyError(f"the Zarr codec needs zarr 3, which is not installed: {INSTALL_HINT}") from None
 
@@ -112,3 +113,8 @@ class DftpccCodec(ArrayBytesCodec):
 
     def compute_encoded_size(self, input_byte_length: int, chunk_spec: ArraySpec) -> int:
         raise NotImplementedError("dftpcc chunks have a variable size")
+
+
+# As zarr does for its own codecs: importing the module is enough to read a store, even from a
+# checkout installed before its entry point existed (or unpickled in a dask worker).
+register_codec(CODEC_NAME, DftpccCodec)
