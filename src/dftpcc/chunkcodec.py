@@ -18,7 +18,7 @@ No data
     :data:`NO_DATA_MAGIC` record (magic, then rows and columns as u32 LE).
 
 Data types and the bound
-    Floats (float32, float64) decode to their own dtype within ``max_error``
+    Floats (float16 to float64) decode to their own dtype within ``max_error``
     metres: the map is coded to a slightly tighter bound (:func:`coding_bound`)
     so that rounding to the dtype cannot exceed it. Integers (int8 .. uint64)
     are coded to within ``k + 0.5`` with ``k = floor(max_error)`` and rounded
@@ -63,13 +63,15 @@ _NO_DATA = struct.Struct("<8sII")
 _ONE_AT_A_TIME = threading.Lock()
 #: Data types the codec stores: ``f`` floats, ``i``/``u`` integers of any width.
 _KINDS = "fiu"
+_FLOAT64_BYTES = 8
 
 
 def check_dtype(dtype: Any) -> np.dtype:
     """``dtype`` as a numpy dtype if the codec can store it (real floats, integers), else a clear error."""
     dt = np.dtype(dtype)
-    if dt.kind not in _KINDS:
-        raise InvalidInputError(f"dftpcc stores heights as floats or integers; got dtype {dt} "
+    # Heights are coded in float64: a wider float (longdouble) would come back rounded to it.
+    if dt.kind not in _KINDS or (dt.kind == "f" and dt.itemsize > _FLOAT64_BYTES):
+        raise InvalidInputError(f"dftpcc stores heights as floats (up to float64) or integers; got dtype {dt} "
                                 f"(cast the array to float32 or float64 first)")
     return dt
 
