@@ -34,7 +34,7 @@ bench-ratecontrol: $(STAMP)
 bench-memory: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_memory $(ARGS)
 
-# dftpcc as a Zarr chunk codec against zarr's default (zstd), LERC and SZ3 at equal maximum error (~7 min; ARGS=--quick ~20 s).
+# dftpcc as a Zarr chunk codec against zarr's default (zstd), LERC and SZ3 at equal maximum error (6-9 min on the shared 2-core box; ARGS=--quick ~15 s).
 .PHONY: bench-zarr
 bench-zarr: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_zarr $(ARGS)
