@@ -34,6 +34,11 @@ bench-ratecontrol: $(STAMP)
 bench-memory: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_memory $(ARGS)
 
+# dftpcc as a Zarr chunk codec against zarr's default (zstd), LERC and SZ3 at equal maximum error (6-9 min on the shared 2-core box; ARGS=--quick ~15 s).
+.PHONY: bench-zarr
+bench-zarr: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_zarr $(ARGS)
+
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce.py
