@@ -75,7 +75,9 @@ TILES_PER_FILE_BYTE = 64
 MAX_TILED_CELLS = 1 << 36
 #: The tile index's coding byte.
 TIDX_CODING = 1
-_TIDX_HEAD = struct.Struct("<BIH")
+_TIDX_HEAD = struct.Struct("<BIHB")
+#: Largest base-layer reach a file may state, cycles per tile.
+MAX_BASE_CYCLES = 8
 #: Sections of tile 0 a tiled file must hold, and the sections a tile holds.
 REQUIRED_TILED = (b"GEOM", b"PARM", b"STAT", b"TIDX", b"BASE")
 TILE_TAGS = (b"MASK", b"COEF", b"RESD")
@@ -142,6 +144,8 @@ class TileIndex:
     tiling : TileGrid
     overlap : int
         Cells of its neighbours a tile's transform also spans on each side.
+    base_cycles : int
+        Reach of the base layer, cycles per tile (0: none).
     cells : ndarray of int64, shape (n,)
         Rebuilt cells per tile (0: the tile has no sections).
     rmse, max_error : ndarray of float, shape (n,)
@@ -152,6 +156,7 @@ class TileIndex:
 
     tiling: TileGrid
     overlap: int
+    base_cycles: int
     cells: np.ndarray
     rmse: np.ndarray
     max_error: np.ndarray
@@ -339,7 +344,7 @@ def _pack_index(index: TileIndex) -> bytes:
               for values in (index.rmse, index.max_error)]
     body = cells.view(np.uint8).reshape(-1, 4).T.tobytes() + b"".join(e.tobytes() for e in errors)
     frame = zstandard.ZstdCompressor(level=19, write_content_size=True).compress(body)
-    return _TIDX_HEAD.pack(TIDX_CODING, index.tiling.size, index.overlap) + frame
+    return _TIDX_HEAD.pack(TIDX_CODING, index.tiling.size, index.overlap, index.base_cycles) + frame
 
 
 class Source:
@@ -1016,12 +1021,14 @@ def _unpack_index(payload: memoryview, grid: Grid, params: Params, ncells: int, 
     raw = bytes(payload)
     if len(raw) < _TIDX_HEAD.size:
         raise CorruptFileError("tile index is too short")
-    coding, size, overlap = _TIDX_HEAD.unpack_from(raw, 0)
+    coding, size, overlap, base_cycles = _TIDX_HEAD.unpack_from(raw, 0)
     if coding != TIDX_CODING:
         raise CorruptFileError(f"tile index has unknown coding {coding}")
     _check_tiled_params(params, grid, size)
     if overlap > size // 2:
         raise CorruptFileError(f"tile overlap {overlap} is more than half the tile size {size}")
+    if base_cycles > MAX_BASE_CYCLES:
+        raise CorruptFileError(f"base layer reach {base_cycles} cycles per tile is more than {MAX_BASE_CYCLES}")
     tiling = TileGrid(grid.rows, grid.cols, size)
     n = tiling.count
     if n > TILES_PER_FILE_BYTE * file_size:
@@ -1057,4 +1064,5 @@ def _unpack_index(payload: memoryview, grid: Grid, params: Params, ncells: int, 
         raise CorruptFileError("tile index holds a negative or non-finite error")
     rmse, max_error = np.full(n, np.nan), np.full(n, np.nan)
     rmse[occupied], max_error[occupied] = errors[: occupied.size], errors[occupied.size:]
-    return TileIndex(tiling=tiling, overlap=overlap, cells=cells, rmse=rmse, max_error=max_error)
+    return TileIndex(tiling=tiling, overlap=overlap, base_cycles=base_cycles, cells=cells, rmse=rmse,
+                     max_error=max_error)

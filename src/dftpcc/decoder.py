@@ -98,7 +98,8 @@ class _Base:
     def __init__(self, header: Header, blob: Any):
         assert header.tiles is not None
         params, grid = header.params, header.grid
-        self.i, self.j, radius, angle = tiles.base_order(grid.shape, header.tiles.tiling.size, params.cutoff)
+        self.i, self.j, radius, angle = tiles.base_order(grid.shape, header.tiles.tiling.size, params.cutoff,
+                                                         header.tiles.base_cycles)
         if self.i.size != header.coef_count:
             raise CorruptFileError(f"the base layer's coefficient count {header.coef_count} disagrees with the "
                                    f"grid, tile size and cutoff ({self.i.size})")

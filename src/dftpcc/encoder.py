@@ -339,7 +339,8 @@ def _pack_tiled(choice: Choice, params: Params, mask_blobs: list[bytes], point_c
         cells[c.k], rmse[c.k], max_error[c.k] = c.cells, c.rmse, c.max_error
     occupied = int(cells.sum())
     stats = _tiled_stats(dem, codes, occupied, base_blob, params)
-    index = TileIndex(tiling=an.tiling, overlap=an.overlap, cells=cells, rmse=rmse, max_error=max_error)
+    index = TileIndex(tiling=an.tiling, overlap=an.overlap, base_cycles=an.base_cycles, cells=cells, rmse=rmse,
+                      max_error=max_error)
     header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=occupied,
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.base_count(params.cutoff),
                     tiles=index)

@@ -24,27 +24,38 @@ from .fill import fill_empty, fit_plane, plane_values
 from .params import Params
 from .residual import encode_residual, residual
 
-__all__ = ["BASE_CYCLES_PER_TILE", "TILE_OVERLAP", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
+__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "base_limit", "TILE_OVERLAP", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
            "tile_grid_of", "TiledAnalysis", "TiledTrial"]
 
 #: The base layer holds the map's frequencies up to this many cycles per tile
 #: along the longer side: what a tile alone would pay for in every tile.
-BASE_CYCLES_PER_TILE = 1.0
+BASE_CYCLES_PER_TILE = 1
+#: The largest base reach a file may state (TIDX), cycles per tile.
+MAX_BASE_CYCLES = 8
 #: Cells of the neighbouring tiles a tile's transform also spans on each side.
 TILE_OVERLAP = 8
 #: The slack of spectrum's circle, so a coefficient exactly on it is kept everywhere.
 _SLACK = 1 + 1e-12
 
 
-def base_order(shape: tuple[int, int], tile: int, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                           np.ndarray]:
+def base_limit(shape: tuple[int, int], tile: int, cutoff: float, cycles: int) -> float:
+    """Largest radius of the base layer: ``cycles`` per tile along the longer side, within the cutoff's circle."""
+    return min(max(shape) / tile * cycles, spectrum.radius_limit(shape, cutoff)) * _SLACK
+
+
+def base_order(shape: tuple[int, int], tile: int, cutoff: float,
+               cycles: int = BASE_CYCLES_PER_TILE) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The base layer's coefficients: row and column frequency indices, radii and angles, in stream order.
 
-    Every (i, j) with ``hypot(i/2, j/2)`` at most one cycle per tile and inside the cutoff's
-    circle, sorted by radius (stable; ties in row-major order of (i, j)).
+    Every (i, j) with ``hypot(i/2, j/2)`` at most ``cycles`` cycles per tile and inside the
+    cutoff's circle, sorted by radius (stable; ties in row-major order of (i, j)); none when
+    ``cycles`` is 0 (a map whose tiles depend on nothing else, as a growing map needs).
     """
     rows, cols = shape
-    limit = min(max(rows, cols) / tile * BASE_CYCLES_PER_TILE, spectrum.radius_limit(shape, cutoff)) * _SLACK
+    if cycles == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, np.zeros(0), np.zeros(0)
+    limit = base_limit(shape, tile, cutoff, cycles)
     ki, kj = min(rows, int(2 * limit) + 1), min(cols, int(2 * limit) + 1)
     i, j = np.divmod(np.arange(ki * kj), kj)
     radius = np.hypot(i / 2.0, j / 2.0)
@@ -133,8 +144,10 @@ class TiledAnalysis:
         As for Analysis: whether trials may ask for any cutoff.
     """
 
-    def __init__(self, dem: DEM, params: Params, tile: int, *, searching: bool):
+    def __init__(self, dem: DEM, params: Params, tile: int, *, searching: bool,
+                 base_cycles: int = BASE_CYCLES_PER_TILE):
         self.dem, self.params, self.tile = dem, params, tile
+        self.base_cycles = base_cycles
         self.overlap = TILE_OVERLAP
         self.tiling = tile_grid_of(dem.grid, tile)
         self.mask = self.kept_cells = dem.mask
@@ -143,7 +156,8 @@ class TiledAnalysis:
         self.lay = spectrum.layout("dct", "quantized", dem.grid.shape)
         self.parseval = 1.0 / dem.grid.size
         lowest = 0.0 if searching else params.cutoff_or_default
-        self.base_i, self.base_j, self.base_radius, self.base_angle = base_order(dem.grid.shape, tile, lowest)
+        self.base_i, self.base_j, self.base_radius, self.base_angle = base_order(dem.grid.shape, tile, lowest,
+                                                                                 base_cycles)
         detrended = dem.heights - self.trend
         filled = fill_empty(detrended, dem.mask, method="smooth")
         self.base_coefs = base_coefficients(filled, self.base_i, self.base_j)
@@ -196,8 +210,7 @@ class TiledAnalysis:
     # -- what rate control asks of an analysis --------------------------------------------------
 
     def base_count(self, cutoff: float) -> int:
-        limit = min(max(self.dem.grid.shape) / self.tile * BASE_CYCLES_PER_TILE,
-                    spectrum.radius_limit(self.dem.grid.shape, cutoff)) * _SLACK
+        limit = base_limit(self.dem.grid.shape, self.tile, cutoff, self.base_cycles)
         return int(np.searchsorted(self.base_radius, limit, side="right"))
 
     def counts(self, cutoff: float) -> list[int]:
