@@ -212,7 +212,17 @@ def cmd_compress(args: argparse.Namespace) -> int:
 
 
 def cmd_decompress(args: argparse.Namespace) -> int:
-    from .files import decompress_file
+    from .files import decompress_bands, decompress_file, wants_bands
+
+    if wants_bands(args.input, args.output, format=args.format, cog=args.cog, bbox=args.bbox,
+                   cutoff=args.cutoff, max_bytes=args.max_bytes):
+        # A tiled map larger than memory, or a COG: one band of tile rows at a time.
+        with _progress(not args.quiet, ("decode",), verbose=args.verbose) as on_stage:
+            count = decompress_bands(args.input, args.output, format=args.format, cog=args.cog, force=args.force,
+                                     max_cells=args.max_cells, workers=args.workers, scheduler=args.scheduler,
+                                     on_stage=on_stage)
+        _say(args, f"{args.output}: {count:,} points, written band by band")
+        return 0
     from .io.rosmap import is_bag_output
 
     if is_bag_output(args.output, args.format):
@@ -582,6 +592,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output file")
     p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
     p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
+    p.add_argument("--cog", action="store_true",
+                   help="write the DEM as a Cloud Optimized GeoTIFF (.tif), band by band")
     p.add_argument("--bbox", type=_bbox, metavar="XMIN,YMIN,XMAX,YMAX",
                    help="only this region, in the map's units and CRS (of a tiled map, only its tiles are read)")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",

@@ -47,6 +47,7 @@ __all__ = [
     "Source",
     "pack",
     "pack_tiled",
+    "tiled_head",
     "unpack",
     "unpack_source",
     "read_tile",
@@ -305,10 +306,24 @@ def pack_tiled(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, b
 
 
 def tiled_parts(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, bytes, bytes]]) -> list[bytes]:
-    """:func:`pack_tiled`'s bytes in pieces: the head (preamble, table, tile 0), then each payload.
+    """:func:`pack_tiled`'s bytes in pieces: the head (preamble, table, tile 0), then each payload."""
+    entries, payloads = [], []
+    for k, mask_blob, coef_blob, resid_blob in tiles:
+        for tag, blob in ((b"MASK", mask_blob), (b"COEF", coef_blob), (b"RESD", resid_blob)):
+            if tag == b"RESD" and not blob:
+                continue
+            entries.append((k, tag, len(blob), zlib.crc32(blob)))
+            payloads.append(blob)
+    return [tiled_head(header, base_blob, entries)] + payloads
 
-    Every check runs before anything is returned, so a caller that writes
-    the pieces as they come writes a file a reader accepts or nothing.
+
+def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes, int, int]]) -> bytes:
+    """The start of a tiled file: preamble, section table and tile 0's payloads, for tile sections
+    ``(k, tag, length, crc)`` whose payloads follow it in that order.
+
+    Every check runs here, before anything is written, so a writer that streams the tiles'
+    payloads after this head writes a file a reader accepts or nothing (a map coded band by band
+    keeps its payloads aside until the table is known).
     """
     check_header(header)
     index = header.tiles
@@ -316,25 +331,18 @@ def tiled_parts(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, 
         raise ValueError("a tiled header needs its tile index")
     with _as_writer():
         _check_tiled_params(header.params, header.grid, index.tiling.size)
-        occupied = [k for k, *_ in tiles]
-        if occupied != sorted(set(occupied)) or occupied != [int(k) for k in np.flatnonzero(index.cells)]:
+        occupied = sorted({k for k, *_ in entries})
+        if occupied != [int(k) for k in np.flatnonzero(index.cells)]:
             raise CorruptFileError("the tiles written are not the occupied tiles of the index")
         if int(index.cells.sum()) != header.cell_count:
             raise CorruptFileError("tile cells do not add up to the map's")
     sections = _map_sections(header) + [(b"TIDX", _pack_index(index)), (b"BASE", base_blob)]
-    entries = [(tag, 0, len(p), zlib.crc32(p)) for tag, p in sections]
-    payloads = [p for _, p in sections]
-    for k, mask_blob, coef_blob, resid_blob in tiles:
-        for tag, blob in ((b"MASK", mask_blob), (b"COEF", coef_blob), (b"RESD", resid_blob)):
-            if tag == b"RESD" and not blob:
-                continue
-            entries.append((tag, k + 1, len(blob), zlib.crc32(blob)))
-            payloads.append(blob)
-    if len(entries) > MAX_SECTIONS_TILED:
-        raise InvalidInputError(f"cannot write this map: {len(entries):,} sections, more than the "
+    table = [(tag, 0, len(p), zlib.crc32(p)) for tag, p in sections]
+    table += [(tag, k + 1, length, crc) for k, tag, length, crc in entries]
+    if len(table) > MAX_SECTIONS_TILED:
+        raise InvalidInputError(f"cannot write this map: {len(table):,} sections, more than the "
                                 f"{MAX_SECTIONS_TILED:,} a tiled file holds; choose a larger tile size")
-    head = _head(entries, VERSION_TILED)
-    return [head + b"".join(payloads[: len(sections)])] + payloads[len(sections):]
+    return _head(table, VERSION_TILED) + b"".join(p for _, p in sections)
 
 
 def _pack_index(index: TileIndex) -> bytes:

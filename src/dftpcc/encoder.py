@@ -26,7 +26,7 @@ from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
 from .tiles import TileCode, TiledAnalysis, code_tile
 
-__all__ = ["compress", "encode_dem", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
+__all__ = ["compress", "encode_dem", "choose_for_tiles", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
            "QUANT_FLOOR_FRACTION"]
 
 #: With an automatic step, quantization may add this fraction of the
@@ -199,6 +199,36 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         # statistics' digits to change with the next candidate.
         overhead = len(data) - choice.size + STATS_SLACK
     raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be met with these settings")
+
+
+def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | None = None,
+                     base_cycles: int = 1) -> tuple[Params, float | None]:
+    """The cutoff, step and refill step a tiled map of ``dem`` is coded with (what
+    :func:`encode_dem` chooses), for a caller that codes the tiles itself, e.g. a map
+    larger than memory whose parameters are chosen on a part of it.
+
+    Returns ``params`` with ``cutoff`` and ``step`` set, and the refill step (None: smooth fill).
+    A size target (``target_bpp``) needs the whole map and is refused.
+    """
+    if params.target_bpp > 0:
+        raise InvalidInputError("a size target (target_bpp) needs the whole map in memory; give a target_rmse, "
+                                "a target_max_error, or a cutoff and step")
+    params = params.replace(resolution=dem.grid.resolution, tile_size=tile)
+    _check_tiled(params)
+    an = TiledAnalysis(dem, params, tile, searching=params.has_target and params.cutoff is None,
+                       base_cycles=base_cycles)
+    if not params.has_target:
+        cutoff, step = params.cutoff_or_default, params.step
+        if step == 0.0:
+            target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
+            step = coding.choose_step(_kept(an, cutoff), target_rmse=target, n_cells=dem.grid.size,
+                                      deadzone=params.deadzone)
+        return params.replace(cutoff=cutoff, step=coding.short_step(step)), None
+    if params.target_max_error > 0:
+        _check_max_error(an, params.target_max_error)
+    count = int(dem.mask.sum()) if point_count is None else point_count
+    choice = ratecontrol.choose(an, params, count, HEADER_ESTIMATE)
+    return params.replace(cutoff=choice.trial.cutoff, step=choice.trial.step), choice.analysis.refill_step
 
 
 def _length(mask_blob: bytes | list[bytes]) -> int:

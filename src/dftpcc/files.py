@@ -17,6 +17,7 @@ from typing import IO, Any, Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from . import io
+from . import stream
 from .cluster import check_executor, executor
 from .container import unpack
 from .dem import DEM
@@ -27,7 +28,7 @@ from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, check_output, format
 from .limits import MAX_CELLS, holds_in_memory
 from .mapfile import CompressedMap
 from .mapfile import open as open_map
-from .params import Params
+from .params import Params, tile_size_for
 from .rebuild import dem_to_points
 
 __all__ = ["compress_file", "decompress_file", "read_dem", "check_compressed_output", "dem_from_geotiff", "reads_in_chunks", "stored_point_count"]
@@ -165,6 +166,11 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
     check_compressed_output(dst, force=force)
     check_executor(workers, scheduler)
     on_stage("read")
+    if not _is_stream(src) and streams_raster(src, params, format):
+        # Larger than memory: coded band of tile rows by band, straight into the file.
+        with executor(workers, scheduler) as map_tiles:
+            stream.compress_raster(src, dst, params, map_tiles=map_tiles, on_stage=on_stage, write=atomic_write)
+        return open_map(dst)
     with _as_path(src, format) as path:
         dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic,
                                    drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage)
@@ -177,6 +183,65 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
     else:
         atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
     return open_map(data, max_cells=_trusted(data))
+
+
+def streams_raster(src: str | os.PathLike[str], params: Params, format: str | None = None) -> bool:  # noqa: A002
+    """Whether :func:`compress_file` codes ``src`` band by band: a GeoTIFF on its own grid of more
+    than :data:`~dftpcc.stream.STREAM_CELLS` cells, in tiles."""
+    if params.resolution != "auto" or format_of(src, format) not in ("tif", "tiff") or not Path(src).is_file():
+        return False
+    import rasterio
+
+    try:
+        with rasterio.open(src) as ds:
+            shape = (ds.height, ds.width)
+    except Exception:  # noqa: BLE001 - the reader says what is wrong, on the in-memory path
+        return False
+    return shape[0] * shape[1] > stream.STREAM_CELLS and tile_size_for(params, shape) > 0
+
+
+def wants_bands(src: Any, dst: Any, *, format: str | None = None, cog: bool = False,  # noqa: A002
+                bbox: Any = None, cutoff: float | None = None, max_bytes: int | None = None) -> bool:
+    """Whether a decode of ``src`` into ``dst`` goes band by band (:func:`decompress_bands`): a COG, or a
+    tiled map of more than :data:`~dftpcc.stream.STREAM_CELLS` cells written whole to GeoTIFF, LAS or LAZ."""
+    if cog:
+        return True
+    if _is_stream(src) or _is_stream(dst) or bbox is not None or cutoff is not None or max_bytes is not None:
+        return False
+    if format_of(dst, format) not in stream.STREAM_FORMATS or not Path(src).is_file():
+        return False
+    try:
+        with open_map(src) as cmap:
+            return cmap.tiled and cmap.grid.size > stream.STREAM_CELLS
+    except Exception:  # noqa: BLE001 - decompress_file reports what is wrong with the file
+        return False
+
+
+def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
+                     cog: bool = False, force: bool = False, max_cells: int | None = None,
+                     workers: int | None = None, scheduler: str | None = None,
+                     on_stage: Stage = no_stage) -> int:
+    """Decode the tiled map ``src`` one band of tile rows at a time into ``dst``: a GeoTIFF (a
+    Cloud Optimized GeoTIFF with ``cog``), LAS or LAZ. Memory holds one band, never the map.
+
+    Returns
+    -------
+    int
+        Points (valid cells) written.
+    """
+    fmt = format_of(dst, format)
+    if fmt not in stream.STREAM_FORMATS:
+        raise InvalidInputError(f"{dst}: band-by-band decoding writes GeoTIFF, LAS or LAZ, not {fmt}")
+    if cog and fmt not in ("tif", "tiff"):
+        raise InvalidInputError(f"{dst}: a Cloud Optimized GeoTIFF is a .tif")
+    check_output(dst, force=force)
+    check_executor(workers, scheduler)
+    with open_map(src, max_cells=max_cells) as cmap:
+        if not cmap.tiled:
+            raise InvalidInputError(f"{src}: an untiled map decodes whole; band-by-band decoding needs a tiled map")
+        with executor(workers, scheduler) as map_tiles:
+            return stream.decompress_bands(cmap, dst, fmt, cog=cog, map_tiles=map_tiles, on_stage=on_stage,
+                                           write=atomic_write)
 
 
 def read_dem(src: str | os.PathLike[str], params: Params, *, format: str | None = None,  # noqa: A002

@@ -133,6 +133,19 @@ class CompressedMap:
             dem = DEM(grid=dem.grid, heights=dem.heights, mask=dem.mask & _centres_inside(dem.grid, bbox))
         return dem
 
+    def read_window(self, rows: tuple[int, int], cols: tuple[int, int], *,
+                    map_tiles: Callable[..., list] | None = None) -> DEM:
+        """The DEM of the cells ``rows`` x ``cols`` (``(start, stop)`` cell ranges) of a tiled map,
+        decoding only its tiles (a map larger than memory is decoded band by band so)."""
+        if self.header.tiles is None:
+            raise InvalidInputError("read_window reads a tiled map; read an untiled one whole (read_dem)")
+        g = self.grid
+        if not (0 <= rows[0] < rows[1] <= g.rows and 0 <= cols[0] < cols[1] <= g.cols):
+            raise InvalidInputError(f"window rows {rows}, cols {cols} is not inside the {g.rows} x {g.cols} grid")
+        self._check_budget(rows, cols)
+        return decode_tiled(self.header, self._blobs[b"BASE"], lambda k: read_tile(self._source, self.header, k),
+                            rows=rows, cols=cols, map_tiles=map_tiles)
+
     def read_points(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None) -> np.ndarray:
         """The rebuilt cloud, shape (cells, 3), float64, original frame (metres); ``bbox`` as for :meth:`read_dem`."""
         return dem_to_points(self.read_dem(cutoff=cutoff, bbox=bbox))

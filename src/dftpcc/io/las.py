@@ -66,12 +66,9 @@ def las_crs(records: Sequence[Any]) -> dict[str, Any]:
     return {"wkt": wkt, "las_vlrs": vlrs} if vlrs else {}
 
 
-def write_las(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
-    """Write ``points`` (metres) as LAS, or LAZ when ``fmt`` is ``laz``, at :data:`LAS_SCALE` metres.
-
-    The CRS's LAS records go back as they came; a WKT alone makes a LAS 1.4
-    file (point format 6, which requires WKT); GeoTIFF keys a LAS 1.2 file.
-    """
+def las_header(crs: dict[str, Any], offsets: np.ndarray) -> laspy.LasHeader:
+    """The header dftpcc writes: the CRS's LAS records as they came (a WKT alone makes LAS 1.4,
+    point format 6, which requires WKT; GeoTIFF keys LAS 1.2), :data:`LAS_SCALE` metres, ``offsets``."""
     vlrs = [VLR(user_id=_LAS_CRS_USER, record_id=v["record_id"], description=v.get("description", ""),
                 record_data=base64.b64decode(v["data"])) for v in crs.get("las_vlrs", [])]
     has_wkt = any(v.record_id == _WKT_RECORD for v in vlrs)
@@ -85,7 +82,17 @@ def write_las(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> N
         header.global_encoding.wkt = True
     header.vlrs.extend(vlrs)
     header.scales = np.array([LAS_SCALE] * 3)
-    header.offsets = np.floor(points.min(axis=0)) if points.size else np.zeros(3)
+    header.offsets = np.asarray(offsets, dtype=float)
+    return header
+
+
+def write_las(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
+    """Write ``points`` (metres) as LAS, or LAZ when ``fmt`` is ``laz``, at :data:`LAS_SCALE` metres.
+
+    The CRS's LAS records go back as they came; a WKT alone makes a LAS 1.4
+    file (point format 6, which requires WKT); GeoTIFF keys a LAS 1.2 file.
+    """
+    header = las_header(crs, np.floor(points.min(axis=0)) if points.size else np.zeros(3))
     las = laspy.LasData(header)
     las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
     las.classification = np.full(points.shape[0], GROUND, dtype=np.uint8)

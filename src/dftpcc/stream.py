@@ -1,0 +1,398 @@
+"""Maps larger than memory: a GeoTIFF DEM coded one band of tile rows at a time, and a tiled map
+decoded band by band into a GeoTIFF (or a Cloud Optimized GeoTIFF) or LAS/LAZ.
+
+:func:`compress_raster` reads the raster through rasterio windows twice: once for the
+reference height, the plane and a decimated copy (from which the base layer's coefficients
+come: they hold at most a cycle per tile), once to code the tiles band by band with
+:func:`dftpcc.tiles.code_tile`. The cutoff and step are chosen on a block of tiles from the
+map's middle (:func:`dftpcc.encoder.choose_for_tiles`) and checked on the whole map at the end.
+Memory holds one band of tile rows (plus overlap), never the map.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+import zlib
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from . import coding
+from .container import Header, TileIndex, tiled_head
+from .dem import DEM, Grid, TileGrid
+from .encoder import Stage, check_heights, choose_for_tiles, no_stage
+from .errors import InvalidInputError
+from .fill import fill_empty
+from .params import Params, tile_size_for
+from .rebuild import dem_to_points
+from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_heights, base_limit, base_order,
+                    code_tile, coded_window)
+
+__all__ = ["compress_raster", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
+
+#: A GeoTIFF of more cells than this is coded band by band (and a tiled map of more is decoded so).
+STREAM_CELLS = 16_000_000
+#: Rate control chooses the cutoff and step on this many tiles a side from the map's middle.
+SAMPLE_TILES = 2
+#: Samples a tile side of the decimated copy the base layer is computed from.
+SAMPLES_PER_TILE = 16
+#: Attempts at an RMSE target before giving up: a step chosen on part of the map may miss on all of it.
+RMSE_ATTEMPTS = 2
+#: Output formats written band by band.
+STREAM_FORMATS = ("tif", "tiff", "las", "laz")
+
+Map = Callable[..., list]
+
+
+class _Raster:
+    """A north-up GeoTIFF read by grid rows (row 0 south, as dftpcc's grids)."""
+
+    def __init__(self, path: str | os.PathLike[str]):
+        import rasterio
+
+        try:
+            self.ds = rasterio.open(path)
+        except Exception as exc:  # noqa: BLE001 - GDAL's own errors on a bad file
+            raise InvalidInputError(f"{path}: cannot read as a GeoTIFF DEM: {exc}") from None
+        t = self.ds.transform
+        if t.b != 0 or t.d != 0 or t.a <= 0:
+            self.ds.close()
+            raise InvalidInputError(f"{path}: pixels are rotated or flipped; give a --resolution to grid its points")
+        self.path, self.t = path, t
+        self.rows, self.cols = self.ds.height, self.ds.width
+        self.flipped = t.e < 0
+        self.crs = {"wkt": self.ds.crs.to_wkt()} if self.ds.crs else {}
+
+    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Heights (float64, NaN where empty) and validity of grid rows [r0, r1) and columns [c0, c1)."""
+        from rasterio.windows import Window
+
+        c1 = self.cols if c1 is None else c1
+        f0 = self.rows - r1 if self.flipped else r0
+        band = self.ds.read(1, window=Window(c0, f0, c1 - c0, r1 - r0), masked=True)
+        heights = np.asarray(band.astype(np.float64).filled(np.nan))
+        valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
+        if self.flipped:
+            heights, valid = heights[::-1], valid[::-1]
+        return heights, valid
+
+    def grid(self, z0: float) -> Grid:
+        t = self.t
+        y0 = t.f + t.e * self.rows if self.flipped else t.f
+        res_y = abs(t.e) if abs(abs(t.e) - t.a) > 1e-9 * t.a else None
+        return Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=self.rows, cols=self.cols, resolution_y=res_y)
+
+    def close(self) -> None:
+        self.ds.close()
+
+
+def _bands(rows: int, tile: int) -> Iterator[tuple[int, int]]:
+    for start in range(0, rows, tile):
+        yield start, min(rows, start + tile)
+
+
+def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
+    """First pass: the reference height, the plane, the height range and a decimated copy."""
+    d = max(1, tile // SAMPLES_PER_TILE)
+    rb, cb = -(-raster.rows // d), -(-raster.cols // d)
+    sums, counts = np.zeros((rb, cb)), np.zeros((rb, cb))
+    moments = np.zeros(9)  # n, z, x, y, xx, xy, yy, xz, yz (z about the first band's mean)
+    ref, lowest, highest = None, math.inf, -math.inf
+    on_stage("read")
+    for r0, r1 in _bands(raster.rows, tile):
+        on_stage("read", r0 / raster.rows)
+        h, m = raster.read(r0, r1)
+        if not m.any():
+            continue
+        rows, cols = np.nonzero(m)
+        z = h[rows, cols]
+        ref = float(z.mean()) if ref is None else ref
+        lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
+        z = z - ref
+        x, y = cols.astype(float), (rows + r0).astype(float)
+        moments += [z.size, z.sum(), x.sum(), y.sum(), x @ x, x @ y, y @ y, x @ z, y @ z]
+        np.add.at(sums, ((rows + r0) // d, cols // d), z)
+        np.add.at(counts, ((rows + r0) // d, cols // d), 1.0)
+    if ref is None:
+        raise InvalidInputError(f"{raster.path}: every pixel is nodata")
+    check_heights(lowest, highest)
+    n, sz, sx, sy, sxx, sxy, syy, sxz, syz = moments
+    z0 = ref + sz / n
+    # The plane a + b*col + c*row through the heights about z0 (normal equations, centred).
+    mx, my, mz = sx / n, sy / n, sz / n
+    cov = np.array([[sxx / n - mx * mx, sxy / n - mx * my], [sxy / n - mx * my, syy / n - my * my]])
+    rhs = np.array([sxz / n - mx * mz, syz / n - my * mz])
+    try:
+        b, c = np.linalg.solve(cov, rhs)
+    except np.linalg.LinAlgError:
+        b, c = np.linalg.lstsq(cov, rhs, rcond=None)[0]
+    a = float(mz - b * mx - c * my) - (z0 - ref)
+    return {"z0": z0, "plane": (a, float(b), float(c)), "block": d, "sums": sums, "counts": counts,
+            "ref": ref, "cells": int(n)}
+
+
+def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int, cycles: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The base layer's coefficients (exact, unquantized) from the decimated copy."""
+    i, j, radius, angle = base_order(shape, tile, 0.0, cycles)
+    if i.size == 0:
+        return i, j, radius, angle, np.zeros(0)
+    d, sums, counts = survey["block"], survey["sums"], survey["counts"]
+    mask = counts > 0
+    a, b, c = survey["plane"]
+    rb, cb = sums.shape
+    # Block means about z0 minus the plane at the block's mean position (the plane is linear).
+    rows_c = (np.arange(rb) * d + (np.minimum(np.arange(rb) * d + d, shape[0]) - 1)) / 2.0
+    cols_c = (np.arange(cb) * d + (np.minimum(np.arange(cb) * d + d, shape[1]) - 1)) / 2.0
+    means = np.where(mask, sums / np.maximum(counts, 1) + survey["ref"] - survey["z0"], 0.0)
+    means -= np.where(mask, a + b * cols_c[None, :] + c * rows_c[:, None], 0.0)
+    filled = fill_empty(means, mask, method="smooth")
+    ki, kj = int(i.max()) + 1, int(j.max()) + 1
+    # Each block stands for its cells: the basis summed over them.
+    br = np.add.reduceat(base_basis(shape[0], ki, 0, shape[0]), np.arange(0, shape[0], d), axis=0)
+    bc = np.add.reduceat(base_basis(shape[1], kj, 0, shape[1]), np.arange(0, shape[1], d), axis=0)
+    return i, j, radius, angle, (br.T @ filled @ bc)[i, j]
+
+
+def _sample(raster: _Raster, grid: Grid, tile: int) -> DEM:
+    """A block of :data:`SAMPLE_TILES` x :data:`SAMPLE_TILES` tiles from the map's middle, in memory."""
+    tiling = TileGrid(grid.rows, grid.cols, tile)
+
+    def span(count: int, size: int) -> tuple[int, int]:
+        n = min(SAMPLE_TILES, -(-size // tile))
+        first = max(0, count // 2 - n // 2)
+        return first * tile, min(size, (first + n) * tile)
+
+    r0, r1 = span(tiling.tile_rows, grid.rows)
+    c0, c1 = span(tiling.tile_cols, grid.cols)
+    h, m = raster.read(r0, r1, c0, c1)
+    if not m.any():  # an empty middle: the first band of tiles that has data
+        for r0, r1 in _bands(grid.rows, tile * SAMPLE_TILES):
+            h, m = raster.read(r0, r1, 0, min(grid.cols, tile * SAMPLE_TILES * 4))
+            c0, c1 = 0, h.shape[1]
+            if m.any():
+                break
+    return DEM(grid=grid.window(r0, c0, h.shape[0], h.shape[1]),
+               heights=np.where(m, h - grid.z0, 0.0), mask=m, gridding_rmse=0.0)
+
+
+def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], params: Params, *,
+                    map_tiles: Map | None = None, on_stage: Stage = no_stage,
+                    write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> None:
+    """Code the GeoTIFF DEM ``src`` as a tiled map ``dst``, one band of tile rows at a time.
+
+    Parameters
+    ----------
+    params : Params
+        A target RMSE or maximum error, or a cutoff and step (automatic
+        when 0); ``target_bpp`` needs the whole map and is refused.
+    map_tiles : callable, optional
+        Where the tiles are coded (:func:`dftpcc.cluster.executor`).
+    write : callable
+        ``write(dst, fill)`` creates ``dst`` atomically, ``fill(tmp_path)`` writing its bytes
+        (:func:`dftpcc.io.atomic_write`).
+
+    Raises
+    ------
+    InvalidInputError
+        A raster that is not a north-up DEM, no valid pixel, heights out of range, a size target,
+        or an RMSE target missed on the whole map after :data:`RMSE_ATTEMPTS` steps chosen on part of it.
+    """
+    run = map_tiles or (lambda func, items, *args: [func(item, *args) for item in items])
+    raster = _Raster(src)
+    try:
+        tile = tile_size_for(params, (raster.rows, raster.cols))
+        if not tile:
+            raise InvalidInputError(f"{src}: a {raster.rows} x {raster.cols} raster fits one tile: code it in memory")
+        survey = _survey(raster, tile, on_stage)
+        grid = raster.grid(survey["z0"])
+        cycles = BASE_CYCLES_PER_TILE
+        bi, bj, bradius, bangle, bcoefs = _base_coefficients(survey, grid.shape, tile, cycles)
+        on_stage("rate control")
+        chosen, refill = choose_for_tiles(_sample(raster, grid, tile), params, tile, base_cycles=cycles)
+        chosen = chosen.replace(resolution=grid.resolution)
+        for attempt in range(RMSE_ATTEMPTS):
+            spool, index, stats, nb, base_blob = _code_bands(raster, grid, chosen, refill, tile, survey,
+                                                             (bi, bj, bradius, bangle, bcoefs), run, on_stage)
+            if params.target_rmse <= 0 or stats["dem_rmse_m"] <= params.target_rmse:
+                break
+            spool.close()
+            if attempt + 1 == RMSE_ATTEMPTS:
+                raise InvalidInputError(
+                    f"target RMSE {params.target_rmse:g} m was missed on the whole map ({stats['dem_rmse_m']:.4g} m "
+                    f"with the step chosen on its middle); give a smaller target or a --step")
+            # The error grows about linearly with the step: aim a little inside the target.
+            chosen = chosen.replace(step=coding.short_step(chosen.step * 0.97 * params.target_rmse
+                                                           / stats["dem_rmse_m"]))
+        header = Header(grid=grid, params=chosen, point_count=survey["cells"], cell_count=int(index.cells.sum()),
+                        plane=survey["plane"], crs=raster.crs, stats=stats, coef_count=nb, tiles=index)
+        head = tiled_head(header, base_blob, spool.entries)
+
+        def fill(tmp: Path) -> None:
+            with open(tmp, "wb") as out:
+                out.write(head)
+                spool.file.seek(0)
+                shutil.copyfileobj(spool.file, out, 1 << 20)
+
+        on_stage("write")
+        try:
+            write(dst, fill)
+        finally:
+            spool.close()
+    finally:
+        raster.close()
+
+
+class _Spool:
+    """The tiles' payloads, kept in a temporary file until the section table is known."""
+
+    def __init__(self) -> None:
+        self.file = tempfile.TemporaryFile(prefix="dftpcc-tiles-")
+        self.entries: list[tuple[int, bytes, int, int]] = []
+
+    def add(self, k: int, tag: bytes, blob: bytes) -> None:
+        self.file.write(blob)
+        self.entries.append((k, tag, len(blob), zlib.crc32(blob)))
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def _code_bands(raster: _Raster, grid: Grid, params: Params, refill: float | None, tile: int,
+                survey: dict[str, Any], base: tuple, run: Map, on_stage: Stage):
+    """Second pass: every band of tile rows read (with its overlap), its tiles coded and spooled."""
+    bi, bj, bradius, bangle, bcoefs = base
+    nb = int(np.searchsorted(bradius, base_limit(grid.shape, tile, params.cutoff, BASE_CYCLES_PER_TILE),
+                             side="right")) if bi.size else 0
+    q = coding.quantize(bcoefs[:nb], params.step, params.deadzone)
+    base_blob = coding.encode_coefficients(q, radius=bradius[:nb], angle=bangle[:nb], coder=params.coder)
+    decoded = coding.dequantize(q, params.step)
+    tiling = TileGrid(grid.rows, grid.cols, tile)
+    a, b, c = survey["plane"]
+    n = tiling.count
+    cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
+    spool = _Spool()
+    squared, worst = 0.0, 0.0
+    mask_bytes = coef_bytes = resid_bytes = 0
+    on_stage("encode")
+    for band, (r0, r1) in enumerate(_bands(grid.rows, tile)):
+        on_stage("encode", r0 / grid.rows)
+        w0, w1 = max(0, r0 - TILE_OVERLAP), min(grid.rows, r1 + TILE_OVERLAP)
+        h, m = raster.read(w0, w1)
+        rows = np.arange(w0, w1, dtype=float)[:, None]
+        cols = np.arange(grid.cols, dtype=float)[None, :]
+        exact = base_heights(bcoefs[:nb], bi[:nb], bj[:nb], grid.shape, (w0, w1), (0, grid.cols))
+        rest = np.where(m, h - grid.z0, 0.0) - (a + b * cols + c * rows) - exact
+        error = base_heights(decoded, bi[:nb], bj[:nb], grid.shape, (r0, r1), (0, grid.cols)) - exact[r0 - w0:r1 - w0]
+        del exact, h
+        jobs = []
+        for k in range(band * tiling.tile_cols, (band + 1) * tiling.tile_cols):
+            t0, t1, c0, c1 = tiling.bounds(k)
+            if not m[t0 - w0:t1 - w0, c0:c1].any():
+                continue
+            _, _, v0, v1 = coded_window(tiling, k, TILE_OVERLAP)
+            jobs.append(TileJob(k, rest[:, v0:v1], m[:, v0:v1], (t0 - w0, t1 - w0, c0 - v0, c1 - v0),
+                                error[:, c0:c1]))
+        for code in run(code_tile, jobs, params, refill):
+            spool.add(code.k, b"MASK", code.mask)
+            spool.add(code.k, b"COEF", code.coef)
+            if code.resid:
+                spool.add(code.k, b"RESD", code.resid)
+            cells[code.k], rmse[code.k], max_error[code.k] = code.cells, code.rmse, code.max_error
+            squared += code.squared_error
+            worst = max(worst, code.max_error)
+            mask_bytes, coef_bytes, resid_bytes = (mask_bytes + len(code.mask), coef_bytes + len(code.coef),
+                                                   resid_bytes + len(code.resid))
+    total = int(cells.sum())
+    stats = {"dem_rmse_m": math.sqrt(squared / total), "dem_max_error_m": worst, "gridding_rmse_m": 0.0,
+             "mask_bytes": mask_bytes, "coef_bytes": coef_bytes + len(base_blob), "residual_bytes": resid_bytes}
+    index = TileIndex(tiling=tiling, overlap=TILE_OVERLAP, base_cycles=BASE_CYCLES_PER_TILE, cells=cells, rmse=rmse,
+                      max_error=max_error)
+    return spool, index, stats, nb, base_blob
+
+
+def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: bool = False,
+                     map_tiles: Map | None = None, on_stage: Stage = no_stage,
+                     write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> int:
+    """Decode the tiled map ``cmap`` band of tile rows by band into ``dst`` (GeoTIFF, COG, LAS or LAZ).
+
+    Memory holds one band of tile rows. Returns the points (valid cells) written.
+    """
+    if fmt not in STREAM_FORMATS:
+        raise InvalidInputError(f"band-by-band decoding writes {', '.join(STREAM_FORMATS)}, not {fmt}")
+    tiling = cmap.header.tiles.tiling
+    grid = cmap.grid
+    written = 0
+
+    def bands() -> Iterator[tuple[int, DEM]]:
+        for r0, r1 in _bands(grid.rows, tiling.size):
+            on_stage("decode", r0 / grid.rows)
+            yield r0, cmap.read_window((r0, r1), (0, grid.cols), map_tiles=map_tiles)
+
+    def fill(tmp: Path) -> None:
+        nonlocal written
+        if fmt in ("tif", "tiff"):
+            written = _write_raster_bands(tmp, grid, cmap.crs, bands(), cog=cog)
+        else:
+            written = _write_las_bands(tmp, grid, cmap.crs, bands(), fmt)
+
+    write(dst, fill)
+    return written
+
+
+def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], bands: Iterator[tuple[int, DEM]], *,
+                        cog: bool) -> int:
+    import rasterio
+    import rasterio.shutil
+    from rasterio.transform import Affine
+    from rasterio.windows import Window
+
+    from .io.geotiff import GEOTIFF_CREATION
+
+    if grid.angle != 0.0:
+        raise InvalidInputError("a rotated grid (frame 'oriented') is written as points, not as a GeoTIFF")
+    r, dy = grid.resolution, grid.dy
+    transform = Affine(r, 0.0, grid.x0, 0.0, -dy, grid.y0 + grid.rows * dy)
+    target = path.with_suffix(".strips.tif") if cog else path
+    count = 0
+    with rasterio.open(target, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1, dtype="float32",
+                       nodata=float("nan"), transform=transform, crs=crs.get("wkt") or None, BIGTIFF="IF_SAFER",
+                       **GEOTIFF_CREATION) as out:
+        for r0, dem in bands:
+            values = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
+            count += int(dem.mask.sum())
+            out.write(values, 1, window=Window(0, grid.rows - r0 - values.shape[0], grid.cols, values.shape[0]))
+    if cog:
+        try:
+            rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR="3", BIGTIFF="IF_SAFER")
+        finally:
+            target.unlink(missing_ok=True)
+    return count
+
+
+def _write_las_bands(path: Path, grid: Grid, crs: dict[str, Any], bands: Iterator[tuple[int, DEM]],
+                     fmt: str) -> int:
+    import laspy
+
+    from .io.las import GROUND, las_header
+
+    corners_x = [grid.x0, grid.x0 + grid.cols * grid.resolution]
+    corners_y = [grid.y0, grid.y0 + grid.rows * grid.dy]
+    header = las_header(crs, np.floor([min(corners_x), min(corners_y), grid.z0]))
+    count = 0
+    with open(path, "wb") as fh, laspy.open(fh, mode="w", header=header, do_compress=(fmt == "laz"),
+                                           closefd=False) as writer:
+        for _, dem in bands:
+            points = dem_to_points(dem)
+            if not points.size:
+                continue
+            record = laspy.ScaleAwarePointRecord.zeros(points.shape[0], header=header)
+            record.x, record.y, record.z = points[:, 0], points[:, 1], points[:, 2]
+            record.classification = np.full(points.shape[0], GROUND, dtype=np.uint8)
+            writer.write_points(record)
+            count += points.shape[0]
+    return count
