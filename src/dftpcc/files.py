@@ -175,6 +175,11 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic,
                                    drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage)
     with executor(workers, scheduler) as map_tiles:
+        if not _is_stream(dst) and dem.grid.size > stream.STREAM_CELLS and tile_size_for(params, dem.grid.shape):
+            # A large grid: its tiles coded band by band, memory holding the grid and one band.
+            stream.compress_gridded(dem, dst, params, point_count=count, crs=crs, map_tiles=map_tiles,
+                                    on_stage=on_stage, write=atomic_write)
+            return open_map(dst)
         data = encode_dem(dem, params, point_count=count, crs=crs, on_stage=on_stage, map_tiles=map_tiles)
     on_stage("write")
     if _is_stream(dst):

@@ -32,7 +32,7 @@ from .rebuild import dem_to_points
 from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_heights, base_limit, base_order,
                     code_tile, coded_window)
 
-__all__ = ["compress_raster", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
+__all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
 
 #: A GeoTIFF of more cells than this is coded band by band (and a tiled map of more is decoded so).
 STREAM_CELLS = 16_000_000
@@ -41,7 +41,9 @@ SAMPLE_TILES = 2
 #: Samples a tile side of the decimated copy the base layer is computed from.
 SAMPLES_PER_TILE = 16
 #: Attempts at an RMSE target before giving up: a step chosen on part of the map may miss on all of it.
-RMSE_ATTEMPTS = 2
+RMSE_ATTEMPTS = 3
+#: The middle block's RMSE target, as a fraction of the map's: room for the rest of the map to differ.
+SAMPLE_RMSE_MARGIN = 0.95
 #: Output formats written band by band.
 STREAM_FORMATS = ("tif", "tiff", "las", "laz")
 
@@ -66,6 +68,10 @@ class _Raster:
         self.rows, self.cols = self.ds.height, self.ds.width
         self.flipped = t.e < 0
         self.crs = {"wkt": self.ds.crs.to_wkt()} if self.ds.crs else {}
+        self.point_count: int | None = None  # the valid pixels, counted on the first pass
+
+    def counts(self, r0: int, r1: int) -> None:
+        return None
 
     def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Heights (float64, NaN where empty) and validity of grid rows [r0, r1) and columns [c0, c1)."""
@@ -88,6 +94,31 @@ class _Raster:
 
     def close(self) -> None:
         self.ds.close()
+
+
+class _Grid:
+    """An already gridded map (a point cloud read in chunks) read by rows like a raster."""
+
+    def __init__(self, dem: DEM, point_count: int, crs: dict[str, Any], name: str):
+        self.dem, self.path, self.crs = dem, name, crs
+        self.rows, self.cols = dem.grid.shape
+        self.point_count = point_count
+
+    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        c1 = self.cols if c1 is None else c1
+        m = self.dem.mask[r0:r1, c0:c1]
+        return np.where(m, self.dem.heights[r0:r1, c0:c1] + self.dem.grid.z0, np.nan), m
+
+    def counts(self, r0: int, r1: int) -> np.ndarray | None:
+        return None if self.dem.counts is None else self.dem.counts[r0:r1]
+
+    def grid(self, z0: float) -> Grid:
+        g = self.dem.grid
+        return Grid(x0=g.x0, y0=g.y0, z0=z0, resolution=g.resolution, rows=g.rows, cols=g.cols, angle=g.angle,
+                    resolution_y=g.resolution_y)
+
+    def close(self) -> None:
+        pass
 
 
 def _bands(rows: int, tile: int) -> Iterator[tuple[int, int]]:
@@ -158,7 +189,7 @@ def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int
     return i, j, radius, angle, (br.T @ filled @ bc)[i, j]
 
 
-def _sample(raster: _Raster, grid: Grid, tile: int) -> DEM:
+def _sample(raster: Any, grid: Grid, tile: int, gridding_rmse: float) -> DEM:
     """A block of :data:`SAMPLE_TILES` x :data:`SAMPLE_TILES` tiles from the map's middle, in memory."""
     tiling = TileGrid(grid.rows, grid.cols, tile)
 
@@ -177,7 +208,7 @@ def _sample(raster: _Raster, grid: Grid, tile: int) -> DEM:
             if m.any():
                 break
     return DEM(grid=grid.window(r0, c0, h.shape[0], h.shape[1]),
-               heights=np.where(m, h - grid.z0, 0.0), mask=m, gridding_rmse=0.0)
+               heights=np.where(m, h - grid.z0, 0.0), mask=m, gridding_rmse=gridding_rmse)
 
 
 def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], params: Params, *,
@@ -202,8 +233,22 @@ def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], pa
         A raster that is not a north-up DEM, no valid pixel, heights out of range, a size target,
         or an RMSE target missed on the whole map after :data:`RMSE_ATTEMPTS` steps chosen on part of it.
     """
+    _compress(_Raster(src), dst, params, map_tiles=map_tiles, on_stage=on_stage, write=write)
+
+
+def compress_gridded(dem: DEM, dst: str | os.PathLike[str], params: Params, *, point_count: int,
+                     crs: dict[str, Any], map_tiles: Map | None = None, on_stage: Stage = no_stage,
+                     write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> None:
+    """:func:`compress_raster` of a map already gridded (a point cloud read in chunks): memory holds
+    the grid and one band of tile rows, not the several copies of the map an in-memory encode makes."""
+    _compress(_Grid(dem, point_count, crs, "<grid>"), dst, params, map_tiles=map_tiles, on_stage=on_stage,
+              write=write, gridding_rmse=dem.gridding_rmse or 0.0, spread=dem.spread)
+
+
+def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_tiles: Map | None,
+              on_stage: Stage, write: Callable[..., None], gridding_rmse: float = 0.0, spread: Any = None) -> None:
+    src = raster.path
     run = map_tiles or (lambda func, items, *args: [func(item, *args) for item in items])
-    raster = _Raster(src)
     try:
         tile = tile_size_for(params, (raster.rows, raster.cols))
         if not tile:
@@ -213,11 +258,14 @@ def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], pa
         cycles = BASE_CYCLES_PER_TILE
         bi, bj, bradius, bangle, bcoefs = _base_coefficients(survey, grid.shape, tile, cycles)
         on_stage("rate control")
-        chosen, refill = choose_for_tiles(_sample(raster, grid, tile), params, tile, base_cycles=cycles)
+        aim = params.replace(target_rmse=params.target_rmse * SAMPLE_RMSE_MARGIN) if params.target_rmse else params
+        chosen, refill = choose_for_tiles(_sample(raster, grid, tile, gridding_rmse), aim, tile, base_cycles=cycles)
+        chosen = chosen.replace(target_rmse=params.target_rmse)
         chosen = chosen.replace(resolution=grid.resolution)
         for attempt in range(RMSE_ATTEMPTS):
             spool, index, stats, nb, base_blob = _code_bands(raster, grid, chosen, refill, tile, survey,
-                                                             (bi, bj, bradius, bangle, bcoefs), run, on_stage)
+                                                             (bi, bj, bradius, bangle, bcoefs), run, on_stage,
+                                                             gridding_rmse, spread)
             if params.target_rmse <= 0 or stats["dem_rmse_m"] <= params.target_rmse:
                 break
             spool.close()
@@ -225,10 +273,12 @@ def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], pa
                 raise InvalidInputError(
                     f"target RMSE {params.target_rmse:g} m was missed on the whole map ({stats['dem_rmse_m']:.4g} m "
                     f"with the step chosen on its middle); give a smaller target or a --step")
-            # The error grows about linearly with the step: aim a little inside the target.
-            chosen = chosen.replace(step=coding.short_step(chosen.step * 0.97 * params.target_rmse
-                                                           / stats["dem_rmse_m"]))
-        header = Header(grid=grid, params=chosen, point_count=survey["cells"], cell_count=int(index.cells.sum()),
+            # Part of the error is the low-pass's, which the step does not change: shrink the step
+            # by the square of the miss, a little inside.
+            ratio = SAMPLE_RMSE_MARGIN * (params.target_rmse / stats["dem_rmse_m"]) ** 2
+            chosen = chosen.replace(step=coding.short_step(chosen.step * ratio))
+        points = raster.point_count if raster.point_count is not None else survey["cells"]
+        header = Header(grid=grid, params=chosen, point_count=points, cell_count=int(index.cells.sum()),
                         plane=survey["plane"], crs=raster.crs, stats=stats, coef_count=nb, tiles=index)
         head = tiled_head(header, base_blob, spool.entries)
 
@@ -262,8 +312,9 @@ class _Spool:
         self.file.close()
 
 
-def _code_bands(raster: _Raster, grid: Grid, params: Params, refill: float | None, tile: int,
-                survey: dict[str, Any], base: tuple, run: Map, on_stage: Stage):
+def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, tile: int,
+                survey: dict[str, Any], base: tuple, run: Map, on_stage: Stage, gridding_rmse: float,
+                spread: Any):
     """Second pass: every band of tile rows read (with its overlap), its tiles coded and spooled."""
     bi, bj, bradius, bangle, bcoefs = base
     nb = int(np.searchsorted(bradius, base_limit(grid.shape, tile, params.cutoff, BASE_CYCLES_PER_TILE),
@@ -276,7 +327,7 @@ def _code_bands(raster: _Raster, grid: Grid, params: Params, refill: float | Non
     n = tiling.count
     cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
     spool = _Spool()
-    squared, worst = 0.0, 0.0
+    squared, worst, weighted = 0.0, 0.0, 0.0
     mask_bytes = coef_bytes = resid_bytes = 0
     on_stage("encode")
     for band, (r0, r1) in enumerate(_bands(grid.rows, tile)):
@@ -295,8 +346,9 @@ def _code_bands(raster: _Raster, grid: Grid, params: Params, refill: float | Non
             if not m[t0 - w0:t1 - w0, c0:c1].any():
                 continue
             _, _, v0, v1 = coded_window(tiling, k, TILE_OVERLAP)
+            counts = raster.counts(t0, t1)
             jobs.append(TileJob(k, rest[:, v0:v1], m[:, v0:v1], (t0 - w0, t1 - w0, c0 - v0, c1 - v0),
-                                error[:, c0:c1]))
+                                error[:, c0:c1], None if counts is None else counts[:, c0:c1]))
         for code in run(code_tile, jobs, params, refill):
             spool.add(code.k, b"MASK", code.mask)
             spool.add(code.k, b"COEF", code.coef)
@@ -304,12 +356,19 @@ def _code_bands(raster: _Raster, grid: Grid, params: Params, refill: float | Non
                 spool.add(code.k, b"RESD", code.resid)
             cells[code.k], rmse[code.k], max_error[code.k] = code.cells, code.rmse, code.max_error
             squared += code.squared_error
+            weighted += code.weighted_squared_error
             worst = max(worst, code.max_error)
             mask_bytes, coef_bytes, resid_bytes = (mask_bytes + len(code.mask), coef_bytes + len(code.coef),
                                                    resid_bytes + len(code.resid))
     total = int(cells.sum())
-    stats = {"dem_rmse_m": math.sqrt(squared / total), "dem_max_error_m": worst, "gridding_rmse_m": 0.0,
+    stats = {"dem_rmse_m": math.sqrt(squared / total), "dem_max_error_m": worst, "gridding_rmse_m": gridding_rmse,
              "mask_bytes": mask_bytes, "coef_bytes": coef_bytes + len(base_blob), "residual_bytes": resid_bytes}
+    if spread is not None and spread.unrepresented_points:
+        full = spread.as_stats()
+        stats.update({key: full[key] for key in ("unrepresented_fraction", "unrepresented_rmse_m")})
+    counts = getattr(raster, "dem", None) is not None and raster.dem.counts is not None
+    if counts and params.aggregate == "mean":
+        stats["vertical_rmse_m"] = math.sqrt(gridding_rmse ** 2 + weighted / max(int(raster.dem.counts.sum()), 1))
     index = TileIndex(tiling=tiling, overlap=TILE_OVERLAP, base_cycles=BASE_CYCLES_PER_TILE, cells=cells, rmse=rmse,
                       max_error=max_error)
     return spool, index, stats, nb, base_blob

@@ -1,0 +1,95 @@
+"""Maps larger than memory (issue 12, point 5): a GeoTIFF coded one band of tile rows at a time, a
+gridded cloud coded so, and tiled maps decoded band by band into GeoTIFF, COG and LAZ. The size
+threshold is lowered so that real maps of ../shared/data play the part of huge ones."""
+
+from __future__ import annotations
+
+import laspy
+import numpy as np
+import pytest
+import rasterio
+
+import dftpcc
+from dftpcc import stream
+from dftpcc.errors import InvalidInputError
+
+from .conftest import data_file
+
+
+@pytest.fixture
+def small_threshold(monkeypatch):
+    monkeypatch.setattr(stream, "STREAM_CELLS", 50_000)
+
+
+@pytest.fixture(scope="module")
+def mosaic(tmp_path_factory) -> str:
+    """Mars Gale mirrored 2 x 2 with height offsets and a nodata hole: 674 x 696 float32 pixels."""
+    with rasterio.open(data_file("dems/mars_gale_1m.tif")) as ds:
+        a, profile = ds.read(1).astype(np.float32), ds.profile
+    big = np.block([[a, a[:, ::-1] + 3.0], [a[::-1] - 2.0, a[::-1, ::-1]]])
+    big[50:120, 400:520] = np.nan
+    path = tmp_path_factory.mktemp("stream") / "mosaic.tif"
+    profile.update(height=big.shape[0], width=big.shape[1], dtype="float32", nodata=float("nan"))
+    with rasterio.open(path, "w", **profile) as out:
+        out.write(big, 1)
+    return str(path)
+
+
+def _reference(path: str) -> np.ma.MaskedArray:
+    with rasterio.open(path) as ds:
+        return ds.read(1, masked=True)[::-1]  # grid rows run south to north
+
+
+@pytest.mark.parametrize("target", [dict(target_max_error=0.1), dict(target_rmse=0.03)])
+def test_a_raster_coded_band_by_band_keeps_its_promise(small_threshold, mosaic, tmp_path, target):
+    out = tmp_path / "m.dftpc"
+    cmap = dftpcc.compress_file(mosaic, out, tile_size=128, **target)
+    assert cmap.tiled
+    dem = cmap.read_dem()
+    ref = _reference(mosaic)
+    np.testing.assert_array_equal(dem.mask, ~np.ma.getmaskarray(ref))
+    err = (dem.heights + dem.grid.z0 - ref.filled(np.nan))[dem.mask]
+    if "target_max_error" in target:
+        assert np.abs(err).max() <= target["target_max_error"]
+    else:
+        assert np.sqrt(np.mean(err ** 2)) <= target["target_rmse"]
+    assert np.sqrt(np.mean(err ** 2)) <= cmap.header.stats["dem_rmse_m"] * (1 + 1e-6)
+
+
+def test_a_size_target_needs_the_map_in_memory(small_threshold, mosaic, tmp_path):
+    with pytest.raises(InvalidInputError, match="needs the whole map in memory"):
+        dftpcc.compress_file(mosaic, tmp_path / "m.dftpc", tile_size=128, target_bpp=2.0)
+    assert not (tmp_path / "m.dftpc").exists()
+
+
+def test_band_by_band_decoding_writes_what_a_whole_decode_does(small_threshold, mosaic, tmp_path):
+    src = tmp_path / "m.dftpc"
+    dftpcc.compress_file(mosaic, src, tile_size=128, cutoff=0.8, step=0.01)
+    whole = dftpcc.decompress_file(src, tmp_path / "whole.tif")
+    assert dftpcc.files.wants_bands(src, tmp_path / "x.tif")
+    n = dftpcc.files.decompress_bands(src, tmp_path / "bands.tif")
+    dftpcc.files.decompress_bands(src, tmp_path / "cog.tif", cog=True)
+    assert n == whole.shape[0]
+    with rasterio.open(tmp_path / "whole.tif") as a, rasterio.open(tmp_path / "bands.tif") as b, \
+            rasterio.open(tmp_path / "cog.tif") as c:
+        assert a.transform == b.transform == c.transform
+        np.testing.assert_array_equal(a.read(1), b.read(1))
+        np.testing.assert_array_equal(a.read(1), c.read(1))
+        assert c.overviews(1)  # a COG carries its overviews
+    assert dftpcc.files.decompress_bands(src, tmp_path / "bands.laz") == n
+    las = laspy.read(tmp_path / "bands.laz")
+    np.testing.assert_allclose(np.c_[las.x, las.y, las.z], whole, atol=0.0006)  # the LAS millimetre
+
+
+def test_a_gridded_cloud_is_coded_band_by_band(small_threshold, tmp_path):
+    cmap = dftpcc.compress_file(data_file("pointclouds/field_gentle_ign.laz"), tmp_path / "f.dftpc",
+                                tile_size=128, classes=[2], target_rmse=0.05)
+    assert cmap.tiled and cmap.header.stats["dem_rmse_m"] <= 0.05
+    assert "vertical_rmse_m" in cmap.header.stats
+
+
+def test_cog_needs_a_tif(tmp_path, mosaic, small_threshold):
+    src = tmp_path / "m.dftpc"
+    dftpcc.compress_file(mosaic, src, tile_size=128, cutoff=0.8, step=0.01)
+    with pytest.raises(InvalidInputError, match="COG|Cloud Optimized"):
+        dftpcc.files.decompress_bands(src, tmp_path / "x.laz", cog=True)
