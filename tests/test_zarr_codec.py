@@ -359,3 +359,26 @@ def test_missing_zarr_names_the_extra(monkeypatch):
         importlib.import_module("dftpcc.zarr_codec")
     with pytest.raises(MissingDependencyError, match=r"needs numcodecs.*pip install 'dftpcc\[zarr\]'"):
         importlib.import_module("dftpcc.numcodecs_codec")
+
+
+def test_chunks_code_in_threads_as_they_do_one_by_one():
+    """Zarr codes chunks in threads: no state shared between calls may break or change a chunk."""
+    import concurrent.futures
+
+    import rasterio
+
+    from dftpcc.chunkcodec import decode_chunk, encode_chunk
+    from dftpcc.params import make_params
+
+    with rasterio.open(data_file("dems/mars_korolev_mola.tif")) as ds:
+        values = ds.read(1).astype(np.float32)
+    chunks = [values[r:r + 128, c:c + 128] for r in range(0, values.shape[0], 128)
+              for c in range(0, values.shape[1], 128)]
+    params = make_params(target_max_error=5.0, resolution=1.0)
+    serial = [encode_chunk(c, params, fill_value=0.0) for c in chunks]
+    with concurrent.futures.ThreadPoolExecutor(4) as pool:
+        assert list(pool.map(lambda c: encode_chunk(c, params, fill_value=0.0), chunks)) == serial
+        decoded = list(pool.map(lambda b: decode_chunk(b, np.float32, fill_value=0.0), serial))
+    for chunk, back in zip(chunks, decoded):
+        valid = chunk != 0
+        assert np.abs(back[valid] - chunk[valid]).max() <= 5.0

@@ -26,17 +26,15 @@ Data types and the bound
     below 1 therefore makes an integer chunk lossless.
 
 Threads
-    Zarr codes chunks in threads; the codec runs one chunk at a time per
-    process (:data:`_ONE_AT_A_TIME`), since the encoder shares zstd compressors
-    between calls and the coefficient-order cache of :mod:`dftpcc.spectrum` is
-    not guarded. Processes (dask.distributed workers) run in parallel.
+    Zarr codes chunks in threads, and so may the codec: the encoder keeps no
+    zstd compressor between calls (zstandard's are not thread-safe) and the
+    coefficient-order cache of :mod:`dftpcc.spectrum` is locked.
 """
 
 from __future__ import annotations
 
 import math
 import struct
-import threading
 from typing import Any
 
 import numpy as np
@@ -57,10 +55,6 @@ INSTALL_HINT = "pip install 'dftpcc[zarr]' (zarr, numcodecs, xarray and dask)"
 #: stream needs one); distinct from the ``.dftpc`` magic ``\\x89DFTPC\\r\\n``.
 NO_DATA_MAGIC = b"\x89DFTPC\x00\x00"
 _NO_DATA = struct.Struct("<8sII")
-#: Held while a chunk is coded or decoded: two threads coding at once crash in
-#: zstandard (``coding._SIDE_ZSTD``, ``occupancy._BITMAP_ZSTD`` are module-level
-#: compressors, which are not thread-safe) and may race on ``spectrum._ORDER_CACHE``.
-_ONE_AT_A_TIME = threading.Lock()
 #: Data types the codec stores: ``f`` floats, ``i``/``u`` integers of any width.
 _KINDS = "fiu"
 _FLOAT64_BYTES = 8
@@ -186,8 +180,7 @@ def encode_chunk(values: Any, params: Params, *, fill_value: Any = None) -> byte
     bound = coding_bound(params.target_max_error, values[valid])
     grid = Grid(x0=0.0, y0=0.0, z0=z0, resolution=float(params.resolution), rows=rows, cols=cols)
     dem = DEM(grid, np.where(valid, heights - z0, 0.0), valid)
-    with _ONE_AT_A_TIME:
-        return encode_dem(dem, params.replace(target_max_error=bound))
+    return encode_dem(dem, params.replace(target_max_error=bound))
 
 
 def decode_chunk(data: Any, dtype: Any, *, fill_value: Any = None, shape: tuple[int, ...] | None = None,
@@ -230,8 +223,7 @@ def decode_chunk(data: Any, dtype: Any, *, fill_value: Any = None, shape: tuple[
         if nodata is None:
             raise CorruptFileError("a no-data chunk in an integer array without a fill value")
         return np.full((rows, cols), nodata, dtype=dt)
-    with _ONE_AT_A_TIME:
-        dem = mapfile.open(data, max_cells=None if max_cells is None else max(1, max_cells)).read_dem()
+    dem = mapfile.open(data, max_cells=None if max_cells is None else max(1, max_cells)).read_dem()
     _check_shape(dem.grid.shape, shape, MAX_CELLS if max_cells is None else max_cells)
     if nodata is None and not dem.mask.all():
         raise CorruptFileError("a chunk with no-data cells in an integer array without a fill value")

@@ -67,7 +67,8 @@ SCALE_BIAS = 128
 #: Smallest band scale used (in quantizer steps); keeps probabilities nonzero.
 MIN_SCALE = 0.05
 #: Band scales are few and small: a fast zstd level codes them as well as a slow one.
-_SIDE_ZSTD = zstandard.ZstdCompressor(level=3)
+#: zstd level of the side information (a compressor per call: zstandard's are not thread-safe).
+_SIDE_ZSTD_LEVEL = 3
 #: Largest integer the ANS coder takes; a chunk with larger ones falls back
 #: to zstd. The coder gives every integer of the support a nonzero
 #: probability out of 2**24, so a wide support wastes rate on every symbol.
@@ -367,7 +368,7 @@ def _side_info(codes: np.ndarray) -> bytes:
     (a few bands: the frame's own header outweighs them). A reader tells them apart by
     length: raw is exactly one byte per band."""
     raw = codes.tobytes()
-    packed = _SIDE_ZSTD.compress(raw)
+    packed = zstandard.ZstdCompressor(level=_SIDE_ZSTD_LEVEL).compress(raw)
     return packed if len(packed) < len(raw) else raw
 
 

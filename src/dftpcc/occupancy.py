@@ -60,8 +60,10 @@ STRIPE_LINES = 64
 STRIPED_CELLS = 1 << 18
 #: The bitmap fallback rarely wins; a middle zstd level keeps it from costing
 #: a tenth of a second on large maps.
-_BITMAP_ZSTD = zstandard.ZstdCompressor(level=9)
-_SEED_ZSTD = zstandard.ZstdCompressor(level=19)
+#: zstd levels of the bit-packed mask and of the seed lines (a compressor per call: zstandard's are
+#: not thread-safe, and zarr codes chunks in threads).
+_BITMAP_LEVEL = 9
+_SEED_LEVEL = 19
 
 
 def _codes(lines: np.ndarray) -> np.ndarray:
@@ -103,7 +105,7 @@ def _encode_seeds(seeds: np.ndarray) -> bytes:
         values += [runs.size, *runs]
     # Byte planes: the high bytes of small run lengths compress to nothing.
     planes = np.asarray(values, dtype="<u4").view(np.uint8).reshape(-1, 4).T
-    return _SEED_ZSTD.compress(planes.tobytes())
+    return zstandard.ZstdCompressor(level=_SEED_LEVEL).compress(planes.tobytes())
 
 
 def _decode_seeds(frame: bytes, count: int, width: int) -> np.ndarray:
@@ -262,7 +264,7 @@ def encode_mask(mask: np.ndarray, *, stripe: int | None = None) -> bytes:
     lines = (mask.T if transposed else mask).astype(np.uint8)
     candidates = [
         _HEAD.pack(KIND_CONTEXT, transposed) + _encode_context(lines, min(stripe, lines.shape[0])),
-        _HEAD.pack(KIND_ZSTD, 0) + _BITMAP_ZSTD.compress(np.packbits(mask.ravel()).tobytes()),
+        _HEAD.pack(KIND_ZSTD, 0) + zstandard.ZstdCompressor(level=_BITMAP_LEVEL).compress(np.packbits(mask.ravel()).tobytes()),
     ]
     return min(candidates, key=len)
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 
 import numpy as np
 import scipy.fft as sfft
@@ -111,6 +112,8 @@ def radius_limit(shape: tuple[int, int], cutoff: float) -> float:
 
 _ORDER_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 _ORDER_CACHE_SIZE = 8
+#: The cache is shared by threads (zarr codes chunks in threads).
+_ORDER_LOCK = threading.Lock()
 
 
 def _limit(lay: Layout, cutoff: float) -> float:
@@ -129,14 +132,19 @@ def kept_order(lay: Layout, cutoff: float = 0.0) -> tuple[np.ndarray, np.ndarray
     cutoff: sweeps and rate control ask many times.
     """
     key = (lay.kind, lay.shape, cutoff)
-    if key not in _ORDER_CACHE:
-        if len(_ORDER_CACHE) >= _ORDER_CACHE_SIZE:
+    with _ORDER_LOCK:
+        found = _ORDER_CACHE.get(key)
+    if found is not None:
+        return found
+    flat_radius = lay.radius.ravel()
+    inside = np.flatnonzero(flat_radius <= _limit(lay, cutoff)) if cutoff > 0 else np.arange(flat_radius.size)
+    order = inside[np.argsort(flat_radius[inside], kind="stable")]
+    found = (order, flat_radius[order], lay.angle_of(order))
+    with _ORDER_LOCK:
+        while len(_ORDER_CACHE) >= _ORDER_CACHE_SIZE:
             _ORDER_CACHE.pop(next(iter(_ORDER_CACHE)))
-        flat_radius = lay.radius.ravel()
-        inside = np.flatnonzero(flat_radius <= _limit(lay, cutoff)) if cutoff > 0 else np.arange(flat_radius.size)
-        order = inside[np.argsort(flat_radius[inside], kind="stable")]
-        _ORDER_CACHE[key] = (order, flat_radius[order], lay.angle_of(order))
-    return _ORDER_CACHE[key]
+        _ORDER_CACHE[key] = found
+    return found
 
 
 def kept_count(lay: Layout, cutoff: float, sorted_radii: np.ndarray | None = None) -> int:

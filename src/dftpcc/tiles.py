@@ -181,6 +181,7 @@ class TiledAnalysis:
         self._last_parts: tuple[np.ndarray, bool, list[bytes]] | None = None
         #: The step of the trial whose rebuilt map refilled the empty cells (None: smooth fill).
         self.refill_step: float | None = None
+        self._proxy_cache: dict[float, tuple[np.ndarray, float]] = {}
 
     def base_at(self, cutoff: float, step: float) -> np.ndarray:
         """The base layer's integers at (cutoff, step)."""
@@ -272,19 +273,31 @@ class TiledAnalysis:
                           float(np.abs(err).max()), base=base, tiles=trials)
 
     def proxy_rmse(self, cutoff: float, step: float) -> float:
-        nb = self.base_count(cutoff)
-        kept = self.base_coefs[:nb]
+        """As :meth:`Analysis.proxy_rmse`, over the base layer and every tile (each orthonormal)."""
+        kept, lost = self._proxy_parts(cutoff)
         err = kept - coding.dequantize(coding.quantize(kept, step, self.params.deadzone), step)
-        total = float(np.dot(err, err))
-        for _, an in self.tiles:
-            total += an.proxy_rmse(cutoff, step) ** 2 / an.parseval
-        return math.sqrt(total * self.parseval)
+        return math.sqrt((float(np.dot(err, err)) + lost) * self.parseval)
+
+    def _proxy_parts(self, cutoff: float) -> tuple[np.ndarray, float]:
+        """Every value kept at ``cutoff`` in one array, and the energy the low-pass drops (cached:
+        rate control asks for the same cutoff at many steps)."""
+        cached = self._proxy_cache.get(cutoff)
+        if cached is None:
+            kept = [self.base_coefs[: self.base_count(cutoff)]]
+            lost = 0.0
+            for _, an in self.tiles:
+                n = an.count(cutoff)
+                kept.append(an.reals(n))
+                dropped = an.reals(an.coefs.size)[kept[-1].size:]
+                lost += float(np.dot(dropped, dropped)) + an.outside_energy
+            cached = self._proxy_cache[cutoff] = (np.concatenate(kept), lost)
+        return cached
 
     def refilled(self, trial: TiledTrial) -> "TiledAnalysis":
         out = copy.copy(self)
         out.refill_step = trial.step
         out.tiles = [(k, an.refilled(t) if an.refillable else an) for (k, an), t in zip(self.tiles, trial.tiles)]
-        out._splits, out._last_parts = {}, None
+        out._splits, out._last_parts, out._proxy_cache = {}, None, {}
         return out
 
     def encode(self, trial: Trial, *, exhaustive: bool = True) -> bytes:
