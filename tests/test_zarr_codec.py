@@ -381,4 +381,5 @@ def test_chunks_code_in_threads_as_they_do_one_by_one():
         decoded = list(pool.map(lambda b: decode_chunk(b, np.float32, fill_value=0.0), serial))
     for chunk, back in zip(chunks, decoded):
         valid = chunk != 0
-        assert np.abs(back[valid] - chunk[valid]).max() <= 5.0
+        assert np.abs(back[valid] - chunk[valid]).max(initial=0.0) <= 5.0
+        assert (back[~valid] == 0).all()
