@@ -383,6 +383,7 @@ def test_tiled_refusals():
         "tile-beyond-count": join_tiled(beyond),
         "missing-mask": join_tiled([s for i, s in enumerate(sections) if i != tile_sections[0]]),
         "damaged-tile": bytes(flipped),
+        "labelled-1.0": join_tiled(sections, minor=0),
         "tile-size-differs": join_tiled([(t, k, json.dumps({**parm, "tile_size": 64}).encode() if t == b"PARM" else p)
                                          for t, k, p in sections]),
         "dft-transform": join_tiled([(t, k, json.dumps({**parm, "transform": "dft"}).encode() if t == b"PARM" else p)
