@@ -275,6 +275,8 @@ def tile_index(data: bytes) -> dict:
 
     raw = section(data, b"TIDX")
     coding, size, overlap = TIDX_HEAD.unpack_from(raw, 0)
+    if size == 0:
+        raise ValueError("tile index states tiles of 0 cells")
     g = geom(data)
     n = -(-g["rows"] // size) * -(-g["cols"] // size)
     body = zstandard.ZstdDecompressor().decompress(raw[TIDX_HEAD.size:])

@@ -252,7 +252,7 @@ class Mutator:
         for _ in range(rng.choice((1, 1, 1, 2, 3))):
             try:
                 data = rng.choices(ops, weights)[0](data)
-            except (struct.error, ValueError, KeyError, RecursionError, OverflowError):
+            except (struct.error, ValueError, KeyError, RecursionError, OverflowError, ZeroDivisionError):
                 pass  # a structural mutation that does not apply to these bytes
         mode = rng.getrandbits(8)
         if rng.random() < 0.5:
