@@ -942,9 +942,10 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
                 resolution_y=res_y or None)
     index = _unpack_index(payloads[b"TIDX"], grid, params, ncells, source.size)
-    for k in tiles:
-        if k >= index.tiling.count:
-            raise CorruptFileError(f"section table names tile {k + 1}, but the map has {index.tiling.count} tiles")
+    # Any tag: format.md refuses tile numbers above the count, not only those of MASK, COEF, RESD.
+    last = max(tile for _tag, tile, _length, _crc in entries)
+    if last > index.tiling.count:
+        raise CorruptFileError(f"section table names tile {last}, but the map has {index.tiling.count} tiles")
     # Only tiles with cells or with sections can disagree: a loop over all 2**20 tiles a small
     # file may name would cost a second in Python.
     for k in sorted(set(tiles) | set(np.flatnonzero(index.cells).tolist())):

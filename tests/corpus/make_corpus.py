@@ -253,6 +253,8 @@ def tiled_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
                                     f"names tile {n + 1}, but the map has {n} tiles"),
         "tiled_tile_2_64_minus_1": (craft.join_tiled(sections + [(b"COEF", (1 << 64) - 1, b"")]), C,
                                     "names tile 18446744073709551615"),
+        "tiled_unknown_tag_beyond_count": (craft.join_tiled(sections + [(b"XTRA", n + 1, b"later")]), C,
+                                           f"names tile {n + 1}, but the map has {n} tiles"),
         "tiled_missing_mask": (craft.join_tiled([s for s in sections if s[:2] != (b"MASK", 3)]), C,
                                "tile 3 has sections COEF where its index entry needs COEF, MASK"),
         "tiled_empty_tile_has_sections": (craft.join_tiled(sections + [(t, 9, p) for t, _k, p in tile_3]), C,
