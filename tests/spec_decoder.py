@@ -1,6 +1,7 @@
 """An independent `.dftpc` decoder written from docs/format.md alone.
 
-It does not import dftpcc: it exists to show whether the format document is enough to read a file.
+It does not import dftpcc: it exists to show whether the format document is enough to read a file,
+version 1.0 and the tiled version 1.1.
 ``decode(data)`` returns the rebuilt points, shape (N, 3), float64.
 
 Written by a helper that read only docs/format.md. When the section table lost its offsets
@@ -8,6 +9,10 @@ Written by a helper that read only docs/format.md. When the section table lost i
 library's author, from the same document. Later, from the document's new rules: LEB128 of at most
 64 bits (``_uleb``), no bytes after the last section (``_sections``), and only binary STAT and
 COEF kind 3 for ANS (the drafts' JSON STAT and kind 2 refused). The rest is as the helper wrote it.
+
+The tiled layout (version 1.1: ``_table``, ``_by_tile`` and the "tiles" part at the end) was added
+by another helper from docs/format.md's section "Tiles: version 1.1" alone, without reading the
+library's tiles, decoder or container modules.
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ from scipy import fft as sfft
 MAGIC = b"\x89DFTPC\r\n"
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 MAX_SECTIONS = 1024
+MAX_SECTIONS_TILED = 1 << 24  # in a 1.1 file
+ENTRY_MIN_BYTES = 10  # tag, one-byte tile, one-byte length, CRC
 MAX_JSON_BYTES = 1 << 20
 
 # PARM fields left out take these (frozen for all 1.x files).
@@ -92,17 +99,24 @@ def _uleb(data: bytes, pos: int, where: str = "section table") -> tuple[int, int
     raise ValueError(f"{where} holds an integer wider than 64 bits")
 
 
-def _sections(data: bytes) -> dict[bytes, bytes]:
+def _table(data: bytes) -> tuple[int, list[tuple[bytes, int, int, int, int]]]:
+    """The minor version and the table: ``(tag, tile, offset, length, crc)`` per entry.
+
+    format.md: at most 1024 entries (2**24 in a 1.1 file), every entry read before any is used;
+    offsets follow from the lengths; the file ends where its last payload ends.
+    """
     if len(data) < 20:
         raise ValueError("not a .dftpc file: too short")
     if data[:8] != MAGIC:
         raise ValueError("bad magic bytes")
-    major, _minor, _flags, count = struct.unpack_from("<BBHI", data, 8)
+    major, minor, _flags, count = struct.unpack_from("<BBHI", data, 8)
     if major != 1:
         raise ValueError(f"unsupported major version {major}")
-    if count > MAX_SECTIONS:
+    if count > (MAX_SECTIONS if minor == 0 else MAX_SECTIONS_TILED):
         raise ValueError("too many sections")
-    entries, pos = [], 16
+    if 16 + ENTRY_MIN_BYTES * count + 4 > len(data):  # a count the file's bytes cannot hold
+        raise ValueError("truncated section table")
+    raw, pos = [], 16
     for _ in range(count):
         if pos + 4 > len(data):
             raise ValueError("truncated section table")
@@ -111,7 +125,7 @@ def _sections(data: bytes) -> dict[bytes, bytes]:
         length, pos = _uleb(data, pos)
         if pos + 4 > len(data):
             raise ValueError("truncated section table")
-        entries.append((tag, tile, length, struct.unpack_from("<I", data, pos)[0]))
+        raw.append((tag, tile, length, struct.unpack_from("<I", data, pos)[0]))
         pos += 4
     table_end = pos
     if table_end + 4 > len(data):
@@ -119,24 +133,55 @@ def _sections(data: bytes) -> dict[bytes, bytes]:
     if zlib.crc32(data[:table_end]) != struct.unpack_from("<I", data, table_end)[0]:
         raise ValueError("section table fails its checksum")
     # The file ends where its last payload ends: bytes after it are refused.
-    end = table_end + 4 + sum(length for _tag, _tile, length, _crc in entries)
+    end = table_end + 4 + sum(length for _tag, _tile, length, _crc in raw)
     if len(data) > end:
         raise ValueError(f"{len(data) - end} bytes after the last section")
-    sections: dict[bytes, bytes] = {}
-    offset = table_end + 4  # payloads follow the table in its order
-    for tag, tile, length, crc in entries:
-        start, offset = offset, offset + length
-        if tile != 0 or tag in sections:  # other tiles and repeated tags are skipped
-            continue
-        if offset > len(data):
-            raise ValueError(f"section {tag!r} is truncated")
-        payload = data[start:offset]
-        if zlib.crc32(payload) != crc:
-            raise ValueError(f"section {tag!r} fails its checksum")
-        sections[tag] = payload
-    for tag in (b"GEOM", b"PARM", b"MASK", b"COEF"):
+    entries, offset = [], table_end + 4  # payloads follow the table in its order
+    for tag, tile, length, crc in raw:
+        entries.append((tag, tile, offset, length, crc))
+        offset += length
+    return minor, entries
+
+
+def _by_tile(entries) -> dict[int, dict[bytes, tuple[int, int, int]]]:
+    """tile -> tag -> (offset, length, crc), the first entry of a tag in each tile (repeats ignored)."""
+    tiles: dict[int, dict[bytes, tuple[int, int, int]]] = {}
+    for tag, tile, offset, length, crc in entries:
+        tiles.setdefault(tile, {}).setdefault(tag, (offset, length, crc))
+    return tiles
+
+
+def _payload(data: bytes, tag: bytes, where: tuple[int, int, int], name: str = "") -> bytes:
+    """A section's payload, checked against its CRC (``name`` says which tile, if any)."""
+    offset, length, crc = where
+    if offset + length > len(data):
+        raise ValueError(f"{name}section {tag!r} is truncated")
+    payload = data[offset:offset + length]
+    if zlib.crc32(payload) != crc:
+        raise ValueError(f"{name}section {tag!r} fails its checksum")
+    return payload
+
+
+def _is_tiled(minor: int, tile0: dict) -> bool:
+    # A 1.1 file is the tiled layout; a later minor version is tiled when it has a tile index.
+    return minor == 1 or (minor > 1 and b"TIDX" in tile0)
+
+
+def _sections(data: bytes) -> dict[bytes, bytes]:
+    """The payloads of tile 0 (the whole map's sections), each checked against its CRC."""
+    minor, entries = _table(data)
+    tiles = _by_tile(entries)
+    tile0 = tiles.get(0, {})
+    tiled = _is_tiled(minor, tile0)
+    sections = {tag: _payload(data, tag, where) for tag, where in tile0.items()}
+    required = (b"GEOM", b"PARM", b"STAT", b"TIDX", b"BASE") if tiled else (b"GEOM", b"PARM", b"MASK", b"COEF")
+    for tag in required:
         if tag not in sections:
             raise ValueError(f"section {tag!r} is missing")
+    if tiled:
+        for tag in (b"MASK", b"COEF", b"RESD"):
+            if tag in sections:
+                raise ValueError(f"tile 0 of a tiled file holds a {tag!r} section")
     return sections
 
 
@@ -405,11 +450,9 @@ def _layout(rows: int, cols: int, transform: str, storage: str):
 
 # --------------------------------------------------------------------------- decode
 
-def decode(data: bytes) -> np.ndarray:
-    data = bytes(data)
-    sec = _sections(data)
+def _header(sec: dict[bytes, bytes]) -> tuple[dict, dict, dict]:
+    """GEOM, PARM (defaults filled in) and STAT of tile 0, with the checks both layouts share."""
     g = _geom(sec[b"GEOM"])
-    rows, cols = g["rows"], g["cols"]
     params = dict(V1_DEFAULTS)
     params.update(_json(sec[b"PARM"]))
     stats = _stat(sec[b"STAT"]) if b"STAT" in sec else {}
@@ -420,14 +463,40 @@ def decode(data: bytes) -> np.ndarray:
     if "resolution" in params and not math.isclose(params["resolution"], g["res"], rel_tol=1e-9):
         raise ValueError("parameter resolution disagrees with the grid's")
     cutoff = float(params["cutoff"])
-    transform, storage = params["transform"], params["storage"]
     if not 0 <= cutoff < 1:
         raise ValueError("cutoff must be in [0, 1)")
-    if storage not in ("quantized", "complex64") or params["detrend"] not in ("none", "plane"):
+    if params["storage"] not in ("quantized", "complex64") or params["detrend"] not in ("none", "plane"):
         raise ValueError("parameter section is invalid")
     step = float(params["step"])
-    if storage == "quantized" and not 0 < step <= 1e12:
+    if params["storage"] == "quantized" and not 0 < step <= 1e12:
         raise ValueError("quantizer step is not in (0, 1e12]")
+    return g, params, stats
+
+
+def _points(g: dict, r: np.ndarray, col: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Points at the centres of cells (r, col) of the map with heights h above z0."""
+    if not np.all(np.isfinite(h)):
+        raise ValueError("coefficients decode to non-finite heights")
+    u = (col + 0.5) * g["res"]
+    v = (r + 0.5) * g["dy"]
+    ca, sa = math.cos(g["angle"]), math.sin(g["angle"])
+    x = g["x0"] + ca * u - sa * v
+    y = g["y0"] + sa * u + ca * v
+    return np.column_stack([x, y, g["z0"] + h]).astype(np.float64)
+
+
+def decode(data: bytes) -> np.ndarray:
+    data = bytes(data)
+    minor, entries = _table(data)
+    sec = _sections(data)
+    g, params, stats = _header(sec)
+    if _is_tiled(minor, _by_tile(entries).get(0, {})):
+        return _decode_tiled(data, entries, sec, g, params, stats)
+    if params.get("tile_size", 0) != 0:
+        raise ValueError("a 1.0 file states a tile size")
+    rows, cols = g["rows"], g["cols"]
+    cutoff, step = float(params["cutoff"]), float(params["step"])
+    transform, storage = params["transform"], params["storage"]
 
     mask = _mask(sec[b"MASK"], rows, cols)
     if int(mask.sum()) != g["cells"]:
@@ -480,12 +549,214 @@ def decode(data: bytes) -> np.ndarray:
             raise ValueError("residual layer without target_max_error")
         q = _stream(sec[b"RESD"], len(r), np.zeros(len(r)), np.zeros(len(r)))
         h = h + q * 2 * e * (1 - 1e-6)
-    if not np.all(np.isfinite(h)):
-        raise ValueError("coefficients decode to non-finite heights")
+    return _points(g, r, col, h)
 
-    u = (col + 0.5) * g["res"]
-    v = (r + 0.5) * g["dy"]
-    ca, sa = math.cos(g["angle"]), math.sin(g["angle"])
-    x = g["x0"] + ca * u - sa * v
-    y = g["y0"] + sa * u + ca * v
-    return np.column_stack([x, y, g["z0"] + h]).astype(np.float64)
+
+# --------------------------------------------------------------------------- tiles (1.1)
+
+TILE_MIN, TILE_MAX = 16, 65536  # T, cells
+MAX_GRID_CELLS_TILED = 1 << 36
+MAX_TILES = 1 << 20
+TILES_PER_FILE_BYTE = 64
+TIDX_CODING = 1
+TIDX_HEAD = struct.Struct("<BIHB")  # coding, T, overlap M, base reach K
+MAX_BASE_REACH = 8
+# A 1.1 file fixes these parameters (format.md, "What changes in a 1.1 file").
+TILED_PARAMS = {"transform": "dct", "storage": "quantized", "detrend": "plane", "mask": "exact"}
+
+
+def _tile_box(k: int, rows: int, cols: int, size: int, tx: int) -> tuple[int, int, int, int]:
+    """Rows r0..r1-1 and columns c0..c1-1 of tile number k (1-based, row-major)."""
+    i, j = divmod(k - 1, tx)
+    return i * size, min(rows, (i + 1) * size), j * size, min(cols, (j + 1) * size)
+
+
+def _tile_index(p: bytes, n: int, size: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """TIDX: overlap M, base reach K, cells rebuilt per tile (n), DEM RMSE and max error of the m tiles with cells."""
+    if len(p) < TIDX_HEAD.size:
+        raise ValueError("tile index is truncated")
+    coding, t, overlap, reach = TIDX_HEAD.unpack_from(p, 0)
+    if reach > MAX_BASE_REACH:
+        raise ValueError(f"base reach {reach} is more than {MAX_BASE_REACH} cycles per tile")
+    if coding != TIDX_CODING:
+        raise ValueError(f"tile index has unknown coding {coding}")
+    if t != size:
+        raise ValueError("tile index states another tile size than PARM")
+    if 2 * overlap > size:
+        raise ValueError("tile overlap is more than half a tile")
+    frame = p[TIDX_HEAD.size:]
+    try:
+        declared = zstandard.get_frame_parameters(frame).content_size
+    except zstandard.ZstdError as exc:
+        raise ValueError(f"tile index is not a zstd frame: {exc}") from exc
+    # Its size is 4n + 8m with 0 <= m <= n: checked before anything is allocated.
+    if declared == zstandard.CONTENTSIZE_UNKNOWN:
+        raise ValueError("tile index does not state its size")
+    if not 4 * n <= declared <= 12 * n or (declared - 4 * n) % 8:
+        raise ValueError(f"tile index declares {declared} bytes for {n} tiles")
+    m = (declared - 4 * n) // 8
+    try:
+        unpacker = zstandard.ZstdDecompressor().decompressobj()
+        raw = unpacker.decompress(frame)
+        rest = unpacker.unused_data
+    except zstandard.ZstdError as exc:
+        raise ValueError(f"tile index does not decompress: {exc}") from exc
+    if len(raw) != declared or rest:
+        raise ValueError("tile index is not one frame of its declared size")
+    planes = np.frombuffer(raw[:4 * n], np.uint8).reshape(4, n).astype(np.uint64)
+    cells = (planes[0] | planes[1] << 8 | planes[2] << 16 | planes[3] << 24).astype(np.int64)
+    if int(np.count_nonzero(cells)) != m:
+        raise ValueError("tile index holds figures for another number of tiles than have cells")
+    figures = np.frombuffer(raw[4 * n:], "<f4").astype(np.float64)
+    rmse, max_error = figures[:m], figures[m:]
+    if not (np.all(np.isfinite(figures)) and np.all(figures >= 0)):
+        raise ValueError("tile index holds a negative or non-finite error")
+    return overlap, reach, cells, rmse, max_error
+
+
+def _dct_prefix(h: int, w: int, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row-major positions, radii and angles of the kept DCT coefficients of an h x w array."""
+    _shape, radius, angle = _layout(h, w, "dct", "quantized")
+    order = np.argsort(radius.ravel(), kind="stable")
+    limit = (1 - cutoff) * math.hypot(h / 2, w / 2) * (1 + 1e-12)
+    kept = int(np.searchsorted(radius.ravel()[order], limit, side="right"))
+    pos = order[:kept]
+    return pos, radius.ravel()[pos], angle.ravel()[pos]
+
+
+def _base_layer(p: bytes, rows: int, cols: int, size: int, cutoff: float, step: float,
+                coef_count, reach: int) -> np.ndarray:
+    """BASE: the whole grid's lowest DCT coefficients as a dense (ni, nj) array g(i, j), metres."""
+    radius_max = min(reach * max(rows, cols) / size, (1 - cutoff) * math.hypot(rows / 2, cols / 2)) * (1 + 1e-12)
+    if reach == 0:  # no base layer: not even the DC
+        if coef_count != 0:
+            raise ValueError("coefficient count is missing or disagrees with the base layer")
+        _stream(p, 0, np.zeros(0), np.zeros(0))
+        return np.zeros((1, 1))
+    # hypot(i/2, j/2) <= radius_max needs i, j <= 2 radius_max: only that corner is enumerated.
+    ni, nj = min(rows, int(2 * radius_max) + 1), min(cols, int(2 * radius_max) + 1)
+    i, j = np.meshgrid(np.arange(ni), np.arange(nj), indexing="ij")
+    radius, angle = np.hypot(i / 2, j / 2).ravel(), (np.arctan2(i, j) / (np.pi / 2)).ravel()
+    order = np.argsort(radius, kind="stable")  # ties in row-major order of (i, j)
+    kept = int(np.searchsorted(radius[order], radius_max, side="right"))
+    if not isinstance(coef_count, int) or isinstance(coef_count, bool) or coef_count != kept:
+        raise ValueError("coefficient count is missing or disagrees with the base layer")
+    pos = order[:kept]
+    values = _stream(p, kept, radius[pos], angle[pos])
+    if np.iscomplexobj(values):
+        raise ValueError("base layer holds float coefficients")
+    g = np.zeros(ni * nj)
+    g[pos] = values * step
+    return g.reshape(ni, nj)
+
+
+def _phi(n: int, k: int, cells: np.ndarray) -> np.ndarray:
+    """DCT-II orthonormal basis phi_N(k, n) for k in 0..k-1 at the given cells: shape (k, len(cells))."""
+    kk = np.arange(k)[:, None]
+    out = np.sqrt(2 / n) * np.cos(np.pi * kk * (2 * cells[None, :] + 1) / (2 * n))
+    out[0] = 1 / math.sqrt(n)
+    return out
+
+
+def _decode_tile(data: bytes, k: int, secs: dict, g: dict, params: dict, size: int, overlap: int,
+                 count: int, base: np.ndarray, tx: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, columns (map indices, row-major within the tile) and heights above z0 of tile k."""
+    rows, cols = g["rows"], g["cols"]
+    r0, r1, c0, c1 = _tile_box(k, rows, cols, size, tx)
+    h, w = r1 - r0, c1 - c0
+    name = f"tile {k}: "
+    mask = _mask(_payload(data, b"MASK", secs[b"MASK"], name), h, w)
+    if int(mask.sum()) != count:
+        raise ValueError(f"{name}occupancy mask disagrees with the tile index")
+    # The coded window: the tile and M cells around it, within the map.
+    wr0, wr1 = max(0, r0 - overlap), min(rows, r1 + overlap)
+    wc0, wc1 = max(0, c0 - overlap), min(cols, c1 + overlap)
+    hh, ww = wr1 - wr0, wc1 - wc0
+    pos, radius, angle = _dct_prefix(hh, ww, float(params["cutoff"]))
+    values = _stream(_payload(data, b"COEF", secs[b"COEF"], name), len(pos), radius, angle)
+    if np.iscomplexobj(values):
+        raise ValueError(f"{name}holds float coefficients")
+    coefs = np.zeros(hh * ww)
+    coefs[pos] = values * float(params["step"])
+    window = sfft.idctn(coefs.reshape(hh, ww), type=2, norm="ortho")
+    height = window[r0 - wr0:r1 - wr0, c0 - wc0:c1 - wc0]
+    # The base layer and the plane on the tile's own cells of the map.
+    rr, cc = np.arange(r0, r1), np.arange(c0, c1)
+    height = height + _phi(rows, base.shape[0], rr).T @ base @ _phi(cols, base.shape[1], cc)
+    a, b, c = g["plane"]
+    height = height + (a + b * cc[None, :] + c * rr[:, None])
+    r, col = np.nonzero(mask)  # row-major within the tile
+    hv = height[r, col]
+    e = float(params["target_max_error"])
+    if e > 0:
+        q = _stream(_payload(data, b"RESD", secs[b"RESD"], name), len(r), np.zeros(len(r)), np.zeros(len(r)))
+        if np.iscomplexobj(q):
+            raise ValueError(f"{name}residual layer holds float values")
+        hv = hv + q * 2 * e * (1 - 1e-6)
+    return r + r0, col + c0, hv
+
+
+def decode_grid(data: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """A tiled (1.1) file's whole grid: the mask (rows, cols) bool and the heights above z0 (metres,
+    0 where the mask is not set)."""
+    data = bytes(data)
+    minor, entries = _table(data)
+    sec = _sections(data)
+    if not _is_tiled(minor, _by_tile(entries).get(0, {})):
+        raise ValueError("not a tiled file")
+    return _tiled_grid(data, entries, sec, *_header(sec))
+
+
+def _decode_tiled(data: bytes, entries, sec: dict, g: dict, params: dict, stats: dict) -> np.ndarray:
+    """A 1.1 file, whole: points in row-major order of the map."""
+    mask, heights = _tiled_grid(data, entries, sec, g, params, stats)
+    r, col = np.nonzero(mask)  # the map's rows in row-major order
+    return _points(g, r, col, heights[r, col])
+
+
+def _tiled_grid(data: bytes, entries, sec: dict, g: dict, params: dict,
+                stats: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Every tile in tile number order, into the map's mask and heights."""
+    rows, cols = g["rows"], g["cols"]
+    for key, value in TILED_PARAMS.items():
+        if params[key] != value:
+            raise ValueError(f"a tiled file has {key} {params[key]!r}")
+    size = params.get("tile_size", 0)
+    if not isinstance(size, int) or isinstance(size, bool) or not TILE_MIN <= size <= TILE_MAX:
+        raise ValueError("tile size is missing or out of range")
+    if rows <= size and cols <= size:
+        raise ValueError("a tiled file's grid fits in one tile")
+    if rows * cols > MAX_GRID_CELLS_TILED:
+        raise ValueError("grid has more cells than a tiled file may")
+    ty, tx = -(-rows // size), -(-cols // size)
+    n = ty * tx
+    if n > MAX_TILES or n > TILES_PER_FILE_BYTE * len(data):
+        raise ValueError(f"{n} tiles: more than the file can hold")
+    e = float(params["target_max_error"])
+    overlap, reach, cells, _rmse, _max_error = _tile_index(sec[b"TIDX"], n, size)
+    for k in range(1, n + 1):
+        r0, r1, c0, c1 = _tile_box(k, rows, cols, size, tx)
+        if cells[k - 1] > (r1 - r0) * (c1 - c0):
+            raise ValueError(f"tile {k}: more cells than the tile has")
+    if int(cells.sum()) != g["cells"]:
+        raise ValueError("tile index disagrees with the header's cell count")
+    tiles = _by_tile(entries)
+    if max(tiles) > n:
+        raise ValueError(f"section of tile {max(tiles)}, beyond the {n} tiles")
+    coded = (b"MASK", b"COEF", b"RESD") if e > 0 else (b"MASK", b"COEF")
+    for k in range(1, n + 1):
+        have = tiles.get(k, {})
+        for tag in (b"MASK", b"COEF", b"RESD"):
+            wanted = cells[k - 1] > 0 and tag in coded
+            if (tag in have) != wanted:
+                raise ValueError(f"tile {k}: section {tag!r} " + ("is missing" if wanted else "is not expected"))
+    base = _base_layer(sec[b"BASE"], rows, cols, size, float(params["cutoff"]), float(params["step"]),
+                       stats.get("coef_count"), reach)
+    heights = np.zeros((rows, cols))
+    mask = np.zeros((rows, cols), bool)
+    for k in range(1, n + 1):
+        if cells[k - 1]:
+            r, col, h = _decode_tile(data, k, tiles[k], g, params, size, overlap, int(cells[k - 1]), base, tx)
+            heights[r, col] = h
+            mask[r, col] = True
+    return mask, heights

@@ -7,6 +7,7 @@ synthetic terrains with many option sets and check that it rebuilds exactly the 
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 
@@ -231,3 +232,169 @@ def test_refusals(small):
             dftpcc.decompress(crafted)
         with pytest.raises(ValueError):
             spec_decoder.decode(crafted)
+
+
+# --------------------------------------------------------------------------- tiles (version 1.1)
+
+def check_tiled(data: bytes) -> dict:
+    """Assert the spec decoder rebuilds a tiled file as dftpcc does (points and mask); return its
+    layout: ``sections`` (tile 0), ``entries`` (the table), ``cells`` per tile, ``size`` T, ``grid``."""
+    assert data[8:10] == b"\x01\x01", "not a version 1.1 file"
+    check(data)
+    mask, _heights = spec_decoder.decode_grid(data)
+    np.testing.assert_array_equal(mask, dftpcc.open(data).read_dem().mask)
+    sections = spec_decoder._sections(data)
+    g = spec_decoder._geom(sections[b"GEOM"])
+    size = spec_decoder._json(sections[b"PARM"])["tile_size"]
+    n = -(-g["rows"] // size) * -(-g["cols"] // size)
+    _overlap, cells, _rmse, _max = spec_decoder._tile_index(sections[b"TIDX"], n, size)
+    return {"sections": sections, "entries": spec_decoder._table(data)[1], "cells": cells, "size": size,
+            "grid": g}
+
+
+def tile_shapes(layout: dict) -> list[tuple[int, int]]:
+    g, size = layout["grid"], layout["size"]
+    tx = -(-g["cols"] // size)
+    boxes = [spec_decoder._tile_box(k, g["rows"], g["cols"], size, tx) for k in range(1, len(layout["cells"]) + 1)]
+    return [(r1 - r0, c1 - c0) for r0, r1, c0, c1 in boxes]
+
+
+def synthetic_dem(rows: int, cols: int, seed: int = 0, *, holes: bool = True):
+    """A DEM of exactly rows x cols cells (1 m): waves, a slope and noise; holes in a disc and a band."""
+    from dftpcc.dem import DEM, Grid
+
+    rng = np.random.default_rng(seed)
+    r, c = np.mgrid[0:rows, 0:cols]
+    heights = (2 * np.sin(c / 9.0) + np.cos(r / 13.0) + 0.01 * r + 0.003 * c
+               + rng.normal(0, 0.02, (rows, cols)))
+    mask = np.ones((rows, cols), bool)
+    if holes:
+        mask &= np.hypot(r - 0.6 * rows, c - 0.3 * cols) > 0.15 * min(rows, cols)
+        mask &= (r + c) % 37 != 0
+    return DEM(Grid(4.5e5, 5.2e6, 100.0, 1.0, rows, cols), heights, mask, gridding_rmse=0.0)
+
+
+def encode_tiled(dem, **options) -> bytes:
+    from dftpcc import encoder
+
+    return encoder.encode_dem(dem, dftpcc.make_params(resolution=dem.grid.resolution, **options))
+
+
+def test_tiled_real_dem(tmp_path):
+    """The Gale crater DEM (337 x 348 cells) in 128-cell tiles: 3 x 3, the last row and column 81 and 92."""
+    from .conftest import data_file
+
+    out = tmp_path / "gale.dftpc"
+    dftpcc.compress_file(data_file("dems/mars_gale_1m.tif"), out, tile_size=128)
+    layout = check_tiled(out.read_bytes())
+    assert (layout["grid"]["rows"], layout["grid"]["cols"]) == (337, 348)
+    assert tile_shapes(layout)[-1] == (81, 92)
+
+
+def test_tiled_point_cloud_with_empty_tiles(field_ground):
+    """The IGN field's quarter disc at 1 m in 128-cell tiles: a corner tile holds no cell, no section."""
+    data = dftpcc.compress(field_ground, resolution=1.0, tile_size=128)
+    layout = check_tiled(data)
+    empty = [k + 1 for k, c in enumerate(layout["cells"]) if c == 0]
+    assert empty, layout["cells"]
+    assert not {tile for _tag, tile, *_ in layout["entries"]} & set(empty)
+
+
+@pytest.mark.parametrize("coder", ["ans", "zstd"])
+def test_tiled_max_error_has_a_residual_layer_per_tile(coder):
+    data = encode_tiled(synthetic_dem(150, 100, 1), tile_size=64, target_max_error=0.02, coder=coder)
+    layout = check_tiled(data)
+    resd = {tile for tag, tile, *_ in layout["entries"] if tag == b"RESD"}
+    assert resd == {k + 1 for k, c in enumerate(layout["cells"]) if c} and len(resd) == 6
+
+
+@pytest.mark.parametrize("rows,cols,size", [(67, 33, 32), (33, 97, 16), (140, 40, 64)],
+                         ids=["thin-last-row-and-col", "tiles-of-16", "tall-tiles"])
+def test_tiled_non_square_last_tiles(rows, cols, size):
+    """Last tile row and column of 3 and 1 cells, tiles of the smallest size, tiles taller than wide."""
+    layout = check_tiled(encode_tiled(synthetic_dem(rows, cols, 2), tile_size=size))
+    shapes = tile_shapes(layout)
+    assert shapes[-1] == (rows - (rows - 1) // size * size, cols - (cols - 1) // size * size)
+    assert any(h != w for h, w in shapes)
+
+
+@pytest.mark.parametrize("cutoff", [0.0, 0.5, 0.97])
+def test_tiled_cutoffs(cutoff):
+    """The base layer's radius is one cycle per tile, or the file's cutoff when that is lower (0.97)."""
+    check_tiled(encode_tiled(synthetic_dem(90, 70, 3), tile_size=32, cutoff=cutoff))
+
+
+def test_tiled_region_matches_the_whole_decode():
+    """A bbox decode reads the same points as the whole decode gives inside the box."""
+    data = encode_tiled(synthetic_dem(90, 70, 4), tile_size=32)
+    whole = spec_decoder.decode(data)
+    x0, y0 = 4.5e5, 5.2e6
+    for box in ([x0 + 10.25, y0 + 40.25, x0 + 20.25, y0 + 50.25], [x0 + 30.25, y0 + 0.25, x0 + 69.75, y0 + 89.75]):
+        inside = ((whole[:, 0] >= box[0]) & (whole[:, 0] <= box[2]) & (whole[:, 1] >= box[1])
+                  & (whole[:, 1] <= box[3]))
+        np.testing.assert_allclose(dftpcc.open(data).read_points(bbox=box), whole[inside], rtol=0, atol=ATOL)
+
+
+def split_tiled(data: bytes) -> list[tuple[bytes, int, bytes]]:
+    """``[(tag, tile, payload), ...]`` in table order."""
+    return [(tag, tile, data[off:off + length]) for tag, tile, off, length, _crc in spec_decoder._table(data)[1]]
+
+
+def join_tiled(sections: list[tuple[bytes, int, bytes]], minor: int = 1) -> bytes:
+    """A file of these sections (format.md's layout), every checksum correct."""
+    table = b"".join(craft.entry(tag, tile, len(p), zlib.crc32(p)) for tag, tile, p in sections)
+    top = spec_decoder.MAGIC + struct.pack("<BBHI", 1, minor, 0, len(sections)) + table
+    return top + struct.pack("<I", zlib.crc32(top)) + b"".join(p for _tag, _tile, p in sections)
+
+
+def with_tile_index(data: bytes, cells: np.ndarray) -> bytes:
+    """The file with TIDX stating other cell counts (figures kept per tile with cells), CRCs fixed."""
+    import zstandard
+
+    sections = split_tiled(data)
+    k = next(i for i, (tag, _t, _p) in enumerate(sections) if tag == b"TIDX")
+    tidx = sections[k][2]
+    cells = np.asarray(cells, np.uint32)
+    m = int(np.count_nonzero(cells))
+    index = cells.astype("<u4").view(np.uint8).reshape(-1, 4).T.tobytes() + struct.pack(f"<{2 * m}f", *[0.01] * 2 * m)
+    sections[k] = (b"TIDX", 0, tidx[:7] + zstandard.ZstdCompressor().compress(index))
+    return join_tiled(sections)
+
+
+def test_tiled_refusals():
+    """Lying tiled files: both decoders refuse them (dftpcc with its own error)."""
+    data = encode_tiled(synthetic_dem(90, 70, 5), tile_size=32)
+    layout = check_tiled(data)
+    cells = layout["cells"].copy()
+    sections = split_tiled(data)
+    tile_sections = [i for i, (_tag, tile, _p) in enumerate(sections) if tile]
+    more = cells.copy()
+    more[0] += 1
+    full = cells.copy()
+    full[0], full[1] = 32 * 32 + 1, full[1] - (32 * 32 + 1 - full[0])
+    beyond = list(sections)
+    beyond[tile_sections[-1]] = (beyond[tile_sections[-1]][0], len(cells) + 1, beyond[tile_sections[-1]][2])
+    flipped = bytearray(data)
+    flipped[spec_decoder._table(data)[1][tile_sections[1]][2] + 5] ^= 4  # inside tile 1's COEF
+    parm = spec_decoder._json(layout["sections"][b"PARM"])
+    bad = {
+        "cells-sum": with_tile_index(data, more),
+        "cells-over-tile": with_tile_index(data, full),
+        "tile-beyond-count": join_tiled(beyond),
+        "missing-mask": join_tiled([s for i, s in enumerate(sections) if i != tile_sections[0]]),
+        "damaged-tile": bytes(flipped),
+        "labelled-1.0": join_tiled(sections, minor=0),
+        "tile-size-differs": join_tiled([(t, k, json.dumps({**parm, "tile_size": 64}).encode() if t == b"PARM" else p)
+                                         for t, k, p in sections]),
+        "dft-transform": join_tiled([(t, k, json.dumps({**parm, "transform": "dft"}).encode() if t == b"PARM" else p)
+                                     for t, k, p in sections]),
+        "mask-at-tile-0": join_tiled(sections[:5] + [(b"MASK", 0, sections[tile_sections[0]][2])] + sections[5:]),
+        "no-base": join_tiled([s for s in sections if s[0] != b"BASE"]),
+    }
+    for name, crafted in bad.items():
+        with pytest.raises(dftpcc.DftpccError):
+            dftpcc.decompress(crafted)
+            pytest.fail(f"{name}: dftpcc decoded it")
+        with pytest.raises(ValueError):
+            spec_decoder.decode(crafted)
+            pytest.fail(f"{name}: the spec decoder decoded it")

@@ -905,9 +905,12 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     one returns a header whose ``tiles`` says where each tile's sections lie
     (read them with :func:`read_tile`) and the blobs ``b"BASE"``.
     """
-    entries, offset, _minor = _table_of(source)
+    entries, offset, minor = _table_of(source)
     if not _is_tiled(entries):
         return unpack(source.read(0, source.size), allow_truncated_coef=allow_truncated_coef, max_cells=max_cells)
+    if minor < VERSION_TILED[1]:  # format.md: a 1.0 file has no sections of tiles, a tiled map is 1.1
+        raise CorruptFileError(f"a version 1.{minor} file holds a tile index (TIDX): a tiled map is version "
+                               f"{VERSION_TILED[0]}.{VERSION_TILED[1]}")
     if allow_truncated_coef:
         raise InvalidInputError("a tiled map (format 1.1) has no progressive decoding: read it whole, or a "
                                 "region of it with bbox=")
@@ -952,10 +955,13 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
                 resolution_y=res_y or None)
     index = _unpack_index(payloads[b"TIDX"], grid, params, ncells, source.size)
-    for k in tiles:
-        if k >= index.tiling.count:
-            raise CorruptFileError(f"section table names tile {k + 1}, but the map has {index.tiling.count} tiles")
-    for k in range(index.tiling.count):
+    # Any tag: format.md refuses tile numbers above the count, not only those of MASK, COEF, RESD.
+    last = max(tile for _tag, tile, _length, _crc in entries)
+    if last > index.tiling.count:
+        raise CorruptFileError(f"section table names tile {last}, but the map has {index.tiling.count} tiles")
+    # Only tiles with cells or with sections can disagree: a loop over all 2**20 tiles a small
+    # file may name would cost a second in Python.
+    for k in sorted(set(tiles) | set(np.flatnonzero(index.cells).tolist())):
         have = set(tiles.get(k, {}))
         need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 else set()) if index.cells[k] else set()
         if have != need:
@@ -1047,6 +1053,8 @@ def _unpack_index(payload: memoryview, grid: Grid, params: Params, ncells: int, 
         declared = zstandard.frame_content_size(frame)
     except zstandard.ZstdError as exc:
         raise CorruptFileError(f"tile index does not decompress: {exc}") from None
+    if declared < 0:  # zstandard's CONTENTSIZE_UNKNOWN: format.md requires the size be stated
+        raise CorruptFileError("tile index's zstd frame does not state its content size")
     if declared < 4 * n or declared > 12 * n:
         raise CorruptFileError(f"tile index declares {declared} bytes, not 4 per tile and 8 per occupied tile "
                                f"of {n} tiles")

@@ -13,7 +13,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import coding, occupancy, spectrum, tiles
-from .container import Header, Source, check_max_bytes, read_tile, unpack
+from .container import Header, check_max_bytes, unpack
 from .dem import DEM
 from .errors import CorruptFileError, InvalidInputError
 from .fill import plane_values
@@ -226,6 +226,11 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
     if header.tiles is not None:
         if cutoff is not None:
             raise InvalidInputError("a tiled map (format 1.1) decodes at its own cutoff only")
-        source = Source(data)
-        return dem_to_points(decode_tiled(header, blobs[b"BASE"], lambda k: read_tile(source, header, k)))
+        # Through open(), which holds the decoding budget: a small crafted tiled file can name a
+        # grid of 2**36 cells, and decoding it whole would allocate it. (Imported here: mapfile
+        # imports this module.)
+        from .mapfile import open as open_map
+
+        with open_map(data) as cmap:
+            return cmap.read_points()
     return dem_to_points(decode_dem(header, blobs, cutoff=cutoff, allow_partial=max_bytes is not None))

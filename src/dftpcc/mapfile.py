@@ -23,6 +23,8 @@ from .dem import DEM, Grid
 from .errors import InvalidInputError, ResourceLimitError
 from .params import Params
 from .rebuild import dem_to_points
+from .spectrum import radius_limit
+from .tiles import BASE_CYCLES_PER_TILE
 from .units import units_of
 
 __all__ = ["CompressedMap", "open", "is_dftpc", "check_bbox"]
@@ -176,7 +178,13 @@ class CompressedMap:
         """Refuse decoding together more cells than the file's size justifies (format.md, *Tiles*)."""
         assert self.header.tiles is not None
         tiling = self.header.tiles.tiling
-        cells = sum(int(np.prod(tiling.shape(k))) for k in tiling.touching(rows, cols) if self.header.tiles.cells[k])
+        # Every cell of the tiles touched, empty tiles too: the DEM decoded spans them all, so a
+        # small file naming a huge, nearly empty grid must not allocate it. Plus the base layer,
+        # whose coefficient count grows with the grid, not with the tiles decoded.
+        s = tiling.size
+        height = min(tiling.rows, -(-rows[1] // s) * s) - rows[0] // s * s
+        width = min(tiling.cols, -(-cols[1] // s) * s) - cols[0] // s * s
+        cells = height * width + _base_extent(self.header.grid, s, self.header.params.cutoff)
         allowed = cells_allowed(self.size, self._max_cells)
         if cells > allowed:
             raise ResourceLimitError(
@@ -217,6 +225,17 @@ class CompressedMap:
                           for k in map(int, np.flatnonzero(index.cells))],
             }
         return out
+
+
+def _base_extent(g: Grid, size: int, cutoff: float) -> int:
+    """Frequency pairs (i, j) :func:`dftpcc.tiles.base_order` enumerates to find a tiled map's base layer.
+
+    They grow with the grid, not with the tiles decoded (a crafted 1 KB file can ask for tens of
+    millions), and every decode derives them, whatever the file's STAT claims: they count in the budget.
+    """
+    limit = min(max(g.rows, g.cols) / size * BASE_CYCLES_PER_TILE, radius_limit(g.shape, cutoff))
+    side = int(2 * limit * (1 + 1e-9)) + 1
+    return min(g.rows, side) * min(g.cols, side)
 
 
 def check_bbox(bbox: Any) -> tuple[float, float, float, float]:

@@ -211,7 +211,75 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
     struct.pack_into("<f", coef, 4 + 16, float("nan"))  # first value of the first chunk
     struct.pack_into("<I", coef, 4 + 8, zlib.crc32(bytes(coef[4 + 16:4 + 16 + struct.unpack_from("<I", coef, 8)[0]])))
     out["paper_nan_coefficient"] = (craft.replace_section(paper, b"COEF", bytes(coef)), C, "non-finite heights")
+    out.update(tiled_cases(seeds["tiled"]))
     return out
+
+
+def _flip_in_tile(data: bytes, tag: bytes, tile: int) -> bytes:
+    start = next(off for t, k, off, _len, _crc in craft.table(data) if t == tag and k == tile)
+    return _flip(data, start + 3, 2)
+
+
+def tiled_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
+    """Lying tiled (1.1) maps: the seed has 40 x 40 cells in 16-cell tiles (3 x 3, tile 9 empty)."""
+    C, R = "CorruptFileError", "ResourceLimitError"
+    index = craft.tile_index(tiled)
+    cells, n = index["cells"], index["cells"].size
+    sections = craft.split_tiled(tiled)
+    more = cells.copy()
+    more[0] += 1
+    over = cells.copy()  # tile 1 claims more cells than it has, the sum kept
+    over[0], over[1] = 16 * 16 + 1, cells[1] - (16 * 16 + 1 - cells[0])
+    raw_tidx = craft.section(tiled, b"TIDX")
+    head = raw_tidx[:craft.TIDX_HEAD.size]
+    body = zstandard.ZstdDecompressor().decompress(raw_tidx[craft.TIDX_HEAD.size:])
+    gigabyte = b"\x28\xb5\x2f\xfd" + bytes([0xC0, 0x58]) + struct.pack("<Q", 1 << 30) + bytes(16)
+    tile_3 = [(t, k, p) for t, k, p in sections if k == 3]
+    return {
+        "tiled_cells_sum_lies": (craft.with_tile_index(tiled, cells=more), C, "cells add up to"),
+        "tiled_cells_over_tile_size": (craft.with_tile_index(tiled, cells=over), C,
+                                       "tile 1 claims 257 cells in a 16 x 16 tile"),
+        "tiled_index_claims_1gb": (craft.replace_section(tiled, b"TIDX", head + gigabyte), C,
+                                   "tile index declares 1073741824 bytes"),
+        "tiled_index_zstd_bomb": (craft.replace_section(tiled, b"TIDX", head + zstandard.ZstdCompressor(
+            level=19).compress(bytes(50_000_000))), C, "tile index declares 50000000 bytes"),
+        "tiled_index_size_unstated": (craft.replace_section(tiled, b"TIDX", head + zstandard.ZstdCompressor(
+            write_content_size=False).compress(body)), C, "does not state its content size"),
+        "tiled_index_counts_for_more_tiles": (craft.with_tile_index(tiled, cells=list(cells) + [1]), C,
+                                              "tile index declares 112 bytes"),
+        "tiled_overlap_over_half_a_tile": (craft.with_tile_index(tiled, overlap=9), C, "tile overlap 9"),
+        "tiled_tile_size_disagrees": (craft.with_tile_index(tiled, size=32), C, "tiles of 32 cells"),
+        "tiled_tile_beyond_count": (craft.join_tiled(sections + [(b"MASK", n + 1, tile_3[0][2])]), C,
+                                    f"names tile {n + 1}, but the map has {n} tiles"),
+        "tiled_tile_2_64_minus_1": (craft.join_tiled(sections + [(b"COEF", (1 << 64) - 1, b"")]), C,
+                                    "names tile 18446744073709551615"),
+        "tiled_unknown_tag_beyond_count": (craft.join_tiled(sections + [(b"XTRA", n + 1, b"later")]), C,
+                                           f"names tile {n + 1}, but the map has {n} tiles"),
+        "tiled_missing_mask": (craft.join_tiled([s for s in sections if s[:2] != (b"MASK", 3)]), C,
+                               "tile 3 has sections COEF where its index entry needs COEF, MASK"),
+        "tiled_empty_tile_has_sections": (craft.join_tiled(sections + [(t, 9, p) for t, _k, p in tile_3]), C,
+                                          "tile 9 has sections COEF, MASK where its index entry needs none"),
+        "tiled_mask_at_tile_0": (craft.join_tiled(sections[:1] + [(b"MASK", 0, tile_3[0][2])] + sections[1:]), C,
+                                 "no section MASK at tile 0"),
+        "tiled_base_missing": (craft.join_tiled([s for s in sections if s[0] != b"BASE"]), C,
+                               "section BASE is missing"),
+        "tiled_base_count_lies": (craft.with_stat(tiled, coef_count=craft.stat_of(tiled)["coef_count"] + 1), C,
+                                  "base layer's coefficient count"),
+        "tiled_as_version_1_0": (craft.join_tiled(sections, version=(1, 0)), C, "version 1.0 file holds a tile index"),
+        "tiled_transform_dft": (_json_section(tiled, b"PARM", transform="dft"), C, "not transform=dft"),
+        # The reader reads on into the payloads, which do not parse as entries.
+        "tiled_section_count_2_24": (craft.join_tiled(sections, count=1 << 24), C, "section table"),
+        "tiled_section_count_over_2_24": (craft.join_tiled(sections, count=(1 << 24) + 1), C,
+                                          "claims 16777217 sections, more than the 16777216 allowed"),
+        "tiled_flip_in_tile_5_coef": (_flip_in_tile(tiled, b"COEF", 5), C,
+                                      r"tile 5 \(tile row 1, column 1\): section COEF fails its checksum"),
+        "tiled_flip_in_tile_2_mask": (_flip_in_tile(tiled, b"MASK", 2), C,
+                                      r"tile 2 \(tile row 0, column 1\): section MASK fails its checksum"),
+        "tiled_truncated_in_last_tile": (tiled[:-3], C, "tile 8 .*truncated"),
+        # 8.4 million base coefficients (a 4095-tile strip of 2048-cell tiles, at cutoff 0) in 1.5 KB.
+        "tiled_base_bomb": (craft.tiled_file(2048, 2047 * 2048 + 16, 2048, {2048: 100}, cutoff=0.0), R,
+                            "refusing to decode"),
+    }
 
 
 def main() -> int:

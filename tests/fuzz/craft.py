@@ -48,8 +48,8 @@ def _parse(data: bytes) -> tuple[list[tuple[bytes, int, int, int, int]], int] | 
     """``([(tag, tile, length, crc, crc_pos), ...], table_end)`` as far as ``data`` holds a table, else None."""
     if len(data) < PREAMBLE.size:
         return None
-    count = PREAMBLE.unpack_from(data, 0)[4]
-    if count > container.MAX_SECTIONS:
+    _magic, _major, minor, _flags, count = PREAMBLE.unpack_from(data, 0)
+    if count > (container.MAX_SECTIONS if minor == 0 else container.MAX_SECTIONS_TILED):
         return None
     entries, pos = [], PREAMBLE.size
     for _ in range(count):
@@ -90,8 +90,28 @@ def head_size(data: bytes) -> int:
 
 
 def split(data: bytes) -> list[tuple[bytes, bytes]]:
-    """``[(tag, payload), ...]`` in table order."""
+    """``[(tag, payload), ...]`` in table order (tile numbers dropped: see :func:`split_tiled`)."""
     return [(tag, data[off:off + length]) for tag, _tile, off, length, _crc in table(data)]
+
+
+def split_tiled(data: bytes) -> list[tuple[bytes, int, bytes]]:
+    """``[(tag, tile, payload), ...]`` in table order."""
+    return [(tag, tile, data[off:off + length]) for tag, tile, off, length, _crc in table(data)]
+
+
+def version_of(data: bytes) -> tuple[int, int]:
+    """(major, minor) of the preamble."""
+    _magic, major, minor, _flags, _count = PREAMBLE.unpack_from(data, 0)
+    return major, minor
+
+
+def join_tiled(sections: list[tuple[bytes, int, bytes]], *, version: tuple[int, int] = container.VERSION_TILED,
+               flags: int = 0, count: int | None = None) -> bytes:
+    """Bytes of a file holding ``(tag, tile, payload)`` sections, every checksum correct (``count`` may lie)."""
+    entries = [entry(tag, tile, len(payload), zlib.crc32(payload)) for tag, tile, payload in sections]
+    n = len(sections) if count is None else count
+    head = PREAMBLE.pack(container.MAGIC, version[0], version[1], flags, n) + b"".join(entries)
+    return head + CRC.pack(zlib.crc32(head)) + b"".join(p for _, _, p in sections)
 
 
 def join(sections: list[tuple[bytes, bytes]], *, version: tuple[int, int] = container.VERSION,
@@ -106,20 +126,27 @@ def join(sections: list[tuple[bytes, bytes]], *, version: tuple[int, int] = cont
     return head + CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections)
 
 
-def replace_section(data: bytes, tag: bytes, payload: bytes | None) -> bytes:
-    """The file with section ``tag`` replaced (or removed when ``payload`` is None), CRCs fixed."""
+def replace_section(data: bytes, tag: bytes, payload: bytes | None, *, tile: int = 0) -> bytes:
+    """The file with section ``tag`` of ``tile`` replaced (or removed when ``payload`` is None), CRCs fixed.
+
+    Other tiles' sections and the version are kept.
+    """
     out = []
-    for t, p in split(data):
-        if t == tag:
+    for t, k, p in split_tiled(data):
+        if t == tag and k == tile:
             if payload is not None:
-                out.append((t, payload))
+                out.append((t, k, payload))
         else:
-            out.append((t, p))
-    return join(out)
+            out.append((t, k, p))
+    return join_tiled(out, version=version_of(data))
 
 
-def section(data: bytes, tag: bytes) -> bytes:
-    return dict(split(data))[tag]
+def section(data: bytes, tag: bytes, *, tile: int = 0) -> bytes:
+    """The payload of the first section ``tag`` of ``tile`` (KeyError when there is none)."""
+    for t, k, p in split_tiled(data):
+        if t == tag and k == tile:
+            return p
+    raise KeyError((tag, tile))
 
 
 def json_of(data: bytes, tag: bytes):
@@ -157,7 +184,8 @@ def with_stat(data: bytes, **changes: float | int | None) -> bytes:
             continue
         i = ids[name]
         out.append(i)
-        out += leb128(int(value)) if i >= 128 else np.float32(value).astype("<f4").tobytes()
+        with np.errstate(over="ignore"):  # a lie may overflow float32: it becomes inf, as meant
+            out += leb128(int(value)) if i >= 128 else np.float32(value).astype("<f4").tobytes()
     return replace_section(data, b"STAT", bytes(out))
 
 
@@ -233,3 +261,91 @@ def with_chunk_kind(data: bytes, tag: bytes, kind: int) -> bytes:
         struct.pack_into("<I", payload, pos + 12, kind)
         pos += 16 + nbytes
     return replace_section(data, tag, bytes(payload))
+
+
+# --- the tiled layout (format 1.1) -------------------------------------------------------------------
+
+TIDX_HEAD = struct.Struct("<BIHB")  # coding, tile size T, overlap M, base reach K
+
+
+def tile_index(data: bytes) -> dict:
+    """What TIDX says: ``coding``, ``size`` T, ``overlap`` M, ``cells`` per tile (n), ``figures``
+    (the f32 RMSE then maximum error of each occupied tile, as read)."""
+    import zstandard
+
+    raw = section(data, b"TIDX")
+    coding, size, overlap, reach = TIDX_HEAD.unpack_from(raw, 0)
+    if size == 0:
+        raise ValueError("tile index states tiles of 0 cells")
+    g = geom(data)
+    n = -(-g["rows"] // size) * -(-g["cols"] // size)
+    body = zstandard.ZstdDecompressor().decompress(raw[TIDX_HEAD.size:])
+    cells = np.frombuffer(body[:4 * n], np.uint8).reshape(4, n).T.copy().view("<u4").ravel().astype(np.int64)
+    return {"coding": coding, "size": size, "overlap": overlap, "reach": reach, "cells": cells,
+            "figures": np.frombuffer(body[4 * n:], "<f4").astype(np.float64)}
+
+
+def pack_tile_index(cells, *, size: int, overlap: int, coding: int = 1, figures=None,
+                    content_size: bool = True, reach: int = 1) -> bytes:
+    """A TIDX payload: u32 cells per tile as 4 byte planes, then the f32 figures (0.01 m each
+    by default: an RMSE and a maximum error per occupied tile), in one zstd frame."""
+    import zstandard
+
+    cells = np.asarray(cells, dtype=np.int64)
+    planes = cells.astype("<u4").view(np.uint8).reshape(-1, 4).T.tobytes()
+    if figures is None:
+        figures = np.full(2 * int(np.count_nonzero(cells)), 0.01)
+    body = planes + np.asarray(figures, "<f4").tobytes()
+    frame = zstandard.ZstdCompressor(write_content_size=content_size).compress(body)
+    return TIDX_HEAD.pack(coding, size, overlap, reach) + frame
+
+
+def with_tile_index(data: bytes, **changes) -> bytes:
+    """The file with TIDX re-coded with some of its fields changed (``cells``, ``size``,
+    ``overlap``, ``coding``, ``figures``), CRCs fixed."""
+    if "cells" in changes:  # the old counts may not fit the grid any more: read the head only
+        coding, size, overlap, reach = TIDX_HEAD.unpack_from(section(data, b"TIDX"), 0)
+        index = {"coding": coding, "size": size, "overlap": overlap, "reach": reach, "figures": None}
+    else:
+        index = tile_index(data)
+    index.update(changes)
+    return replace_section(data, b"TIDX", pack_tile_index(index["cells"], size=index["size"],
+                                                          overlap=index["overlap"], coding=index["coding"],
+                                                          figures=index["figures"], reach=index["reach"]))
+
+
+def tiled_file(rows: int, cols: int, size: int, occupied: dict[int, int], *, overlap: int = 8,
+               cutoff: float = 0.8, step: float = 0.01, pad: int = 0) -> bytes:
+    """A tiled (1.1) map built from nothing: a flat grid of ``rows`` x ``cols`` 1 m cells in tiles of
+    ``size``, where tile k (1-based) of ``occupied`` has its first ``occupied[k]`` cells (row-major)
+    set, every coefficient 0. ``pad`` bytes of an unknown tile-0 section make the file larger
+    (limits that grow with the file's size). Every checksum is correct, every count consistent:
+    the map is sound, only perhaps costly (the corpus's bombs)."""
+    from dftpcc import coding, occupancy, spectrum, tiles
+    from dftpcc.dem import TileGrid
+
+    tiling = TileGrid(rows, cols, size)
+    cells = np.zeros(tiling.count, np.int64)
+    sections = []
+    for k, count in sorted(occupied.items()):
+        h, w = tiling.shape(k - 1)
+        mask = np.zeros(h * w, bool)
+        mask[:count] = True
+        cells[k - 1] = count
+        w0, w1, v0, v1 = tiles.coded_window(tiling, k - 1, overlap)
+        lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0))
+        _order, radii, angles = spectrum.kept_order(lay, cutoff)
+        mask_blob = occupancy.encode_mask(mask.reshape(h, w))
+        coef_blob = coding.encode_coefficients(np.zeros(radii.size, np.int64), radius=radii, angle=angles)
+        sections += [(b"MASK", k, mask_blob), (b"COEF", k, coef_blob)]
+    i, _j, radius, angle = tiles.base_order((rows, cols), size, cutoff)
+    base = coding.encode_coefficients(np.zeros(i.size, np.int64), radius=radius, angle=angle)
+    total = int(cells.sum())
+    geom_blob = GEOM.pack(0.0, 0.0, 0.0, 1.0, rows, cols, 0.0, total, total, 0.0, 0.0, 0.0)
+    parm = json.dumps({"step": step, "tile_size": size, "cutoff": cutoff}).encode()
+    stat = bytes([container.STAT_BINARY, 128]) + leb128(int(i.size))
+    head = [(b"GEOM", 0, geom_blob), (b"PARM", 0, parm), (b"STAT", 0, stat),
+            (b"TIDX", 0, pack_tile_index(cells, size=size, overlap=overlap)), (b"BASE", 0, base)]
+    if pad:
+        head.append((b"XTRA", 0, bytes(pad)))
+    return join_tiled(head + sections)

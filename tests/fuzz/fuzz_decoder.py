@@ -14,7 +14,14 @@ For every input the decoder must (docs/errors.md, "Fuzzing"):
 The first byte of an input is a mode: bit 0 recomputes every checksum of
 the rest (a crafted file rather than a damaged one, so mutations reach the
 checks behind the CRCs), bit 1 decodes progressively from a prefix
-(``max_bytes``), bit 2 also decodes at a larger cutoff.
+(``max_bytes``), bit 2 also decodes at a larger cutoff, bit 3 decodes only
+a region (``bbox``, the corner of the map the high four bits choose). A
+tiled (1.1) map refuses a prefix and a cutoff: bits 1 and 2 apply to it only
+when the high bits are all set, so most tiled inputs reach the tiles.
+
+The allowed allocation of a tiled map is per cell of what the file can
+justify (:func:`dftpcc.container.cells_allowed` of its size, at most its
+grid), not of its grid, which may reach 2**36 cells.
 
 Two engines share :func:`check`:
 
@@ -86,6 +93,9 @@ CAMPAIGN_ADDRESS_SPACE = 8 << 30
 MODE_FIX_CRCS = 1
 MODE_PREFIX = 2
 MODE_CUTOFF = 4
+MODE_BBOX = 8
+#: Mode values at or above this apply MODE_PREFIX and MODE_CUTOFF to a tiled map too (refused).
+MODE_TILED_REFUSALS = 0xF0
 #: Decode-time cutoff used by MODE_CUTOFF (coarser than any seed's).
 FUZZ_CUTOFF = 0.97
 
@@ -113,15 +123,25 @@ def _decode(data: bytes, validated: list[int]) -> np.ndarray:
     mode, body = (data[0], data[1:]) if data else (0, b"")
     if mode & MODE_FIX_CRCS:
         body = craft.fix_crcs(body)
+    # A tiled map (minor version 1) refuses max_bytes and cutoff: mostly leave them out.
+    untiled = body[9:10] != b"\x01" or mode >= MODE_TILED_REFUSALS
     max_bytes = None
-    if mode & MODE_PREFIX and body:
+    if mode & MODE_PREFIX and body and untiled:
         max_bytes = max(1, len(body) * (1 + (mode >> 4)) // 17)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a warning is not a failure
         with dftpcc.open(body, max_bytes=max_bytes) as cmap:
-            validated.append(cmap.grid.size)
-            return cmap.read_points(cutoff=FUZZ_CUTOFF if mode & MODE_CUTOFF and cmap.params.cutoff <= FUZZ_CUTOFF
-                                    else None)
+            grid = cmap.grid
+            validated.append(grid.size if not cmap.tiled else
+                             min(grid.size, container.cells_allowed(len(body), None)))
+            cutoff = (FUZZ_CUTOFF if mode & MODE_CUTOFF and untiled and cmap.params.cutoff <= FUZZ_CUTOFF
+                      else None)
+            bbox = None
+            if mode & MODE_BBOX:  # the south-west corner, a fraction (1 to 16 sixteenths) of each side
+                xmin, ymin, xmax, ymax = cmap.bounds()
+                f = (1 + (mode >> 4)) / 16
+                bbox = (xmin, ymin, xmin + f * (xmax - xmin), ymin + f * (ymax - ymin))
+            return cmap.read_points(cutoff=cutoff, bbox=bbox)
 
 
 def _on_alarm(_signum, _frame):
@@ -208,6 +228,7 @@ def _run(data: bytes, *, trace: bool, max_events: int | None = None,
 _INTS = (0, 1, 2, 0x7F, 0x80, 0xFF, 0x7FFF, 0xFFFF, 0x7FFFFFFF, 0xFFFFFFFF, 1 << 32, 1 << 40, (1 << 63) - 1,
          (1 << 64) - 1)
 _FLOATS = (0.0, -0.0, 1.0, -1.0, 0.5, 1e-300, 5e-324, 1e12, 1e15, 1e308, -1e308, math.inf, -math.inf, math.nan)
+_TILED_JSON_VALUES = (15, 16, 17, 32, 65536, 65537, 0, "dft", "complex64", "footprint", 0.05)
 _JSON_VALUES = (None, True, False, 0, -1, 1, 2**31, 2**63, 10**400, 0.5, 1.5, -0.5, 1e308, "x", "", [], {},
                 [[[[[]]]]], {"a": {}})
 
@@ -223,12 +244,15 @@ class Mutator:
         rng = self.rng
         data = rng.choice(self.seeds)
         ops = (self._flip, self._interesting_int, self._interesting_float, self._truncate, self._insert,
-               self._delete, self._splice, self._geom, self._table, self._json, self._stat, self._blob)
-        weights = (4, 2, 2, 2, 1, 1, 1, 3, 2, 2, 1, 2)
+               self._delete, self._splice, self._geom, self._table, self._json, self._stat, self._blob,
+               self._tile_index, self._tiles)
+        # The tiled mutations do nothing to an untiled seed: weigh them by what they can reach.
+        tiled = data[9:10] == b"\x01"
+        weights = (4, 2, 2, 2, 1, 1, 1, 3, 2, 2, 1, 2) + ((3, 3) if tiled else (0, 0))
         for _ in range(rng.choice((1, 1, 1, 2, 3))):
             try:
                 data = rng.choices(ops, weights)[0](data)
-            except (struct.error, ValueError, KeyError, RecursionError, OverflowError):
+            except (struct.error, ValueError, KeyError, RecursionError, OverflowError, ZeroDivisionError):
                 pass  # a structural mutation that does not apply to these bytes
         mode = rng.getrandbits(8)
         if rng.random() < 0.5:
@@ -286,11 +310,17 @@ class Mutator:
         i, j = self.rng.randrange(len(data) + 1), self.rng.randrange(len(other) + 1)
         return data[:i] + other[j:]
 
-    def _sections(self, data: bytes) -> list[tuple[bytes, bytes]] | None:
+    def _sections(self, data: bytes) -> list[tuple[bytes, int, bytes]] | None:
+        """``[(tag, tile, payload), ...]``, or None when ``data`` holds no complete table."""
         try:
-            return craft.split(data)
+            return craft.split_tiled(data)
         except struct.error:
             return None
+
+    @staticmethod
+    def _join(data: bytes, sections: list[tuple[bytes, int, bytes]], count: int | None = None) -> bytes:
+        """``sections`` laid out again with ``data``'s version (and tile numbers), checksums fixed."""
+        return craft.join_tiled(sections, version=craft.version_of(data), count=count)
 
     def _geom(self, data: bytes) -> bytes:
         try:
@@ -316,15 +346,16 @@ class Mutator:
         choice = rng.randrange(5)
         if choice == 0:  # drop a section
             del sections[rng.randrange(len(sections))]
-            return craft.join(sections)
+            return self._join(data, sections)
         if choice == 1:  # duplicate one
             sections.insert(rng.randrange(len(sections) + 1), rng.choice(sections))
-            return craft.join(sections)
+            return self._join(data, sections)
         if choice == 2:  # reorder
             rng.shuffle(sections)
-            return craft.join(sections)
+            return self._join(data, sections)
         if choice == 3:  # a lying count
-            return craft.join(sections, count=rng.choice((0, 1, len(sections) + 1, 1024, 1025, 0xFFFFFFFF)))
+            return self._join(data, sections, count=rng.choice((0, 1, len(sections) + 1, 1024, 1025, 1 << 24,
+                                                                (1 << 24) + 1, 0xFFFFFFFF)))
         try:  # a lying entry: length, tile or checksum
             index = rng.randrange(len(sections))
             name = rng.choice(("length", "tile", "crc"))
@@ -338,22 +369,24 @@ class Mutator:
         if not sections:
             return data
         rng = self.rng
-        index = rng.choice([i for i, (t, _) in enumerate(sections) if t in (b"PARM", b"CRS ")] or [0])
-        tag, payload = sections[index]
+        index = rng.choice([i for i, (t, _k, _p) in enumerate(sections) if t in (b"PARM", b"CRS ")] or [0])
+        tag, tile, payload = sections[index]
         try:
             obj = json.loads(container._json_text(memoryview(payload), tag.decode()))
         except (ValueError, RecursionError, dftpcc.DftpccError):
             obj = {}
         if isinstance(obj, dict) and obj and rng.random() < 0.8:
             key = rng.choice(sorted(obj))
-            obj[key] = rng.choice(_JSON_VALUES)
+            if "tile_size" in obj and rng.random() < 0.3:  # a tiled map's own fields
+                key = rng.choice(("tile_size", "transform", "storage", "mask", "target_max_error"))
+            obj[key] = rng.choice(_JSON_VALUES + _TILED_JSON_VALUES)
             text = json.dumps(obj)
         elif rng.random() < 0.5:
             text = rng.choice(("[" * 100_000, "{}", "[]", "null", "\"x\"", "1e999", "{\"a\": NaN}"))
         else:
             text = json.dumps(rng.choice(_JSON_VALUES))
-        sections[index] = (tag, text.encode("utf-8", "surrogatepass"))
-        return craft.join(sections)
+        sections[index] = (tag, tile, text.encode("utf-8", "surrogatepass"))
+        return self._join(data, sections)
 
     def _stat(self, data: bytes) -> bytes:
         """A binary STAT record changed: a field's value, a field dropped, a record of an id the
@@ -388,8 +421,9 @@ class Mutator:
         import zstandard
 
         rng = self.rng
-        index = rng.choice([i for i, (t, _) in enumerate(sections) if t in (b"MASK", b"COEF")] or [0])
-        tag, payload = sections[index]
+        index = rng.choice([i for i, (t, _k, _p) in enumerate(sections)
+                            if t in (b"MASK", b"COEF", b"RESD", b"BASE", b"TIDX")] or [0])
+        tag, tile, payload = sections[index]
         choice = rng.randrange(4)
         if choice == 0:  # a zstd frame that expands enormously (a bomb)
             payload = zstandard.ZstdCompressor().compress(b"\xff" * rng.choice((10, 1000, 10**6, 10**7)))
@@ -400,10 +434,109 @@ class Mutator:
                 buf = bytearray(payload)
                 struct.pack_into("<I", buf, rng.randrange(0, len(buf) - 3), rng.choice(_INTS) & 0xFFFFFFFF)
                 payload = bytes(buf)
-        else:  # the other section's payload
-            payload = rng.choice(sections)[1]
-        sections[index] = (tag, payload)
-        return craft.join(sections)
+        else:  # another section's payload (of another tile, perhaps)
+            payload = rng.choice(sections)[2]
+        sections[index] = (tag, tile, payload)
+        return self._join(data, sections)
+
+    def _tile_index(self, data: bytes) -> bytes:
+        """TIDX lies: counts (their sum, over a tile's size, an empty tile made full), T, the overlap,
+        the coding, figures, a frame without its size, or one declaring a gigabyte."""
+        import zstandard
+
+        try:
+            index = craft.tile_index(data)
+        except (struct.error, StopIteration, ValueError, KeyError, zstandard.ZstdError):
+            return data
+        rng = self.rng
+        cells = index["cells"].copy()
+        choice = rng.randrange(8)
+        if choice == 0 and cells.size:  # one count changed
+            k = rng.randrange(cells.size)
+            cells[k] = rng.choice((0, 1, cells[k] + 1, max(0, cells[k] - 1), index["size"] ** 2,
+                                   index["size"] ** 2 + 1, 0xFFFFFFFF))
+            return craft.with_tile_index(data, cells=cells)
+        if choice == 1 and cells.size > 1:  # two counts swapped, or moved keeping the sum
+            i, j = rng.sample(range(cells.size), 2)
+            if rng.random() < 0.5:
+                cells[i], cells[j] = cells[j], cells[i]
+            else:
+                moved = rng.randrange(1, max(2, int(cells[i]) + 1))
+                cells[i], cells[j] = cells[i] - moved, cells[j] + moved
+            return craft.with_tile_index(data, cells=np.maximum(cells, 0))
+        if choice == 2:  # more or fewer tiles than the grid has
+            extra = rng.choice((-1, 1, 2, 1000))
+            cells = np.concatenate([cells, np.ones(extra, np.int64)]) if extra > 0 else cells[:extra]
+            return craft.with_tile_index(data, cells=cells)
+        if choice == 3:
+            name = rng.choice(("size", "overlap", "coding"))
+            value = rng.choice(_INTS + (index[name] + 1, max(0, index[name] - 1), index[name] * 2, 15, 16, 65536,
+                                        65537))
+            return craft.with_tile_index(data, **{name: value & (0xFFFF if name == "overlap" else
+                                                                 0xFF if name == "coding" else 0xFFFFFFFF)})
+        if choice == 4:  # figures NaN, negative, infinite
+            figures = index["figures"].copy()
+            if figures.size:
+                figures[rng.randrange(figures.size)] = rng.choice((math.nan, -1.0, math.inf, -0.0, 3e38))
+            return craft.with_tile_index(data, figures=figures)
+        raw = craft.section(data, b"TIDX")
+        head = raw[:craft.TIDX_HEAD.size]
+        if choice == 5:  # the frame without its content size
+            body = zstandard.ZstdDecompressor().decompress(raw[craft.TIDX_HEAD.size:])
+            frame = zstandard.ZstdCompressor(write_content_size=False).compress(body)
+        elif choice == 6:  # a frame declaring (and holding) far more than the index needs
+            frame = zstandard.ZstdCompressor().compress(bytes(rng.choice((10**3, 10**6, 10**7))))
+        else:  # a frame header declaring a gigabyte, and little data
+            frame = zstd_header_claiming(1 << 30, rng.randbytes(rng.choice((0, 3, 64))))
+        return craft.replace_section(data, b"TIDX", head + frame)
+
+    def _tiles(self, data: bytes) -> bytes:
+        """Tile sections: a tile number beyond the count, 0 or another tile; a tile's section dropped,
+        doubled or swapped with another tile's; an empty tile given sections; BASE dropped or moved."""
+        sections = self._sections(data)
+        if not sections:
+            return data
+        rng = self.rng
+        tiled = [i for i, (_t, k, _p) in enumerate(sections) if k]
+        count = max((k for _t, k, _p in sections), default=0)
+        choice = rng.randrange(6)
+        if choice == 0 and tiled:  # another tile number
+            i = rng.choice(tiled)
+            tag, _k, payload = sections[i]
+            sections[i] = (tag, rng.choice((0, 1, count, count + 1, count + 2, 1 << 20, (1 << 20) + 1, (1 << 64) - 1,
+                                            rng.randrange(1, count + 1))), payload)
+        elif choice == 1 and tiled:  # a tile's section dropped
+            del sections[rng.choice(tiled)]
+        elif choice == 2 and tiled:  # a tile's section repeated, for its tile or another
+            tag, k, payload = sections[rng.choice(tiled)]
+            sections.insert(rng.randrange(len(sections) + 1), (tag, rng.choice((k, rng.randrange(1, count + 2))), payload))
+        elif choice == 3 and len(tiled) > 1:  # two tiles' payloads swapped
+            i, j = rng.sample(tiled, 2)
+            (ti, ki, pi), (tj, kj, pj) = sections[i], sections[j]
+            sections[i], sections[j] = (ti, ki, pj), (tj, kj, pi)
+        elif choice == 4:  # BASE dropped, or moved to a tile
+            base = [i for i, (t, _k, _p) in enumerate(sections) if t == b"BASE"]
+            if not base:
+                return data
+            if rng.random() < 0.5:
+                del sections[base[0]]
+            else:
+                tag, _k, payload = sections[base[0]]
+                sections[base[0]] = (tag, rng.randrange(1, count + 2), payload)
+        else:  # a section of an unknown tag, or a TIDX, at a tile
+            sections.insert(rng.randrange(len(sections) + 1),
+                            (rng.choice((b"XTRA", b"TIDX", b"GEOM", b"STAT")), rng.randrange(0, count + 2),
+                             rng.randbytes(rng.choice((0, 4, 32)))))
+        return self._join(data, sections)
+
+
+def zstd_header_claiming(size: int, tail: bytes = b"") -> bytes:
+    """The header of a zstd frame declaring ``size`` bytes of content, then ``tail``.
+
+    Descriptor 0xC0: an 8-byte content size, a window descriptor, no dictionary, no checksum;
+    window 0x58 is 2 MiB, within what every decoder accepts.
+    """
+    return b"\x28\xb5\x2f\xfd" + bytes([0xC0, 0x58]) + struct.pack("<Q", size) + tail
 
 
 @dataclass

@@ -28,6 +28,10 @@ SEED_OPTIONS: dict[str, dict] = {
     "compact_max_error": dict(resolution=1.0, cutoff=0.8, target_max_error=0.02),  # has a RESD section
     "paper_dft": dict(resolution=1.5, cutoff=0.8, profile="paper"),
     "paper_dft_fc0": dict(resolution=3.0, cutoff=0.0, profile="paper"),
+    # Tiled (format 1.1): 40 x 40 cells in 16-cell tiles (3 x 3, the last row and column 8 cells).
+    "tiled": dict(resolution=1.0, cutoff=0.8, tile_size=16),
+    "tiled_max_error_zstd": dict(resolution=1.0, cutoff=0.6, tile_size=16, target_max_error=0.05, coder="zstd"),
+    "tiled_coarse": dict(resolution=1.5, cutoff=0.0, tile_size=16),  # 27 x 27 cells: 2 x 2 tiles
 }
 
 

@@ -21,7 +21,7 @@ import pytest
 from .fuzz_decoder import check, run
 from .seeds import seed_files
 
-#: Inputs per CI run: all of them are decoded (25 s on the shared 2-core machine).
+#: Inputs per CI run: all of them are decoded (39 s on the shared 2-core machine with the tiled seeds).
 CI_INPUTS = 6_000
 #: Python events (calls and lines) one input may take: 14,248 at most with
 #: CI_SEED when written, a sound seed map 4,000-14,000; a loop over a count an
