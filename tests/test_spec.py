@@ -247,7 +247,7 @@ def check_tiled(data: bytes) -> dict:
     g = spec_decoder._geom(sections[b"GEOM"])
     size = spec_decoder._json(sections[b"PARM"])["tile_size"]
     n = -(-g["rows"] // size) * -(-g["cols"] // size)
-    _overlap, cells, _rmse, _max = spec_decoder._tile_index(sections[b"TIDX"], n, size)
+    _overlap, _reach, cells, _rmse, _max = spec_decoder._tile_index(sections[b"TIDX"], n, size)
     return {"sections": sections, "entries": spec_decoder._table(data)[1], "cells": cells, "size": size,
             "grid": g}
 

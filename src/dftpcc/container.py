@@ -988,8 +988,8 @@ def _names(tags: set[bytes]) -> str:
 def _checked(source: Source, start: int, length: int, crc: int, what: str) -> memoryview:
     """A payload read from ``source`` and checked against the file's end and its CRC."""
     if start + length > source.size:
-        raise CorruptFileError(f"file is truncated: {what} needs bytes up to {start + length}, file has "
-                               f"{source.size}")
+        raise CorruptFileError(f"{what}: file is truncated (it needs bytes up to {start + length}, the file has "
+                               f"{source.size})")
     payload = source.read(start, length)
     if zlib.crc32(payload) != crc:
         raise CorruptFileError(f"{what} fails its checksum (damaged file)")
