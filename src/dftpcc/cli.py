@@ -213,7 +213,10 @@ def cmd_compress(args: argparse.Namespace) -> int:
 
 def cmd_decompress(args: argparse.Namespace) -> int:
     from .files import decompress_bands, decompress_file, wants_bands
+    from .io.rosmap import is_bag_output
 
+    if is_bag_output(args.output, args.format):
+        return _decompress_bag(args)
     if wants_bands(args.input, args.output, format=args.format, cog=args.cog, bbox=args.bbox,
                    cutoff=args.cutoff, max_bytes=args.max_bytes):
         # A tiled map larger than memory, or a COG: one band of tile rows at a time.
@@ -223,10 +226,6 @@ def cmd_decompress(args: argparse.Namespace) -> int:
                                      on_stage=on_stage)
         _say(args, f"{args.output}: {count:,} points, written band by band")
         return 0
-    from .io.rosmap import is_bag_output
-
-    if is_bag_output(args.output, args.format):
-        return _decompress_bag(args)
     if args.topic or args.grid_map:
         raise InvalidInputError(f"{args.output}: --topic and --grid-map apply to a ROS 2 bag output, a folder: "
                                 f"end its name with / (out_bag/) or give --format rosbag")

@@ -213,7 +213,10 @@ def wants_bands(src: Any, dst: Any, *, format: str | None = None, cog: bool = Fa
         return True
     if _is_stream(src) or _is_stream(dst) or bbox is not None or cutoff is not None or max_bytes is not None:
         return False
-    if format_of(dst, format) not in stream.STREAM_FORMATS or not Path(src).is_file():
+    try:
+        if format_of(dst, format) not in stream.STREAM_FORMATS or not Path(src).is_file():
+            return False
+    except InvalidInputError:  # decompress_file says what is wrong with the output's name
         return False
     try:
         with open_map(src) as cmap:
