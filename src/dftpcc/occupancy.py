@@ -149,35 +149,33 @@ def _contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
 def _encode_context(lines: np.ndarray, stripe: int) -> bytes:
     n_lines, width = lines.shape
     t = np.arange(n_lines) % stripe
-    coded = (t > 0) | (np.arange(n_lines) == 0)  # every line but the seeds
-    seeds = lines[~coded]
-    ctx = _contexts(lines, stripe)[coded]
-    bits = lines[coded]
-    step = t[coded][:, None]
+    seeds = lines[(t == 0) & (np.arange(n_lines) > 0)]  # line 0 of every stripe but the first
+    ctx = _contexts(lines, stripe)
+    # Step s decodes line s of every stripe (line 0 of the first stripe only, the
+    # others' are seeds): rows s, s + stripe, ... of the line-major mask, by
+    # stripe and column, which is the order of lines[s::stripe] raveled.
+    steps = [(lines[:1], ctx[:1])] + [(lines[s::stripe], ctx[s::stripe]) for s in range(1, stripe)]
     # Counts seen before each step: per-step histograms, accumulated, shifted by one step.
-    flat = (ctx.astype(np.intp) + CONTEXTS * step).ravel()
-    ones = np.bincount(flat, weights=bits.ravel(), minlength=stripe * CONTEXTS).reshape(stripe, CONTEXTS)
-    total = np.bincount(flat, minlength=stripe * CONTEXTS).reshape(stripe, CONTEXTS).astype(np.float64)
-    ones = np.vstack([np.zeros(CONTEXTS), np.cumsum(ones, axis=0)[:-1]])
-    total = np.vstack([np.zeros(CONTEXTS), np.cumsum(total, axis=0)[:-1]])
+    ones, total = np.zeros((stripe, CONTEXTS)), np.zeros((stripe, CONTEXTS))
+    for s, (bits, c) in enumerate(steps[:-1]):
+        flat = c.ravel()
+        ones[s + 1] = ones[s] + np.bincount(flat[bits.ravel().view(bool)], minlength=CONTEXTS)
+        total[s + 1] = total[s] + np.bincount(flat, minlength=CONTEXTS)
     prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)  # (step, context)
-    # Decoding order: step by step; within a step the outside cells, then the
-    # inside cells, then the rest, each by stripe and column. The key fits 16
-    # bits, so the stable sort is a radix sort.
-    group = np.where(ctx == OUTSIDE, 0, np.where(ctx == INSIDE, 1, 2))
-    key = (group + 3 * step).astype(np.uint16).ravel()
-    order = np.argsort(key, kind="stable")
-    key, bits, ctx = key[order], bits.ravel()[order].astype(np.int32), ctx.ravel()[order]
-    starts = np.concatenate(([0], np.flatnonzero(np.diff(key)) + 1, [key.size]))
     coder = constriction.stream.stack.AnsCoder()
     model = _bernoulli()
-    # A stack: the last segment is encoded first.
-    for start, stop in zip(starts[-2::-1], starts[:0:-1]):
-        s, g = divmod(int(key[start]), 3)
-        if g == 2:
-            coder.encode_reverse(bits[start:stop], model, prob[s, ctx[start:stop]])
-        else:
-            coder.encode_reverse(bits[start:stop], _bernoulli(prob[s, OUTSIDE if g == 0 else INSIDE]))
+    # Decoding order: step by step; within a step the outside cells, then the
+    # inside cells, then the rest, each by stripe and column. A stack: the
+    # last segment is encoded first.
+    for s in range(stripe - 1, -1, -1):
+        bits, c = steps[s][0].ravel(), steps[s][1].ravel()
+        outside, inside = c == OUTSIDE, c == INSIDE
+        rest = ~(outside | inside)
+        if rest.any():
+            coder.encode_reverse(bits[rest].astype(np.int32), model, prob[s, c[rest]])
+        for where, context in ((inside, INSIDE), (outside, OUTSIDE)):
+            if where.any():
+                coder.encode_reverse(bits[where].astype(np.int32), _bernoulli(prob[s, context]))
     seed_frame = _encode_seeds(seeds)
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
 
