@@ -34,6 +34,11 @@ bench-ratecontrol: $(STAMP)
 bench-memory: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_memory $(ARGS)
 
+# Per-stage speed on one core against DracoPy, LERC and HTJ2K (~1 min; ARGS=--quick for 3 repeats): rewrites its section of docs/benchmarks.md.
+.PHONY: bench-speed
+bench-speed: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_speed $(ARGS)
+
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce.py

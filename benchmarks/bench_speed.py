@@ -166,7 +166,8 @@ def stage_table(runs: dict[str, list[float]], stages: tuple, n: int) -> str:
     return markdown_table(["stage", "ms median (range)", "% of total", "ns / original point"], rows)
 
 
-def draco(points: np.ndarray, repeats: int) -> tuple[list[float], list[float], int]:
+def draco(points: np.ndarray, repeats: int) -> tuple[list[float], list[float], int, tuple[list[float], list[float]]]:
+    """DracoPy's encode and decode wall times (s), its bytes, and the CPU times of both."""
     import DracoPy
 
     origin = points.min(axis=0)
@@ -275,6 +276,22 @@ def dem_rows(data: Path, repeats: int) -> list[list[str]]:
     return rows
 
 
+#: Start-up commands timed in fresh processes: the library's import and the CLI's help.
+STARTUP = (("import dftpcc", ("-c", "import dftpcc")), ("dftpcc --help", ("-m", "dftpcc", "--help")))
+
+
+def startup_rows(repeats: int) -> list[list[str]]:
+    """Median and range (ms) of each start-up command over ``repeats`` fresh interpreters."""
+    import subprocess
+    import sys
+
+    rows = []
+    for label, argv in STARTUP:
+        t, _ = walls(lambda: subprocess.run([sys.executable, *argv], check=True, capture_output=True), repeats)
+        rows.append([f"`{label}`", span(t)])
+    return rows
+
+
 def main() -> None:
     parser = run_arguments("Per-stage speed on one core against DracoPy, LERC and HTJ2K (issue 16).",
                            f"{QUICK_REPEATS} repeats instead of {REPEATS}")
@@ -301,6 +318,8 @@ def main() -> None:
                          ["DEM", "cells", "max error mm", "bytes dftpcc / LERC / HTJ2K", "encode M cells/s",
                           "decode M cells/s", "encode time LERC / HTJ2K over dftpcc",
                           "decode time LERC / HTJ2K over dftpcc"], dem_rows(data, repeats)))
+    parts.append("### Start-up\n\nWall time of a fresh interpreter running each command (the interpreter's own "
+                 "start included).\n\n" + markdown_table(["command", "ms median (range)"], startup_rows(repeats)))
     parts.append("### Targets\n\n" + "\n".join(f"- {v}" for v in verdicts))
     for part in parts:
         print(part + "\n")
