@@ -39,6 +39,11 @@ bench-memory: $(STAMP)
 bench-zarr: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_zarr $(ARGS)
 
+# Per-stage speed on one core against DracoPy, LERC and HTJ2K (~1 min; ARGS=--quick for 3 repeats): rewrites its section of docs/benchmarks.md.
+.PHONY: bench-speed
+bench-speed: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_speed $(ARGS)
+
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce.py

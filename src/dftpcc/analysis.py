@@ -127,9 +127,25 @@ class Analysis:
 
     def synthesise(self, values: np.ndarray) -> np.ndarray:
         """Heights (relative to z0) from the first ``len(values)`` sorted coefficients."""
+        if self.lay.kind == "dct":
+            # Only the low-frequency corner is non-zero: its rows alone go through
+            # the first pass (along axis 1, the order the whole array takes, so the
+            # same bits as inverting the zero-padded array).
+            shape, where = self._corner(values.size)
+            coefs = np.zeros(shape, dtype=values.dtype)
+            coefs.ravel()[where] = values
+            return spectrum.inverse(coefs, self.lay, first_axis=1) + self.trend
         coefs = np.zeros(self.lay.coef_shape, dtype=values.dtype)
         coefs.ravel()[self.order[: values.size]] = values
         return spectrum.inverse(coefs, self.lay) + self.trend
+
+    def _corner(self, n: int) -> tuple[tuple[int, int], np.ndarray]:
+        """:func:`spectrum.corner` of the first ``n`` coefficients, cached: trials ask again and again."""
+        cached = getattr(self, "_corner_cache", None)
+        if cached is None or cached[0] != n:
+            cached = (n, spectrum.corner(self.lay, self.order[:n]))
+            self._corner_cache = cached
+        return cached[1]
 
     def quantized(self, cutoff: float, step: float) -> np.ndarray:
         """The integers a quantized trial at (cutoff, step) codes, without rebuilding the DEM."""

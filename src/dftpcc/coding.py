@@ -357,9 +357,10 @@ def _groups(codes: np.ndarray) -> list[tuple[int, np.ndarray]]:
     model once instead of once per value (ten times faster on large maps).
     """
     order = np.argsort(codes, kind="stable")
-    sorted_codes = codes[order]
-    present = np.unique(sorted_codes)
-    bounds = np.searchsorted(sorted_codes, present, side="left").tolist() + [codes.size]
+    # Codes are bytes: a histogram gives the codes present and where each one's run starts.
+    counts = np.bincount(codes, minlength=256)
+    present = np.flatnonzero(counts)
+    bounds = (np.cumsum(counts)[present] - counts[present]).tolist() + [codes.size]
     return [(int(code), order[bounds[k]:bounds[k + 1]]) for k, code in enumerate(present) if code > 0]
 
 
@@ -387,7 +388,7 @@ class _Bands(NamedTuple):
 
     def table_work(self, max_abs: int) -> int:
         """Table entries the decoder builds: one table per distinct nonzero code."""
-        return int(np.count_nonzero(np.unique(self.per_value))) * (2 * max_abs + 1)
+        return int(np.count_nonzero(np.bincount(self.per_value, minlength=256)[1:])) * (2 * max_abs + 1)
 
 
 def _encode_ans_with(q: np.ndarray, b: _Bands, max_abs: int) -> bytes:
@@ -405,12 +406,24 @@ def _estimated_bits(q: np.ndarray, b: _Bands) -> float:
     """Bits the ANS chunk of :func:`_encode_ans_with` would take, side information included,
     from the model's probabilities (within 0.01 % of the coded size on real maps)."""
     coded = b.per_value > 0
-    scale = _scale_of(b.per_value[coded])
+    codes = b.per_value[coded]
     a = np.abs(q[coded]).astype(np.float64)
-    # Probability of q under the two-sided geometric of mean |q| scale (see _decay).
-    t = (np.sqrt(1 + scale * scale) - 1) / scale
-    log_p = np.log2((1 - t) / (1 + t)) + a * np.log2(np.maximum(t, 1e-300))
+    # Probability of q under the two-sided geometric of mean |q| scale (see _decay),
+    # log2 P(q) = log2((1 - t) / (1 + t)) + |q| log2(t): the two logarithms depend
+    # on the scale code alone, so they come from a table of the 255 codes.
+    at_zero, per_step = _log_geometric()
+    log_p = at_zero[codes] + a * per_step[codes]
     return 8.0 * len(_side_info(b.codes)) - float(np.maximum(log_p, -TABLE_BITS).sum())
+
+
+@functools.lru_cache(maxsize=1)
+def _log_geometric() -> tuple[np.ndarray, np.ndarray]:
+    """Per scale code (index 0 unused): ``log2((1 - t) / (1 + t))`` and ``log2(t)`` of
+    :func:`_estimated_bits`, each the same numpy arithmetic it would do value by value."""
+    scale = _scale_of(np.arange(256, dtype=np.uint8))
+    scale[0] = 1.0  # code 0 (an empty band) is never coded; any finite scale keeps the table finite
+    t = (np.sqrt(1 + scale * scale) - 1) / scale
+    return np.log2((1 - t) / (1 + t)), np.log2(np.maximum(t, 1e-300))
 
 
 def table_budget(count: int) -> int:

@@ -19,12 +19,17 @@ __all__ = ["fit_plane", "plane_values", "fill_empty", "footprint"]
 
 def fit_plane(dem: DEM) -> tuple[float, float, float]:
     """Least-squares plane ``a + b*col + c*row`` (metres) through the occupied cells."""
-    rows, cols = np.nonzero(dem.mask)
-    if rows.size < 3:
-        return (float(dem.heights[dem.mask].mean()) if rows.size else 0.0, 0.0, 0.0)
+    mask = dem.mask
+    z = dem.heights[mask]
+    if z.size < 3:
+        return (float(z.mean()) if z.size else 0.0, 0.0, 0.0)
     # Normal equations on centred coordinates: 3 x 3, well conditioned, and
     # a few passes over the cells instead of a least-squares solve on them.
-    x, y, z = cols.astype(float), rows.astype(float), dem.heights[rows, cols]
+    # Column and row of each occupied cell, row-major (np.nonzero's order),
+    # made as floats directly: cheaper than two index arrays and a 2-D gather.
+    n_rows, n_cols = mask.shape
+    x = np.broadcast_to(np.arange(n_cols, dtype=float), mask.shape)[mask]
+    y = np.repeat(np.arange(n_rows, dtype=float), np.count_nonzero(mask, axis=1))
     mx, my, mz = x.mean(), y.mean(), z.mean()
     x -= mx
     y -= my
@@ -69,38 +74,86 @@ def fill_empty(heights: np.ndarray, mask: np.ndarray, *, method: str = "smooth")
     return _push_pull(out, mask.astype(np.float64))
 
 
-def _upsample2(a: np.ndarray, axis: int) -> np.ndarray:
-    """Linear 2x upsampling along ``axis`` with cell-centred samples, edges clamped."""
-    a = np.moveaxis(a, axis, 0)
-    before = np.concatenate([a[:1], a[:-1]])
-    after = np.concatenate([a[1:], a[-1:]])
-    out = np.empty((2 * a.shape[0],) + a.shape[1:])
-    out[0::2] = 0.75 * a + 0.25 * before
-    out[1::2] = 0.75 * a + 0.25 * after
-    return np.moveaxis(out, 0, axis)
+#: Levels of fewer cells take numpy's own 2x2 block sums (see :func:`_pairs`).
+SMALL_LEVEL_CELLS = 4096
+
+
+def _pairs(a: np.ndarray) -> np.ndarray:
+    """Sums of the 2x2 blocks of ``a``, zero-padded to even sizes, added as
+    ``reshape(...).sum(axis=(1, 3))`` adds them: each row's pair, then the two rows.
+
+    Only the odd last row or column is padded, not a copy of the whole level.
+    """
+    def blocks(x: np.ndarray) -> np.ndarray:
+        return (x[0::2, 0::2] + x[0::2, 1::2]) + (x[1::2, 0::2] + x[1::2, 1::2])
+
+    r, c = a.shape
+    if c <= 2 or a.size < SMALL_LEVEL_CELLS:
+        # numpy's reduction adds the four in another order when the coarse level is
+        # one cell wide; small levels cost nothing either way.
+        p = np.pad(a, ((0, r % 2), (0, c % 2)))
+        return p.reshape(p.shape[0] // 2, 2, p.shape[1] // 2, 2).sum(axis=(1, 3))
+    if r % 2 == 0 and c % 2 == 0:
+        return blocks(a)
+    re, ce = r - r % 2, c - c % 2
+    out = np.empty(((r + 1) // 2, (c + 1) // 2))
+    out[:re // 2, :ce // 2] = blocks(a[:re, :ce])
+    if r % 2:
+        out[-1:, :] = blocks(np.pad(a[re:], ((0, 1), (0, c % 2))))
+    if c % 2:
+        out[:re // 2, -1:] = blocks(np.pad(a[:re, ce:], ((0, 0), (0, 1))))
+    return out
+
+
+#: Bilinear 2x upsampling with cell-centred samples: an output takes this much of
+#: the coarse sample it lies in and the rest of the neighbour on its side.
+NEAR_WEIGHT, FAR_WEIGHT = 0.75, 0.25
+
+
+def _upsampled_at(coarse: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Cells (rows, cols) of the 2x bilinear upsampling of ``coarse``, edges clamped: along
+    the rows first, then along the columns, each as ``0.75 * own + 0.25 * neighbour``."""
+    def sides(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+        own = index >> 1
+        # Even outputs lean on the coarse sample before theirs, odd ones on the one after.
+        return own, np.clip(np.where(index & 1, own + 1, own - 1), 0, size - 1)
+
+    k, kn = sides(rows, coarse.shape[0])
+    p, pn = sides(cols, coarse.shape[1])
+    width = coarse.shape[1]
+    flat = coarse.ravel()
+
+    def along_rows(col: np.ndarray) -> np.ndarray:
+        return NEAR_WEIGHT * flat[k * width + col] + FAR_WEIGHT * flat[kn * width + col]
+
+    return NEAR_WEIGHT * along_rows(p) + FAR_WEIGHT * along_rows(pn)
 
 
 def _push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``weights``: 1 where ``values`` is known, 0 elsewhere (where ``values`` is 0)."""
     if weights.min() >= 1.0:
         return values  # nothing to fill at this level (coarse levels of a dense map)
     if min(values.shape) <= 1 and values.size <= 2:
         total = weights.sum()
         mean = (values * weights).sum() / total if total else 0.0
         return np.where(weights > 0, values, mean)
-    # Pull: average the known values over 2x2 blocks (pad odd sizes by edge).
-    r, c = values.shape
-    pr, pc = r % 2, c % 2
-    v = np.pad(values * weights, ((0, pr), (0, pc)))
-    w = np.pad(weights, ((0, pr), (0, pc)))
-    wsum = w.reshape(v.shape[0] // 2, 2, v.shape[1] // 2, 2).sum(axis=(1, 3))
-    vsum = v.reshape(v.shape[0] // 2, 2, v.shape[1] // 2, 2).sum(axis=(1, 3))
+    # Pull: average the known values over 2x2 blocks (odd sizes padded with
+    # zeros). The weights are 0 or 1 and the unknown values 0, so values *
+    # weights is values itself.
+    wsum, vsum = _pairs(weights), _pairs(values)
     coarse_v = np.divide(vsum, wsum, out=np.zeros_like(vsum), where=wsum > 0)
     coarse = _push_pull(coarse_v, np.minimum(wsum, 1.0))
-    # Push: bilinear upsampling of the filled coarse level back to this size.
-    up = _upsample2(_upsample2(coarse, 0), 1)[:r, :c]
-    wc = np.minimum(weights, 1.0)
-    return wc * values + (1.0 - wc) * up
-
+    # Push: the blend w * values + (1 - w) * up with the bilinear upsampling
+    # ``up`` of the filled coarse level. With 0/1 weights it is ``values`` at
+    # known cells; ``up`` is needed only at the unknown ones, and at known
+    # zeros, whose sign the blend decides.
+    out = values.copy()
+    need = np.flatnonzero((weights == 0.0) | (values == 0.0))
+    if need.size:
+        rows, cols = np.divmod(need, values.shape[1])
+        w = weights.ravel()[need]
+        out.ravel()[need] = w * values.ravel()[need] + (1.0 - w) * _upsampled_at(coarse, rows, cols)
+    return out
 
 
 def footprint(mask: np.ndarray) -> np.ndarray:

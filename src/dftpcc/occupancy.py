@@ -139,48 +139,56 @@ def _contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
     takes line 0 for both, line 0 sees nothing.
     """
     codes = _codes(lines)
-    t = np.arange(lines.shape[0]) % stripe
-    ctx = np.zeros(lines.shape, dtype=np.uint8)
-    ctx[1:] = np.where((t[1:] >= 1)[:, None], codes[:-1], 0)
-    older = np.zeros_like(ctx)
-    older[2:] = np.where((t[2:] >= 2)[:, None], _older(codes[:-2]), 0)
-    older[1:] |= np.where((t[1:] == 1)[:, None], _older(codes[:-1]), 0)
-    return ctx | older
+    ctx = np.empty_like(codes)
+    ctx[:1] = 0
+    ctx[1:] = codes[:-1]
+    ctx[::stripe] = 0  # line 0 of a stripe sees nothing
+    bits = _older(codes)
+    older = np.empty_like(codes)
+    older[:2] = 0
+    older[2:] = bits[:-2]
+    older[::stripe] = 0
+    if stripe > 1:
+        older[1::stripe] = bits[::stripe][: older[1::stripe].shape[0]]  # line 1: line 0 again
+    ctx |= older
+    return ctx
 
 
-def _encode_context(lines: np.ndarray, stripe: int) -> bytes:
-    n_lines, width = lines.shape
-    t = np.arange(n_lines) % stripe
-    coded = (t > 0) | (np.arange(n_lines) == 0)  # every line but the seeds
-    seeds = lines[~coded]
-    ctx = _contexts(lines, stripe)[coded]
-    bits = lines[coded]
-    step = t[coded][:, None]
+def _seed_lines(lines: np.ndarray, stripe: int) -> np.ndarray:
+    """Line 0 of every stripe but the first: sent as run lengths, before the context-coded cells."""
+    return lines[stripe::stripe]
+
+
+def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = None) -> bytes:
+    """The context-coded mask; ``seed_frame``: :func:`_encode_seeds` of its seed lines, if known."""
+    ctx = _contexts(lines, stripe)
+    # Step s decodes line s of every stripe (line 0 of the first stripe only, the
+    # others' are seeds): rows s, s + stripe, ... of the line-major mask, by
+    # stripe and column, which is the order of lines[s::stripe] raveled.
+    steps = [(lines[:1], ctx[:1])] + [(lines[s::stripe], ctx[s::stripe]) for s in range(1, stripe)]
     # Counts seen before each step: per-step histograms, accumulated, shifted by one step.
-    flat = (ctx.astype(np.intp) + CONTEXTS * step).ravel()
-    ones = np.bincount(flat, weights=bits.ravel(), minlength=stripe * CONTEXTS).reshape(stripe, CONTEXTS)
-    total = np.bincount(flat, minlength=stripe * CONTEXTS).reshape(stripe, CONTEXTS).astype(np.float64)
-    ones = np.vstack([np.zeros(CONTEXTS), np.cumsum(ones, axis=0)[:-1]])
-    total = np.vstack([np.zeros(CONTEXTS), np.cumsum(total, axis=0)[:-1]])
+    ones, total = np.zeros((stripe, CONTEXTS)), np.zeros((stripe, CONTEXTS))
+    for s, (bits, c) in enumerate(steps[:-1]):
+        flat = c.ravel()
+        ones[s + 1] = ones[s] + np.bincount(flat[bits.ravel().view(bool)], minlength=CONTEXTS)
+        total[s + 1] = total[s] + np.bincount(flat, minlength=CONTEXTS)
     prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)  # (step, context)
-    # Decoding order: step by step; within a step the outside cells, then the
-    # inside cells, then the rest, each by stripe and column. The key fits 16
-    # bits, so the stable sort is a radix sort.
-    group = np.where(ctx == OUTSIDE, 0, np.where(ctx == INSIDE, 1, 2))
-    key = (group + 3 * step).astype(np.uint16).ravel()
-    order = np.argsort(key, kind="stable")
-    key, bits, ctx = key[order], bits.ravel()[order].astype(np.int32), ctx.ravel()[order]
-    starts = np.concatenate(([0], np.flatnonzero(np.diff(key)) + 1, [key.size]))
     coder = constriction.stream.stack.AnsCoder()
     model = _bernoulli()
-    # A stack: the last segment is encoded first.
-    for start, stop in zip(starts[-2::-1], starts[:0:-1]):
-        s, g = divmod(int(key[start]), 3)
-        if g == 2:
-            coder.encode_reverse(bits[start:stop], model, prob[s, ctx[start:stop]])
-        else:
-            coder.encode_reverse(bits[start:stop], _bernoulli(prob[s, OUTSIDE if g == 0 else INSIDE]))
-    seed_frame = _encode_seeds(seeds)
+    # Decoding order: step by step; within a step the outside cells, then the
+    # inside cells, then the rest, each by stripe and column. A stack: the
+    # last segment is encoded first.
+    for s in range(stripe - 1, -1, -1):
+        bits, c = steps[s][0].ravel(), steps[s][1].ravel()
+        outside, inside = c == OUTSIDE, c == INSIDE
+        rest = ~(outside | inside)
+        if rest.any():
+            coder.encode_reverse(bits[rest].astype(np.int32), model, prob[s, c[rest]])
+        for where, context in ((inside, INSIDE), (outside, OUTSIDE)):
+            if where.any():
+                coder.encode_reverse(bits[where].astype(np.int32), _bernoulli(prob[s, context]))
+    if seed_frame is None:
+        seed_frame = _encode_seeds(_seed_lines(lines, stripe))
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
 
 
@@ -262,11 +270,16 @@ def encode_mask(mask: np.ndarray, *, stripe: int | None = None) -> bytes:
         raise ValueError("stripe must be at least 1 line")
     transposed = mask.shape[0] > mask.shape[1]
     lines = (mask.T if transposed else mask).astype(np.uint8)
-    candidates = [
-        _HEAD.pack(KIND_CONTEXT, transposed) + _encode_context(lines, min(stripe, lines.shape[0])),
-        _HEAD.pack(KIND_ZSTD, 0) + zstandard.ZstdCompressor(level=_BITMAP_LEVEL).compress(np.packbits(mask.ravel()).tobytes()),
-    ]
-    return min(candidates, key=len)
+    stripe = min(stripe, lines.shape[0])
+    bitmap = _HEAD.pack(KIND_ZSTD, 0) + zstandard.ZstdCompressor(level=_BITMAP_LEVEL).compress(
+        np.packbits(mask.ravel()).tobytes())
+    seed_frame = _encode_seeds(_seed_lines(lines, stripe))
+    # The context coder's output holds both headers and the seed frame at least;
+    # a bitmap shorter than that wins without running it (a full DEM's mask).
+    if len(bitmap) < _HEAD.size + _STRIPES.size + len(seed_frame):
+        return bitmap
+    context = _HEAD.pack(KIND_CONTEXT, transposed) + _encode_context(lines, stripe, seed_frame)
+    return min([context, bitmap], key=len)  # the context coder on a tie, as always
 
 
 def decode_mask(blob: bytes | memoryview, shape: tuple[int, int]) -> np.ndarray:

@@ -22,24 +22,24 @@ def dem_to_points(dem: DEM) -> np.ndarray:
         x, y of the cell centres and z = ``grid.z0`` + height, metres;
         cells in row-major order.
     """
-    flat = np.flatnonzero(dem.mask)
-    grid = dem.grid
-    out = np.empty((flat.size, 3))
-    # Each column of `out` is computed contiguously, then written once: a
-    # strided gather or in-place add costs twice as much.
+    grid, mask = dem.grid, dem.mask
     if grid.angle == 0.0:
-        # Axis-aligned: one x per column and one y per row. Rows come in
-        # order, so y is each row's y repeated; 32-bit division is several
-        # times faster than 64-bit.
+        # Axis-aligned: one x per column and one y per row, picked by the mask
+        # itself (rows come in order, so y is each row's y repeated): no flat
+        # indices to divide, no gathers.
         xs, _ = grid.centres(np.zeros(grid.cols), np.arange(grid.cols))
         _, ys = grid.centres(np.arange(grid.rows), np.zeros(grid.rows))
-        index = flat.astype(np.int32) if grid.size < 2**31 else flat
-        out[:, 0] = xs.take(index % index.dtype.type(grid.cols))
-        out[:, 1] = np.repeat(ys, np.count_nonzero(dem.mask, axis=1))
+        x = np.broadcast_to(xs, mask.shape)[mask]
+        out = np.empty((x.size, 3))
+        out[:, 0] = x
+        out[:, 1] = np.repeat(ys, np.count_nonzero(mask, axis=1))
+        z = dem.heights[mask]
     else:
+        flat = np.flatnonzero(mask)
+        out = np.empty((flat.size, 3))
         rows, cols = np.divmod(flat, grid.cols)
         out[:, 0], out[:, 1] = grid.centres(rows, cols)
-    z = dem.heights.ravel().take(flat)
+        z = dem.heights.ravel().take(flat)
     z += grid.z0
     out[:, 2] = z
     return out

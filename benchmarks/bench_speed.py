@@ -1,0 +1,330 @@
+"""Issue 16: where compress and decompress spend their time, on one core, against DracoPy, LERC and HTJ2K.
+
+Point clouds (forest, field; all points, 0.5 m cells, compact profile at f_c 0.8): the
+points are parsed before any clock starts, so compress is points in memory -> ``.dftpc``
+bytes and decompress is bytes -> points. Each is timed whole (medians and range over the
+repeats), then once more per repeat with every stage function wrapped in a timer, for the
+per-stage table. Points per second count the ORIGINAL points for both directions (the
+points a file stands for), and the decompressed points (one per occupied cell) as well.
+DracoPy (compression level 7, 14 quantization bits, float32 points about a local origin)
+codes the same points in the same run.
+
+GeoTIFF DEMs (compact at f_c 0.8 on the DEM's own pixel grid): cells per second of the
+whole grid (rows x cols), DEM in memory -> bytes -> DEM, against LERC (float64 heights and
+their mask, maxZError = the largest error dftpcc's file has) and HTJ2K (lossless, the
+heights quantized to 16-bit steps of twice that error, or coarser when the range needs more
+than 16 bits). Every codec runs on one thread (``OMP_NUM_THREADS=1``, scipy.fft with one
+worker). Nothing here fails on a timing.
+
+    .venv/bin/python -m benchmarks.bench_speed [--quick] [--repeats N] [--files forest field ...]
+"""
+
+from __future__ import annotations
+
+import os
+
+# One core: set before numpy and scipy start their thread pools.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import statistics  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any, Callable, Iterator  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import dftpcc  # noqa: E402
+from dftpcc import analysis, coding, container, decoder, encoder, occupancy, spectrum  # noqa: E402
+from dftpcc.files import dem_from_geotiff  # noqa: E402
+
+from benchmarks.common import (  # noqa: E402
+    finish_run, load_average, markdown_table, run_arguments,
+)
+
+#: Point clouds of the issue: (file, cell size in metres).
+CLOUDS = (("forest_slope_bcts_2.8M.laz", 0.5), ("field_gentle_ign.laz", 0.5))
+CUTOFF = 0.8
+REPEATS = 7
+QUICK_REPEATS = 3
+#: DracoPy setting: the anchors' compression level, a middle quantization.
+DRACO_LEVEL = 7
+DRACO_BITS = 14
+ONE_THREAD = 1
+U16_MAX = 65535
+#: Targets of issue 16.
+MIN_COMPRESS_RATE = 20e6     # original points per second
+MIN_DECOMPRESS_RATE = 40e6   # original points per second
+MIN_OVER_DRACO = 10.0        # times DracoPy's speed
+
+#: Stages timed inside compress: (label, module, attribute, depth). A stage's time
+#: includes the stages indented below it.
+COMPRESS_STAGES = (
+    ("check the points", encoder, "as_points", 0),
+    ("check heights", encoder, "check_heights", 0),
+    ("fit the grid", encoder, "fit_grid", 0),
+    ("rasterize", encoder, "rasterize", 0),
+    ("analysis", encoder, "Analysis", 0),
+    ("fit the plane", analysis, "fit_plane", 1),
+    ("evaluate the plane", analysis, "plane_values", 1),
+    ("fill empty cells", analysis, "fill_empty", 1),
+    ("forward transform", spectrum, "forward", 1),
+    ("code the mask", occupancy, "encode_mask", 0),
+    ("choose the step", coding, "choose_step", 0),
+    ("quantize + rebuild (trial)", analysis.Analysis, "trial", 0),
+    ("inverse transform", spectrum, "inverse", 1),
+    ("entropy-code coefficients", analysis.Analysis, "encode", 0),
+    ("statistics + container", encoder, "_pack", 0),
+)
+DECOMPRESS_STAGES = (
+    ("parse the container", decoder, "unpack", 0),
+    ("decode the mask", occupancy, "decode_mask", 0),
+    ("decode coefficients", coding, "decode_coefficients", 0),
+    ("inverse transform", spectrum, "inverse", 0),
+    ("add the plane", decoder, "plane_values", 0),
+    ("rebuild points", decoder, "dem_to_points", 0),
+)
+
+
+@contextmanager
+def timed(stages: tuple, spent: dict[str, float]) -> Iterator[None]:
+    """Wrap each stage function so that its wall time adds to ``spent[label]``."""
+    saved = []
+    for label, owner, name, _ in stages:
+        original = owner.__dict__[name] if isinstance(owner, type) else getattr(owner, name)
+
+        def wrapper(*args: Any, _f: Callable = original, _label: str = label, **kwargs: Any) -> Any:
+            t0 = time.perf_counter()
+            try:
+                return _f(*args, **kwargs)
+            finally:
+                spent[_label] = spent.get(_label, 0.0) + time.perf_counter() - t0
+
+        saved.append((owner, name, original))
+        setattr(owner, name, wrapper)
+    try:
+        yield
+    finally:
+        for owner, name, original in reversed(saved):
+            setattr(owner, name, original)
+
+
+#: CPU seconds of the last :func:`walls` call's repeats (this process, all threads): on a
+#: shared machine the wall time also counts other people's load, the CPU time much less.
+LAST_CPU: list[float] = []
+
+
+def walls(fn: Callable[[], Any], repeats: int) -> tuple[list[float], Any]:
+    """Wall times in seconds of ``repeats`` calls, and the last result (CPU times in LAST_CPU)."""
+    out, result = [], None
+    LAST_CPU.clear()
+    for _ in range(repeats):
+        c0, t0 = time.process_time(), time.perf_counter()
+        result = fn()
+        out.append(time.perf_counter() - t0)
+        LAST_CPU.append(time.process_time() - c0)
+    return out, result
+
+
+def staged(fn: Callable[[], Any], stages: tuple, repeats: int) -> dict[str, list[float]]:
+    """Per stage, its seconds in each of ``repeats`` wrapped calls; ``total`` the whole call."""
+    runs: dict[str, list[float]] = {label: [] for label, *_ in stages}
+    runs["total"] = []
+    for _ in range(repeats):
+        spent: dict[str, float] = {}
+        with timed(stages, spent):
+            t0 = time.perf_counter()
+            fn()
+            runs["total"].append(time.perf_counter() - t0)
+        for label, *_ in stages:
+            runs[label].append(spent.get(label, 0.0))
+    return runs
+
+
+def med(values: list[float]) -> float:
+    return statistics.median(values)
+
+
+def span(values: list[float], scale: float = 1000.0) -> str:
+    """Median and range of seconds, in milliseconds."""
+    return f"{scale * med(values):.1f} ({scale * min(values):.1f}-{scale * max(values):.1f})"
+
+
+def stage_table(runs: dict[str, list[float]], stages: tuple, n: int) -> str:
+    rows = []
+    top = 0.0
+    for label, _, _, depth in stages:
+        t = runs[label]
+        if depth == 0:
+            top += med(t)
+        rows.append([("&nbsp;&nbsp;" * 2 * depth) + label, span(t), f"{100 * med(t) / med(runs['total']):.0f}",
+                     f"{1e9 * med(t) / n:.1f}"])
+    rows.append(["other (outside the stages above)", f"{1000 * (med(runs['total']) - top):.1f}", "", ""])
+    rows.append(["**total (with timers)**", span(runs["total"]), "100", f"{1e9 * med(runs['total']) / n:.1f}"])
+    return markdown_table(["stage", "ms median (range)", "% of total", "ns / original point"], rows)
+
+
+def draco(points: np.ndarray, repeats: int) -> tuple[list[float], list[float], int, tuple[list[float], list[float]]]:
+    """DracoPy's encode and decode wall times (s), its bytes, and the CPU times of both."""
+    import DracoPy
+
+    origin = points.min(axis=0)
+    local = (points - origin).astype(np.float32)  # outside the clock, like the parsing of the points
+    enc, buf = walls(lambda: DracoPy.encode(local, quantization_bits=DRACO_BITS,
+                                            compression_level=DRACO_LEVEL), repeats)
+    cpu_enc = list(LAST_CPU)
+    dec, _ = walls(lambda: np.asarray(DracoPy.decode(buf).points, dtype=np.float64) + origin, repeats)
+    return enc, dec, len(buf), (cpu_enc, list(LAST_CPU))
+
+
+def cloud_section(name: str, resolution: float, data: Path, repeats: int) -> tuple[str, list[str]]:
+    points = np.ascontiguousarray(dftpcc.read(data / "pointclouds" / name).points)
+    n = points.shape[0]
+    params = dftpcc.make_params(resolution=resolution, cutoff=CUTOFF)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the forest's MultiHeightWarning: noted in the doc already
+        compress = lambda: dftpcc.compress(points, params)  # noqa: E731
+        compress()  # warm caches (coefficient order, table models) as a long-running process has them
+        t_c, blob = walls(compress, repeats)
+        cpu_c = list(LAST_CPU)
+        t_d, out = walls(lambda: dftpcc.decompress(blob), repeats)
+        cpu_d = list(LAST_CPU)
+        c_stages = staged(compress, COMPRESS_STAGES, repeats)
+        d_stages = staged(lambda: dftpcc.decompress(blob), DECOMPRESS_STAGES, repeats)
+    e_draco, d_draco, draco_bytes, cpu_draco = draco(points, repeats)
+    m = out.shape[0]
+    rate_c, rate_d = n / med(t_c), n / med(t_d)
+    over_c, over_d = med(e_draco) / med(t_c), med(d_draco) / med(t_d)
+    lines = [
+        f"### {name}: {n:,} points, {resolution:g} m cells, f_c {CUTOFF:g}",
+        "",
+        f"{len(blob):,} B ({8 * len(blob) / n:.3f} bits/pt), {m:,} points decoded (occupied cells). "
+        f"DracoPy ({DRACO_BITS} bits, level {DRACO_LEVEL}): {draco_bytes:,} B.",
+        "",
+        markdown_table(
+            ["codec", "compress ms median (range)", "CPU ms", "M original pts/s", "decompress ms median (range)",
+             "CPU ms", "M original pts/s", "M decoded pts/s"],
+            [["dftpcc", span(t_c), f"{1000 * med(cpu_c):.1f}", f"{rate_c / 1e6:.2f}", span(t_d),
+              f"{1000 * med(cpu_d):.1f}", f"{rate_d / 1e6:.2f}", f"{m / med(t_d) / 1e6:.2f}"],
+             ["DracoPy", span(e_draco), f"{1000 * med(cpu_draco[0]):.1f}", f"{n / med(e_draco) / 1e6:.2f}",
+              span(d_draco), f"{1000 * med(cpu_draco[1]):.1f}", f"{n / med(d_draco) / 1e6:.2f}",
+              f"{n / med(d_draco) / 1e6:.2f}"],
+             ["dftpcc / DracoPy speed", "", "", f"{over_c:.1f}x", "", "", f"{over_d:.1f}x", ""]]),
+        "",
+        "Compress, per stage:",
+        "",
+        stage_table(c_stages, COMPRESS_STAGES, n),
+        "",
+        "Decompress, per stage:",
+        "",
+        stage_table(d_stages, DECOMPRESS_STAGES, n),
+        "",
+    ]
+    verdicts = [
+        f"{name}: compress {rate_c / 1e6:.1f} M pts/s (>= {MIN_COMPRESS_RATE / 1e6:g}) "
+        f"{'PASS' if rate_c >= MIN_COMPRESS_RATE else 'MISS'}; decompress {rate_d / 1e6:.1f} M pts/s "
+        f"(>= {MIN_DECOMPRESS_RATE / 1e6:g}) {'PASS' if rate_d >= MIN_DECOMPRESS_RATE else 'MISS'}; "
+        f"{over_c:.1f}x / {over_d:.1f}x DracoPy (>= {MIN_OVER_DRACO:g}x) "
+        f"{'PASS' if min(over_c, over_d) >= MIN_OVER_DRACO else 'MISS'}",
+    ]
+    return "\n".join(lines), verdicts
+
+
+def dem_rows(data: Path, repeats: int) -> list[list[str]]:
+    import imagecodecs
+    import lerc
+
+    rows = []
+    for path in sorted((data / "dems").glob("*.tif")):
+        dem, _ = dem_from_geotiff(path)
+        cells = dem.grid.size
+        params = dftpcc.make_params(cutoff=CUTOFF)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            encode = lambda: encoder.encode_dem(dem, params)  # noqa: E731
+            encode()
+            t_c, blob = walls(encode, repeats)
+            t_d, _ = walls(lambda: decoder.decode_dem(*container.unpack(blob)), repeats)
+        bound = float(dftpcc.open(blob).header.stats["dem_max_error_m"])
+        heights, valid = dem.heights, dem.mask.astype(np.uint8)
+
+        def lerc_encode() -> bytes:
+            result, nbytes, buf = lerc.encode(heights, 1, True, valid, bound, 1)
+            if result != 0:
+                raise RuntimeError(f"lerc.encode failed with code {result}")
+            return bytes(buf)[:nbytes]
+
+        t_le, lerc_blob = walls(lerc_encode, repeats)
+        t_ld, _ = walls(lambda: lerc.decode(lerc_blob), repeats)
+        lo = float(heights[dem.mask].min())
+        step = max(2.0 * bound, (float(heights[dem.mask].max()) - lo) / U16_MAX)
+        filled = np.where(dem.mask, heights, lo)
+        quantize = lambda: np.round((filled - lo) / step).astype(np.uint16)  # noqa: E731
+        t_he, hblob = walls(lambda: imagecodecs.htj2k_encode(quantize()), repeats)
+        t_hd, _ = walls(lambda: imagecodecs.htj2k_decode(hblob).astype(np.float64) * step + lo, repeats)
+
+        def rate(t: list[float]) -> str:
+            return f"{cells / med(t) / 1e6:.1f}"
+
+        rows.append([path.name, f"{dem.grid.rows} x {dem.grid.cols}", f"{1000 * bound:.3g}",
+                     f"{len(blob):,} / {len(lerc_blob):,} / {len(hblob):,}",
+                     f"{rate(t_c)} / {rate(t_le)} / {rate(t_he)}", f"{rate(t_d)} / {rate(t_ld)} / {rate(t_hd)}",
+                     f"{med(t_le) / med(t_c):.2f} / {med(t_he) / med(t_c):.2f}",
+                     f"{med(t_ld) / med(t_d):.2f} / {med(t_hd) / med(t_d):.2f}"])
+    return rows
+
+
+#: Start-up commands timed in fresh processes: the library's import and the CLI's help.
+STARTUP = (("import dftpcc", ("-c", "import dftpcc")), ("dftpcc --help", ("-m", "dftpcc", "--help")))
+
+
+def startup_rows(repeats: int) -> list[list[str]]:
+    """Median and range (ms) of each start-up command over ``repeats`` fresh interpreters."""
+    import subprocess
+    import sys
+
+    rows = []
+    for label, argv in STARTUP:
+        t, _ = walls(lambda: subprocess.run([sys.executable, *argv], check=True, capture_output=True), repeats)
+        rows.append([f"`{label}`", span(t)])
+    return rows
+
+
+def main() -> None:
+    parser = run_arguments("Per-stage speed on one core against DracoPy, LERC and HTJ2K (issue 16).",
+                           f"{QUICK_REPEATS} repeats instead of {REPEATS}")
+    parser.add_argument("--repeats", type=int, default=None, help=f"repeats per timing (default {REPEATS})")
+    parser.add_argument("--no-dems", action="store_true", help="skip the GeoTIFF DEMs")
+    args = parser.parse_args()
+    repeats = args.repeats or (QUICK_REPEATS if args.quick else REPEATS)
+    data = Path(args.data)
+    spectrum.FFT_WORKERS = ONE_THREAD  # scipy.fft on one worker, as every anchor here
+    start = time.perf_counter()
+    wanted = args.files or [name for name, _ in CLOUDS]
+    sections, verdicts = [], []
+    for name, resolution in CLOUDS:
+        if any(name.startswith(w) for w in wanted):
+            text, v = cloud_section(name, resolution, data, repeats)
+            sections.append(text)
+            verdicts += v
+    parts = [f"{repeats} repeats; times are wall-clock medians with the range over the repeats in brackets. "
+             + " ".join(__doc__.split("\n\n")[1].split())]
+    parts += sections
+    if not args.no_dems:
+        parts.append("### GeoTIFF DEMs: M cells/s, dftpcc / LERC / HTJ2K\n\n" + " ".join(__doc__.split("\n\n")[2].split())
+                     + "\n\n" + markdown_table(
+                         ["DEM", "cells", "max error mm", "bytes dftpcc / LERC / HTJ2K", "encode M cells/s",
+                          "decode M cells/s", "encode time LERC / HTJ2K over dftpcc",
+                          "decode time LERC / HTJ2K over dftpcc"], dem_rows(data, repeats)))
+    parts.append("### Start-up\n\nWall time of a fresh interpreter running each command (the interpreter's own "
+                 "start included).\n\n" + markdown_table(["command", "ms median (range)"], startup_rows(repeats)))
+    parts.append("### Targets\n\n" + "\n".join(f"- {v}" for v in verdicts))
+    for part in parts:
+        print(part + "\n")
+    finish_run(parts, args, "bench_speed", "Speed on one core (issue 16)",
+               f"Run time {time.perf_counter() - start:.0f} s; {load_average()} at the end.")
+
+if __name__ == "__main__":
+    main()
