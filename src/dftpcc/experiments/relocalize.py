@@ -19,7 +19,9 @@ bits per axis, and float round-off grows with UTM-size coordinates.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
@@ -28,13 +30,16 @@ from ..container import Header, pack, unpack
 from ..dem import DEM, Grid
 from ..encoder import encode_dem
 from ..errors import InvalidInputError, MissingDependencyError
+from ..files import check_compressed_output, read_dem
+from ..io import atomic_write
 from ..mapfile import open as open_map
 from ..params import Params
 from ..rebuild import dem_to_points
 from .rover import LIDARS, Lidar, Surface, check_map_size, scan_at, sensor_pose
 
 __all__ = ["Gicp", "MapTarget", "Scan", "Outcome", "Recommendation", "simulate_scans", "perturb", "pose_error",
-           "relocalize", "relocalize_map", "recommend", "with_reloc_stats", "surface_dem", "SLAM_INSTALL_HINT",
+           "relocalize", "relocalize_map", "recommend", "recommend_file", "compress_file_reloc", "check_target_reloc",
+           "require_small_gicp", "with_reloc_stats", "surface_dem", "SLAM_INSTALL_HINT",
            "OFFSET_M", "OFFSET_DEG", "SUCCESS_M", "SUCCESS_DEG", "COARSE_M", "COARSE_DEG", "RECOMMEND_CUTOFFS",
            "RECOMMEND_FRACTION", "RECOMMEND_LIDAR"]
 
@@ -62,7 +67,8 @@ RECOMMEND_FRACTION = 0.95
 RECOMMEND_LIDAR = Lidar(16, -15.0, 15.0, 0.4, 50.0, 0.5, 0.03)
 
 
-def _small_gicp() -> Any:
+def require_small_gicp() -> Any:
+    """small_gicp, or :class:`~dftpcc.errors.MissingDependencyError` with the install hint."""
     try:
         import small_gicp
     except ImportError:
@@ -107,7 +113,7 @@ class MapTarget:
     """
 
     def __init__(self, points: np.ndarray, gicp: Gicp = Gicp()):
-        sg = _small_gicp()
+        sg = require_small_gicp()
         points = np.asarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < gicp.neighbours:
             raise InvalidInputError(f"a map needs at least {gicp.neighbours} points of 3 coordinates, "
@@ -121,7 +127,7 @@ class MapTarget:
 
     def register(self, scan: np.ndarray, guess: np.ndarray) -> np.ndarray:
         """The pose (map <- sensor, 4 x 4, map frame) that aligns ``scan`` (sensor frame) to the map from ``guess``."""
-        sg = _small_gicp()
+        sg = require_small_gicp()
         source, _ = sg.preprocess_points(np.asarray(scan, dtype=np.float64), downsampling_resolution=self.gicp.voxel,
                                          num_neighbors=self.gicp.neighbours)
         shift = np.eye(4)
@@ -328,13 +334,7 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
         a rate-control target given too, or no cutoff meets the target (the
         message gives the best error reached and at what size).
     """
-    if not (isinstance(target_reloc, (int, float)) and math.isfinite(target_reloc) and target_reloc > 0):
-        raise InvalidInputError(f"target_reloc must be a positive number of metres, got {target_reloc!r}")
-    params = params or Params()
-    if params.has_target:
-        raise InvalidInputError("give target_reloc alone: it chooses the cutoff, as the other targets would")
-    if params.cutoff is not None:
-        raise InvalidInputError("target_reloc chooses the cutoff: do not give one")
+    params = check_target_reloc(target_reloc, params)
     surface, to_map = surface_dem(dem)
     cast = simulate_scans(surface, scans, lidar=lidar, seed=seed)
     # Scans live in the surface's local frame; rebuilt maps come in the DEM's
@@ -372,6 +372,47 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
         f"target_reloc {target_reloc:g} m cannot be met: the best map reached a 95th-percentile error of "
         f"{best['p95_m']:.3g} m ({100 * best['success']:.0f} % of {scans} scans within {target_reloc:g} m) at "
         f"cutoff {best['cutoff']:g}, {_bytes_of(best['bytes'])} ({best['bits_per_point']:.3g} bits/point)")
+
+
+def check_target_reloc(target_reloc: float, params: Params | None = None) -> Params:
+    """Refuse, before any work, a relocalization target that is not a positive length or comes with a
+    cutoff or another rate-control target; the parameters to use (default :class:`Params`).
+
+    Raises
+    ------
+    InvalidInputError
+    MissingDependencyError
+        small_gicp is not installed.
+    """
+    if isinstance(target_reloc, bool) or not (isinstance(target_reloc, (int, float)) and math.isfinite(target_reloc)
+                                               and target_reloc > 0):
+        raise InvalidInputError(f"target_reloc must be a positive number of metres, got {target_reloc!r}")
+    params = params or Params()
+    if params.has_target:
+        raise InvalidInputError("give target_reloc alone: it chooses the cutoff, as the other targets would")
+    if params.cutoff is not None:
+        raise InvalidInputError("target_reloc chooses the cutoff: do not give one")
+    require_small_gicp()
+    return params
+
+
+def recommend_file(src: str | os.PathLike[str], target_reloc: float, params: Params | None = None, *,
+                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
+                   topic: str | None = None, **options: Any) -> Recommendation:
+    """:func:`recommend` for the map in a file (any input :func:`dftpcc.compress_file` reads), gridded as it would be."""
+    params = check_target_reloc(target_reloc, params)
+    dem, count, crs = read_dem(src, params, format=format, classes=classes, topic=topic)
+    return recommend(dem, target_reloc, params, point_count=count, crs=crs, **options)
+
+
+def compress_file_reloc(src: str | os.PathLike[str], dst: str | os.PathLike[str], target_reloc: float,
+                        params: Params | None = None, *, force: bool = False, **options: Any) -> Recommendation:
+    """Write the file :func:`recommend_file` chooses to ``dst`` (``.dftpc``; checked before any work, written whole or not at all)."""
+    params = check_target_reloc(target_reloc, params)
+    check_compressed_output(dst, force=force)
+    chosen = recommend_file(src, target_reloc, params, **options)
+    atomic_write(dst, lambda tmp: Path(tmp).write_bytes(chosen.data))
+    return chosen
 
 
 def with_reloc_stats(data: bytes, success: float) -> bytes:

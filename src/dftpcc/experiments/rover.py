@@ -143,13 +143,14 @@ class Surface:
         rows, cols = self.shape
         u = np.asarray(x, dtype=np.float64) * (1.0 / self.spacing) - 0.5
         v = np.asarray(y, dtype=np.float64) * (1.0 / self.spacing) - 0.5
-        j = np.floor(u)
-        i = np.floor(v)
+        outside = ~((u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1))  # NaN coordinates too
+        # The last node belongs to the last patch; clipped indices keep the gather in bounds
+        # (points outside are NaN below).
+        j = np.clip(np.floor(u), 0, cols - 2)
+        i = np.clip(np.floor(v), 0, rows - 2)
         fu = u - j
         fv = v - i
-        outside = (j < 0) | (j > cols - 2) | (i < 0) | (i > rows - 2) | ~np.isfinite(u) | ~np.isfinite(v)
-        # Clipped so the gather stays in bounds; those points are NaN below.
-        idx = np.clip(i, 0, rows - 2).astype(np.int64) * cols + np.clip(j, 0, cols - 2).astype(np.int64)
+        idx = i.astype(np.int64) * cols + j.astype(np.int64)
         flat = self.heights.ravel()
         h00 = flat.take(idx)
         h01 = flat.take(idx + 1)
