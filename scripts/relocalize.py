@@ -343,15 +343,32 @@ def _bpp(x: float | None) -> str:
     return "-" if x is None else f"{x:.3g}"
 
 
+def add_areas(rows: list[dict[str, Any]]) -> None:
+    """Bits per square metre of map (file bits over the area of its occupied cells) and the shortest
+    wavelength a cutoff keeps, 2 x cell / (1 - f_c) metres, for every row made from a file."""
+    cells = {(r["terrain"], r["cell_m"]): r["map_points"] for r in rows if r["series"] == "grid only"}
+    for r in rows:
+        n = cells.get((r["terrain"], r["cell_m"]))
+        if r.get("bytes") is not None and n:
+            r["bits_m2"] = 8.0 * r["bytes"] / (n * r["cell_m"] ** 2)
+        cutoff = r.get("cutoff_used")
+        if cutoff is None and r["setting"].startswith("f_c "):
+            cutoff = float(r["setting"].split()[1].rstrip(","))
+        if cutoff is not None and r["cell_m"]:
+            r["wavelength_m"] = 2.0 * r["cell_m"] / (1.0 - cutoff)
+
+
 def _table(rows: list[dict[str, Any]]) -> list[str]:
-    out = ["| map | cell | setting | bits/pt | success 10 cm/1° | coarse 2 m/5° | median error | median rot. | "
-           "DEM RMSE border / interior |",
-           "|---|---|---|---|---|---|---|---|---|"]
+    out = ["| map | cell | setting | bits/pt | bits/m² | shortest kept λ | success 10 cm/1° | coarse 2 m/5° | "
+           "median error | median rot. | DEM RMSE border / interior |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         band = (f"{_mm(r['border_rmse_m'])} / {_mm(r['inner_rmse_m'])}" if "border_rmse_m" in r else "")
         cell = "-" if not r["cell_m"] else f"{r['cell_m']:g} m"
-        out.append(f"| {r['series']} | {cell} | {r['setting']} | {_bpp(r['bpp'])} | {_pct(r['success'])} | "
-                   f"{_pct(r['coarse'])} | {_mm(r['median_m'])} | {r['median_deg']:.3f}° | {band} |")
+        lam = f"{r['wavelength_m']:.3g} m" if r.get("wavelength_m") else ""
+        out.append(f"| {r['series']} | {cell} | {r['setting']} | {_bpp(r['bpp'])} | {_bpp(r.get('bits_m2'))} | "
+                   f"{lam} | {_pct(r['success'])} | {_pct(r['coarse'])} | {_mm(r['median_m'])} | "
+                   f"{r['median_deg']:.3f}° | {band} |")
     return out
 
 
@@ -388,6 +405,22 @@ def plot(rows: list[dict[str, Any]], names: list[str]) -> list[Path]:
         np.atleast_1d(axes)[0].set_ylabel(ylabel)
         np.atleast_1d(axes)[-1].legend(fontsize=6)
         paths.append(_save(fig, FIGURES / fname))
+    fig = _figure(11, 3.2)
+    axes = fig.subplots(1, len(names), sharey=True)
+    for ax, name in zip(np.atleast_1d(axes), names):
+        for cell, style in sorted({(r["cell_m"], "o-") for r in rows if r["terrain"] == name and r["series"] == "dftpcc"}):
+            pts = sorted((r["wavelength_m"], 100 * r["success"]) for r in rows if r["terrain"] == name
+                         and r["series"] == "dftpcc" and r["cell_m"] == cell and r.get("wavelength_m")
+                         and r["setting"].startswith("f_c"))
+            if pts:
+                x, y = zip(*pts)
+                ax.plot(x, y, style, ms=4, label=f"{cell:g} m cells")
+        ax.set_xscale("log")
+        ax.set_title(name)
+        ax.set_xlabel("shortest wavelength kept, 2 cell / (1 - f_c) (m)")
+    np.atleast_1d(axes)[0].set_ylabel("scans within 10 cm and 1° (%)")
+    np.atleast_1d(axes)[-1].legend(fontsize=6)
+    paths.append(_save(fig, FIGURES / "reloc_wavelength.png"))
     return paths
 
 
@@ -441,7 +474,8 @@ def write_doc(rows: list[dict[str, Any]], metas: dict[str, dict], timing: dict[s
     lines += ["", "The numpy prototype took 0.3 s per 16-beam and 1.6 s per 64-beam scan.", ""]
 
     lines += ["## Results per terrain", "",
-              "![success](figures/reloc_success.png)", "", "![error](figures/reloc_error.png)", ""]
+              "![success](figures/reloc_success.png)", "", "![error](figures/reloc_error.png)", "",
+              "![wavelength](figures/reloc_wavelength.png)", ""]
     for n in names:
         mine = [r for r in rows if r["terrain"] == n]
         m = metas[n]
@@ -454,7 +488,7 @@ def write_doc(rows: list[dict[str, Any]], metas: dict[str, dict], timing: dict[s
                 best = _smallest_passing([r for r in mine if r["series"] == series and r["cell_m"] == cell])
                 if best:
                     lines.append(f"- {cell:g} m cells, {series}: 95 % of scans within 10 cm and 1° down to "
-                                 f"**{best['setting']}** at **{best['bpp']:.3g} bits/point**.")
+                                 f"**{best['setting']}** at **{best['bpp']:.3g} bits/point** ({best.get('bits_m2', float('nan')):.3g} bits/m²).")
                 elif any(r["series"] == series and r["cell_m"] == cell for r in mine):
                     lines.append(f"- {cell:g} m cells, {series}: no setting keeps 95 % of scans within 10 cm and 1°.")
         lines.append("")
@@ -472,14 +506,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="fewer scans and settings; writes to --out only")
     parser.add_argument("--out", type=Path, help="also write the measured rows as JSON here")
     parser.add_argument("--only", help="comma-separated terrain names (gale,kepler,davos,field)")
+    parser.add_argument("--from-json", type=Path,
+                        help="rewrite the document and figures from the rows a run saved with --out (no measuring)")
+    parser.add_argument("--retime", action="store_true",
+                        help="with --from-json: measure the ray-caster again (on a quiet machine)")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
     cases = terrains()
     if args.only:
         cases = [c for c in cases if c.name in args.only.split(",")]
-    rows: list[dict[str, Any]] = []
-    metas: dict[str, dict] = {}
-    timing: dict[str, Any] = {}
+    if args.from_json:
+        saved = json.loads(args.from_json.read_text())
+        rows, metas, timing, rows64 = saved["rows"], saved["metas"], saved["timing"], saved["rows64"]
+        elapsed = saved.get("elapsed_s", 0.0)
+        if args.retime:
+            timing = {case.name: time_raycaster(case) for case in cases}
+            saved["timing"] = timing
+            args.from_json.write_text(json.dumps(saved, indent=1, default=float))
+        return _write_all(rows, metas, timing, rows64, elapsed)
+    rows = []
+    metas = {}
+    timing = {}
     for case in cases:
         print(f"{case.name}: {case.surface.shape} nodes of {case.surface.spacing:g} m", flush=True)
         timing[case.name] = time_raycaster(case)
@@ -491,11 +538,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  hdl64 {r['series']} {r['setting']} success {r['success']:.2f} median {r['median_m']:.4f}")
     elapsed = time.perf_counter() - t0
     if args.out:
-        args.out.write_text(json.dumps({"rows": rows, "metas": metas, "timing": timing, "rows64": rows64},
-                                       indent=1, default=float))
+        args.out.write_text(json.dumps({"rows": rows, "metas": metas, "timing": timing, "rows64": rows64,
+                                        "elapsed_s": elapsed}, indent=1, default=float))
     if args.quick:
         print(f"quick run: {elapsed:.0f} s; docs not written")
         return 0
+    return _write_all(rows, metas, timing, rows64, elapsed)
+
+
+def _write_all(rows: list[dict[str, Any]], metas: dict[str, dict], timing: dict[str, Any], rows64: list[dict],
+               elapsed: float) -> int:
+    add_areas(rows)
+    add_areas(rows64)
     analysis = ""
     if DOC.exists() and ANALYSIS_MARKER in DOC.read_text():
         analysis = DOC.read_text().split(ANALYSIS_MARKER, 1)[1]

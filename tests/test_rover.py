@@ -190,3 +190,15 @@ def test_bag_without_rosbags(gale, tmp_path, monkeypatch):
     with pytest.raises(MissingDependencyError, match=r"dftpcc\[ros\]"):
         rover.write_bag(tmp_path / "bag", gale, d, SMALL_LIDAR)
     assert not (tmp_path / "bag").exists()
+
+
+def test_script(tmp_path, capsys):
+    """python -m dftpcc.experiments.rover: a bag from a DEM, and a drive off the map refused (exit 3) with no bag."""
+    pytest.importorskip("rosbags")
+    tif = str(data_file("dems/mars_gale_1m.tif"))
+    assert rover.main([tif, str(tmp_path / "bag"), "--duration", "1", "--scan-rate", "2", "--radius", "20"]) == 0
+    assert "3 scans" in capsys.readouterr().out
+    assert (tmp_path / "bag" / "metadata.yaml").is_file()
+    assert rover.main([tif, str(tmp_path / "off"), "--waypoints", "150,150;500,150"]) == 3
+    assert "--clip" in capsys.readouterr().err
+    assert not (tmp_path / "off").exists()

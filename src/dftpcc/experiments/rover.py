@@ -36,7 +36,7 @@ from ..dem import DEM
 from ..errors import InvalidInputError, MissingDependencyError
 
 __all__ = ["Surface", "Lidar", "LIDARS", "Drive", "drive", "loop_waypoints", "sensor_pose", "cast_scan",
-           "scan_at", "odometry_noise", "write_bag", "ODOM_RATE_HZ", "SCAN_RATE_HZ", "ROS_INSTALL_HINT"]
+           "scan_at", "odometry_noise", "write_bag", "check_map_size", "main", "ODOM_RATE_HZ", "SCAN_RATE_HZ", "ROS_INSTALL_HINT"]
 
 #: Odometry messages per second in a bag.
 ODOM_RATE_HZ = 50.0
@@ -445,7 +445,7 @@ def drive(surface: Surface, waypoints: Sequence[Sequence[float]] | np.ndarray, *
             raise InvalidInputError(
                 f"the trajectory {what} at local ({where[0]:.1f}, {where[1]:.1f}) m after {s[first_bad]:.1f} m "
                 f"(map: {surface.extent[0]:.1f} x {surface.extent[1]:.1f} m)"
-                + ("" if first_bad == 0 else "; pass clip=True to stop the drive there"))
+                + ("" if first_bad == 0 else "; clip=True (--clip) stops the drive there instead"))
         xy, yaw, s = xy[:first_bad], yaw[:first_bad], s[:first_bad]
         clipped = True
     poses = np.stack([sensor_pose(surface, float(x), float(y), float(a), mount_height=lidar.mount_height)
@@ -639,3 +639,68 @@ def write_bag(path: str | os.PathLike[str], surface: Surface, route: Drive, lida
         os.replace(part, path)
     return {"scans": scans, "points": points, "cast_s": cast_s}
 
+
+
+def _waypoints(text: str) -> np.ndarray:
+    try:
+        return np.array([[float(v) for v in pair.split(",")] for pair in text.split(";") if pair.strip()])
+    except ValueError:
+        raise InvalidInputError(f"waypoints are 'x,y;x,y;...' in local metres, got {text!r}") from None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m dftpcc.experiments.rover MAP BAG``: drive a simulated rover over a map, write a ROS 2 bag.
+
+    MAP is a GeoTIFF DEM (its own cells) or any point cloud dftpcc reads
+    (gridded at ``--resolution``). The drive is a loop around the map's middle
+    unless ``--waypoints`` are given (local metres, see the module docstring).
+    """
+    import argparse
+    import sys
+    import time
+
+    from ..files import read_dem
+    from ..params import Params
+
+    parser = argparse.ArgumentParser(prog="python -m dftpcc.experiments.rover", description=main.__doc__.splitlines()[0])
+    parser.add_argument("map", help="GeoTIFF DEM or point cloud")
+    parser.add_argument("bag", help="the ROS 2 bag folder to write (must not exist)")
+    parser.add_argument("--lidar", choices=tuple(LIDARS), default="vlp16")
+    parser.add_argument("--resolution", type=float, help="grid a point cloud at this cell size, metres (default 1)")
+    parser.add_argument("--classes", help="LAS/LAZ classes to keep, e.g. 2")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="multiply every length of the map (e.g. 0.1 makes a 10 m DEM rover-sized); default 1")
+    parser.add_argument("--waypoints", type=_waypoints, help="'x,y;x,y;...' in local metres (default: a loop)")
+    parser.add_argument("--radius", type=float, help="radius of the default loop, metres (default: a quarter of the map)")
+    parser.add_argument("--speed", type=float, default=ROVER_SPEED, help=f"m/s (default {ROVER_SPEED})")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds of driving")
+    parser.add_argument("--scan-rate", type=float, default=SCAN_RATE_HZ, help=f"scans per second (default {SCAN_RATE_HZ:g})")
+    parser.add_argument("--clip", action="store_true", help="cut a drive that leaves the map instead of refusing it")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    try:
+        classes = [int(c) for c in args.classes.split(",")] if args.classes else None
+        # A raster keeps its own cells unless a resolution is given; a cloud is gridded at 1 m by default.
+        raster = args.map.lower().endswith((".tif", ".tiff"))
+        resolution = args.resolution or ("auto" if raster else 1.0)
+        dem, _, _ = read_dem(args.map, Params(resolution=resolution), classes=classes)
+        surface = Surface.from_dem(dem, scale=args.scale)
+        lidar = LIDARS[args.lidar]
+        waypoints = args.waypoints if args.waypoints is not None else loop_waypoints(surface, radius=args.radius)
+        route = drive(surface, waypoints, speed=args.speed, lidar=lidar, clip=args.clip)
+        if args.duration is not None:
+            keep = route.times <= args.duration
+            route = Drive(route.times[keep], route.poses[keep], float(route.times[keep][-1] * args.speed), route.clipped)
+        t0 = time.perf_counter()
+        info = write_bag(args.bag, surface, route, lidar, scan_rate=args.scan_rate, seed=args.seed)
+    except (InvalidInputError, MissingDependencyError) as exc:
+        print(f"rover: error: {exc}", file=sys.stderr)
+        return 6 if isinstance(exc, MissingDependencyError) else 3
+    print(f"{args.bag}: {info['scans']} scans ({info['points']:,} returns), {route.distance:.1f} m in "
+          f"{route.times[-1]:.1f} s{' (clipped at the map edge)' if route.clipped else ''}; ray-casting "
+          f"{1000 * info['cast_s'] / max(info['scans'], 1):.0f} ms per scan, {time.perf_counter() - t0:.1f} s in all")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
