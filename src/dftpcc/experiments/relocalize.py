@@ -27,14 +27,13 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 
 from ..container import Header, pack, unpack
-from ..dem import DEM, Grid
+from ..dem import DEM
 from ..encoder import encode_dem
 from ..errors import InvalidInputError, MissingDependencyError
 from ..files import check_compressed_output, read_dem
 from ..io import atomic_write
 from ..mapfile import open as open_map
 from ..params import Params
-from ..rebuild import dem_to_points
 from .rover import LIDARS, Lidar, Surface, check_map_size, scan_at, sensor_pose
 
 __all__ = ["Gicp", "MapTarget", "Scan", "Outcome", "Recommendation", "simulate_scans", "perturb", "pose_error",
@@ -331,8 +330,11 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
     ------
     InvalidInputError
         A bad target, a map too small for the sensor or without valid ground,
-        a rate-control target given too, or no cutoff meets the target (the
-        message gives the best error reached and at what size).
+        a rotated or non-square grid (``frame='oriented'``, a latitude/longitude
+        raster), a cutoff or a rate-control target given too, or no cutoff
+        meets the target (the message gives the best error reached and at what size).
+    MissingDependencyError
+        small_gicp is not installed.
     """
     params = check_target_reloc(target_reloc, params)
     surface, to_map = surface_dem(dem)
@@ -345,6 +347,8 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
         data = encode_dem(dem, params.replace(cutoff=cutoff, target_reloc=float(target_reloc)),
                           point_count=point_count, crs=crs)
         candidates.append((len(data), cutoff, data))
+    if not candidates:
+        raise InvalidInputError("no cutoff to try")
     candidates.sort(key=lambda c: (c[0], -c[1]))
     count = point_count or int(dem.mask.sum())
     best: dict[str, Any] | None = None
@@ -367,7 +371,7 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
                 chosen_params = cmap.params
             return Recommendation(chosen_params, chosen, row["success"], row["p95_m"],
                                   8.0 * len(chosen) / count, tried)
-    assert best is not None
+    assert best is not None  # at least one candidate was measured
     raise InvalidInputError(
         f"target_reloc {target_reloc:g} m cannot be met: the best map reached a 95th-percentile error of "
         f"{best['p95_m']:.3g} m ({100 * best['success']:.0f} % of {scans} scans within {target_reloc:g} m) at "
