@@ -446,8 +446,8 @@ def plot(rows: list[dict[str, Any]], names: list[str]) -> list[Path]:
                 ax.set_yscale("log")
             ax.set_title(name)
             ax.set_xlabel("bits per point")
+            ax.legend(fontsize=5)
         np.atleast_1d(axes)[0].set_ylabel(ylabel)
-        np.atleast_1d(axes)[-1].legend(fontsize=6)
         paths.append(_save(fig, FIGURES / fname))
     fig = _figure(11, 3.2)
     axes = fig.subplots(1, len(names), sharey=True)
@@ -461,9 +461,9 @@ def plot(rows: list[dict[str, Any]], names: list[str]) -> list[Path]:
                 ax.plot(x, y, style, ms=4, label=f"{cell:g} m cells")
         ax.set_xscale("log")
         ax.set_title(name)
-        ax.set_xlabel("shortest wavelength kept, 2 cell / (1 - f_c) (m)")
+        ax.set_xlabel("shortest kept λ = 2 cell / (1 - f_c) (m)", fontsize=7)
+        ax.legend(fontsize=6)
     np.atleast_1d(axes)[0].set_ylabel("scans within 10 cm and 1° (%)")
-    np.atleast_1d(axes)[-1].legend(fontsize=6)
     paths.append(_save(fig, FIGURES / "reloc_wavelength.png"))
     return paths
 

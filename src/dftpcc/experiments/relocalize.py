@@ -58,7 +58,7 @@ BORDER_FRACTION = 0.2
 #: Draws per wanted pose before giving up on a map with too little valid ground.
 DRAWS_PER_POSE = 200
 #: A rate-control recommendation tries these cutoffs, smallest file first.
-RECOMMEND_CUTOFFS: tuple[float, ...] = tuple(round(0.95 - 0.05 * i, 2) for i in range(20))
+RECOMMEND_CUTOFFS: tuple[float, ...] = tuple(round(0.05 * i, 2) for i in range(19, -1, -1))
 #: A candidate meets ``target_reloc`` when at least this fraction of scans end
 #: within the target translation error and :data:`SUCCESS_DEG`.
 RECOMMEND_FRACTION = 0.95
