@@ -9,11 +9,12 @@ within :data:`SUCCESS_M` and :data:`SUCCESS_DEG` of the truth (coarse:
 file whose rebuilt map still relocalizes scans within a given error.
 
 GICP (plane-to-plane, covariances from :attr:`Gicp.neighbours` neighbours)
-is the registration: point-to-plane ICP and KISS-ICP barely move from the
-initial guess on gentle terrain, whose points mostly constrain height, pitch
-and roll. Maps and scans are registered in a local frame (a map's own
-coordinates minus their rounded mean): small_gicp's voxel grid keys hold 21
-bits per axis, and float round-off grows with UTM-size coordinates.
+is the registration: point-to-plane and point-to-point ICP barely move from
+the initial guess on gentle terrain, whose points mostly constrain height,
+pitch and roll (docs/relocalization.md measures them). Maps and scans are
+registered in a local frame (a map's own coordinates minus their rounded
+mean): small_gicp's voxel grid keys hold 21 bits per axis, so points at
+UTM-size coordinates are dropped ("voxel coord is out of range").
 """
 
 from __future__ import annotations
