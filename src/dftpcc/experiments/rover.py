@@ -6,8 +6,10 @@ cells, in a *local* frame (metres): x, y from the corner of the DEM's cell
 optionally multiplied by one ``scale`` (a 48 m lunar DEM at ``scale=1/48``
 becomes a rover-sized terrain of 1 m cells with the same slopes). Every
 coordinate this module produces (poses, bag messages) is in that local frame,
-so numbers stay small and registration keeps its precision; add the DEM's
-grid origin (divided by ``scale``) to go back to the map's own coordinates.
+so numbers stay small and registration keeps its precision; divide by
+``scale`` and add the DEM's grid origin (``x0``, ``y0``, ``z0``) to go back to
+the map's own coordinates (:func:`dftpcc.experiments.relocalize.surface_dem`
+returns that transform).
 
 :func:`cast_scan` marches every ray of a scan at once over the surface and
 refines each crossing by bisection; :func:`drive` turns waypoints into timed
@@ -290,8 +292,8 @@ def cast_scan(surface: Surface, pose: np.ndarray, lidar: Lidar, *,
     highest ground that near), but at least :data:`MARCH_STEP_CELLS` cells; the
     first step that ends below the ground brackets the crossing, which
     :data:`BISECTIONS` halvings and a linear interpolation refine. Rays that
-    climb faster than the steepest slope, leave the map or reach
-    ``lidar.max_range`` return nothing.
+    climb faster than the steepest slope, leave the map, meet a cell without
+    data or reach ``lidar.max_range`` return nothing.
 
     Parameters
     ----------
@@ -320,8 +322,6 @@ def cast_scan(surface: Surface, pose: np.ndarray, lidar: Lidar, *,
     t = np.full(active.size, lidar.min_range)
     gap = origin[2] + t * dirs[active, 2] - surface.height(origin[0] + t * dirs[active, 0],
                                                            origin[1] + t * dirs[active, 1])
-    lo_t = np.empty(0)
-    hi_t = np.empty(0)
     found: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     # A ray starting below the ground (a sensor inside a cliff) returns nothing.
     ok = np.isfinite(gap) & (gap > 0)
