@@ -120,6 +120,8 @@ def test_recommend_refusals(gale):
         rl.recommend(gale, 0.05, Params(cutoff=0.5))
     with pytest.raises(InvalidInputError, match="alone"):
         rl.recommend(gale, 0.05, Params(target_rmse=0.1))
+    with pytest.raises(InvalidInputError, match="measures maps coded whole"):
+        rl.recommend(gale, 0.05, Params(tile_size=64))
     for bad in (0, -1, math.inf, True):
         with pytest.raises(InvalidInputError, match="positive number of metres"):
             rl.check_target_reloc(bad)

@@ -344,12 +344,14 @@ def _compress_reloc(args: argparse.Namespace, options: dict[str, Any]) -> int:
     """compress --target-reloc: the smallest file that still relocalizes simulated scans (slam extra)."""
     from .experiments.relocalize import compress_file_reloc
 
-    if args.output == "-" or args.input == "-" or args.chunk_points or args.drop_nonfinite:
-        raise InvalidInputError("--target-reloc reads and writes files (no '-', --chunk-points or --drop-nonfinite)")
+    if (args.output == "-" or args.input == "-" or args.chunk_points or args.drop_nonfinite or args.workers
+            or args.scheduler):
+        raise InvalidInputError("--target-reloc reads and writes whole files on this machine (no '-', "
+                                "--chunk-points, --drop-nonfinite, --workers or --scheduler)")
     t0 = time.perf_counter()
     chosen = compress_file_reloc(args.input, args.output, args.target_reloc, _reloc_params(args, options),
                                  force=args.force, format=args.format, classes=args.classes, topic=args.topic,
-                                 scans=args.reloc_scans, seed=args.reloc_seed)
+                                 pose_topic=args.pose_topic, scans=args.reloc_scans, seed=args.reloc_seed)
     _say(args, f"{args.output}: {len(chosen.data):,} bytes [{time.perf_counter() - t0:.2f} s]",
          *_reloc_lines(chosen, args.target_reloc))
     return 0
@@ -359,7 +361,7 @@ def cmd_recommend(args: argparse.Namespace) -> int:
     from .experiments.relocalize import recommend_file
 
     chosen = recommend_file(args.input, args.target_reloc, _reloc_params(args, {"fill": args.fill}),
-                            format=args.format, classes=args.classes, topic=args.topic,
+                            format=args.format, classes=args.classes, topic=args.topic, pose_topic=args.pose_topic,
                             scans=args.reloc_scans, seed=args.reloc_seed)
     if args.json:
         print(json.dumps({"params": json.loads(chosen.params.to_json()), "bytes": len(chosen.data),
@@ -684,6 +686,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fill", choices=CHOICES["fill"], help="how empty cells are filled before the transform")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
     p.add_argument("--topic", help="ROS bag: the PointCloud2 topic to read")
+    p.add_argument("--pose-topic", metavar="TOPIC",
+                   help="ROS bag of scans in the sensor frame: the poses that place them (as compress takes it)")
     p.add_argument("--format", help="input format if the extension does not tell")
     p.add_argument("--reloc-scans", type=_positive_int, default=20, metavar="N", help="scans to simulate (default 20)")
     p.add_argument("--reloc-seed", type=int, default=0, metavar="SEED", help="seed of the scans and guesses")

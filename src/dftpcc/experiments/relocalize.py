@@ -34,7 +34,7 @@ from ..errors import InvalidInputError, MissingDependencyError
 from ..files import check_compressed_output, read_dem
 from ..io import atomic_write
 from ..mapfile import open as open_map
-from ..params import Params
+from ..params import Params, tile_size_for
 from .rover import LIDARS, Lidar, Surface, check_map_size, scan_at, sensor_pose
 
 __all__ = ["Gicp", "MapTarget", "Scan", "Outcome", "Recommendation", "simulate_scans", "perturb", "pose_error",
@@ -338,6 +338,10 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
         small_gicp is not installed.
     """
     params = check_target_reloc(target_reloc, params)
+    if tile_size_for(params, dem.grid.shape):
+        raise InvalidInputError(f"target_reloc measures maps coded whole; a {dem.grid.rows:,} x {dem.grid.cols:,} "
+                                f"grid would be tiled (tile_size {params.tile_size!r}): give tile_size=0, or a "
+                                f"coarser resolution")
     surface, to_map = surface_dem(dem)
     cast = simulate_scans(surface, scans, lidar=lidar, seed=seed)
     # Scans live in the surface's local frame; rebuilt maps come in the DEM's
@@ -403,10 +407,11 @@ def check_target_reloc(target_reloc: float, params: Params | None = None) -> Par
 
 def recommend_file(src: str | os.PathLike[str], target_reloc: float, params: Params | None = None, *,
                    format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
-                   topic: str | None = None, **options: Any) -> Recommendation:
-    """:func:`recommend` for the map in a file (any input :func:`dftpcc.compress_file` reads), gridded as it would be."""
+                   topic: str | None = None, pose_topic: str | None = None, **options: Any) -> Recommendation:
+    """:func:`recommend` for the map in a file (any input :func:`dftpcc.compress_file` reads, a ROS bag
+    of scans with their ``pose_topic`` included), gridded as it would be."""
     params = check_target_reloc(target_reloc, params)
-    dem, count, crs = read_dem(src, params, format=format, classes=classes, topic=topic)
+    dem, count, crs = read_dem(src, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic)
     return recommend(dem, target_reloc, params, point_count=count, crs=crs, **options)
 
 
