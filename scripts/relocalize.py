@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Can the rover still localize? Writes docs/relocalization.md and docs/figures/reloc_*.png.
 
-    python scripts/relocalize.py            (or: make relocalize; about 15-25 min on 2 cores)
+    python scripts/relocalize.py            (or: make relocalize; 12-16 min on the shared 2-core box)
     python scripts/relocalize.py --quick    (fewer scans and settings, a few minutes; not for the docs)
 
 Per terrain (Mars Gale, Moon Kepler and Davos scaled to 1 m cells, the IGN
