@@ -380,6 +380,8 @@ def _pct(x: float) -> str:
 
 
 def _mm(x: float) -> str:
+    if x < 0.01:
+        return f"{1000 * x:.1f} mm"
     return f"{1000 * x:.0f} mm" if x < 10 else f"{x:.1f} m"
 
 
