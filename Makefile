@@ -60,5 +60,12 @@ digests: $(STAMP)
 fuzz: $(STAMP)
 	$(BIN)/python tests/fuzz/fuzz_decoder.py --iterations 100000 --seed 11
 
+# Can the rover still localize? Simulated lidar scans registered (GICP) against maps rebuilt at each cutoff
+# and target on Mars Gale, Moon Kepler, Davos and the IGN field: rewrites docs/relocalization.md and
+# docs/figures/reloc_*.png (12-16 min on the shared 2-core box; ARGS=--quick, a few minutes, writes no docs).
+.PHONY: relocalize
+relocalize: $(STAMP)
+	$(BIN)/python scripts/relocalize.py $(ARGS)
+
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache .hypothesis

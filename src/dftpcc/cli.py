@@ -189,6 +189,8 @@ def cmd_compress(args: argparse.Namespace) -> int:
                    step=args.step, fill=args.fill, detrend=args.detrend, mask=args.mask, coder=args.coder,
                    target_rmse=args.target_rmse, target_max_error=args.target_max_error,
                    target_bpp=args.target_bpp, tile_size=args.tile_size)
+    if args.target_reloc is not None:
+        return _compress_reloc(args, options)
     t0 = time.perf_counter()
     with _progress(not args.quiet, COMPRESS_STAGES, verbose=args.verbose) as on_stage:
         cmap = compress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
@@ -318,6 +320,57 @@ def cmd_info(args: argparse.Namespace) -> int:
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")
+    return 0
+
+
+def _reloc_params(args: argparse.Namespace, options: dict[str, Any]) -> Any:
+    from .params import make_params
+
+    fields = {k: v for k, v in options.items() if v is not None}
+    return make_params(resolution=args.resolution, cutoff=args.cutoff, profile=args.profile, **fields)
+
+
+def _reloc_lines(chosen: Any, target: float) -> list[str]:
+    p = chosen.params
+    return [f"  cutoff {p.cutoff:g}, step {p.step:g} m: {chosen.bits_per_point:.4g} bits/point; "
+            f"{100 * chosen.success:.0f} % of simulated scans relocalized within {target:g} m and 1 deg "
+            f"(95th percentile {chosen.p95_m:.3g} m)",
+            "  tried (smallest file first): " + ", ".join(
+                f"f_c {r['cutoff']:g} {r['bits_per_point']:.3g} b/pt {100 * r['success']:.0f} %" for r in chosen.tried)]
+
+
+def _compress_reloc(args: argparse.Namespace, options: dict[str, Any]) -> int:
+    """compress --target-reloc: the smallest file that still relocalizes simulated scans (slam extra)."""
+    from .experiments.relocalize import compress_file_reloc
+
+    if (args.output == "-" or args.input == "-" or args.chunk_points or args.drop_nonfinite or args.workers
+            or args.scheduler):
+        raise InvalidInputError("--target-reloc reads and writes whole files on this machine (no '-', "
+                                "--chunk-points, --drop-nonfinite, --workers or --scheduler)")
+    t0 = time.perf_counter()
+    chosen = compress_file_reloc(args.input, args.output, args.target_reloc, _reloc_params(args, options),
+                                 force=args.force, format=args.format, classes=args.classes, topic=args.topic,
+                                 pose_topic=args.pose_topic, scans=args.reloc_scans, seed=args.reloc_seed)
+    _say(args, f"{args.output}: {len(chosen.data):,} bytes [{time.perf_counter() - t0:.2f} s]",
+         *_reloc_lines(chosen, args.target_reloc))
+    return 0
+
+
+def cmd_recommend(args: argparse.Namespace) -> int:
+    from .experiments.relocalize import recommend_file
+
+    chosen = recommend_file(args.input, args.target_reloc, _reloc_params(args, {"fill": args.fill}),
+                            format=args.format, classes=args.classes, topic=args.topic, pose_topic=args.pose_topic,
+                            scans=args.reloc_scans, seed=args.reloc_seed)
+    if args.json:
+        print(json.dumps({"params": json.loads(chosen.params.to_json()), "bytes": len(chosen.data),
+                          "bits_per_point": chosen.bits_per_point, "success": chosen.success,
+                          "p95_m": chosen.p95_m, "tried": chosen.tried}, indent=2, sort_keys=True))
+        return 0
+    _say(args, f"{args.input}: for relocalization within {args.target_reloc:g} m",
+         *_reloc_lines(chosen, args.target_reloc),
+         f"  make it with: dftpcc compress {args.input} OUT.dftpc --cutoff {chosen.params.cutoff:g}"
+         + (f" --resolution {args.resolution}" if args.resolution != "auto" else ""))
     return 0
 
 
@@ -552,6 +605,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="every occupied cell within this error (adds a residual layer)")
     target.add_argument("--target-bpp", type=_positive, metavar="BITS",
                         help="most accurate file of at most this many bits per original point")
+    target.add_argument("--target-reloc", type=_positive, metavar="METRES",
+                        help="smallest file whose rebuilt map still relocalizes lidar scans simulated on the map "
+                             "within this error (GICP; needs dftpcc[slam]; see docs/relocalization.md)")
+    p.add_argument("--reloc-scans", type=_positive_int, default=20, metavar="N",
+                   help="--target-reloc: scans to simulate (default 20)")
+    p.add_argument("--reloc-seed", type=int, default=0, metavar="SEED", help="--target-reloc: seed of the scans")
     p.add_argument("--profile", choices=tuple(PROFILES), default="compact",
                    help="compact (default): detrended DCT, quantized, entropy-coded; paper: the published method")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classification codes, e.g. 2 for ground")
@@ -613,6 +672,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-cells", type=_positive_int, metavar="N",
                    help="read a trusted file whose grid is larger than a file of its size may ask for")
     p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("recommend", parents=[common], help="the cutoff that still lets a rover relocalize",
+                       description="Simulate lidar scans on the map (fixed seed), register them with GICP against "
+                                   "the map rebuilt at each cutoff, smallest file first, and report the first that "
+                                   "keeps 95 %% of scans within --target-reloc metres and 1 degree (dftpcc[slam]).")
+    p.add_argument("input", help="the point cloud or GeoTIFF DEM to be compressed")
+    p.add_argument("--target-reloc", type=_positive, required=True, metavar="METRES",
+                   help="largest translation error of a relocalized scan, metres")
+    p.add_argument("--resolution", "-r", type=_resolution, default="auto", help="DEM cell size in metres, or 'auto'")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
+    p.add_argument("--fill", choices=CHOICES["fill"], help="how empty cells are filled before the transform")
+    p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
+    p.add_argument("--topic", help="ROS bag: the PointCloud2 topic to read")
+    p.add_argument("--pose-topic", metavar="TOPIC",
+                   help="ROS bag of scans in the sensor frame: the poses that place them (as compress takes it)")
+    p.add_argument("--format", help="input format if the extension does not tell")
+    p.add_argument("--reloc-scans", type=_positive_int, default=20, metavar="N", help="scans to simulate (default 20)")
+    p.add_argument("--reloc-seed", type=int, default=0, metavar="SEED", help="seed of the scans and guesses")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=cmd_recommend, cutoff=None)
 
     p = sub.add_parser("demo", parents=[common], help="run the whole pipeline on a built-in terrain and print a table",
                        description="Generate a synthetic regolith plain, compress it at several cutoffs and "

@@ -538,6 +538,7 @@ V1_PARAM_DEFAULTS: dict[str, Any] = {
     "detrend": "plane", "fill": "consistent", "storage": "quantized", "step": 0.0, "deadzone": 0.1,
     "coder": "ans", "mask": "exact", "target_rmse": 0.0, "target_max_error": 0.0, "target_bpp": 0.0,
     "tile_size": 0,
+    "target_reloc": 0.0,
 }
 #: Statistics the reader derives from the section table instead of storing them.
 _DERIVED_STATS = {"mask_bytes": b"MASK", "coef_bytes": b"COEF", "residual_bytes": b"RESD"}
@@ -569,7 +570,7 @@ def _params_from_file(text: str, resolution: float) -> Params:
 STAT_BINARY = 0x01
 STAT_FIELDS: dict[int, str] = {
     0: "dem_rmse_m", 1: "dem_max_error_m", 2: "gridding_rmse_m", 3: "vertical_rmse_m",
-    4: "unrepresented_fraction", 5: "unrepresented_rmse_m",
+    4: "unrepresented_fraction", 5: "unrepresented_rmse_m", 6: "reloc_success_fraction",
     128: "coef_count", 129: "cells_interpolated",
 }
 _STAT_IDS = {name: i for i, name in STAT_FIELDS.items()}
