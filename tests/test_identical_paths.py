@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import zstandard
 import pytest
 import constriction
 
@@ -248,7 +249,7 @@ def _ref_encode_mask(mask: np.ndarray, stripe: int) -> bytes:
     candidates = [
         occupancy._HEAD.pack(occupancy.KIND_CONTEXT, transposed) + _ref_encode_context(lines, min(stripe, lines.shape[0])),
         occupancy._HEAD.pack(occupancy.KIND_ZSTD, 0)
-        + occupancy._BITMAP_ZSTD.compress(np.packbits(mask.ravel()).tobytes()),
+        + zstandard.ZstdCompressor(level=occupancy._BITMAP_LEVEL).compress(np.packbits(mask.ravel()).tobytes()),
     ]
     return min(candidates, key=len)
 

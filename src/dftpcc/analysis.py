@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from .sums import dot
 from . import coding, spectrum
 from .dem import DEM
 from .fill import fill_empty, fit_plane, footprint, plane_values
@@ -86,7 +87,7 @@ class Analysis:
             outside[self.order] = False
             rest = full[outside]
             rest = rest.view(np.float64) if np.iscomplexobj(rest) else rest
-            self.outside_energy = float(np.dot(rest, rest))
+            self.outside_energy = dot(rest, rest)
         return full[self.order]
 
     @property
@@ -177,7 +178,7 @@ class Analysis:
         reals = self.reals(n)
         dropped = self.reals(self.coefs.size)[reals.size:]
         err = reals - coding.dequantize(coding.quantize(reals, step, self.params.deadzone), step)
-        total = float(np.dot(err, err)) + float(np.dot(dropped, dropped)) + self.outside_energy
+        total = dot(err, err) + dot(dropped, dropped) + self.outside_energy
         return math.sqrt(total * self.parseval)
 
     def encode(self, trial: Trial, *, exhaustive: bool = True) -> bytes:

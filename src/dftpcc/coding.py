@@ -31,6 +31,7 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     import constriction
 
+from .sums import dot
 from .errors import CorruptFileError, InvalidInputError
 from .params import MAX_COORDINATE_M
 
@@ -186,7 +187,7 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
 
     def sq_error(step: float) -> float:
         err = values - dequantize(quantize(values, step, deadzone), step)
-        return float(np.dot(err, err))
+        return dot(err, err)
 
     lo = max(target_rmse * 1e-3, finest)
     hi = max(target_rmse * math.sqrt(12.0 * n_cells), 1e-12, lo)

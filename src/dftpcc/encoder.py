@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .sums import dot
 from . import coding, occupancy, ratecontrol, spectrum
 from .analysis import Analysis, Trial
 from .container import Header, TileIndex, check_grid, pack, pack_tiled
@@ -291,7 +292,7 @@ def _check_max_error(an: Analysis, bound: float) -> None:
     # and no rebuilt height lies farther from the plane than the root of the energy of
     # the coefficients (Parseval); twice that for the quantization on top.
     spread = float(np.abs((an.dem.heights - an.trend)[an.mask]).max())
-    energy = an.dem.grid.size * spectrum.mse_per_squared_error(an.lay) * float(np.dot(coefs, coefs))
+    energy = an.dem.grid.size * spectrum.mse_per_squared_error(an.lay) * dot(coefs, coefs)
     residuals = spread + 2.0 * math.sqrt(energy)
     need = max(need, coding.finest_step(np.array([residuals])) / (2.0 * (1.0 - GUARANTEE_MARGIN)))
     if bound < need:

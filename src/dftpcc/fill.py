@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .sums import dot
 from .dem import DEM
 from .errors import InvalidInputError
 
@@ -34,8 +35,8 @@ def fit_plane(dem: DEM) -> tuple[float, float, float]:
     x -= mx
     y -= my
     z = z - mz
-    normal = np.array([[x @ x, x @ y], [x @ y, y @ y]])
-    rhs = np.array([x @ z, y @ z])
+    normal = np.array([[dot(x, x), dot(x, y)], [dot(x, y), dot(y, y)]])
+    rhs = np.array([dot(x, z), dot(y, z)])
     try:
         b, c = np.linalg.solve(normal, rhs)
     except np.linalg.LinAlgError:  # all cells on one line: fit along it only

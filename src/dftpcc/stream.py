@@ -21,6 +21,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
+from .sums import dot
 from . import coding
 from .container import Header, TileIndex, tiled_head
 from .dem import DEM, Grid, TileGrid
@@ -145,7 +146,7 @@ def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
         lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
         z = z - ref
         x, y = cols.astype(float), (rows + r0).astype(float)
-        moments += [z.size, z.sum(), x.sum(), y.sum(), x @ x, x @ y, y @ y, x @ z, y @ z]
+        moments += [z.size, z.sum(), x.sum(), y.sum(), dot(x, x), dot(x, y), dot(y, y), dot(x, z), dot(y, z)]
         np.add.at(sums, ((rows + r0) // d, cols // d), z)
         np.add.at(counts, ((rows + r0) // d, cols // d), 1.0)
     if ref is None:

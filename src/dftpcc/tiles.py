@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .sums import dot
 from . import coding, occupancy, spectrum
 from .analysis import Analysis, Trial
 from .dem import DEM, Grid, TileGrid
@@ -276,7 +277,7 @@ class TiledAnalysis:
         """As :meth:`Analysis.proxy_rmse`, over the base layer and every tile (each orthonormal)."""
         kept, lost = self._proxy_parts(cutoff)
         err = kept - coding.dequantize(coding.quantize(kept, step, self.params.deadzone), step)
-        return math.sqrt((float(np.dot(err, err)) + lost) * self.parseval)
+        return math.sqrt((dot(err, err) + lost) * self.parseval)
 
     def _proxy_parts(self, cutoff: float) -> tuple[np.ndarray, float]:
         """Every value kept at ``cutoff`` in one array, and the energy the low-pass drops (cached:
@@ -289,7 +290,7 @@ class TiledAnalysis:
                 n = an.count(cutoff)
                 kept.append(an.reals(n))
                 dropped = an.reals(an.coefs.size)[kept[-1].size:]
-                lost += float(np.dot(dropped, dropped)) + an.outside_energy
+                lost += dot(dropped, dropped) + an.outside_energy
             cached = self._proxy_cache[cutoff] = (np.concatenate(kept), lost)
         return cached
 
@@ -399,4 +400,4 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
     return TileCode(job.k, occupancy.encode_mask(mask), an.encode(trial), resid, int(mask.sum()),
-                    float(np.dot(err, err)), float(np.abs(err).max()), weighted)
+                    dot(err, err), float(np.abs(err).max()), weighted)
