@@ -559,9 +559,8 @@ class UpdateResult:
     created: bool
 
 
-def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, pose_topic: str | None,
-           crs: dict[str, Any] | None) -> Iterable[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None,
-                                                         dict[str, Any]]]:
+def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, pose_topic: str | None
+           ) -> Iterable[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None, dict[str, Any]]]:
     """(points, pose, CRS) of every scan: a bag's scans through their poses, a point file whole, in the map frame."""
     from .io import format_of, read
 
@@ -630,7 +629,7 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         builder = MapBuilder.from_file(map_path)
         _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
     scans = points = 0
-    for pts, pose, crs in _scans(inputs, points_topic, pose_topic, builder.crs):
+    for pts, pose, crs in _scans(inputs, points_topic, pose_topic):
         if crs:
             if created and scans == 0:
                 builder.crs = dict(crs)
