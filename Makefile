@@ -44,6 +44,11 @@ bench-zarr: $(STAMP)
 bench-speed: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_speed $(ARGS)
 
+# A map growing scan by scan: per-scan latency of add + encode (16/64-beam, 0.1/0.5 m, maps of 1e5-1e7 cells) and bytes sent per minute of driving, deltas against the whole map and Draco-coded scans (~6 min; ARGS=--quick ~1 min).
+.PHONY: bench-slam
+bench-slam: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_slam $(ARGS)
+
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce.py

@@ -382,6 +382,61 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- growing maps: update and patch ---------------------------------------------------------------
+
+
+def cmd_update(args: argparse.Namespace) -> int:
+    from .mapbuilder import update_file
+
+    result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
+                         pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
+                         cutoff=args.cutoff, step=args.step, force=args.force)
+    delta = f"; delta {args.delta}: {result.delta_size:,} bytes" if result.delta_size is not None else ""
+    _say(args, f"{result.path}: {result.size:,} bytes, {result.tiles} tiles ({result.recoded} coded again) "
+               f"{'started' if result.created else 'updated'} with {result.scans} scan(s), "
+               f"{result.points:,} points{delta}")
+    return 0
+
+
+def cmd_patch(args: argparse.Namespace) -> int:
+    from .delta import patch_file
+
+    size = patch_file(args.map, args.delta, output=args.output, force=args.force)
+    _say(args, f"{args.output or args.map}: {size:,} bytes")
+    return 0
+
+
+def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
+    """``update`` and ``patch``: a map grown scan by scan, and the deltas a rover sends of it."""
+    p = sub.add_parser("update", parents=[common], help="add scans to a growing map, re-coding only the tiles they change",
+                       description="Add scans to a growing map (MAP and its state MAP.state), in place unless -o. "
+                                   "Only the tiles the scans change are coded again; the others keep their bytes. "
+                                   "A MAP that does not exist is started (give --resolution).")
+    p.add_argument("map", help="the growing map (.dftpc, with MAP.state beside it)")
+    p.add_argument("input", nargs="+", help="scans: ROS bags (placed by --pose-topic) or point files in the map frame")
+    p.add_argument("--output", "-o", help="write the new map (and its state) here instead of in place")
+    p.add_argument("--delta", metavar="FILE", help="also write the delta from the old map to the new one")
+    p.add_argument("--topic", "--points-topic", dest="topic",
+                   help="ROS bag: the sensor_msgs/PointCloud2 topic (default: the only one)")
+    p.add_argument("--pose-topic", metavar="TOPIC", default="/odom",
+                   help="ROS bag: the poses of the scans' frame (default /odom)")
+    p.add_argument("--resolution", "-r", type=_positive, help="cell size in metres (a new map; else must be the map's)")
+    p.add_argument("--tile-size", type=_positive_int, metavar="CELLS", help="tile side of a new map (default 256)")
+    p.add_argument("--cutoff", "-c", type=_cutoff, help="cutoff ratio of a new map (default 0.8)")
+    p.add_argument("--step", type=_positive, help="quantizer step of a new map in metres (default 0.01)")
+    p.add_argument("--force", "-f", action="store_true", help="replace write-protected outputs")
+    p.set_defaults(func=cmd_update)
+
+    p = sub.add_parser("patch", parents=[common], help="apply a delta of 'dftpcc update' to the map it was made from",
+                       description="Rebuild, byte for byte, the map a delta gives from the map it was made from; "
+                                   "another map, a delta applied twice or out of order is refused.")
+    p.add_argument("map", help="the map the delta was made from")
+    p.add_argument("delta", help="the delta file (dftpcc update --delta)")
+    p.add_argument("--output", "-o", help="write the new map here instead of in place")
+    p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output")
+    p.set_defaults(func=cmd_patch)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse, but a usage mistake is one line like every other error."""
 
@@ -737,6 +792,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
     p.add_argument("--out", "-o", required=True, help="folder for the PNG")
     p.set_defaults(func=cmd_compare)
+    _add_growing_parsers(sub, common)
     return parser
 
 

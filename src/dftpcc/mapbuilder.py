@@ -1,0 +1,669 @@
+"""A map that grows scan by scan: per-cell sums kept per tile, only the tiles a scan changed re-coded.
+
+The grid stage for a rover: :class:`MapBuilder` keeps, for every tile of a
+fixed lattice that has points, the sum of heights and the count of points of
+each cell, and codes a tiled (1.1) file with no base layer (``TIDX`` base
+reach 0) and a zero plane, so each tile's bytes depend on the cells of its
+own coded window only (:func:`dftpcc.tiles.code_tile`). After a scan, only
+the tiles whose window holds a changed cell are coded again; every other
+tile keeps its bytes, which is what makes a delta (:mod:`dftpcc.delta`) small.
+
+What is kept, and why (the state file, ``MAP.state`` beside ``MAP``, an ``.npz``):
+
+* per held tile, per cell: the **sum** of the heights above the map's ``z0``
+  as int64 micrometres (:data:`HEIGHT_QUANTUM_M`), the **count** of points,
+  and the **sum of squares** (float64, m²). Integer sums are exact, so a
+  cell's mean, hence every tile's bytes, does not depend on the order in
+  which scans were added: a map grown by updates equals the map of all its
+  points added at once. The sum of squares only feeds the stated gridding
+  error (``STAT``), where float64 rounding is far below the float32 it is
+  written as.
+* per tile, the figures of its last coding (cells, squared error, largest
+  error, point-weighted squared error), so the file's statistics are exact
+  without decoding the tiles that are not coded again (``TIDX`` keeps them
+  only as float32).
+* the settings (resolution, tile size, cutoff, step, lattice origin, CRS),
+  the number of points added, and the SHA-256 of the map the state belongs
+  to and of the map it was updated from: an update refuses a state of
+  another map, and repairs a map left one update behind its state (the
+  state is written first, then the map; an interruption between the two).
+
+Memory is 20 bytes per cell of the held tiles (4 for the count).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from . import coding
+from .container import Header, Source, TileIndex, pack_tiled, read_tile, unpack_source
+from .dem import Grid, TileGrid, as_points
+from .encoder import check_heights
+from .errors import CorruptFileError, DftpccWarning, InvalidInputError
+from .io.atomic import atomic_write, check_output
+from .params import MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
+from .tiles import TILE_OVERLAP, TileCode, TileJob, code_tile
+
+__all__ = ["MapBuilder", "UpdateResult", "update_file", "state_path", "is_growing", "same_crs",
+           "HEIGHT_QUANTUM_M", "Z0_QUANTUM_M", "DEFAULT_STEP_M", "DEFAULT_GROWING_TILE_SIZE", "STATE_SUFFIX",
+           "STATE_VERSION", "StateRecoveredWarning"]
+
+#: Heights are summed as whole multiples of this (metres): exact integer sums, whatever the order of the adds.
+HEIGHT_QUANTUM_M = 1e-6
+#: The map's projection height z0 is the first scan's mean height rounded to this (metres).
+Z0_QUANTUM_M = 1.0
+#: Quantizer step of a growing map unless given (metres): fixed, since rate control would
+#: choose another step as the map grows and so re-code every tile.
+DEFAULT_STEP_M = 0.01
+#: Tile side of a growing map unless given, cells: a tile is what one update re-codes at least.
+DEFAULT_GROWING_TILE_SIZE = 256
+#: The state file of ``MAP`` is ``MAP`` + this.
+STATE_SUFFIX = ".state"
+#: Layout of the state file; a state of another version is refused.
+STATE_VERSION = 1
+#: Points a cell may collect: counts are int32.
+MAX_CELL_POINTS = 2**31 - 1
+#: Figures kept per coded tile: cells, squared error (m²), largest error (m), point-weighted squared error (m²).
+_FIGURES = 4
+
+
+class StateRecoveredWarning(DftpccWarning):
+    """The map was older than its state (an update interrupted between the two writes); rebuilt from the state."""
+
+
+@dataclass
+class _Cells:
+    """One held tile's accumulators, T x T each."""
+
+    sum: np.ndarray  # int64, micrometres above z0
+    sumsq: np.ndarray  # float64, m²
+    count: np.ndarray  # int32, points
+
+    @classmethod
+    def empty(cls, size: int) -> "_Cells":
+        return cls(np.zeros((size, size), np.int64), np.zeros((size, size)), np.zeros((size, size), np.int32))
+
+
+def state_path(map_path: str | os.PathLike[str]) -> Path:
+    """The state file of a growing map: ``MAP.state`` beside it."""
+    return Path(f"{os.fspath(map_path)}{STATE_SUFFIX}")
+
+
+def is_growing(header: Header) -> bool:
+    """Whether a map's header is that of a growing map: tiled, no base layer, a zero plane."""
+    return header.tiles is not None and header.tiles.base_cycles == 0 and not any(header.plane)
+
+
+def same_crs(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
+    """Whether two CRS dicts (``{"wkt": ..., "las_vlrs": [...]}``) say the same; an empty one is no CRS."""
+    a, b = a or {}, b or {}
+    if not a or not b:
+        return not a and not b
+    if a.get("wkt") and b.get("wkt"):
+        if a["wkt"] == b["wkt"]:
+            return True
+        try:  # the same CRS written two ways
+            from rasterio.crs import CRS
+
+            return bool(CRS.from_wkt(a["wkt"]) == CRS.from_wkt(b["wkt"]))
+        except Exception:  # noqa: BLE001 - unparsable WKT: the texts differ, so do the CRSs
+            return False
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+class MapBuilder:
+    """A tiled map grown by adding scans, re-coding only the tiles they change.
+
+    The tile lattice is anchored at ``origin`` (default: the first scan's
+    mean x and y snapped down to a multiple of the tile's width, and its
+    mean height rounded to :data:`Z0_QUANTUM_M`); it grows by whole tiles in
+    any direction as scans reach new ground. The file's grid is the
+    bounding box of the held tiles plus one empty tile on every side, so no
+    held tile's coded window is ever cut by the map's edge: growing never
+    changes the window, hence the bytes, of a tile whose cells did not
+    change. Empty tiles cost 4 bytes of the tile index each, before zstd.
+
+    Parameters
+    ----------
+    resolution : float
+        Cell size, metres.
+    tile_size : int
+        Tile side, cells (at least 16).
+    cutoff : float
+        f_c in [0, 1), fixed for every tile and update.
+    step : float
+        Quantizer step, metres, fixed (no rate control: a target would choose
+        another step as the map grows, and every tile would be coded again).
+    crs : dict, optional
+        The map frame's CRS (``{"wkt": ..., "las_vlrs": [...]}``).
+    origin : (x, y, z), optional
+        Lattice origin in metres (x, y: the corner of lattice cell (0, 0);
+        z: the projection height the heights are summed above).
+    """
+
+    def __init__(self, resolution: float, *, tile_size: int = DEFAULT_GROWING_TILE_SIZE, cutoff: float = 0.8,
+                 step: float = DEFAULT_STEP_M, crs: dict[str, Any] | None = None,
+                 origin: Sequence[float] | None = None):
+        if not (isinstance(tile_size, (int, np.integer)) and not isinstance(tile_size, bool)
+                and max(TILE_SIZES[0], 2 * TILE_OVERLAP) <= tile_size <= TILE_SIZES[1]):
+            raise InvalidInputError(f"tile_size must be a whole number of cells from {TILE_SIZES[0]} to "
+                                    f"{TILE_SIZES[1]}, got {tile_size!r}")
+        if not (isinstance(step, (int, float)) and 0 < step <= MAX_COORDINATE_M):
+            raise InvalidInputError(f"step must be a positive number of metres, got {step!r}")
+        self.params: Params = make_params(resolution=resolution, cutoff=check_cutoff(cutoff),
+                                          step=coding.short_step(float(step)), tile_size=int(tile_size))
+        self.resolution = float(self.params.resolution)
+        self.tile_size = int(tile_size)
+        self.crs: dict[str, Any] = dict(crs or {})
+        self.origin: tuple[float, float, float] | None = None
+        if origin is not None:
+            self.origin = _check_origin(origin)
+        self.point_count = 0
+        self._tiles: dict[tuple[int, int], _Cells] = {}
+        self._codes: dict[tuple[int, int], TileCode] = {}
+        self._gridding: dict[tuple[int, int], float] = {}  # squared distance of points to their cell's mean, m²
+        self._dirty: set[tuple[int, int]] = set()
+        self._file_sha256: str | None = None  # of the map file this builder was read from or last saved as
+
+    # -- growing -------------------------------------------------------------------------------
+
+    @property
+    def span(self) -> float:
+        """Width of one tile, metres."""
+        return self.tile_size * self.resolution
+
+    @property
+    def tiles(self) -> list[tuple[int, int]]:
+        """The held tiles' lattice indices (row, column), sorted."""
+        return sorted(self._tiles)
+
+    def add(self, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None = None) -> "MapBuilder":
+        """Add a scan.
+
+        Parameters
+        ----------
+        points : array_like, shape (N, 3)
+            Metres: in the map frame, or in the sensor frame with ``pose``.
+        pose : (rotation (3, 3), translation (3,)), optional
+            The sensor's pose: a point becomes ``rotation @ p + translation``.
+
+        Returns
+        -------
+        MapBuilder
+            ``self``, so adds chain.
+        """
+        pts = as_points(points)
+        if pose is not None:
+            rotation, translation = (np.asarray(v, dtype=np.float64) for v in pose)
+            if rotation.shape != (3, 3) or translation.shape != (3,) or not (
+                    np.isfinite(rotation).all() and np.isfinite(translation).all()):
+                raise InvalidInputError("a pose is a finite (3, 3) rotation and a (3,) translation")
+            pts = pts @ rotation.T + translation
+        check_heights(float(pts[:, 2].min()), float(pts[:, 2].max()))
+        if float(np.abs(pts[:, :2]).max()) > MAX_COORDINATE_M:
+            raise InvalidInputError(f"points beyond ±{MAX_COORDINATE_M:g} m")
+        if self.origin is None:
+            mean = pts.mean(axis=0)
+            self.origin = (math.floor(mean[0] / self.span) * self.span, math.floor(mean[1] / self.span) * self.span,
+                           round(mean[2] / Z0_QUANTUM_M) * Z0_QUANTUM_M)
+        ox, oy, oz = self.origin
+        size = self.tile_size
+        col = np.floor((pts[:, 0] - ox) * (1.0 / self.resolution)).astype(np.int64)
+        row = np.floor((pts[:, 1] - oy) * (1.0 / self.resolution)).astype(np.int64)
+        micro = np.rint((pts[:, 2] - oz) * (1.0 / HEIGHT_QUANTUM_M))  # whole micrometres, exact in float64
+        rel = micro * HEIGHT_QUANTUM_M  # the heights summed, so squares and sums agree
+        ti, tj = row // size, col // size
+        local = (row - ti * size) * size + (col - tj * size)
+        keys = (ti - ti.min()) * (int(tj.max() - tj.min()) + 1) + (tj - tj.min())
+        order = np.argsort(keys, kind="stable")
+        bounds = np.flatnonzero(np.diff(keys[order])) + 1
+        for group in np.split(order, bounds):
+            tile = (int(ti[group[0]]), int(tj[group[0]]))
+            self._add_to(tile, local[group], micro[group], rel[group])
+        self.point_count += int(pts.shape[0])
+        return self
+
+    def _add_to(self, tile: tuple[int, int], local: np.ndarray, micro: np.ndarray, rel: np.ndarray) -> None:
+        size = self.tile_size
+        cells = self._tiles.get(tile)
+        if cells is None:
+            cells = self._tiles[tile] = _Cells.empty(size)
+        n = size * size
+        count = np.bincount(local, minlength=n).reshape(size, size)
+        if int(cells.count.max(initial=0)) + int(count.max()) > MAX_CELL_POINTS:
+            raise InvalidInputError(f"a cell would hold more than {MAX_CELL_POINTS:,} points")
+        # A float64 sum of whole numbers is exact below 2**53 micrometres (9,000 km) per scan and cell.
+        cells.sum += np.bincount(local, weights=micro, minlength=n).reshape(size, size).astype(np.int64)
+        cells.sumsq += np.bincount(local, weights=rel * rel, minlength=n).reshape(size, size)
+        cells.count += count.astype(np.int32)
+        self._mark(tile, count > 0)
+
+    def _mark(self, tile: tuple[int, int], changed: np.ndarray) -> None:
+        """Mark ``tile`` and every neighbour whose coded window holds a changed cell (within the overlap)."""
+        m = TILE_OVERLAP
+        rows, cols = changed.any(axis=1), changed.any(axis=0)
+        near = {-1: (slice(0, m)), 0: slice(None), 1: slice(-m, None)}
+        i, j = tile
+        for di in (-1, 0, 1):
+            if not rows[near[di]].any():
+                continue
+            for dj in (-1, 0, 1):
+                if cols[near[dj]].any() and changed[near[di], near[dj]].any():
+                    self._dirty.add((i + di, j + dj))
+
+    def changed_tiles(self) -> list[tuple[int, int]]:
+        """Held tiles whose coded window holds a cell changed since the last :meth:`encode` (lattice indices, sorted).
+
+        A cell within :data:`~dftpcc.tiles.TILE_OVERLAP` cells of a tile's
+        edge lies in the neighbour's window too, so it changes both.
+        """
+        return sorted(k for k in self._tiles if k in self._dirty or k not in self._codes)
+
+    # -- coding --------------------------------------------------------------------------------
+
+    def _heights(self, cells: _Cells) -> tuple[np.ndarray, np.ndarray]:
+        occupied = cells.count > 0
+        mean = np.divide(cells.sum, cells.count, out=np.zeros(cells.sum.shape), where=occupied)
+        return mean * HEIGHT_QUANTUM_M, occupied
+
+    def _job(self, tile: tuple[int, int]) -> TileJob:
+        """The tile's coded window: its cells and :data:`TILE_OVERLAP` of its neighbours' on each side."""
+        size, m = self.tile_size, TILE_OVERLAP
+        width = size + 2 * m
+        rest, mask = np.zeros((width, width)), np.zeros((width, width), bool)
+        # Per offset: the neighbour's cells taken, and where they go in the window.
+        take = {-1: (slice(size - m, size), slice(0, m)), 0: (slice(0, size), slice(m, m + size)),
+                1: (slice(0, m), slice(m + size, width))}
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                cells = self._tiles.get((tile[0] + di, tile[1] + dj))
+                if cells is None:
+                    continue
+                (sr, wr), (sc, wc) = take[di], take[dj]
+                part = _Cells(cells.sum[sr, sc], cells.sumsq[sr, sc], cells.count[sr, sc])
+                rest[wr, wc], mask[wr, wc] = self._heights(part)
+        own = self._tiles[tile]
+        return TileJob(0, rest, mask, (m, m + size, m, m + size), np.zeros((size, size)), own.count)
+
+    def _code(self, tile: tuple[int, int]) -> None:
+        self._codes[tile] = code_tile(self._job(tile), self.params)
+        cells = self._tiles[tile]
+        occupied = cells.count > 0
+        mean_sum = cells.sum[occupied] * HEIGHT_QUANTUM_M
+        spread = cells.sumsq[occupied] - mean_sum * mean_sum / cells.count[occupied]
+        self._gridding[tile] = float(np.maximum(spread, 0.0).sum())
+
+    def encode(self) -> bytes:
+        """The map as a tiled (1.1) ``.dftpc`` file, re-coding only :meth:`changed_tiles`.
+
+        Raises
+        ------
+        InvalidInputError
+            Nothing was added yet.
+        """
+        if not self._tiles:
+            raise InvalidInputError("the map is empty: add a scan first")
+        for tile in self.changed_tiles():
+            self._code(tile)
+        self._dirty.clear()
+        return pack_tiled(*self._layout())
+
+    def _layout(self) -> tuple[Header, bytes, list[tuple[int, bytes, bytes, bytes]]]:
+        size = self.tile_size
+        held = self.tiles
+        i0, j0 = min(i for i, _ in held) - 1, min(j for _, j in held) - 1  # one empty tile around
+        tile_rows = max(i for i, _ in held) - i0 + 2
+        tile_cols = max(j for _, j in held) - j0 + 2
+        tiling = TileGrid(tile_rows * size, tile_cols * size, size)
+        n = tiling.count
+        cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
+        parts = []
+        for tile in held:
+            c = self._codes[tile]
+            k = (tile[0] - i0) * tile_cols + (tile[1] - j0)
+            cells[k], rmse[k], max_error[k] = c.cells, c.rmse, c.max_error
+            parts.append((k, c.mask, c.coef, c.resid))
+        ox, oy, oz = self.origin  # type: ignore[misc]
+        grid = Grid(x0=ox + j0 * self.span, y0=oy + i0 * self.span, z0=oz, resolution=self.resolution,
+                    rows=tiling.rows, cols=tiling.cols)
+        codes = [self._codes[t] for t in held]
+        occupied = int(cells.sum())
+        floor = math.sqrt(sum(self._gridding[t] for t in held) / self.point_count)
+        stats: dict[str, Any] = {
+            "dem_rmse_m": math.sqrt(sum(c.squared_error for c in codes) / occupied),
+            "dem_max_error_m": max(c.max_error for c in codes),
+            "gridding_rmse_m": floor,
+            # Per cell the points scatter about their mean, so the errors add in quadrature.
+            "vertical_rmse_m": math.sqrt(floor * floor + sum(c.weighted_squared_error for c in codes)
+                                         / self.point_count),
+        }
+        index = TileIndex(tiling=tiling, overlap=TILE_OVERLAP, base_cycles=0, cells=cells, rmse=rmse,
+                          max_error=max_error)
+        header = Header(grid=grid, params=self.params, point_count=self.point_count, cell_count=occupied,
+                        plane=(0.0, 0.0, 0.0), crs=self.crs, stats=stats, coef_count=0, tiles=index)
+        base = coding.encode_coefficients(np.zeros(0, dtype=np.int64), radius=np.zeros(0), angle=np.zeros(0),
+                                          coder=self.params.coder)
+        parts.sort()
+        return header, base, parts
+
+    # -- files ---------------------------------------------------------------------------------
+
+    def save(self, path: str | os.PathLike[str], *, state: str | os.PathLike[str] | None = None,
+             data: bytes | None = None) -> bytes:
+        """Write the map and its state (``state``, default :func:`state_path`), each atomically.
+
+        The state goes first and names the map's SHA-256; the map follows. An
+        interruption between the two leaves a state ahead of its map, which
+        :meth:`from_file` recognises and repairs by coding the map again.
+
+        Returns
+        -------
+        bytes
+            The map written (``data`` when given: the bytes of :meth:`encode`).
+        """
+        data = self.encode() if data is None else data
+        digest = hashlib.sha256(data).hexdigest()
+        arrays = self._state(digest, self._file_sha256)
+        atomic_write(state_path(path) if state is None else state, lambda tmp: _write_npz(tmp, arrays))
+        atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
+        self._file_sha256 = digest
+        return data
+
+    def _state(self, digest: str, previous: str | None) -> dict[str, np.ndarray]:
+        held = self.tiles
+        size = self.tile_size
+        settings = dict(state_version=STATE_VERSION, resolution=self.resolution, tile_size=size,
+                        cutoff=self.params.cutoff, step=self.params.step, origin=list(self.origin or ()),
+                        crs=self.crs, point_count=self.point_count, map_sha256=digest, previous_sha256=previous)
+        figures = np.array([[c.cells, c.squared_error, c.max_error, c.weighted_squared_error]
+                            for c in (self._codes[t] for t in held)]).reshape(-1, _FIGURES)
+        return dict(settings=np.array(json.dumps(settings)),
+                    tiles=np.array(held, dtype=np.int64).reshape(-1, 2),
+                    sum=np.stack([self._tiles[t].sum for t in held]) if held else np.zeros((0, size, size), np.int64),
+                    sumsq=np.stack([self._tiles[t].sumsq for t in held]) if held else np.zeros((0, size, size)),
+                    count=np.stack([self._tiles[t].count for t in held]) if held else np.zeros((0, size, size),
+                                                                                              np.int32),
+                    figures=figures,
+                    gridding=np.array([self._gridding[t] for t in held]))
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike[str], state: str | os.PathLike[str] | None = None) -> "MapBuilder":
+        """Resume a growing map from its file and its state (default :func:`state_path`).
+
+        Untouched tiles keep the bytes they have in the file; the next
+        :meth:`encode` codes only the tiles later adds change.
+
+        Raises
+        ------
+        InvalidInputError
+            The map is no growing map (tiled with base reach 0, zero plane),
+            it has no state file, or the state belongs to another map or
+            disagrees with its settings.
+        CorruptFileError
+            A damaged map or state file.
+        """
+        path = Path(path)
+        state = state_path(path) if state is None else Path(state)
+        data = path.read_bytes()
+        source = Source(data)
+        header, _ = unpack_source(source, max_cells=None)
+        if not is_growing(header):
+            why = ("it is not tiled" if header.tiles is None else
+                   f"its base layer reaches {header.tiles.base_cycles} cycle(s) per tile" if header.tiles.base_cycles
+                   else "it has a detrending plane")
+            raise InvalidInputError(f"{path}: not a growing map ({why}); a map made by 'dftpcc compress' cannot be "
+                                    f"updated: start a growing map with 'dftpcc update NEW.dftpc SCANS "
+                                    f"--resolution R'")
+        if not state.is_file():
+            raise InvalidInputError(f"{path}: not a growing map: its state file {state} is missing (a growing map "
+                                    f"keeps its cells' sums there; without them it cannot be updated)")
+        arrays, settings = _read_state(state)
+        builder = cls(settings["resolution"], tile_size=settings["tile_size"], cutoff=settings["cutoff"],
+                      step=settings["step"], crs=settings["crs"], origin=settings["origin"])
+        builder.point_count = int(settings["point_count"])
+        tiles = [tuple(int(v) for v in t) for t in arrays["tiles"]]
+        for n, tile in enumerate(tiles):
+            builder._tiles[tile] = _Cells(arrays["sum"][n].astype(np.int64), arrays["sumsq"][n].astype(np.float64),
+                                          arrays["count"][n].astype(np.int32))
+            builder._gridding[tile] = float(arrays["gridding"][n])
+        digest = hashlib.sha256(data).hexdigest()
+        if digest != settings["map_sha256"]:
+            if digest != settings.get("previous_sha256"):
+                raise InvalidInputError(f"{path}: its state file {state} belongs to another map (it names the map "
+                                        f"{str(settings['map_sha256'])[:16]}..., this one is {digest[:16]}...); give "
+                                        f"the state written with this map")
+            return builder._recovered(path, state, settings["map_sha256"])
+        builder._file_sha256 = digest
+        builder._check_header(path, header, tiles)
+        i0, j0 = min(i for i, _ in tiles) - 1, min(j for _, j in tiles) - 1
+        tile_cols = header.tiles.tiling.tile_cols  # type: ignore[union-attr]
+        for n, tile in enumerate(tiles):
+            k = (tile[0] - i0) * tile_cols + (tile[1] - j0)
+            blobs = read_tile(source, header, k)
+            cells, squared, largest, weighted = arrays["figures"][n]
+            builder._codes[tile] = TileCode(k, bytes(blobs[b"MASK"]), bytes(blobs[b"COEF"]),
+                                            bytes(blobs.get(b"RESD", b"")), int(cells), float(squared),
+                                            float(largest), float(weighted))
+        return builder
+
+    def _recovered(self, path: Path, state: Path, expected: str) -> "MapBuilder":
+        """A state one update ahead of its map (the map was not written after it): code the map again from it."""
+        data = self.encode()
+        if hashlib.sha256(data).hexdigest() != expected:
+            raise CorruptFileError(f"{state}: the map state does not give the map it names (damaged state)")
+        self._file_sha256 = expected
+        warnings.warn(f"{path} is older than its state {state} (an update was interrupted before the map was "
+                      f"written); the map was coded again from the state", StateRecoveredWarning, stacklevel=3)
+        return self
+
+    def _check_header(self, path: Path, header: Header, tiles: list[tuple[int, int]]) -> None:
+        """The file agrees with the state: settings, extent and cells."""
+        g, p, index = header.grid, header.params, header.tiles
+        assert index is not None
+        i0, j0 = min(i for i, _ in tiles) - 1, min(j for _, j in tiles) - 1
+        ox, oy, oz = self.origin  # type: ignore[misc]
+        agree = (math.isclose(g.resolution, self.resolution, rel_tol=1e-12) and index.tiling.size == self.tile_size
+                 and p.cutoff == self.params.cutoff and p.step == self.params.step
+                 and math.isclose(g.x0, ox + j0 * self.span, abs_tol=1e-6) and
+                 math.isclose(g.y0, oy + i0 * self.span, abs_tol=1e-6) and g.z0 == oz
+                 and g.angle == 0.0 and header.point_count == self.point_count)
+        if not agree:
+            raise InvalidInputError(f"{path}: the map disagrees with its state file (settings or extent); give the "
+                                    f"state written with this map")
+
+
+def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
+    values = tuple(float(v) for v in origin)
+    if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in values):
+        raise InvalidInputError(f"origin must be three finite coordinates (x, y, z) in metres, got {origin!r}")
+    return values  # type: ignore[return-value]
+
+
+def _write_npz(tmp: Path, arrays: dict[str, np.ndarray]) -> None:
+    with open(tmp, "wb") as fh:  # a file object: np.savez would add .npz to a name
+        np.savez(fh, **arrays)
+
+
+#: The arrays a state file holds, with their dtype kinds.
+_STATE_ARRAYS = {"tiles": "i", "sum": "i", "sumsq": "f", "count": "i", "figures": "f", "gridding": "f"}
+
+
+def _read_state(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The arrays and settings of a state file, checked for shape and kind."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {name: npz[name] for name in ("settings", *_STATE_ARRAYS)}
+        settings = json.loads(str(arrays.pop("settings")))
+    except (OSError, ValueError, KeyError, EOFError) as exc:
+        raise CorruptFileError(f"{path}: not a readable map state ({' '.join(str(exc).split())})") from None
+    if not isinstance(settings, dict) or settings.get("state_version") != STATE_VERSION:
+        raise CorruptFileError(f"{path}: a map state of another version ({settings.get('state_version')!r}; "
+                               f"this dftpcc reads version {STATE_VERSION})" if isinstance(settings, dict)
+                               else f"{path}: not a map state")
+    size = settings.get("tile_size")
+    n = arrays["tiles"].shape[0] if arrays["tiles"].ndim == 2 else -1
+    shapes = {"tiles": (n, 2), "sum": (n, size, size), "sumsq": (n, size, size), "count": (n, size, size),
+              "figures": (n, _FIGURES), "gridding": (n,)}
+    for name, kind in _STATE_ARRAYS.items():
+        if arrays[name].shape != shapes[name] or arrays[name].dtype.kind != kind:
+            raise CorruptFileError(f"{path}: map state array {name} has shape {arrays[name].shape}, expected "
+                                   f"{shapes[name]}")
+    if n < 1 or len({tuple(t) for t in arrays["tiles"].tolist()}) != n or (arrays["count"] < 0).any():
+        raise CorruptFileError(f"{path}: map state holds no tile, a tile twice or negative counts")
+    return arrays, settings
+
+
+# -- the update of a map file: what `dftpcc update` runs ------------------------------------------------
+
+
+@dataclass
+class UpdateResult:
+    """What :func:`update_file` did.
+
+    Attributes
+    ----------
+    path : Path
+        The map written.
+    size : int
+        Its bytes.
+    scans : int
+        Scans (or point files) added.
+    points : int
+        Points added.
+    tiles : int
+        Tiles the map holds.
+    recoded : int
+        Tiles coded again.
+    delta_size : int or None
+        Bytes of the delta written, if one was asked for.
+    created : bool
+        Whether the map was started by this update.
+    """
+
+    path: Path
+    size: int
+    scans: int
+    points: int
+    tiles: int
+    recoded: int
+    delta_size: int | None
+    created: bool
+
+
+def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, pose_topic: str | None
+           ) -> Iterable[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None, dict[str, Any]]]:
+    """(points, pose, CRS) of every scan: a bag's scans through their poses, a point file whole, in the map frame."""
+    from .io import format_of, read
+
+    for path in inputs:
+        if format_of(path) == "rosbag":
+            from .io.rosbag import posed_scans
+
+            for scan in posed_scans(path, points_topic, pose_topic or "/odom"):
+                yield scan.points, (scan.rotation, scan.translation), {}
+        else:
+            cloud = read(path)
+            yield cloud.points, None, cloud.crs or {}
+
+
+def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.PathLike[str]], *,
+                output: str | os.PathLike[str] | None = None, delta: str | os.PathLike[str] | None = None,
+                points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
+                tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
+                force: bool = False) -> UpdateResult:
+    """Add scans to a growing map and write it with its state (``dftpcc update``).
+
+    Without ``output`` the map is updated in place. The map and its state
+    are written only once every scan was read and added: a failing input
+    (a truncated bag) leaves everything as it was. A map that does not
+    exist yet is started, with ``resolution`` (required) and the other
+    settings.
+
+    Parameters
+    ----------
+    map_path : path
+        The growing map (and ``MAP.state`` beside it).
+    inputs : sequence of path
+        ROS bags (scans placed by the poses of ``pose_topic``, default
+        ``/odom``) or point files (LAS, LAZ, PLY, ...) in the map frame.
+    output : path, optional
+        Write the new map (and its state) here instead.
+    delta : path, optional
+        Also write the delta from the old map to the new one (:mod:`dftpcc.delta`).
+    resolution, tile_size, cutoff, step : optional
+        Settings of a new map; for an existing one they must be its own.
+
+    Raises
+    ------
+    InvalidInputError
+        Settings or a CRS other than the map's, a map that is no growing map
+        or has no state, an unreadable input; nothing is written.
+    """
+    from .delta import make_delta
+
+    map_path = Path(map_path)
+    out = Path(output) if output is not None else map_path
+    for target in [out, state_path(out)] + ([Path(delta)] if delta is not None else []):
+        check_output(target, force=force)
+    created = not map_path.exists()
+    if created:
+        if resolution is None:
+            raise InvalidInputError(f"{map_path} does not exist: give --resolution (and --step, --cutoff, "
+                                    f"--tile-size if not the defaults) to start a growing map")
+        if delta is not None:
+            raise InvalidInputError("a delta needs a map to start from: the first update of a map writes none")
+        base = b""
+        builder = MapBuilder(resolution, tile_size=DEFAULT_GROWING_TILE_SIZE if tile_size is None else tile_size,
+                             cutoff=0.8 if cutoff is None else cutoff, step=DEFAULT_STEP_M if step is None else step)
+    else:
+        base = map_path.read_bytes()
+        builder = MapBuilder.from_file(map_path)
+        _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
+    scans = points = 0
+    for pts, pose, crs in _scans(inputs, points_topic, pose_topic):
+        if crs:
+            if created and scans == 0:
+                builder.crs = dict(crs)
+            elif not same_crs(crs, builder.crs):
+                raise InvalidInputError(f"the scans' CRS is not the map's ({_crs_name(crs)} against "
+                                        f"{_crs_name(builder.crs)}): reproject them to the map's CRS first")
+        builder.add(pts, pose)
+        scans += 1
+        points += int(pts.shape[0])
+    if scans == 0:
+        raise InvalidInputError("no scan to add")
+    recoded = len(builder.changed_tiles())
+    data = builder.encode()
+    patch = make_delta(base, data) if delta is not None else None
+    builder.save(out, data=data)
+    if patch is not None:
+        atomic_write(delta, lambda tmp: Path(tmp).write_bytes(patch))  # type: ignore[arg-type]
+    return UpdateResult(out, len(data), scans, points, len(builder.tiles), recoded,
+                        None if patch is None else len(patch), created)
+
+
+def _crs_name(crs: dict[str, Any]) -> str:
+    if not crs:
+        return "none"
+    wkt = crs.get("wkt") or ""
+    return (wkt.split('"')[1] if wkt.count('"') >= 2 else "a LAS CRS record") if wkt or crs.get("las_vlrs") else "none"
+
+
+def _check_settings(path: Path, builder: MapBuilder, resolution: float | None, tile_size: int | None,
+                    cutoff: float | None, step: float | None) -> None:
+    """Refuse an update asking for other settings than the map's: a growing map keeps its own."""
+    asked = {"resolution": (resolution, builder.resolution), "tile size": (tile_size, builder.tile_size),
+             "cutoff": (cutoff, builder.params.cutoff), "step": (step, builder.params.step)}
+    for name, (want, have) in asked.items():
+        if want is not None and not math.isclose(float(want), float(have), rel_tol=1e-9):
+            raise InvalidInputError(f"{path}: the map's {name} is {have:g}, not {want:g}: a growing map keeps the "
+                                    f"settings it was started with (start another map for another {name})")
