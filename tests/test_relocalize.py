@@ -195,3 +195,23 @@ def test_dense_rebuild():
     for bad in (0, 1.5, True, -2):
         with pytest.raises(InvalidInputError, match="densify"):
             dem_to_dense_points(dem, bad)
+
+
+def test_decompress_densify_writes_k_by_k_samples_per_cell(tmp_path):
+    """The option docs/relocalization.md measures: a denser rebuilt cloud for registration."""
+    import subprocess
+    import sys
+
+    import dftpcc
+    from dftpcc.rebuild import dem_to_dense_points
+
+    src = tmp_path / "g.dftpc"
+    dftpcc.compress_file(data_file("dems/mars_gale_1m.tif"), src, cutoff=0.8)
+    one = dftpcc.decompress_file(src, tmp_path / "one.npy")
+    three = dftpcc.decompress_file(src, tmp_path / "three.npy", densify=3)
+    assert three.shape[0] == 9 * one.shape[0]
+    np.testing.assert_array_equal(three, dem_to_dense_points(dftpcc.open(src).read_dem(), 3))
+    bad = subprocess.run([sys.executable, "-m", "dftpcc", "decompress", str(src), str(tmp_path / "x.tif"),
+                          "--densify", "3"], capture_output=True, text=True)
+    assert bad.returncode == 3 and "densify applies to point outputs" in bad.stderr
+    assert not (tmp_path / "x.tif").exists()

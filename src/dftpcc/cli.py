@@ -234,7 +234,7 @@ def cmd_decompress(args: argparse.Namespace) -> int:
     points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
                              format=args.format, max_bytes=args.max_bytes,
                              cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox,
-                             workers=args.workers, scheduler=args.scheduler)
+                             workers=args.workers, scheduler=args.scheduler, densify=args.densify)
     if str(args.output).lower().endswith((".tif", ".tiff")) or args.format in ("tif", "tiff"):
         from .mapfile import open as open_map
 
@@ -705,6 +705,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output file")
     p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
     p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
+    p.add_argument("--densify", type=_positive_int, default=1, metavar="K",
+                   help="K x K samples of the rebuilt surface per cell instead of one point: a denser map "
+                        "for scan registration (docs/relocalization.md)")
     p.add_argument("--cog", action="store_true",
                    help="write the DEM as a Cloud Optimized GeoTIFF (.tif), band by band")
     p.add_argument("--bbox", type=_bbox, metavar="XMIN,YMIN,XMAX,YMAX",

@@ -29,7 +29,7 @@ from .limits import MAX_CELLS, holds_in_memory
 from .mapfile import CompressedMap
 from .mapfile import open as open_map
 from .params import Params, tile_size_for
-from .rebuild import dem_to_points
+from .rebuild import dem_to_dense_points, dem_to_points
 
 __all__ = ["compress_file", "decompress_file", "read_dem", "check_compressed_output", "dem_from_geotiff", "reads_in_chunks", "stored_point_count"]
 
@@ -314,12 +314,15 @@ def decompress_file(src: Source, dst: Source, *,
                     format: str | None = None, max_bytes: int | None = None,  # noqa: A002
                     cutoff: float | None = None, max_cells: int | None = None, force: bool = False,
                     bbox: Sequence[float] | None = None, workers: int | None = None,
-                    scheduler: str | None = None) -> np.ndarray:
+                    scheduler: str | None = None, densify: int = 1) -> np.ndarray:
     """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
 
     ``bbox`` (xmin, ymin, xmax, ymax, the map's units and CRS) writes only that region; of a
     tiled map only the tiles it touches are read and decoded. ``workers`` or ``scheduler``
-    decode a tiled map's tiles on a dask cluster, as for :func:`compress_file`.
+    decode a tiled map's tiles on a dask cluster, as for :func:`compress_file`. ``densify`` K > 1
+    writes K x K samples of the rebuilt surface per cell instead of one point
+    (:func:`~dftpcc.rebuild.dem_to_dense_points`: what a scan registers against best,
+    docs/relocalization.md); a GeoTIFF output keeps its cells.
 
     The output format comes from ``dst``'s extension; ``.tif`` writes the
     rebuilt DEM as a GeoTIFF, any other the point cloud. The CRS read from
@@ -336,6 +339,10 @@ def decompress_file(src: Source, dst: Source, *,
     if not _is_stream(dst):
         check_output(dst, force=force)
     check_executor(workers, scheduler)
+    if isinstance(densify, bool) or not isinstance(densify, int) or densify < 1:
+        raise InvalidInputError(f"densify must be a whole number >= 1, got {densify!r}")
+    if densify > 1 and io.REGISTRY[fmt].dem_writer:
+        raise InvalidInputError(f"{dst}: a {fmt} output holds the DEM's cells; densify applies to point outputs")
     if not _is_stream(src) and Path(src).exists() and not Path(src).is_file():
         with open(src, "rb") as fh:  # a pipe such as /dev/stdin
             src = _Buffer(fh.read(), str(src))
@@ -343,7 +350,7 @@ def decompress_file(src: Source, dst: Source, *,
         with executor(workers, scheduler) if cmap.tiled else _nothing() as map_tiles:
             dem = cmap.read_dem(cutoff=cutoff, bbox=bbox, map_tiles=map_tiles)
         crs = cmap.crs
-    points = dem_to_points(dem)
+    points = dem_to_points(dem) if densify == 1 else dem_to_dense_points(dem, densify)
     with tempfile.TemporaryDirectory(prefix="dftpcc-") if _is_stream(dst) else _nothing() as tmp:
         target = Path(tmp) / f"out.{fmt}" if _is_stream(dst) else dst
         if io.REGISTRY[fmt].dem_writer:
