@@ -16,7 +16,6 @@ Most users need only :func:`compress`, :func:`decompress`, :func:`compress_file`
 
 from __future__ import annotations
 
-from .decoder import decompress
 from .encoder import compress
 from .errors import (
     CoarseMapWarning,
@@ -33,7 +32,7 @@ from .errors import (
 )
 from .files import compress_file, decompress_file
 from .io import PointCloud, read, write
-from .mapfile import CompressedMap, open
+from .mapfile import CompressedMap, decompress, open
 from .params import PROFILES, Params, make_params
 
 __version__ = "0.1.0"

@@ -13,15 +13,14 @@ from typing import Any, Callable
 import numpy as np
 
 from . import coding, occupancy, spectrum, tiles
-from .container import Header, check_max_bytes, unpack
+from .container import Header
 from .dem import DEM
 from .errors import CorruptFileError, InvalidInputError
 from .fill import plane_values
 from .params import check_cutoff
-from .rebuild import dem_to_points
 from .residual import decode_residual, residual_step
 
-__all__ = ["decode_dem", "decode_tiled", "decompress"]
+__all__ = ["decode_dem", "decode_tiled"]
 
 
 def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None = None,
@@ -200,37 +199,3 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -
     if not np.isfinite(heights[mask]).all():
         raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
     return heights, mask
-
-
-def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | None = None) -> np.ndarray:
-    """Decode ``.dftpc`` bytes into a point cloud.
-
-    Parameters
-    ----------
-    data : bytes
-    max_bytes : int, optional
-        Use only the first ``max_bytes`` bytes (progressive decoding: a
-        prefix holds the low frequencies).
-    cutoff : float, optional
-        Decode-time cutoff, at least the file's.
-
-    Returns
-    -------
-    ndarray, shape (cells, 3), float64
-        One point per occupied cell, metres, original frame.
-    """
-    check_max_bytes(max_bytes)
-    if max_bytes is not None:
-        data = data[:max_bytes]
-    header, blobs = unpack(data, allow_truncated_coef=max_bytes is not None)
-    if header.tiles is not None:
-        if cutoff is not None:
-            raise InvalidInputError("a tiled map (format 1.1) decodes at its own cutoff only")
-        # Through open(), which holds the decoding budget: a small crafted tiled file can name a
-        # grid of 2**36 cells, and decoding it whole would allocate it. (Imported here: mapfile
-        # imports this module.)
-        from .mapfile import open as open_map
-
-        with open_map(data) as cmap:
-            return cmap.read_points()
-    return dem_to_points(decode_dem(header, blobs, cutoff=cutoff, allow_partial=max_bytes is not None))

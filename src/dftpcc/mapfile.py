@@ -27,7 +27,7 @@ from .spectrum import radius_limit
 from .tiles import BASE_CYCLES_PER_TILE
 from .units import units_of
 
-__all__ = ["CompressedMap", "open", "is_dftpc", "check_bbox"]
+__all__ = ["CompressedMap", "open", "decompress", "is_dftpc", "check_bbox"]
 
 
 class CompressedMap:
@@ -328,3 +328,27 @@ def is_dftpc(path: str | os.PathLike[str]) -> bool:
         raise InvalidInputError(f"{path}: no such file")
     with path.open("rb") as fh:
         return fh.read(len(MAGIC)) == MAGIC
+
+
+def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | None = None) -> np.ndarray:
+    """Decode ``.dftpc`` bytes into a point cloud (:func:`open` of the bytes, then its points).
+
+    Parameters
+    ----------
+    data : bytes
+    max_bytes : int, optional
+        Use only the first ``max_bytes`` bytes (progressive decoding: a
+        prefix holds the low frequencies; untiled maps only).
+    cutoff : float, optional
+        Decode-time cutoff, at least the file's (untiled maps only).
+
+    Returns
+    -------
+    ndarray, shape (cells, 3), float64
+        One point per occupied cell, metres, original frame.
+    """
+    check_max_bytes(max_bytes)
+    # The bytes' own size sets the decoding budget, as open() does for any file: a small crafted
+    # file cannot make this allocate a grid of 2**36 cells.
+    with open(bytes(data), max_bytes=max_bytes) as cmap:
+        return cmap.read_points(cutoff=cutoff)

@@ -8,7 +8,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..decoder import decompress
+from ..mapfile import decompress
 from ..encoder import compress
 from ..mapfile import open as open_map
 from .terrain import regolith_plain
