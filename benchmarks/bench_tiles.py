@@ -43,7 +43,7 @@ from dftpcc.params import DEFAULT_CUTOFF
 from benchmarks import max_error
 from benchmarks.bench_anchors import FLOOR_MULTIPLES, RELIEF_FRACTIONS
 from benchmarks.common import (FIGURES, GROUND, Case, Loaded, finish_run, load, load_average, library_label,
-                               markdown_table, median_time, pick_cases, rmse, run_arguments, shared_grid,
+                               markdown_table, median_time, rmse, run_arguments, shared_grid,
                                verdict, warnings_as_notes)
 
 __all__ = ["COST_CASES", "TILE_SIZES", "SEAM_BAND", "MAX_SEAM_RATIO", "main"]
@@ -161,6 +161,8 @@ class MapRun:
     levels: list[Target]
     bound: Target
     coded: dict[tuple[str, float, int], Coded] = field(default_factory=dict)
+    #: Why a target could not be reached at a tile side (a size target under what the tiles' masks need).
+    unreached: dict[tuple[str, float, int], str] = field(default_factory=dict)
     #: Tile sides the seams were asked at (a side that does not tile the map lists as 1 tile).
     seam_tiles: tuple[int, ...] = ()
     notes: list[str] = field(default_factory=list)
@@ -188,13 +190,13 @@ def prepare(case: Case, data: Path) -> MapRun:
     relief = float(np.std(loaded.points[:, 2]))
     if case.is_dem:
         unit = DEM_UNIT_FRACTION * relief
-        levels = [Target("target_rmse", f * relief, f"RMSE {100 * f:g}% relief ({1e3 * f * relief:.1f} mm)")
+        levels = [Target("target_rmse", f * relief, f"RMSE {100 * f:g}% relief ({fmt_m(f * relief)})")
                   for f in RELIEF_FRACTIONS]
     else:
         unit = floor
         # The DEM RMSE that, with the floor in quadrature, makes the points' error k x the floor.
         levels = [Target("target_rmse", floor * math.sqrt(k * k - 1),
-                         f"RMSE {k:g}x floor (DEM {1e3 * floor * math.sqrt(k * k - 1):.1f} mm)")
+                         f"RMSE {k:g}x floor (DEM {fmt_m(floor * math.sqrt(k * k - 1))})")
                   for k in FLOOR_MULTIPLES]
     bounds = max_error.MAX_ERRORS.get(case.name)
     if bounds:
@@ -202,7 +204,7 @@ def prepare(case: Case, data: Path) -> MapRun:
         bound = Target("target_max_error", e, f"max error {max_error.fmt_length(e)}")
     else:
         e = MAX_ERROR_UNITS * unit
-        bound = Target("target_max_error", e, f"max error {MAX_ERROR_UNITS:g} units ({1e3 * e:.1f} mm)")
+        bound = Target("target_max_error", e, f"max error {MAX_ERROR_UNITS:g} units ({fmt_m(e)})")
     # The map's own border (the grid's edge and its empty cells) costs errors of its own: keep
     # the cells more than SEAM_BAND cells from it, on both sides of the ratio.
     size = 2 * SEAM_BAND + 1
@@ -233,13 +235,23 @@ def seam_ratio(run: MapRun, err: np.ndarray, tile: int) -> tuple[float | None, i
     return (rmse(err[seam]) / other if other > 0 else math.nan), int(seam.sum())
 
 
-def code(run: MapRun, target: Target, tile: int, *, keep: bool = False) -> Coded:
-    """Compress ``run``'s map at ``target`` with tile side ``tile`` (0: whole), decode, measure."""
+def code(run: MapRun, target: Target, tile: int, *, keep: bool = False) -> Coded | None:
+    """Compress ``run``'s map at ``target`` with tile side ``tile`` (0: whole), decode, measure.
+
+    None when rate control cannot reach the target (the reason is kept in ``run.unreached``).
+    """
     loaded = run.loaded
     with warnings_as_notes(run.notes):
         t0 = time.perf_counter()
-        blob = dftpcc.compress(loaded.points, resolution=loaded.resolution, tile_size=tile,
-                               **{target.name: target.value})
+        try:
+            blob = dftpcc.compress(loaded.points, resolution=loaded.resolution, tile_size=tile,
+                                   **{target.name: target.value})
+        except dftpcc.InvalidInputError as exc:
+            if target.name != "target_bpp":
+                raise
+            # A size target the tiles' masks and index alone exceed is a finding, not a failure.
+            run.unreached[(target.name, target.value, tile)] = str(exc)
+            return None
         seconds = time.perf_counter() - t0
         with dftpcc.open(blob) as cmap:
             dem = cmap.read_dem()
@@ -250,9 +262,14 @@ def code(run: MapRun, target: Target, tile: int, *, keep: bool = False) -> Coded
     ratio, cells = seam_ratio(run, err, tile) if tiled else (None, 0)
     coded = Coded(target, tile, tiled, len(blob), seconds, rmse(err[run.mask]),
                   float(np.abs(err[run.mask]).max()), ratio, cells,
-                  f"f_c {p.cutoff:g}, step {1e3 * p.step:.3g} mm", p.cutoff, p.step, blob if keep else b"")
+                  f"f_c {p.cutoff:g}, step {fmt_m(p.step)}", p.cutoff, p.step, blob if keep else b"")
     run.coded[(target.name, target.value, tile)] = coded
     return coded
+
+
+def fmt_m(metres: float) -> str:
+    """A height error: in mm below a metre, else in m."""
+    return f"{1e3 * metres:.4g} mm" if metres < 1 else f"{metres:.4g} m"
 
 
 def tiled_at(run: MapRun, tile: int) -> bool:
@@ -295,12 +312,12 @@ def cost_tables(runs: list[MapRun], tiles: tuple[int, ...], levels_of: dict[str,
                 c = whole if one else tiled
                 if c is not None:
                     got = c.rmse if target.name == "target_rmse" else c.max_error
-                    cells += [f"{1e3 * c.rmse:.4g}", f"{1e3 * c.max_error:.4g}",
-                              f"{1e3 * got:.4g} ≤ {1e3 * target.value:.4g} {verdict(c.held)}", c.params]
+                    cells += [fmt_m(c.rmse), fmt_m(c.max_error),
+                              f"{fmt_m(got)} ≤ {fmt_m(target.value)} {verdict(c.held)}", c.params]
                 rows.append(cells)
         out.append(f"#### T = {tile}\n\n" + markdown_table(
-            ["map", "tiles", "target", "untiled bytes", "tiled bytes", "tiled / untiled", "RMSE mm",
-             "max error mm", "target held (mm)", "tiled file's setting"], rows))
+            ["map", "tiles", "target", "untiled bytes", "tiled bytes", "tiled / untiled", "RMSE",
+             "max error", "target held", "tiled file's setting"], rows))
     return "\n\n".join(out)
 
 
@@ -370,9 +387,16 @@ def seam_table(runs: list[MapRun], targets_of: dict[str, list[Target]]) -> tuple
     for run in runs:
         n = run.loaded.points.shape[0]
         for target in targets_of[run.name]:
-            tiles = sorted({t for (name, value, t) in run.coded if (name, value) == (target.name, target.value) and t})
+            tiles = sorted({t for (name, value, t) in list(run.coded) + list(run.unreached)
+                            if (name, value) == (target.name, target.value) and t})
             for tile in tiles:
                 c = run.get(target, tile)
+                if c is None:
+                    tg = TileGrid(*run.shape, tile)
+                    rows.append([run.name, f"{run.shape[0]} x {run.shape[1]}", tile, f"{tg.tile_rows} x {tg.tile_cols}",
+                                 target.label, "", "", "", "—",
+                                 "unreachable: " + run.unreached[(target.name, target.value, tile)]])
+                    continue
                 if not c.tiled:
                     continue
                 whole = run.get(run.levels[MIDDLE_LEVEL] if target.name == "target_bpp" else target, 0)
@@ -387,7 +411,7 @@ def seam_table(runs: list[MapRun], targets_of: dict[str, list[Target]]) -> tuple
                 text = "—" if ratio is None else f"{ratio:.3f} {verdict(ratio <= MAX_SEAM_RATIO)}"
                 tg = TileGrid(*run.shape, tile)
                 rows.append([run.name, f"{run.shape[0]} x {run.shape[1]}", tile, f"{tg.tile_rows} x {tg.tile_cols}",
-                             target.label, f"{1e3 * c.rmse:.4g}", f"{1e3 * c.max_error:.4g}", f"{c.seam_cells:,}",
+                             target.label, fmt_m(c.rmse), fmt_m(c.max_error), f"{c.seam_cells:,}",
                              text, extra])
                 if ratio is not None and (worst is None or ratio > worst[0]):
                     worst = (ratio, f"{run.name}, T = {tile}, {target.label}")
@@ -400,7 +424,7 @@ def seam_table(runs: list[MapRun], targets_of: dict[str, list[Target]]) -> tuple
     else:
         summary = (f"Worst seam ratio: **{worst[0]:.3f}** ({worst[1]}); target ≤ {MAX_SEAM_RATIO:g} "
                    f"{verdict(worst[0] <= MAX_SEAM_RATIO)} over {sum(r[8] != '—' for r in rows)} tiled files.")
-    table = markdown_table(["map", "grid", "T", "tiles", "target", "RMSE mm", "max error mm", "seam cells",
+    table = markdown_table(["map", "grid", "T", "tiles", "target", "RMSE", "max error", "seam cells",
                             f"seam RMSE / other (≤ {MAX_SEAM_RATIO:g})", "vs untiled"], rows)
     return table, summary
 
@@ -620,9 +644,10 @@ def main(argv: list[str] | None = None) -> int:
         maps = [c for c in maps if c.name in cost_names] + \
             [c for c in maps if c.name not in cost_names][::QUICK_EVERY]
     if args.files:
-        cost_cases = pick_cases(cost_cases, args.files) if any(
-            c.name.startswith(tuple(args.files)) for c in cost_cases) else []
-        maps = [c for c in maps if c.name.startswith(tuple(args.files)) or Path(c.name).stem in args.files]
+        # Unlike pick_cases, a name may be in one list only (a seam map is no rate-cost map).
+        wanted = tuple(args.files)
+        cost_cases = [c for c in cost_cases if c.name.startswith(wanted)]
+        maps = [c for c in maps if c.name.startswith(wanted)]
     cost_names = [c.name for c in cost_cases]
     parts = [intro(tiles, quick)]
     print(parts[0], "\n", flush=True)
@@ -739,7 +764,7 @@ def intro(tiles: tuple[int, ...], quick: bool) -> str:
 
 def cost_preamble(runs: list[MapRun]) -> str:
     lines = [f"{r.name}: grid {r.shape[0]} x {r.shape[1]}, {int(r.mask.sum()):,} occupied cells, "
-             f"{r.loaded.points.shape[0]:,} points, floor {1e3 * r.floor:.1f} mm" for r in runs]
+             f"{r.loaded.points.shape[0]:,} points, floor {fmt_m(r.floor)}" for r in runs]
     return ("Bytes of the tiled file over the untiled file at the same target, per tile side; "
             "'target held': the error this run measures over the whole map against the target "
             "(RMSE for an RMSE target, maximum error for a bound). The first table sums up.\n\n"
