@@ -138,6 +138,8 @@ class Coded:
     cutoff: float = 0.0
     step: float = 0.0
     blob: bytes = b""
+    #: The error map (metres, 0 on empty cells) of an untiled file: the control of the seam ratio.
+    err: np.ndarray | None = None
 
     @property
     def held(self) -> bool:
@@ -262,7 +264,7 @@ def code(run: MapRun, target: Target, tile: int, *, keep: bool = False) -> Coded
     ratio, cells = seam_ratio(run, err, tile) if tiled else (None, 0)
     coded = Coded(target, tile, tiled, len(blob), seconds, rmse(err[run.mask]),
                   float(np.abs(err[run.mask]).max()), ratio, cells,
-                  f"f_c {p.cutoff:g}, step {fmt_m(p.step)}", p.cutoff, p.step, blob if keep else b"")
+                  f"f_c {p.cutoff:g}, step {fmt_m(p.step)}", p.cutoff, p.step, blob if keep else b"", None if tiled else err)
     run.coded[(target.name, target.value, tile)] = coded
     return coded
 
@@ -394,7 +396,7 @@ def seam_table(runs: list[MapRun], targets_of: dict[str, list[Target]]) -> tuple
                 if c is None:
                     tg = TileGrid(*run.shape, tile)
                     rows.append([run.name, f"{run.shape[0]} x {run.shape[1]}", tile, f"{tg.tile_rows} x {tg.tile_cols}",
-                                 target.label, "", "", "", "—",
+                                 target.label, "", "", "", "—", "",
                                  "unreachable: " + run.unreached[(target.name, target.value, tile)]])
                     continue
                 if not c.tiled:
@@ -409,23 +411,29 @@ def seam_table(runs: list[MapRun], targets_of: dict[str, list[Target]]) -> tuple
                     extra = f"bytes tiled / untiled {c.bytes / whole.bytes:.3f}"
                 ratio = c.seam_ratio
                 text = "—" if ratio is None else f"{ratio:.3f} {verdict(ratio <= MAX_SEAM_RATIO)}"
+                # The same cells of the untiled file at the same target: what the terrain alone gives.
+                same = run.get(target, 0)
+                control = seam_ratio(run, same.err, tile)[0] if same is not None and same.err is not None else None
                 tg = TileGrid(*run.shape, tile)
                 rows.append([run.name, f"{run.shape[0]} x {run.shape[1]}", tile, f"{tg.tile_rows} x {tg.tile_cols}",
                              target.label, fmt_m(c.rmse), fmt_m(c.max_error), f"{c.seam_cells:,}",
-                             text, extra])
+                             text, "—" if control is None else f"{control:.3f}", extra])
                 if ratio is not None and (worst is None or ratio > worst[0]):
-                    worst = (ratio, f"{run.name}, T = {tile}, {target.label}")
+                    worst = (ratio, f"{run.name}, T = {tile}, {target.label}"
+                             + ("" if control is None else f"; the untiled file's ratio on the same cells: {control:.3f}"))
         for tile in run.seam_tiles:
             if not tiled_at(run, tile):
-                rows.append([run.name, f"{run.shape[0]} x {run.shape[1]}", tile, "1 tile", "", "", "", "", "—",
+                rows.append([run.name, f"{run.shape[0]} x {run.shape[1]}", tile, "1 tile", "", "", "", "", "—", "",
                              "one tile holds the map: no seam"])
     if worst is None:
         summary = "No tiled file: no seam measured."
     else:
         summary = (f"Worst seam ratio: **{worst[0]:.3f}** ({worst[1]}); target ≤ {MAX_SEAM_RATIO:g} "
-                   f"{verdict(worst[0] <= MAX_SEAM_RATIO)} over {sum(r[8] != '—' for r in rows)} tiled files.")
+                   f"{verdict(worst[0] <= MAX_SEAM_RATIO)} over {sum(r[8] != '—' for r in rows)} tiled files; "
+                   f"{sum(r[8].endswith('MISS') for r in rows)} over {MAX_SEAM_RATIO:g}.")
     table = markdown_table(["map", "grid", "T", "tiles", "target", "RMSE", "max error", "seam cells",
-                            f"seam RMSE / other (≤ {MAX_SEAM_RATIO:g})", "vs untiled"], rows)
+                            f"seam RMSE / other (≤ {MAX_SEAM_RATIO:g})", "same cells, untiled file",
+                            "vs untiled"], rows)
     return table, summary
 
 
@@ -447,7 +455,8 @@ def figure(run: MapRun, path: Path) -> str:
     err = np.abs(np.where(run.mask, dem.heights + dem.grid.z0 - run.truth, np.nan))
     rows, cols = run.shape
     vmax = float(np.nanpercentile(err, 99))
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.8), gridspec_kw=dict(width_ratios=[1, 1, 0.9]))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5), gridspec_kw=dict(width_ratios=[1, 1, 0.9]),
+                             constrained_layout=True)
     for ax, grid_lines in zip(axes[:2], (False, True)):
         im = ax.imshow(err, origin="lower", cmap="magma", vmin=0, vmax=vmax, interpolation="nearest")
         if grid_lines:
@@ -459,7 +468,7 @@ def figure(run: MapRun, path: Path) -> str:
                      "|error| of the tiled map, no grid drawn", fontsize=9)
         ax.set_xlabel("column (cells)")
         ax.set_ylabel("row (cells)")
-    fig.colorbar(im, ax=axes[:2], shrink=0.8, label="|decoded - DEM| (m)")
+    fig.colorbar(im, ax=axes[1], shrink=0.8, label="|decoded - DEM| (m)")
     # RMS error by distance of a cell to its nearest internal tile edge (rows and columns).
     r = np.arange(rows)[:, None] + 0.5
     q = np.arange(cols)[None, :] + 0.5
@@ -781,7 +790,7 @@ def seam_preamble(runs: dict[str, MapRun], order: list[str]) -> str:
             f"at {min(TILE_SIZES)} when one {SEAM_TILE}-cell tile holds it; the rate-cost maps at every T), "
             "at three targets: the middle RMSE level, the maximum error, and a size target of the bits per "
             "point the untiled file takes at the middle RMSE level (its 'vs untiled' column: the tiled "
-            f"file's RMSE over the untiled file's at equal size). {', '.join(SAME_MAP)} repeats "
+            f"file's RMSE over the untiled file's at equal size). 'Same cells, untiled file': the ratio on the same cells of the untiled file at the same target, where this run made one: what the terrain and the coding give without any tile edge there. {', '.join(SAME_MAP)} repeats "
             f"{', '.join(SAME_MAP.values())}'s points and is left out. Resolutions: {grids}.")
 
 
