@@ -34,7 +34,7 @@ bench-ratecontrol: $(STAMP)
 bench-memory: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_memory $(ARGS)
 
-# Tiled maps (issue 12): rate cost per tile size, seams on every map, one tile read from disk, speed; rewrites its section of docs/benchmarks.md and docs/figures/tiles_error_map.png (~45 min on the shared 2-core box; ARGS=--quick ~3 min).
+# Tiled maps (issue 12): rate cost per tile size, seams on every map, one tile read from disk, speed; rewrites its section of docs/benchmarks.md and docs/figures/tiles_error_map.png (~15-20 min on the shared 2-core box; ARGS=--quick a few minutes).
 .PHONY: bench-tiles
 bench-tiles: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_tiles $(ARGS)
