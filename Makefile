@@ -49,6 +49,11 @@ bench-speed: $(STAMP)
 bench-slam: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_slam $(ARGS)
 
+# Tiled maps (issue 12): rate cost per tile size, seams on every map, one tile read from disk, speed; rewrites its section of docs/benchmarks.md and docs/figures/tiles_error_map.png (~15-20 min on the shared 2-core box; ARGS=--quick a few minutes).
+.PHONY: bench-tiles
+bench-tiles: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_tiles $(ARGS)
+
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce.py
