@@ -136,7 +136,9 @@ def test_plane_matches_the_index_version():
     x -= mx
     y -= my
     z = z - mz
-    b, c = np.linalg.solve(np.array([[x @ x, x @ y], [x @ y, y @ y]]), np.array([x @ z, y @ z]))
+    # The sums are numpy's pairwise ones (dftpcc.sums.dot), not BLAS's: the same on every thread count.
+    xx, xy, yy, xz, yz = (float(np.sum(a * b)) for a, b in ((x, x), (x, y), (y, y), (x, z), (y, z)))
+    b, c = np.linalg.solve(np.array([[xx, xy], [xy, yy]]), np.array([xz, yz]))
     assert fit_plane(dem) == (float(mz - b * mx - c * my), float(b), float(c))
 
 
