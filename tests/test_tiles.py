@@ -213,3 +213,23 @@ def test_cli_tile_size_bbox_and_info(tmp_path):
     assert swapped.returncode == 3 and "the map covers" in swapped.stderr
     assert not (tmp_path / "b.xyz").exists()
     assert run("compress", str(src), str(tmp_path / "x.dftpc"), "--tile-size", "7").returncode == 2
+
+
+def test_a_tiled_header_over_the_whole_grid_limit_is_written():
+    """A tiled map is read tile by tile: its grid may pass MAX_CELLS (a 20,000 x 20,000 GeoTIFF),
+    and the writer's checks must let it through before the tiles are coded, as the reader does."""
+    from dftpcc.container import Header, TileIndex, tiled_head
+    from dftpcc.limits import MAX_CELLS
+
+    rows = cols = 20_000
+    assert rows * cols > MAX_CELLS
+    tiling = TileGrid(rows, cols, 1024)
+    cells = np.zeros(tiling.count, dtype=np.int64)
+    cells[0] = 10
+    index = TileIndex(tiling=tiling, overlap=8, base_cycles=0, cells=cells, rmse=np.where(cells, 0.01, np.nan),
+                      max_error=np.where(cells, 0.02, np.nan))
+    params = make_params(tile_size=1024, cutoff=0.8, step=0.01, resolution=1.0)
+    header = Header(grid=Grid(0.0, 0.0, 0.0, 1.0, rows, cols), params=params, point_count=10, cell_count=10,
+                    tiles=index, coef_count=0, stats={"dem_rmse_m": 0.01, "dem_max_error_m": 0.02})
+    head = tiled_head(header, b"\x00\x00\x00\x00", [(0, b"MASK", 3, 0), (0, b"COEF", 4, 0)])
+    assert head[:8] == b"\x89DFTPC\r\n" and head[9] == 1
