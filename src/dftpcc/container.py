@@ -51,6 +51,8 @@ __all__ = [
     "unpack",
     "unpack_source",
     "read_tile",
+    "leb128",
+    "read_leb128",
     "cells_allowed",
     "check_grid",
     "check_header",
@@ -579,6 +581,23 @@ _STAT_IDS = {name: i for i, name in STAT_FIELDS.items()}
 _F32 = struct.Struct("<f")
 
 
+def read_leb128(data: bytes | memoryview, pos: int, what: str) -> tuple[int, int]:
+    """An unsigned LEB128 integer of at most 64 bits at ``pos`` of ``data`` and the position after it
+    (docs/format.md); ``what`` names the data in the CorruptFileError a cut or too wide one raises."""
+    try:
+        value, end = _read_leb128(memoryview(data), pos)
+    except _TooWide:
+        raise CorruptFileError(f"{what} holds a number wider than 64 bits") from None
+    if value is None:
+        raise CorruptFileError(f"{what} is truncated (inside a number)")
+    return value, end
+
+
+def leb128(value: int) -> bytes:
+    """``value`` (unsigned) as LEB128: 7 bits a byte, least significant first."""
+    return _leb128(value)
+
+
 def _leb128(value: int) -> bytes:
     out = bytearray()
     while True:
@@ -802,6 +821,17 @@ def _check_crs(crs: Any) -> None:
             raise CorruptFileError(f"section CRS: LAS record {i} is malformed")
 
 
+def _grid_and_crs(fields: tuple, geom: memoryview, crs_payload: memoryview | None) -> tuple[Grid, dict[str, Any]]:
+    """The grid of checked GEOM ``fields`` (and its optional row spacing), and the checked CRS."""
+    crs = _crs_from_file(_json(crs_payload, "CRS")) if crs_payload is not None else {}
+    _check_crs(crs)
+    (x0, y0, z0, res, rows, cols, angle, *_rest) = fields
+    res_y = _GEOM_Y.unpack_from(geom, _GEOM.size)[0] if len(geom) >= _GEOM.size + _GEOM_Y.size else 0.0
+    _check_row_spacing(res_y, rows)
+    return Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
+                resolution_y=res_y or None), crs
+
+
 def _parse_params(payload: memoryview, res: float) -> Params:
     """The PARM section, checked (a file states its cutoff, resolution and step)."""
     try:
@@ -866,14 +896,9 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     stats = _unpack_stats(found[b"STAT"]) if b"STAT" in found else {}
     for key, tag in _DERIVED_STATS.items():
         stats.setdefault(key, declared.get(tag, 0))
-    crs = _crs_from_file(_json(found[b"CRS "], "CRS")) if b"CRS " in found else {}
-    _check_crs(crs)
     coef_count = stats.get("coef_count")
     _check_coef_count(coef_count, rows * cols)
-    res_y = _GEOM_Y.unpack_from(geom, _GEOM.size)[0] if len(geom) >= _GEOM.size + _GEOM_Y.size else 0.0
-    _check_row_spacing(res_y, rows)
-    grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
-                resolution_y=res_y or None)
+    grid, crs = _grid_and_crs(fields, geom, found.get(b"CRS "))
     header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,
                     plane=(pa, pb, pc), crs=crs, stats=stats, coef_count=coef_count)
     return header, {tag: found[tag] for tag in (b"MASK", b"COEF", b"RESD") if tag in found}
@@ -949,14 +974,9 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     params = _parse_params(payloads[b"PARM"], res)
     _check_points(params, npoints, ncells)
     stats = _unpack_stats(payloads[b"STAT"])
-    crs = _crs_from_file(_json(payloads[b"CRS "], "CRS")) if b"CRS " in payloads else {}
-    _check_crs(crs)
     coef_count = stats.get("coef_count")
     _check_coef_count(coef_count, rows * cols)
-    res_y = _GEOM_Y.unpack_from(geom, _GEOM.size)[0] if len(geom) >= _GEOM.size + _GEOM_Y.size else 0.0
-    _check_row_spacing(res_y, rows)
-    grid = Grid(x0=x0, y0=y0, z0=z0, resolution=res, rows=rows, cols=cols, angle=angle,
-                resolution_y=res_y or None)
+    grid, crs = _grid_and_crs(fields, geom, payloads.get(b"CRS "))
     index = _unpack_index(payloads[b"TIDX"], grid, params, ncells, source.size)
     # Any tag: format.md refuses tile numbers above the count, not only those of MASK, COEF, RESD.
     last = max(tile for _tag, tile, _length, _crc in entries)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import zstandard
 
-from .container import Source, unpack_source
+from .container import Source, leb128, read_leb128, unpack_source
 from .errors import CorruptFileError, InvalidInputError
 from .io.atomic import atomic_write, check_output
 
@@ -39,8 +39,6 @@ MAX_COPY_FACTOR = 4
 ZSTD_LEVEL = 19
 _HEAD = struct.Struct("<8sBBH32s32s")  # magic, major, minor, flags, base SHA-256, result SHA-256
 _CRC = struct.Struct("<I")
-#: Longest unsigned LEB128 integer (64 bits), bytes.
-_LEB128_MAX_BYTES = 10
 
 
 @dataclass(frozen=True)
@@ -69,30 +67,6 @@ class Delta:
     def copied(self) -> int:
         """Bytes the result takes from the base map."""
         return sum(n for kind, _, n in self.pieces if kind == COPY)
-
-
-def _leb128(value: int) -> bytes:
-    out = bytearray()
-    while True:
-        byte, value = value & 0x7F, value >> 7
-        out.append(byte | (0x80 if value else 0))
-        if not value:
-            return bytes(out)
-
-
-def _read_leb128(data: bytes, pos: int) -> tuple[int, int]:
-    value = shift = 0
-    for n in range(_LEB128_MAX_BYTES):
-        if pos + n >= len(data):
-            raise CorruptFileError("delta is truncated (inside a number)")
-        byte = data[pos + n]
-        if n == _LEB128_MAX_BYTES - 1 and byte > 1:
-            raise CorruptFileError("delta holds a number wider than 64 bits")
-        value |= (byte & 0x7F) << shift
-        shift += 7
-        if not byte & 0x80:
-            return value, pos + n + 1
-    raise CorruptFileError("delta holds a number wider than 64 bits")
 
 
 def _tile_payloads(data: bytes) -> list[tuple[int, int]]:
@@ -142,9 +116,9 @@ def make_delta(base: bytes, result: bytes) -> bytes:
     put(DATA, pos, len(result) - pos)
     new = b"".join(result[offset:offset + length] for kind, offset, length in pieces if kind == DATA)
     body = bytearray(_HEAD.pack(MAGIC, *VERSION, 0, hashlib.sha256(base).digest(), hashlib.sha256(result).digest()))
-    body += _leb128(len(result)) + _leb128(len(pieces))
+    body += leb128(len(result)) + leb128(len(pieces))
     for kind, offset, length in pieces:
-        body += bytes([kind]) + (_leb128(offset) if kind == COPY else b"") + _leb128(length)
+        body += bytes([kind]) + (leb128(offset) if kind == COPY else b"") + leb128(length)
     body += zstandard.ZstdCompressor(level=ZSTD_LEVEL, write_content_size=True).compress(new)
     return bytes(body + _CRC.pack(zlib.crc32(body)))
 
@@ -168,8 +142,8 @@ def read_delta(delta: bytes, *, base_size: int | None = None) -> Delta:
     if (major, minor) != VERSION or flags:
         raise CorruptFileError(f"delta version {major}.{minor} (flags {flags}) is not {VERSION[0]}.{VERSION[1]}")
     end = len(delta) - _CRC.size
-    result_size, pos = _read_leb128(delta, _HEAD.size)
-    count, pos = _read_leb128(delta, pos)
+    result_size, pos = read_leb128(delta, _HEAD.size, "delta")
+    count, pos = read_leb128(delta, pos, "delta")
     if count > end - pos:  # each piece takes at least two bytes
         raise CorruptFileError(f"delta claims {count:,} pieces in {end - pos:,} bytes")
     pieces, total, copied, data_bytes = [], 0, 0, 0
@@ -179,14 +153,14 @@ def read_delta(delta: bytes, *, base_size: int | None = None) -> Delta:
         kind = delta[pos]
         pos += 1
         if kind == COPY:
-            offset, pos = _read_leb128(delta, pos)
-            length, pos = _read_leb128(delta, pos)
+            offset, pos = read_leb128(delta, pos, "delta")
+            length, pos = read_leb128(delta, pos, "delta")
             if base_size is not None and offset + length > base_size:
                 raise CorruptFileError(f"delta copies bytes {offset:,} to {offset + length:,} of a {base_size:,}-byte map")
             copied += length
             pieces.append((COPY, offset, length))
         elif kind == DATA:
-            length, pos = _read_leb128(delta, pos)
+            length, pos = read_leb128(delta, pos, "delta")
             pieces.append((DATA, data_bytes, length))
             data_bytes += length
         else:
