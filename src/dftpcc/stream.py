@@ -39,6 +39,8 @@ __all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CE
 STREAM_CELLS = 16_000_000
 #: Rate control chooses the cutoff and step on this many tiles a side from the map's middle.
 SAMPLE_TILES = 2
+#: Rows of the raster the first pass reads at a time.
+SURVEY_ROWS = 128
 #: Samples a tile side of the decimated copy the base layer is computed from.
 SAMPLES_PER_TILE = 16
 #: Attempts at an RMSE target before giving up: a step chosen on part of the map may miss on all of it.
@@ -135,7 +137,8 @@ def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
     moments = np.zeros(9)  # n, z, x, y, xx, xy, yy, xz, yz (z about the first band's mean)
     ref, lowest, highest = None, math.inf, -math.inf
     on_stage("read")
-    for r0, r1 in _bands(raster.rows, tile):
+    # Thin bands: the sums need several arrays of a band's occupied cells, not only its heights.
+    for r0, r1 in _bands(raster.rows, SURVEY_ROWS):
         on_stage("read", r0 / raster.rows)
         h, m = raster.read(r0, r1)
         if not m.any():
@@ -322,7 +325,7 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
                              side="right")) if bi.size else 0
     q = coding.quantize(bcoefs[:nb], params.step, params.deadzone)
     base_blob = coding.encode_coefficients(q, radius=bradius[:nb], angle=bangle[:nb], coder=params.coder)
-    decoded = coding.dequantize(q, params.step)
+    base_error = coding.dequantize(q, params.step) - bcoefs[:nb]
     tiling = TileGrid(grid.rows, grid.cols, tile)
     a, b, c = survey["plane"]
     n = tiling.count
@@ -334,13 +337,13 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
     for band, (r0, r1) in enumerate(_bands(grid.rows, tile)):
         on_stage("encode", r0 / grid.rows)
         w0, w1 = max(0, r0 - TILE_OVERLAP), min(grid.rows, r1 + TILE_OVERLAP)
-        h, m = raster.read(w0, w1)
-        rows = np.arange(w0, w1, dtype=float)[:, None]
-        cols = np.arange(grid.cols, dtype=float)[None, :]
-        exact = base_heights(bcoefs[:nb], bi[:nb], bj[:nb], grid.shape, (w0, w1), (0, grid.cols))
-        rest = np.where(m, h - grid.z0, 0.0) - (a + b * cols + c * rows) - exact
-        error = base_heights(decoded, bi[:nb], bj[:nb], grid.shape, (r0, r1), (0, grid.cols)) - exact[r0 - w0:r1 - w0]
-        del exact, h
+        # In place: a band of a 40,000-column map is 330 MB a float64 copy, and memory holds a few.
+        rest, m = raster.read(w0, w1)
+        rest -= grid.z0
+        rest[~m] = 0.0
+        rest -= b * np.arange(grid.cols, dtype=float)[None, :]
+        rest -= c * np.arange(w0, w1, dtype=float)[:, None] + a
+        rest -= base_heights(bcoefs[:nb], bi[:nb], bj[:nb], grid.shape, (w0, w1), (0, grid.cols))
         jobs = []
         for k in range(band * tiling.tile_cols, (band + 1) * tiling.tile_cols):
             t0, t1, c0, c1 = tiling.bounds(k)
@@ -348,8 +351,10 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
                 continue
             _, _, v0, v1 = coded_window(tiling, k, TILE_OVERLAP)
             counts = raster.counts(t0, t1)
+            # What quantizing the base layer changed on the tile (the layer is linear in its values).
+            error = base_heights(base_error, bi[:nb], bj[:nb], grid.shape, (t0, t1), (c0, c1))
             jobs.append(TileJob(k, rest[:, v0:v1], m[:, v0:v1], (t0 - w0, t1 - w0, c0 - v0, c1 - v0),
-                                error[:, c0:c1], None if counts is None else counts[:, c0:c1]))
+                                error, None if counts is None else counts[:, c0:c1]))
         for code in run(code_tile, jobs, params, refill):
             spool.add(code.k, b"MASK", code.mask)
             spool.add(code.k, b"COEF", code.coef)
