@@ -201,20 +201,22 @@ def check_header(header: Header) -> None:
     with _as_writer():
         if header.tiles is None and header.params.tile_size not in (0, "auto"):
             raise CorruptFileError(f"an untiled map states tiles of {header.params.tile_size} cells")
-        _check_grid(g, header.point_count, header.cell_count, header.params, header.plane)
+        _check_grid(g, header.point_count, header.cell_count, header.params, header.plane, header.tiles is not None)
         _check_params(header.params, g.resolution)
         _check_coef_count(header.coef_count, g.size)
         _check_crs(header.crs)
 
 
 def _check_grid(grid: Grid, point_count: int, cell_count: int, params: Params,
-                plane: tuple[float, float, float]) -> None:
+                plane: tuple[float, float, float], tiled: bool = False) -> None:
     if not (_is_count(point_count) and point_count < _U64_LIMIT):
         raise CorruptFileError(f"point count {point_count!r} does not fit the header's 64 bits")
     fields = (grid.x0, grid.y0, grid.z0, grid.resolution, grid.rows, grid.cols, grid.angle,
               point_count, cell_count, *plane)
     # The budget is the reader's default, not a limit of the format: a writer warns (see pack).
-    _check_geometry(fields, MAX_CELLS, 0)
+    # A tiled map is read tile by tile: its limit is the reader's (unpack_tiled), not the whole-grid budget.
+    limit = MAX_TILED_CELLS if tiled else MAX_CELLS
+    _check_geometry(fields, limit, 0, limit=limit)
     _check_points(params, point_count, cell_count)
     _check_row_spacing(grid.resolution_y or 0.0, grid.rows)
 
