@@ -301,7 +301,9 @@ def measure(job: dict[str, Any]) -> dict[str, Any]:
     result: dict[str, Any] = {"wall": wall, "tree": sampler.peak, "peak": int(peak.group(1)) * 1024 if peak else 0}
     line = next((ln for ln in out.splitlines() if ln.startswith("BENCH ")), None)
     if proc.returncode != 0 or line is None:
-        tail = [ln for ln in err.splitlines() if not ln.startswith("\t")][-12:]
+        # The child's own last lines: /usr/bin/time's report (which repeats the command) starts at "Command being timed".
+        own = err.split("\tCommand being timed:")[0] if "\tCommand being timed:" in err else err
+        tail = [ln for ln in own.splitlines() if not ln.startswith("\t")][-3:]
         result["error"] = f"exit {proc.returncode}: " + " / ".join(ln.strip() for ln in tail if ln.strip())
         return result
     result.update(json.loads(line[len("BENCH "):]))
