@@ -54,6 +54,11 @@ bench-slam: $(STAMP)
 bench-tiles: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_tiles $(ARGS)
 
+# Maps larger than memory: peak memory and throughput of a 1.6 G-cell GeoTIFF and a 102 M-point LAZ at a quarter, half and the whole, serial and on 2 dask workers (~75 min on the shared 2-core box, up to ~8 GB of temporary files under /tmp, removed after; ARGS=--quick ~7 min).
+.PHONY: bench-big
+bench-big: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_big $(ARGS)
+
 # Regenerates docs/reproduction.md and docs/figures/repro_* from ../shared/data.
 reproduce: $(STAMP)
 	$(BIN)/python scripts/reproduce.py

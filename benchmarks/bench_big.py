@@ -1,0 +1,504 @@
+"""Maps larger than memory: peak memory and throughput of coding a 1.6 G-cell GeoTIFF and a 100 M-point LAZ.
+
+Builds in one temporary folder (deleted at the end, also on failure) a float32 GeoTIFF mosaicked
+from the real DEMs of ``dems/`` (mirrored, shifted, height-offset copies, written window by
+window) and a LAZ of shifted copies of the 2.83 M-point forest cloud laid side by side (written
+copy after copy), each at a quarter, a half and the whole of the full size. Each compress and
+decompress runs in its own process under ``/usr/bin/time -v`` (else a ``getrusage`` wrapper),
+so its peak resident memory is its own, and is set against the peak of a process that only
+imports dftpcc, measured in the same run. The GeoTIFF's quarter is also coded and decoded on a
+local dask cluster of 2 workers and checked byte-identical to the serial run.
+
+    .venv/bin/python -m benchmarks.bench_big [--quick] [--keep-going] [--docs | --no-docs]
+
+``--quick`` runs at a quarter of the full side of the GeoTIFF (10,000 x 10,000 cells at most) and a
+quarter of the cloud (9 copies, 25 M points at most): about 7 minutes on the shared 2-core box.
+Prints tables; writes its section of docs/benchmarks.md on a full run. Never fails on a timing.
+"""
+
+from __future__ import annotations
+
+import filecmp
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import textwrap
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from benchmarks.common import finish_run, library_label, load_average, markdown_table, run_arguments
+
+__all__ = ["build_raster", "build_cloud", "measure", "main"]
+
+#: Side of the full GeoTIFF, cells; the quarter and half maps are sqrt(1/4) and sqrt(1/2) of it.
+FULL_SIDE = 40_000
+#: Copies of the forest cloud in the full LAZ (36 x 2.83 M = 102 M points).
+FULL_COPIES = 36
+#: Fractions of the full map measured (cells or points).
+FRACTIONS = (0.25, 0.5, 1.0)
+#: ``--quick`` divides the GeoTIFF's side by this (1/16 of the cells) and the cloud's copies by this.
+QUICK_DIVISOR = 4
+#: Tile side of the coded maps, cells (the CLI's ``--tile-size``).
+TILE_SIZE = 1024
+#: Workers of the local dask cluster in the parallel runs.
+WORKERS = 2
+#: Target the peak resident memory of every run should stay under, bytes.
+RSS_TARGET = 2 * 1024 ** 3
+#: How often the whole process tree's resident memory is sampled, seconds (dask runs).
+SAMPLE_S = 0.25
+#: One run longer than this is stopped and reported, seconds.
+RUN_TIMEOUT_S = 30 * 60
+
+#: The GeoTIFF's layout: square regions of this many cells a side, each a copy of one DEM.
+REGION = 5000
+#: Pixel size written to the mosaic, metres (the DEMs' own sizes differ; cells are cells here).
+PIXEL_M = 10.0
+#: Map origin (west, north) and CRS of the mosaic: UTM 32N, as the Heidelberg DEM.
+ORIGIN = (300_000.0, 5_600_000.0)
+CRS = "EPSG:32632"
+#: The regions' heights ride on a plane rising this much across the map, metres, plus a jitter.
+RAMP_M = 800.0
+JITTER_M = 40.0
+#: Rows written per window: one row of 256 x 256 blocks, so no block is written twice.
+BLOCK = 256
+#: Creation options of the mosaic (the brief's: tiled 256, deflate + floating-point predictor, BigTIFF).
+GTIFF_OPTIONS = dict(driver="GTiff", tiled=True, blockxsize=BLOCK, blockysize=BLOCK, compress="deflate",
+                     predictor=3, BIGTIFF="YES", NUM_THREADS="2")
+
+SOURCE_CLOUD = "forest_slope_bcts_2.8M.laz"
+#: Gap between copies of the cloud, metres, so copies abut without overlapping.
+CLOUD_GAP_M = 1.0
+#: Copies a row of the LAZ mosaic: the forest map is 5 times longer (y) than wide (x).
+CLOUD_COPIES_PER_ROW = 12
+#: Points read per chunk when the LAZ is built, so building it holds one chunk of the source.
+CLOUD_CHUNK = 1_000_000
+
+TIME_BIN = "/usr/bin/time"
+
+#: The child of every run: the command it is given, timed from inside, and its peak (VmHWM) printed.
+CHILD = textwrap.dedent("""
+    import json, resource, sys, time
+    t0 = time.perf_counter()
+    import dftpcc
+    from dftpcc.files import compress_file, decompress_bands
+
+    def peak():
+        with open("/proc/self/status") as fh:
+            return next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmHWM:"))
+
+    job = json.loads(sys.argv[1])
+    imported = peak()
+    t1 = time.perf_counter()
+    out = {}
+    if job["op"] == "compress":
+        extra = {"chunk_points": job["chunk"]} if job.get("chunk") else {}
+        m = compress_file(job["src"], job["dst"], tile_size=job["tile"], workers=job["workers"], **extra)
+        out = {"points": m.header.point_count, "cells": m.header.cell_count, "rows": m.grid.rows,
+               "cols": m.grid.cols, "rmse": m.header.stats.get("dem_rmse_m"),
+               "max_error": m.header.stats.get("dem_max_error_m"), "resolution": m.grid.resolution}
+    elif job["op"] == "decompress":
+        out = {"written": decompress_bands(job["src"], job["dst"], workers=job["workers"])}
+    out.update(seconds=time.perf_counter() - t1, total_seconds=time.perf_counter() - t0,
+               imported=imported, vmhwm=peak())
+    print("BENCH " + json.dumps(out), flush=True)
+""")
+
+
+# -- inputs -----------------------------------------------------------------------------------------
+
+def _reflect(index: np.ndarray, size: int) -> np.ndarray:
+    """Indices into an axis of ``size`` of a copy mirrored about each of its ends (continuous)."""
+    k = np.mod(index, 2 * size)
+    return np.where(k < size, k, 2 * size - 1 - k)
+
+
+@dataclass(frozen=True)
+class _Region:
+    dem: int
+    flip_rows: bool
+    flip_cols: bool
+    shift: tuple[int, int]
+    offset: float
+
+
+def _dems(data: Path) -> list[np.ndarray]:
+    """The real DEMs as float32 about their median (NaN where they have no data)."""
+    import rasterio
+
+    out = []
+    for path in sorted((data / "dems").glob("*.tif")):
+        with rasterio.open(path) as ds:
+            band = ds.read(1, masked=True).astype(np.float32)
+        heights = band.filled(np.nan)
+        if path.name.startswith("mars_korolev"):
+            heights[heights == 0] = np.nan  # its stated nodata (0) is not flagged in every copy
+        out.append(heights - np.nanmedian(heights))
+    return out
+
+
+def _regions(side: int, count: int, seed: int = 12) -> list[list[_Region]]:
+    """The layout of a map of ``side`` cells: one DEM copy per region, chosen by a fixed seed."""
+    rng = np.random.default_rng(seed)
+    n = -(-side // REGION)
+    full = -(-FULL_SIDE // REGION)
+    layout = [[_Region(int(rng.integers(count)), bool(rng.integers(2)), bool(rng.integers(2)),
+                       (int(rng.integers(10_000)), int(rng.integers(10_000))),
+                       float(RAMP_M * (i + j) / (2 * full) + rng.normal(0.0, JITTER_M)))
+               for j in range(full)] for i in range(full)]
+    return [row[:n] for row in layout[:n]]  # a smaller map is the top-left crop of the full one
+
+
+def build_raster(data: Path, dst: Path, side: int, cols: int | None = None) -> int:
+    """Write a ``side`` x ``side`` (or ``cols`` wide) float32 GeoTIFF mosaic of the real DEMs, one row of blocks at a time.
+
+    Returns
+    -------
+    int
+        Valid (non-NaN) cells written.
+    """
+    import rasterio
+    from rasterio.transform import from_origin
+    from rasterio.windows import Window
+
+    dems = _dems(data)
+    cols = side if cols is None else cols
+    layout = _regions(max(side, cols), len(dems))
+    valid = 0
+    with rasterio.open(dst, "w", height=side, width=cols, count=1, dtype="float32", nodata=float("nan"),
+                       transform=from_origin(*ORIGIN, PIXEL_M, PIXEL_M), crs=CRS, **GTIFF_OPTIONS) as out:
+        for r0 in range(0, side, BLOCK):
+            rows = np.arange(r0, min(side, r0 + BLOCK))
+            band = np.empty((rows.size, cols), dtype=np.float32)
+            for ri in np.unique(rows // REGION):
+                sel = rows // REGION == ri
+                for cj, region in enumerate(layout[ri][:-(-cols // REGION)]):
+                    c0, c1 = cj * REGION, min(cols, (cj + 1) * REGION)
+                    dem = dems[region.dem]
+                    dem = dem[::-1] if region.flip_rows else dem
+                    dem = dem[:, ::-1] if region.flip_cols else dem
+                    i = _reflect(rows[sel] + region.shift[0], dem.shape[0])
+                    j = _reflect(np.arange(c0, c1) + region.shift[1], dem.shape[1])
+                    band[np.nonzero(sel)[0][:, None], np.arange(c0, c1)[None, :]] = dem[np.ix_(i, j)] + region.offset
+            valid += int(np.isfinite(band).sum())
+            out.write(band, 1, window=Window(0, r0, cols, rows.size))
+    return valid
+
+
+def build_cloud(data: Path, dst: Path, copies: int) -> int:
+    """Write a LAZ of ``copies`` shifted copies of the forest cloud side by side, copy after copy.
+
+    Returns
+    -------
+    int
+        Points written.
+    """
+    import laspy
+
+    src = data / "pointclouds" / SOURCE_CLOUD
+    with laspy.open(src) as reader:
+        head = reader.header
+        width = float(head.maxs[0] - head.mins[0]) + CLOUD_GAP_M
+        height = float(head.maxs[1] - head.mins[1]) + CLOUD_GAP_M
+        header = laspy.LasHeader(point_format=head.point_format.id, version=head.version)
+        header.scales, header.offsets = head.scales, head.offsets
+        for vlr in head.vlrs:  # the CRS
+            header.vlrs.append(vlr)
+    written = 0
+    with laspy.open(dst, mode="w", header=header) as out:
+        for k in range(copies):
+            dx, dy = (k % CLOUD_COPIES_PER_ROW) * width, (k // CLOUD_COPIES_PER_ROW) * height
+            with laspy.open(src) as reader:
+                for chunk in reader.chunk_iterator(CLOUD_CHUNK):
+                    part = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=header)
+                    part.x, part.y, part.z = np.asarray(chunk.x) + dx, np.asarray(chunk.y) + dy, chunk.z
+                    part.classification = chunk.classification
+                    part.return_number, part.number_of_returns = chunk.return_number, chunk.number_of_returns
+                    part.intensity = chunk.intensity
+                    out.write_points(part)
+                    written += len(chunk)
+    return written
+
+
+# -- measuring --------------------------------------------------------------------------------------
+
+#: Without /usr/bin/time: a wrapper that runs the child and prints its peak from getrusage.
+RUSAGE_WRAPPER = textwrap.dedent("""
+    import resource, subprocess, sys
+    rc = subprocess.run(sys.argv[1:]).returncode
+    print(f"Maximum resident set size (kbytes): {resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}",
+          file=sys.stderr)
+    sys.exit(rc)
+""")
+PEAK_LINE = re.compile(r"Maximum resident set size \(kbytes\): (\d+)")
+
+
+class _TreeSampler(threading.Thread):
+    """The largest summed resident memory of a process and its descendants (dask workers), sampled."""
+
+    def __init__(self, pid: int):
+        super().__init__(daemon=True)
+        self.pid, self.peak, self.done = pid, 0, threading.Event()
+
+    def run(self) -> None:
+        import psutil
+
+        try:
+            root = psutil.Process(self.pid)
+        except psutil.Error:
+            return
+        while not self.done.wait(SAMPLE_S):
+            total = 0
+            try:
+                for proc in [root, *root.children(recursive=True)]:
+                    try:
+                        total += proc.memory_info().rss
+                    except psutil.Error:
+                        pass
+            except psutil.Error:
+                return
+            self.peak = max(self.peak, total)
+
+
+def measure(job: dict[str, Any]) -> dict[str, Any]:
+    """Run one job in a fresh process; its result, wall time and peak resident memory (bytes).
+
+    ``peak``: the largest resident set of the run's processes (``/usr/bin/time -v``, i.e. the
+    kernel's ``ru_maxrss`` of the child and the descendants it waited for); ``tree``: the largest
+    sum over the process tree, sampled every :data:`SAMPLE_S`. A failed or timed-out run returns
+    ``error`` with the end of its standard error.
+    """
+    child = [sys.executable, "-c", CHILD, json.dumps(job)]
+    cmd = [TIME_BIN, "-v", *child] if os.access(TIME_BIN, os.X_OK) else [sys.executable, "-c", RUSAGE_WRAPPER, *child]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    sampler = _TreeSampler(proc.pid)
+    sampler.start()
+    try:
+        out, err = proc.communicate(timeout=RUN_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, 9)
+        out, err = proc.communicate()
+        err += f"\ntimed out after {RUN_TIMEOUT_S} s"
+    except BaseException:
+        os.killpg(proc.pid, 9)  # an interrupted benchmark leaves no run behind
+        proc.wait()
+        raise
+    finally:
+        sampler.done.set()
+        sampler.join()
+    wall = time.perf_counter() - t0
+    peak = PEAK_LINE.search(err)
+    result: dict[str, Any] = {"wall": wall, "tree": sampler.peak, "peak": int(peak.group(1)) * 1024 if peak else 0}
+    line = next((ln for ln in out.splitlines() if ln.startswith("BENCH ")), None)
+    if proc.returncode != 0 or line is None:
+        # The child's own last lines: /usr/bin/time's report (which repeats the command) starts at "Command being timed".
+        own = err.split("\tCommand being timed:")[0] if "\tCommand being timed:" in err else err
+        tail = [ln for ln in own.splitlines() if not ln.startswith("\t")][-3:]
+        result["error"] = f"exit {proc.returncode}: " + " / ".join(ln.strip() for ln in tail if ln.strip())
+        return result
+    result.update(json.loads(line[len("BENCH "):]))
+    return result
+
+
+# -- the run ----------------------------------------------------------------------------------------
+
+def _mb(n: float) -> str:
+    return f"{n / 1e6:,.0f}"
+
+
+def _fraction(f: float) -> str:
+    return {0.25: "quarter", 0.5: "half", 1.0: "whole"}.get(f, f"{f:g}")
+
+
+class _Report:
+    """Rows of the tables, printed as they come."""
+
+    HEAD = ["map", "size", "op", "workers", "time s", "throughput", "peak RSS MB", "growth MB",
+            "growth / quarter", "tree peak MB", "output MB", "bits", "< 2 GB"]
+
+    def __init__(self, baseline: int):
+        self.baseline, self.rows, self.failures, self.first = baseline, [], [], {}
+        self.parallel: list[list[str]] = []
+        self.grids: list[list[str]] = []
+
+    def add(self, kind: str, size: str, op: str, workers: int, m: dict[str, Any], units: float, unit: str,
+            out_bytes: int, coded_bytes: int, per: float, per_unit: str) -> None:
+        if "error" in m:
+            self.failures.append(f"{kind} {size} {op} (workers {workers}): {m['error']}")
+            self.rows.append([kind, size, op, str(workers), f"{m['wall']:.0f}", "failed", _mb(m["peak"]),
+                              "", "", _mb(m["tree"]), "", "", ""])
+            print(" | ".join(self.rows[-1]), "|", m["error"], flush=True)
+            return
+        growth = m["peak"] - self.baseline
+        key = (kind, op, workers)
+        self.first.setdefault(key, growth)
+        self.rows.append([kind, size, op, str(workers), f"{m['seconds']:.0f}",
+                          f"{units / m['seconds'] / 1e6:.2f} M {unit}/s", _mb(m["peak"]), _mb(growth),
+                          f"{growth / self.first[key]:.2f}", _mb(m["tree"]), f"{out_bytes / 1e6:,.1f}",
+                          f"{8 * coded_bytes / per:.3f} b/{per_unit}", "PASS" if m["peak"] < RSS_TARGET else "MISS"])
+        print(" | ".join(self.rows[-1]), flush=True)
+
+
+def _job(op: str, src: Path, dst: Path, workers: int | None, **extra: Any) -> dict[str, Any]:
+    return {"op": op, "src": str(src), "dst": str(dst), "tile": TILE_SIZE, "workers": workers, **extra}
+
+
+def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int, report: _Report,
+               inputs: list[list[str]]) -> None:
+    """Build, compress and decompress the GeoTIFF mosaic at each fraction; 2 workers on the first."""
+    for n, f in enumerate(fractions):
+        side = int(round(full_side * math.sqrt(f)))
+        src, coded, back = tmp / f"mosaic_{side}.tif", tmp / f"mosaic_{side}.dftpc", tmp / f"mosaic_{side}_back.tif"
+        t0 = time.perf_counter()
+        valid = build_raster(data, src, side)
+        inputs.append(["GeoTIFF", _fraction(f), f"{side:,} x {side:,}", f"{side * side:,} cells ({valid:,} valid)",
+                       f"{src.stat().st_size / 1e6:,.0f}", f"{time.perf_counter() - t0:.0f}"])
+        print(" | ".join(inputs[-1]), flush=True)
+        size = f"{_fraction(f)} ({side:,}²)"
+        cells = side * side
+        for workers in ([None, WORKERS] if n == 0 else [None]):
+            dst = coded if workers is None else coded.with_suffix(".w.dftpc")
+            m = measure(_job("compress", src, dst, workers))
+            nbytes = dst.stat().st_size if dst.exists() else 0
+            report.add("GeoTIFF", size, "compress", workers or 1, m, cells, "cells", nbytes, nbytes,
+                       m.get("cells") or 1, "cell")
+            if workers is not None:
+                report.parallel.append(_parallel_row("compress", size, report, m, coded, dst))
+            if not coded.exists():
+                break
+            out = back if workers is None else back.with_suffix(".w.tif")
+            m = measure(_job("decompress", coded, out, workers))
+            obytes = out.stat().st_size if out.exists() else 0
+            report.add("GeoTIFF", size, "decompress", workers or 1, m, cells, "cells", obytes,
+                       coded.stat().st_size, m.get("written") or 1, "cell")
+            if workers is not None:
+                report.parallel.append(_parallel_row("decompress", size, report, m, back, out))
+                out.unlink(missing_ok=True)
+                dst.unlink(missing_ok=True)
+        back.unlink(missing_ok=True)
+        coded.unlink(missing_ok=True)
+        src.unlink(missing_ok=True)
+
+
+def _parallel_row(op: str, size: str, report: _Report, m: dict[str, Any], serial: Path, parallel: Path) -> list[str]:
+    """Time with 2 workers against 1 (the row before the last of ``op``), and whether the outputs are identical."""
+    one = next((r for r in reversed(report.rows) if r[1] == size and r[2] == op and r[3] == "1"), None)
+    if "error" in m or one is None or one[5] == "failed":
+        return [op, size, one[4] if one else "", f"{m['wall']:.0f}", "failed", "", ""]
+    same = serial.exists() and parallel.exists() and filecmp.cmp(serial, parallel, shallow=False)
+    return [op, size, one[4], f"{m['seconds']:.0f}", f"{float(one[4]) / m['seconds']:.2f}",
+            "yes" if same else "NO", _mb(m["tree"])]
+
+
+def run_cloud(data: Path, tmp: Path, copies: Sequence[int], report: _Report, inputs: list[list[str]],
+              fractions: Sequence[float]) -> None:
+    """Build, compress (read in chunks) and decompress (to LAZ) the cloud mosaic at each size."""
+    for f, k in zip(fractions, copies):
+        src, coded, back = tmp / f"forest_x{k}.laz", tmp / f"forest_x{k}.dftpc", tmp / f"forest_x{k}_back.laz"
+        t0 = time.perf_counter()
+        points = build_cloud(data, src, k)
+        inputs.append(["LAZ", _fraction(f), f"{k} copies", f"{points:,} points", f"{src.stat().st_size / 1e6:,.0f}",
+                       f"{time.perf_counter() - t0:.0f}"])
+        print(" | ".join(inputs[-1]), flush=True)
+        size = f"{_fraction(f)} ({points / 1e6:.0f} M)"
+        m = measure(_job("compress", src, coded, None, chunk=CLOUD_CHUNK))
+        nbytes = coded.stat().st_size if coded.exists() else 0
+        report.add("LAZ", size, "compress", 1, m, points, "points", nbytes, nbytes, points, "point")
+        if "error" not in m:
+            report.grids.append([size, f"{m['rows']:,} x {m['cols']:,}", f"{m['rows'] * m['cols']:,}",
+                                 f"{m['cells']:,}", f"{m['resolution']:.3f}"])
+            d = measure(_job("decompress", coded, back, None))
+            obytes = back.stat().st_size if back.exists() else 0
+            report.add("LAZ", size, "decompress", 1, d, d.get("written") or 1, "points", obytes, nbytes, points,
+                       "point")
+        for path in (back, coded, src):
+            path.unlink(missing_ok=True)
+
+
+def _free_bytes(path: Path) -> int:
+    return shutil.disk_usage(path).free
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = run_arguments(__doc__.splitlines()[0], f"a quarter of the full side ({FULL_SIDE // QUICK_DIVISOR:,}² cells) "
+                                                f"and {FULL_COPIES // QUICK_DIVISOR} copies of the cloud")
+    ap.add_argument("--only", choices=("raster", "cloud"), help="measure one of the two maps")
+    ap.add_argument("--tmp", type=Path, default=Path(tempfile.gettempdir()), help="where the temporary folder goes")
+    args = ap.parse_args(argv)
+    if not sys.platform.startswith("linux"):
+        sys.exit("bench_big reads peak memory from /proc: Linux only")
+    divisor = QUICK_DIVISOR if args.quick else 1
+    full_side = FULL_SIDE // divisor
+    copies = [max(1, round(FULL_COPIES * f / divisor)) for f in FRACTIONS]
+    # The full run's largest files: the mosaic (~2.2 GB), its decoded copy (~3.6 GB) and the LAZ (~0.4 GB).
+    need = 8e9 / divisor ** 2
+    if _free_bytes(args.tmp) < need:
+        sys.exit(f"bench_big needs about {need / 1e9:.0f} GB free in {args.tmp}; "
+                 f"{_free_bytes(args.tmp) / 1e9:.1f} GB are")
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # so the temporary folder is removed on a kill
+    t0 = time.perf_counter()
+    print(f"Measuring {library_label()}; {load_average()}; peak memory by "
+          f"{'/usr/bin/time -v' if os.access(TIME_BIN, os.X_OK) else 'getrusage(RUSAGE_CHILDREN)'}.", flush=True)
+    tmp = Path(tempfile.mkdtemp(prefix="dftpcc-bench-big-", dir=args.tmp))
+    inputs: list[list[str]] = []
+    try:
+        base = measure({"op": "import"})
+        report = _Report(base["peak"])
+        print(f"baseline (python + import dftpcc): peak RSS {_mb(base['peak'])} MB", flush=True)
+        if args.only in (None, "cloud"):
+            run_cloud(args.data, tmp, copies, report, inputs, FRACTIONS)
+        if args.only in (None, "raster"):
+            run_raster(args.data, tmp, FRACTIONS, full_side, report, inputs)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    parts = _tables(report, inputs, base, full_side, copies)
+    print("\n" + "\n\n".join(parts))
+    finish_run(parts, args, "bench_big", "Maps larger than memory",
+               f"Run time {time.perf_counter() - t0:.0f} s; {load_average()} at the end.")
+    return 0
+
+
+def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full_side: int,
+            copies: Sequence[int]) -> list[str]:
+    parts = [f"Inputs, built in one temporary folder (deleted after the run): a float32 GeoTIFF mosaic of the six "
+             f"real DEMs of `dems/` ({REGION:,}-cell regions, each a mirrored, shifted copy of one DEM "
+             f"reflected about its edges, heights about its median on a ramp of {RAMP_M:g} m; tiled "
+             f"{BLOCK} x {BLOCK}, deflate + predictor 3, BigTIFF; written one row of blocks at a time), and a LAZ "
+             f"of shifted copies of `{SOURCE_CLOUD}` laid side by side ({CLOUD_COPIES_PER_ROW} a row), "
+             f"written copy after copy. The quarter and half maps are built the same way.",
+             markdown_table(["map", "size", "shape", "content", "file MB", "build s"], inputs),
+             f"Each run is a fresh process (`compress_file(..., tile_size={TILE_SIZE})`, the cloud with "
+             f"`chunk_points={CLOUD_CHUNK:,}`; `decompress_bands` to `.tif` / `.laz`). Peak RSS: "
+             f"`/usr/bin/time -v` (largest process); growth: above the {_mb(base['peak'])} MB of a process "
+             "that only imports dftpcc; tree peak: the summed RSS of the process and its dask workers, sampled "
+             f"every {SAMPLE_S} s; time: the call, without start-up and import; throughput: grid cells "
+             "(the raster) or points read / written (the cloud) per second; bits per valid cell or per point "
+             "read, of the .dftpc file. One run each.",
+             markdown_table(_Report.HEAD, report.rows)]
+    if report.parallel:
+        parts += [f"Serial against a local dask cluster of {WORKERS} workers (`workers={WORKERS}`), "
+                  "on the GeoTIFF's quarter; identical: the two outputs compared byte for byte.",
+                  markdown_table(["op", "size", "1 worker s", f"{WORKERS} workers s", "speed-up",
+                                  "identical", "tree peak MB"], report.parallel)]
+    if report.grids:
+        parts += ["The cloud's grid (automatic resolution), held whole in memory while its tiles are coded:",
+                  markdown_table(["size", "grid", "cells", "occupied", "resolution m"], report.grids)]
+    if report.failures:
+        parts.append("Failures:\n\n" + "\n".join(f"- {f}" for f in report.failures))
+    return parts
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
