@@ -149,9 +149,8 @@ def _default_typestore() -> Any:
     return get_typestore(Stores.ROS2_HUMBLE)
 
 
-@contextmanager
-def _open(path: Path, topic: str | None) -> Iterator[tuple[Any, list[Any]]]:
-    """The reader and the connections of the chosen PointCloud2 topic."""
+def _opened(path: Path) -> Any:
+    """A rosbags reader of ``path``, opened; a bag rosbags cannot read is one InvalidInputError."""
     try:
         reader = _any_reader()([bag_folder(path)], default_typestore=_default_typestore())
         reader.open()
@@ -159,6 +158,13 @@ def _open(path: Path, topic: str | None) -> Iterator[tuple[Any, list[Any]]]:
         raise
     except Exception as exc:  # noqa: BLE001 - rosbags raises its own errors on bad bags
         raise InvalidInputError(f"{path}: cannot read as a ROS bag: {exc}") from None
+    return reader
+
+
+@contextmanager
+def _open(path: Path, topic: str | None) -> Iterator[tuple[Any, list[Any]]]:
+    """The reader and the connections of the chosen PointCloud2 topic."""
+    reader = _opened(path)
     try:
         clouds = sorted({c.topic for c in reader.connections if c.msgtype in POINTCLOUD2})
         if not clouds:
@@ -482,13 +488,7 @@ def read_poses(path: str | Path, pose_topic: str, *, child_frame: str | None = N
     frame: str | None = None
     named: str | None = None  # the child frame the poses name (Odometry, TF); a PoseStamped names none
     children: set[str] = set()
-    try:
-        reader = _any_reader()([bag_folder(path)], default_typestore=_default_typestore())
-        reader.open()
-    except InvalidInputError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - rosbags raises its own errors on bad bags
-        raise InvalidInputError(f"{path}: cannot read as a ROS bag: {exc}") from None
+    reader = _opened(path)
     try:
         connections = [c for c in reader.connections if c.topic == pose_topic]
         if not connections:
