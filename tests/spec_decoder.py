@@ -398,19 +398,24 @@ def _zstd_chunk(p: bytes, count: int) -> np.ndarray:
     return ((z >> np.uint64(1)) ^ (np.uint64(0) - (z & np.uint64(1)))).view(np.int64)
 
 
-def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """The values of a COEF-style section: int64 (quantized) or complex128 (complex64 chunks)."""
-    bounds = _chunk_bounds(total)
-    if len(p) < 4 or struct.unpack_from("<I", p, 0)[0] != len(bounds):
+def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray, *, free: bool = False) -> np.ndarray:
+    """The values of a COEF-style section: int64 (quantized) or complex128 (complex64 chunks);
+    ``free``: 1.1's BASE or tile COEF, whose chunk lengths are the writer's choice."""
+    if len(p) < 4:
         raise ValueError("coefficient section has the wrong chunk count")
-    values, kinds, pos = [], set(), 4
-    for start, stop in bounds:
+    (nchunks,) = struct.unpack_from("<I", p, 0)
+    bounds = _chunk_bounds(total)
+    if (nchunks > total) if free else (nchunks != len(bounds)):
+        raise ValueError("coefficient section has the wrong chunk count")
+    values, kinds, pos, stop = [], set(), 4, 0
+    for k in range(nchunks):
         if pos + 16 > len(p):
             raise ValueError("coefficient chunk is truncated")
         count, nbytes, crc, kind = struct.unpack_from("<4I", p, pos)
+        start, stop = (stop, stop + count) if free else bounds[k]
         body = p[pos + 16:pos + 16 + nbytes]
         pos += 16 + nbytes
-        if count != stop - start or len(body) != nbytes or zlib.crc32(body) != crc:
+        if count != stop - start or count == 0 or stop > total or len(body) != nbytes or zlib.crc32(body) != crc:
             raise ValueError("coefficient chunk is damaged")
         kinds.add(kind)
         if kind == 1:
@@ -423,6 +428,8 @@ def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray) -> np.n
             values.append(_ans_chunk(body, count, radius[start:stop], angle[start:stop]))
         else:
             raise ValueError(f"coefficient chunk has unknown kind {kind}")
+    if stop != total:
+        raise ValueError("coefficient chunks do not hold the stream")
     if len(kinds) > 1:
         raise ValueError("coefficient chunks mix kinds")
     if not values:
@@ -631,7 +638,7 @@ def _base_layer(p: bytes, rows: int, cols: int, size: int, cutoff: float, step: 
     if reach == 0:  # no base layer: not even the DC
         if coef_count != 0:
             raise ValueError("coefficient count is missing or disagrees with the base layer")
-        _stream(p, 0, np.zeros(0), np.zeros(0))
+        _stream(p, 0, np.zeros(0), np.zeros(0), free=True)
         return np.zeros((1, 1))
     # hypot(i/2, j/2) <= radius_max needs i, j <= 2 radius_max: only that corner is enumerated.
     ni, nj = min(rows, int(2 * radius_max) + 1), min(cols, int(2 * radius_max) + 1)
@@ -642,7 +649,7 @@ def _base_layer(p: bytes, rows: int, cols: int, size: int, cutoff: float, step: 
     if not isinstance(coef_count, int) or isinstance(coef_count, bool) or coef_count != kept:
         raise ValueError("coefficient count is missing or disagrees with the base layer")
     pos = order[:kept]
-    values = _stream(p, kept, radius[pos], angle[pos])
+    values = _stream(p, kept, radius[pos], angle[pos], free=True)
     if np.iscomplexobj(values):
         raise ValueError("base layer holds float coefficients")
     g = np.zeros(ni * nj)
@@ -673,7 +680,7 @@ def _decode_tile(data: bytes, k: int, secs: dict, g: dict, params: dict, size: i
     wc0, wc1 = max(0, c0 - overlap), min(cols, c1 + overlap)
     hh, ww = wr1 - wr0, wc1 - wc0
     pos, radius, angle = _dct_prefix(hh, ww, float(params["cutoff"]))
-    values = _stream(_payload(data, b"COEF", secs[b"COEF"], name), len(pos), radius, angle)
+    values = _stream(_payload(data, b"COEF", secs[b"COEF"], name), len(pos), radius, angle, free=True)
     if np.iscomplexobj(values):
         raise ValueError(f"{name}holds float coefficients")
     coefs = np.zeros(hh * ww)

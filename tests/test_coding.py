@@ -235,3 +235,52 @@ def test_a_dem_with_heights_out_of_range_is_refused(gentle):
     dem = DEM(grid, heights, np.ones(grid.shape, bool), gridding_rmse=0.0)
     with pytest.raises(InvalidInputError, match=r"heights are out of range: they run from 10 to 5e\+299 m"):
         encoder.encode_dem(dem, dftpcc.make_params(resolution=1.0))
+
+
+def _chunk_counts(blob: bytes) -> list[int]:
+    (n,), pos, counts = struct.unpack_from("<I", blob, 0), 4, []
+    for _ in range(n):
+        count, nbytes, _crc, _kind = struct.unpack_from("<IIII", blob, pos)
+        counts.append(count)
+        pos += 16 + nbytes
+    return counts
+
+
+def test_a_stream_without_progressive_decoding_takes_as_few_chunks_as_its_tables_allow():
+    rng = np.random.default_rng(5)
+    n = 5000
+    radius, angle = np.sort(rng.uniform(0, 200, n)), rng.uniform(0, 1, n)
+    small = np.round(rng.laplace(0, 40, n) * np.exp(-radius / 40)).astype(np.int64)
+    one = coding.encode_coefficients(small, radius=radius, angle=angle, progressive=False)
+    growing = coding.encode_coefficients(small, radius=radius, angle=angle)
+    assert _chunk_counts(one) == [n] and len(_chunk_counts(growing)) == 5
+    assert len(one) < len(growing)  # four chunk headers, band scales and ANS flushes fewer
+    # Large low frequencies would widen one chunk's alphabet past the table budget: the first
+    # chunks keep them apart, and the rest is one chunk.
+    large = small.copy()
+    large[:300] = rng.integers(-30000, 30000, 300) * (rng.uniform(size=300) < 0.5)
+    counts = _chunk_counts(coding.encode_coefficients(large, radius=radius, angle=angle, progressive=False))
+    assert counts == [256, 512, n - 768]
+    for q in (small, large):
+        blob = coding.encode_coefficients(q, radius=radius, angle=angle, progressive=False)
+        back = coding.decode_coefficients(blob, n, radius=radius, angle=angle, progressive=False)
+        np.testing.assert_array_equal(back, q)
+
+
+def test_free_chunk_lengths_must_hold_the_stream_exactly():
+    values = np.arange(600, dtype=np.int64) % 7 - 3
+    cctx = zstandard.ZstdCompressor()
+    def chunks(*counts):
+        at = np.cumsum((0,) + counts)
+        return coding._chunks([(c, coding._code_chunk(values[a:a + c], None, None, "zstd", False, cctx))
+                               for a, c in zip(at, counts)])
+    np.testing.assert_array_equal(coding.decode_coefficients(chunks(100, 500), 600, progressive=False), values)
+    for counts, message in (((100, 499), "hold 599 values, expected 600"), ((100, 501), "holds 501 values"),
+                            ((0, 600), "holds 0 values")):
+        with pytest.raises(CorruptFileError, match=message):
+            coding.decode_coefficients(chunks(*counts), 600, progressive=False)
+    with pytest.raises(CorruptFileError, match="601 chunks for 600 values"):
+        coding.decode_coefficients(struct.pack("<I", 601), 600, progressive=False)
+    # A 1.0 stream keeps its rule: the same two chunks are refused there.
+    with pytest.raises(CorruptFileError, match="chunk 0 holds 100 values, expected 256"):
+        coding.decode_coefficients(chunks(100, 500), 600)

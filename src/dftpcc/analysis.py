@@ -181,11 +181,11 @@ class Analysis:
         total = dot(err, err) + dot(dropped, dropped) + self.outside_energy
         return math.sqrt(total * self.parseval)
 
-    def encode(self, trial: Trial, *, exhaustive: bool = True) -> bytes:
-        """The COEF section of ``trial``."""
-        return self.encode_stream(trial.stream, exhaustive=exhaustive)
+    def encode(self, trial: Trial, *, exhaustive: bool = True, progressive: bool = True) -> bytes:
+        """The COEF section of ``trial`` (``progressive=False``: one chunk, a tile's)."""
+        return self.encode_stream(trial.stream, exhaustive=exhaustive, progressive=progressive)
 
-    def encode_stream(self, stream: np.ndarray, *, exhaustive: bool = True) -> bytes:
+    def encode_stream(self, stream: np.ndarray, *, exhaustive: bool = True, progressive: bool = True) -> bytes:
         n = stream.size
         return coding.encode_coefficients(stream, radius=self.radius[:n], angle=self.angle[:n],
-                                          coder=self.params.coder, exhaustive=exhaustive)
+                                          coder=self.params.coder, exhaustive=exhaustive, progressive=progressive)

@@ -205,6 +205,8 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
 
 
 def _chunk_bounds(count: int) -> list[tuple[int, int]]:
+    """Chunks of :data:`FIRST_CHUNK`, then each :data:`CHUNK_GROWTH` times longer, so a cut stream
+    still decodes its first chunks."""
     bounds, start, size = [], 0, FIRST_CHUNK
     while start < count:
         stop = min(count, start + size)
@@ -487,7 +489,8 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
 
 
 def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
-                        angle: np.ndarray | None = None, coder: str = "ans", exhaustive: bool = True) -> bytes:
+                        angle: np.ndarray | None = None, coder: str = "ans", exhaustive: bool = True,
+                        progressive: bool = True) -> bytes:
     """Code an ordered coefficient stream as self-checking chunks.
 
     Parameters
@@ -504,26 +507,73 @@ def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
     exhaustive : bool
         Try every band layout per chunk (``False``: the first only; faster,
         for rate-control searches that only need a size estimate).
+    progressive : bool
+        Chunks of growing length, so a prefix of the stream decodes (1.0 files); ``False``: as
+        few chunks as the ANS tables allow (:func:`_free_bounds`; a 1.1 file, docs/format.md).
     """
-    out = [struct.pack("<I", len(_chunk_bounds(values.size)))]
-    complex_kind = np.iscomplexobj(values)
     cctx = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
-    for start, stop in _chunk_bounds(values.size):
-        part = values[start:stop]
-        if complex_kind:
-            payload, kind = part.astype("<c8").tobytes(), KIND_COMPLEX64
-        elif coder == "ans" and radius is not None and int(np.abs(part).max()) <= MAX_ANS_SYMBOL and (
-                ans := _encode_ans(part, radius[start:stop], angle[start:stop], exhaustive)) is not None:
-            payload, kind = ans, KIND_ANS_TABLE
-        else:
-            payload, kind = cctx.compress(_pack_ints(part)), KIND_INT
-        out.append(_CHUNK.pack(stop - start, len(payload), zlib.crc32(payload), kind))
+    if progressive or coder != "ans" or radius is None or np.iscomplexobj(values):
+        bounds = _chunk_bounds(values.size) if progressive else [(0, values.size)] if values.size else []
+    else:
+        bounds = _free_bounds(values, radius, angle, exhaustive)
+    if any(stop - start > MAX_CHUNK_COEFS for start, stop in bounds):
+        raise InvalidInputError(f"{values.size} coefficients do not fit chunks of at most {MAX_CHUNK_COEFS}: "
+                                "use a smaller tile size")
+    return _chunks([(stop - start, _code_chunk(values[start:stop], None if radius is None else radius[start:stop],
+                                               None if angle is None else angle[start:stop], coder, exhaustive,
+                                               cctx)) for start, stop in bounds])
+
+
+def _free_bounds(values: np.ndarray, radius: np.ndarray, angle: np.ndarray | None,
+                 exhaustive: bool) -> list[tuple[int, int]]:
+    """Chunks of a 1.1 stream: 1.0's growing chunks until the rest fits one ANS chunk, then that one.
+
+    Every chunk costs a header, band scales and an ANS flush, so one chunk is smallest, unless the
+    low frequencies' large integers widen its alphabet past :func:`table_budget` (it would fall
+    back to zstd): short first chunks keep them apart.
+    """
+    bounds, start, size = [], 0, FIRST_CHUNK
+    while start < values.size:
+        rest = values[start:]
+        if int(np.abs(rest).max()) <= MAX_ANS_SYMBOL and _ans_fits(rest, radius[start:], angle[start:], exhaustive):
+            bounds.append((start, values.size))
+            break
+        stop = min(values.size, start + size)
+        bounds.append((start, stop))
+        start, size = stop, size * CHUNK_GROWTH
+    return bounds
+
+
+def _ans_fits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: bool) -> bool:
+    """Whether :func:`_encode_ans` finds a band layout within the table budget for ``q``."""
+    max_abs = int(np.abs(q).max()) if q.size else 0
+    layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
+    return any(_Bands.of(q, radius, angle, k).table_work(max_abs) <= table_budget(q.size) for k in layouts)
+
+
+def _code_chunk(part: np.ndarray, radius: np.ndarray | None, angle: np.ndarray | None, coder: str,
+                exhaustive: bool, cctx: zstandard.ZstdCompressor) -> tuple[bytes, int]:
+    """One chunk's payload and kind: complex64 as is, else ANS where it applies, else zstd."""
+    if np.iscomplexobj(part):
+        return part.astype("<c8").tobytes(), KIND_COMPLEX64
+    if coder == "ans" and radius is not None and int(np.abs(part).max()) <= MAX_ANS_SYMBOL and (
+            ans := _encode_ans(part, radius, angle, exhaustive)) is not None:
+        return ans, KIND_ANS_TABLE
+    return cctx.compress(_pack_ints(part)), KIND_INT
+
+
+def _chunks(coded: list[tuple[int, tuple[bytes, int]]]) -> bytes:
+    """The COEF structure: the chunk count, then each chunk's header and payload."""
+    out = [struct.pack("<I", len(coded))]
+    for count, (payload, kind) in coded:
+        out.append(_CHUNK.pack(count, len(payload), zlib.crc32(payload), kind))
         out.append(payload)
     return b"".join(out)
 
 
 def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.ndarray | None = None,
-                        angle: np.ndarray | None = None, allow_partial: bool = False) -> np.ndarray:
+                        angle: np.ndarray | None = None, allow_partial: bool = False,
+                        progressive: bool = True) -> np.ndarray:
     """Inverse of :func:`encode_coefficients`.
 
     Parameters
@@ -537,6 +587,9 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
     allow_partial : bool
         Return the coefficients of the whole chunks present instead of
         raising when the section is cut short (progressive decoding).
+    progressive : bool
+        ``False``: a 1.1 stream, whose chunks have lengths of the writer's choosing
+        (:func:`encode_coefficients`).
 
     Returns
     -------
@@ -549,20 +602,25 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
             return np.zeros(0, dtype=np.int64)
         raise CorruptFileError("coefficient section is truncated")
     (nchunks,) = struct.unpack_from("<I", blob, 0)
-    bounds = _chunk_bounds(expected)
-    if nchunks != len(bounds):
+    bounds = _chunk_bounds(expected) if progressive else None
+    if bounds is not None and nchunks != len(bounds):
         raise CorruptFileError(f"coefficient section has {nchunks} chunks, header implies {len(bounds)}")
-    pos, parts = 4, []
+    if bounds is None and nchunks > expected:  # every chunk holds a value at least
+        raise CorruptFileError(f"coefficient section has {nchunks} chunks for {expected} values")
+    pos, parts, stop = 4, [], 0
     dctx = zstandard.ZstdDecompressor()
-    for index, (start, stop) in enumerate(bounds):
+    for index in range(nchunks):
         if pos + _CHUNK.size > len(blob):
             if allow_partial:
                 break
             raise CorruptFileError(f"coefficient chunk {index} is truncated")
         count, nbytes, crc, kind = _CHUNK.unpack_from(blob, pos)
         pos += _CHUNK.size
-        if count != stop - start or count > MAX_CHUNK_COEFS:
-            raise CorruptFileError(f"coefficient chunk {index} holds {count} values, expected {stop - start}")
+        # 1.1 streams: chunk lengths of the writer's choosing, together the stream's.
+        start, stop = bounds[index] if bounds is not None else (stop, stop + count)
+        if count != stop - start or count > MAX_CHUNK_COEFS or count < 1 or stop > expected:
+            raise CorruptFileError(f"coefficient chunk {index} holds {count} values, expected "
+                                   + (f"{stop - start}" if bounds is not None else f"1 to {expected - start}"))
         if pos + nbytes > len(blob):
             if allow_partial:
                 break
@@ -585,6 +643,8 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
             parts.append(_decode_ans(payload, radius[start:stop], angle[start:stop], what))
         else:
             raise CorruptFileError(f"{what} has unknown kind {kind}")
+    if bounds is None and not allow_partial and stop != expected:
+        raise CorruptFileError(f"coefficient chunks hold {stop} values, expected {expected}")
     if not parts:
         return np.zeros(0, dtype=np.int64)
     if len({p.dtype.kind for p in parts}) != 1:

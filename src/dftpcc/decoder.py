@@ -102,7 +102,7 @@ class _Base:
         if self.i.size != header.coef_count:
             raise CorruptFileError(f"the base layer's coefficient count {header.coef_count} disagrees with the "
                                    f"grid, tile size and cutoff ({self.i.size})")
-        q = coding.decode_coefficients(blob, self.i.size, radius=radius, angle=angle)
+        q = coding.decode_coefficients(blob, self.i.size, radius=radius, angle=angle, progressive=False)
         if q.dtype.kind != "i" or q.size != self.i.size:
             raise CorruptFileError("the base layer is not one integer per coefficient")
         self.values = coding.dequantize(q, params.step)
@@ -183,7 +183,7 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -
     lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0))
     n = spectrum.kept_count(lay, params.cutoff)
     order, radii, angles = spectrum.kept_order(lay, params.cutoff)
-    stream = coding.decode_coefficients(blobs[b"COEF"], n, radius=radii[:n], angle=angles[:n])
+    stream = coding.decode_coefficients(blobs[b"COEF"], n, radius=radii[:n], angle=angles[:n], progressive=False)
     if stream.dtype.kind != "i" or stream.size != n:
         raise CorruptFileError("tile coefficients are not one integer per kept coefficient")
     corner_shape, where = spectrum.corner(lay, order[:n])

@@ -351,7 +351,7 @@ class MapBuilder:
         header = Header(grid=grid, params=self.params, point_count=self.point_count, cell_count=occupied,
                         plane=(0.0, 0.0, 0.0), crs=self.crs, stats=stats, coef_count=0, tiles=index)
         base = coding.encode_coefficients(np.zeros(0, dtype=np.int64), radius=np.zeros(0), angle=np.zeros(0),
-                                          coder=self.params.coder)
+                                          coder=self.params.coder, progressive=False)
         parts.sort()
         return header, base, parts
 

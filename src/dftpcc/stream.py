@@ -324,7 +324,8 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
     nb = int(np.searchsorted(bradius, base_limit(grid.shape, tile, params.cutoff, BASE_CYCLES_PER_TILE),
                              side="right")) if bi.size else 0
     q = coding.quantize(bcoefs[:nb], params.step, params.deadzone)
-    base_blob = coding.encode_coefficients(q, radius=bradius[:nb], angle=bangle[:nb], coder=params.coder)
+    base_blob = coding.encode_coefficients(q, radius=bradius[:nb], angle=bangle[:nb], coder=params.coder,
+                                           progressive=False)
     base_error = coding.dequantize(q, params.step) - bcoefs[:nb]
     tiling = TileGrid(grid.rows, grid.cols, tile)
     a, b, c = survey["plane"]

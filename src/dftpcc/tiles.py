@@ -192,7 +192,7 @@ class TiledAnalysis:
     def base_blob(self, q: np.ndarray) -> bytes:
         """The BASE section of the base layer's integers ``q``."""
         return coding.encode_coefficients(q, radius=self.base_radius[: q.size], angle=self.base_angle[: q.size],
-                                          coder=self.params.coder)
+                                          coder=self.params.coder, progressive=False)
 
     def jobs(self, q: np.ndarray, step: float) -> list[TileJob]:
         """One :class:`TileJob` per occupied tile, against the base layer ``q`` decoded at ``step``."""
@@ -319,8 +319,9 @@ class TiledAnalysis:
         base = pieces[0]
         out = [coding.encode_coefficients(base, radius=self.base_radius[: base.size],
                                           angle=self.base_angle[: base.size], coder=self.params.coder,
-                                          exhaustive=exhaustive)]
-        out += [an.encode_stream(piece, exhaustive=exhaustive) for (_, an), piece in zip(self.tiles, pieces[1:])]
+                                          exhaustive=exhaustive, progressive=False)]
+        out += [an.encode_stream(piece, exhaustive=exhaustive, progressive=False)
+                for (_, an), piece in zip(self.tiles, pieces[1:])]
         self._last_parts = (stream, exhaustive, out)
         return out
 
@@ -399,5 +400,5 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
         resid = encode_residual(q, params.coder)
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
-    return TileCode(job.k, occupancy.encode_mask(mask), an.encode(trial), resid, int(mask.sum()),
+    return TileCode(job.k, occupancy.encode_mask(mask), an.encode(trial, progressive=False), resid, int(mask.sum()),
                     dot(err, err), float(np.abs(err).max()), weighted)

@@ -19,11 +19,13 @@ import sys
 import zlib
 from pathlib import Path
 
+import numpy as np
 import zstandard
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1]))  # the checkout, for tests.fuzz
 
+from dftpcc import coding  # noqa: E402
 from tests.fuzz import craft  # noqa: E402
 from tests.fuzz.seeds import seed_files  # noqa: E402
 
@@ -279,7 +281,24 @@ def tiled_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
         # 8.4 million base coefficients (a 4095-tile strip of 2048-cell tiles, at cutoff 0) in 1.5 KB.
         "tiled_base_bomb": (craft.tiled_file(2048, 2047 * 2048 + 16, 2048, {2048: 100}, cutoff=0.0), R,
                             "refusing to decode"),
+        # A tile's chunks hold one value fewer than its stream: 1.1 chunks have free lengths that add up.
+        "tiled_coef_chunks_fall_short": (_short_chunks(craft.tiled_file(64, 64, 32, {1: 100}, cutoff=0.0)), C,
+                                         r"tile 1 \(tile row 0, column 0\): coefficient chunks hold 1599 values, "
+                                         "expected 1600"),
     }
+
+
+def _short_chunks(tiled: bytes) -> bytes:
+    """Tile 1's COEF (its values all 0) re-coded as two chunks that hold one value too few."""
+    sections = []
+    for tag, k, payload in craft.split_tiled(tiled):
+        if tag == b"COEF" and k == 1:
+            count = struct.unpack_from("<I", payload, 4)[0]  # the one chunk's value count
+            cctx = zstandard.ZstdCompressor()
+            payload = coding._chunks([(n, coding._code_chunk(np.zeros(n, dtype=np.int64), None, None, "zstd",
+                                                             False, cctx)) for n in (count // 2, count - count // 2 - 1)])
+        sections.append((tag, k, payload))
+    return craft.join_tiled(sections)
 
 
 def main() -> int:

@@ -336,10 +336,11 @@ def tiled_file(rows: int, cols: int, size: int, occupied: dict[int, int], *, ove
         lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0))
         _order, radii, angles = spectrum.kept_order(lay, cutoff)
         mask_blob = occupancy.encode_mask(mask.reshape(h, w))
-        coef_blob = coding.encode_coefficients(np.zeros(radii.size, np.int64), radius=radii, angle=angles)
+        coef_blob = coding.encode_coefficients(np.zeros(radii.size, np.int64), radius=radii, angle=angles,
+                                              progressive=False)
         sections += [(b"MASK", k, mask_blob), (b"COEF", k, coef_blob)]
     i, _j, radius, angle = tiles.base_order((rows, cols), size, cutoff)
-    base = coding.encode_coefficients(np.zeros(i.size, np.int64), radius=radius, angle=angle)
+    base = coding.encode_coefficients(np.zeros(i.size, np.int64), radius=radius, angle=angle, progressive=False)
     total = int(cells.sum())
     geom_blob = GEOM.pack(0.0, 0.0, 0.0, 1.0, rows, cols, 0.0, total, total, 0.0, 0.0, 0.0)
     parm = json.dumps({"step": step, "tile_size": size, "cutoff": cutoff}).encode()
