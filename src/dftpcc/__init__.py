@@ -16,7 +16,9 @@ Most users need only :func:`compress`, :func:`decompress`, :func:`compress_file`
 
 from __future__ import annotations
 
-from .encoder import compress
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from .errors import (
     CoarseMapWarning,
     InputMismatchWarning,
@@ -30,10 +32,43 @@ from .errors import (
     ResourceLimitError,
     UnsupportedFormatError,
 )
-from .files import compress_file, decompress_file
-from .io import PointCloud, read, write
-from .mapfile import CompressedMap, decompress, open
-from .params import PROFILES, Params, make_params
+
+if TYPE_CHECKING:  # what the names below resolve to, for type checkers and IDEs
+    from .encoder import compress
+    from .files import compress_file, decompress_file
+    from .io import PointCloud, read, write
+    from .mapfile import CompressedMap, decompress, open
+    from .params import PROFILES, Params, make_params
+
+#: The top-level API, imported on first use (PEP 562): the codec pulls in scipy.fft, rasterio and
+#: constriction, which ``dftpcc --help`` and the exceptions do not need (as SciPy and scikit-image
+#: load their submodules).
+_LAZY = {
+    "compress": "encoder",
+    "compress_file": "files", "decompress_file": "files",
+    "PointCloud": "io", "read": "io", "write": "io",
+    "CompressedMap": "mapfile", "decompress": "mapfile", "open": "mapfile",
+    "PROFILES": "params", "Params": "params", "make_params": "params",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    else:
+        try:  # a submodule (dftpcc.coding, ...), as the eager imports used to make every one reachable
+            value = importlib.import_module(f".{name}", __name__)
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{name}":
+                raise
+            raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
 
 __version__ = "0.1.0"
 
