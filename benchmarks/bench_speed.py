@@ -37,7 +37,7 @@ from typing import Any, Callable, Iterator  # noqa: E402
 import numpy as np  # noqa: E402
 
 import dftpcc  # noqa: E402
-from dftpcc import analysis, coding, container, decoder, encoder, occupancy, spectrum  # noqa: E402
+from dftpcc import analysis, coding, container, decoder, encoder, mapfile, occupancy, spectrum  # noqa: E402
 from dftpcc.files import dem_from_geotiff  # noqa: E402
 
 from benchmarks.common import (  # noqa: E402
@@ -79,12 +79,12 @@ COMPRESS_STAGES = (
     ("statistics + container", encoder, "_pack", 0),
 )
 DECOMPRESS_STAGES = (
-    ("parse the container", decoder, "unpack", 0),
+    ("parse the container", mapfile, "unpack_source", 0),
     ("decode the mask", occupancy, "decode_mask", 0),
     ("decode coefficients", coding, "decode_coefficients", 0),
     ("inverse transform", spectrum, "inverse", 0),
     ("add the plane", decoder, "plane_values", 0),
-    ("rebuild points", decoder, "dem_to_points", 0),
+    ("rebuild points", mapfile, "dem_to_points", 0),
 )
 
 
