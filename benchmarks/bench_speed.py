@@ -64,8 +64,8 @@ MIN_OVER_DRACO = 10.0        # times DracoPy's speed
 COMPRESS_STAGES = (
     ("check the points", encoder, "as_points", 0),
     ("check heights", encoder, "check_heights", 0),
-    ("fit the grid", encoder, "fit_grid", 0),
-    ("rasterize", encoder, "rasterize", 0),
+    ("fit the grid", encoder, "_fit_grid", 0),
+    ("rasterize", encoder, "_rasterize", 0),
     ("analysis", encoder, "Analysis", 0),
     ("fit the plane", analysis, "fit_plane", 1),
     ("evaluate the plane", analysis, "plane_values", 1),
