@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -39,6 +39,10 @@ class Trial:
     heights: np.ndarray  # the DEM the decoder will rebuild (relative to z0)
     rmse: float  # on occupied cells, metres
     max_error: float  # on occupied cells, metres
+    #: The rebuilt minus the gridded heights on the occupied cells (metres, row-major), when the
+    #: trial was asked to keep them (``Analysis.trial(..., keep_errors=True)``): the file's
+    #: statistics are made of them, and rate control's many trials need not hold them.
+    errors: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
 
 class Analysis:
@@ -152,8 +156,9 @@ class Analysis:
         """The integers a quantized trial at (cutoff, step) codes, without rebuilding the DEM."""
         return coding.quantize(self.reals(self.count(cutoff)), coding.short_step(step), self.params.deadzone)
 
-    def trial(self, cutoff: float, step: float) -> Trial:
-        """Quantize the coefficients inside ``cutoff`` with ``step`` and rebuild the DEM from them."""
+    def trial(self, cutoff: float, step: float, *, keep_errors: bool = False) -> Trial:
+        """Quantize the coefficients inside ``cutoff`` with ``step`` and rebuild the DEM from them
+        (``keep_errors``: with :attr:`Trial.errors`)."""
         n = self.count(cutoff)
         step = coding.short_step(step)
         if self.params.storage == "complex64":
@@ -166,7 +171,10 @@ class Analysis:
                 decoded = decoded.view(np.complex128)
         heights = self.synthesise(decoded)
         err = (heights - self.dem.heights)[self.mask]
-        return Trial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))), float(np.abs(err).max()))
+        out = Trial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))), float(np.abs(err).max()))
+        if keep_errors:
+            out.errors = err
+        return out
 
     def proxy_rmse(self, cutoff: float, step: float) -> float:
         """Whole-grid RMSE predicted in the coefficient domain, without an inverse transform.

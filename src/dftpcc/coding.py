@@ -259,28 +259,44 @@ def unzstd(dctx: zstandard.ZstdDecompressor, payload: bytes, limit: int, what: s
         raise CorruptFileError(f"{what} does not decompress: {exc}") from None
 
 
-def band_ids(radius: np.ndarray, angle: np.ndarray, layout: int) -> np.ndarray:
+def band_ids(radius: np.ndarray, angle: np.ndarray, layout: int, *, rings: np.ndarray | None = None) -> np.ndarray:
     """Band number of each coefficient under ``BAND_LAYOUTS[layout]``.
 
-    ``radius`` is in DFT frequency pixels, ``angle`` scaled to [0, 1].
+    ``radius`` is in DFT frequency pixels, ``angle`` scaled to [0, 1];
+    ``rings``: ``(radius / width).astype(np.int64)`` for the layout's ring width, if known
+    (the layouts of one chunk share their rings).
     """
     width, sectors = BAND_LAYOUTS[layout]
+    if rings is None:
+        rings = (radius / width).astype(np.int64)
+    if sectors == 1:  # one sector: every angle in [0, 1] falls in sector 0
+        return rings
     sector = np.minimum((angle * sectors).astype(np.int64), sectors - 1)
-    return (radius / width).astype(np.int64) * sectors + sector
+    return rings * sectors + sector
 
 
 def _band_scales(q: np.ndarray, bands: np.ndarray) -> tuple[int, np.ndarray]:
     """First band and 8-bit log-scale codes of the bands in ``bands`` (0 = all zero)."""
+    lo, codes, _ = _band_statistics(q, bands)
+    return lo, codes
+
+
+def _band_statistics(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | None = None
+                     ) -> tuple[int, np.ndarray, np.ndarray]:
+    """:func:`_band_scales` and the number of values in each band; ``magnitudes``:
+    ``np.abs(q).astype(np.float64)``, if known (every layout of a chunk needs them)."""
     lo = int(bands.min())
     local = bands - lo
     n = int(local.max()) + 1
-    mean_abs = np.bincount(local, weights=np.abs(q).astype(np.float64), minlength=n)
+    if magnitudes is None:
+        magnitudes = np.abs(q).astype(np.float64)
+    mean_abs = np.bincount(local, weights=magnitudes, minlength=n)
     count = np.bincount(local, minlength=n)
     # A band's scale is its mean |q| (the maximum-likelihood Laplace scale; the
     # table models take the geometric distribution of that mean).
     b = np.divide(mean_abs, count, out=np.zeros(n), where=count > 0)
     codes = np.where(b > 0, np.clip(np.round(np.log2(np.maximum(b, 1e-12)) * SCALE_STEPS) + SCALE_BIAS, 1, 255), 0)
-    return lo, codes.astype(np.uint8)
+    return lo, codes.astype(np.uint8), count
 
 
 def _scale_of(codes: np.ndarray) -> np.ndarray:
@@ -382,16 +398,24 @@ class _Bands(NamedTuple):
     layout: int
     codes: np.ndarray  # one per band, from the chunk's lowest band
     per_value: np.ndarray
+    models: int = -1  # distinct nonzero codes among the values (-1: count them from per_value)
 
     @classmethod
-    def of(cls, q: np.ndarray, radius: np.ndarray, angle: np.ndarray, layout: int) -> _Bands:
-        bands = band_ids(radius, angle, layout)
-        lo, codes = _band_scales(q, bands)
-        return cls(layout, codes, codes[bands - lo])
+    def of(cls, q: np.ndarray, radius: np.ndarray, angle: np.ndarray, layout: int, *,
+           magnitudes: np.ndarray | None = None, rings: np.ndarray | None = None) -> _Bands:
+        """The layout's bands of a chunk (``magnitudes``, ``rings``: see :func:`_band_statistics`
+        and :func:`band_ids`, when the caller has them)."""
+        bands = band_ids(radius, angle, layout, rings=rings)
+        lo, codes, count = _band_statistics(q, bands, magnitudes)
+        # The codes the values take are those of the bands holding values: counted per band.
+        models = int(np.count_nonzero(np.bincount(codes[count > 0], minlength=256)[1:]))
+        return cls(layout, codes, codes[bands - lo], models)
 
     def table_work(self, max_abs: int) -> int:
         """Table entries the decoder builds: one table per distinct nonzero code."""
-        return int(np.count_nonzero(np.bincount(self.per_value, minlength=256)[1:])) * (2 * max_abs + 1)
+        models = self.models if self.models >= 0 else \
+            int(np.count_nonzero(np.bincount(self.per_value, minlength=256)[1:]))
+        return models * (2 * max_abs + 1)
 
 
 def _encode_ans_with(q: np.ndarray, b: _Bands, max_abs: int) -> bytes:
@@ -405,12 +429,13 @@ def _encode_ans_with(q: np.ndarray, b: _Bands, max_abs: int) -> bytes:
     return _ANS_HEAD.pack(b.layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
 
 
-def _estimated_bits(q: np.ndarray, b: _Bands) -> float:
+def _estimated_bits(q: np.ndarray, b: _Bands, magnitudes: np.ndarray | None = None) -> float:
     """Bits the ANS chunk of :func:`_encode_ans_with` would take, side information included,
-    from the model's probabilities (within 0.01 % of the coded size on real maps)."""
+    from the model's probabilities (within 0.01 % of the coded size on real maps);
+    ``magnitudes``: ``np.abs(q).astype(np.float64)``, if known."""
     coded = b.per_value > 0
     codes = b.per_value[coded]
-    a = np.abs(q[coded]).astype(np.float64)
+    a = np.abs(q[coded]).astype(np.float64) if magnitudes is None else magnitudes[coded]
     # Probability of q under the two-sided geometric of mean |q| scale (see _decay),
     # log2 P(q) = log2((1 - t) / (1 + t)) + |q| log2(t): the two logarithms depend
     # on the scale code alone, so they come from a table of the 255 codes.
@@ -440,14 +465,21 @@ def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive
     """The chunk ANS-coded with the best band layout, or None when every layout
     would need more tables than :func:`table_budget` allows (the caller then uses zstd)."""
     max_abs = int(np.abs(q).max()) if q.size else 0
+    magnitudes = np.abs(q).astype(np.float64)  # every layout's scales and estimate use them
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
-    candidates = [b for b in (_Bands.of(q, radius, angle, k) for k in layouts)
+    rings: dict[float, np.ndarray] = {}  # per ring width: the layouts share them
+    for k in layouts:
+        width = BAND_LAYOUTS[k][0]
+        if width not in rings:
+            rings[width] = (radius / width).astype(np.int64)
+    candidates = [b for b in (_Bands.of(q, radius, angle, k, magnitudes=magnitudes, rings=rings[BAND_LAYOUTS[k][0]])
+                              for k in layouts)
                   if b.table_work(max_abs) <= table_budget(q.size)]
     if not candidates:
         return None
     if len(candidates) > 1 and q.size > EXACT_LAYOUT_CHOICE:
         # Long chunks: pick the layout by its estimated size, code it once.
-        candidates = [min(candidates, key=lambda b: _estimated_bits(q, b))]
+        candidates = [min(candidates, key=lambda b: _estimated_bits(q, b, magnitudes))]
     return min((_encode_ans_with(q, b, max_abs) for b in candidates), key=len)
 
 

@@ -21,7 +21,7 @@ from .analysis import Analysis, Trial
 from .container import Header, TileIndex, check_grid, pack, pack_tiled
 from .dem import DEM, as_points
 from .errors import CoarseMapWarning, InvalidInputError
-from .grid import auto_resolution, fit_grid, rasterize
+from .grid import _fit_grid, _rasterize, auto_resolution
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
@@ -107,14 +107,19 @@ def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str,
     params = params_of(params, shortcuts)
     points = as_points(points)
     check_heights(float(points[:, 2].min()), float(points[:, 2].max()))  # before gridding overflows on them
-    return encode_dem(grid_points(points, params), params, point_count=int(points.shape[0]), crs=crs,
+    return encode_dem(_grid_points(points, params), params, point_count=int(points.shape[0]), crs=crs,
                       on_stage=on_stage)
 
 
 def grid_points(points: np.ndarray, params: Params) -> DEM:
     """The DEM of ``points`` at ``params.resolution`` (chosen when ``'auto'``), frame and aggregate."""
+    return _grid_points(as_points(points), params)
+
+
+def _grid_points(points: np.ndarray, params: Params) -> DEM:
+    """:func:`grid_points` of checked points: each pass over millions of points counts."""
     resolution = auto_resolution(points) if params.resolution == "auto" else params.resolution
-    return rasterize(points, fit_grid(points, resolution, frame=params.frame), aggregate=params.aggregate)
+    return _rasterize(points, _fit_grid(points, resolution, params.frame), params.aggregate)
 
 
 def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
@@ -146,8 +151,9 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         _check_tiled(params)
     point_count = int(dem.mask.sum()) if point_count is None else point_count
     # What the reader would refuse, refused before any work: heights, then the grid.
-    occupied = dem.grid.z0 + dem.heights[dem.mask]
-    check_heights(float(occupied.min()), float(occupied.max()))
+    # (z0 + the lowest height is the lowest of z0 + each height: rounding is monotone.)
+    occupied = dem.heights[dem.mask]
+    check_heights(float(dem.grid.z0 + occupied.min()), float(dem.grid.z0 + occupied.max()))
     if not tile:
         check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
     on_stage("spectrum")
@@ -174,9 +180,10 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
             _check_step(an, cutoff, step)
         # No refill without a target: at a fixed step it lowers the error by a
         # few per cent rather than the size, for two more transforms.
-        trial = an.trial(cutoff, step)
+        # The file's statistics are made of this trial's errors: kept, not computed again.
+        trial = an.trial(cutoff, step) if tile else an.trial(cutoff, step, keep_errors=True)
         if params.step == 0.0:
-            _flag_coarse(dem, trial)
+            _flag_coarse(dem, trial, occupied)
         coefs = b"" if tile else an.encode(trial)  # a tiled map codes its tiles when packing
         return _pack(Choice(an, trial, coefs), params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles)
     # Rate control. For a size target the header's own bytes count too: start
@@ -309,9 +316,10 @@ def _overhead(an: Analysis, params: Params, mask_blob: bytes, point_count: int, 
                      header_only=True)) + STATS_SLACK
 
 
-def _flag_coarse(dem: DEM, trial: Trial) -> None:
-    """Warn when an automatic step leaves a DEM error that is a large part of the map's own height spread."""
-    heights = dem.heights[dem.mask]
+def _flag_coarse(dem: DEM, trial: Trial, heights: np.ndarray | None = None) -> None:
+    """Warn when an automatic step leaves a DEM error that is a large part of the map's own height spread
+    (``heights``: the occupied cells' heights, metres above z0, if the caller has them)."""
+    heights = dem.heights[dem.mask] if heights is None else heights
     spread = float(np.sqrt(np.mean((heights - heights.mean()) ** 2))) if heights.size else 0.0
     floor = dem.gridding_rmse or 0.0
     if spread > 0 and min(trial.rmse, floor) > COARSE_ERROR_FRACTION * spread:
@@ -337,8 +345,10 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | list[bytes], point_
     heights = trial.heights
     if choice.residual is not None:
         _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, params.target_max_error)
+    # Without a residual layer the decoder rebuilds the trial's heights, whose errors it may have kept.
+    errors = trial.errors if choice.residual is None else None
     stats = _stats(dem, heights, occupied, len(mask_blob), len(choice.coefs), len(choice.residual_blob),
-                   int(an.kept_cells.sum()) - int(occupied.sum()), params)
+                   int(an.kept_cells.sum()) - int(occupied.sum()), params, errors=errors)
     header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(an.kept_cells.sum()),
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.count(params.cutoff))
     on_stage("container")
@@ -406,10 +416,11 @@ def _tiled_stats(dem: DEM, codes: list[TileCode], occupied: int, base_blob: byte
 
 
 def _stats(dem: DEM, heights: np.ndarray, occupied: np.ndarray, mask_bytes: int, coef_bytes: int,
-           residual_bytes: int, interpolated: int, params: Params) -> dict[str, Any]:
-    """The figures a file states of the map it rebuilds (docs/format.md, STAT)."""
+           residual_bytes: int, interpolated: int, params: Params, *, errors: np.ndarray | None = None) -> dict[str, Any]:
+    """The figures a file states of the map it rebuilds (docs/format.md, STAT); ``errors``:
+    ``(heights - dem.heights)[occupied]`` if the caller has them."""
     floor = dem.gridding_rmse or 0.0
-    err = (heights - dem.heights)[occupied]
+    err = (heights - dem.heights)[occupied] if errors is None else errors
     stats: dict[str, Any] = {
         "dem_rmse_m": float(np.sqrt(np.mean(err * err))),
         "dem_max_error_m": float(np.abs(err).max()),

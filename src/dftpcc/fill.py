@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .sums import dot
 from .dem import DEM
 from .errors import InvalidInputError
 
@@ -34,9 +33,17 @@ def fit_plane(dem: DEM) -> tuple[float, float, float]:
     mx, my, mz = x.mean(), y.mean(), z.mean()
     x -= mx
     y -= my
-    z = z - mz
-    normal = np.array([[dot(x, x), dot(x, y)], [dot(x, y), dot(y, y)]])
-    rhs = np.array([dot(x, z), dot(y, z)])
+    z -= mz
+    # The five sums of products (dftpcc.sums.dot's arithmetic), written into one
+    # scratch array: fresh products for each would cost more than the sums.
+    scratch = np.empty_like(z)
+
+    def dot_(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.sum(np.multiply(a, b, out=scratch)))
+
+    xy = dot_(x, y)
+    normal = np.array([[dot_(x, x), xy], [xy, dot_(y, y)]])
+    rhs = np.array([dot_(x, z), dot_(y, z)])
     try:
         b, c = np.linalg.solve(normal, rhs)
     except np.linalg.LinAlgError:  # all cells on one line: fit along it only
@@ -72,7 +79,7 @@ def fill_empty(heights: np.ndarray, mask: np.ndarray, *, method: str = "smooth")
         return out
     if method != "smooth":
         raise InvalidInputError(f"fill must be 'smooth' or 'zero', got {method!r}")
-    return _push_pull(out, mask.astype(np.float64))
+    return _push_pull(out, np.ascontiguousarray(mask, dtype=bool))
 
 
 #: Levels of fewer cells take numpy's own 2x2 block sums (see :func:`_pairs`).
@@ -81,7 +88,8 @@ SMALL_LEVEL_CELLS = 4096
 
 def _pairs(a: np.ndarray) -> np.ndarray:
     """Sums of the 2x2 blocks of ``a``, zero-padded to even sizes, added as
-    ``reshape(...).sum(axis=(1, 3))`` adds them: each row's pair, then the two rows.
+    ``reshape(...).sum(axis=(1, 3))`` adds them: each row's pair, then the two rows;
+    in ``a``'s dtype (uint8 counts of known cells, or float64 values).
 
     Only the odd last row or column is padded, not a copy of the whole level.
     """
@@ -93,11 +101,11 @@ def _pairs(a: np.ndarray) -> np.ndarray:
         # numpy's reduction adds the four in another order when the coarse level is
         # one cell wide; small levels cost nothing either way.
         p = np.pad(a, ((0, r % 2), (0, c % 2)))
-        return p.reshape(p.shape[0] // 2, 2, p.shape[1] // 2, 2).sum(axis=(1, 3))
+        return p.reshape(p.shape[0] // 2, 2, p.shape[1] // 2, 2).sum(axis=(1, 3), dtype=a.dtype)
     if r % 2 == 0 and c % 2 == 0:
         return blocks(a)
     re, ce = r - r % 2, c - c % 2
-    out = np.empty(((r + 1) // 2, (c + 1) // 2))
+    out = np.empty(((r + 1) // 2, (c + 1) // 2), dtype=a.dtype)
     out[:re // 2, :ce // 2] = blocks(a[:re, :ce])
     if r % 2:
         out[-1:, :] = blocks(np.pad(a[re:], ((0, 1), (0, c % 2))))
@@ -130,29 +138,36 @@ def _upsampled_at(coarse: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.
     return NEAR_WEIGHT * along_rows(p) + FAR_WEIGHT * along_rows(pn)
 
 
-def _push_pull(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """``weights``: 1 where ``values`` is known, 0 elsewhere (where ``values`` is 0)."""
-    if weights.min() >= 1.0:
+def _push_pull(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``known``: True where ``values`` is known, False elsewhere (where ``values`` is 0).
+
+    The weights of push-pull are 1 at known cells and 0 elsewhere at every level (a
+    coarse cell is known when any of its four is), so they are kept as booleans and
+    counted in bytes; where the arithmetic needs them they are the floats 0 and 1.
+    """
+    if known.all():
         return values  # nothing to fill at this level (coarse levels of a dense map)
     if min(values.shape) <= 1 and values.size <= 2:
+        weights = known.astype(np.float64)
         total = weights.sum()
         mean = (values * weights).sum() / total if total else 0.0
-        return np.where(weights > 0, values, mean)
+        return np.where(known, values, mean)
     # Pull: average the known values over 2x2 blocks (odd sizes padded with
     # zeros). The weights are 0 or 1 and the unknown values 0, so values *
-    # weights is values itself.
-    wsum, vsum = _pairs(weights), _pairs(values)
-    coarse_v = np.divide(vsum, wsum, out=np.zeros_like(vsum), where=wsum > 0)
-    coarse = _push_pull(coarse_v, np.minimum(wsum, 1.0))
+    # weights is values itself; the counts are whole, the same in any dtype.
+    counts, vsum = _pairs(known.view(np.uint8)), _pairs(values)
+    coarse_known = counts > 0
+    coarse_v = np.divide(vsum, counts, out=np.zeros_like(vsum), where=coarse_known)
+    coarse = _push_pull(coarse_v, coarse_known)
     # Push: the blend w * values + (1 - w) * up with the bilinear upsampling
     # ``up`` of the filled coarse level. With 0/1 weights it is ``values`` at
     # known cells; ``up`` is needed only at the unknown ones, and at known
     # zeros, whose sign the blend decides.
     out = values.copy()
-    need = np.flatnonzero((weights == 0.0) | (values == 0.0))
+    need = np.flatnonzero(~known | (values == 0.0))
     if need.size:
         rows, cols = np.divmod(need, values.shape[1])
-        w = weights.ravel()[need]
+        w = known.ravel()[need].astype(np.float64)
         out.ravel()[need] = w * values.ravel()[need] + (1.0 - w) * _upsampled_at(coarse, rows, cols)
     return out
 

@@ -104,7 +104,11 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
         resolution that fits), or coordinates too large for float64 to
         resolve cells of ``resolution``.
     """
-    points = as_points(points)
+    return _fit_grid(as_points(points), resolution, frame)
+
+
+def _fit_grid(points: np.ndarray, resolution: float, frame: str) -> Grid:
+    """:func:`fit_grid` of points :func:`~dftpcc.dem.as_points` has checked already."""
     _check_resolution(resolution)
     angle = _min_area_angle(points[:, :2]) if frame == "oriented" else 0.0
     x_lo, x_hi, y_lo, y_hi = _xy_extremes(points)
@@ -177,7 +181,11 @@ def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean") -> DEM
     DEM
         Heights relative to ``grid.z0`` in metres; 0 in empty cells.
     """
-    points = as_points(points)
+    return _rasterize(as_points(points), grid, aggregate)
+
+
+def _rasterize(points: np.ndarray, grid: Grid, aggregate: str) -> DEM:
+    """:func:`rasterize` of points :func:`~dftpcc.dem.as_points` has checked already."""
     idx, z = _cells_of(points, grid)
     if aggregate == "median":
         count = np.bincount(idx, minlength=grid.size)

@@ -162,31 +162,51 @@ def _seed_lines(lines: np.ndarray, stripe: int) -> np.ndarray:
 def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = None) -> bytes:
     """The context-coded mask; ``seed_frame``: :func:`_encode_seeds` of its seed lines, if known."""
     ctx = _contexts(lines, stripe)
+    n_lines, width = lines.shape
     # Step s decodes line s of every stripe (line 0 of the first stripe only, the
-    # others' are seeds): rows s, s + stripe, ... of the line-major mask, by
-    # stripe and column, which is the order of lines[s::stripe] raveled.
-    steps = [(lines[:1], ctx[:1])] + [(lines[s::stripe], ctx[s::stripe]) for s in range(1, stripe)]
-    # Counts seen before each step: per-step histograms, accumulated, shifted by one step.
+    # others' are seeds): rows s, s + stripe, ... of the line-major mask. Gathered
+    # once into that order, every step is a contiguous run of cells.
+    steps = [np.arange(1)] + [np.arange(s, n_lines, stripe) for s in range(1, stripe)]
+    order = np.concatenate(steps)
+    c, b = ctx[order].ravel(), lines[order].ravel()
+    step_starts = width * np.concatenate(([0], np.cumsum([s.size for s in steps])))
+    # Within a step the outside cells are decoded first, then the inside ones, then
+    # the rest: each kind's cells, taken in order, are already grouped by step, so
+    # a search for the step starts cuts them (no sort of the whole mask).
+    kinds = []
+    for where in (np.flatnonzero(c == OUTSIDE), np.flatnonzero(c == INSIDE),
+                  np.flatnonzero((c != OUTSIDE) & (c != INSIDE))):
+        kinds.append((where, b[where].astype(np.int32), np.searchsorted(where, step_starts)))
+    # Counts seen before each step: per-step histograms, accumulated, shifted by one
+    # step. They are whole numbers, so the sums are exact in any order.
     ones, total = np.zeros((stripe, CONTEXTS)), np.zeros((stripe, CONTEXTS))
-    for s, (bits, c) in enumerate(steps[:-1]):
-        flat = c.ravel()
-        ones[s + 1] = ones[s] + np.bincount(flat[bits.ravel().view(bool)], minlength=CONTEXTS)
-        total[s + 1] = total[s] + np.bincount(flat, minlength=CONTEXTS)
+    for (_, bits, bounds), context in zip(kinds, (OUTSIDE, INSIDE)):
+        total[:, context] = np.diff(bounds)
+        ones[:, context] = np.diff(np.concatenate(([0], np.cumsum(bits)))[bounds])
+    where, rest_bits, rest_bounds = kinds[2]
+    rest_ctx = c[where]
+    rest_step = np.repeat(np.arange(stripe), np.diff(rest_bounds))
+    seen = np.bincount((rest_step * CONTEXTS + rest_ctx) * 2 + rest_bits,
+                       minlength=2 * stripe * CONTEXTS).reshape(stripe, CONTEXTS, 2)
+    ones += seen[:, :, 1]
+    total += seen.sum(axis=2)
+    ones = np.vstack([np.zeros(CONTEXTS), np.cumsum(ones, axis=0)[:-1]])
+    total = np.vstack([np.zeros(CONTEXTS), np.cumsum(total, axis=0)[:-1]])
     prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)  # (step, context)
+    rest_prob = prob[rest_step, rest_ctx]
     coder = constriction.stream.stack.AnsCoder()
     model = _bernoulli()
-    # Decoding order: step by step; within a step the outside cells, then the
-    # inside cells, then the rest, each by stripe and column. A stack: the
-    # last segment is encoded first.
+    # A stack: the last segment is encoded first. The outside and inside cells of a
+    # step share one fixed model each (far cheaper to code than one model per cell).
+    (_, out_bits, out_bounds), (_, in_bits, in_bounds) = kinds[0], kinds[1]
     for s in range(stripe - 1, -1, -1):
-        bits, c = steps[s][0].ravel(), steps[s][1].ravel()
-        outside, inside = c == OUTSIDE, c == INSIDE
-        rest = ~(outside | inside)
-        if rest.any():
-            coder.encode_reverse(bits[rest].astype(np.int32), model, prob[s, c[rest]])
-        for where, context in ((inside, INSIDE), (outside, OUTSIDE)):
-            if where.any():
-                coder.encode_reverse(bits[where].astype(np.int32), _bernoulli(prob[s, context]))
+        lo, hi = rest_bounds[s], rest_bounds[s + 1]
+        if hi > lo:
+            coder.encode_reverse(rest_bits[lo:hi], model, rest_prob[lo:hi])
+        for bits, bounds, context in ((in_bits, in_bounds, INSIDE), (out_bits, out_bounds, OUTSIDE)):
+            lo, hi = bounds[s], bounds[s + 1]
+            if hi > lo:
+                coder.encode_reverse(bits[lo:hi], _bernoulli(prob[s, context]))
     if seed_frame is None:
         seed_frame = _encode_seeds(_seed_lines(lines, stripe))
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
