@@ -143,6 +143,8 @@ def _progress(enabled: bool, stages: Sequence[str], *, verbose: bool = False) ->
 
 
 COMPRESS_STAGES = ("read", "grid", "spectrum", "encode", "container", "write")
+MAP_FRAME_HELP = ("ROS bag with --pose-topic /tf: the frame to build the map in (map, odom, ...); default: the root "
+                  "of the scans' TF tree")
 
 
 def _say(args: argparse.Namespace, *lines: str) -> None:
@@ -198,7 +200,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
                              profile=args.profile, format=args.format, classes=args.classes,
                              drop_nonfinite=args.drop_nonfinite, chunk_points=args.chunk_points, topic=args.topic,
                              workers=args.workers, scheduler=args.scheduler,
-                             pose_topic=args.pose_topic, on_stage=on_stage, **options)
+                             pose_topic=args.pose_topic, map_frame=args.map_frame, on_stage=on_stage, **options)
     info = cmap.info()
     if args.verbose:
         print(f"dftpcc: parameters {json.dumps(info['params'], sort_keys=True)}", file=sys.stderr)
@@ -347,6 +349,9 @@ def _compress_reloc(args: argparse.Namespace, options: dict[str, Any]) -> int:
             or args.scheduler):
         raise InvalidInputError("--target-reloc reads and writes whole files on this machine (no '-', "
                                 "--chunk-points, --drop-nonfinite, --workers or --scheduler)")
+    if args.map_frame is not None:
+        raise InvalidInputError("--target-reloc places a bag's scans in the root of their TF tree: it does not "
+                                "take --map-frame")
     t0 = time.perf_counter()
     chosen = compress_file_reloc(args.input, args.output, args.target_reloc, _reloc_params(args, options),
                                  force=args.force, format=args.format, classes=args.classes, topic=args.topic,
@@ -390,7 +395,7 @@ def cmd_update(args: argparse.Namespace) -> int:
 
     result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
                          pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
-                         cutoff=args.cutoff, step=args.step, force=args.force)
+                         cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame)
     delta = f"; delta {args.delta}: {result.delta_size:,} bytes" if result.delta_size is not None else ""
     _say(args, f"{result.path}: {result.size:,} bytes, {result.tiles} tiles ({result.recoded} coded again) "
                f"{'started' if result.created else 'updated'} with {result.scans} scan(s), "
@@ -419,7 +424,9 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--topic", "--points-topic", dest="topic",
                    help="ROS bag: the sensor_msgs/PointCloud2 topic (default: the only one)")
     p.add_argument("--pose-topic", metavar="TOPIC", default="/odom",
-                   help="ROS bag: the poses of the scans' frame (default /odom)")
+                   help="ROS bag: the poses of the scans' frame (default /odom), or /tf: the TF tree with "
+                        "/tf_static, composed from the scans' frame up")
+    p.add_argument("--map-frame", metavar="FRAME", help=MAP_FRAME_HELP)
     p.add_argument("--resolution", "-r", type=_positive, help="cell size in metres (a new map; else must be the map's)")
     p.add_argument("--tile-size", type=_positive_int, metavar="CELLS", help="tile side of a new map (default 256)")
     p.add_argument("--cutoff", "-c", type=_cutoff, help="cutoff ratio of a new map (default 0.8)")
@@ -689,7 +696,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pose-topic", metavar="TOPIC",
                    help="ROS bag of scans in the sensor frame: the topic of their poses (nav_msgs/Odometry, "
                         "geometry_msgs/PoseStamped or /tf), interpolated at each scan's stamp; the map is "
-                        "built in the poses' frame")
+                        "built in the poses' frame. /tf is read with /tf_static as a tree (map -> odom -> "
+                        "base_link -> sensor), each scan placed by the transforms from its frame up, composed "
+                        "at its stamp")
+    p.add_argument("--map-frame", metavar="FRAME", help=MAP_FRAME_HELP)
     p.add_argument("--chunk-points", type=_positive_int, metavar="N",
                    help="read LAS/LAZ/PLY/NPY N points at a time, so memory holds the grid and one chunk "
                         "(automatic when the cloud would not fit in half the available memory)")

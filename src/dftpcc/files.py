@@ -117,7 +117,7 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
                   format: str | None = None, classes: Sequence[int] | None = None,  # noqa: A002
                   drop_nonfinite: bool = False, chunk_points: int | None = None, topic: str | None = None,
                   force: bool = False, on_stage: Stage = no_stage, pose_topic: str | None = None,
-                  workers: int | None = None, scheduler: str | None = None,
+                  map_frame: str | None = None, workers: int | None = None, scheduler: str | None = None,
                   **shortcuts: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
@@ -128,9 +128,10 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         whole; reading one needs ``format``.
     params : Params, optional
         As :func:`dftpcc.compress`, as are ``**shortcuts``.
-    format, classes, drop_nonfinite, topic, pose_topic
+    format, classes, drop_nonfinite, topic, pose_topic, map_frame
         As :func:`dftpcc.read` (``topic``: the PointCloud2 topic of a ROS bag;
-        ``pose_topic``: the poses of its scans, recorded in the sensor frame).
+        ``pose_topic``: the poses of its scans, recorded in the sensor frame;
+        ``map_frame``: with ``/tf``, the frame of the map).
     chunk_points : int, optional
         Read the cloud in chunks of this many points (LAS, LAZ, PLY, NPY,
         ROS bags). By default a cloud is read whole when it fits in memory
@@ -173,7 +174,8 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         return open_map(dst)
     with _as_path(src, format) as path:
         dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic,
-                                   drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage)
+                                   drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage,
+                                   map_frame=map_frame)
     with executor(workers, scheduler) as map_tiles:
         if not _is_stream(dst) and dem.grid.size > stream.STREAM_CELLS and tile_size_for(params, dem.grid.shape):
             # A large grid: its tiles coded band by band, memory holding the grid and one band.
@@ -255,7 +257,7 @@ def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *
 def read_dem(src: str | os.PathLike[str], params: Params, *, format: str | None = None,  # noqa: A002
              classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
              chunk_points: int | None = None, on_stage: Stage = no_stage,
-             pose_topic: str | None = None) -> tuple[DEM, int, dict[str, Any]]:
+             pose_topic: str | None = None, map_frame: str | None = None) -> tuple[DEM, int, dict[str, Any]]:
     """The DEM :func:`compress_file` codes for ``src``: a raster's own grid (resolution ``'auto'``),
     or the cloud gridded at ``params``; with the points it came from and the CRS.
 
@@ -269,7 +271,7 @@ def read_dem(src: str | os.PathLike[str], params: Params, *, format: str | None 
     crs : dict
     """
     with open_reader(src, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
-                     chunk_points=chunk_points, pose_topic=pose_topic) as reader:
+                     chunk_points=chunk_points, pose_topic=pose_topic, map_frame=map_frame) as reader:
         if reader.own_grid and params.resolution == "auto":
             dem = reader.dem()
             return dem, int(dem.mask.sum()), reader.crs

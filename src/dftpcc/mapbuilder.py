@@ -559,7 +559,8 @@ class UpdateResult:
     created: bool
 
 
-def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, pose_topic: str | None
+def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, pose_topic: str | None,
+           map_frame: str | None = None
            ) -> Iterable[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None, dict[str, Any]]]:
     """(points, pose, CRS) of every scan: a bag's scans through their poses, a point file whole, in the map frame."""
     from .io import format_of, read
@@ -568,7 +569,7 @@ def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, p
         if format_of(path) == "rosbag":
             from .io.rosbag import posed_scans
 
-            for scan in posed_scans(path, points_topic, pose_topic or "/odom"):
+            for scan in posed_scans(path, points_topic, pose_topic or "/odom", map_frame=map_frame):
                 yield scan.points, (scan.rotation, scan.translation), {}
         else:
             cloud = read(path)
@@ -579,7 +580,7 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
                 output: str | os.PathLike[str] | None = None, delta: str | os.PathLike[str] | None = None,
                 points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
                 tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
-                force: bool = False) -> UpdateResult:
+                force: bool = False, map_frame: str | None = None) -> UpdateResult:
     """Add scans to a growing map and write it with its state (``dftpcc update``).
 
     Without ``output`` the map is updated in place. The map and its state
@@ -594,7 +595,8 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         The growing map (and ``MAP.state`` beside it).
     inputs : sequence of path
         ROS bags (scans placed by the poses of ``pose_topic``, default
-        ``/odom``) or point files (LAS, LAZ, PLY, ...) in the map frame.
+        ``/odom``; ``/tf``: the TF tree, up to ``map_frame`` or its root) or
+        point files (LAS, LAZ, PLY, ...) in the map frame.
     output : path, optional
         Write the new map (and its state) here instead.
     delta : path, optional
@@ -629,7 +631,7 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         builder = MapBuilder.from_file(map_path)
         _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
     scans = points = 0
-    for pts, pose, crs in _scans(inputs, points_topic, pose_topic):
+    for pts, pose, crs in _scans(inputs, points_topic, pose_topic, map_frame):
         if crs:
             if created and scans == 0:
                 builder.crs = dict(crs)

@@ -153,7 +153,8 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
 
 def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
                 classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
-                chunk_points: int | None = None, pose_topic: str | None = None) -> Reader:
+                chunk_points: int | None = None, pose_topic: str | None = None,
+                map_frame: str | None = None) -> Reader:
     """Open a point cloud (or GeoTIFF DEM) file for reading, as laspy's ``open`` does: the header only.
 
     Parameters
@@ -168,7 +169,11 @@ def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # n
     pose_topic : str, optional
         ROS bags only: the poses (``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped``
         or ``/tf``) of scans recorded in the sensor frame; each scan is placed
-        in the poses' frame at its stamp (:func:`dftpcc.io.rosbag.posed_scans`).
+        in the poses' frame at its stamp (:func:`dftpcc.io.rosbag.posed_scans`);
+        ``/tf`` is read with ``/tf_static`` as a tree.
+    map_frame : str, optional
+        ROS bags with a TF ``pose_topic`` only: the frame to place the scans
+        in (default: the root of their TF tree).
     drop_nonfinite : bool
         Drop rows with a NaN or infinite coordinate instead of refusing
         (:meth:`~Reader.chunks`) or returning them (:meth:`~Reader.read`).
@@ -197,7 +202,8 @@ def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # n
         check_chunkable(path, fmt)
     entry = REGISTRY[fmt]
     return entry.reader_class()(path, format=fmt, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
-                                chunk_points=chunk_points, streams=entry.streams, pose_topic=pose_topic)
+                                chunk_points=chunk_points, streams=entry.streams, pose_topic=pose_topic,
+                                map_frame=map_frame)
 
 
 def open_chunked(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
@@ -233,7 +239,7 @@ def check_chunkable(path: str | os.PathLike[str], format: str | None = None) -> 
 
 def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
          classes: Sequence[int] | None = None, drop_nonfinite: bool = False,
-         topic: str | None = None, pose_topic: str | None = None) -> PointCloud:
+         topic: str | None = None, pose_topic: str | None = None, map_frame: str | None = None) -> PointCloud:
     """Read a point cloud whole.
 
     Parameters
@@ -254,6 +260,8 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
         ROS bags only: the PointCloud2 topic (default: the bag's only one).
     pose_topic : str, optional
         ROS bags only: the poses of scans in the sensor frame (as :func:`open_reader`).
+    map_frame : str, optional
+        ROS bags with a TF ``pose_topic`` only: the frame to place them in (as :func:`open_reader`).
 
     Returns
     -------
@@ -267,7 +275,7 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
         honour, or no point left.
     """
     with open_reader(path, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
-                     pose_topic=pose_topic) as reader:
+                     pose_topic=pose_topic, map_frame=map_frame) as reader:
         return reader.read()
 
 

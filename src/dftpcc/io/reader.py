@@ -28,6 +28,7 @@ _OPTION_HOME = {
     "classes": "classes can only be selected in LAS/LAZ files",
     "topic": "a topic can only be chosen in ROS bags",
     "pose_topic": "poses can only be read from ROS bags",
+    "map_frame": "a map frame can only be chosen in ROS bags (with a TF pose topic)",
 }
 
 
@@ -73,6 +74,9 @@ class Reader:
     pose_topic : str, optional
         The topic of the scans' poses, for ROS bags of scans in the sensor
         frame (see :mod:`dftpcc.io.rosbag`).
+    map_frame : str, optional
+        ROS bags with a TF ``pose_topic``: the frame to place the scans in
+        (default: the root of their TF tree).
     drop_nonfinite : bool
         Drop rows with a NaN or infinite coordinate rather than refuse them.
     chunk_points : int, optional
@@ -105,13 +109,15 @@ class Reader:
 
     def __init__(self, path: str | os.PathLike[str], *, format: str,  # noqa: A002
                  classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
-                 chunk_points: int | None = None, streams: bool = False, pose_topic: str | None = None):
+                 chunk_points: int | None = None, streams: bool = False, pose_topic: str | None = None,
+                 map_frame: str | None = None):
         self.path, self.format = Path(path), format
         self.classes, self.topic, self.drop_nonfinite = classes, topic, drop_nonfinite
-        self.pose_topic = pose_topic
+        self.pose_topic, self.map_frame = pose_topic, map_frame
         self.streams = streams
         self._locate()
-        for name, value in (("classes", classes), ("topic", topic), ("pose_topic", pose_topic)):
+        for name, value in (("classes", classes), ("topic", topic), ("pose_topic", pose_topic),
+                            ("map_frame", map_frame)):
             if value is not None and name not in self.options:
                 raise InvalidInputError(f"{self.path}: the {name} option does not apply to {format} files; "
                                         f"{_OPTION_HOME[name]}")

@@ -17,6 +17,19 @@ by the pose of the sensor frame interpolated at the scan's
 ``header.stamp`` (:func:`posed_scans`, :func:`apply_pose`), and scans outside
 the pose stream are skipped with a :class:`UnposedScanWarning`.
 
+A TF topic (``/tf``) is read as a robot records it: a tree of transforms,
+dynamic edges on ``/tf`` (``map -> odom`` from SLAM, ``odom -> base_link``
+from odometry) and fixed extrinsics on ``/tf_static`` (``base_link ->
+velodyne``; every message of it is read, whether ROS 1 latched it or ROS 2
+offered it transient-local). Each scan is placed by the transforms from its
+frame up to the root of its tree, or to ``map_frame`` (``--map-frame``),
+composed at its stamp (:func:`read_tf_tree`, :class:`TfChain`): each dynamic
+edge interpolated as a pose stream is, each static edge constant. A scan
+outside the coverage of any dynamic edge of its chain is skipped and
+reported; a frame with two parents, a cycle or a frame not connected to the
+map frame is refused. Frame names are compared without a leading ``/``, as
+tf2 does.
+
 Points of a message that says ``is_dense: false`` (it may hold invalid
 points, as organized lidar scans do for missing returns) and have a NaN or
 infinite coordinate are those invalid points and are left out; a dense
@@ -27,11 +40,12 @@ from __future__ import annotations
 
 import re
 import warnings
+from array import array
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any, ClassVar, Iterator, NamedTuple
+from typing import Any, Callable, ClassVar, Iterator, NamedTuple
 
 import numpy as np
 
@@ -40,7 +54,8 @@ from .reader import Reader
 
 __all__ = ["POINTCLOUD2", "POSE_TYPES", "MAP_FRAME_WORDS", "QUATERNION_TOLERANCE", "BagReader", "PoseStream",
            "PosedScan", "UnposedScanWarning", "bag_folder", "pointcloud2_xyz", "read_bag", "bag_chunks",
-           "size_bound", "is_map_frame", "read_poses", "posed_scans", "apply_pose", "stamp_ns"]
+           "size_bound", "is_map_frame", "read_poses", "posed_scans", "apply_pose", "stamp_ns", "TF_TYPES",
+           "STATIC_SUFFIX", "TfTree", "TfEdge", "TfChain", "read_tf_tree"]
 
 POINTCLOUD2 = ("sensor_msgs/msg/PointCloud2", "sensor_msgs/PointCloud2")
 #: Message types a pose topic may hold (ROS 2 and ROS 1 spellings) -> how the pose is read.
@@ -51,6 +66,10 @@ POSE_TYPES = {
     "geometry_msgs/PoseWithCovarianceStamped": "pose_covariance",
     "tf2_msgs/msg/TFMessage": "tf", "tf2_msgs/TFMessage": "tf",
 }
+#: Message types of a TF topic (ROS 2 and ROS 1 spellings).
+TF_TYPES = frozenset(t for t, kind in POSE_TYPES.items() if kind == "tf")
+#: The static TF topic is the TF topic's name and this (``/tf`` -> ``/tf_static``), as tf2 names them.
+STATIC_SUFFIX = "_static"
 #: Words that make a frame name a map frame (REP 105's map, odom, earth; world; UTM and ENU frames;
 #: LOAM and FAST-LIO's camera_init): scans in another frame need a pose topic.
 MAP_FRAME_WORDS = frozenset({"map", "world", "odom", "earth", "utm", "enu", "global", "camera_init"})
@@ -73,23 +92,27 @@ class BagReader(Reader):
     """A ROS 1 ``.bag`` or a ROS 2 bag folder: the PointCloud2 messages of ``topic``, whole messages per chunk.
 
     With ``pose_topic`` each message is a scan in the sensor frame, placed
-    in the poses' frame (:func:`posed_scans`); the poses are read once, when
-    the reader opens, and every pass reuses them. A bag has no point count
+    in the poses' frame (:func:`posed_scans`; of a TF topic, in ``map_frame``
+    or the root of the scans' tree); the poses are read once, when the
+    reader opens, and every pass reuses them. A bag has no point count
     (:attr:`stored_points` is None); its size over :data:`SMALLEST_POINT_BYTES`
     bounds it (:attr:`points_bound`).
     """
 
-    options: ClassVar[frozenset[str]] = frozenset({"topic", "pose_topic"})
+    options: ClassVar[frozenset[str]] = frozenset({"topic", "pose_topic", "map_frame"})
 
     def _locate(self) -> None:
         bag_folder(self.path)  # a file, or a ROS 2 folder
 
     def _open(self) -> None:
         _any_reader()  # a missing package is said before any work
-        self.poses: PoseStream | None = None
+        self.poses: PoseStream | TfChain | None = None
         self._warned = False
         if self.pose_topic is not None:
-            self.poses = read_poses(self.path, self.pose_topic, child_frame=_first_frame(self.path, self.topic))
+            self.poses = _scan_poses(self.path, self.pose_topic, _first_frame(self.path, self.topic), self.map_frame)
+        elif self.map_frame is not None:
+            raise InvalidInputError(f"{self.path}: a map frame applies to scans placed by a TF topic; give "
+                                    f"--pose-topic /tf (pose_topic=) with --map-frame (map_frame=)")
 
     @property
     def points_bound(self) -> int | None:
@@ -385,12 +408,20 @@ class PoseStream:
         if not self.covers(stamps_ns).all():
             raise InvalidInputError(f"{self.topic}: a stamp lies outside the poses "
                                     f"({_seconds(self.stamps_ns[0])} to {_seconds(self.stamps_ns[-1])})")
+        rotation, t = self._rotations(stamps_ns)
+        return _matrices(rotation, t.shape[0]), t
+
+    def coverage(self) -> str:
+        """The stamps the stream covers, for a message about the scans it cannot place."""
+        return f"poses on {self.topic} cover {_seconds(self.stamps_ns[0])} to {_seconds(self.stamps_ns[-1])}"
+
+    def _rotations(self, stamps_ns: np.ndarray) -> tuple[Any, np.ndarray]:
+        """scipy Rotation(s) and (m, 3) translations at the stamps, unchecked; one pose: that pose for any stamp."""
         wanted = (stamps_ns - self.stamps_ns[0]) / NS_PER_S
-        if self.stamps_ns.size == 1:  # one pose covers its own stamp only
-            return (np.repeat(self._interpolator.as_matrix().reshape(1, 3, 3), wanted.size, axis=0),
-                    np.repeat(self.translations, wanted.size, axis=0))
+        if self.stamps_ns.size == 1:  # one pose covers its own stamp only (a static edge: every stamp)
+            return self._interpolator, np.repeat(self.translations, wanted.size, axis=0)
         t = np.column_stack([np.interp(wanted, self._times, self.translations[:, k]) for k in range(3)])
-        return self._interpolator(wanted).as_matrix().reshape(-1, 3, 3), t
+        return self._interpolator(wanted), t
 
     @cached_property
     def _times(self) -> np.ndarray:
@@ -404,6 +435,12 @@ class PoseStream:
 
         rotations = Rotation.from_quat(self.quaternions)  # ROS and scipy both put w last
         return rotations[0] if self.stamps_ns.size == 1 else Slerp(self._times, rotations)
+
+
+def _matrices(rotation: Any, m: int) -> np.ndarray:
+    """(m, 3, 3) matrices of a scipy Rotation holding m rotations, or one rotation repeated m times."""
+    matrices = rotation.as_matrix().reshape(-1, 3, 3)
+    return np.repeat(matrices, m, axis=0) if matrices.shape[0] == 1 else matrices
 
 
 class PosedScan(NamedTuple):
@@ -516,22 +553,19 @@ def read_poses(path: str | Path, pose_topic: str, *, child_frame: str | None = N
                         f"scans are in frame {child_frame if child_frame is not None else named!r}; dftpcc applies "
                         f"no sensor extrinsics, so the poses must be those of the scans' frame")
                 named = child
-                where = f"{path}: message {index} on {pose_topic} (stamp {_seconds(stamp_ns(stamp))})"
+                ns = stamp_ns(stamp)
+                where = _where(path, index, pose_topic, ns)
                 t = np.array([position.x, position.y, position.z], dtype=np.float64)
-                q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=np.float64)
-                if not (np.isfinite(t).all() and np.isfinite(q).all()):
-                    raise InvalidInputError(f"{where}: the pose has a NaN or infinite value")
-                norm = float(np.linalg.norm(q))
-                if abs(norm - 1.0) > QUATERNION_TOLERANCE:
-                    raise InvalidInputError(f"{where}: the orientation is not a unit quaternion (norm {norm:.6g})")
+                q = _unit(lambda: where, t, np.array([orientation.x, orientation.y, orientation.z, orientation.w],
+                                             dtype=np.float64), "the pose", "the orientation")
                 if frame is None:
                     frame = parent
                 elif parent != frame:
                     raise InvalidInputError(f"{where}: a pose in frame {parent!r} after poses in frame {frame!r}; "
                                             f"the poses must all be in one map frame")
-                stamps.append(stamp_ns(stamp))
+                stamps.append(ns)
                 translations.append(t)
-                quaternions.append(q / norm)
+                quaternions.append(q)
     finally:
         reader.close()
     if not stamps:
@@ -539,12 +573,315 @@ def read_poses(path: str | Path, pose_topic: str, *, child_frame: str | None = N
             raise InvalidInputError(f"{path}: no transform on {pose_topic} has child frame {child_frame!r}, the "
                                     f"scans' frame (child frames there: {', '.join(sorted(children))})")
         raise InvalidInputError(f"{path}: no pose on {pose_topic}")
-    # Sorted by stamp; of poses sharing a stamp the first is kept (Slerp needs increasing times).
+    return _stream(pose_topic, frame or "", named, stamps, translations, quaternions)
+
+
+def _where(path: Path, index: int, topic: str, ns: int) -> str:
+    """Which message a bad pose came from: its index on the topic (from 0) and its stamp."""
+    return f"{path}: message {index} on {topic} (stamp {_seconds(ns)})"
+
+
+def _unit(where: Callable[[], str], t: np.ndarray, q: np.ndarray, pose: str, rotation: str) -> np.ndarray:
+    """``q`` made a unit quaternion; a NaN or infinite value, or a norm not 1, refused as ``where()``'s."""
+    if not (np.isfinite(t).all() and np.isfinite(q).all()):
+        raise InvalidInputError(f"{where()}: {pose} has a NaN or infinite value")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        raise InvalidInputError(f"{where()}: {rotation} is not a unit quaternion (norm {norm:.6g})")
+    return q / norm
+
+
+def _stream(topic: str, frame: str, child: str | None, stamps: list[int], translations: list[np.ndarray],
+            quaternions: list[np.ndarray]) -> PoseStream:
+    """Checked poses as a stream, sorted by stamp; of poses sharing a stamp the first is kept (Slerp needs
+    increasing times)."""
     order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
     sorted_stamps = np.asarray(stamps, dtype=np.int64)[order]
     keep = order[np.concatenate([[True], np.diff(sorted_stamps) > 0])]
-    return PoseStream(pose_topic, frame or "", named, np.asarray(stamps, dtype=np.int64)[keep],
+    return PoseStream(topic, frame, child, np.asarray(stamps, dtype=np.int64)[keep],
                       np.asarray(translations)[keep], np.asarray(quaternions)[keep])
+
+
+# -- TF: a tree of transforms, composed from the scans' frame up to the map frame ----------------------
+
+
+def _frame_name(frame: str) -> str:
+    """A frame as tf2 compares it: without a leading ``/`` (ROS 1's tf wrote ``/base_link``)."""
+    return frame[1:] if frame.startswith("/") else frame
+
+
+@dataclass(frozen=True)
+class TfEdge:
+    """One edge of a TF tree: the pose of ``child`` in ``parent`` over time, or fixed.
+
+    Attributes
+    ----------
+    parent, child : str
+        The frames, without a leading ``/``.
+    poses : PoseStream
+        Its transforms (``p_parent = R @ p_child + t``), checked and sorted;
+        a static edge holds one, the last it was given (as tf2 keeps it).
+    static : bool
+        Whether it came from the static topic (``/tf_static``): the same at every stamp.
+    """
+
+    parent: str
+    child: str
+    poses: PoseStream
+    static: bool
+
+    def _at(self, stamps_ns: np.ndarray) -> tuple[Any, np.ndarray]:
+        """scipy Rotation(s) and (m, 3) translations, metres, at the stamps (covered ones, for a dynamic edge)."""
+        return self.poses._rotations(stamps_ns)
+
+
+@dataclass(frozen=True)
+class TfChain:
+    """The transforms from a scan's frame up to the map frame, composed at each stamp.
+
+    Placing a point: ``p_map = T_1 @ T_2 @ ... @ T_n @ p_scan`` where ``T_n``
+    is the edge from the scan's frame to its parent and ``T_1`` the edge into
+    the map frame; each dynamic edge is interpolated at the stamp (translation
+    linear, rotation slerp), each static edge constant. It stands where a
+    :class:`PoseStream` does (:meth:`covers`, :meth:`at`).
+
+    Attributes
+    ----------
+    topic : str
+        The TF topic (``/tf``).
+    frame : str
+        The map frame: the root of the scans' tree, or the frame asked for.
+    child_frame : str
+        The scans' frame, as their messages name it.
+    edges : tuple of TfEdge
+        From the scans' frame up; empty when the scans are in the map frame.
+    """
+
+    topic: str
+    frame: str
+    child_frame: str
+    edges: tuple[TfEdge, ...]
+
+    @property
+    def _moving(self) -> list[TfEdge]:
+        return [e for e in self.edges if not e.static]
+
+    def covers(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """Which stamps (ns) every dynamic edge of the chain covers, ends included: (m,) bool."""
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        covered = np.ones(stamps_ns.shape, dtype=bool)
+        for edge in self._moving:
+            covered &= edge.poses.covers(stamps_ns)
+        return covered
+
+    def at(self, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The composed transforms at ``stamps_ns`` (covered ones, see :meth:`covers`).
+
+        Returns
+        -------
+        rotations : ndarray, shape (m, 3, 3)
+        translations : ndarray, shape (m, 3), metres
+
+        Raises
+        ------
+        InvalidInputError
+            A stamp outside a dynamic edge.
+        """
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        if not self.covers(stamps_ns).all():
+            raise InvalidInputError(f"{self.topic}: a stamp lies outside the transforms ({self.coverage()})")
+        if not self.edges:
+            return np.repeat(np.eye(3)[None], stamps_ns.size, axis=0), np.zeros((stamps_ns.size, 3))
+        rotation, t = self.edges[0]._at(stamps_ns)
+        for edge in self.edges[1:]:  # one edge up: p_parent = R_e (R p + t) + t_e
+            r, te = edge._at(stamps_ns)
+            rotation, t = r * rotation, r.apply(t).reshape(-1, 3) + te
+        return _matrices(rotation, stamps_ns.size), t
+
+    def coverage(self) -> str:
+        """The stamps every dynamic edge covers, and each edge's, for a message about the scans it cannot place."""
+        moving = self._moving
+        if not moving:
+            return f"the transforms on {self.topic} from {self.child_frame!r} to {self.frame!r} are all static"
+        each = "; ".join(f"{e.parent} -> {e.child} {_seconds(e.poses.stamps_ns[0])} to "
+                         f"{_seconds(e.poses.stamps_ns[-1])}" for e in moving)
+        first = max(int(e.poses.stamps_ns[0]) for e in moving)
+        last = min(int(e.poses.stamps_ns[-1]) for e in moving)
+        if first > last:
+            return f"the dynamic transforms on {self.topic} never cover one stamp together ({each})"
+        return f"transforms on {self.topic} cover {_seconds(first)} to {_seconds(last)} ({each})"
+
+
+@dataclass
+class _Records:
+    """Every transform of one edge as the bag holds it, unchecked: only the edges scans need are checked."""
+
+    topic: str
+    parent: str
+    child: str
+    static: bool
+    first: int  # index of its first message on the topic, to name it
+    stamps: array = field(default_factory=lambda: array("q"))  # ns
+    indices: array = field(default_factory=lambda: array("q"))  # of the message on the topic, from 0
+    values: array = field(default_factory=lambda: array("d"))  # x, y, z (m), qx, qy, qz, qw of each
+
+    def edge(self, path: Path) -> TfEdge:
+        """The checked edge; a NaN or infinite value or a non-unit rotation refused, naming its message."""
+        rows = np.frombuffer(self.values, dtype=np.float64).reshape(-1, 7)
+        what = f"the transform {self.parent} -> {self.child}"
+        stamps, translations, quaternions = [], [], []
+        for ns, index, row in zip(self.stamps, self.indices, rows):
+            t = row[:3].copy()  # fresh arrays, as read_poses makes them: the same norms to the bit
+            q = _unit(lambda: _where(path, index, self.topic, ns), t, row[3:].copy(), what, f"the rotation of {what}")
+            stamps.append(ns)
+            translations.append(t)
+            quaternions.append(q)
+        if self.static:  # tf2 keeps the last static transform of an edge
+            stamps, translations, quaternions = [stamps[-1]], translations[-1:], quaternions[-1:]
+        return TfEdge(self.parent, self.child, _stream(self.topic, self.parent, self.child, stamps, translations,
+                                                       quaternions), self.static)
+
+
+class TfTree:
+    """The TF tree of a bag: every edge parent -> child on the TF topic and on its static topic.
+
+    Built by :func:`read_tf_tree`; :meth:`chain` composes the edges that
+    place one frame in the map frame. Only the edges of a chain are checked,
+    so a broken branch the scans do not hang from does not refuse the bag.
+
+    Attributes
+    ----------
+    path : Path
+        The bag.
+    topic : str
+        The TF topic (``/tf``).
+    topics : tuple of str
+        The topics read: the TF topic and, if the bag has it, its static topic.
+    frames : tuple of str
+        Every frame the transforms name, without a leading ``/``, sorted.
+    """
+
+    def __init__(self, path: Path, topic: str, topics: tuple[str, ...], records: list[_Records]):
+        self.path, self.topic, self.topics = path, topic, topics
+        self._parents: dict[str, list[_Records]] = {}
+        for record in records:
+            self._parents.setdefault(record.child, []).append(record)
+        self.frames = tuple(sorted({r.child for r in records} | {r.parent for r in records}))
+
+    def chain(self, frame: str, map_frame: str | None = None) -> TfChain:
+        """The edges from ``frame`` up to ``map_frame`` (default: the root of its tree), checked.
+
+        Raises
+        ------
+        InvalidInputError
+            ``frame`` in no transform, not connected to ``map_frame``, a
+            frame of the chain with two parents, a cycle, or a transform of
+            the chain with a NaN or infinite value or a non-unit quaternion
+            (named by its message index on its topic, from 0).
+        """
+        start = _frame_name(frame)
+        goal = None if map_frame is None else _frame_name(map_frame)
+        where = " and ".join(self.topics)
+        known = f"frames there: {', '.join(self.frames)}" if self.frames else "it holds no transform"
+        if start != goal and start not in self.frames:
+            raise InvalidInputError(f"{self.path}: no transform on {where} has child frame {frame!r}, the scans' "
+                                    f"frame, so nothing places them ({known})")
+        edges: list[TfEdge] = []
+        seen = [start]
+        while seen[-1] != goal:
+            records = self._parents.get(seen[-1], [])
+            if not records:
+                if goal is None:  # the root of the tree
+                    break
+                raise InvalidInputError(
+                    f"{self.path}: the scans' frame {frame!r} is not connected to the map frame {map_frame!r} on "
+                    f"{where}: its tree goes {' -> '.join(seen)} and ends there ({known})")
+            if len(records) > 1:
+                parents = ", ".join(f"{r.parent!r} on {r.topic} (from message {r.first})" for r in records)
+                raise InvalidInputError(
+                    f"{self.path}: frame {seen[-1]!r} has {len(records)} parents, {parents}; TF allows one parent "
+                    f"per frame, moving on {self.topic} or fixed on {self.topic}{STATIC_SUFFIX}")
+            record = records[0]
+            if record.parent in seen:
+                cycle = seen[seen.index(record.parent):] + [record.parent]
+                raise InvalidInputError(f"{self.path}: the transforms on {where} form a cycle, "
+                                        f"{' -> '.join(cycle)}; TF frames must form a tree")
+            edges.append(record.edge(self.path))
+            seen.append(record.parent)
+        return TfChain(self.topic, seen[-1], frame, tuple(edges))
+
+
+def read_tf_tree(path: str | Path, tf_topic: str = "/tf") -> TfTree:
+    """The TF tree of a bag: the transforms on ``tf_topic`` and on its static topic (``/tf_static``), if present.
+
+    Every message of the static topic is read (ROS 1 records it latched,
+    ROS 2 with transient-local QoS, often once at the start); its edges are
+    constant. A ``tf_topic`` that is itself static (``/tf_static``) gives a
+    tree of static edges.
+
+    Parameters
+    ----------
+    path : path
+        The bag.
+    tf_topic : str
+        The ``tf2_msgs/TFMessage`` topic of the dynamic transforms.
+
+    Raises
+    ------
+    InvalidInputError
+        No such topic, or it (or its static topic) holds another type.
+    """
+    path = Path(path)
+    static_topic = tf_topic + STATIC_SUFFIX
+    records: dict[tuple[str, str, bool], _Records] = {}
+    counts: dict[str, int] = {}
+    reader = _opened(path)
+    try:
+        connections = [c for c in reader.connections if c.topic in (tf_topic, static_topic)]
+        if not any(c.topic == tf_topic for c in connections):
+            raise InvalidInputError(f"{path}: no pose topic {tf_topic!r} in the bag ({_topics(reader.connections)})")
+        kinds = {f"{c.topic} ({c.msgtype})" for c in connections if c.msgtype not in TF_TYPES}
+        if kinds:
+            raise InvalidInputError(f"{path}: a TF topic holds tf2_msgs/TFMessage, not {', '.join(sorted(kinds))}")
+        topics = tuple(t for t in (tf_topic, static_topic) if any(c.topic == t for c in connections))
+        for connection, _, raw in _records(path, reader, connections):
+            topic = connection.topic
+            index = counts.get(topic, 0)
+            counts[topic] = index + 1
+            try:
+                msg = reader.deserialize(raw, connection.msgtype)
+            except Exception as exc:  # noqa: BLE001 - a damaged message
+                raise InvalidInputError(f"{path}: cannot decode message {index} on {topic}: {exc}") from None
+            static = topic.endswith(STATIC_SUFFIX)
+            for tf in msg.transforms:
+                parent, child = _frame_name(tf.header.frame_id), _frame_name(tf.child_frame_id)
+                record = records.get((child, parent, static))
+                if record is None:
+                    record = records[child, parent, static] = _Records(topic, parent, child, static, index)
+                t, q = tf.transform.translation, tf.transform.rotation
+                record.stamps.append(stamp_ns(tf.header.stamp))
+                record.indices.append(index)
+                record.values.extend((t.x, t.y, t.z, q.x, q.y, q.z, q.w))
+    finally:
+        reader.close()
+    return TfTree(path, tf_topic, topics, list(records.values()))
+
+
+def _scan_poses(path: Path, pose_topic: str, scan_frame: str, map_frame: str | None) -> PoseStream | TfChain:
+    """What places scans in ``scan_frame``: a TF topic's chain up to the map frame, or the pose stream."""
+    reader = _opened(path)
+    try:
+        types = {c.msgtype for c in reader.connections if c.topic == pose_topic}
+    finally:
+        reader.close()
+    if types and types <= TF_TYPES:
+        return read_tf_tree(path, pose_topic).chain(scan_frame, map_frame)
+    poses = read_poses(path, pose_topic, child_frame=scan_frame)
+    if map_frame is not None and _frame_name(map_frame) != _frame_name(poses.frame):
+        raise InvalidInputError(f"{path}: the poses on {pose_topic} are in frame {poses.frame!r}, not the map frame "
+                                f"{map_frame!r} asked for; only a TF topic (/tf) composes transforms into another "
+                                f"frame")
+    return poses
 
 
 def _first_frame(path: Path, topic: str | None) -> str:
@@ -554,7 +891,7 @@ def _first_frame(path: Path, topic: str | None) -> str:
     raise InvalidInputError(f"{path}: no message on the PointCloud2 topic")
 
 
-def _placed(path: Path, topic: str | None, poses: PoseStream, *, warn: bool) -> Iterator[PosedScan]:
+def _placed(path: Path, topic: str | None, poses: PoseStream | TfChain, *, warn: bool) -> Iterator[PosedScan]:
     """The scans of ``topic`` within ``poses``, each with its pose; the others skipped, then reported."""
     skipped: list[int] = []
     placed = 0
@@ -563,9 +900,11 @@ def _placed(path: Path, topic: str | None, poses: PoseStream, *, warn: bool) -> 
         if frame is None:
             frame = msg.header.frame_id
         if msg.header.frame_id != frame:
+            why = ("the transforms were composed for the first scan's frame: the scans of a topic share one frame"
+                   if isinstance(poses, TfChain) else "dftpcc applies no other transform")
             raise InvalidInputError(
                 f"{path}: scan {index} on {name} is in frame {msg.header.frame_id!r}, but the poses on "
-                f"{poses.topic} are those of frame {frame!r}; dftpcc applies no other transform")
+                f"{poses.topic} are those of frame {frame!r}; {why}")
         stamp = stamp_ns(msg.header.stamp)
         if not poses.covers(np.array([stamp]))[0]:
             skipped.append(stamp)
@@ -573,7 +912,7 @@ def _placed(path: Path, topic: str | None, poses: PoseStream, *, warn: bool) -> 
         rotation, translation = poses.at(np.array([stamp]))
         placed += 1
         yield PosedScan(stamp, _xyz(path, name, msg), rotation[0], translation[0])
-    span = f"poses on {poses.topic} cover {_seconds(poses.stamps_ns[0])} to {_seconds(poses.stamps_ns[-1])}"
+    span = poses.coverage()
     if skipped and not placed:
         raise InvalidInputError(f"{path}: none of the {len(skipped)} scans falls within the poses "
                                 f"(scans stamped {_seconds(min(skipped))} to {_seconds(max(skipped))}; {span})")
@@ -583,7 +922,8 @@ def _placed(path: Path, topic: str | None, poses: PoseStream, *, warn: bool) -> 
                       UnposedScanWarning, stacklevel=2)
 
 
-def posed_scans(path: str | Path, points_topic: str | None = None, pose_topic: str = "/odom") -> Iterator[PosedScan]:
+def posed_scans(path: str | Path, points_topic: str | None = None, pose_topic: str = "/odom", *,
+                map_frame: str | None = None) -> Iterator[PosedScan]:
     """The scans of a bag recorded in the sensor frame, each with its pose at its stamp, in bag order.
 
     The next stage (a map builder) consumes these; :func:`apply_pose` places
@@ -597,7 +937,11 @@ def posed_scans(path: str | Path, points_topic: str | None = None, pose_topic: s
     points_topic : str, optional
         The PointCloud2 topic (default: the bag's only one).
     pose_topic : str
-        The poses of the scans' frame (see :func:`read_poses`).
+        The poses of the scans' frame (see :func:`read_poses`), or a TF topic
+        (``/tf``): its tree, with the static topic (``/tf_static``), composed
+        from the scans' frame up (:func:`read_tf_tree`, :meth:`TfTree.chain`).
+    map_frame : str, optional
+        TF only: the frame to place the scans in (default: the root of their tree).
 
     Yields
     ------
@@ -607,9 +951,10 @@ def posed_scans(path: str | Path, points_topic: str | None = None, pose_topic: s
     Raises
     ------
     InvalidInputError
-        As :func:`read_poses`; a scan in another frame than the poses', or
-        no scan within the poses.
+        As :func:`read_poses` and :meth:`TfTree.chain`; a scan in another
+        frame than the poses', no scan within the poses, or a ``map_frame``
+        other than the frame of poses that are not TF.
     """
     path = Path(path)
-    poses = read_poses(path, pose_topic, child_frame=_first_frame(path, points_topic))
+    poses = _scan_poses(path, pose_topic, _first_frame(path, points_topic), map_frame)
     yield from _placed(path, points_topic, poses, warn=True)
