@@ -171,7 +171,9 @@ class MapBuilder:
         self._tiles: dict[tuple[int, int], _Cells] = {}
         self._codes: dict[tuple[int, int], TileCode] = {}
         self._gridding: dict[tuple[int, int], float] = {}  # squared distance of points to their cell's mean, m²
-        self._dirty: set[tuple[int, int]] = set()
+        self._dirty: set[tuple[int, int]] = set()  # tiles whose coded window holds a cell whose mean changed
+        self._mask_dirty: set[tuple[int, int]] = set()  # tiles that gained occupied cells
+        self._recount: set[tuple[int, int]] = set()  # tiles with cells seen again at the same mean
         self._file_sha256: str | None = None  # of the map file this builder was read from or last saved as
 
     # -- growing -------------------------------------------------------------------------------
@@ -238,14 +240,31 @@ class MapBuilder:
         if cells is None:
             cells = self._tiles[tile] = _Cells.empty(size)
         n = size * size
-        count = np.bincount(local, minlength=n).reshape(size, size)
-        if int(cells.count.max(initial=0)) + int(count.max()) > MAX_CELL_POINTS:
+        count = np.bincount(local, minlength=n)
+        seen = np.flatnonzero(count)  # a scan sees a few percent of a tile's cells: update only those
+        added = count[seen]
+        total, sums, sumsq = cells.count.reshape(-1), cells.sum.reshape(-1), cells.sumsq.reshape(-1)
+        before, before_sum = total[seen], sums[seen]
+        if int(before.max(initial=0)) + int(added.max()) > MAX_CELL_POINTS:
             raise InvalidInputError(f"a cell would hold more than {MAX_CELL_POINTS:,} points")
         # A float64 sum of whole numbers is exact below 2**53 micrometres (9,000 km) per scan and cell.
-        cells.sum += np.bincount(local, weights=micro, minlength=n).reshape(size, size).astype(np.int64)
-        cells.sumsq += np.bincount(local, weights=rel * rel, minlength=n).reshape(size, size)
-        cells.count += count.astype(np.int32)
-        self._mark(tile, count > 0)
+        after_sum = before_sum + np.bincount(local, weights=micro, minlength=n)[seen].astype(np.int64)
+        after = before + added.astype(np.int32)
+        sums[seen], total[seen] = after_sum, after
+        sumsq[seen] += np.bincount(local, weights=rel * rel, minlength=n)[seen]
+        # A cell's height in every window is its mean (see _heights): a cell seen again whose mean
+        # came out the same leaves every section as it was, only the tile's point-weighted error moves.
+        new = before == 0
+        moved = new | (np.divide(before_sum, before, out=np.zeros(seen.size), where=~new)
+                       != np.divide(after_sum, after))
+        if new.any():
+            self._mask_dirty.add(tile)
+        if moved.any():
+            changed = np.zeros(n, bool)
+            changed[seen[moved]] = True
+            self._mark(tile, changed.reshape(size, size))
+        if not moved.all():
+            self._recount.add(tile)
 
     def _mark(self, tile: tuple[int, int], changed: np.ndarray) -> None:
         """Mark ``tile`` and every neighbour whose coded window holds a changed cell (within the overlap)."""
@@ -263,8 +282,11 @@ class MapBuilder:
     def changed_tiles(self) -> list[tuple[int, int]]:
         """Held tiles whose coded window holds a cell changed since the last :meth:`encode` (lattice indices, sorted).
 
-        A cell within :data:`~dftpcc.tiles.TILE_OVERLAP` cells of a tile's
-        edge lies in the neighbour's window too, so it changes both.
+        A cell changes when it is new or its mean height does (points added
+        to a cell at exactly its mean change no section, only the tile's
+        point-weighted error, which :meth:`encode` updates without coding the
+        tile again). A cell within :data:`~dftpcc.tiles.TILE_OVERLAP` cells of
+        a tile's edge lies in the neighbour's window too, so it changes both.
         """
         return sorted(k for k in self._tiles if k in self._dirty or k not in self._codes)
 
@@ -294,8 +316,15 @@ class MapBuilder:
         own = self._tiles[tile]
         return TileJob(0, rest, mask, (m, m + size, m, m + size), np.zeros((size, size)), own.count)
 
-    def _code(self, tile: tuple[int, int]) -> None:
-        self._codes[tile] = code_tile(self._job(tile), self.params)
+    def _code(self, tile: tuple[int, int], *, sections_kept: bool = False) -> None:
+        """Code ``tile`` again; ``sections_kept``: its cells kept their means, so only its errors are measured."""
+        job = self._job(tile)
+        known = self._codes.get(tile)
+        if known is not None and (sections_kept or tile not in self._mask_dirty):
+            job.mask_code = known.mask  # no cell of the tile became occupied: the same mask
+        if known is not None and sections_kept:
+            job.coef_code = known.coef
+        self._codes[tile] = code_tile(job, self.params)
         cells = self._tiles[tile]
         occupied = cells.count > 0
         mean_sum = cells.sum[occupied] * HEIGHT_QUANTUM_M
@@ -312,9 +341,14 @@ class MapBuilder:
         """
         if not self._tiles:
             raise InvalidInputError("the map is empty: add a scan first")
-        for tile in self.changed_tiles():
+        changed = self.changed_tiles()
+        for tile in changed:
             self._code(tile)
+        for tile in sorted(self._recount.difference(changed)):
+            self._code(tile, sections_kept=True)
         self._dirty.clear()
+        self._mask_dirty.clear()
+        self._recount.clear()
         return pack_tiled(*self._layout())
 
     def _layout(self) -> tuple[Header, bytes, list[tuple[int, bytes, bytes, bytes]]]:
