@@ -239,19 +239,18 @@ class MapBuilder:
         cells = self._tiles.get(tile)
         if cells is None:
             cells = self._tiles[tile] = _Cells.empty(size)
-        n = size * size
-        count = np.bincount(local, minlength=n)
-        seen = np.flatnonzero(count)  # a scan sees a few percent of a tile's cells: update only those
-        added = count[seen]
+        # A scan sees a few percent of a tile's cells: sum per cell seen, and update only those.
+        seen, where = np.unique(local, return_inverse=True)
+        added = np.bincount(where, minlength=seen.size)
         total, sums, sumsq = cells.count.reshape(-1), cells.sum.reshape(-1), cells.sumsq.reshape(-1)
         before, before_sum = total[seen], sums[seen]
         if int(before.max(initial=0)) + int(added.max()) > MAX_CELL_POINTS:
             raise InvalidInputError(f"a cell would hold more than {MAX_CELL_POINTS:,} points")
         # A float64 sum of whole numbers is exact below 2**53 micrometres (9,000 km) per scan and cell.
-        after_sum = before_sum + np.bincount(local, weights=micro, minlength=n)[seen].astype(np.int64)
+        after_sum = before_sum + np.bincount(where, weights=micro, minlength=seen.size).astype(np.int64)
         after = before + added.astype(np.int32)
         sums[seen], total[seen] = after_sum, after
-        sumsq[seen] += np.bincount(local, weights=rel * rel, minlength=n)[seen]
+        sumsq[seen] += np.bincount(where, weights=rel * rel, minlength=seen.size)
         # A cell's height in every window is its mean (see _heights): a cell seen again whose mean
         # came out the same leaves every section as it was, only the tile's point-weighted error moves.
         new = before == 0
@@ -260,23 +259,22 @@ class MapBuilder:
         if new.any():
             self._mask_dirty.add(tile)
         if moved.any():
-            changed = np.zeros(n, bool)
-            changed[seen[moved]] = True
-            self._mark(tile, changed.reshape(size, size))
+            self._mark(tile, *np.divmod(seen[moved], size))
         if not moved.all():
             self._recount.add(tile)
 
-    def _mark(self, tile: tuple[int, int], changed: np.ndarray) -> None:
-        """Mark ``tile`` and every neighbour whose coded window holds a changed cell (within the overlap)."""
-        m = TILE_OVERLAP
-        rows, cols = changed.any(axis=1), changed.any(axis=0)
-        near = {-1: (slice(0, m)), 0: slice(None), 1: slice(-m, None)}
+    def _mark(self, tile: tuple[int, int], rows: np.ndarray, cols: np.ndarray) -> None:
+        """Mark ``tile`` and every neighbour whose coded window holds a changed cell (at ``rows``, ``cols``
+        of the tile, some at least): those within the overlap of an edge or corner."""
+        m, size = TILE_OVERLAP, self.tile_size
+        side = {-1: lambda v: v < m, 0: lambda v: np.ones(v.shape, bool), 1: lambda v: v >= size - m}
         i, j = tile
         for di in (-1, 0, 1):
-            if not rows[near[di]].any():
+            near_row = side[di](rows)
+            if not near_row.any():
                 continue
             for dj in (-1, 0, 1):
-                if cols[near[dj]].any() and changed[near[di], near[dj]].any():
+                if (near_row & side[dj](cols)).any():
                     self._dirty.add((i + di, j + dj))
 
     def changed_tiles(self) -> list[tuple[int, int]]:
