@@ -11,7 +11,8 @@ Latency: a :class:`~dftpcc.mapbuilder.MapBuilder` is pre-filled with a
 square map of 1e5 to 1e7 cells (one point a cell) and coded once; then the
 rover drives on from its centre and each scan is timed through ``add``
 and ``encode`` (the tiles it changed coded again, the file assembled), on
-one core. Bytes per minute: a drive from an empty map at 0.5 and 1 m/s
+one core: the process is pinned to one CPU, so scipy.fft's worker threads
+share it too. Bytes per minute: a drive from an empty map at 0.5 and 1 m/s
 (10 Hz scans); every second, and every 10 s, the rover sends a delta
 (:mod:`dftpcc.delta`), or the whole map, or (the anchor) every raw scan
 coded by Draco (DracoPy, 14-bit positions: about 6 mm on a 100 m scan).
@@ -22,6 +23,7 @@ coded by Draco (DracoPy, 14-bit positions: about 6 mm on a 100 m scan).
 from __future__ import annotations
 
 import math
+import os
 import statistics
 import time
 from pathlib import Path
@@ -188,16 +190,25 @@ def traffic(terrain: Terrain, resolutions, drive_s: int, starts) -> str:
                           rows)
 
 
+def one_core() -> int:
+    """Pin this process, and every thread it starts (scipy.fft's workers), to one CPU; returns it."""
+    cpu = min(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {cpu})
+    return cpu
+
+
 def main() -> None:
     ap = run_arguments(__doc__.splitlines()[0], "1e5 and 1e6 cells, 5 scans, a 10 s drive")
     args = ap.parse_args()
+    one_core()
     terrain = Terrain(Path(args.data) / DEM)
     t0 = time.perf_counter()
     cells = QUICK_MAP_CELLS if args.quick else MAP_CELLS
     parts = [
         f"Scans sampled from `{DEM}` (mirrored past its edges) with a 16-beam (16 x 1800, -15 to +15 deg) or "
         f"64-beam (64 x 1024, -24.9 to +2 deg) pattern, ground hits to {MAX_RANGE_M:g} m, {100 * NOISE_M:g} cm noise; "
-        f"tiles of {TILE} cells, cutoff {CUTOFF}, step {STEP_M} m, one core. Load average {load_average()}.",
+        f"tiles of {TILE} cells, cutoff {CUTOFF}, step {STEP_M} m, one core (the process pinned to one CPU). "
+        f"Load average {load_average()}.",
         "**Per-scan latency**: the builder pre-filled with a square map (one point a cell) and coded once; then each "
         f"scan (the rover at 1 m/s from the map's centre) is added and the map encoded (the changed tiles coded "
         f"again, the file assembled); medians and ranges over {QUICK_SCANS_TIMED if args.quick else SCANS_TIMED} "
