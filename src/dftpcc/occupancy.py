@@ -161,32 +161,33 @@ def _seed_lines(lines: np.ndarray, stripe: int) -> np.ndarray:
 
 def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = None) -> bytes:
     """The context-coded mask; ``seed_frame``: :func:`_encode_seeds` of its seed lines, if known."""
+    n_lines, width = lines.shape
     ctx = _contexts(lines, stripe)
     # Step s decodes line s of every stripe (line 0 of the first stripe only, the
-    # others' are seeds): rows s, s + stripe, ... of the line-major mask, by
-    # stripe and column, which is the order of lines[s::stripe] raveled.
-    steps = [(lines[:1], ctx[:1])] + [(lines[s::stripe], ctx[s::stripe]) for s in range(1, stripe)]
+    # others' are seeds): by stripe, then column. The lines in that order:
+    line = np.arange(n_lines)
+    step_of = line % stripe
+    order = np.lexsort((line // stripe, step_of))
+    order = order[(step_of[order] > 0) | (order == 0)]
+    bits, c = lines[order].ravel(), ctx[order].ravel()
+    step = np.repeat(step_of[order], width)
     # Counts seen before each step: per-step histograms, accumulated, shifted by one step.
-    ones, total = np.zeros((stripe, CONTEXTS)), np.zeros((stripe, CONTEXTS))
-    for s, (bits, c) in enumerate(steps[:-1]):
-        flat = c.ravel()
-        ones[s + 1] = ones[s] + np.bincount(flat[bits.ravel().view(bool)], minlength=CONTEXTS)
-        total[s + 1] = total[s] + np.bincount(flat, minlength=CONTEXTS)
+    key = step * CONTEXTS + c
+    per_step = [np.bincount(key[bits.view(bool)], minlength=stripe * CONTEXTS),
+                np.bincount(key, minlength=stripe * CONTEXTS)]
+    ones, total = (np.vstack([np.zeros((1, CONTEXTS)), np.cumsum(h.reshape(stripe, CONTEXTS), axis=0)[:-1]])
+                   for h in per_step)
     prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)  # (step, context)
-    coder = constriction.stream.stack.AnsCoder()
-    model = _bernoulli()
     # Decoding order: step by step; within a step the outside cells, then the
-    # inside cells, then the rest, each by stripe and column. A stack: the
-    # last segment is encoded first.
-    for s in range(stripe - 1, -1, -1):
-        bits, c = steps[s][0].ravel(), steps[s][1].ravel()
-        outside, inside = c == OUTSIDE, c == INSIDE
-        rest = ~(outside | inside)
-        if rest.any():
-            coder.encode_reverse(bits[rest].astype(np.int32), model, prob[s, c[rest]])
-        for where, context in ((inside, INSIDE), (outside, OUTSIDE)):
-            if where.any():
-                coder.encode_reverse(bits[where].astype(np.int32), _bernoulli(prob[s, context]))
+    # inside cells, then the rest, each by stripe and column. The decoder takes
+    # a step's outside (inside) cells with one model of the same probability,
+    # which the adaptive model of that probability codes to the same words, so
+    # all cells go in one call (a stack: encode_reverse pushes them last first).
+    kind = np.where(c == OUTSIDE, 0, np.where(c == INSIDE, 1, 2))
+    rank = step * 3 + kind
+    seq = np.argsort(rank.astype(np.uint16) if 3 * stripe <= np.iinfo(np.uint16).max else rank, kind="stable")
+    coder = constriction.stream.stack.AnsCoder()
+    coder.encode_reverse(bits[seq].astype(np.int32), _bernoulli(), prob[step[seq], c[seq]])
     if seed_frame is None:
         seed_frame = _encode_seeds(_seed_lines(lines, stripe))
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
