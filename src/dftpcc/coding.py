@@ -319,12 +319,24 @@ def _magnitudes(code: int) -> np.ndarray:
 #: each, so the cache stays under ~20 MB); wider ones (up to 0.3 MB) are rare,
 #: first chunks only, and built each time.
 CACHED_TABLE_MAX_ABS = 8192
+#: Narrow tables (at most ~8 kB each, mostly constriction's fixed overhead) have a cache of
+#: their own, so the many a map's later chunks use (every band scale at every small bound)
+#: are not pushed out by the wide ones: 2048 of them stay under ~16 MB.
+NARROW_TABLE_MAX_ABS = 255
+NARROW_TABLES_CACHED = 2048
 
 
 def _table_model(max_abs: int, code: int):
     """constriction model of the values -max_abs..max_abs (symbols 0..2*max_abs) of a band."""
+    if max_abs <= NARROW_TABLE_MAX_ABS:
+        return _narrow_table_model(max_abs, code)
     if max_abs <= CACHED_TABLE_MAX_ABS:
         return _cached_table_model(max_abs, code)
+    return _build_table_model(max_abs, code)
+
+
+@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
+def _narrow_table_model(max_abs: int, code: int):
     return _build_table_model(max_abs, code)
 
 
