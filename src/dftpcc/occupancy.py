@@ -171,13 +171,20 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     order = order[(step_of[order] > 0) | (order == 0)]
     bits, c = lines[order].ravel(), ctx[order].ravel()
     step = np.repeat(step_of[order], width)
-    # Counts seen before each step: per-step histograms, accumulated, shifted by one step.
-    key = step * CONTEXTS + c
-    per_step = [np.bincount(key[bits.view(bool)], minlength=stripe * CONTEXTS),
-                np.bincount(key, minlength=stripe * CONTEXTS)]
-    ones, total = (np.vstack([np.zeros((1, CONTEXTS)), np.cumsum(h.reshape(stripe, CONTEXTS), axis=0)[:-1]])
-                   for h in per_step)
-    prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)  # (step, context)
+    # Counts seen before each step: per-step histograms, accumulated, shifted by one step;
+    # over the contexts that occur only (a tile's mask has a few dozen of the 256).
+    present = np.flatnonzero(np.bincount(c, minlength=CONTEXTS))
+    compact = np.zeros(CONTEXTS, dtype=np.intp)
+    compact[present] = np.arange(present.size)
+    key = step * present.size + compact[c]
+    size = stripe * present.size
+    ones, total = (np.cumsum(h.reshape(stripe, present.size), axis=0) for h in (
+        np.bincount(key[bits.view(bool)], minlength=size), np.bincount(key, minlength=size)))
+    before = (step - 1) * present.size + compact[c]  # the counts after the previous step
+    first = step == 0
+    seen_ones = np.where(first, 0, ones.ravel()[np.where(first, 0, before)])
+    seen_total = np.where(first, 0, total.ravel()[np.where(first, 0, before)])
+    prob = (seen_ones + PRIOR_ONES[c]) / (seen_total + PRIOR_TOTAL)
     # Decoding order: step by step; within a step the outside cells, then the
     # inside cells, then the rest, each by stripe and column. The decoder takes
     # a step's outside (inside) cells with one model of the same probability,
@@ -187,7 +194,7 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     rank = step * 3 + kind
     seq = np.argsort(rank.astype(np.uint16) if 3 * stripe <= np.iinfo(np.uint16).max else rank, kind="stable")
     coder = constriction.stream.stack.AnsCoder()
-    coder.encode_reverse(bits[seq].astype(np.int32), _bernoulli(), prob[step[seq], c[seq]])
+    coder.encode_reverse(bits[seq].astype(np.int32), _bernoulli(), prob[seq])
     if seed_frame is None:
         seed_frame = _encode_seeds(_seed_lines(lines, stripe))
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
