@@ -397,14 +397,16 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     tile_params = params.replace(detrend="none", tile_size=0)
     sub = DEM(grid=Grid(rows=job.rest.shape[0], cols=job.rest.shape[1], **_WINDOW_GRID),
               heights=job.rest, mask=job.mask)
-    an = Analysis(sub, tile_params, searching=False)
+    # The errors are measured on the tile's own cells below, not over the window (as a trial
+    # would), and the energy outside the circle serves rate control only.
+    an = Analysis(sub, tile_params, searching=False, outside_energy=False)
     if refill_step is not None and an.refillable:
         an = an.refilled(an.trial(params.cutoff, refill_step))
-    trial = an.trial(params.cutoff, params.step)
+    stream, heights = an.rebuilt(params.cutoff, params.step)
     r0, r1, c0, c1 = job.inner
     target = job.rest[r0:r1, c0:c1]
     mask = job.mask[r0:r1, c0:c1]
-    rebuilt = trial.heights[r0:r1, c0:c1] + job.base_error
+    rebuilt = heights[r0:r1, c0:c1] + job.base_error
     resid = b""
     if params.target_max_error > 0:
         q, rebuilt = residual(target, rebuilt, mask, mask, params.target_max_error)
@@ -412,6 +414,6 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
     mask_code = occupancy.encode_mask(mask) if job.mask_code is None else job.mask_code
-    coef_code = an.encode(trial) if job.coef_code is None else job.coef_code
+    coef_code = an.encode_stream(stream) if job.coef_code is None else job.coef_code
     return TileCode(job.k, mask_code, coef_code, resid, int(mask.sum()), dot(err, err), float(np.abs(err).max()),
                     weighted)
