@@ -325,8 +325,12 @@ class MapBuilder:
         self._codes[tile] = code_tile(job, self.params)
         cells = self._tiles[tile]
         occupied = cells.count > 0
-        mean_sum = cells.sum[occupied] * HEIGHT_QUANTUM_M
-        spread = cells.sumsq[occupied] - mean_sum * mean_sum / cells.count[occupied]
+        if occupied.all():  # the occupied cells in row-major order are every cell: no copies
+            total, sums, sumsq = cells.count.ravel(), cells.sum.ravel(), cells.sumsq.ravel()
+        else:
+            total, sums, sumsq = cells.count[occupied], cells.sum[occupied], cells.sumsq[occupied]
+        mean_sum = sums * HEIGHT_QUANTUM_M
+        spread = sumsq - mean_sum * mean_sum / total
         self._gridding[tile] = float(np.maximum(spread, 0.0).sum())
 
     def encode(self) -> bytes:
