@@ -64,6 +64,10 @@ STRIPED_CELLS = 1 << 18
 #: not thread-safe, and zarr codes chunks in threads).
 _BITMAP_LEVEL = 9
 _SEED_LEVEL = 19
+#: Runs of cells sharing one context's probability at least this long are coded with that
+#: probability's own model (a few ns a cell, against a few tens with a probability per cell,
+#: and a microsecond or two a call).
+FIXED_MODEL_RUN = 64
 
 
 def _codes(lines: np.ndarray) -> np.ndarray:
@@ -132,6 +136,11 @@ def _decode_seeds(frame: bytes, count: int, width: int) -> np.ndarray:
     return seeds
 
 
+#: Order of a cell's context kind within a decoding step: outside, inside, the rest.
+_KIND = np.full(CONTEXTS, 2, dtype=np.int32)
+_KIND[OUTSIDE], _KIND[INSIDE] = 0, 1
+
+
 def _contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
     """Context of every cell of the line-major mask ``lines`` (n, w).
 
@@ -169,32 +178,47 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     step_of = line % stripe
     order = np.lexsort((line // stripe, step_of))
     order = order[(step_of[order] > 0) | (order == 0)]
-    bits, c = lines[order].ravel(), ctx[order].ravel()
-    step = np.repeat(step_of[order], width)
-    # Counts seen before each step: per-step histograms, accumulated, shifted by one step;
-    # over the contexts that occur only (a tile's mask has a few dozen of the 256).
+    if order.size == n_lines:  # one stripe: the lines in their own order
+        bits, c = lines.ravel(), ctx.ravel()
+    else:
+        bits, c = lines[order].ravel(), ctx[order].ravel()
+    step = np.repeat(step_of[order].astype(np.int32), width)
+    # Counts seen before each step: per-step histograms, accumulated, shifted by one step
+    # (row s: the steps before s), over the contexts that occur only (a tile's mask has a
+    # few dozen of the 256); then each cell's probability from its (step, context).
     present = np.flatnonzero(np.bincount(c, minlength=CONTEXTS))
-    compact = np.zeros(CONTEXTS, dtype=np.intp)
+    compact = np.zeros(CONTEXTS, dtype=np.int32)
     compact[present] = np.arange(present.size)
     key = step * present.size + compact[c]
-    size = stripe * present.size
-    ones, total = (np.cumsum(h.reshape(stripe, present.size), axis=0) for h in (
-        np.bincount(key[bits.view(bool)], minlength=size), np.bincount(key, minlength=size)))
-    before = (step - 1) * present.size + compact[c]  # the counts after the previous step
-    first = step == 0
-    seen_ones = np.where(first, 0, ones.ravel()[np.where(first, 0, before)])
-    seen_total = np.where(first, 0, total.ravel()[np.where(first, 0, before)])
-    prob = (seen_ones + PRIOR_ONES[c]) / (seen_total + PRIOR_TOTAL)
+    ones, total = (np.vstack([np.zeros((1, present.size)), np.cumsum(h.reshape(stripe, present.size), axis=0)])
+                   for h in (np.bincount(key[bits.view(bool)], minlength=stripe * present.size),
+                             np.bincount(key, minlength=stripe * present.size)))
+    prob = ((ones + PRIOR_ONES[present]) / (total + PRIOR_TOTAL)).ravel()  # (step, context)
     # Decoding order: step by step; within a step the outside cells, then the
     # inside cells, then the rest, each by stripe and column. The decoder takes
-    # a step's outside (inside) cells with one model of the same probability,
-    # which the adaptive model of that probability codes to the same words, so
-    # all cells go in one call (a stack: encode_reverse pushes them last first).
-    kind = np.where(c == OUTSIDE, 0, np.where(c == INSIDE, 1, 2))
-    rank = step * 3 + kind
+    # a step's outside (inside) cells with one model of their probability, which
+    # codes to the same words as the adaptive model given that probability per
+    # cell; so the cells go to the coder in long stretches: a step's outside or
+    # inside run of at least FIXED_MODEL_RUN cells with its one model (cheaper per
+    # cell), everything between with the adaptive one.
+    rank = step * 3 + _KIND[c]
     seq = np.argsort(rank.astype(np.uint16) if 3 * stripe <= np.iinfo(np.uint16).max else rank, kind="stable")
+    bits, prob, rank = bits[seq].astype(np.int32), prob[key[seq]], rank[seq]
+    starts = np.flatnonzero(np.r_[True, rank[1:] != rank[:-1]])
+    lengths = np.diff(np.r_[starts, rank.size])
+    fixed = (rank[starts] % 3 < 2) & (lengths >= FIXED_MODEL_RUN)
+    runs = [(int(a), int(a + n)) for a, n in zip(starts[fixed], lengths[fixed])]
     coder = constriction.stream.stack.AnsCoder()
-    coder.encode_reverse(bits[seq].astype(np.int32), _bernoulli(), prob[seq])
+    model = _bernoulli()
+    # A stack: the last cells are pushed first (encode_reverse pushes an array last first too).
+    end = rank.size
+    for a, b in reversed(runs):
+        if b < end:
+            coder.encode_reverse(bits[b:end], model, prob[b:end])
+        coder.encode_reverse(bits[a:b], _bernoulli(float(prob[a])))
+        end = a
+    if end:
+        coder.encode_reverse(bits[:end], model, prob[:end])
     if seed_frame is None:
         seed_frame = _encode_seeds(_seed_lines(lines, stripe))
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
