@@ -145,6 +145,31 @@ def test_a_change_within_the_overlap_marks_the_neighbour_and_only_then():
     assert builder.changed_tiles() == [(0, 0)]
 
 
+def test_a_cell_seen_again_at_its_mean_codes_no_tile_and_new_cells_recode_the_mask():
+    builder = MapBuilder(1.0, tile_size=TILE, step=STEP, origin=(0.0, 0.0, 0.0))
+    xy = np.stack(np.meshgrid(np.arange(2 * TILE) + 0.5, np.arange(TILE // 2) + 0.5), -1).reshape(-1, 2)
+    first = np.c_[xy, 0.1 * np.sin(xy[:, 0] / 3.0)]
+    builder.add(first)
+    before = builder.encode()
+    # A point at the exact mean of a cell within the overlap: no mean moves, so no tile is coded again,
+    # but the map's point-weighted error still counts it.
+    again = first[[TILE - 2]]
+    builder.add(again)
+    assert builder.changed_tiles() == []
+    after = builder.encode()
+    once = MapBuilder(1.0, tile_size=TILE, step=STEP, origin=(0.0, 0.0, 0.0)).add(np.r_[first, again]).encode()
+    assert after == once and after != before
+    assert tile_payloads(after) == tile_payloads(before)
+    # A new cell in the tile's upper half (empty so far): the tile's mask is coded again, its neighbour's is not.
+    builder.add(np.array([[3.5, TILE - 1.5, 0.0]]))
+    assert builder.changed_tiles() == [(0, 0)]
+    grown = builder.encode()
+    old, new = tile_payloads(after), tile_payloads(grown)
+    assert new[(0.0, 0.0)][0] != old[(0.0, 0.0)][0] and new[(float(TILE), 0.0)] == old[(float(TILE), 0.0)]
+    assert grown == MapBuilder(1.0, tile_size=TILE, step=STEP, origin=(0.0, 0.0, 0.0)).add(
+        np.r_[first, again, [[3.5, TILE - 1.5, 0.0]]]).encode()
+
+
 def test_a_pose_is_applied_as_rotation_then_translation(scans):
     points, (rotation, translation) = scans[0]
     posed = new_builder().add(points, (rotation, translation)).encode()

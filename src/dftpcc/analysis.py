@@ -58,10 +58,15 @@ class Analysis:
     fill : callable, optional
         ``fill(heights, mask, method=...)`` giving the empty cells their heights before the
         transform (default :func:`dftpcc.fill.fill_empty`); for experiments with other fills.
+    outside_energy : bool
+        Measure the energy outside the sorted circle (:attr:`outside_energy`, which
+        :meth:`proxy_rmse` needs); coding at a known (cutoff, step) does not.
     """
 
-    def __init__(self, dem: DEM, params: Params, *, searching: bool, fill: Callable[..., np.ndarray] | None = None):
+    def __init__(self, dem: DEM, params: Params, *, searching: bool, fill: Callable[..., np.ndarray] | None = None,
+                 outside_energy: bool = True):
         self.dem, self.params = dem, params
+        self._measure_outside = outside_energy
         self.mask = dem.mask
         self.kept_cells = footprint(dem.mask) if params.mask == "footprint" else dem.mask
         self.plane = fit_plane(dem) if params.detrend == "plane" else (0.0, 0.0, 0.0)
@@ -84,9 +89,9 @@ class Analysis:
         """The kept coefficients of ``filled``, sorted; also sets :attr:`outside_energy`."""
         full = spectrum.forward(filled, self.lay).ravel()
         #: Squared magnitude of the coefficients outside the sorted circle (0 when searching):
-        #: what any trial loses to the low-pass, for :meth:`proxy_rmse`.
-        self.outside_energy = 0.0
-        if self.order.size < full.size:
+        #: what any trial loses to the low-pass, for :meth:`proxy_rmse` (None: not measured).
+        self.outside_energy: float | None = 0.0 if self._measure_outside else None
+        if self.order.size < full.size and self._measure_outside:
             outside = np.ones(full.size, dtype=bool)
             outside[self.order] = False
             rest = full[outside]
@@ -156,9 +161,9 @@ class Analysis:
         """The integers a quantized trial at (cutoff, step) codes, without rebuilding the DEM."""
         return coding.quantize(self.reals(self.count(cutoff)), coding.short_step(step), self.params.deadzone)
 
-    def trial(self, cutoff: float, step: float, *, keep_errors: bool = False) -> Trial:
-        """Quantize the coefficients inside ``cutoff`` with ``step`` and rebuild the DEM from them
-        (``keep_errors``: with :attr:`Trial.errors`)."""
+    def rebuilt(self, cutoff: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+        """The stream a trial at (cutoff, step) codes and the heights the decoder rebuilds from it
+        (relative to z0), without measuring them: :meth:`trial` with no errors."""
         n = self.count(cutoff)
         step = coding.short_step(step)
         if self.params.storage == "complex64":
@@ -169,7 +174,13 @@ class Analysis:
             decoded = coding.dequantize(stream, step)
             if np.iscomplexobj(self.coefs):
                 decoded = decoded.view(np.complex128)
-        heights = self.synthesise(decoded)
+        return stream, self.synthesise(decoded)
+
+    def trial(self, cutoff: float, step: float, *, keep_errors: bool = False) -> Trial:
+        """Quantize the coefficients inside ``cutoff`` with ``step`` and rebuild the DEM from them
+        (``keep_errors``: with :attr:`Trial.errors`)."""
+        step = coding.short_step(step)
+        stream, heights = self.rebuilt(cutoff, step)
         err = (heights - self.dem.heights)[self.mask]
         out = Trial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))), float(np.abs(err).max()))
         if keep_errors:
@@ -185,6 +196,8 @@ class Analysis:
         n = self.count(cutoff)
         reals = self.reals(n)
         dropped = self.reals(self.coefs.size)[reals.size:]
+        if self.outside_energy is None:
+            raise ValueError("proxy_rmse needs an Analysis that measures its outside energy")
         err = reals - coding.dequantize(coding.quantize(reals, step, self.params.deadzone), step)
         total = dot(err, err) + dot(dropped, dropped) + self.outside_energy
         return math.sqrt(total * self.parseval)

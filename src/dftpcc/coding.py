@@ -337,12 +337,24 @@ def _magnitudes(code: int) -> np.ndarray:
 #: each, so the cache stays under ~20 MB); wider ones (up to 0.3 MB) are rare,
 #: first chunks only, and built each time.
 CACHED_TABLE_MAX_ABS = 8192
+#: Narrow tables (at most ~8 kB each, mostly constriction's fixed overhead) have a cache of
+#: their own, so the many a map's later chunks use (every band scale at every small bound)
+#: are not pushed out by the wide ones: 2048 of them stay under ~16 MB.
+NARROW_TABLE_MAX_ABS = 255
+NARROW_TABLES_CACHED = 2048
 
 
 def _table_model(max_abs: int, code: int):
     """constriction model of the values -max_abs..max_abs (symbols 0..2*max_abs) of a band."""
+    if max_abs <= NARROW_TABLE_MAX_ABS:
+        return _narrow_table_model(max_abs, code)
     if max_abs <= CACHED_TABLE_MAX_ABS:
         return _cached_table_model(max_abs, code)
+    return _build_table_model(max_abs, code)
+
+
+@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
+def _narrow_table_model(max_abs: int, code: int):
     return _build_table_model(max_abs, code)
 
 
@@ -359,14 +371,17 @@ def _build_table_model(max_abs: int, code: int):
     to q = 0. The probabilities handed to constriction are these integers
     over 2**24, exact in float64, so its table is the same everywhere.
     """
-    w = np.zeros(max_abs + 1, dtype=np.int64)
+    # Only the |q| with a nonzero weight (a few dozen: the weights decay geometrically) take
+    # more than the floor of 1, so only those are computed; the rest of the table is that floor.
     known = _magnitudes(code)[: max_abs + 1]
-    w[: known.size] = known
-    both = np.concatenate([w[:0:-1], w])
-    free = (1 << TABLE_BITS) - both.size
-    freq = 1 + both * free // int(both.sum())
-    freq[max_abs] += (1 << TABLE_BITS) - int(freq.sum())
-    return constriction.stream.model.Categorical(freq / float(1 << TABLE_BITS), perfect=False)
+    both = np.concatenate([known[:0:-1], known])  # |q| < known.size, around q = 0
+    n = 2 * max_abs + 1
+    free = (1 << TABLE_BITS) - n
+    near = 1 + both * free // int(both.sum())
+    near[known.size - 1] += (1 << TABLE_BITS) - int(near.sum()) - (n - both.size)
+    probabilities = np.full(n, 1.0 / (1 << TABLE_BITS))
+    probabilities[max_abs - known.size + 1: max_abs + known.size] = near / float(1 << TABLE_BITS)
+    return constriction.stream.model.Categorical(probabilities, perfect=False)
 
 
 def _groups(codes: np.ndarray) -> list[tuple[int, np.ndarray]]:

@@ -171,7 +171,9 @@ class MapBuilder:
         self._tiles: dict[tuple[int, int], _Cells] = {}
         self._codes: dict[tuple[int, int], TileCode] = {}
         self._gridding: dict[tuple[int, int], float] = {}  # squared distance of points to their cell's mean, m²
-        self._dirty: set[tuple[int, int]] = set()
+        self._dirty: set[tuple[int, int]] = set()  # tiles whose coded window holds a cell whose mean changed
+        self._mask_dirty: set[tuple[int, int]] = set()  # tiles that gained occupied cells
+        self._recount: set[tuple[int, int]] = set()  # tiles with cells seen again at the same mean
         self._file_sha256: str | None = None  # of the map file this builder was read from or last saved as
 
     # -- growing -------------------------------------------------------------------------------
@@ -237,34 +239,52 @@ class MapBuilder:
         cells = self._tiles.get(tile)
         if cells is None:
             cells = self._tiles[tile] = _Cells.empty(size)
-        n = size * size
-        count = np.bincount(local, minlength=n).reshape(size, size)
-        if int(cells.count.max(initial=0)) + int(count.max()) > MAX_CELL_POINTS:
+        # A scan sees a few percent of a tile's cells: sum per cell seen, and update only those.
+        seen, where = np.unique(local, return_inverse=True)
+        added = np.bincount(where, minlength=seen.size)
+        total, sums, sumsq = cells.count.reshape(-1), cells.sum.reshape(-1), cells.sumsq.reshape(-1)
+        before, before_sum = total[seen], sums[seen]
+        if int(before.max(initial=0)) + int(added.max()) > MAX_CELL_POINTS:
             raise InvalidInputError(f"a cell would hold more than {MAX_CELL_POINTS:,} points")
         # A float64 sum of whole numbers is exact below 2**53 micrometres (9,000 km) per scan and cell.
-        cells.sum += np.bincount(local, weights=micro, minlength=n).reshape(size, size).astype(np.int64)
-        cells.sumsq += np.bincount(local, weights=rel * rel, minlength=n).reshape(size, size)
-        cells.count += count.astype(np.int32)
-        self._mark(tile, count > 0)
+        after_sum = before_sum + np.bincount(where, weights=micro, minlength=seen.size).astype(np.int64)
+        after = before + added.astype(np.int32)
+        sums[seen], total[seen] = after_sum, after
+        sumsq[seen] += np.bincount(where, weights=rel * rel, minlength=seen.size)
+        # A cell's height in every window is its mean (see _heights): a cell seen again whose mean
+        # came out the same leaves every section as it was, only the tile's point-weighted error moves.
+        new = before == 0
+        moved = new | (np.divide(before_sum, before, out=np.zeros(seen.size), where=~new)
+                       != np.divide(after_sum, after))
+        if new.any():
+            self._mask_dirty.add(tile)
+        if moved.any():
+            self._mark(tile, *np.divmod(seen[moved], size))
+        if not moved.all():
+            self._recount.add(tile)
 
-    def _mark(self, tile: tuple[int, int], changed: np.ndarray) -> None:
-        """Mark ``tile`` and every neighbour whose coded window holds a changed cell (within the overlap)."""
-        m = TILE_OVERLAP
-        rows, cols = changed.any(axis=1), changed.any(axis=0)
-        near = {-1: (slice(0, m)), 0: slice(None), 1: slice(-m, None)}
+    def _mark(self, tile: tuple[int, int], rows: np.ndarray, cols: np.ndarray) -> None:
+        """Mark ``tile`` and every neighbour whose coded window holds a changed cell (at ``rows``, ``cols``
+        of the tile, some at least): those within the overlap of an edge or corner."""
+        m, size = TILE_OVERLAP, self.tile_size
+        side = {-1: lambda v: v < m, 0: lambda v: np.ones(v.shape, bool), 1: lambda v: v >= size - m}
         i, j = tile
         for di in (-1, 0, 1):
-            if not rows[near[di]].any():
+            near_row = side[di](rows)
+            if not near_row.any():
                 continue
             for dj in (-1, 0, 1):
-                if cols[near[dj]].any() and changed[near[di], near[dj]].any():
+                if (near_row & side[dj](cols)).any():
                     self._dirty.add((i + di, j + dj))
 
     def changed_tiles(self) -> list[tuple[int, int]]:
         """Held tiles whose coded window holds a cell changed since the last :meth:`encode` (lattice indices, sorted).
 
-        A cell within :data:`~dftpcc.tiles.TILE_OVERLAP` cells of a tile's
-        edge lies in the neighbour's window too, so it changes both.
+        A cell changes when it is new or its mean height does (points added
+        to a cell at exactly its mean change no section, only the tile's
+        point-weighted error, which :meth:`encode` updates without coding the
+        tile again). A cell within :data:`~dftpcc.tiles.TILE_OVERLAP` cells of
+        a tile's edge lies in the neighbour's window too, so it changes both.
         """
         return sorted(k for k in self._tiles if k in self._dirty or k not in self._codes)
 
@@ -294,12 +314,23 @@ class MapBuilder:
         own = self._tiles[tile]
         return TileJob(0, rest, mask, (m, m + size, m, m + size), np.zeros((size, size)), own.count)
 
-    def _code(self, tile: tuple[int, int]) -> None:
-        self._codes[tile] = code_tile(self._job(tile), self.params)
+    def _code(self, tile: tuple[int, int], *, sections_kept: bool = False) -> None:
+        """Code ``tile`` again; ``sections_kept``: its cells kept their means, so only its errors are measured."""
+        job = self._job(tile)
+        known = self._codes.get(tile)
+        if known is not None and (sections_kept or tile not in self._mask_dirty):
+            job.mask_code = known.mask  # no cell of the tile became occupied: the same mask
+        if known is not None and sections_kept:
+            job.coef_code = known.coef
+        self._codes[tile] = code_tile(job, self.params)
         cells = self._tiles[tile]
         occupied = cells.count > 0
-        mean_sum = cells.sum[occupied] * HEIGHT_QUANTUM_M
-        spread = cells.sumsq[occupied] - mean_sum * mean_sum / cells.count[occupied]
+        if occupied.all():  # the occupied cells in row-major order are every cell: no copies
+            total, sums, sumsq = cells.count.ravel(), cells.sum.ravel(), cells.sumsq.ravel()
+        else:
+            total, sums, sumsq = cells.count[occupied], cells.sum[occupied], cells.sumsq[occupied]
+        mean_sum = sums * HEIGHT_QUANTUM_M
+        spread = sumsq - mean_sum * mean_sum / total
         self._gridding[tile] = float(np.maximum(spread, 0.0).sum())
 
     def encode(self) -> bytes:
@@ -312,9 +343,14 @@ class MapBuilder:
         """
         if not self._tiles:
             raise InvalidInputError("the map is empty: add a scan first")
-        for tile in self.changed_tiles():
+        changed = self.changed_tiles()
+        for tile in changed:
             self._code(tile)
+        for tile in sorted(self._recount.difference(changed)):
+            self._code(tile, sections_kept=True)
         self._dirty.clear()
+        self._mask_dirty.clear()
+        self._recount.clear()
         return pack_tiled(*self._layout())
 
     def _layout(self) -> tuple[Header, bytes, list[tuple[int, bytes, bytes, bytes]]]:

@@ -64,6 +64,10 @@ STRIPED_CELLS = 1 << 18
 #: not thread-safe, and zarr codes chunks in threads).
 _BITMAP_LEVEL = 9
 _SEED_LEVEL = 19
+#: Runs of cells sharing one context's probability at least this long are coded with that
+#: probability's own model (a few ns a cell, against a few tens with a probability per cell,
+#: and a microsecond or two a call).
+FIXED_MODEL_RUN = 64
 
 
 def _codes(lines: np.ndarray) -> np.ndarray:
@@ -132,6 +136,11 @@ def _decode_seeds(frame: bytes, count: int, width: int) -> np.ndarray:
     return seeds
 
 
+#: Order of a cell's context kind within a decoding step: outside, inside, the rest.
+_KIND = np.full(CONTEXTS, 2, dtype=np.int32)
+_KIND[OUTSIDE], _KIND[INSIDE] = 0, 1
+
+
 def _contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
     """Context of every cell of the line-major mask ``lines`` (n, w).
 
@@ -161,52 +170,55 @@ def _seed_lines(lines: np.ndarray, stripe: int) -> np.ndarray:
 
 def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = None) -> bytes:
     """The context-coded mask; ``seed_frame``: :func:`_encode_seeds` of its seed lines, if known."""
-    ctx = _contexts(lines, stripe)
     n_lines, width = lines.shape
+    ctx = _contexts(lines, stripe)
     # Step s decodes line s of every stripe (line 0 of the first stripe only, the
-    # others' are seeds): rows s, s + stripe, ... of the line-major mask. Gathered
-    # once into that order, every step is a contiguous run of cells.
-    steps = [np.arange(1)] + [np.arange(s, n_lines, stripe) for s in range(1, stripe)]
-    order = np.concatenate(steps)
-    c, b = ctx[order].ravel(), lines[order].ravel()
-    step_starts = width * np.concatenate(([0], np.cumsum([s.size for s in steps])))
-    # Within a step the outside cells are decoded first, then the inside ones, then
-    # the rest: each kind's cells, taken in order, are already grouped by step, so
-    # a search for the step starts cuts them (no sort of the whole mask).
-    kinds = []
-    for where in (np.flatnonzero(c == OUTSIDE), np.flatnonzero(c == INSIDE),
-                  np.flatnonzero((c != OUTSIDE) & (c != INSIDE))):
-        kinds.append((where, b[where].astype(np.int32), np.searchsorted(where, step_starts)))
-    # Counts seen before each step: per-step histograms, accumulated, shifted by one
-    # step. They are whole numbers, so the sums are exact in any order.
-    ones, total = np.zeros((stripe, CONTEXTS)), np.zeros((stripe, CONTEXTS))
-    for (_, bits, bounds), context in zip(kinds, (OUTSIDE, INSIDE)):
-        total[:, context] = np.diff(bounds)
-        ones[:, context] = np.diff(np.concatenate(([0], np.cumsum(bits)))[bounds])
-    where, rest_bits, rest_bounds = kinds[2]
-    rest_ctx = c[where]
-    rest_step = np.repeat(np.arange(stripe), np.diff(rest_bounds))
-    seen = np.bincount((rest_step * CONTEXTS + rest_ctx) * 2 + rest_bits,
-                       minlength=2 * stripe * CONTEXTS).reshape(stripe, CONTEXTS, 2)
-    ones += seen[:, :, 1]
-    total += seen.sum(axis=2)
-    ones = np.vstack([np.zeros(CONTEXTS), np.cumsum(ones, axis=0)[:-1]])
-    total = np.vstack([np.zeros(CONTEXTS), np.cumsum(total, axis=0)[:-1]])
-    prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)  # (step, context)
-    rest_prob = prob[rest_step, rest_ctx]
+    # others' are seeds): by stripe, then column. The lines in that order:
+    line = np.arange(n_lines)
+    step_of = line % stripe
+    order = np.lexsort((line // stripe, step_of))
+    order = order[(step_of[order] > 0) | (order == 0)]
+    if order.size == n_lines:  # one stripe: the lines in their own order
+        bits, c = lines.ravel(), ctx.ravel()
+    else:
+        bits, c = lines[order].ravel(), ctx[order].ravel()
+    step = np.repeat(step_of[order].astype(np.int32), width)
+    # Counts seen before each step: per-step histograms, accumulated, shifted by one step
+    # (row s: the steps before s), over the contexts that occur only (a tile's mask has a
+    # few dozen of the 256); then each cell's probability from its (step, context).
+    present = np.flatnonzero(np.bincount(c, minlength=CONTEXTS))
+    compact = np.zeros(CONTEXTS, dtype=np.int32)
+    compact[present] = np.arange(present.size)
+    key = step * present.size + compact[c]
+    ones, total = (np.vstack([np.zeros((1, present.size)), np.cumsum(h.reshape(stripe, present.size), axis=0)])
+                   for h in (np.bincount(key[bits.view(bool)], minlength=stripe * present.size),
+                             np.bincount(key, minlength=stripe * present.size)))
+    prob = ((ones + PRIOR_ONES[present]) / (total + PRIOR_TOTAL)).ravel()  # (step, context)
+    # Decoding order: step by step; within a step the outside cells, then the
+    # inside cells, then the rest, each by stripe and column. The decoder takes
+    # a step's outside (inside) cells with one model of their probability, which
+    # codes to the same words as the adaptive model given that probability per
+    # cell; so the cells go to the coder in long stretches: a step's outside or
+    # inside run of at least FIXED_MODEL_RUN cells with its one model (cheaper per
+    # cell), everything between with the adaptive one.
+    rank = step * 3 + _KIND[c]
+    seq = np.argsort(rank.astype(np.uint16) if 3 * stripe <= np.iinfo(np.uint16).max else rank, kind="stable")
+    bits, prob, rank = bits[seq].astype(np.int32), prob[key[seq]], rank[seq]
+    starts = np.flatnonzero(np.r_[True, rank[1:] != rank[:-1]])
+    lengths = np.diff(np.r_[starts, rank.size])
+    fixed = (rank[starts] % 3 < 2) & (lengths >= FIXED_MODEL_RUN)
+    runs = [(int(a), int(a + n)) for a, n in zip(starts[fixed], lengths[fixed])]
     coder = constriction.stream.stack.AnsCoder()
     model = _bernoulli()
-    # A stack: the last segment is encoded first. The outside and inside cells of a
-    # step share one fixed model each (far cheaper to code than one model per cell).
-    (_, out_bits, out_bounds), (_, in_bits, in_bounds) = kinds[0], kinds[1]
-    for s in range(stripe - 1, -1, -1):
-        lo, hi = rest_bounds[s], rest_bounds[s + 1]
-        if hi > lo:
-            coder.encode_reverse(rest_bits[lo:hi], model, rest_prob[lo:hi])
-        for bits, bounds, context in ((in_bits, in_bounds, INSIDE), (out_bits, out_bounds, OUTSIDE)):
-            lo, hi = bounds[s], bounds[s + 1]
-            if hi > lo:
-                coder.encode_reverse(bits[lo:hi], _bernoulli(prob[s, context]))
+    # A stack: the last cells are pushed first (encode_reverse pushes an array last first too).
+    end = rank.size
+    for a, b in reversed(runs):
+        if b < end:
+            coder.encode_reverse(bits[b:end], model, prob[b:end])
+        coder.encode_reverse(bits[a:b], _bernoulli(float(prob[a])))
+        end = a
+    if end:
+        coder.encode_reverse(bits[:end], model, prob[:end])
     if seed_frame is None:
         seed_frame = _encode_seeds(_seed_lines(lines, stripe))
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()

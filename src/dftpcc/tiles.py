@@ -344,6 +344,14 @@ class TileJob:
         The decoded base layer minus the exact one on the tile's cells, metres.
     counts : ndarray, optional
         Points per cell of the tile (for the points' vertical error).
+    mask_code, coef_code : bytes, optional
+        The tile's MASK or COEF section when the caller knows it already: a
+        section is a function of the cells it codes (MASK: which of the tile's
+        own cells are occupied; COEF: every height and cell of the window), so
+        one coded before from the same cells at the same settings is the same bytes. :func:`code_tile`
+        then keeps it instead of coding it again (a growing map whose scan only
+        added points to occupied cells keeps its mask; one whose cells kept
+        their means but not their counts keeps both and updates its errors).
     """
 
     k: int
@@ -352,6 +360,8 @@ class TileJob:
     inner: tuple[int, int, int, int]
     base_error: np.ndarray
     counts: np.ndarray | None = None
+    mask_code: bytes | None = None
+    coef_code: bytes | None = None
 
 
 @dataclass
@@ -381,24 +391,30 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     bytes are the same whichever process or machine runs it.
 
     ``refill_step``: with ``fill='consistent'``, the step of the trial whose rebuilt heights refill
-    the window's empty cells (as rate control chose it); None keeps the smooth fill.
+    the window's empty cells (as rate control chose it); None keeps the smooth fill. Sections the
+    job already holds (``job.mask_code``, ``job.coef_code``) are kept, not coded again; the errors
+    are always measured.
     """
     tile_params = params.replace(detrend="none", tile_size=0)
     sub = DEM(grid=Grid(rows=job.rest.shape[0], cols=job.rest.shape[1], **_WINDOW_GRID),
               heights=job.rest, mask=job.mask)
-    an = Analysis(sub, tile_params, searching=False)
+    # The errors are measured on the tile's own cells below, not over the window (as a trial
+    # would), and the energy outside the circle serves rate control only.
+    an = Analysis(sub, tile_params, searching=False, outside_energy=False)
     if refill_step is not None and an.refillable:
         an = an.refilled(an.trial(params.cutoff, refill_step))
-    trial = an.trial(params.cutoff, params.step)
+    stream, heights = an.rebuilt(params.cutoff, params.step)
     r0, r1, c0, c1 = job.inner
     target = job.rest[r0:r1, c0:c1]
     mask = job.mask[r0:r1, c0:c1]
-    rebuilt = trial.heights[r0:r1, c0:c1] + job.base_error
+    rebuilt = heights[r0:r1, c0:c1] + job.base_error
     resid = b""
     if params.target_max_error > 0:
         q, rebuilt = residual(target, rebuilt, mask, mask, params.target_max_error)
         resid = encode_residual(q, params.coder)
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
-    return TileCode(job.k, occupancy.encode_mask(mask), an.encode(trial, progressive=False), resid, int(mask.sum()),
-                    dot(err, err), float(np.abs(err).max()), weighted)
+    mask_code = occupancy.encode_mask(mask) if job.mask_code is None else job.mask_code
+    coef_code = an.encode_stream(stream, progressive=False) if job.coef_code is None else job.coef_code
+    return TileCode(job.k, mask_code, coef_code, resid, int(mask.sum()), dot(err, err), float(np.abs(err).max()),
+                    weighted)
