@@ -106,8 +106,10 @@ def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: t
     cluster ends in :class:`ClusterError`."""
     import distributed
 
-    # The tiles' data travel to the workers as data, not inside the task graph.
-    futures = client.map(func, client.scatter(list(items)), *[[a] * len(items) for a in args], pure=False)
+    # The tiles' data travel to the workers as data, not inside the task graph; the arguments every
+    # item shares (a raster to read from, the base layer) travel once to each worker, not once a task.
+    shared = client.scatter(list(args), broadcast=True) if args else []
+    futures = client.map(func, client.scatter(list(items)), *[[a] * len(items) for a in shared], pure=False)
     idle_since: float | None = None
     cancelled = _cancelled()
     try:
