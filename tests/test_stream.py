@@ -124,3 +124,14 @@ def test_the_base_layer_of_a_window_is_the_bits_of_the_whole():
         np.testing.assert_array_equal(stream._base_window(values, i, j, shape, rows, (c0, c1)), whole[:, c0:c1])
     np.testing.assert_allclose(whole, dftpcc.tiles.base_heights(values, i, j, shape, rows, (0, shape[1])),
                                rtol=0, atol=1e-9)
+
+
+def test_a_decoded_geotiff_is_the_same_bytes_whatever_the_block_width(small_threshold, mosaic, tmp_path, monkeypatch):
+    src = tmp_path / "m.dftpc"
+    dftpcc.compress_file(mosaic, src, tile_size=128, cutoff=0.8, step=0.01)
+    written = []
+    for tiles in (1, 4, 100):
+        monkeypatch.setattr(stream, "BLOCK_TILES", tiles)
+        dftpcc.files.decompress_bands(src, tmp_path / f"b{tiles}.tif")
+        written.append((tmp_path / f"b{tiles}.tif").read_bytes())
+    assert written[0] == written[1] == written[2]

@@ -534,10 +534,23 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
             on_stage("decode", r0 / grid.rows)
             yield r0, cmap.read_window((r0, r1), (0, grid.cols), map_tiles=map_tiles)
 
+    def blocks() -> Iterator[tuple[int, int, DEM]]:
+        # Column strips of BLOCK_TILES tiles, each from south to north: a GeoTIFF block that
+        # straddles two bands is completed by the next window written, so GDAL's cache holds
+        # a strip's few partly written blocks, not a block row of the whole width.
+        width = BLOCK_TILES * tiling.size
+        done, cells = 0, grid.rows * grid.cols
+        for c0 in range(0, grid.cols, width):
+            c1 = min(grid.cols, c0 + width)
+            for r0, r1 in _bands(grid.rows, tiling.size):
+                on_stage("decode", done / cells)
+                yield r0, c0, cmap.read_window((r0, r1), (c0, c1), map_tiles=map_tiles)
+                done += (r1 - r0) * (c1 - c0)
+
     def fill(tmp: Path) -> None:
         nonlocal written
         if fmt in ("tif", "tiff"):
-            written = _write_raster_bands(tmp, grid, cmap.crs, bands(), cog=cog)
+            written = _write_raster_bands(tmp, grid, cmap.crs, blocks(), cog=cog)
         else:
             written = _write_las_bands(tmp, grid, cmap.crs, bands(), fmt)
 
@@ -545,8 +558,9 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
     return written
 
 
-def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], bands: Iterator[tuple[int, DEM]], *,
+def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], blocks: Iterator[tuple[int, int, DEM]], *,
                         cog: bool) -> int:
+    """Write decoded windows ``(row, column, DEM)`` into a float32 GeoTIFF (or a COG) through windowed writes."""
     import rasterio
     import rasterio.shutil
     from rasterio.transform import Affine
@@ -560,18 +574,21 @@ def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], bands: Iter
     transform = Affine(r, 0.0, grid.x0, 0.0, -dy, grid.y0 + grid.rows * dy)
     target = path.with_suffix(".strips.tif") if cog else path
     count = 0
-    with rasterio.open(target, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1, dtype="float32",
-                       nodata=float("nan"), transform=transform, crs=crs.get("wkt") or None, BIGTIFF="IF_SAFER",
-                       **GEOTIFF_CREATION) as out:
-        for r0, dem in bands:
-            values = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
-            count += int(dem.mask.sum())
-            out.write(values, 1, window=Window(0, grid.rows - r0 - values.shape[0], grid.cols, values.shape[0]))
-    if cog:
-        try:
-            rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR="3", BIGTIFF="IF_SAFER")
-        finally:
-            target.unlink(missing_ok=True)
+    with _gdal_env():
+        with rasterio.open(target, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1,
+                           dtype="float32", nodata=float("nan"), transform=transform, crs=crs.get("wkt") or None,
+                           BIGTIFF="IF_SAFER", **GEOTIFF_CREATION) as out:
+            for r0, c0, dem in blocks:
+                values = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
+                count += int(dem.mask.sum())
+                h, w = values.shape
+                out.write(values, 1, window=Window(c0, grid.rows - r0 - h, w, h))
+        if cog:
+            try:
+                rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR="3",
+                                     BIGTIFF="IF_SAFER")
+            finally:
+                target.unlink(missing_ok=True)
     return count
 
 
