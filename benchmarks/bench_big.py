@@ -37,6 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from benchmarks.common import finish_run, library_label, load_average, markdown_table, run_arguments
+from dftpcc import stream
 
 __all__ = ["build_raster", "build_cloud", "measure", "main"]
 
@@ -480,8 +481,11 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
              f"written copy after copy. The quarter and half maps are built the same way.",
              markdown_table(["map", "size", "shape", "content", "file MB", "build s"], inputs),
              f"Each run is a fresh process (`compress_file(..., tile_size={TILE_SIZE})`, the cloud with "
-             f"`chunk_points={CLOUD_CHUNK:,}`; `decompress_bands` to `.tif` / `.laz`). Peak RSS: "
-             f"`/usr/bin/time -v` (largest process); growth: above the {_mb(base['peak'])} MB of a process "
+             f"`chunk_points={CLOUD_CHUNK:,}`; `decompress_bands` to `.tif` / `.laz`; a band is coded and a "
+             f"GeoTIFF decoded in column blocks of `stream.BLOCK_TILES` = {stream.BLOCK_TILES} tiles, with "
+             f"GDAL's cache at `stream.GDAL_CACHE_BYTES` = {stream.GDAL_CACHE_BYTES / 2 ** 20:.0f} MiB). Peak RSS: "
+             f"`/usr/bin/time -v` (the raw maximum resident set of the largest process, the run's own; "
+             f"dask workers are separate processes); growth: above the {_mb(base['peak'])} MB of a process "
              "that only imports dftpcc; tree peak: the summed RSS of the process and its dask workers, sampled "
              f"every {SAMPLE_S} s; time: the call, without start-up and import; throughput: grid cells "
              "(the raster) or points read / written (the cloud) per second; bits per valid cell or per point "
