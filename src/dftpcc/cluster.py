@@ -114,8 +114,11 @@ def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: t
 
     # The tiles' data travel to the workers as data, not inside the task graph; the arguments every
     # item shares (a raster to read from, the base layer) travel once to each worker, not once a task.
-    shared = client.scatter(list(args), broadcast=True) if args else []
-    futures = client.map(func, client.scatter(list(items)), *[[a] * len(items) for a in shared], pure=False)
+    # Keys of their own (hash=False): data scattered under a content key by the previous call may
+    # still be being forgotten by the scheduler, and a task then waits for data no worker has.
+    shared = client.scatter(list(args), broadcast=True, hash=False) if args else []
+    futures = client.map(func, client.scatter(list(items), hash=False), *[[a] * len(items) for a in shared],
+                         pure=False)
     idle_since: float | None = None
     cancelled = _cancelled()
     try:
