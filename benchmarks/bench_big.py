@@ -9,7 +9,7 @@ so its peak resident memory is its own, and is set against the peak of a process
 imports dftpcc, measured in the same run. The GeoTIFF's quarter is also coded and decoded on a
 local dask cluster of 2 workers and checked byte-identical to the serial run.
 
-    .venv/bin/python -m benchmarks.bench_big [--quick] [--keep-going] [--docs | --no-docs]
+    .venv/bin/python -m benchmarks.bench_big [--quick] [--only raster|cloud|parallel] [--docs | --no-docs]
 
 ``--quick`` runs at a quarter of the full side of the GeoTIFF (10,000 x 10,000 cells at most) and a
 quarter of the cloud (9 copies, 25 M points at most): about 7 minutes on the shared 2-core box.
@@ -37,6 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from benchmarks.common import finish_run, library_label, load_average, markdown_table, run_arguments
+from dftpcc import stream
 
 __all__ = ["build_raster", "build_cloud", "measure", "main"]
 
@@ -432,7 +433,8 @@ def _free_bytes(path: Path) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = run_arguments(__doc__.splitlines()[0], f"a quarter of the full side ({FULL_SIDE // QUICK_DIVISOR:,}² cells) "
                                                 f"and {FULL_COPIES // QUICK_DIVISOR} copies of the cloud")
-    ap.add_argument("--only", choices=("raster", "cloud"), help="measure one of the two maps")
+    ap.add_argument("--only", choices=("raster", "cloud", "parallel"),
+                    help="measure one of the two maps, or only the GeoTIFF's quarter with 1 and 2 workers")
     ap.add_argument("--tmp", type=Path, default=Path(tempfile.gettempdir()), help="where the temporary folder goes")
     args = ap.parse_args(argv)
     if not sys.platform.startswith("linux"):
@@ -461,6 +463,8 @@ def main(argv: list[str] | None = None) -> int:
             run_cloud(args.data, tmp, copies, report, inputs, FRACTIONS)
         if args.only in (None, "raster"):
             run_raster(args.data, tmp, FRACTIONS, full_side, report, inputs)
+        if args.only == "parallel":
+            run_raster(args.data, tmp, FRACTIONS[:1], full_side, report, inputs)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     parts = _tables(report, inputs, base, full_side, copies)
@@ -480,8 +484,11 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
              f"written copy after copy. The quarter and half maps are built the same way.",
              markdown_table(["map", "size", "shape", "content", "file MB", "build s"], inputs),
              f"Each run is a fresh process (`compress_file(..., tile_size={TILE_SIZE})`, the cloud with "
-             f"`chunk_points={CLOUD_CHUNK:,}`; `decompress_bands` to `.tif` / `.laz`). Peak RSS: "
-             f"`/usr/bin/time -v` (largest process); growth: above the {_mb(base['peak'])} MB of a process "
+             f"`chunk_points={CLOUD_CHUNK:,}`; `decompress_bands` to `.tif` / `.laz`; a band is coded and a "
+             f"GeoTIFF decoded in column blocks of `stream.BLOCK_TILES` = {stream.BLOCK_TILES} tiles, with "
+             f"GDAL's cache at `stream.GDAL_CACHE_BYTES` = {stream.GDAL_CACHE_BYTES / 2 ** 20:.0f} MiB). Peak RSS: "
+             f"`/usr/bin/time -v` (the raw maximum resident set of the largest process, the run's own; "
+             f"dask workers are separate processes); growth: above the {_mb(base['peak'])} MB of a process "
              "that only imports dftpcc; tree peak: the summed RSS of the process and its dask workers, sampled "
              f"every {SAMPLE_S} s; time: the call, without start-up and import; throughput: grid cells "
              "(the raster) or points read / written (the cloud) per second; bits per valid cell or per point "

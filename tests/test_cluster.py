@@ -62,3 +62,19 @@ def test_workers_and_scheduler_are_checked_first(tmp_path):
         dftpcc.compress_file(data_file("dems/mars_gale_1m.tif"), tmp_path / "x.dftpc", workers=2,
                              scheduler="tcp://127.0.0.1:9")
     assert not (tmp_path / "x.dftpc").exists()
+
+
+def test_a_map_streamed_in_blocks_is_the_serial_bytes_on_two_workers(tmp_path, monkeypatch):
+    """Blocks read by the workers themselves, many calls in a row (one a window), byte-identical to serial."""
+    from dftpcc import stream
+
+    monkeypatch.setattr(stream, "STREAM_CELLS", 50_000)
+    monkeypatch.setattr(stream, "BLOCK_TILES", 1)
+    src = data_file("dems/mars_gale_1m.tif")
+    serial, parallel = tmp_path / "s.dftpc", tmp_path / "p.dftpc"
+    dftpcc.compress_file(src, serial, tile_size=64, target_rmse=0.05)
+    dftpcc.compress_file(src, parallel, tile_size=64, target_rmse=0.05, workers=2)
+    assert parallel.read_bytes() == serial.read_bytes()
+    dftpcc.files.decompress_bands(serial, tmp_path / "s.tif")
+    dftpcc.files.decompress_bands(serial, tmp_path / "p.tif", workers=2)
+    assert (tmp_path / "p.tif").read_bytes() == (tmp_path / "s.tif").read_bytes()

@@ -93,3 +93,45 @@ def test_cog_needs_a_tif(tmp_path, mosaic, small_threshold):
     dftpcc.compress_file(mosaic, src, tile_size=128, cutoff=0.8, step=0.01)
     with pytest.raises(InvalidInputError, match="COG|Cloud Optimized"):
         dftpcc.files.decompress_bands(src, tmp_path / "x.laz", cog=True)
+
+
+@pytest.mark.parametrize("source", ["raster", "cloud"])
+def test_the_block_width_does_not_change_a_byte(small_threshold, mosaic, tmp_path, monkeypatch, source):
+    """A band is read and coded a block of tile columns at a time; the bytes do not depend on how many."""
+    src = mosaic if source == "raster" else data_file("pointclouds/field_gentle_ign.laz")
+    extra = {} if source == "raster" else {"classes": [2]}
+    written = []
+    for tiles in (1, 2, 100):  # one tile a block, a few, the whole band
+        monkeypatch.setattr(stream, "BLOCK_TILES", tiles)
+        monkeypatch.setattr(stream, "BATCH_BLOCKS", 3)
+        out = tmp_path / f"b{tiles}.dftpc"
+        cmap = dftpcc.compress_file(src, out, tile_size=128, target_rmse=0.05, **extra)
+        assert cmap.tiled and cmap.header.tiles.tiling.tile_cols > 2
+        written.append(out.read_bytes())
+    assert written[0] == written[1] == written[2]
+
+
+def test_the_base_layer_of_a_window_is_the_bits_of_the_whole():
+    """Each cell of the base layer has the same bits whatever window it is computed in (BLAS's do not)."""
+    from dftpcc.tiles import base_order
+
+    shape, tile = (3001, 2999), 256
+    i, j, _, _ = base_order(shape, tile, 0.0)
+    values = np.random.default_rng(7).normal(size=i.size)
+    rows = (3 * tile - 8, 4 * tile + 8)
+    whole = stream._base_window(values, i, j, shape, rows, (0, shape[1]))
+    for c0, c1 in [(0, 1), (248, 520), (1016, 2056), (2990, 2999)]:
+        np.testing.assert_array_equal(stream._base_window(values, i, j, shape, rows, (c0, c1)), whole[:, c0:c1])
+    np.testing.assert_allclose(whole, dftpcc.tiles.base_heights(values, i, j, shape, rows, (0, shape[1])),
+                               rtol=0, atol=1e-9)
+
+
+def test_a_decoded_geotiff_is_the_same_bytes_whatever_the_block_width(small_threshold, mosaic, tmp_path, monkeypatch):
+    src = tmp_path / "m.dftpc"
+    dftpcc.compress_file(mosaic, src, tile_size=128, cutoff=0.8, step=0.01)
+    written = []
+    for tiles in (1, 4, 100):
+        monkeypatch.setattr(stream, "BLOCK_TILES", tiles)
+        dftpcc.files.decompress_bands(src, tmp_path / f"b{tiles}.tif")
+        written.append((tmp_path / f"b{tiles}.tif").read_bytes())
+    assert written[0] == written[1] == written[2]

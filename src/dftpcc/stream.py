@@ -6,7 +6,9 @@ reference height, the plane and a decimated copy (from which the base layer's co
 come: they hold at most a cycle per tile), once to code the tiles band by band with
 :func:`dftpcc.tiles.code_tile`. The cutoff and step are chosen on a block of tiles from the
 map's middle (:func:`dftpcc.encoder.choose_for_tiles`) and checked on the whole map at the end.
-Memory holds one band of tile rows (plus overlap), never the map.
+A band is read, reduced and coded in column blocks of :data:`BLOCK_TILES` tiles (plus the
+overlap), so memory follows the tile size, not the map's width; on a dask cluster each worker
+reads its own blocks from the file (:func:`_code_block`), and only the coded bytes come back.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import os
 import shutil
 import tempfile
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -30,8 +33,8 @@ from .errors import InvalidInputError
 from .fill import fill_empty
 from .params import Params, tile_size_for
 from .rebuild import dem_to_points
-from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_heights, base_limit, base_order,
-                    code_tile, coded_window)
+from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_limit, base_order, code_tile,
+                    coded_window)
 
 __all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
 
@@ -49,18 +52,42 @@ RMSE_ATTEMPTS = 3
 SAMPLE_RMSE_MARGIN = 0.95
 #: Output formats written band by band.
 STREAM_FORMATS = ("tif", "tiff", "las", "laz")
+#: Tile columns of the block a band is read, reduced and coded (or decoded and written) in: memory
+#: holds a band's rows by this many tiles plus the overlap, whatever the map's width.
+BLOCK_TILES = 4
+#: Blocks handed to ``map_tiles`` at once: enough to keep a few workers busy between two
+#: batches; a block of a map held in memory carries its cells, so this also bounds those copies.
+BATCH_BLOCKS = 8
+#: GDAL's block cache while a raster is read or written band by band, bytes. GDAL's default, 5 % of
+#: RAM (1.2 GB on a 24 GB machine), is more than the rest of a run holds; a decoded band's
+#: partly written GeoTIFF blocks (a 256-row block row of a block of tiles) must fit in it.
+GDAL_CACHE_BYTES = 256 * 1024 ** 2
 
 Map = Callable[..., list]
 
 
+def _gdal_env() -> Any:
+    """GDAL's settings while a map streams: a bounded block cache (:data:`GDAL_CACHE_BYTES`)."""
+    import rasterio
+
+    return rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_BYTES)
+
+
 class _Raster:
-    """A north-up GeoTIFF read by grid rows (row 0 south, as dftpcc's grids)."""
+    """A north-up GeoTIFF read by grid rows (row 0 south, as dftpcc's grids).
+
+    Pickled, it is its path and geometry: a dask worker opens the file itself and reads its own
+    windows, so no cells travel from the main process.
+    """
+
+    in_memory = False
 
     def __init__(self, path: str | os.PathLike[str]):
         import rasterio
 
         try:
-            self.ds = rasterio.open(path)
+            with _gdal_env():
+                self.ds = rasterio.open(path)
         except Exception as exc:  # noqa: BLE001 - GDAL's own errors on a bad file
             raise InvalidInputError(f"{path}: cannot read as a GeoTIFF DEM: {exc}") from None
         t = self.ds.transform
@@ -73,7 +100,17 @@ class _Raster:
         self.crs = {"wkt": self.ds.crs.to_wkt()} if self.ds.crs else {}
         self.point_count: int | None = None  # the valid pixels, counted on the first pass
 
-    def counts(self, r0: int, r1: int) -> None:
+    def __getstate__(self) -> dict[str, Any]:
+        return {key: value for key, value in self.__dict__.items() if key != "ds"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        import rasterio
+
+        self.__dict__.update(state)
+        with _gdal_env():
+            self.ds = rasterio.open(self.path)
+
+    def counts(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> None:
         return None
 
     def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -82,7 +119,8 @@ class _Raster:
 
         c1 = self.cols if c1 is None else c1
         f0 = self.rows - r1 if self.flipped else r0
-        band = self.ds.read(1, window=Window(c0, f0, c1 - c0, r1 - r0), masked=True)
+        with _gdal_env():
+            band = self.ds.read(1, window=Window(c0, f0, c1 - c0, r1 - r0), masked=True)
         heights = np.asarray(band.astype(np.float64).filled(np.nan))
         valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
         if self.flipped:
@@ -100,7 +138,12 @@ class _Raster:
 
 
 class _Grid:
-    """An already gridded map (a point cloud read in chunks) read by rows like a raster."""
+    """An already gridded map (a point cloud read in chunks) read by rows like a raster.
+
+    It lives in the main process only: its blocks carry their cells to where they are coded.
+    """
+
+    in_memory = True
 
     def __init__(self, dem: DEM, point_count: int, crs: dict[str, Any], name: str):
         self.dem, self.path, self.crs = dem, name, crs
@@ -112,8 +155,9 @@ class _Grid:
         m = self.dem.mask[r0:r1, c0:c1]
         return np.where(m, self.dem.heights[r0:r1, c0:c1] + self.dem.grid.z0, np.nan), m
 
-    def counts(self, r0: int, r1: int) -> np.ndarray | None:
-        return None if self.dem.counts is None else self.dem.counts[r0:r1]
+    def counts(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> np.ndarray | None:
+        c1 = self.cols if c1 is None else c1
+        return None if self.dem.counts is None else self.dem.counts[r0:r1, c0:c1]
 
     def grid(self, z0: float) -> Grid:
         g = self.dem.grid
@@ -316,10 +360,119 @@ class _Spool:
         self.file.close()
 
 
+def _base_window(values: np.ndarray, i: np.ndarray, j: np.ndarray, shape: tuple[int, int],
+                 rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
+    """The base layer (metres) on the cells ``rows`` x ``cols`` of a ``shape`` grid, each cell's
+    value the same bits whatever the window it is computed in.
+
+    :func:`dftpcc.tiles.base_heights` goes through BLAS, whose sums depend on the
+    matrices' shapes and on its threads (a band's cells came out otherwise under
+    ``OPENBLAS_NUM_THREADS=1``, or computed a block at a time): numpy's own
+    sum-of-products loops (``einsum`` without ``optimize``) add each cell's terms in one order.
+    """
+    h, w = rows[1] - rows[0], cols[1] - cols[0]
+    if values.size == 0:
+        return np.zeros((h, w))
+    ki, kj = int(i.max()) + 1, int(j.max()) + 1
+    g = np.zeros((ki, kj))
+    g[i, j] = values
+    along = np.einsum("rk,kl->rl", base_basis(shape[0], ki, *rows), g, optimize=False)
+    return np.einsum("rl,cl->rc", along, base_basis(shape[1], kj, *cols), optimize=False)
+
+
+@dataclass(frozen=True)
+class _Pass:
+    """What every block of one coding pass shares; small, so it travels to each worker once.
+
+    ``source`` is the raster a block reads its cells from (a worker reopens it by its path),
+    or None when the blocks carry their cells (a map held in this process).
+    """
+
+    source: Any
+    shape: tuple[int, int]
+    z0: float
+    plane: tuple[float, float, float]
+    tiling: TileGrid
+    base: tuple[np.ndarray, np.ndarray, np.ndarray]  # the exact values and their (i, j)
+    base_error: np.ndarray  # decoded minus exact base values
+    params: Params
+    refill: float | None
+
+
+@dataclass(frozen=True)
+class _Block:
+    """A block of tiles of one band: the window its coding reads (the tiles plus the overlap).
+
+    ``cells``: the window's heights and mask when the map is held in memory, else None (read
+    from the pass's source where the block is coded); ``counts``: points per cell of the
+    block's tile rows and columns (the window without its overlap), for a gridded cloud.
+    """
+
+    rows: tuple[int, int]
+    cols: tuple[int, int]
+    tiles: tuple[int, ...]
+    cells: tuple[np.ndarray, np.ndarray] | None = None
+    counts: np.ndarray | None = None
+
+
+def _blocks(raster: Any, tiling: TileGrid, band: int) -> Iterator[_Block]:
+    """The column blocks of band ``band`` (tile row), each :data:`BLOCK_TILES` tiles wide."""
+    first = band * tiling.tile_cols
+    for j0 in range(0, tiling.tile_cols, BLOCK_TILES):
+        ks = tuple(range(first + j0, first + min(tiling.tile_cols, j0 + BLOCK_TILES)))
+        t0, t1, c0, _ = tiling.bounds(ks[0])
+        c1 = tiling.bounds(ks[-1])[3]
+        w0, w1 = max(0, t0 - TILE_OVERLAP), min(tiling.rows, t1 + TILE_OVERLAP)
+        u0, u1 = max(0, c0 - TILE_OVERLAP), min(tiling.cols, c1 + TILE_OVERLAP)
+        cells = raster.read(w0, w1, u0, u1) if raster.in_memory else None
+        yield _Block((w0, w1), (u0, u1), ks, cells, raster.counts(t0, t1, c0, c1))
+
+
+def _code_block(block: _Block, job: _Pass) -> list[Any]:
+    """Read (or take) one block's window, take off the plane and the base layer, code its occupied tiles.
+
+    A pure function of the block and the pass: the same bytes in this process or on a worker.
+    """
+    (w0, w1), (u0, u1) = block.rows, block.cols
+    heights, m = block.cells if block.cells is not None else job.source.read(w0, w1, u0, u1)
+    a, b, c = job.plane
+    values, bi, bj = job.base
+    rest = heights - job.z0  # a new array: a worker's received cells may be read-only
+    rest[~m] = 0.0
+    rest -= b * np.arange(u0, u1, dtype=float)[None, :]
+    rest -= c * np.arange(w0, w1, dtype=float)[:, None] + a
+    rest -= _base_window(values, bi, bj, job.shape, (w0, w1), (u0, u1))
+    first = job.tiling.bounds(block.tiles[0])[2]  # the column the block's counts start at
+    codes = []
+    for k in block.tiles:
+        t0, t1, c0, c1 = job.tiling.bounds(k)
+        if not m[t0 - w0:t1 - w0, c0 - u0:c1 - u0].any():
+            continue
+        _, _, v0, v1 = coded_window(job.tiling, k, TILE_OVERLAP)
+        # What quantizing the base layer changed on the tile (the layer is linear in its values).
+        error = _base_window(job.base_error, bi, bj, job.shape, (t0, t1), (c0, c1))
+        counts = None if block.counts is None else block.counts[:, c0 - first:c1 - first]
+        codes.append(code_tile(TileJob(k, rest[:, v0 - u0:v1 - u0], m[:, v0 - u0:v1 - u0],
+                                       (t0 - w0, t1 - w0, c0 - v0, c1 - v0), error, counts),
+                               job.params, job.refill))
+    return codes
+
+
+def _batches(blocks: Iterator[_Block]) -> Iterator[list[_Block]]:
+    batch: list[_Block] = []
+    for block in blocks:
+        batch.append(block)
+        if len(batch) == BATCH_BLOCKS:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
 def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, tile: int,
                 survey: dict[str, Any], base: tuple, run: Map, on_stage: Stage, gridding_rmse: float,
                 spread: Any):
-    """Second pass: every band of tile rows read (with its overlap), its tiles coded and spooled."""
+    """Second pass: every band of tile rows coded block by block (:func:`_code_block`) and spooled in order."""
     bi, bj, bradius, bangle, bcoefs = base
     nb = int(np.searchsorted(bradius, base_limit(grid.shape, tile, params.cutoff, BASE_CYCLES_PER_TILE),
                              side="right")) if bi.size else 0
@@ -328,35 +481,18 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
                                            progressive=False)
     base_error = coding.dequantize(q, params.step) - bcoefs[:nb]
     tiling = TileGrid(grid.rows, grid.cols, tile)
-    a, b, c = survey["plane"]
+    job = _Pass(None if raster.in_memory else raster, grid.shape, grid.z0, survey["plane"], tiling,
+                (bcoefs[:nb], bi[:nb], bj[:nb]), base_error, params, refill)
     n = tiling.count
     cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
     spool = _Spool()
     squared, worst, weighted = 0.0, 0.0, 0.0
     mask_bytes = coef_bytes = resid_bytes = 0
     on_stage("encode")
-    for band, (r0, r1) in enumerate(_bands(grid.rows, tile)):
-        on_stage("encode", r0 / grid.rows)
-        w0, w1 = max(0, r0 - TILE_OVERLAP), min(grid.rows, r1 + TILE_OVERLAP)
-        # In place: a band of a 40,000-column map is 330 MB a float64 copy, and memory holds a few.
-        rest, m = raster.read(w0, w1)
-        rest -= grid.z0
-        rest[~m] = 0.0
-        rest -= b * np.arange(grid.cols, dtype=float)[None, :]
-        rest -= c * np.arange(w0, w1, dtype=float)[:, None] + a
-        rest -= base_heights(bcoefs[:nb], bi[:nb], bj[:nb], grid.shape, (w0, w1), (0, grid.cols))
-        jobs = []
-        for k in range(band * tiling.tile_cols, (band + 1) * tiling.tile_cols):
-            t0, t1, c0, c1 = tiling.bounds(k)
-            if not m[t0 - w0:t1 - w0, c0:c1].any():
-                continue
-            _, _, v0, v1 = coded_window(tiling, k, TILE_OVERLAP)
-            counts = raster.counts(t0, t1)
-            # What quantizing the base layer changed on the tile (the layer is linear in its values).
-            error = base_heights(base_error, bi[:nb], bj[:nb], grid.shape, (t0, t1), (c0, c1))
-            jobs.append(TileJob(k, rest[:, v0:v1], m[:, v0:v1], (t0 - w0, t1 - w0, c0 - v0, c1 - v0),
-                                error, None if counts is None else counts[:, c0:c1]))
-        for code in run(code_tile, jobs, params, refill):
+    blocks = (block for band in range(tiling.tile_rows) for block in _blocks(raster, tiling, band))
+    for batch in _batches(blocks):
+        on_stage("encode", batch[0].tiles[0] / n)
+        for code in (code for codes in run(_code_block, batch, job) for code in codes):
             spool.add(code.k, b"MASK", code.mask)
             spool.add(code.k, b"COEF", code.coef)
             if code.resid:
@@ -399,10 +535,23 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
             on_stage("decode", r0 / grid.rows)
             yield r0, cmap.read_window((r0, r1), (0, grid.cols), map_tiles=map_tiles)
 
+    def blocks() -> Iterator[tuple[int, int, DEM]]:
+        # Column strips of BLOCK_TILES tiles, each from south to north: a GeoTIFF block that
+        # straddles two bands is completed by the next window written, so GDAL's cache holds
+        # a strip's few partly written blocks, not a block row of the whole width.
+        width = BLOCK_TILES * tiling.size
+        done, cells = 0, grid.rows * grid.cols
+        for c0 in range(0, grid.cols, width):
+            c1 = min(grid.cols, c0 + width)
+            for r0, r1 in _bands(grid.rows, tiling.size):
+                on_stage("decode", done / cells)
+                yield r0, c0, cmap.read_window((r0, r1), (c0, c1), map_tiles=map_tiles)
+                done += (r1 - r0) * (c1 - c0)
+
     def fill(tmp: Path) -> None:
         nonlocal written
         if fmt in ("tif", "tiff"):
-            written = _write_raster_bands(tmp, grid, cmap.crs, bands(), cog=cog)
+            written = _write_raster_bands(tmp, grid, cmap.crs, blocks(), cog=cog)
         else:
             written = _write_las_bands(tmp, grid, cmap.crs, bands(), fmt)
 
@@ -410,8 +559,9 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
     return written
 
 
-def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], bands: Iterator[tuple[int, DEM]], *,
+def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], blocks: Iterator[tuple[int, int, DEM]], *,
                         cog: bool) -> int:
+    """Write decoded windows ``(row, column, DEM)`` into a float32 GeoTIFF (or a COG) through windowed writes."""
     import rasterio
     import rasterio.shutil
     from rasterio.transform import Affine
@@ -425,18 +575,21 @@ def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], bands: Iter
     transform = Affine(r, 0.0, grid.x0, 0.0, -dy, grid.y0 + grid.rows * dy)
     target = path.with_suffix(".strips.tif") if cog else path
     count = 0
-    with rasterio.open(target, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1, dtype="float32",
-                       nodata=float("nan"), transform=transform, crs=crs.get("wkt") or None, BIGTIFF="IF_SAFER",
-                       **GEOTIFF_CREATION) as out:
-        for r0, dem in bands:
-            values = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
-            count += int(dem.mask.sum())
-            out.write(values, 1, window=Window(0, grid.rows - r0 - values.shape[0], grid.cols, values.shape[0]))
-    if cog:
-        try:
-            rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR="3", BIGTIFF="IF_SAFER")
-        finally:
-            target.unlink(missing_ok=True)
+    with _gdal_env():
+        with rasterio.open(target, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1,
+                           dtype="float32", nodata=float("nan"), transform=transform, crs=crs.get("wkt") or None,
+                           BIGTIFF="IF_SAFER", **GEOTIFF_CREATION) as out:
+            for r0, c0, dem in blocks:
+                values = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
+                count += int(dem.mask.sum())
+                h, w = values.shape
+                out.write(values, 1, window=Window(c0, grid.rows - r0 - h, w, h))
+        if cog:
+            try:
+                rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR="3",
+                                     BIGTIFF="IF_SAFER")
+            finally:
+                target.unlink(missing_ok=True)
     return count
 
 
