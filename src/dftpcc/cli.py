@@ -8,6 +8,7 @@ library raises become one line on stderr and a documented exit code
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -837,6 +838,10 @@ def _stop_signals_raise() -> Iterator[None]:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    # The codec loads on first use (dftpcc/__init__.py), so --help and usage errors skip it; a
+    # command loads it here, before a stop signal can land inside an import (numpy's C extension
+    # then fails to load and the run ends as an internal error instead of a clean stop).
+    importlib.import_module("dftpcc.files")
     with warnings.catch_warnings(), _stop_signals_raise():
         warnings.showwarning = _show_warning
         if args.no_warnings:
