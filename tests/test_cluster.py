@@ -78,3 +78,10 @@ def test_a_map_streamed_in_blocks_is_the_serial_bytes_on_two_workers(tmp_path, m
     dftpcc.files.decompress_bands(serial, tmp_path / "s.tif")
     dftpcc.files.decompress_bands(serial, tmp_path / "p.tif", workers=2)
     assert (tmp_path / "p.tif").read_bytes() == (tmp_path / "s.tif").read_bytes()
+
+
+def test_local_workers_keep_glibcs_adaptive_mmap_threshold():
+    """dask's MALLOC_TRIM_THRESHOLD_ made every large temporary a fresh mapping on the workers."""
+    with executor(workers=1) as run:
+        assert run(os.environ.get, ["MALLOC_TRIM_THRESHOLD_"]) == [os.environ.get("MALLOC_TRIM_THRESHOLD_")]
+        assert run(os.environ.get, ["OPENBLAS_NUM_THREADS"]) == ["1"]  # dask's other settings stay

@@ -262,7 +262,8 @@ def _sample(raster: Any, grid: Grid, tile: int, gridding_rmse: float) -> DEM:
 def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], params: Params, *,
                     map_tiles: Map | None = None, on_stage: Stage = no_stage,
                     write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> None:
-    """Code the GeoTIFF DEM ``src`` as a tiled map ``dst``, one band of tile rows at a time.
+    """Code the GeoTIFF DEM ``src`` as a tiled map ``dst``, one band of tile rows at a time, a block of
+    :data:`BLOCK_TILES` tiles at a time within it.
 
     Parameters
     ----------
@@ -288,7 +289,7 @@ def compress_gridded(dem: DEM, dst: str | os.PathLike[str], params: Params, *, p
                      crs: dict[str, Any], map_tiles: Map | None = None, on_stage: Stage = no_stage,
                      write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> None:
     """:func:`compress_raster` of a map already gridded (a point cloud read in chunks): memory holds
-    the grid and one band of tile rows, not the several copies of the map an in-memory encode makes."""
+    the grid and a few blocks of tiles, not the several copies of the map an in-memory encode makes."""
     _compress(_Grid(dem, point_count, crs, "<grid>"), dst, params, map_tiles=map_tiles, on_stage=on_stage,
               write=write, gridding_rmse=dem.gridding_rmse or 0.0, spread=dem.spread)
 
@@ -522,7 +523,9 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
                      write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> int:
     """Decode the tiled map ``cmap`` band of tile rows by band into ``dst`` (GeoTIFF, COG, LAS or LAZ).
 
-    Memory holds one band of tile rows. Returns the points (valid cells) written.
+    A GeoTIFF is decoded and written a block of :data:`BLOCK_TILES` tiles at a time; LAS and LAZ
+    a band of tile rows at a time, so that the points keep their row order. Returns the points
+    (valid cells) written.
     """
     if fmt not in STREAM_FORMATS:
         raise InvalidInputError(f"band-by-band decoding writes {', '.join(STREAM_FORMATS)}, not {fmt}")
