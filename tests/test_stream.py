@@ -112,18 +112,26 @@ def test_the_block_width_does_not_change_a_byte(small_threshold, mosaic, tmp_pat
 
 
 def test_the_base_layer_of_a_window_is_the_bits_of_the_whole():
-    """Each cell of the base layer has the same bits whatever window it is computed in (BLAS's do not)."""
-    from dftpcc.tiles import base_order
+    """Each cell of the base layer has the same bits whatever window it is computed in (BLAS's do not):
+    the whole map, a band, a block of columns, a bbox."""
+    from dftpcc.tiles import base_heights, base_order
 
     shape, tile = (3001, 2999), 256
     i, j, _, _ = base_order(shape, tile, 0.0)
     values = np.random.default_rng(7).normal(size=i.size)
     rows = (3 * tile - 8, 4 * tile + 8)
-    whole = stream._base_window(values, i, j, shape, rows, (0, shape[1]))
+    whole = base_heights(values, i, j, shape, rows, (0, shape[1]))
     for c0, c1 in [(0, 1), (248, 520), (1016, 2056), (2990, 2999)]:
-        np.testing.assert_array_equal(stream._base_window(values, i, j, shape, rows, (c0, c1)), whole[:, c0:c1])
-    np.testing.assert_allclose(whole, dftpcc.tiles.base_heights(values, i, j, shape, rows, (0, shape[1])),
-                               rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(base_heights(values, i, j, shape, rows, (c0, c1)), whole[:, c0:c1])
+    for r0, r1 in [(rows[0], rows[0] + 1), (rows[0] + 5, rows[1] - 3)]:
+        np.testing.assert_array_equal(base_heights(values, i, j, shape, (r0, r1), (248, 520)),
+                                      whole[r0 - rows[0]:r1 - rows[0], 248:520])
+    # The same layer as the matrix product, to round-off.
+    from dftpcc.tiles import base_basis
+    g = np.zeros((i.max() + 1, j.max() + 1))
+    g[i, j] = values
+    product = base_basis(shape[0], g.shape[0], *rows) @ g @ base_basis(shape[1], g.shape[1], 0, shape[1]).T
+    np.testing.assert_allclose(whole, product, rtol=0, atol=1e-9)
 
 
 def test_a_decoded_geotiff_is_the_same_bytes_whatever_the_block_width(small_threshold, mosaic, tmp_path, monkeypatch):

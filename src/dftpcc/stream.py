@@ -33,7 +33,7 @@ from .errors import InvalidInputError
 from .fill import fill_empty
 from .params import Params, tile_size_for
 from .rebuild import dem_to_points
-from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_limit, base_order, code_tile,
+from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_heights, base_limit, base_order, code_tile,
                     coded_window)
 
 __all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
@@ -361,26 +361,6 @@ class _Spool:
         self.file.close()
 
 
-def _base_window(values: np.ndarray, i: np.ndarray, j: np.ndarray, shape: tuple[int, int],
-                 rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
-    """The base layer (metres) on the cells ``rows`` x ``cols`` of a ``shape`` grid, each cell's
-    value the same bits whatever the window it is computed in.
-
-    :func:`dftpcc.tiles.base_heights` goes through BLAS, whose sums depend on the
-    matrices' shapes and on its threads (a band's cells came out otherwise under
-    ``OPENBLAS_NUM_THREADS=1``, or computed a block at a time): numpy's own
-    sum-of-products loops (``einsum`` without ``optimize``) add each cell's terms in one order.
-    """
-    h, w = rows[1] - rows[0], cols[1] - cols[0]
-    if values.size == 0:
-        return np.zeros((h, w))
-    ki, kj = int(i.max()) + 1, int(j.max()) + 1
-    g = np.zeros((ki, kj))
-    g[i, j] = values
-    along = np.einsum("rk,kl->rl", base_basis(shape[0], ki, *rows), g, optimize=False)
-    return np.einsum("rl,cl->rc", along, base_basis(shape[1], kj, *cols), optimize=False)
-
-
 @dataclass(frozen=True)
 class _Pass:
     """What every block of one coding pass shares; small, so it travels to each worker once.
@@ -442,7 +422,7 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
     rest[~m] = 0.0
     rest -= b * np.arange(u0, u1, dtype=float)[None, :]
     rest -= c * np.arange(w0, w1, dtype=float)[:, None] + a
-    rest -= _base_window(values, bi, bj, job.shape, (w0, w1), (u0, u1))
+    rest -= base_heights(values, bi, bj, job.shape, (w0, w1), (u0, u1))
     first = job.tiling.bounds(block.tiles[0])[2]  # the column the block's counts start at
     codes = []
     for k in block.tiles:
@@ -451,7 +431,7 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
             continue
         _, _, v0, v1 = coded_window(job.tiling, k, TILE_OVERLAP)
         # What quantizing the base layer changed on the tile (the layer is linear in its values).
-        error = _base_window(job.base_error, bi, bj, job.shape, (t0, t1), (c0, c1))
+        error = base_heights(job.base_error, bi, bj, job.shape, (t0, t1), (c0, c1))
         counts = None if block.counts is None else block.counts[:, c0 - first:c1 - first]
         codes.append(code_tile(TileJob(k, rest[:, v0 - u0:v1 - u0], m[:, v0 - u0:v1 - u0],
                                        (t0 - w0, t1 - w0, c0 - v0, c1 - v0), error, counts),
