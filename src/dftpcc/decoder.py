@@ -190,7 +190,7 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -
     coefs = np.zeros(corner_shape)
     coefs.ravel()[where] = coding.dequantize(stream, params.step)
     heights = spectrum.inverse(coefs, lay)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
-    heights += tiles.base_heights(base.values, base.i, base.j, grid.shape, (r0, r1), (c0, c1))
+    heights += tiles.base_heights(base.values, base.i, base.j, grid.shape, (r0, r1), (c0, c1), exact=False)
     a, b, c = header.plane
     heights += a + b * np.arange(c0, c1, dtype=float)[None, :] + c * np.arange(r0, r1, dtype=float)[:, None]
     if b"RESD" in blobs:
