@@ -148,7 +148,7 @@ def test_a_bbox_reads_and_decodes_only_its_tiles(tmp_path):
     rows, cols = part.grid.rows, part.grid.cols
     r0 = round((part.grid.y0 - g.y0) / g.dy)
     c0 = round((part.grid.x0 - g.x0) / g.resolution)
-    # The same bits as the whole decode (the base layer is summed in one order whatever the window).
+    # The same bits as the whole decode (the decoder computes each tile whole, whatever the bbox).
     np.testing.assert_array_equal(part.heights[part.mask], whole.heights[r0:r0 + rows, c0:c0 + cols][part.mask])
     points = dftpcc.open(path).read_points(bbox=bbox)
     assert points.shape[0] == int(part.mask.sum()) > 0

@@ -33,8 +33,8 @@ from .errors import InvalidInputError
 from .fill import fill_empty
 from .params import Params, tile_size_for
 from .rebuild import dem_to_points
-from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_heights, base_limit, base_order, code_tile,
-                    coded_window)
+from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_heights, base_limit, base_order,
+                    code_tile, coded_window)
 
 __all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
 
