@@ -1,8 +1,8 @@
 """Digests of the files the codec writes on ../shared/data: what a refactor must not change.
 
 Each real file is compressed through the public API with the default
-options, the paper profile, each rate-control target and the footprint
-mask; the SHA-256 of every ``.dftpc`` (or the error class and message,
+options, the paper profile, each rate-control target, the footprint
+mask and tiled; the SHA-256 of every ``.dftpc`` (or the error class and message,
 when a case is refused) is written to ``tests/digests.json`` with
 ``--write`` and compared with it otherwise. tests/test_digests.py runs
 the same comparison on the smaller files.
@@ -54,6 +54,11 @@ CASES = {
     "target_max_error": {"target_max_error": 0.1},
     "target_bpp": {"target_bpp": 1.0},
     "footprint": {"mask": "footprint"},
+    # Tiled (docs/format.md, *Tiles*): a map of one tile is written whole, so small maps give
+    # their untiled digest; a fixed high cutoff widens the tiles' overlap.
+    "tiled_128_rmse": {"tile_size": 128, "target_rmse": 0.05},
+    "tiled_256_max_error": {"tile_size": 256, "target_max_error": 0.1},
+    "tiled_128_cutoff_0.95": {"tile_size": 128, "cutoff": 0.95},
 }
 
 
