@@ -234,3 +234,19 @@ def test_a_tiled_header_over_the_whole_grid_limit_is_written():
                     tiles=index, coef_count=0, stats={"dem_rmse_m": 0.01, "dem_max_error_m": 0.02})
     head = tiled_head(header, b"\x00\x00\x00\x00", [(0, b"MASK", 3, 0), (0, b"COEF", 4, 0)])
     assert head[:8] == b"\x89DFTPC\r\n" and head[9] == 1
+
+
+@pytest.mark.parametrize("cutoff", [0.0, 0.8])
+def test_the_overlap_follows_the_cutoff_and_rate_control_measures_the_file(cutoff):
+    """A tile's window widens with the cutoff (tiles.tile_overlap); rate control's trials, built
+    for every cutoff from one analysis, must see the windows the file is written with."""
+    dem = _terrain()
+    params = make_params(tile_size=64, cutoff=cutoff, step=0.02)
+    data = encode_dem(dem, params)
+    m = dftpcc.open(data)
+    assert m.header.tiles.overlap == tiles.tile_overlap(cutoff, 64) == (8 if cutoff < 0.29 else 16)
+    an = tiles.TiledAnalysis(dem, make_params(tile_size=64), 64, searching=True)  # built for every cutoff
+    trial = an.trial(cutoff, 0.02)
+    rebuilt = m.read_dem()
+    np.testing.assert_allclose(trial.heights[dem.mask], rebuilt.heights[dem.mask], rtol=0, atol=1e-9)
+    assert trial.rmse == pytest.approx(m.header.stats["dem_rmse_m"], rel=1e-6)  # STAT keeps 8 digits

@@ -25,7 +25,7 @@ from .grid import _fit_grid, _rasterize, auto_resolution
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
-from .tiles import TileCode, TiledAnalysis, code_tile
+from .tiles import TileCode, TiledAnalysis, code_tile, tile_overlap
 
 __all__ = ["compress", "encode_dem", "choose_for_tiles", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
            "QUANT_FLOOR_FRACTION"]
@@ -371,7 +371,8 @@ def _pack_tiled(choice: Choice, params: Params, mask_blobs: list[bytes], point_c
         q = an.base_at(params.cutoff, params.step)
         base_blob = an.base_blob(q)
         on_stage("encode tiles")
-        codes = (map_tiles or serial_map)(code_tile, an.jobs(q, params.step), params, an.refill_step)
+        codes = (map_tiles or serial_map)(code_tile, an.jobs(q, params.cutoff, params.step), params,
+                                          an.refill_step)
     else:  # measuring the header's own bytes: every tile without coefficients
         base_blob = b""
         codes = [TileCode(k, blob, b"", b"", int(_tile_cells(dem.mask, an, k).sum()), 0.0, 0.0)
@@ -380,7 +381,7 @@ def _pack_tiled(choice: Choice, params: Params, mask_blobs: list[bytes], point_c
         cells[c.k], rmse[c.k], max_error[c.k] = c.cells, c.rmse, c.max_error
     occupied = int(cells.sum())
     stats = _tiled_stats(dem, codes, occupied, base_blob, params)
-    index = TileIndex(tiling=an.tiling, overlap=an.overlap, base_cycles=an.base_cycles, cells=cells, rmse=rmse,
+    index = TileIndex(tiling=an.tiling, overlap=tile_overlap(params.cutoff, an.tile), base_cycles=an.base_cycles, cells=cells, rmse=rmse,
                       max_error=max_error)
     header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=occupied,
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.base_count(params.cutoff),

@@ -33,8 +33,8 @@ from .errors import InvalidInputError
 from .fill import fill_empty
 from .params import Params, tile_size_for
 from .rebuild import dem_to_points
-from .tiles import (BASE_CYCLES_PER_TILE, TILE_OVERLAP, TileJob, base_basis, base_heights, base_limit, base_order,
-                    code_tile, coded_window)
+from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_basis, base_heights, base_limit, base_order,
+                    code_tile, coded_window, tile_overlap)
 
 __all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
 
@@ -396,15 +396,16 @@ class _Block:
     counts: np.ndarray | None = None
 
 
-def _blocks(raster: Any, tiling: TileGrid, band: int) -> Iterator[_Block]:
-    """The column blocks of band ``band`` (tile row), each :data:`BLOCK_TILES` tiles wide."""
+def _blocks(raster: Any, tiling: TileGrid, band: int, overlap: int) -> Iterator[_Block]:
+    """The column blocks of band ``band`` (tile row), each :data:`BLOCK_TILES` tiles wide, with
+    ``overlap`` cells around."""
     first = band * tiling.tile_cols
     for j0 in range(0, tiling.tile_cols, BLOCK_TILES):
         ks = tuple(range(first + j0, first + min(tiling.tile_cols, j0 + BLOCK_TILES)))
         t0, t1, c0, _ = tiling.bounds(ks[0])
         c1 = tiling.bounds(ks[-1])[3]
-        w0, w1 = max(0, t0 - TILE_OVERLAP), min(tiling.rows, t1 + TILE_OVERLAP)
-        u0, u1 = max(0, c0 - TILE_OVERLAP), min(tiling.cols, c1 + TILE_OVERLAP)
+        w0, w1 = max(0, t0 - overlap), min(tiling.rows, t1 + overlap)
+        u0, u1 = max(0, c0 - overlap), min(tiling.cols, c1 + overlap)
         cells = raster.read(w0, w1, u0, u1) if raster.in_memory else None
         yield _Block((w0, w1), (u0, u1), ks, cells, raster.counts(t0, t1, c0, c1))
 
@@ -429,7 +430,7 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
         t0, t1, c0, c1 = job.tiling.bounds(k)
         if not m[t0 - w0:t1 - w0, c0 - u0:c1 - u0].any():
             continue
-        _, _, v0, v1 = coded_window(job.tiling, k, TILE_OVERLAP)
+        _, _, v0, v1 = coded_window(job.tiling, k, tile_overlap(job.params.cutoff, job.tiling.size))
         # What quantizing the base layer changed on the tile (the layer is linear in its values).
         error = base_heights(job.base_error, bi, bj, job.shape, (t0, t1), (c0, c1))
         counts = None if block.counts is None else block.counts[:, c0 - first:c1 - first]
@@ -470,7 +471,8 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
     squared, worst, weighted = 0.0, 0.0, 0.0
     mask_bytes = coef_bytes = resid_bytes = 0
     on_stage("encode")
-    blocks = (block for band in range(tiling.tile_rows) for block in _blocks(raster, tiling, band))
+    overlap = tile_overlap(params.cutoff, tile)
+    blocks = (block for band in range(tiling.tile_rows) for block in _blocks(raster, tiling, band, overlap))
     for batch in _batches(blocks):
         on_stage("encode", batch[0].tiles[0] / n)
         for code in (code for codes in run(_code_block, batch, job) for code in codes):
@@ -493,7 +495,7 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
     counts = getattr(raster, "dem", None) is not None and raster.dem.counts is not None
     if counts and params.aggregate == "mean":
         stats["vertical_rmse_m"] = math.sqrt(gridding_rmse ** 2 + weighted / max(int(raster.dem.counts.sum()), 1))
-    index = TileIndex(tiling=tiling, overlap=TILE_OVERLAP, base_cycles=BASE_CYCLES_PER_TILE, cells=cells, rmse=rmse,
+    index = TileIndex(tiling=tiling, overlap=overlap, base_cycles=BASE_CYCLES_PER_TILE, cells=cells, rmse=rmse,
                       max_error=max_error)
     return spool, index, stats, nb, base_blob
 

@@ -25,7 +25,7 @@ from .fill import fill_empty, fit_plane, plane_values
 from .params import Params
 from .residual import encode_residual, residual
 
-__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "base_limit", "TILE_OVERLAP", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
+__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "base_limit", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
            "tile_grid_of", "TiledAnalysis", "TiledTrial"]
 
 #: The base layer holds the map's frequencies up to this many cycles per tile
@@ -33,8 +33,13 @@ __all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "base_limit", "TILE_OVERLA
 BASE_CYCLES_PER_TILE = 1
 #: The largest base reach a file may state (TIDX), cycles per tile.
 MAX_BASE_CYCLES = 8
-#: Cells of the neighbouring tiles a tile's transform also spans on each side.
+#: Cells of the neighbouring tiles a tile's transform also spans on each side, at the
+#: cutoffs that ring least (see tile_overlap), and the unit a wider overlap grows by.
 TILE_OVERLAP = 8
+#: From this cutoff up, tiles overlap by twice :data:`TILE_OVERLAP` (see tile_overlap): the
+#: cutoff whose circle, of radius (1 - f_c) hypot(H/2, W/2), starts to cut the frequencies along
+#: the axes (below it only the diagonal corner of the spectrum goes).
+WIDE_OVERLAP_CUTOFF = 1 - 1 / math.sqrt(2)
 #: The slack of spectrum's circle, so a coefficient exactly on it is kept everywhere.
 _SLACK = 1 + 1e-12
 
@@ -121,6 +126,26 @@ def base_coefficients(filled: np.ndarray, i: np.ndarray, j: np.ndarray, *, row_s
     return (br.T @ filled @ bc)[i, j]
 
 
+def tile_overlap(cutoff: float, tile: int) -> int:
+    """Cells of its neighbours' a tile's transform spans on each side at ``cutoff``.
+
+    The low-pass rings past a window's edge, and its ringing decays slowly
+    (as a sinc's sidelobes, about 1/distance), so a window must reach well
+    beyond its tile for the tile's own edge cells to be clear of it.
+    :data:`TILE_OVERLAP` (8) cells below :data:`WIDE_OVERLAP_CUTOFF` (0.29), where
+    the low-pass drops only the spectrum's diagonal corner, twice that from
+    it, and at most half a tile (what a reader accepts). Measured
+    (docs/benchmarks.md, *The tile overlap against the seams*): at f_c 0.6 to
+    0.93, 8 cells left seams of 1.19-1.25x the RMSE elsewhere on Kepler and the
+    mountain, 16 cells 1.08-1.13x, 24 no better; a wider window costs bytes
+    (its coefficients grow with its area), +6 % on the field at f_c 0 for
+    16 cells, where nothing rings. The overlap is a function of the cutoff, so a coder that knows
+    the cutoff knows the windows; the file states it (``TIDX``).
+    """
+    wide = cutoff >= WIDE_OVERLAP_CUTOFF
+    return min(2 * TILE_OVERLAP if wide else TILE_OVERLAP, tile // 2)
+
+
 def tile_grid_of(grid: Grid, size: int) -> TileGrid:
     return TileGrid(grid.rows, grid.cols, size)
 
@@ -148,6 +173,11 @@ class TiledAnalysis:
     step) and measures the whole map; the coded stream is the base layer's
     integers followed by each tile's, in tile order.
 
+    A tile's window reaches :func:`tile_overlap` cells into its neighbours,
+    which grows with the cutoff: the tiles' analyses are built per overlap,
+    the first time a cutoff that needs it is asked for (rate control tries
+    the cutoffs in rising order).
+
     Parameters
     ----------
     dem : DEM
@@ -164,7 +194,7 @@ class TiledAnalysis:
                  base_cycles: int = BASE_CYCLES_PER_TILE):
         self.dem, self.params, self.tile = dem, params, tile
         self.base_cycles = base_cycles
-        self.overlap = TILE_OVERLAP
+        self.searching = searching
         self.tiling = tile_grid_of(dem.grid, tile)
         self.mask = self.kept_cells = dem.mask
         self.plane = fit_plane(dem)
@@ -179,25 +209,47 @@ class TiledAnalysis:
         self.base_coefs = base_coefficients(filled, self.base_i, self.base_j)
         self.base_exact = base_heights(self.base_coefs, self.base_i, self.base_j, dem.grid.shape,
                                        (0, dem.grid.rows), (0, dem.grid.cols))
-        rest = self.rest = detrended - self.base_exact
-        tile_params = params.replace(detrend="none", tile_size=0)
-        self.tiles: list[tuple[int, Analysis]] = []
-        for k in range(self.tiling.count):
-            r0, r1, c0, c1 = self.tiling.bounds(k)
-            if not dem.mask[r0:r1, c0:c1].any():
-                continue  # an empty tile has no sections at all
-            # A tile's transform spans its cells and a margin of its neighbours': the low-pass
-            # blurs the window's edges, and those lie outside the tile.
-            w0, w1, v0, v1 = coded_window(self.tiling, k, self.overlap)
-            sub = DEM(grid=dem.grid.window(w0, v0, w1 - w0, v1 - v0), heights=rest[w0:w1, v0:v1],
-                      mask=dem.mask[w0:w1, v0:v1])
-            self.tiles.append((k, Analysis(sub, tile_params, searching=searching)))
-        # Lengths of the parts of the last stream quantized, by its total length (see encode_stream).
-        self._splits: dict[int, list[int]] = {}
-        self._last_parts: tuple[np.ndarray, bool, list[bytes]] | None = None
+        self.rest = detrended - self.base_exact
+        #: The occupied tiles (an empty tile has no sections at all).
+        self.occupied = [k for k in range(self.tiling.count) if self._tile_cells(dem.mask, k).any()]
+        #: Each overlap's tiles: (tile, its window's analysis), in tile order.
+        self._by_overlap: dict[int, list[tuple[int, Analysis]]] = {}
         #: The step of the trial whose rebuilt map refilled the empty cells (None: smooth fill).
         self.refill_step: float | None = None
+        #: The overlap of the lowest cutoff asked for, whose tiles serve the questions without a cutoff.
+        self.overlap = tile_overlap(lowest, tile)
+        self.tiles = self.tiles_with(self.overlap)
+        # Overlap and lengths of the parts of the last stream quantized, by its total length (see encode_stream).
+        self._splits: dict[int, tuple[int, list[int]]] = {}
+        self._last_parts: tuple[np.ndarray, bool, list[bytes]] | None = None
         self._proxy_cache: dict[float, tuple[np.ndarray, float]] = {}
+
+    def tiles_with(self, overlap: int) -> list[tuple[int, Analysis]]:
+        """The occupied tiles' analyses on windows of ``overlap`` cells around them (built once)."""
+        found = self._by_overlap.get(overlap)
+        if found is not None:
+            return found
+        if self.refill_step is not None:
+            raise RuntimeError("a refilled tiled analysis holds the tiles of one cutoff's overlap only")
+        tile_params = self.params.replace(detrend="none", tile_size=0)
+        out = []
+        for k in self.occupied:
+            # A tile's transform spans its cells and a margin of its neighbours': the low-pass
+            # blurs the window's edges, and those lie outside the tile.
+            w0, w1, v0, v1 = coded_window(self.tiling, k, overlap)
+            sub = DEM(grid=self.dem.grid.window(w0, v0, w1 - w0, v1 - v0), heights=self.rest[w0:w1, v0:v1],
+                      mask=self.dem.mask[w0:w1, v0:v1])
+            out.append((k, Analysis(sub, tile_params, searching=self.searching)))
+        self._by_overlap[overlap] = out
+        return out
+
+    def _tile_cells(self, values: np.ndarray, k: int) -> np.ndarray:
+        r0, r1, c0, c1 = self.tiling.bounds(k)
+        return values[r0:r1, c0:c1]
+
+    def tiles_at(self, cutoff: float) -> list[tuple[int, Analysis]]:
+        """The occupied tiles' analyses on the windows ``cutoff`` needs (:func:`tile_overlap`)."""
+        return self.tiles_with(tile_overlap(cutoff, self.tile))
 
     def base_at(self, cutoff: float, step: float) -> np.ndarray:
         """The base layer's integers at (cutoff, step)."""
@@ -209,15 +261,16 @@ class TiledAnalysis:
         return coding.encode_coefficients(q, radius=self.base_radius[: q.size], angle=self.base_angle[: q.size],
                                           coder=self.params.coder, progressive=False)
 
-    def jobs(self, q: np.ndarray, step: float) -> list[TileJob]:
-        """One :class:`TileJob` per occupied tile, against the base layer ``q`` decoded at ``step``."""
+    def jobs(self, q: np.ndarray, cutoff: float, step: float) -> list[TileJob]:
+        """One :class:`TileJob` per occupied tile at ``cutoff``, against the base layer ``q`` decoded at ``step``."""
         grid = self.dem.grid
         decoded = base_heights(coding.dequantize(q, coding.short_step(step)), self.base_i[: q.size],
                                self.base_j[: q.size], grid.shape, (0, grid.rows), (0, grid.cols))
+        overlap = tile_overlap(cutoff, self.tile)
         out = []
-        for k, _ in self.tiles:
+        for k in self.occupied:
             r0, r1, c0, c1 = self.tiling.bounds(k)
-            w0, w1, v0, v1 = coded_window(self.tiling, k, self.overlap)
+            w0, w1, v0, v1 = coded_window(self.tiling, k, overlap)
             counts = None if self.dem.counts is None else self.dem.counts[r0:r1, c0:c1]
             out.append(TileJob(k, self.rest[w0:w1, v0:v1], self.dem.mask[w0:w1, v0:v1],
                                (r0 - w0, r1 - w0, c0 - v0, c1 - v0),
@@ -232,14 +285,14 @@ class TiledAnalysis:
 
     def counts(self, cutoff: float) -> list[int]:
         """Values per part at ``cutoff``: the base layer, then each occupied tile."""
-        return [self.base_count(cutoff)] + [an.count(cutoff) for _, an in self.tiles]
+        return [self.base_count(cutoff)] + [an.count(cutoff) for _, an in self.tiles_at(cutoff)]
 
     def count(self, cutoff: float) -> int:
         return sum(self.counts(cutoff))
 
     @property
     def coefs(self) -> np.ndarray:
-        """Every sorted coefficient the map may store (base layer, then the tiles')."""
+        """Every sorted coefficient the map may store at the lowest cutoff (base layer, then the tiles')."""
         return np.concatenate([self.base_coefs] + [an.coefs for _, an in self.tiles])
 
     def reals(self, n: int) -> np.ndarray:
@@ -248,7 +301,7 @@ class TiledAnalysis:
     def largest(self, cutoff: float) -> np.ndarray:
         """The values kept at ``cutoff`` (for the checks on the finest step)."""
         parts = [self.base_coefs[: self.base_count(cutoff)]]
-        parts += [an.reals(an.count(cutoff)) for _, an in self.tiles]
+        parts += [an.reals(an.count(cutoff)) for _, an in self.tiles_at(cutoff)]
         return np.concatenate(parts)
 
     @property
@@ -263,9 +316,9 @@ class TiledAnalysis:
     def quantized(self, cutoff: float, step: float) -> np.ndarray:
         step = coding.short_step(step)
         base = coding.quantize(self.base_coefs[: self.base_count(cutoff)], step, self.params.deadzone)
-        parts = [base] + [an.quantized(cutoff, step) for _, an in self.tiles]
+        parts = [base] + [an.quantized(cutoff, step) for _, an in self.tiles_at(cutoff)]
         stream = np.concatenate(parts)
-        self._splits[stream.size] = [p.size for p in parts]
+        self._splits[stream.size] = (tile_overlap(cutoff, self.tile), [p.size for p in parts])
         return stream
 
     def trial(self, cutoff: float, step: float) -> TiledTrial:
@@ -276,15 +329,16 @@ class TiledAnalysis:
         heights = self.trend + base_heights(coding.dequantize(base, step), self.base_i[:nb], self.base_j[:nb],
                                             grid.shape, (0, grid.rows), (0, grid.cols))
         trials = []
-        for k, an in self.tiles:
+        overlap = tile_overlap(cutoff, self.tile)
+        for k, an in self.tiles_with(overlap):
             t = an.trial(cutoff, step)
             r0, r1, c0, c1 = self.tiling.bounds(k)
-            w0, _, v0, _ = coded_window(self.tiling, k, self.overlap)
+            w0, _, v0, _ = coded_window(self.tiling, k, overlap)
             heights[r0:r1, c0:c1] += t.heights[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
             trials.append(t)
         err = (heights - self.dem.heights)[self.mask]
         stream = np.concatenate([base] + [t.stream for t in trials])
-        self._splits[stream.size] = [base.size] + [t.stream.size for t in trials]
+        self._splits[stream.size] = (overlap, [base.size] + [t.stream.size for t in trials])
         return TiledTrial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))),
                           float(np.abs(err).max()), base=base, tiles=trials)
 
@@ -301,7 +355,7 @@ class TiledAnalysis:
         if cached is None:
             kept = [self.base_coefs[: self.base_count(cutoff)]]
             lost = 0.0
-            for _, an in self.tiles:
+            for _, an in self.tiles_at(cutoff):
                 n = an.count(cutoff)
                 kept.append(an.reals(n))
                 dropped = an.reals(an.coefs.size)[kept[-1].size:]
@@ -310,9 +364,14 @@ class TiledAnalysis:
         return cached
 
     def refilled(self, trial: TiledTrial) -> "TiledAnalysis":
+        """The analysis refilled at ``trial``: the tiles of its cutoff's overlap only (rate control
+        searches a refilled analysis at that cutoff alone)."""
         out = copy.copy(self)
         out.refill_step = trial.step
-        out.tiles = [(k, an.refilled(t) if an.refillable else an) for (k, an), t in zip(self.tiles, trial.tiles)]
+        out.overlap = tile_overlap(trial.cutoff, self.tile)
+        out.tiles = [(k, an.refilled(t) if an.refillable else an)
+                     for (k, an), t in zip(self.tiles_at(trial.cutoff), trial.tiles)]
+        out._by_overlap = {out.overlap: out.tiles}
         out._splits, out._last_parts, out._proxy_cache = {}, None, {}
         return out
 
@@ -328,7 +387,7 @@ class TiledAnalysis:
         memo = self._last_parts
         if memo is not None and memo[0] is stream and memo[1] == exhaustive:
             return memo[2]  # rate control's final encode, asked again by the packer
-        sizes = self._splits[stream.size]
+        overlap, sizes = self._splits[stream.size]
         bounds = np.cumsum([0] + sizes)
         pieces = [stream[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
         base = pieces[0]
@@ -336,7 +395,7 @@ class TiledAnalysis:
                                           angle=self.base_angle[: base.size], coder=self.params.coder,
                                           exhaustive=exhaustive, progressive=False)]
         out += [an.encode_stream(piece, exhaustive=exhaustive, progressive=False)
-                for (_, an), piece in zip(self.tiles, pieces[1:])]
+                for (_, an), piece in zip(self.tiles_with(overlap), pieces[1:])]
         self._last_parts = (stream, exhaustive, out)
         return out
 
