@@ -250,3 +250,21 @@ def test_the_overlap_follows_the_cutoff_and_rate_control_measures_the_file(cutof
     rebuilt = m.read_dem()
     np.testing.assert_allclose(trial.heights[dem.mask], rebuilt.heights[dem.mask], rtol=0, atol=1e-9)
     assert trial.rmse == pytest.approx(m.header.stats["dem_rmse_m"], rel=1e-6)  # STAT keeps 8 digits
+
+
+def test_the_cells_inside_a_bbox_are_those_whose_centre_is_inside():
+    """An axis-aligned grid takes its centres a line at a time: the same cells as every centre's test."""
+    from dftpcc import mapfile
+    rng = np.random.default_rng(1)
+    for angle in (0.0, 0.3):
+        for _ in range(50):
+            g = Grid(x0=float(rng.uniform(-1e6, 1e6)), y0=float(rng.uniform(-1e6, 1e6)), z0=0.0,
+                     resolution=float(rng.choice([0.1, 0.5, 48.0])), rows=int(rng.integers(1, 200)),
+                     cols=int(rng.integers(1, 200)), angle=angle)
+            rows, cols = np.indices(g.shape)
+            x, y = g.centres(rows.ravel(), cols.ravel())
+            # Edges on some cells' centres, where a different rounding would show.
+            (x0, x1), (y0, y1) = np.sort(rng.choice(x, 2)), np.sort(rng.choice(y, 2))
+            bbox = (float(x0), float(y0), float(x1), float(y1))
+            expected = ((x >= bbox[0]) & (x <= bbox[2]) & (y >= bbox[1]) & (y <= bbox[3])).reshape(g.shape)
+            np.testing.assert_array_equal(mapfile._centres_inside(g, bbox), expected)

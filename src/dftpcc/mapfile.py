@@ -264,6 +264,13 @@ def _corners(g: Grid, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, n
 def _centres_inside(g: Grid, bbox: Sequence[float]) -> np.ndarray:
     """Which cells of ``g`` have their centre inside ``bbox`` (edges included)."""
     xmin, ymin, xmax, ymax = bbox
+    if g.angle == 0.0:
+        # x follows the column and y the row alone: the same centres, a line of each (a 512-cell
+        # tile's read spent 2 ms in the whole grid of them).
+        r, c = np.arange(g.rows), np.arange(g.cols)
+        x, _ = g.centres(np.zeros(g.cols), c)
+        _, y = g.centres(r, np.zeros(g.rows))
+        return ((y >= ymin) & (y <= ymax))[:, None] & ((x >= xmin) & (x <= xmax))[None, :]
     rows, cols = np.indices(g.shape)
     x, y = g.centres(rows.ravel(), cols.ravel())
     return ((x >= xmin) & (x <= xmax) & (y >= ymin) & (y <= ymax)).reshape(g.shape)
