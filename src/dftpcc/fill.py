@@ -151,19 +151,30 @@ def _upsampled(coarse: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _doubled(coarse: np.ndarray, n: int, axis: int) -> np.ndarray:
-    """``coarse`` upsampled 2x along ``axis`` to ``n`` samples as :func:`_sides` pairs them:
+    """``coarse`` upsampled 2x along ``axis`` (0 or 1) to ``n`` samples as :func:`_sides` pairs them:
     output 2i is ``0.75 * c[i] + 0.25 * c[i - 1]``, output 2i + 1 ``0.75 * c[i] + 0.25 * c[i + 1]``,
     edges clamped; by strided slices rather than gathers (the same products and sums)."""
-    c = np.moveaxis(coarse, axis, 0)
-    m = c.shape[0]
+    m = coarse.shape[axis]
     half = (n + 1) // 2  # coarse samples the outputs lie in: n <= 2 m
-    own = NEAR_WEIGHT * c[:half]
-    before = np.concatenate([c[:1], c[:half - 1]]) if half > 1 else c[:1]
-    after = np.concatenate([c[1:half + 1], c[m - 1:]])[:half] if m > 1 else c[:1].repeat(half, axis=0)
-    out = np.empty((2 * half,) + c.shape[1:])
-    out[0::2] = own + FAR_WEIGHT * before
-    out[1::2] = own + FAR_WEIGHT * after
-    return np.moveaxis(out[:n], 0, axis)
+
+    def at(a: int, b: int) -> tuple[slice, ...]:
+        return (slice(a, b),) if axis == 0 else (slice(None), slice(a, b))
+
+    def every(start: int, stop: int | None) -> tuple[slice, ...]:
+        return (slice(start, stop, 2),) if axis == 0 else (slice(None), slice(start, stop, 2))
+
+    shape = (2 * half, coarse.shape[1]) if axis == 0 else (coarse.shape[0], 2 * half)
+    out = np.empty(shape)
+    own = NEAR_WEIGHT * coarse[at(0, half)]
+    far = FAR_WEIGHT * coarse[at(0, min(half + 1, m))]  # 0.25 c[j] for every j a neighbour may be
+    out[every(0, 1)] = own[at(0, 1)] + far[at(0, 1)]  # output 0 leans on c[0] itself
+    out[every(2, None)] = own[at(1, half)] + far[at(0, half - 1)]
+    if half < m:
+        out[every(1, None)] = own + far[at(1, half + 1)]
+    else:  # the last odd output leans on the last sample itself
+        out[every(1, 2 * half - 2)] = own[at(0, half - 1)] + far[at(1, half)]
+        out[every(2 * half - 1, None)] = own[at(half - 1, half)] + far[at(m - 1, m)]
+    return out[at(0, n)]
 
 
 #: A level whose cells to fill are more than this share of it is upsampled and blended whole
