@@ -72,8 +72,9 @@ FIXED_MODEL_RUN = 64
 
 def _codes(lines: np.ndarray) -> np.ndarray:
     """5-bit code of each cell's neighbourhood (offsets -2..+2) along the last axis."""
-    pad = [(0, 0)] * (lines.ndim - 1) + [(2, 2)]
-    return _codes_of_padded(np.pad(lines.astype(np.uint8, copy=False), pad))
+    padded = np.zeros(lines.shape[:-1] + (lines.shape[-1] + 4,), dtype=np.uint8)  # np.pad, without its overhead
+    padded[..., 2:-2] = lines
+    return _codes_of_padded(padded)
 
 
 def _codes_of_padded(p: np.ndarray) -> np.ndarray:
@@ -233,25 +234,31 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     present = np.flatnonzero(seen)
     compact = np.zeros(CONTEXTS, dtype=np.int64)
     compact[present] = np.arange(present.size)
-    # Laid out (context, step), so the sums over the steps run along contiguous rows.
-    key = compact[rest_c] * stripe + rest_steps
-    total = np.bincount(key, minlength=stripe * present.size).reshape(present.size, stripe)
-    ones = np.bincount(key[one[rest]], minlength=stripe * present.size).reshape(present.size, stripe)
+    # Laid out (context, step + 1), so the sums over the steps run along contiguous rows and
+    # the running sum at (context, s) counts the steps before s.
+    span = stripe + 1
+    key = compact[rest_c] * span + rest_steps + 1
+    total = np.bincount(key, minlength=span * present.size).reshape(present.size, span)
+    ones = np.bincount(key[one[rest]], minlength=span * present.size).reshape(present.size, span)
     for k, context in ((0, OUTSIDE), (1, INSIDE)):
         if size[:, k].any():
-            total[compact[context]] += size[:, k]
-            ones[compact[context]] += per_step(ones_in_line[k])
-    ones_before, total_before = np.cumsum(ones, axis=1) - ones, np.cumsum(total, axis=1) - total
-    prob = ((ones_before + PRIOR_ONES[present][:, None]) / (total_before + PRIOR_TOTAL)).ravel()  # (context, step)
+            total[compact[context], 1:] += size[:, k]
+            ones[compact[context], 1:] += per_step(ones_in_line[k])
+    ones_before, total_before = np.cumsum(ones, axis=1).ravel(), np.cumsum(total, axis=1).ravel()
+
+    def prob(context: np.ndarray, step: np.ndarray) -> np.ndarray:
+        at = compact[context] * span + step
+        return (ones_before[at] + PRIOR_ONES[context]) / (total_before[at] + PRIOR_TOTAL)
+
     group_step = np.repeat(np.arange(stripe), adaptive_size.sum(axis=1))
     adaptive_bits = flat_one[seq].astype(np.int32)
-    adaptive_prob = prob[compact[flat_c[seq]] * stripe + group_step]
+    adaptive_prob = prob(flat_c[seq], group_step)
     # The runs' bits: each kind's cells in decoding order, a run a slice of them.
-    run_bits = [bits[m].astype(np.int32) for m in kinds]
+    run_bits = [bits[m].astype(np.int32) if fixed[:, k].any() else None for k, m in enumerate(kinds)]
     run_start = np.cumsum(size[:, :2], axis=0) - size[:, :2]
     runs = np.flatnonzero(fixed.ravel())[::-1]
     run_step, run_kind = np.divmod(runs, 3)
-    run_prob = prob[np.where(run_kind == 0, compact[OUTSIDE], compact[INSIDE]) * stripe + run_step]
+    run_prob = prob(np.where(run_kind == 0, OUTSIDE, INSIDE), run_step)
     coder = constriction.stream.stack.AnsCoder()
     model = _bernoulli()
     # A stack: the last cells are pushed first (encode_reverse pushes an array last first too).
@@ -261,7 +268,7 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
                              run_prob.tolist()):
         if a < end:
             coder.encode_reverse(adaptive_bits[a:end], model, adaptive_prob[a:end])
-        coder.encode_reverse(run_bits[k][r:r + n], _bernoulli(p))
+        coder.encode_reverse(run_bits[k][r:r + n], _bernoulli(p))  # type: ignore[index]
         end = a
     if end:
         coder.encode_reverse(adaptive_bits[:end], model, adaptive_prob[:end])
