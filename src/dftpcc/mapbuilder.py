@@ -240,7 +240,12 @@ class MapBuilder:
         if cells is None:
             cells = self._tiles[tile] = _Cells.empty(size)
         # A scan sees a few percent of a tile's cells: sum per cell seen, and update only those.
-        seen, where = np.unique(local, return_inverse=True)
+        # The cells seen, ascending, and each point's index among them (np.unique's, without its
+        # sort): a tile has a fixed number of cells.
+        seen = np.flatnonzero(np.bincount(local, minlength=size * size))
+        rank = np.empty(size * size, dtype=np.intp)
+        rank[seen] = np.arange(seen.size)
+        where = rank[local]
         added = np.bincount(where, minlength=seen.size)
         total, sums, sumsq = cells.count.reshape(-1), cells.sum.reshape(-1), cells.sumsq.reshape(-1)
         before, before_sum = total[seen], sums[seen]
@@ -292,7 +297,9 @@ class MapBuilder:
 
     def _heights(self, cells: _Cells) -> tuple[np.ndarray, np.ndarray]:
         occupied = cells.count > 0
-        mean = np.divide(cells.sum, cells.count, out=np.zeros(cells.sum.shape), where=occupied)
+        # An empty cell's sum is 0: 0 / 1 gives its 0, and the others the same quotient as a
+        # division masked to them, without the mask's cost.
+        mean = cells.sum / np.maximum(cells.count, 1)
         return mean * HEIGHT_QUANTUM_M, occupied
 
     def _job(self, tile: tuple[int, int]) -> TileJob:
