@@ -207,13 +207,20 @@ def _push_pull(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     # ``up`` of the filled coarse level. With 0/1 weights it is ``values`` at
     # known cells; ``up`` is needed only at the unknown ones, and at known
     # zeros, whose sign the blend decides.
-    needed = ~known | (values == 0.0)
-    count = np.count_nonzero(needed)
-    if count > DENSE_UPSAMPLING_SHARE * values.size:  # the same blend, on whole rows
+    # The unknown cells alone often decide that a level is blended whole (a sparse scan's).
+    unknown = ~known
+    needed = None
+    if values.size - np.count_nonzero(known) <= DENSE_UPSAMPLING_SHARE * values.size:
+        needed = unknown | (values == 0.0)
+        count = np.count_nonzero(needed)
+    if needed is None or count > DENSE_UPSAMPLING_SHARE * values.size:  # the same blend, on whole rows
         # w * values + (1 - w) * up with w 1 or 0 is values + 0 * up (known) or 0 + up (unknown,
         # where values is +0): values + (1 - w) * up, the same bits, and at the cells not needed
         # (known, nonzero) values itself.
-        return values + _upsampled(coarse, values.shape) * (~known).view(np.uint8)
+        up = _upsampled(coarse, values.shape)
+        np.multiply(up, unknown, out=up)
+        up += values
+        return up
     out = values.copy()
     if count:
         need = np.flatnonzero(needed)
