@@ -198,8 +198,14 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     # Group (s, k): the cells of kind k (0 outside, 1 inside, 2 the rest) of step s.
     one = bits.view(bool)
     kinds = (c == OUTSIDE, c == INSIDE)
-    in_line = [np.count_nonzero(m, axis=1) for m in kinds]  # per coded line
-    ones_in_line = [np.count_nonzero(m & one, axis=1) for m in kinds]
+    # Per coded line (byte sums in the narrowest type that holds a line: faster than count_nonzero).
+    count_type = np.uint16 if width <= np.iinfo(np.uint16).max else np.int64
+
+    def line_sums(m: np.ndarray) -> np.ndarray:
+        return m.view(np.uint8).sum(axis=1, dtype=count_type).astype(np.int64)
+
+    in_line = [line_sums(m) for m in kinds]
+    ones_in_line = [line_sums(m & one) for m in kinds]
     in_line.append(width - in_line[0] - in_line[1])
 
     def per_step(v: np.ndarray) -> np.ndarray:
