@@ -100,7 +100,11 @@ def _pairs(a: np.ndarray) -> np.ndarray:
     if c <= 2 or a.size < SMALL_LEVEL_CELLS:
         # numpy's reduction adds the four in another order when the coarse level is
         # one cell wide; small levels cost nothing either way.
-        p = np.pad(a, ((0, r % 2), (0, c % 2)))
+        if r % 2 or c % 2:  # zero-padded by hand: np.pad costs more than the sums on a small level
+            p = np.zeros((r + r % 2, c + c % 2), dtype=a.dtype)
+            p[:r, :c] = a
+        else:
+            p = a
         return p.reshape(p.shape[0] // 2, 2, p.shape[1] // 2, 2).sum(axis=(1, 3), dtype=a.dtype)
     if r % 2 == 0 and c % 2 == 0:
         return blocks(a)
@@ -143,10 +147,34 @@ def _upsampled_at(coarse: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.
 def _upsampled(coarse: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """:func:`_upsampled_at` of every cell of a ``shape`` level, the same arithmetic in the same
     order (so the same bits), by whole rows and columns instead of one gather per cell."""
-    k, kn = _sides(np.arange(shape[0]), coarse.shape[0])
-    p, pn = _sides(np.arange(shape[1]), coarse.shape[1])
-    along_rows = NEAR_WEIGHT * coarse[k] + FAR_WEIGHT * coarse[kn]
-    return NEAR_WEIGHT * along_rows[:, p] + FAR_WEIGHT * along_rows[:, pn]
+    return _doubled(_doubled(coarse, shape[0], 0), shape[1], 1)
+
+
+def _doubled(coarse: np.ndarray, n: int, axis: int) -> np.ndarray:
+    """``coarse`` upsampled 2x along ``axis`` (0 or 1) to ``n`` samples as :func:`_sides` pairs them:
+    output 2i is ``0.75 * c[i] + 0.25 * c[i - 1]``, output 2i + 1 ``0.75 * c[i] + 0.25 * c[i + 1]``,
+    edges clamped; by strided slices rather than gathers (the same products and sums)."""
+    m = coarse.shape[axis]
+    half = (n + 1) // 2  # coarse samples the outputs lie in: n <= 2 m
+
+    def at(a: int, b: int) -> tuple[slice, ...]:
+        return (slice(a, b),) if axis == 0 else (slice(None), slice(a, b))
+
+    def every(start: int, stop: int | None) -> tuple[slice, ...]:
+        return (slice(start, stop, 2),) if axis == 0 else (slice(None), slice(start, stop, 2))
+
+    shape = (2 * half, coarse.shape[1]) if axis == 0 else (coarse.shape[0], 2 * half)
+    out = np.empty(shape)
+    own = NEAR_WEIGHT * coarse[at(0, half)]
+    far = FAR_WEIGHT * coarse[at(0, min(half + 1, m))]  # 0.25 c[j] for every j a neighbour may be
+    out[every(0, 1)] = own[at(0, 1)] + far[at(0, 1)]  # output 0 leans on c[0] itself
+    out[every(2, None)] = own[at(1, half)] + far[at(0, half - 1)]
+    if half < m:
+        out[every(1, None)] = own + far[at(1, half + 1)]
+    else:  # the last odd output leans on the last sample itself
+        out[every(1, 2 * half - 2)] = own[at(0, half - 1)] + far[at(1, half)]
+        out[every(2 * half - 1, None)] = own[at(half - 1, half)] + far[at(m - 1, m)]
+    return out[at(0, n)]
 
 
 #: A level whose cells to fill are more than this share of it is upsampled and blended whole
@@ -179,11 +207,20 @@ def _push_pull(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     # ``up`` of the filled coarse level. With 0/1 weights it is ``values`` at
     # known cells; ``up`` is needed only at the unknown ones, and at known
     # zeros, whose sign the blend decides.
-    needed = ~known | (values == 0.0)
-    count = np.count_nonzero(needed)
-    if count > DENSE_UPSAMPLING_SHARE * values.size:  # the same blend, on whole rows
-        w = known.astype(np.float64)
-        return np.where(needed, w * values + (1.0 - w) * _upsampled(coarse, values.shape), values)
+    # The unknown cells alone often decide that a level is blended whole (a sparse scan's).
+    unknown = ~known
+    needed = None
+    if values.size - np.count_nonzero(known) <= DENSE_UPSAMPLING_SHARE * values.size:
+        needed = unknown | (values == 0.0)
+        count = np.count_nonzero(needed)
+    if needed is None or count > DENSE_UPSAMPLING_SHARE * values.size:  # the same blend, on whole rows
+        # w * values + (1 - w) * up with w 1 or 0 is values + 0 * up (known) or 0 + up (unknown,
+        # where values is +0): values + (1 - w) * up, the same bits, and at the cells not needed
+        # (known, nonzero) values itself.
+        up = _upsampled(coarse, values.shape)
+        np.multiply(up, unknown, out=up)
+        up += values
+        return up
     out = values.copy()
     if count:
         need = np.flatnonzero(needed)

@@ -72,6 +72,9 @@ STATE_SUFFIX = ".state"
 STATE_VERSION = 1
 #: Points a cell may collect: counts are int32.
 MAX_CELL_POINTS = 2**31 - 1
+#: A scan's points in a tile are sorted into cells (np.unique) when fewer than the tile's cells over
+#: this, else counted in a histogram of them: the same cells and order, whichever is cheaper.
+HISTOGRAM_SHARE = 8
 #: Figures kept per coded tile: cells, squared error (m²), largest error (m), point-weighted squared error (m²).
 _FIGURES = 4
 
@@ -174,6 +177,8 @@ class MapBuilder:
         self._dirty: set[tuple[int, int]] = set()  # tiles whose coded window holds a cell whose mean changed
         self._mask_dirty: set[tuple[int, int]] = set()  # tiles that gained occupied cells
         self._recount: set[tuple[int, int]] = set()  # tiles with cells seen again at the same mean
+        #: During :meth:`encode`: the tiles it codes, and the (heights, occupied) of those computed yet.
+        self._coding: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}
         self._file_sha256: str | None = None  # of the map file this builder was read from or last saved as
 
     # -- growing -------------------------------------------------------------------------------
@@ -240,7 +245,15 @@ class MapBuilder:
         if cells is None:
             cells = self._tiles[tile] = _Cells.empty(size)
         # A scan sees a few percent of a tile's cells: sum per cell seen, and update only those.
-        seen, where = np.unique(local, return_inverse=True)
+        if local.size >= size * size // HISTOGRAM_SHARE:
+            # The cells seen, ascending, and each point's index among them (np.unique's, without
+            # its sort): a histogram of the tile's cells, cheaper than sorting many points.
+            seen = np.flatnonzero(np.bincount(local, minlength=size * size))
+            rank = np.empty(size * size, dtype=np.intp)
+            rank[seen] = np.arange(seen.size)
+            where = rank[local]
+        else:
+            seen, where = np.unique(local, return_inverse=True)
         added = np.bincount(where, minlength=seen.size)
         total, sums, sumsq = cells.count.reshape(-1), cells.sum.reshape(-1), cells.sumsq.reshape(-1)
         before, before_sum = total[seen], sums[seen]
@@ -292,7 +305,9 @@ class MapBuilder:
 
     def _heights(self, cells: _Cells) -> tuple[np.ndarray, np.ndarray]:
         occupied = cells.count > 0
-        mean = np.divide(cells.sum, cells.count, out=np.zeros(cells.sum.shape), where=occupied)
+        # An empty cell's sum is 0: 0 / 1 gives its 0, and the others the same quotient as a
+        # division masked to them, without the mask's cost.
+        mean = cells.sum / np.maximum(cells.count, 1)
         return mean * HEIGHT_QUANTUM_M, occupied
 
     def _job(self, tile: tuple[int, int]) -> TileJob:
@@ -305,12 +320,19 @@ class MapBuilder:
                 1: (slice(0, m), slice(m + size, width))}
         for di in (-1, 0, 1):
             for dj in (-1, 0, 1):
-                cells = self._tiles.get((tile[0] + di, tile[1] + dj))
+                near = (tile[0] + di, tile[1] + dj)
+                cells = self._tiles.get(near)
                 if cells is None:
                     continue
                 (sr, wr), (sc, wc) = take[di], take[dj]
-                part = _Cells(cells.sum[sr, sc], cells.sumsq[sr, sc], cells.count[sr, sc])
-                rest[wr, wc], mask[wr, wc] = self._heights(part)
+                whole = self._coding.get(near)
+                if whole is None and near in self._coding:  # coded in this encode too: its heights once
+                    whole = self._coding[near] = self._heights(cells)
+                if whole is not None:
+                    rest[wr, wc], mask[wr, wc] = whole[0][sr, sc], whole[1][sr, sc]
+                else:
+                    part = _Cells(cells.sum[sr, sc], cells.sumsq[sr, sc], cells.count[sr, sc])
+                    rest[wr, wc], mask[wr, wc] = self._heights(part)
         own = self._tiles[tile]
         return TileJob(0, rest, mask, (m, m + size, m, m + size), np.zeros((size, size)), own.count)
 
@@ -344,10 +366,17 @@ class MapBuilder:
         if not self._tiles:
             raise InvalidInputError("the map is empty: add a scan first")
         changed = self.changed_tiles()
-        for tile in changed:
-            self._code(tile)
-        for tile in sorted(self._recount.difference(changed)):
-            self._code(tile, sections_kept=True)
+        recount = sorted(self._recount.difference(changed))
+        # The tiles coded now, with their cells' heights once computed (a tile's window takes
+        # the edges of its neighbours', often coded now as well).
+        self._coding = dict.fromkeys(changed + recount)
+        try:
+            for tile in changed:
+                self._code(tile)
+            for tile in recount:
+                self._code(tile, sections_kept=True)
+        finally:
+            self._coding = {}
         self._dirty.clear()
         self._mask_dirty.clear()
         self._recount.clear()

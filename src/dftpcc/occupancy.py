@@ -72,8 +72,9 @@ FIXED_MODEL_RUN = 64
 
 def _codes(lines: np.ndarray) -> np.ndarray:
     """5-bit code of each cell's neighbourhood (offsets -2..+2) along the last axis."""
-    pad = [(0, 0)] * (lines.ndim - 1) + [(2, 2)]
-    return _codes_of_padded(np.pad(lines.astype(np.uint8, copy=False), pad))
+    padded = np.zeros(lines.shape[:-1] + (lines.shape[-1] + 4,), dtype=np.uint8)  # np.pad, without its overhead
+    padded[..., 2:-2] = lines
+    return _codes_of_padded(padded)
 
 
 def _codes_of_padded(p: np.ndarray) -> np.ndarray:
@@ -139,6 +140,7 @@ def _decode_seeds(frame: bytes, count: int, width: int) -> np.ndarray:
 #: Order of a cell's context kind within a decoding step: outside, inside, the rest.
 _KIND = np.full(CONTEXTS, 2, dtype=np.int32)
 _KIND[OUTSIDE], _KIND[INSIDE] = 0, 1
+_KIND8 = _KIND.astype(np.uint8)
 
 
 def _contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
@@ -176,24 +178,12 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     # others' are seeds): by stripe, then column. The lines in that order:
     line = np.arange(n_lines)
     step_of = line % stripe
-    order = np.lexsort((line // stripe, step_of))
-    order = order[(step_of[order] > 0) | (order == 0)]
-    if order.size == n_lines:  # one stripe: the lines in their own order
-        bits, c = lines.ravel(), ctx.ravel()
+    if stripe >= n_lines:  # one stripe (a tile's mask): the lines in their own order, step = line
+        steps, bits, c = step_of, lines, ctx
     else:
-        bits, c = lines[order].ravel(), ctx[order].ravel()
-    step = np.repeat(step_of[order].astype(np.int32), width)
-    # Counts seen before each step: per-step histograms, accumulated, shifted by one step
-    # (row s: the steps before s), over the contexts that occur only (a tile's mask has a
-    # few dozen of the 256); then each cell's probability from its (step, context).
-    present = np.flatnonzero(np.bincount(c, minlength=CONTEXTS))
-    compact = np.zeros(CONTEXTS, dtype=np.int32)
-    compact[present] = np.arange(present.size)
-    key = step * present.size + compact[c]
-    ones, total = (np.vstack([np.zeros((1, present.size)), np.cumsum(h.reshape(stripe, present.size), axis=0)])
-                   for h in (np.bincount(key[bits.view(bool)], minlength=stripe * present.size),
-                             np.bincount(key, minlength=stripe * present.size)))
-    prob = ((ones + PRIOR_ONES[present]) / (total + PRIOR_TOTAL)).ravel()  # (step, context)
+        order = np.lexsort((line // stripe, step_of))
+        order = order[(step_of[order] > 0) | (order == 0)]
+        steps, bits, c = step_of[order], lines[order], ctx[order]
     # Decoding order: step by step; within a step the outside cells, then the
     # inside cells, then the rest, each by stripe and column. The decoder takes
     # a step's outside (inside) cells with one model of their probability, which
@@ -201,24 +191,93 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     # cell; so the cells go to the coder in long stretches: a step's outside or
     # inside run of at least FIXED_MODEL_RUN cells with its one model (cheaper per
     # cell), everything between with the adaptive one.
-    rank = step * 3 + _KIND[c]
-    seq = np.argsort(rank.astype(np.uint16) if 3 * stripe <= np.iinfo(np.uint16).max else rank, kind="stable")
-    bits, prob, rank = bits[seq].astype(np.int32), prob[key[seq]], rank[seq]
-    starts = np.flatnonzero(np.r_[True, rank[1:] != rank[:-1]])
-    lengths = np.diff(np.r_[starts, rank.size])
-    fixed = (rank[starts] % 3 < 2) & (lengths >= FIXED_MODEL_RUN)
-    runs = [(int(a), int(a + n)) for a, n in zip(starts[fixed], lengths[fixed])]
+    #
+    # Most cells of a tile are in such runs, and a run needs its bits only: so the
+    # per-cell work (the order, a probability per cell) is done on the other cells
+    # alone, the *adaptive* ones, and a run's bits are a slice of its kind's bits.
+    # Group (s, k): the cells of kind k (0 outside, 1 inside, 2 the rest) of step s.
+    one = bits.view(bool)
+    kinds = (c == OUTSIDE, c == INSIDE)
+    # Per coded line (byte sums in the narrowest type that holds a line: faster than count_nonzero).
+    count_type = np.uint16 if width <= np.iinfo(np.uint16).max else np.int64
+
+    def line_sums(m: np.ndarray) -> np.ndarray:
+        return m.view(np.uint8).sum(axis=1, dtype=count_type).astype(np.int64)
+
+    in_line = [line_sums(m) for m in kinds]
+    ones_in_line = [line_sums(m & one) for m in kinds]
+    in_line.append(width - in_line[0] - in_line[1])
+
+    def per_step(v: np.ndarray) -> np.ndarray:
+        return np.bincount(steps, weights=v, minlength=stripe).astype(np.int64)
+
+    size = np.stack([per_step(v) for v in in_line], axis=1)  # (stripe, 3)
+    fixed = size >= FIXED_MODEL_RUN
+    fixed[:, 2] = False
+    adaptive_size = np.where(fixed, 0, size)
+    adaptive_start = (np.cumsum(adaptive_size) - adaptive_size.ravel()).reshape(stripe, 3)
+    adaptive_before = np.cumsum(adaptive_size, axis=0) - adaptive_size  # per kind, in the steps before s
+    rest = ~(kinds[0] | kinds[1])
+    chosen = [kinds[0] & ~fixed[steps, 0][:, None], kinds[1] & ~fixed[steps, 1][:, None], rest]
+    flat_one, flat_c = one.reshape(-1), c.reshape(-1)
+    # The adaptive cells in decoding order: a stable counting sort by (step, kind), as the
+    # steps of the coded lines never decrease: each cell goes to its group's start plus its
+    # rank among the group's cells.
+    seq = np.empty(int(adaptive_size.sum()), dtype=np.intp)
+    for k in range(3):
+        cells = np.flatnonzero(chosen[k])
+        per_line = np.where(fixed[steps, k], 0, in_line[k])
+        shift = (adaptive_start[:, k] - adaptive_before[:, k])[steps]
+        seq[np.repeat(shift, per_line) + np.arange(cells.size)] = cells
+    # Counts seen before each step: per-step histograms, accumulated, shifted by one step
+    # (row s: the steps before s), over the contexts that occur only (a tile's mask has a
+    # few dozen of the 256); then the probability of each (step, context).
+    rest_c = c[rest]
+    rest_steps = np.repeat(steps, in_line[2])
+    seen = np.bincount(rest_c, minlength=CONTEXTS)
+    seen[OUTSIDE] += size[:, 0].sum()
+    seen[INSIDE] += size[:, 1].sum()
+    present = np.flatnonzero(seen)
+    compact = np.zeros(CONTEXTS, dtype=np.int64)
+    compact[present] = np.arange(present.size)
+    # Laid out (context, step + 1), so the sums over the steps run along contiguous rows and
+    # the running sum at (context, s) counts the steps before s.
+    span = stripe + 1
+    key = compact[rest_c] * span + rest_steps + 1
+    total = np.bincount(key, minlength=span * present.size).reshape(present.size, span)
+    ones = np.bincount(key[one[rest]], minlength=span * present.size).reshape(present.size, span)
+    for k, context in ((0, OUTSIDE), (1, INSIDE)):
+        if size[:, k].any():
+            total[compact[context], 1:] += size[:, k]
+            ones[compact[context], 1:] += per_step(ones_in_line[k])
+    ones_before, total_before = np.cumsum(ones, axis=1).ravel(), np.cumsum(total, axis=1).ravel()
+
+    def prob(context: np.ndarray, step: np.ndarray) -> np.ndarray:
+        at = compact[context] * span + step
+        return (ones_before[at] + PRIOR_ONES[context]) / (total_before[at] + PRIOR_TOTAL)
+
+    group_step = np.repeat(np.arange(stripe), adaptive_size.sum(axis=1))
+    adaptive_bits = flat_one[seq].astype(np.int32)
+    adaptive_prob = prob(flat_c[seq], group_step)
+    # The runs' bits: each kind's cells in decoding order, a run a slice of them.
+    run_bits = [bits[m].astype(np.int32) if fixed[:, k].any() else None for k, m in enumerate(kinds)]
+    run_start = np.cumsum(size[:, :2], axis=0) - size[:, :2]
+    runs = np.flatnonzero(fixed.ravel())[::-1]
+    run_step, run_kind = np.divmod(runs, 3)
+    run_prob = prob(np.where(run_kind == 0, OUTSIDE, INSIDE), run_step)
     coder = constriction.stream.stack.AnsCoder()
     model = _bernoulli()
     # A stack: the last cells are pushed first (encode_reverse pushes an array last first too).
-    end = rank.size
-    for a, b in reversed(runs):
-        if b < end:
-            coder.encode_reverse(bits[b:end], model, prob[b:end])
-        coder.encode_reverse(bits[a:b], _bernoulli(float(prob[a])))
+    end = adaptive_bits.size
+    for k, a, r, n, p in zip(run_kind.tolist(), adaptive_start.ravel()[runs].tolist(),
+                             run_start[run_step, run_kind].tolist(), size.ravel()[runs].tolist(),
+                             run_prob.tolist()):
+        if a < end:
+            coder.encode_reverse(adaptive_bits[a:end], model, adaptive_prob[a:end])
+        coder.encode_reverse(run_bits[k][r:r + n], _bernoulli(p))  # type: ignore[index]
         end = a
     if end:
-        coder.encode_reverse(bits[:end], model, prob[:end])
+        coder.encode_reverse(adaptive_bits[:end], model, adaptive_prob[:end])
     if seed_frame is None:
         seed_frame = _encode_seeds(_seed_lines(lines, stripe))
     return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
