@@ -12,6 +12,7 @@ one, so every target works unchanged.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -231,7 +232,7 @@ class TiledAnalysis:
             return found
         if self.refill_step is not None:
             raise RuntimeError("a refilled tiled analysis holds the tiles of one cutoff's overlap only")
-        tile_params = self.params.replace(detrend="none", tile_size=0)
+        tile_params = _tile_params(self.params)
         out = []
         for k in self.occupied:
             # A tile's transform spans its cells and a margin of its neighbours': the low-pass
@@ -456,6 +457,13 @@ class TileCode:
         return math.sqrt(self.squared_error / self.cells)
 
 
+@functools.lru_cache(maxsize=16)
+def _tile_params(params: Params) -> Params:
+    """A tile's own parameters: no plane of its own, coded whole (Params are frozen; a growing map
+    codes a dozen tiles a scan with the same ones, and replace() validates them each time)."""
+    return params.replace(detrend="none", tile_size=0)
+
+
 #: Where a tile's window sits: tiles are coded on a grid of their own, unit cells (only shapes matter).
 _WINDOW_GRID = dict(x0=0.0, y0=0.0, z0=0.0, resolution=1.0)
 
@@ -469,7 +477,7 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     job already holds (``job.mask_code``, ``job.coef_code``) are kept, not coded again; the errors
     are always measured.
     """
-    tile_params = params.replace(detrend="none", tile_size=0)
+    tile_params = _tile_params(params)
     sub = DEM(grid=Grid(rows=job.rest.shape[0], cols=job.rest.shape[1], **_WINDOW_GRID),
               heights=job.rest, mask=job.mask)
     # The errors are measured on the tile's own cells below, not over the window (as a trial
