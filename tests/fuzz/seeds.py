@@ -32,6 +32,8 @@ SEED_OPTIONS: dict[str, dict] = {
     "tiled": dict(resolution=1.0, cutoff=0.8, tile_size=16),
     "tiled_max_error_zstd": dict(resolution=1.0, cutoff=0.6, tile_size=16, target_max_error=0.05, coder="zstd"),
     "tiled_coarse": dict(resolution=1.5, cutoff=0.0, tile_size=16),  # 27 x 27 cells: 2 x 2 tiles
+    # 32-cell tiles at f_c 0.8 overlap by 16 cells (tiles.tile_overlap), half a tile: the widest a reader takes.
+    "tiled_wide_overlap": dict(resolution=1.0, cutoff=0.8, tile_size=32),
 }
 
 
