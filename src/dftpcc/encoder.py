@@ -166,7 +166,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
     # A tiled map codes each tile's mask on its own; their bytes together are the mask's.
-    mask_blob: Any = ([occupancy.encode_mask(_tile_cells(dem.mask, an, k)) for k, _ in an.tiles] if tile
+    mask_blob: Any = ([occupancy.encode_mask(an.tile_cells(dem.mask, k)) for k in an.occupied] if tile
                       else occupancy.encode_mask(an.kept_cells))
 
     on_stage("encode")
@@ -241,11 +241,6 @@ def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | 
 
 def _length(mask_blob: bytes | list[bytes]) -> int:
     return sum(map(len, mask_blob)) if isinstance(mask_blob, list) else len(mask_blob)
-
-
-def _tile_cells(values: np.ndarray, an: TiledAnalysis, k: int) -> np.ndarray:
-    r0, r1, c0, c1 = an.tiling.bounds(k)
-    return values[r0:r1, c0:c1]
 
 
 def _kept(an: Analysis | TiledAnalysis, cutoff: float) -> np.ndarray:
@@ -375,14 +370,14 @@ def _pack_tiled(choice: Choice, params: Params, mask_blobs: list[bytes], point_c
                                           an.refill_step)
     else:  # measuring the header's own bytes: every tile without coefficients
         base_blob = b""
-        codes = [TileCode(k, blob, b"", b"", int(_tile_cells(dem.mask, an, k).sum()), 0.0, 0.0)
-                 for (k, _), blob in zip(an.tiles, mask_blobs)]
+        codes = [TileCode(k, blob, b"", b"", int(an.tile_cells(dem.mask, k).sum()), 0.0, 0.0)
+                 for k, blob in zip(an.occupied, mask_blobs)]
     for c in codes:
         cells[c.k], rmse[c.k], max_error[c.k] = c.cells, c.rmse, c.max_error
     occupied = int(cells.sum())
     stats = _tiled_stats(dem, codes, occupied, base_blob, params)
-    index = TileIndex(tiling=an.tiling, overlap=tile_overlap(params.cutoff, an.tile), base_cycles=an.base_cycles, cells=cells, rmse=rmse,
-                      max_error=max_error)
+    index = TileIndex(tiling=an.tiling, overlap=tile_overlap(params.cutoff, an.tile), base_cycles=an.base_cycles,
+                      cells=cells, rmse=rmse, max_error=max_error)
     header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=occupied,
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.base_count(params.cutoff),
                     tiles=index)

@@ -140,8 +140,9 @@ def tile_overlap(cutoff: float, tile: int) -> int:
     0.93, 8 cells left seams of 1.19-1.25x the RMSE elsewhere on Kepler and the
     mountain, 16 cells 1.08-1.13x, 24 no better; a wider window costs bytes
     (its coefficients grow with its area), +6 % on the field at f_c 0 for
-    16 cells, where nothing rings. The overlap is a function of the cutoff, so a coder that knows
-    the cutoff knows the windows; the file states it (``TIDX``).
+    16 cells, where nothing rings. The overlap is a function of the cutoff,
+    so a coder that knows the cutoff knows the windows; the file states it
+    (``TIDX``).
     """
     wide = cutoff >= WIDE_OVERLAP_CUTOFF
     return min(2 * TILE_OVERLAP if wide else TILE_OVERLAP, tile // 2)
@@ -212,7 +213,7 @@ class TiledAnalysis:
                                        (0, dem.grid.rows), (0, dem.grid.cols))
         self.rest = detrended - self.base_exact
         #: The occupied tiles (an empty tile has no sections at all).
-        self.occupied = [k for k in range(self.tiling.count) if self._tile_cells(dem.mask, k).any()]
+        self.occupied = [k for k in range(self.tiling.count) if self.tile_cells(dem.mask, k).any()]
         #: Each overlap's tiles: (tile, its window's analysis), in tile order.
         self._by_overlap: dict[int, list[tuple[int, Analysis]]] = {}
         #: The step of the trial whose rebuilt map refilled the empty cells (None: smooth fill).
@@ -244,7 +245,8 @@ class TiledAnalysis:
         self._by_overlap[overlap] = out
         return out
 
-    def _tile_cells(self, values: np.ndarray, k: int) -> np.ndarray:
+    def tile_cells(self, values: np.ndarray, k: int) -> np.ndarray:
+        """The cells of tile ``k`` of a map-sized array."""
         r0, r1, c0, c1 = self.tiling.bounds(k)
         return values[r0:r1, c0:c1]
 
