@@ -211,11 +211,14 @@ def prepare(case: Case, data: Path) -> MapRun:
     else:
         e = MAX_ERROR_UNITS * unit
         bound = Target("target_max_error", e, f"max error {MAX_ERROR_UNITS:g} units ({fmt_m(e)})")
-    # The map's own border (the grid's edge and its empty cells) costs errors of its own: keep
-    # the cells more than SEAM_BAND cells from it, on both sides of the ratio.
+    return MapRun(loaded, truth, mask, interior_of(mask), floor, unit, levels, bound)
+
+
+def interior_of(mask: np.ndarray) -> np.ndarray:
+    """The occupied cells more than SEAM_BAND cells from the map's border (the grid's edge and its
+    empty cells), which costs errors of its own: the cells both sides of the seam ratio count."""
     size = 2 * SEAM_BAND + 1
-    interior = ndimage.binary_erosion(mask, structure=np.ones((size, size), bool), border_value=0)
-    return MapRun(loaded, truth, mask, interior, floor, unit, levels, bound)
+    return ndimage.binary_erosion(mask, structure=np.ones((size, size), bool), border_value=0)
 
 
 def near_edges(shape: tuple[int, int], tile: int) -> np.ndarray:

@@ -28,7 +28,7 @@ from dftpcc.files import read_dem
 from dftpcc.params import make_params
 
 from benchmarks import bench_tiles
-from benchmarks.common import DEFAULT_DATA, load_average, markdown_table
+from benchmarks.common import DEFAULT_DATA, load_average, markdown_table, rmse
 
 #: --fixed: DEMs, tile side, cutoffs and step.
 FIXED_DEMS = ("moon_kepler_lola_48m.tif", "mars_gale_1m.tif", "earth_heidelberg_25m.tif")
@@ -73,8 +73,8 @@ def fixed(data: Path, constant: int) -> None:
                 blob = encoder.encode_dem(dem, make_params(tile_size=FIXED_TILE, cutoff=cutoff, step=FIXED_STEP_M),
                                           point_count=n, crs=crs)
                 with dftpcc.open(blob) as cmap:
-                    err = np.where(dem.mask, cmap.read_dem().heights - dem.heights, np.nan)
-                cells.append(f"{_seam(err, FIXED_TILE):.3f}, {len(blob):,} B")
+                    err = cmap.read_dem().heights - dem.heights
+                cells.append(f"{_seam(err, dem.mask, FIXED_TILE):.3f}, {len(blob):,} B")
             rows.append([name, cutoff, *cells])
             print(" | ".join(map(str, rows[-1])), flush=True)
     _use(_WRITER)
@@ -83,15 +83,10 @@ def fixed(data: Path, constant: int) -> None:
                          rows))
 
 
-def _seam(err: np.ndarray, size: int) -> float:
-    """RMSE within two cells of an internal tile edge over the RMSE elsewhere, the map's border left out."""
-    r, c = np.arange(err.shape[0]), np.arange(err.shape[1])
-    band = bench_tiles.SEAM_BAND
-    near = (((r % size) < band) | ((r % size) >= size - band))[:, None] | \
-        (((c % size) < band) | ((c % size) >= size - band))[None, :]
-    border = ((r < band) | (r >= err.shape[0] - band))[:, None] | ((c < band) | (c >= err.shape[1] - band))[None, :]
-    seam, rest = err[near & ~border], err[~near]
-    return float(np.sqrt(np.nanmean(seam ** 2)) / np.sqrt(np.nanmean(rest ** 2)))
+def _seam(err: np.ndarray, mask: np.ndarray, size: int) -> float:
+    """bench_tiles' seam ratio: RMSE near an internal tile edge over the RMSE elsewhere, interior cells."""
+    near, interior = bench_tiles.near_edges(err.shape, size), bench_tiles.interior_of(mask)
+    return rmse(err[interior & near]) / rmse(err[interior & ~near])
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -425,12 +425,13 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
     rest -= c * np.arange(w0, w1, dtype=float)[:, None] + a
     rest -= base_heights(values, bi, bj, job.shape, (w0, w1), (u0, u1))
     first = job.tiling.bounds(block.tiles[0])[2]  # the column the block's counts start at
+    overlap = tile_overlap(job.params.cutoff, job.tiling.size)
     codes = []
     for k in block.tiles:
         t0, t1, c0, c1 = job.tiling.bounds(k)
         if not m[t0 - w0:t1 - w0, c0 - u0:c1 - u0].any():
             continue
-        _, _, v0, v1 = coded_window(job.tiling, k, tile_overlap(job.params.cutoff, job.tiling.size))
+        _, _, v0, v1 = coded_window(job.tiling, k, overlap)
         # What quantizing the base layer changed on the tile (the layer is linear in its values).
         error = base_heights(job.base_error, bi, bj, job.shape, (t0, t1), (c0, c1))
         counts = None if block.counts is None else block.counts[:, c0 - first:c1 - first]
