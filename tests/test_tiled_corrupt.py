@@ -144,3 +144,20 @@ def test_a_base_layer_of_millions_of_coefficients_in_a_kilobyte_is_refused():
             with pytest.raises(ResourceLimitError, match="refusing to decode"):
                 cmap.read_points(bbox=box)
     assert work.peak_bytes < SMALL_BYTES, work
+
+
+def test_the_base_layer_counts_at_the_reach_the_index_states():
+    """TIDX may state a base reach up to 8 cycles per tile: the budget counts the base layer's
+    frequency pairs at that reach, not at the 1 cycle dftpcc writes, so a 374-byte file cannot make
+    one 16 x 16 tile's decode enumerate 4 million of them."""
+    crafted = craft.tiled_file(2048, 2048, 16, {1: 200}, cutoff=0.0, reach=8)
+    assert len(crafted) < 1_000
+    with dftpcc.open(crafted) as cmap:
+        assert cmap.header.tiles.base_cycles == 8
+        with measure_work(max_events=FEW_EVENTS) as work:
+            with pytest.raises(ResourceLimitError, match=r"refusing to decode 4,194,560 cells"):
+                cmap.read_points(bbox=_tile_box(cmap, 1))
+    assert work.peak_bytes < SMALL_BYTES, work
+    # At the reach dftpcc writes, the same map's tile decodes within the budget.
+    with dftpcc.open(craft.tiled_file(2048, 2048, 16, {1: 200}, cutoff=0.0)) as cmap:
+        assert cmap.read_points(bbox=_tile_box(cmap, 1)).shape == (200, 3)

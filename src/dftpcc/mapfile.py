@@ -24,7 +24,6 @@ from .errors import InvalidInputError, ResourceLimitError
 from .params import Params
 from .rebuild import dem_to_points
 from .spectrum import radius_limit
-from .tiles import BASE_CYCLES_PER_TILE
 from .units import units_of
 
 __all__ = ["CompressedMap", "open", "decompress", "is_dftpc", "check_bbox"]
@@ -184,7 +183,8 @@ class CompressedMap:
         s = tiling.size
         height = min(tiling.rows, -(-rows[1] // s) * s) - rows[0] // s * s
         width = min(tiling.cols, -(-cols[1] // s) * s) - cols[0] // s * s
-        cells = height * width + _base_extent(self.header.grid, s, self.header.params.cutoff)
+        cells = height * width + _base_extent(self.header.grid, s, self.header.params.cutoff,
+                                              self.header.tiles.base_cycles)
         allowed = cells_allowed(self.size, self._max_cells)
         if cells > allowed:
             raise ResourceLimitError(
@@ -227,13 +227,14 @@ class CompressedMap:
         return out
 
 
-def _base_extent(g: Grid, size: int, cutoff: float) -> int:
-    """Frequency pairs (i, j) :func:`dftpcc.tiles.base_order` enumerates to find a tiled map's base layer.
+def _base_extent(g: Grid, size: int, cutoff: float, cycles: int) -> int:
+    """Frequency pairs (i, j) :func:`dftpcc.tiles.base_order` enumerates to find a tiled map's base
+    layer of ``cycles`` per tile (the reach its TIDX states).
 
     They grow with the grid, not with the tiles decoded (a crafted 1 KB file can ask for tens of
     millions), and every decode derives them, whatever the file's STAT claims: they count in the budget.
     """
-    limit = min(max(g.rows, g.cols) / size * BASE_CYCLES_PER_TILE, radius_limit(g.shape, cutoff))
+    limit = min(max(g.rows, g.cols) / size * cycles, radius_limit(g.shape, cutoff))
     side = int(2 * limit * (1 + 1e-9)) + 1
     return min(g.rows, side) * min(g.cols, side)
 

@@ -315,11 +315,12 @@ def with_tile_index(data: bytes, **changes) -> bytes:
 
 
 def tiled_file(rows: int, cols: int, size: int, occupied: dict[int, int], *, overlap: int = 8,
-               cutoff: float = 0.8, step: float = 0.01, pad: int = 0) -> bytes:
+               cutoff: float = 0.8, step: float = 0.01, pad: int = 0, reach: int = 1) -> bytes:
     """A tiled (1.1) map built from nothing: a flat grid of ``rows`` x ``cols`` 1 m cells in tiles of
     ``size``, where tile k (1-based) of ``occupied`` has its first ``occupied[k]`` cells (row-major)
     set, every coefficient 0. ``pad`` bytes of an unknown tile-0 section make the file larger
-    (limits that grow with the file's size). Every checksum is correct, every count consistent:
+    (limits that grow with the file's size); ``reach``: the base layer's cycles per tile (TIDX).
+    Every checksum is correct, every count consistent:
     the map is sound, only perhaps costly (the corpus's bombs)."""
     from dftpcc import coding, occupancy, spectrum, tiles
     from dftpcc.dem import TileGrid
@@ -339,14 +340,15 @@ def tiled_file(rows: int, cols: int, size: int, occupied: dict[int, int], *, ove
         coef_blob = coding.encode_coefficients(np.zeros(radii.size, np.int64), radius=radii, angle=angles,
                                               progressive=False)
         sections += [(b"MASK", k, mask_blob), (b"COEF", k, coef_blob)]
-    i, _j, radius, angle = tiles.base_order((rows, cols), size, cutoff)
+    i, _j, radius, angle = tiles.base_order((rows, cols), size, cutoff, reach)
     base = coding.encode_coefficients(np.zeros(i.size, np.int64), radius=radius, angle=angle, progressive=False)
     total = int(cells.sum())
     geom_blob = GEOM.pack(0.0, 0.0, 0.0, 1.0, rows, cols, 0.0, total, total, 0.0, 0.0, 0.0)
     parm = json.dumps({"step": step, "tile_size": size, "cutoff": cutoff}).encode()
     stat = bytes([container.STAT_BINARY, 128]) + leb128(int(i.size))
     head = [(b"GEOM", 0, geom_blob), (b"PARM", 0, parm), (b"STAT", 0, stat),
-            (b"TIDX", 0, pack_tile_index(cells, size=size, overlap=overlap)), (b"BASE", 0, base)]
+            (b"TIDX", 0, pack_tile_index(cells, size=size, overlap=overlap, reach=reach)),
+            (b"BASE", 0, base)]
     if pad:
         head.append((b"XTRA", 0, bytes(pad)))
     return join_tiled(head + sections)
