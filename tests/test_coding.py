@@ -284,3 +284,39 @@ def test_free_chunk_lengths_must_hold_the_stream_exactly():
     # A 1.0 stream keeps its rule: the same two chunks are refused there.
     with pytest.raises(CorruptFileError, match="chunk 0 holds 100 values, expected 256"):
         coding.decode_coefficients(chunks(100, 500), 600)
+
+
+def _chunk_kinds(blob: bytes) -> list[int]:
+    (count,) = struct.unpack_from("<I", blob, 0)
+    kinds, pos = [], 4
+    for _ in range(count):
+        _n, nbytes, _crc, kind = struct.unpack_from("<IIII", blob, pos)
+        kinds.append(kind)
+        pos += 16 + nbytes
+    return kinds
+
+
+def test_a_residual_of_mostly_zeros_takes_zstd_where_it_is_shorter():
+    """A residual layer at a coarse bound is mostly 0, with its corrections where the terrain is
+    rough: kind 3 codes every 0 at its scale floor, zstd codes the runs. Such chunks are zstd frames
+    where those are shorter; dense ones stay ANS."""
+    from dftpcc.residual import decode_residual, encode_residual
+
+    rng = np.random.default_rng(5)
+    n = 100_000
+    rough = np.zeros(n, bool)
+    for start in rng.integers(0, n - 50, 40):  # 40 rough patches of 50 cells, a third of them corrected
+        rough[start:start + 50] = True
+    sparse = np.where(rough & (rng.random(n) < 0.3), rng.choice([-1, 1], n), 0).astype(np.int64)
+    dense = np.round(rng.laplace(0, 3, n)).astype(np.int64)
+    for q in (sparse, dense):
+        blob = encode_residual(q, "ans")
+        np.testing.assert_array_equal(decode_residual(blob, n), q)
+        flat = np.zeros(n)
+        as_ans = coding.encode_coefficients(q, radius=flat, angle=flat, exhaustive=False)
+        assert len(blob) <= len(as_ans)
+        kinds = _chunk_kinds(blob)
+        if q is sparse:
+            assert coding.KIND_INT in kinds and len(blob) < 0.8 * len(as_ans), (kinds, len(blob), len(as_ans))
+        else:
+            assert set(kinds) == {coding.KIND_ANS_TABLE} and blob == as_ans
