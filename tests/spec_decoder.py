@@ -430,8 +430,8 @@ def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray, *, free
             raise ValueError(f"coefficient chunk has unknown kind {kind}")
     if stop != total:
         raise ValueError("coefficient chunks do not hold the stream")
-    if len(kinds) > 1:
-        raise ValueError("coefficient chunks mix kinds")
+    if 1 in kinds and len(kinds) > 1:  # integer kinds (0, 3) may alternate; complex ones stand alone
+        raise ValueError("coefficient chunks mix complex and integer kinds")
     if not values:
         return np.zeros(0, np.int64)
     return np.concatenate(values)

@@ -116,6 +116,8 @@ SMALL_OPTIONS = {
     "dft-cutoff-0": {"transform": "dft", "cutoff": 0.0},
     "dft-zstd-0.9": {"transform": "dft", "coder": "zstd", "cutoff": 0.9},
     "footprint-max-error": {"mask": "footprint", "target_max_error": 0.05},
+    # A coarse bound: a residual of mostly zeros, some of its chunks zstd'd among ANS ones.
+    "max-error-coarse": {"target_max_error": 0.15},
     "target-rmse": {"target_rmse": 0.05},
 }
 
@@ -199,6 +201,9 @@ def test_every_coding_is_exercised(small):
         sections = spec_decoder._sections(dftpcc.compress(small, resolution=1.0, **options))
         kinds |= chunk_kinds(sections[b"COEF"])
     assert kinds == {0, 1, 3}
+    # A residual layer's chunks mix the integer kinds.
+    coarse = spec_decoder._sections(dftpcc.compress(small, resolution=1.0, **SMALL_OPTIONS["max-error-coarse"]))
+    assert chunk_kinds(coarse[b"RESD"]) == {0, 3}
 
 
 # --------------------------------------------------------------------------- crafted headers
