@@ -77,7 +77,7 @@ def residual_of(blob: bytes) -> tuple[np.ndarray, np.ndarray, int]:
     sections, _ = _sections(memoryview(blob), allow_truncated_coef=False)
     resd = bytes(sections[b"RESD"])
     grid = np.zeros(mask.shape, dtype=np.int64)
-    grid[mask] = decode_residual(resd, int(mask.sum()))
+    grid[mask] = decode_residual(resd, mask)
     return grid, mask, len(resd)
 
 

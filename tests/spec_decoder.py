@@ -437,6 +437,40 @@ def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray, *, free
     return np.concatenate(values)
 
 
+def _residual(p: bytes, mask: np.ndarray) -> np.ndarray:
+    """A RESD section: chunks as COEF's (radius and angle 0), or one chunk of kind 4 (sparse)."""
+    total = int(mask.sum())
+    if len(p) >= 20 and struct.unpack_from("<I", p, 16)[0] == 4:  # chunk 0's kind (its header: count, bytes, crc, kind)
+        nchunks, = struct.unpack_from("<I", p, 0)
+        count, nbytes, crc, _kind = struct.unpack_from("<4I", p, 4)
+        body = p[20:20 + nbytes]
+        if nchunks != 1 or count != total or 20 + nbytes != len(p) or zlib.crc32(body) != crc:
+            raise ValueError("sparse residual chunk is not the section's one whole chunk")
+        if len(body) < 4:
+            raise ValueError("sparse residual chunk is truncated")
+        (length,) = struct.unpack_from("<I", body, 0)
+        if 4 + length > len(body):
+            raise ValueError("sparse residual map runs past the chunk")
+        picture = _mask(body[4:4 + length], *mask.shape)
+        if (picture & ~mask).any():
+            raise ValueError("sparse residual sets a cell that is not rebuilt")
+        nonzero = picture[mask]  # row-major over the rebuilt cells
+        n = int(nonzero.sum())
+        signs_at = len(body) - (n + 7) // 8
+        if signs_at < 4 + length:
+            raise ValueError("sparse residual has no room for its signs")
+        sizes = _stream(body[4 + length:signs_at], n, np.zeros(n), np.zeros(n), free=True)
+        if np.iscomplexobj(sizes) or (n and (sizes.min() < 0 or sizes.max() > 1 << 62)):
+            raise ValueError("sparse residual magnitudes out of range")
+        bits = np.unpackbits(np.frombuffer(body[signs_at:], np.uint8))
+        if bits[n:].any():
+            raise ValueError("sparse residual has a stray sign bit")
+        q = np.zeros(total, np.int64)
+        q[nonzero] = np.where(bits[:n] == 1, -(sizes + 1), sizes + 1)
+        return q
+    return _stream(p, total, np.zeros(total), np.zeros(total))
+
+
 def _layout(rows: int, cols: int, transform: str, storage: str):
     """Coefficient array shape, and per coefficient (row-major): radius, angle in [0, 1]."""
     if transform == "dft" and storage == "complex64":
@@ -554,7 +588,7 @@ def decode(data: bytes) -> np.ndarray:
         e = float(params["target_max_error"])
         if not e > 0:
             raise ValueError("residual layer without target_max_error")
-        q = _stream(sec[b"RESD"], len(r), np.zeros(len(r)), np.zeros(len(r)))
+        q = _residual(sec[b"RESD"], mask)
         h = h + q * 2 * e * (1 - 1e-6)
     return _points(g, r, col, h)
 
@@ -696,7 +730,7 @@ def _decode_tile(data: bytes, k: int, secs: dict, g: dict, params: dict, size: i
     hv = height[r, col]
     e = float(params["target_max_error"])
     if e > 0:
-        q = _stream(_payload(data, b"RESD", secs[b"RESD"], name), len(r), np.zeros(len(r)), np.zeros(len(r)))
+        q = _residual(_payload(data, b"RESD", secs[b"RESD"], name), mask)
         if np.iscomplexobj(q):
             raise ValueError(f"{name}residual layer holds float values")
         hv = hv + q * 2 * e * (1 - 1e-6)

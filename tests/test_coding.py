@@ -296,27 +296,63 @@ def _chunk_kinds(blob: bytes) -> list[int]:
     return kinds
 
 
-def test_a_residual_of_mostly_zeros_takes_zstd_where_it_is_shorter():
+def test_a_residual_of_mostly_zeros_is_coded_sparse_where_shorter():
     """A residual layer at a coarse bound is mostly 0, with its corrections where the terrain is
-    rough: kind 3 codes every 0 at its scale floor, zstd codes the runs. Such chunks are zstd frames
-    where those are shorter; dense ones stay ANS."""
+    rough: kind 3 codes every 0 at its scale floor, the sparse layout (RESD kind 4) codes the
+    picture of the nonzero cells and their sizes. The smaller layout is written; dense residuals
+    keep the chunks, and both decode."""
     from dftpcc.residual import decode_residual, encode_residual
 
     rng = np.random.default_rng(5)
-    n = 100_000
-    rough = np.zeros(n, bool)
-    for start in rng.integers(0, n - 50, 40):  # 40 rough patches of 50 cells, a third of them corrected
-        rough[start:start + 50] = True
-    sparse = np.where(rough & (rng.random(n) < 0.3), rng.choice([-1, 1], n), 0).astype(np.int64)
+    kept = np.ones((200, 500), bool)
+    kept[:, :40] = False  # cells the file does not rebuild
+    n = int(kept.sum())
+    rough = np.zeros(kept.shape, bool)
+    for r, c in zip(rng.integers(0, 190, 30), rng.integers(40, 490, 30)):  # 30 rough patches
+        rough[r:r + 10, c:c + 10] = True
+    sparse = np.where(rough & (rng.random(kept.shape) < 0.3), rng.choice([-2, -1, 1, 2], kept.shape), 0)[kept]
     dense = np.round(rng.laplace(0, 3, n)).astype(np.int64)
-    for q in (sparse, dense):
-        blob = encode_residual(q, "ans")
-        np.testing.assert_array_equal(decode_residual(blob, n), q)
-        flat = np.zeros(n)
-        as_ans = coding.encode_coefficients(q, radius=flat, angle=flat, exhaustive=False)
-        assert len(blob) <= len(as_ans)
-        kinds = _chunk_kinds(blob)
-        if q is sparse:
-            assert coding.KIND_INT in kinds and len(blob) < 0.8 * len(as_ans), (kinds, len(blob), len(as_ans))
+    flat = np.zeros(n)
+    for q in (sparse.astype(np.int64), dense):
+        blob = encode_residual(q, "ans", kept)
+        np.testing.assert_array_equal(decode_residual(blob, kept), q)
+        chunked = coding.encode_coefficients(q, radius=flat, angle=flat, exhaustive=False)
+        assert len(blob) <= len(chunked)
+        if q is dense:
+            assert blob == chunked and set(_chunk_kinds(blob)) == {coding.KIND_ANS_TABLE}
         else:
-            assert set(kinds) == {coding.KIND_ANS_TABLE} and blob == as_ans
+            assert _chunk_kinds(blob) == [coding.KIND_SPARSE_RESIDUAL] and len(blob) < 0.8 * len(chunked)
+    # Kind 4 belongs to RESD alone: a coefficient stream refuses it.
+    with pytest.raises(CorruptFileError, match="unknown kind 4"):
+        coding.decode_coefficients(encode_residual(sparse.astype(np.int64), "ans", kept), n, radius=flat, angle=flat,
+                                   progressive=False)
+
+
+def test_a_sparse_residual_that_lies_is_refused():
+    from dftpcc.residual import _LENGTH, decode_residual, encode_residual
+
+    kept = np.ones((100, 200), bool)
+    kept[0:10, 150:160] = False
+    corrections = np.zeros(kept.shape, np.int64)
+    corrections[40:50, 3:13] = np.random.default_rng(2).choice([-3, -1, 0, 0, 0, 1, 2], (10, 10))
+    q = corrections[kept]
+    blob = encode_residual(q, "ans", kept)
+    assert _chunk_kinds(blob) == [coding.KIND_SPARSE_RESIDUAL]
+    payload = blob[20:]
+
+    def wrapped(p: bytes, count: int = q.size) -> bytes:
+        return coding.one_chunk(count, p, coding.KIND_SPARSE_RESIDUAL)
+
+    with pytest.raises(CorruptFileError, match="corrects a cell that is not rebuilt"):
+        elsewhere = np.ones_like(kept)
+        elsewhere[40:50, 3:13] = False  # as many cells rebuilt, but not those the residual corrects
+        decode_residual(blob, elsewhere)
+    with pytest.raises(CorruptFileError, match="stray sign bit"):
+        decode_residual(wrapped(payload[:-1] + bytes([payload[-1] | 1])), kept)
+    with pytest.raises(CorruptFileError, match="runs past the chunk"):
+        decode_residual(wrapped(_LENGTH.pack(1 << 30) + payload[4:]), kept)
+    with pytest.raises(CorruptFileError, match="only chunk"):
+        decode_residual(wrapped(payload, q.size - 1), kept)
+    two = struct.pack("<I", 2) + blob[4:] + blob[4:]
+    with pytest.raises(CorruptFileError):
+        decode_residual(two, kept)

@@ -116,8 +116,10 @@ SMALL_OPTIONS = {
     "dft-cutoff-0": {"transform": "dft", "cutoff": 0.0},
     "dft-zstd-0.9": {"transform": "dft", "coder": "zstd", "cutoff": 0.9},
     "footprint-max-error": {"mask": "footprint", "target_max_error": 0.05},
-    # A coarse bound: a residual of mostly zeros, some of its chunks zstd'd among ANS ones.
+    # A coarse bound: a residual of mostly zeros, one sparse chunk (RESD kind 4).
     "max-error-coarse": {"target_max_error": 0.15},
+    # A step so fine that the lowest frequencies pass MAX_ANS_SYMBOL: zstd chunks, then ANS ones.
+    "fine-step": {"cutoff": 0.5, "step": 1e-4},
     "target-rmse": {"target_rmse": 0.05},
 }
 
@@ -201,9 +203,11 @@ def test_every_coding_is_exercised(small):
         sections = spec_decoder._sections(dftpcc.compress(small, resolution=1.0, **options))
         kinds |= chunk_kinds(sections[b"COEF"])
     assert kinds == {0, 1, 3}
-    # A residual layer's chunks mix the integer kinds.
+    # A stream's chunks may mix the integer kinds; a coarse bound's residual is one sparse chunk.
+    fine = spec_decoder._sections(dftpcc.compress(small, resolution=1.0, **SMALL_OPTIONS["fine-step"]))
+    assert chunk_kinds(fine[b"COEF"]) == {0, 3}
     coarse = spec_decoder._sections(dftpcc.compress(small, resolution=1.0, **SMALL_OPTIONS["max-error-coarse"]))
-    assert chunk_kinds(coarse[b"RESD"]) == {0, 3}
+    assert chunk_kinds(coarse[b"RESD"]) == {4}
 
 
 # --------------------------------------------------------------------------- crafted headers
@@ -311,6 +315,9 @@ def test_tiled_max_error_has_a_residual_layer_per_tile(coder):
     layout = check_tiled(data)
     resd = {tile for tag, tile, *_ in layout["entries"] if tag == b"RESD"}
     assert resd == {k + 1 for k, c in enumerate(layout["cells"]) if c} and len(resd) == 6
+    # Each tile's residual takes its own layout: chunks, or one sparse chunk (kind 4).
+    kinds = [chunk_kinds(payload) for tag, _k, payload in craft.split_tiled(data) if tag == b"RESD"]
+    assert {4} in kinds and (coder == "zstd" or any(4 not in k for k in kinds)), kinds
 
 
 @pytest.mark.parametrize("rows,cols,size", [(67, 33, 32), (33, 97, 16), (140, 40, 64)],

@@ -20,7 +20,7 @@ import functools
 import math
 import struct
 import zlib
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import warnings
 
@@ -46,9 +46,6 @@ __all__ = [
 
 #: zstd level for coefficient chunks and the mask: high ratio, still fast on small inputs.
 ZSTD_LEVEL = 19
-#: zstd level of the chunks that zstd codes shorter than ANS (``smallest``: a residual layer of
-#: mostly zeros): on the real DEMs' residuals it comes within 1 % of level 19 at 5-15x its speed.
-SPARSE_ZSTD_LEVEL = 9
 #: Length of the first coefficient chunk; each next chunk is CHUNK_GROWTH times longer.
 FIRST_CHUNK = 256
 CHUNK_GROWTH = 2
@@ -58,6 +55,7 @@ _CHUNK = struct.Struct("<IIII")  # count, nbytes, crc32, element kind
 KIND_INT = 0  # zigzag byte planes, zstd
 KIND_COMPLEX64 = 1  # raw little-endian complex64 (the paper)
 KIND_ANS_TABLE = 3  # two-sided geometric per band from integer tables, ANS-coded
+KIND_SPARSE_RESIDUAL = 4  # RESD only, its one chunk: nonzero map, magnitudes, signs (dftpcc.residual)
 # (Kind 2, ANS with constriction's QuantizedLaplace, was written only by pre-release
 # drafts; it is refused as any unknown kind.)
 #: Ways to cut a chunk into frequency bands, one scale each:
@@ -540,7 +538,7 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
 
 def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
                         angle: np.ndarray | None = None, coder: str = "ans", exhaustive: bool = True,
-                        progressive: bool = True, smallest: bool = False) -> bytes:
+                        progressive: bool = True) -> bytes:
     """Code an ordered coefficient stream as self-checking chunks.
 
     Parameters
@@ -560,11 +558,6 @@ def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
     progressive : bool
         Chunks of growing length, so a prefix of the stream decodes (1.0 files); ``False``: as
         few chunks as the ANS tables allow (:func:`_free_bounds`; a 1.1 file, docs/format.md).
-    smallest : bool
-        With ``coder='ans'``, code each chunk that is at least half zeros with zstd instead
-        where that is shorter: a stream of mostly zeros (a residual layer at a coarse bound),
-        whose ANS model cannot go below :data:`MIN_SCALE`. Costs a zstd pass (at
-        :data:`SPARSE_ZSTD_LEVEL`) per such chunk.
     """
     cctx = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
     if progressive or coder != "ans" or radius is None or np.iscomplexobj(values):
@@ -576,7 +569,7 @@ def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
                                 "use a smaller tile size")
     return _chunks([(stop - start, _code_chunk(values[start:stop], None if radius is None else radius[start:stop],
                                                None if angle is None else angle[start:stop], coder, exhaustive,
-                                               cctx, smallest)) for start, stop in bounds])
+                                               cctx)) for start, stop in bounds])
 
 
 def _free_bounds(values: np.ndarray, radius: np.ndarray, angle: np.ndarray | None,
@@ -607,19 +600,20 @@ def _ans_fits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: 
 
 
 def _code_chunk(part: np.ndarray, radius: np.ndarray | None, angle: np.ndarray | None, coder: str,
-                exhaustive: bool, cctx: zstandard.ZstdCompressor, smallest: bool = False) -> tuple[bytes, int]:
-    """One chunk's payload and kind: complex64 as is, else ANS where it applies, else zstd;
-    ``smallest``: zstd also where ANS applies, when it is shorter (ANS on a tie), tried on chunks
-    that are at least half zeros (where ANS's scale floor binds; it never won on denser ones)."""
+                exhaustive: bool, cctx: zstandard.ZstdCompressor) -> tuple[bytes, int]:
+    """One chunk's payload and kind: complex64 as is, else ANS where it applies, else zstd."""
     if np.iscomplexobj(part):
         return part.astype("<c8").tobytes(), KIND_COMPLEX64
     if coder == "ans" and radius is not None and int(np.abs(part).max()) <= MAX_ANS_SYMBOL and (
             ans := _encode_ans(part, radius, angle, exhaustive)) is not None:
-        if smallest and 2 * np.count_nonzero(part) <= part.size and len(
-                packed := zstandard.ZstdCompressor(level=SPARSE_ZSTD_LEVEL).compress(_pack_ints(part))) < len(ans):
-            return packed, KIND_INT
         return ans, KIND_ANS_TABLE
     return cctx.compress(_pack_ints(part)), KIND_INT
+
+
+def one_chunk(count: int, payload: bytes, kind: int) -> bytes:
+    """A stream of ``count`` values as one chunk of ``kind`` (a kind :func:`decode_coefficients`
+    takes through ``whole``)."""
+    return _chunks([(count, (payload, kind))])
 
 
 def _chunks(coded: list[tuple[int, tuple[bytes, int]]]) -> bytes:
@@ -633,7 +627,8 @@ def _chunks(coded: list[tuple[int, tuple[bytes, int]]]) -> bytes:
 
 def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.ndarray | None = None,
                         angle: np.ndarray | None = None, allow_partial: bool = False,
-                        progressive: bool = True) -> np.ndarray:
+                        progressive: bool = True,
+                        whole: dict[int, Callable[[bytes], np.ndarray]] | None = None) -> np.ndarray:
     """Inverse of :func:`encode_coefficients`.
 
     Parameters
@@ -650,6 +645,9 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
     progressive : bool
         ``False``: a 1.1 stream, whose chunks have lengths of the writer's choosing
         (:func:`encode_coefficients`).
+    whole : dict, optional
+        Kinds this stream may hold as its only chunk, each with the function that decodes such a
+        chunk's payload into all ``expected`` values (``RESD``'s sparse kind, :mod:`dftpcc.residual`).
 
     Returns
     -------
@@ -663,6 +661,8 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
         raise CorruptFileError("coefficient section is truncated")
     (nchunks,) = struct.unpack_from("<I", blob, 0)
     bounds = _chunk_bounds(expected) if progressive else None
+    if whole and nchunks == 1 and len(blob) >= 4 + _CHUNK.size and _CHUNK.unpack_from(blob, 4)[3] in whole:
+        bounds = None  # one chunk of a kind that holds the whole stream, whatever the lengths
     if bounds is not None and nchunks != len(bounds):
         raise CorruptFileError(f"coefficient section has {nchunks} chunks, header implies {len(bounds)}")
     if bounds is None and nchunks > expected:  # every chunk holds a value at least
@@ -690,7 +690,12 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
         if zlib.crc32(payload) != crc:
             raise CorruptFileError(f"coefficient chunk {index} fails its checksum")
         what = f"coefficient chunk {index}"
-        if kind == KIND_COMPLEX64:
+        if whole and kind in whole:
+            if nchunks != 1 or count != expected:
+                raise CorruptFileError(f"{what} of kind {kind} must be the stream's only chunk, with all "
+                                       f"{expected} values")
+            parts.append(whole[kind](payload))
+        elif kind == KIND_COMPLEX64:
             if nbytes != 8 * count:
                 raise CorruptFileError(f"{what} has a wrong length")
             parts.append(np.frombuffer(payload, dtype="<c8").astype(np.complex128))

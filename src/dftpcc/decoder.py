@@ -84,7 +84,7 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     complete = values.size == n and cutoff is None
     if b"RESD" in blobs and complete:
         # The residual layer only applies to the full-resolution map it was computed for.
-        q = decode_residual(blobs[b"RESD"], int(mask.sum()))
+        q = decode_residual(blobs[b"RESD"], mask)
         heights[mask] += q * residual_step(params.target_max_error)
     if not np.isfinite(heights).all() and not np.isfinite(heights[mask]).all():
         raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
@@ -194,7 +194,7 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -
     a, b, c = header.plane
     heights += a + b * np.arange(c0, c1, dtype=float)[None, :] + c * np.arange(r0, r1, dtype=float)[:, None]
     if b"RESD" in blobs:
-        q = decode_residual(blobs[b"RESD"], int(index.cells[k]))
+        q = decode_residual(blobs[b"RESD"], mask)
         heights[mask] += q * residual_step(params.target_max_error)
     if not np.isfinite(heights[mask]).all():
         raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")

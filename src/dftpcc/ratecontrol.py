@@ -146,8 +146,11 @@ def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progres
         progress(i / len(tried))
         for step in steps:
             trial = an.trial(cutoff, step)
+            coefs = an.encode(trial, exhaustive=False)
+            if best is not None and len(coefs) >= best.size:
+                continue  # not smaller even with an empty residual layer: no need to code one
             q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
-            choice = Choice(an, trial, an.encode(trial, exhaustive=False), q, encode_residual(q, params.coder))
+            choice = Choice(an, trial, coefs, q, encode_residual(q, params.coder, an.kept_cells))
             if best is None or choice.size < best.size:
                 best = choice
     assert best is not None  # at least one cutoff and one step were tried

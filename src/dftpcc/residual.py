@@ -4,15 +4,21 @@ After the low-passed, quantized spectrum, each rebuilt cell's remaining error
 is quantized with a step of twice the bound (so rounding leaves at most the
 bound) and coded as one integer per rebuilt cell, row-major, in the RESD
 section. Interpolated (footprint) cells have no measured height and get 0.
+
+Two layouts (docs/format.md, ``RESD``): the values in chunks, as coefficients
+are; or, where most are 0, one *sparse* chunk: which cells are not 0, as a
+picture coded with the occupancy mask's context model (the corrections cluster
+where the terrain is rough), then their magnitudes and signs. The smaller wins.
 """
 
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 import numpy as np
 
-from . import coding
+from . import coding, occupancy
 from .errors import CorruptFileError
 
 __all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual"]
@@ -55,19 +61,74 @@ def residual(target: np.ndarray, rebuilt: np.ndarray, measured: np.ndarray, kept
     return q, heights
 
 
-def encode_residual(q: np.ndarray, coder: str) -> bytes:
-    """The RESD section of ``q``."""
+def encode_residual(q: np.ndarray, coder: str, kept: np.ndarray) -> bytes:
+    """The RESD section of ``q``, one integer per ``True`` cell of ``kept`` (row-major): the
+    chunked layout, or the sparse one where at least half the values are 0 and it is shorter."""
     flat = np.zeros(q.size)  # one band per chunk: the residual has no frequency
-    # Every band layout puts all values in band 0, so there is no layout to choose. At a coarse
-    # bound most values are 0, which the ANS model (its scale at least MIN_SCALE) codes at
-    # 0.07 bits or more each: zstd takes the chunks where it is shorter.
-    return coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder, exhaustive=False, smallest=True)
+    # Every band layout puts all values in band 0, so there is no layout to choose.
+    chunked = coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
+    # At a coarse bound most values are 0, which kind 3 codes at 0.07 bits or more each (its scale
+    # floor, MIN_SCALE), however they cluster: the sparse layout codes where they are not.
+    if 2 * np.count_nonzero(q) > q.size:
+        return chunked
+    sparse = _encode_sparse(q, coder, kept)
+    return sparse if len(sparse) < len(chunked) else chunked
 
 
-def decode_residual(blob: Any, count: int) -> np.ndarray:
-    """The ``count`` integers of a RESD section."""
+_LENGTH = struct.Struct("<I")
+#: Largest magnitude a sparse chunk may state (so that magnitude + 1 stays an int64).
+MAX_SPARSE_MAGNITUDE = 1 << 62
+
+
+def _encode_sparse(q: np.ndarray, coder: str, kept: np.ndarray) -> bytes:
+    nonzero = q != 0
+    picture = np.zeros(kept.shape, dtype=bool)
+    picture[kept] = nonzero
+    where = occupancy.encode_mask(picture)
+    values = q[nonzero]
+    flat = np.zeros(values.size)
+    sizes = coding.encode_coefficients(np.abs(values) - 1, radius=flat, angle=flat, coder=coder, exhaustive=False,
+                                       progressive=False)
+    signs = np.packbits(values < 0).tobytes()
+    return coding.one_chunk(q.size, _LENGTH.pack(len(where)) + where + sizes + signs, coding.KIND_SPARSE_RESIDUAL)
+
+
+def _decode_sparse(payload: bytes, kept: np.ndarray) -> np.ndarray:
+    what = "sparse residual layer"
+    if len(payload) < _LENGTH.size:
+        raise CorruptFileError(f"{what} is truncated")
+    (length,) = _LENGTH.unpack_from(payload, 0)
+    if _LENGTH.size + length > len(payload):
+        raise CorruptFileError(f"{what}: its map of nonzero cells runs past the chunk")
+    picture = occupancy.decode_mask(payload[_LENGTH.size:_LENGTH.size + length], kept.shape)
+    if (picture & ~kept).any():
+        raise CorruptFileError(f"{what} corrects a cell that is not rebuilt")
+    nonzero = picture[kept]
+    n = int(nonzero.sum())
+    sign_at = len(payload) - (n + 7) // 8
+    if sign_at < _LENGTH.size + length:
+        raise CorruptFileError(f"{what} is too short for the signs of its {n} nonzero values")
+    flat = np.zeros(n)
+    sizes = coding.decode_coefficients(payload[_LENGTH.size + length:sign_at], n, radius=flat, angle=flat,
+                                       progressive=False)
+    if sizes.dtype.kind != "i" or sizes.size != n or (n and (sizes.min() < 0 or sizes.max() > MAX_SPARSE_MAGNITUDE)):
+        raise CorruptFileError(f"{what} has magnitudes outside 0..2**62")
+    packed = np.frombuffer(payload, dtype=np.uint8, offset=sign_at)
+    negative = np.unpackbits(packed)
+    if negative[n:].any():
+        raise CorruptFileError(f"{what} has a stray sign bit")
+    magnitude = sizes + 1
+    q = np.zeros(nonzero.size, dtype=np.int64)
+    q[nonzero] = np.where(negative[:n].astype(bool), -magnitude, magnitude)
+    return q
+
+
+def decode_residual(blob: Any, kept: np.ndarray) -> np.ndarray:
+    """The integers of a RESD section, one per ``True`` cell of ``kept``."""
+    count = int(kept.sum())
     flat = np.zeros(count)
-    q = coding.decode_coefficients(blob, count, radius=flat, angle=flat)
+    q = coding.decode_coefficients(blob, count, radius=flat, angle=flat,
+                                   whole={coding.KIND_SPARSE_RESIDUAL: lambda p: _decode_sparse(p, kept)})
     if q.dtype.kind != "i" or q.size != count:
         raise CorruptFileError("residual layer is not one integer per rebuilt cell")
     return q

@@ -495,7 +495,7 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     resid = b""
     if params.target_max_error > 0:
         q, rebuilt = residual(target, rebuilt, mask, mask, params.target_max_error)
-        resid = encode_residual(q, params.coder)
+        resid = encode_residual(q, params.coder, mask)
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
     mask_code = occupancy.encode_mask(mask) if job.mask_code is None else job.mask_code

@@ -213,8 +213,31 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
     struct.pack_into("<f", coef, 4 + 16, float("nan"))  # first value of the first chunk
     struct.pack_into("<I", coef, 4 + 8, zlib.crc32(bytes(coef[4 + 16:4 + 16 + struct.unpack_from("<I", coef, 8)[0]])))
     out["paper_nan_coefficient"] = (craft.replace_section(paper, b"COEF", bytes(coef)), C, "non-finite heights")
+    out.update(_sparse_residual_cases(seeds["compact_max_error_sparse"], C))
     out.update(tiled_cases(seeds["tiled"]))
     return out
+
+
+def _sparse_residual_cases(data: bytes, corrupt: str) -> dict[str, tuple[bytes, str, str]]:
+    """A sparse residual layer (RESD's one kind-4 chunk) that lies, its checksums made to match."""
+    resd = bytes(craft.section(data, b"RESD"))
+    count, _nbytes, _crc, kind = struct.unpack_from("<IIII", resd, 4)
+    assert kind == coding.KIND_SPARSE_RESIDUAL, "the seed's residual is no longer sparse: pick a coarser bound"
+    payload = resd[20:]
+
+    def with_payload(p: bytes, n: int = count) -> bytes:
+        return craft.replace_section(data, b"RESD", coding.one_chunk(n, p, coding.KIND_SPARSE_RESIDUAL))
+
+    return {
+        "resd_sparse_stray_sign": (with_payload(payload[:-1] + bytes([payload[-1] | 1])), corrupt, "stray sign bit"),
+        "resd_sparse_map_past_chunk": (with_payload(struct.pack("<I", 1 << 30) + payload[4:]), corrupt,
+                                       "runs past the chunk"),
+        "resd_sparse_fewer_values": (with_payload(payload, count - 1), corrupt, "must be the stream's only chunk"),
+        "resd_sparse_beside_a_chunk": (craft.replace_section(data, b"RESD", struct.pack("<I", 2) + resd[4:] + resd[4:]),
+                                       corrupt, "chunk"),
+        "coef_of_sparse_kind": (craft.with_chunk_kind(data, b"COEF", coding.KIND_SPARSE_RESIDUAL), corrupt,
+                                "unknown kind 4"),
+    }
 
 
 def _flip_in_tile(data: bytes, tag: bytes, tile: int) -> bytes:

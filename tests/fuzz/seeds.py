@@ -26,6 +26,8 @@ SEED_OPTIONS: dict[str, dict] = {
     "compact_median_step": dict(resolution=2.0, cutoff=0.3, aggregate="median", step=0.01),
     "compact_zstd_footprint": dict(resolution=1.0, cutoff=0.7, coder="zstd", mask="footprint"),
     "compact_max_error": dict(resolution=1.0, cutoff=0.8, target_max_error=0.02),  # has a RESD section
+    # A coarser bound: the residual is one sparse chunk (RESD kind 4: nonzero map, magnitudes, signs).
+    "compact_max_error_sparse": dict(resolution=1.0, cutoff=0.8, target_max_error=0.1),
     "paper_dft": dict(resolution=1.5, cutoff=0.8, profile="paper"),
     "paper_dft_fc0": dict(resolution=3.0, cutoff=0.0, profile="paper"),
     # Tiled (format 1.1): 40 x 40 cells in 16-cell tiles (3 x 3, the last row and column 8 cells).
