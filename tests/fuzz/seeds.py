@@ -34,6 +34,8 @@ SEED_OPTIONS: dict[str, dict] = {
     "tiled": dict(resolution=1.0, cutoff=0.8, tile_size=16),
     "tiled_max_error_zstd": dict(resolution=1.0, cutoff=0.6, tile_size=16, target_max_error=0.05, coder="zstd"),
     "tiled_coarse": dict(resolution=1.5, cutoff=0.0, tile_size=16),  # 27 x 27 cells: 2 x 2 tiles
+    # 32-cell tiles at a coarse bound: one tile's residual is sparse (kind 4), the others chunked.
+    "tiled_max_error_sparse": dict(resolution=1.0, cutoff=0.6, tile_size=32, target_max_error=0.1),
     # 32-cell tiles at f_c 0.8 overlap by 16 cells (tiles.tile_overlap), half a tile: the widest a reader takes.
     "tiled_wide_overlap": dict(resolution=1.0, cutoff=0.8, tile_size=32),
 }
