@@ -196,3 +196,23 @@ def test_the_step_search_uses_the_headroom_of_a_gappy_map(field_ground):
     m = dftpcc.open(dftpcc.compress(field_ground, resolution=0.5, target_rmse=target))
     assert 0.9 * target <= m.header.stats["dem_rmse_m"] <= target
     assert m.params.step > 0.1  # metres: a real quantizer step, not the exact fallback
+
+
+def test_a_max_error_search_goes_coarser_while_the_file_shrinks(monkeypatch):
+    """On rough terrain the residual layer carries most of the map: the best file came at the
+    coarsest step of the fixed ladder (16 times the bound) on Davos at 1 cm. The search doubles the
+    step at the cutoffs that were still shrinking there, keeps the guarantee, and finds a smaller
+    file than the fixed ladder."""
+    from dftpcc import ratecontrol
+
+    dem, _, encode = _load("dems/earth_davos_10m.tif", None, None)
+    bound = 0.01
+    found = encode(target_max_error=bound)
+    monkeypatch.setattr(ratecontrol, "MAX_ERROR_STEP_FACTOR_LIMIT", ratecontrol.MAX_ERROR_STEP_FACTORS[-1])
+    ladder = encode(target_max_error=bound)
+    with dftpcc.open(found) as cmap, dftpcc.open(ladder) as fixed:
+        assert cmap.params.step > ratecontrol.MAX_ERROR_STEP_FACTORS[-1] * bound
+        assert fixed.params.step <= ratecontrol.MAX_ERROR_STEP_FACTORS[-1] * bound
+        err = np.abs(cmap.read_dem().heights - dem.heights)[dem.mask]
+    assert len(found) < 0.97 * len(ladder), (len(found), len(ladder))
+    assert err.max() <= bound

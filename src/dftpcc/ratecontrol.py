@@ -34,8 +34,13 @@ CALIBRATION_ROUNDS = 4
 CLOSE_ENOUGH = 0.97
 #: Rate control stops raising the cutoff once a file is this much larger than the best.
 GIVE_UP_FACTOR = 1.3
-#: Quantizer steps tried per cutoff for a maximum-error target, as multiples of it.
+#: Quantizer steps tried per cutoff for a maximum-error target, as multiples of it; where the
+#: coarsest gives a cutoff's smallest file, the step doubles while the file shrinks, up to
+#: MAX_ERROR_STEP_FACTOR_LIMIT (see for_max_error) ...
 MAX_ERROR_STEP_FACTORS = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+MAX_ERROR_STEP_FACTOR_LIMIT = 4096.0
+#: ... at the cutoffs whose file is within this factor of the best one.
+MAX_ERROR_EXTEND_WITHIN = 1.1
 #: With a consistent fill, an RMSE target is searched again for a step up to
 #: this much coarser than the one found with the smooth fill, ...
 REFILL_STEP_RANGE = 1.25
@@ -137,23 +142,50 @@ def _rmse_out_of_reach(an: Analysis, params: Params) -> str:
 
 
 def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progress) -> Choice:
-    """The smallest file, residual layer included, with every occupied cell within ``params.target_max_error``."""
+    """The smallest file, residual layer included, with every occupied cell within ``params.target_max_error``.
+
+    Every cutoff is tried at the steps of :data:`MAX_ERROR_STEP_FACTORS`; then, at each cutoff
+    whose smallest file came at the coarsest of them and lies within :data:`MAX_ERROR_EXTEND_WITHIN`
+    of the best, the step doubles while the file shrinks (rough terrain, where the residual layer
+    carries most of the map), up to :data:`MAX_ERROR_STEP_FACTOR_LIMIT`.
+    """
     bound = params.target_max_error
-    steps = [bound * f for f in MAX_ERROR_STEP_FACTORS] if params.storage == "quantized" else [0.0]
+    quantized = params.storage == "quantized"
+    factors = MAX_ERROR_STEP_FACTORS if quantized else (0.0,)
     best: Choice | None = None
+
+    def attempt(cutoff: float, factor: float) -> int | None:
+        """The candidate's size, or None when its coefficients alone lose to the best file."""
+        nonlocal best
+        trial = an.trial(cutoff, bound * factor)
+        coefs = an.encode(trial, exhaustive=False)
+        if best is not None and len(coefs) >= best.size:
+            return None  # not smaller even with an empty residual layer: no need to code one
+        q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
+        choice = Choice(an, trial, coefs, q, encode_residual(q, params.coder, an.kept_cells))
+        if best is None or choice.size < best.size:
+            best = choice
+        return choice.size
+
     tried = cutoffs(params)
+    at_coarsest: list[tuple[int, float]] = []  # (size, cutoff) where the coarsest step won
     for i, cutoff in enumerate(tried):
         progress(i / len(tried))
-        for step in steps:
-            trial = an.trial(cutoff, step)
-            coefs = an.encode(trial, exhaustive=False)
-            if best is not None and len(coefs) >= best.size:
-                continue  # not smaller even with an empty residual layer: no need to code one
-            q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
-            choice = Choice(an, trial, coefs, q, encode_residual(q, params.coder, an.kept_cells))
-            if best is None or choice.size < best.size:
-                best = choice
+        sizes = [attempt(cutoff, f) for f in factors]
+        known = [(size, k) for k, size in enumerate(sizes) if size is not None]
+        if quantized and known and min(known)[1] == len(factors) - 1:
+            at_coarsest.append((min(known)[0], cutoff))
     assert best is not None  # at least one cutoff and one step were tried
+    for size, cutoff in sorted(at_coarsest):
+        if size > MAX_ERROR_EXTEND_WITHIN * best.size:
+            break
+        factor, smallest = factors[-1], size
+        while factor < MAX_ERROR_STEP_FACTOR_LIMIT:
+            factor *= 2.0
+            found = attempt(cutoff, factor)
+            if found is None or found >= smallest:
+                break
+            smallest = found
     return best
 
 
