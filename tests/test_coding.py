@@ -237,13 +237,22 @@ def test_a_dem_with_heights_out_of_range_is_refused(gentle):
         encoder.encode_dem(dem, dftpcc.make_params(resolution=1.0))
 
 
-def _chunk_counts(blob: bytes) -> list[int]:
-    (n,), pos, counts = struct.unpack_from("<I", blob, 0), 4, []
+def _chunk_headers(blob: bytes) -> list[tuple[int, int]]:
+    """(value count, kind) of each chunk of a COEF-structured section."""
+    (n,), pos, headers = struct.unpack_from("<I", blob, 0), 4, []
     for _ in range(n):
-        count, nbytes, _crc, _kind = struct.unpack_from("<IIII", blob, pos)
-        counts.append(count)
+        count, nbytes, _crc, kind = struct.unpack_from("<IIII", blob, pos)
+        headers.append((count, kind))
         pos += 16 + nbytes
-    return counts
+    return headers
+
+
+def _chunk_counts(blob: bytes) -> list[int]:
+    return [count for count, _kind in _chunk_headers(blob)]
+
+
+def _chunk_kinds(blob: bytes) -> list[int]:
+    return [kind for _count, kind in _chunk_headers(blob)]
 
 
 def test_a_stream_without_progressive_decoding_takes_as_few_chunks_as_its_tables_allow():
@@ -284,16 +293,6 @@ def test_free_chunk_lengths_must_hold_the_stream_exactly():
     # A 1.0 stream keeps its rule: the same two chunks are refused there.
     with pytest.raises(CorruptFileError, match="chunk 0 holds 100 values, expected 256"):
         coding.decode_coefficients(chunks(100, 500), 600)
-
-
-def _chunk_kinds(blob: bytes) -> list[int]:
-    (count,) = struct.unpack_from("<I", blob, 0)
-    kinds, pos = [], 4
-    for _ in range(count):
-        _n, nbytes, _crc, kind = struct.unpack_from("<IIII", blob, pos)
-        kinds.append(kind)
-        pos += 16 + nbytes
-    return kinds
 
 
 def test_a_residual_of_mostly_zeros_is_coded_sparse_where_shorter():
