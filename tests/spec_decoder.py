@@ -459,7 +459,14 @@ def _residual(p: bytes, mask: np.ndarray) -> np.ndarray:
         signs_at = len(body) - (n + 7) // 8
         if signs_at < 4 + length:
             raise ValueError("sparse residual has no room for its signs")
-        sizes = _stream(body[4 + length:signs_at], n, np.zeros(n), np.zeros(n), free=True)
+        region = body[4 + length:signs_at]
+        sizes = _stream(region, n, np.zeros(n), np.zeros(n), free=True)
+        # The magnitudes' structure must end where the signs start.
+        end = 4
+        for _ in range(struct.unpack_from("<I", region, 0)[0]):
+            end += 16 + struct.unpack_from("<4I", region, end)[1]
+        if end != len(region):
+            raise ValueError("sparse residual magnitudes do not end where the signs start")
         if np.iscomplexobj(sizes) or (n and (sizes.min() < 0 or sizes.max() > 1 << 62)):
             raise ValueError("sparse residual magnitudes out of range")
         bits = np.unpackbits(np.frombuffer(body[signs_at:], np.uint8))

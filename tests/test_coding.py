@@ -355,3 +355,27 @@ def test_a_sparse_residual_that_lies_is_refused():
     two = struct.pack("<I", 2) + blob[4:] + blob[4:]
     with pytest.raises(CorruptFileError):
         decode_residual(two, kept)
+
+
+def test_a_sparse_residual_with_bytes_between_its_magnitudes_and_signs_is_refused():
+    """The magnitudes' structure must end where the signs start (docs/format.md, RESD kind 4)."""
+    from dftpcc.residual import _LENGTH, decode_residual, encode_residual
+
+    kept = np.ones((100, 200), bool)
+    corrections = np.zeros(kept.shape, np.int64)
+    corrections[40:50, 3:13] = np.random.default_rng(2).choice([-3, -1, 0, 0, 0, 1, 2], (10, 10))
+    q = corrections.ravel()
+    payload = encode_residual(q, "ans", kept)[20:]
+    (length,) = _LENGTH.unpack_from(payload, 0)
+    n = int(np.count_nonzero(q))
+    signs_at = len(payload) - (n + 7) // 8
+    padded = payload[:signs_at] + b"\x00" + payload[signs_at:]
+    section = coding.one_chunk(q.size, padded, coding.KIND_SPARSE_RESIDUAL)
+    with pytest.raises(CorruptFileError, match="bytes before their structure does"):
+        decode_residual(section, kept)
+    from . import spec_decoder  # the document's reader refuses it too
+
+    with pytest.raises(ValueError, match="do not end where the signs start"):
+        spec_decoder._residual(section, kept)
+    np.testing.assert_array_equal(spec_decoder._residual(encode_residual(q, "ans", kept), kept), q)
+    assert length > 0

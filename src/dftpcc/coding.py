@@ -628,7 +628,8 @@ def _chunks(coded: list[tuple[int, tuple[bytes, int]]]) -> bytes:
 def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.ndarray | None = None,
                         angle: np.ndarray | None = None, allow_partial: bool = False,
                         progressive: bool = True,
-                        whole: dict[int, Callable[[bytes], np.ndarray]] | None = None) -> np.ndarray:
+                        whole: dict[int, Callable[[bytes], np.ndarray]] | None = None,
+                        exact: bool = False) -> np.ndarray:
     """Inverse of :func:`encode_coefficients`.
 
     Parameters
@@ -648,6 +649,9 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
     whole : dict, optional
         Kinds this stream may hold as its only chunk, each with the function that decodes such a
         chunk's payload into all ``expected`` values (``RESD``'s sparse kind, :mod:`dftpcc.residual`).
+    exact : bool
+        Refuse bytes after the last chunk (a structure whose end is known only from its chunks:
+        the magnitudes of a sparse residual).
 
     Returns
     -------
@@ -710,6 +714,8 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
             raise CorruptFileError(f"{what} has unknown kind {kind}")
     if bounds is None and not allow_partial and stop != expected:
         raise CorruptFileError(f"coefficient chunks hold {stop} values, expected {expected}")
+    if exact and pos != len(blob):
+        raise CorruptFileError(f"coefficient chunks end {len(blob) - pos} bytes before their structure does")
     if not parts:
         return np.zeros(0, dtype=np.int64)
     if len({p.dtype.kind for p in parts}) != 1:

@@ -110,7 +110,7 @@ def _decode_sparse(payload: bytes, kept: np.ndarray) -> np.ndarray:
         raise CorruptFileError(f"{what} is too short for the signs of its {n} nonzero values")
     flat = np.zeros(n)
     sizes = coding.decode_coefficients(payload[_LENGTH.size + length:sign_at], n, radius=flat, angle=flat,
-                                       progressive=False)
+                                       progressive=False, exact=True)
     if sizes.dtype.kind != "i" or sizes.size != n or (n and (sizes.min() < 0 or sizes.max() > MAX_SPARSE_MAGNITUDE)):
         raise CorruptFileError(f"{what} has magnitudes outside 0..2**62")
     packed = np.frombuffer(payload, dtype=np.uint8, offset=sign_at)
