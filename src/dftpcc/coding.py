@@ -31,6 +31,7 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     import constriction
 
+from . import kernels
 from .sums import dot
 from .errors import CorruptFileError, InvalidInputError
 from .params import MAX_COORDINATE_M
@@ -364,24 +365,28 @@ def _cached_table_model(max_abs: int, code: int):
     return _build_table_model(max_abs, code)
 
 
-def _build_table_model(max_abs: int, code: int):
-    """See :func:`_table_model`.
-
-    Frequencies out of 2**24: 1 + w(|q|) * (2**24 - n) // total for each of the
-    n = 2*max_abs+1 values (total: the sum of their weights), the remainder
-    to q = 0. The probabilities handed to constriction are these integers
-    over 2**24, exact in float64, so its table is the same everywhere.
-    """
-    # Only the |q| with a nonzero weight (a few dozen: the weights decay geometrically) take
-    # more than the floor of 1, so only those are computed; the rest of the table is that floor.
+def _table_frequencies(max_abs: int, code: int) -> tuple[int, np.ndarray]:
+    """Frequencies out of 2**24 of the symbols 0..2*max_abs of :func:`_table_model`: 1 + w(|q|) *
+    (2**24 - n) // total for each of the n = 2*max_abs+1 values (total: the sum of their weights),
+    the remainder to q = 0. Returned as the first symbol above the floor of 1 and the frequencies
+    from there: only the |q| with a nonzero weight (a few dozen: the weights decay geometrically)
+    take more than that floor, so only those are computed."""
     known = _magnitudes(code)[: max_abs + 1]
     both = np.concatenate([known[:0:-1], known])  # |q| < known.size, around q = 0
     n = 2 * max_abs + 1
     free = (1 << TABLE_BITS) - n
     near = 1 + both * free // int(both.sum())
     near[known.size - 1] += (1 << TABLE_BITS) - int(near.sum()) - (n - both.size)
-    probabilities = np.full(n, 1.0 / (1 << TABLE_BITS))
-    probabilities[max_abs - known.size + 1: max_abs + known.size] = near / float(1 << TABLE_BITS)
+    return max_abs - known.size + 1, near
+
+
+def _build_table_model(max_abs: int, code: int):
+    """See :func:`_table_model` and :func:`_table_frequencies`. The probabilities handed to
+    constriction are those integers over 2**24, exact in float64, so its table is the same
+    everywhere."""
+    lo, near = _table_frequencies(max_abs, code)
+    probabilities = np.full(2 * max_abs + 1, 1.0 / (1 << TABLE_BITS))
+    probabilities[lo: lo + near.size] = near / float(1 << TABLE_BITS)
     return constriction.stream.model.Categorical(probabilities, perfect=False)
 
 
@@ -437,11 +442,18 @@ class _Bands(NamedTuple):
 def _encode_ans_with(q: np.ndarray, b: _Bands, max_abs: int) -> bytes:
     # Zero codes compress well: most high-frequency bands are empty at low rates.
     side = _side_info(b.codes)
-    coder = constriction.stream.stack.AnsCoder()
-    # A stack coder decodes last-in first-out: push the groups in reverse.
-    for code, where in reversed(_groups(b.per_value)):
-        coder.encode_reverse((q[where] + max_abs).astype(np.int32), _table_model(max_abs, code))
-    words = coder.get_compressed()
+    groups = _groups(b.per_value)
+    if kernels.enabled():  # the same words, without building constriction's tables
+        tables = [_table_frequencies(max_abs, code) for code, _ in groups]
+        words = kernels.encode_table_words(
+            [q[where] + max_abs for _, where in groups], [lo for lo, _ in tables], [near for _, near in tables],
+            2 * max_abs + 1)
+    else:
+        coder = constriction.stream.stack.AnsCoder()
+        # A stack coder decodes last-in first-out: push the groups in reverse.
+        for code, where in reversed(groups):
+            coder.encode_reverse((q[where] + max_abs).astype(np.int32), _table_model(max_abs, code))
+        words = coder.get_compressed()
     return _ANS_HEAD.pack(b.layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
 
 

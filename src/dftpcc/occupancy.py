@@ -30,6 +30,7 @@ with warnings.catch_warnings():
     warnings.simplefilter("ignore")
     import constriction
 
+from . import kernels
 from .coding import unzstd
 from .errors import CorruptFileError
 
@@ -174,6 +175,11 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     """The context-coded mask; ``seed_frame``: :func:`_encode_seeds` of its seed lines, if known."""
     n_lines, width = lines.shape
     ctx = _contexts(lines, stripe)
+    if seed_frame is None:
+        seed_frame = _encode_seeds(_seed_lines(lines, stripe))
+    head = _STRIPES.pack(stripe, len(seed_frame)) + seed_frame
+    if kernels.enabled():  # the same words in one compiled pass
+        return head + kernels.encode_mask_words(lines, ctx, stripe, PRIOR_ONES, PRIOR_TOTAL).astype("<u4").tobytes()
     # Step s decodes line s of every stripe (line 0 of the first stripe only, the
     # others' are seeds): by stripe, then column. The lines in that order:
     line = np.arange(n_lines)
@@ -278,9 +284,7 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
         end = a
     if end:
         coder.encode_reverse(adaptive_bits[:end], model, adaptive_prob[:end])
-    if seed_frame is None:
-        seed_frame = _encode_seeds(_seed_lines(lines, stripe))
-    return _STRIPES.pack(stripe, len(seed_frame)) + seed_frame + coder.get_compressed().astype("<u4").tobytes()
+    return head + coder.get_compressed().astype("<u4").tobytes()
 
 
 def _decode_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:

@@ -1,0 +1,137 @@
+"""The compiled kernels (numba) write the numpy path's bytes, bit for bit, and can be switched off."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from dftpcc import coding, kernels, occupancy
+
+pytest.importorskip("numba")
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    import constriction
+
+
+@pytest.fixture
+def jit(monkeypatch):
+    """The kernels loaded; yields a switch: ``use(False)`` makes the codec take the numpy path."""
+    monkeypatch.delenv("DFTPCC_JIT", raising=False)
+    assert kernels.load()
+
+    def use(on: bool) -> None:
+        if on:
+            monkeypatch.delenv("DFTPCC_JIT", raising=False)
+        else:
+            monkeypatch.setenv("DFTPCC_JIT", "0")
+        assert kernels.enabled() is on
+
+    return use
+
+
+def _masks(rng: np.random.Generator):
+    """Masks of every kind a map has: noise, a blob, lidar rings (sparse, the hardest), a few cells,
+    full and empty, on shapes from one cell to several stripes."""
+    for t in range(120):
+        h, w = (int(v) for v in rng.integers(1, 260, 2))
+        yy, xx = np.mgrid[:h, :w]
+        kind = t % 6
+        if kind == 0:
+            m = rng.random((h, w)) < rng.random()
+        elif kind == 1:
+            m = np.hypot(xx - w / 2, yy - h / 2) < rng.random() * max(h, w)
+        elif kind == 2:
+            m = (np.mod(np.hypot(xx - w / 3, yy - h / 2), 7) < 1) & (rng.random((h, w)) < 0.6)
+        elif kind == 3:
+            m = np.zeros((h, w), bool)
+            m[rng.integers(0, h, 5), rng.integers(0, w, 5)] = True
+        elif kind == 4:
+            m = np.ones((h, w), bool)
+        else:
+            m = np.zeros((h, w), bool)
+        yield m, [None, 1, 2, 3, 64, 5][t % 6]
+
+
+def test_mask_coder_bytes_equal(jit):
+    for mask, stripe in _masks(np.random.default_rng(0)):
+        jit(True)
+        fast = occupancy.encode_mask(mask, stripe=stripe)
+        jit(False)
+        slow = occupancy.encode_mask(mask, stripe=stripe)
+        assert fast == slow, (mask.shape, stripe)
+        assert np.array_equal(occupancy.decode_mask(fast, mask.shape), mask)
+
+
+def test_mask_coder_bytes_equal_on_a_striped_map(jit):
+    # Over STRIPED_CELLS: 64-line stripes, seeds, lockstep steps across stripes.
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[:700, :530]
+    mask = (np.hypot(xx - 200, yy - 300) < 260) & (rng.random(yy.shape) < 0.97)
+    assert mask.size >= occupancy.STRIPED_CELLS
+    jit(True)
+    fast = occupancy.encode_mask(mask)
+    jit(False)
+    assert fast == occupancy.encode_mask(mask)
+
+
+def test_table_coder_words_equal_constriction(jit):
+    rng = np.random.default_rng(3)
+    for t in range(200):
+        max_abs = int(rng.choice([1, 2, 3, 20, 255, 300, 9000, 12000, 30000, 200000]))
+        groups = []
+        for code in sorted(rng.choice(np.arange(1, 256), int(rng.integers(1, 5)), replace=False)):
+            scale = max(1, int(rng.exponential(coding._scale_of(np.array([code], np.uint8))[0] + 0.5)))
+            q = np.clip(np.round(rng.laplace(0, scale, int(rng.integers(1, 300)))), -max_abs, max_abs)
+            q = q.astype(np.int64)
+            q[:2] = [max_abs, -max_abs][:q.size]  # both ends of the table
+            groups.append((int(code), q + max_abs))
+        coder = constriction.stream.stack.AnsCoder()
+        for code, symbols in reversed(groups):
+            coder.encode_reverse(symbols.astype(np.int32), coding._build_table_model(max_abs, code))
+        tables = [coding._table_frequencies(max_abs, code) for code, _ in groups]
+        words = kernels.encode_table_words([s for _, s in groups], [lo for lo, _ in tables],
+                                           [near for _, near in tables], 2 * max_abs + 1)
+        assert np.array_equal(words, coder.get_compressed()), (t, max_abs)
+
+
+def test_whole_files_equal(jit):
+    """A map with a patchy footprint, untiled and tiled, at a fixed step and at a max-error bound:
+    the same bytes with the kernels and without."""
+    import dftpcc
+
+    rng = np.random.default_rng(7)
+    x, y = rng.uniform(0, 120, (2, 60_000))
+    keep = np.hypot(x - 60, y - 60) < 58
+    z = 3 * np.sin(x / 9) + 2 * np.cos(y / 13) + 0.05 * rng.standard_normal(x.size)
+    points = np.c_[x, y, z][keep]
+    for options in ({}, {"tile_size": 64}, {"target_max_error": 0.05}, {"tile_size": 64, "target_max_error": 0.05}):
+        out = {}
+        for on in (True, False):
+            jit(on)
+            out[on] = dftpcc.compress(points, resolution=0.5, cutoff=0.7, **options)
+        assert out[True] == out[False], options
+
+
+def test_map_builder_loads_the_kernels_and_writes_the_same_map(jit, monkeypatch, tmp_path):
+    from dftpcc.mapbuilder import MapBuilder
+
+    rng = np.random.default_rng(11)
+    scans = [np.c_[rng.uniform(k * 10, k * 10 + 40, (2, 20_000)).T, rng.normal(0, 0.3, 20_000)] for k in range(3)]
+    files = {}
+    for on in (True, False):
+        jit(on)
+        builder = MapBuilder(0.25, tile_size=64)
+        for scan in scans:
+            builder.add(scan)
+            builder.encode()
+        files[on] = builder.encode()
+    assert files[True] == files[False]
+
+
+def test_switched_off_by_the_environment(monkeypatch):
+    monkeypatch.setenv("DFTPCC_JIT", "0")
+    assert not kernels.load()
+    assert not kernels.enabled()
