@@ -22,15 +22,18 @@ coded by Draco (DracoPy, 14-bit positions: about 6 mm on a 100 m scan).
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import statistics
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from benchmarks.common import DEFAULT_DATA, finish_run, load_average, markdown_table, run_arguments
+from dftpcc import kernels
 from dftpcc.delta import make_delta
 from dftpcc.mapbuilder import MapBuilder
 
@@ -112,15 +115,33 @@ def prefill(terrain: Terrain, resolution: float, cells: int) -> tuple[MapBuilder
     return builder, half
 
 
+@contextmanager
+def numpy_path():
+    """Inside: the codec on numpy alone (``DFTPCC_JIT=0``), the anchor of the compiled kernels."""
+    before = os.environ.get("DFTPCC_JIT")
+    os.environ["DFTPCC_JIT"] = "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["DFTPCC_JIT"]
+        else:
+            os.environ["DFTPCC_JIT"] = before
+
+
 def latency(terrain: Terrain, resolutions, map_cells, scans_timed: int) -> str:
+    """Each scan added to two builders of the same map, in turn: one with the compiled kernels (when
+    installed) and one on numpy, so both are timed at the same moment of a noisy machine; their files
+    are compared scan by scan."""
     rows = []
     for resolution in resolutions:
         for cells in map_cells:
             for pattern in PATTERNS:
                 builder, _ = prefill(terrain, resolution, cells)  # afresh: each pattern on the same map
+                anchor, _ = prefill(terrain, resolution, cells)
                 held = len(builder.tiles)
                 rng = np.random.default_rng(0)
-                adds, totals, cpu, recoded, points = [], [], [], [], []
+                adds, totals, cpu, recoded, points, plain, same = [], [], [], [], [], [], True
                 for k in range(scans_timed):
                     x, y = 1.0 * k / SCAN_HZ, 0.2 * k / SCAN_HZ  # 1 m/s from the map's centre
                     pts, pose = scan(terrain, pattern, x, y, 0.2, rng)
@@ -128,8 +149,13 @@ def latency(terrain: Terrain, resolutions, map_cells, scans_timed: int) -> str:
                     builder.add(pts, pose)
                     t1 = time.perf_counter()
                     recoded.append(len(builder.changed_tiles()))
-                    builder.encode()
+                    data = builder.encode()
                     t2, c2 = time.perf_counter(), time.process_time()
+                    with numpy_path():
+                        t3 = time.perf_counter()
+                        anchor.add(pts, pose)
+                        same &= anchor.encode() == data
+                        plain.append(1e3 * (time.perf_counter() - t3))
                     adds.append(1e3 * (t1 - t0))
                     totals.append(1e3 * (t2 - t0))
                     cpu.append(1e3 * (c2 - c0))
@@ -140,11 +166,60 @@ def latency(terrain: Terrain, resolutions, map_cells, scans_timed: int) -> str:
                              f"{statistics.median(adds):.1f}", f"{med:.0f}{ok}",
                              f"{min(totals):.0f}-{max(totals):.0f}",
                              f"{statistics.median(cpu):.0f} ({min(cpu):.0f}-{max(cpu):.0f})",
-                             f"{statistics.median(recoded):.0f}"])
+                             f"{statistics.median(recoded):.0f}",
+                             f"{statistics.median(plain):.0f} ({min(plain):.0f}-{max(plain):.0f})",
+                             f"{statistics.median(t / p for t, p in zip(totals, plain)):.2f}",
+                             "yes" if same else "NO"])
                 print(" | ".join(map(str, rows[-1])), flush=True)
     return markdown_table(["cells", "map cells", "tiles", "scan", "points/scan", "add ms (median)",
-                           "add + encode ms (median)", "range ms", "CPU ms (median, range)", "tiles coded again"],
+                           "add + encode ms (median)", "range ms", "CPU ms (median, range)", "tiles coded again",
+                           "numpy path ms (median, range)", "compiled / numpy (median of scans)", "same files"],
                           rows)
+
+
+FIRST_USE = """
+import json, sys, time
+t0 = time.perf_counter()
+import numpy as np
+from dftpcc.mapbuilder import MapBuilder
+builder = MapBuilder({resolution}, tile_size={tile}, cutoff={cutoff}, step={step})
+t1 = time.perf_counter()
+scans = np.load(sys.argv[1])
+times = []
+for k in range(3):
+    t = time.perf_counter()
+    builder.add(scans["points%d" % k], (scans["rotation%d" % k], scans["translation%d" % k]))
+    builder.encode()
+    times.append(time.perf_counter() - t)
+print(json.dumps([t1 - t0] + times))
+"""
+
+
+def first_use(terrain: Terrain, resolution: float) -> str:
+    """A fresh process's start: importing dftpcc and making a builder (which loads numba), then its first
+    three 64-beam scans; on numpy, with an empty numba cache (compiling), and with the cache it left."""
+    import subprocess
+    import sys
+    import tempfile
+
+    rng = np.random.default_rng(2)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="dftpcc-bench-slam-") as tmp:
+        scans = {}
+        for k in range(3):
+            pts, (rotation, translation) = scan(terrain, "64-beam", 1.0 * k / SCAN_HZ, 0.0, 0.2, rng)
+            scans.update({f"points{k}": pts, f"rotation{k}": rotation, f"translation{k}": translation})
+        np.savez(Path(tmp) / "scans.npz", **scans)
+        code = FIRST_USE.format(resolution=resolution, tile=TILE, cutoff=CUTOFF, step=STEP_M)
+        for label, env in (("numpy (`DFTPCC_JIT=0`)", {"DFTPCC_JIT": "0"}),
+                           ("compiled, empty numba cache", {"NUMBA_CACHE_DIR": str(Path(tmp) / "cache")}),
+                           ("compiled, the cache of the run before", {"NUMBA_CACHE_DIR": str(Path(tmp) / "cache")})):
+            out = subprocess.run([sys.executable, "-c", code, str(Path(tmp) / "scans.npz")], check=True,
+                                 capture_output=True, text=True, env={**os.environ, **env})
+            start, *per_scan = json.loads(out.stdout.splitlines()[-1])
+            rows.append([label] + [f"{1e3 * v:,.0f}" for v in [start, *per_scan]])
+            print(" | ".join(rows[-1]), flush=True)
+    return markdown_table(["fresh process", "import + MapBuilder ms", "scan 1 ms", "scan 2 ms", "scan 3 ms"], rows)
 
 
 def traffic(terrain: Terrain, resolutions, drive_s: int, starts) -> str:
@@ -205,6 +280,7 @@ def main() -> None:
     ap = run_arguments(__doc__.splitlines()[0], "1e5 and 1e6 cells, 5 scans, a 10 s drive")
     args = ap.parse_args()
     one_core()
+    compiled = kernels.load()
     terrain = Terrain(Path(args.data) / DEM)
     t0 = time.perf_counter()
     cells = QUICK_MAP_CELLS if args.quick else MAP_CELLS
@@ -217,8 +293,15 @@ def main() -> None:
         f"scan (the rover at 1 m/s from the map's centre) is added and the map encoded (the changed tiles coded "
         f"again, the file assembled); medians and ranges over {QUICK_SCANS_TIMED if args.quick else SCANS_TIMED} "
         f"scans; the CPU column is the time the process ran (the wall time less what other programs took of "
-        f"the core). Target: a 64-beam scan under {TARGET_MS:g} ms (wall).",
+        f"the core). Target: a 64-beam scan under {TARGET_MS:g} ms (wall). Compiled kernels (numba, "
+        f"`dftpcc[fast]`): {'in use' if compiled else 'NOT installed: both columns are numpy'}; each scan also goes, "
+        "right after, to a second builder of the same map on the numpy path (`DFTPCC_JIT=0`), the anchor, and "
+        "the two files are compared.",
         latency(terrain, RESOLUTIONS, cells, QUICK_SCANS_TIMED if args.quick else SCANS_TIMED),
+        f"**A fresh process's first scans** ({RESOLUTIONS[0]:g} m cells, 64-beam, an empty map; wall ms, one run "
+        "each, pinned): the compiled kernels (`dftpcc[fast]`, numba) are loaded by the builder and compiled "
+        "on their first call, or read from numba's cache (beside the package, or `NUMBA_CACHE_DIR`).",
+        first_use(terrain, RESOLUTIONS[0]),
         f"**Bytes per minute of driving** (64-beam, 10 Hz, from an empty map or on a known pre-filled one the receiver "
         f"has, a {QUICK_DRIVE_S if args.quick else DRIVE_S} s drive scaled to a minute): a version of the map coded "
         "every second (the last column: that encode's time, and per scan amortized); sent every second or every 10 s as "

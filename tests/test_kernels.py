@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from dftpcc import coding, kernels, occupancy
+from dftpcc import coding, fill, kernels, occupancy
 
 pytest.importorskip("numba")
 
@@ -77,6 +77,22 @@ def test_mask_coder_bytes_equal_on_a_striped_map(jit):
     assert fast == occupancy.encode_mask(mask)
 
 
+def test_push_pull_fill_bits_equal(jit):
+    # Every level of push-pull the kernels take (odd sizes, zeros and negative zeros among the
+    # known values, which the blend keeps), against the numpy path, bit for bit.
+    rng = np.random.default_rng(2)
+    for mask, _ in _masks(rng):
+        heights = rng.normal(0, 5, mask.shape)
+        heights[rng.random(mask.shape) < 0.05] = 0.0
+        heights[rng.random(mask.shape) < 0.05] = -0.0
+        jit(True)
+        fast = fill.fill_empty(heights, mask)
+        jit(False)
+        slow = fill.fill_empty(heights, mask)
+        assert fast.tobytes() == slow.tobytes(), mask.shape
+        assert np.array_equal(fast[mask], heights[mask])
+
+
 def test_table_coder_words_equal_constriction(jit):
     rng = np.random.default_rng(3)
     for t in range(200):
@@ -135,3 +151,28 @@ def test_switched_off_by_the_environment(monkeypatch):
     monkeypatch.setenv("DFTPCC_JIT", "0")
     assert not kernels.load()
     assert not kernels.enabled()
+
+
+def test_a_second_process_reads_the_compiled_code_from_the_cache(tmp_path):
+    # numba compiles afresh, and adds to its cache, whatever it cannot find there (closures that call
+    # one another, say): a second process running the same kernels must add nothing.
+    import os
+    import subprocess
+    import sys
+
+    code = ("import numpy as np; from dftpcc import fill, kernels, occupancy, mapbuilder\n"
+            "assert kernels.load()\n"
+            "m = np.random.default_rng(0).random((80, 90)) < 0.2\n"
+            "occupancy.encode_mask(m); fill.fill_empty(np.ones(m.shape), m)\n"
+            "b = mapbuilder.MapBuilder(0.5, tile_size=64); b.add(np.c_[np.random.default_rng(1).uniform(0, 50, (3000, 2)),"
+            " np.zeros(3000)]); b.encode()\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "DFTPCC_JIT": "1"}
+
+    def cached() -> dict[str, int]:
+        return {p.name: p.stat().st_size for p in tmp_path.rglob("*") if p.is_file()}
+
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)
+    first = cached()
+    assert any(name.endswith(".nbc") for name in first)
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)
+    assert cached() == first

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from . import kernels
 from .dem import DEM
 from .errors import InvalidInputError
 
@@ -196,13 +197,20 @@ def _push_pull(values: np.ndarray, known: np.ndarray) -> np.ndarray:
         total = weights.sum()
         mean = (values * weights).sum() / total if total else 0.0
         return np.where(known, values, mean)
-    # Pull: average the known values over 2x2 blocks (odd sizes padded with
-    # zeros). The weights are 0 or 1 and the unknown values 0, so values *
-    # weights is values itself; the counts are whole, the same in any dtype.
-    counts, vsum = _pairs(known.view(np.uint8)), _pairs(values)
-    coarse_known = counts > 0
-    coarse_v = np.divide(vsum, counts, out=np.zeros_like(vsum), where=coarse_known)
-    coarse = _push_pull(coarse_v, coarse_known)
+    compiled = kernels.enabled()
+    if compiled and values.shape[1] > 2 and values.size >= SMALL_LEVEL_CELLS:
+        # The same pull in one compiled pass (on the levels whose sums _pairs adds by hand).
+        coarse = _push_pull(*kernels.pull(values, known))
+    else:
+        # Pull: average the known values over 2x2 blocks (odd sizes padded with
+        # zeros). The weights are 0 or 1 and the unknown values 0, so values *
+        # weights is values itself; the counts are whole, the same in any dtype.
+        counts, vsum = _pairs(known.view(np.uint8)), _pairs(values)
+        coarse_known = counts > 0
+        coarse_v = np.divide(vsum, counts, out=np.zeros_like(vsum), where=coarse_known)
+        coarse = _push_pull(coarse_v, coarse_known)
+    if compiled:  # the same blend, one compiled pass
+        return kernels.push(values, known, coarse)
     # Push: the blend w * values + (1 - w) * up with the bilinear upsampling
     # ``up`` of the filled coarse level. With 0/1 weights it is ``values`` at
     # known cells; ``up`` is needed only at the unknown ones, and at known

@@ -9,7 +9,11 @@ and constriction's ANS stack coder with its Bernoulli model (``perfect=False``:
 the probability of a 0 quantized to ``1 + floor((1 - p) * (2**24 - 2) /
 ((1 - p) + p))`` of 2**24; the coder's 64-bit state, 32-bit words, a word
 written when the state would overflow, the state's words last). The words
-are those of the numpy path, bit for bit (``tests/test_kernels.py``).
+are those of the numpy path, bit for bit (``tests/test_kernels.py``). The
+coefficient coder's integer tables (:mod:`dftpcc.coding`) are coded the same
+way, without building constriction's models, and push-pull's levels
+(:mod:`dftpcc.fill`) are pulled and pushed in one pass each, with the same
+float operations in the same order (so the same bits, signs of zero too).
 
 Loading numba takes a fresh process about 0.3 s, more than a small map's
 whole compression, so the kernels are used only once something asks for
@@ -17,8 +21,8 @@ them: :func:`load` (a :class:`~dftpcc.mapbuilder.MapBuilder` does, as it
 lives for a whole drive) or the environment variable ``DFTPCC_JIT=1``.
 ``DFTPCC_JIT=0`` keeps the numpy path even then. Without numba installed
 (the ``fast`` extra) everything runs on numpy, with the same files.
-Compiled code is cached beside this module (numba's ``cache=True``), so only
-the first run on a machine compiles.
+Compiled code is cached beside the package (numba's ``cache=True``, or in
+``NUMBA_CACHE_DIR``), so only the first run on a machine compiles.
 """
 
 from __future__ import annotations
@@ -28,9 +32,10 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["load", "enabled", "encode_mask_words", "encode_table_words"]
+__all__ = ["load", "enabled", "encode_mask_words", "encode_table_words", "pull", "push"]
 
-#: The mask coder's prior (see :mod:`dftpcc.occupancy`); passed in, not imported, so imports run one way.
+#: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
+#: codec's constants (the mask coder's prior, the tables) as arguments, so imports run one way.
 _state: dict[str, Any] = {"module": None, "tried": False}
 
 
@@ -48,7 +53,7 @@ def load() -> bool:
     if not _state["tried"]:
         _state["tried"] = True
         try:
-            _state["module"] = _compile()
+            _state["module"] = _compiled_module()
         except ImportError:
             _state["module"] = None
     return _state["module"] is not None
@@ -88,115 +93,20 @@ def encode_table_words(symbols: list[np.ndarray], lows: list[int], nears: list[n
         np.asarray(lows, dtype=np.int64), csum.astype(np.int64), near_bounds, int(n))
 
 
-def _compile():
-    import numba  # noqa: F401 - ImportError: the numpy path
+def pull(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Push-pull's coarser level (``fill._push_pull``): the mean of the known values of each 2x2 block
+    (sums added as ``fill._pairs`` adds them, zeros past odd edges) and whether any of the four is known."""
+    return _state["module"].pull(np.ascontiguousarray(values, dtype=np.float64), np.ascontiguousarray(known))
 
-    from numba import njit
 
-    precision = 24
-    total = 1 << precision
-    free = float(total - 2)
+def push(values: np.ndarray, known: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+    """Push-pull's blend of a level with the 2x bilinear upsampling of the filled ``coarse`` level
+    (``fill._push_pull``): the known cells keep their values, the others take the upsampling."""
+    return _state["module"].push(np.ascontiguousarray(values, dtype=np.float64), np.ascontiguousarray(known),
+                                 np.ascontiguousarray(coarse, dtype=np.float64))
 
-    @njit(cache=True, nogil=True)
-    def _flush(words, count, state):  # pragma: no cover - compiled
-        # the coder's final state, low word first, only the words it needs (none for a zero state)
-        lo = np.uint32(state & np.uint64(0xFFFFFFFF))
-        hi = np.uint32(state >> np.uint64(32))
-        if hi != 0:
-            words[count] = lo
-            words[count + 1] = hi
-            count += 2
-        elif lo != 0:
-            words[count] = lo
-            count += 1
-        return words[:count].copy()
 
-    @njit(cache=True, nogil=True)
-    def _encode(lines, ctx, stripe, prior_ones, prior_total):  # pragma: no cover - compiled
-        n, w = lines.shape
-        n_stripes = (n + stripe - 1) // stripe
-        # Per step, per context: the integer probability of a 0 (constriction's quantization).
-        zero_prob = np.empty((stripe, 256), dtype=np.int64)
-        ones = np.zeros(256, dtype=np.int64)
-        seen = np.zeros(256, dtype=np.int64)
-        for s in range(stripe):
-            for c in range(256):
-                p = (ones[c] + prior_ones[c]) / (seen[c] + prior_total)
-                q0 = 1.0 - p
-                zero_prob[s, c] = np.int64(q0 * (free / (q0 + p))) + 1
-            k_end = 1 if s == 0 else n_stripes
-            for k in range(k_end):
-                line = k * stripe + s
-                if line >= n:
-                    break
-                for j in range(w):
-                    c = ctx[line, j]
-                    seen[c] += 1
-                    ones[c] += lines[line, j]
-        # A stack: the cells go in last first. Decoding order: step by step; within a step the
-        # outside cells (context 0), the inside ones (255), the rest, each by stripe and column.
-        words = np.empty(n * w + 4, dtype=np.uint32)
-        count = 0
-        state = np.uint64(0)
-        for s in range(stripe - 1, -1, -1):
-            k_end = 1 if s == 0 else n_stripes
-            for kind in range(2, -1, -1):
-                for k in range(k_end - 1, -1, -1):
-                    line = k * stripe + s
-                    if line >= n:
-                        continue
-                    for j in range(w - 1, -1, -1):
-                        c = ctx[line, j]
-                        this = 0 if c == 0 else (1 if c == 255 else 2)
-                        if this != kind:
-                            continue
-                        z = zero_prob[s, c]
-                        if lines[line, j]:
-                            left, prob = z, total - z
-                        else:
-                            left, prob = 0, z
-                        if (state >> np.uint64(64 - precision)) >= np.uint64(prob):
-                            words[count] = np.uint32(state & np.uint64(0xFFFFFFFF))
-                            count += 1
-                            state = state >> np.uint64(32)
-                        prob_u = np.uint64(prob)
-                        state = ((state // prob_u) << np.uint64(precision)) | (np.uint64(left) + state % prob_u)
-        return _flush(words, count, state)
+def _compiled_module():
+    from . import _compiled  # ImportError without numba: the numpy path
 
-    @njit(cache=True, nogil=True)
-    def _left(i, lo, csum, at, size, n):  # pragma: no cover - compiled
-        # constriction's left cumulative of symbol i: floor(C / 2**24 * (2**24 - n)) + i, C the frequencies below i
-        if i < lo:
-            c = i
-        elif i < lo + size:
-            c = lo + csum[at + i - lo]
-        else:
-            c = lo + csum[at + size] + (i - lo - size)
-        return np.int64((c / float(total)) * float(total - n)) + i
-
-    @njit(cache=True, nogil=True)
-    def _encode_tables(symbols, bounds, lows, csum, near_bounds, n):  # pragma: no cover - compiled
-        words = np.empty(symbols.size + 4, dtype=np.uint32)
-        count = 0
-        state = np.uint64(0)
-        for g in range(bounds.size - 2, -1, -1):
-            lo = lows[g]
-            at = near_bounds[g] + g  # each table's running sums hold one more entry than its frequencies
-            size = near_bounds[g + 1] - near_bounds[g]
-            for k in range(bounds[g + 1] - 1, bounds[g] - 1, -1):
-                i = symbols[k]
-                left = _left(i, lo, csum, at, size, n)
-                right = total if i == n - 1 else _left(i + 1, lo, csum, at, size, n)
-                prob = np.uint64(right - left)
-                if (state >> np.uint64(64 - precision)) >= prob:
-                    words[count] = np.uint32(state & np.uint64(0xFFFFFFFF))
-                    count += 1
-                    state = state >> np.uint64(32)
-                state = ((state // prob) << np.uint64(precision)) | (np.uint64(left) + state % prob)
-        return _flush(words, count, state)
-
-    class _Module:
-        encode_mask_words = staticmethod(_encode)
-        encode_table_words = staticmethod(_encode_tables)
-
-    return _Module
+    return _compiled

@@ -1,0 +1,171 @@
+"""The compiled kernels themselves (numba): see :mod:`dftpcc.kernels`, which imports this module
+only when asked, so that numba's import (a few tenths of a second) is paid only then.
+
+Module-level functions, so that numba's cache (``cache=True``) finds them again in the next
+process: closures that call one another are compiled afresh in every process.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+#: constriction's probabilities: integers out of 2**PRECISION; FREE: what its Bernoulli model spreads.
+PRECISION = 24
+TOTAL = 1 << PRECISION
+FREE = float(TOTAL - 2)
+
+
+@njit(cache=True, nogil=True)
+def _flush(words, count, state):  # pragma: no cover - compiled
+    # the coder's final state, low word first, only the words it needs (none for a zero state)
+    lo = np.uint32(state & np.uint64(0xFFFFFFFF))
+    hi = np.uint32(state >> np.uint64(32))
+    if hi != 0:
+        words[count] = lo
+        words[count + 1] = hi
+        count += 2
+    elif lo != 0:
+        words[count] = lo
+        count += 1
+    return words[:count].copy()
+
+
+@njit(cache=True, nogil=True)
+def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: no cover - compiled
+    n, w = lines.shape
+    n_stripes = (n + stripe - 1) // stripe
+    # Per step, per context: the integer probability of a 0 (constriction's quantization).
+    zero_prob = np.empty((stripe, 256), dtype=np.int64)
+    ones = np.zeros(256, dtype=np.int64)
+    seen = np.zeros(256, dtype=np.int64)
+    for s in range(stripe):
+        for c in range(256):
+            p = (ones[c] + prior_ones[c]) / (seen[c] + prior_total)
+            q0 = 1.0 - p
+            zero_prob[s, c] = np.int64(q0 * (FREE / (q0 + p))) + 1
+        k_end = 1 if s == 0 else n_stripes
+        for k in range(k_end):
+            line = k * stripe + s
+            if line >= n:
+                break
+            for j in range(w):
+                c = ctx[line, j]
+                seen[c] += 1
+                ones[c] += lines[line, j]
+    # A stack: the cells go in last first. Decoding order: step by step; within a step the
+    # outside cells (context 0), the inside ones (255), the rest, each by stripe and column.
+    words = np.empty(n * w + 4, dtype=np.uint32)
+    count = 0
+    state = np.uint64(0)
+    for s in range(stripe - 1, -1, -1):
+        k_end = 1 if s == 0 else n_stripes
+        for kind in range(2, -1, -1):
+            for k in range(k_end - 1, -1, -1):
+                line = k * stripe + s
+                if line >= n:
+                    continue
+                for j in range(w - 1, -1, -1):
+                    c = ctx[line, j]
+                    this = 0 if c == 0 else (1 if c == 255 else 2)
+                    if this != kind:
+                        continue
+                    z = zero_prob[s, c]
+                    if lines[line, j]:
+                        left, prob = z, TOTAL - z
+                    else:
+                        left, prob = 0, z
+                    if (state >> np.uint64(64 - PRECISION)) >= np.uint64(prob):
+                        words[count] = np.uint32(state & np.uint64(0xFFFFFFFF))
+                        count += 1
+                        state = state >> np.uint64(32)
+                    prob_u = np.uint64(prob)
+                    state = ((state // prob_u) << np.uint64(PRECISION)) | (np.uint64(left) + state % prob_u)
+    return _flush(words, count, state)
+
+
+@njit(cache=True, nogil=True)
+def _left(i, lo, csum, at, size, n):  # pragma: no cover - compiled
+    # constriction's left cumulative of symbol i: floor(C / 2**24 * (2**24 - n)) + i, C the frequencies below i
+    if i < lo:
+        c = i
+    elif i < lo + size:
+        c = lo + csum[at + i - lo]
+    else:
+        c = lo + csum[at + size] + (i - lo - size)
+    return np.int64((c / float(TOTAL)) * float(TOTAL - n)) + i
+
+
+@njit(cache=True, nogil=True)
+def encode_table_words(symbols, bounds, lows, csum, near_bounds, n):  # pragma: no cover - compiled
+    words = np.empty(symbols.size + 4, dtype=np.uint32)
+    count = 0
+    state = np.uint64(0)
+    for g in range(bounds.size - 2, -1, -1):
+        lo = lows[g]
+        at = near_bounds[g] + g  # each table's running sums hold one more entry than its frequencies
+        size = near_bounds[g + 1] - near_bounds[g]
+        for k in range(bounds[g + 1] - 1, bounds[g] - 1, -1):
+            i = symbols[k]
+            left = _left(i, lo, csum, at, size, n)
+            right = TOTAL if i == n - 1 else _left(i + 1, lo, csum, at, size, n)
+            prob = np.uint64(right - left)
+            if (state >> np.uint64(64 - PRECISION)) >= prob:
+                words[count] = np.uint32(state & np.uint64(0xFFFFFFFF))
+                count += 1
+                state = state >> np.uint64(32)
+            state = ((state // prob) << np.uint64(PRECISION)) | (np.uint64(left) + state % prob)
+    return _flush(words, count, state)
+
+
+@njit(cache=True, nogil=True)
+def pull(values, known):  # pragma: no cover - compiled
+    r, c = values.shape
+    rc, cc = (r + 1) // 2, (c + 1) // 2
+    mean = np.zeros((rc, cc))
+    any_known = np.zeros((rc, cc), dtype=np.bool_)
+    for i in range(rc):
+        a, b = 2 * i, 2 * i + 1
+        for j in range(cc):
+            p, q = 2 * j, 2 * j + 1
+            v00 = values[a, p]
+            v01 = values[a, q] if q < c else 0.0
+            v10 = values[b, p] if b < r else 0.0
+            v11 = values[b, q] if (b < r and q < c) else 0.0
+            n = np.int64(known[a, p])
+            if q < c:
+                n += known[a, q]
+            if b < r:
+                n += known[b, p]
+                if q < c:
+                    n += known[b, q]
+            if n > 0:
+                # (row pair) + (row pair), as fill._pairs adds the blocks
+                mean[i, j] = ((v00 + v01) + (v10 + v11)) / np.float64(n)
+                any_known[i, j] = True
+    return mean, any_known
+
+
+@njit(cache=True, nogil=True)
+def push(values, known, coarse):  # pragma: no cover - compiled
+    r, c = values.shape
+    rc, cc = coarse.shape
+    out = np.empty((r, c))
+    for i in range(r):
+        k = i >> 1
+        kn = k + 1 if i & 1 else k - 1  # the coarse row this output leans on, clamped
+        kn = min(max(kn, 0), rc - 1)
+        for j in range(c):
+            v = values[i, j]
+            if known[i, j] and v != 0.0:
+                out[i, j] = v
+                continue
+            p = j >> 1
+            pn = p + 1 if j & 1 else p - 1
+            pn = min(max(pn, 0), cc - 1)
+            own = 0.75 * coarse[k, p] + 0.25 * coarse[kn, p]
+            side = 0.75 * coarse[k, pn] + 0.25 * coarse[kn, pn]
+            up = 0.75 * own + 0.25 * side
+            # the blend w * v + (1 - w) * up with w 0 or 1, the same bits (signs of zero too)
+            out[i, j] = v + 0.0 * up if known[i, j] else up + v
+    return out
