@@ -365,18 +365,21 @@ def _cached_table_model(max_abs: int, code: int):
     return _build_table_model(max_abs, code)
 
 
+@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
 def _table_frequencies(max_abs: int, code: int) -> tuple[int, np.ndarray]:
     """Frequencies out of 2**24 of the symbols 0..2*max_abs of :func:`_table_model`: 1 + w(|q|) *
     (2**24 - n) // total for each of the n = 2*max_abs+1 values (total: the sum of their weights),
     the remainder to q = 0. Returned as the first symbol above the floor of 1 and the frequencies
     from there: only the |q| with a nonzero weight (a few dozen: the weights decay geometrically)
-    take more than that floor, so only those are computed."""
+    take more than that floor, so only those are computed. Cached (a few dozen integers each): the
+    compiled coder asks for a tile's tables at every scan."""
     known = _magnitudes(code)[: max_abs + 1]
     both = np.concatenate([known[:0:-1], known])  # |q| < known.size, around q = 0
     n = 2 * max_abs + 1
     free = (1 << TABLE_BITS) - n
     near = 1 + both * free // int(both.sum())
     near[known.size - 1] += (1 << TABLE_BITS) - int(near.sum()) - (n - both.size)
+    near.flags.writeable = False  # cached: shared by every caller
     return max_abs - known.size + 1, near
 
 
