@@ -36,15 +36,25 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: n
     n, w = lines.shape
     n_stripes = (n + stripe - 1) // stripe
     # Per step, per context: the integer probability of a 0 (constriction's quantization).
+    # Only the contexts a step's cells have are computed (a few of the 256 on most steps), from
+    # the counts of the steps before it.
     zero_prob = np.empty((stripe, 256), dtype=np.int64)
     ones = np.zeros(256, dtype=np.int64)
     seen = np.zeros(256, dtype=np.int64)
+    stamp = np.full(256, -1, dtype=np.int64)  # the last step whose probability of context c is known
     for s in range(stripe):
-        for c in range(256):
-            p = (ones[c] + prior_ones[c]) / (seen[c] + prior_total)
-            q0 = 1.0 - p
-            zero_prob[s, c] = np.int64(q0 * (FREE / (q0 + p))) + 1
         k_end = 1 if s == 0 else n_stripes
+        for k in range(k_end):
+            line = k * stripe + s
+            if line >= n:
+                break
+            for j in range(w):
+                c = ctx[line, j]
+                if stamp[c] != s:
+                    stamp[c] = s
+                    p = (ones[c] + prior_ones[c]) / (seen[c] + prior_total)
+                    q0 = 1.0 - p
+                    zero_prob[s, c] = np.int64(q0 * (FREE / (q0 + p))) + 1
         for k in range(k_end):
             line = k * stripe + s
             if line >= n:
