@@ -107,9 +107,10 @@ def test_table_coder_words_equal_constriction(jit):
         coder = constriction.stream.stack.AnsCoder()
         for code, symbols in reversed(groups):
             coder.encode_reverse(symbols.astype(np.int32), coding._build_table_model(max_abs, code))
-        tables = [coding._table_frequencies(max_abs, code) for code, _ in groups]
-        words = kernels.encode_table_words([s for _, s in groups], [lo for lo, _ in tables],
-                                           [near for _, near in tables], 2 * max_abs + 1)
+        tables = [coding._table_cumulative(max_abs, code) for code, _ in groups]
+        bounds = np.cumsum([0] + [s.size for _, s in groups])
+        words = kernels.encode_table_words(np.concatenate([s for _, s in groups]), bounds, [lo for lo, _ in tables],
+                                           [c for _, c in tables], 2 * max_abs + 1)
         assert np.array_equal(words, coder.get_compressed()), (t, max_abs)
 
 

@@ -399,12 +399,33 @@ def _groups(codes: np.ndarray) -> list[tuple[int, np.ndarray]]:
     Values with one code share one concrete model, so the coder builds each
     model once instead of once per value (ten times faster on large maps).
     """
+    order, present, bounds = _grouped(codes)
+    return [(int(code), order[bounds[k]:bounds[k + 1]]) for k, code in enumerate(present.tolist())]
+
+
+def _grouped(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_groups` as arrays: the positions of the values of nonzero code, by code (stable),
+    the codes present, and where each one's positions start (and the end)."""
     order = np.argsort(codes, kind="stable")
     # Codes are bytes: a histogram gives the codes present and where each one's run starts.
     counts = np.bincount(codes, minlength=256)
+    counts[0] = 0
     present = np.flatnonzero(counts)
-    bounds = (np.cumsum(counts)[present] - counts[present]).tolist() + [codes.size]
-    return [(int(code), order[bounds[k]:bounds[k + 1]]) for k, code in enumerate(present) if code > 0]
+    skip = codes.size - int(counts.sum())  # the zero codes sort first
+    bounds = np.zeros(present.size + 1, dtype=np.int64)
+    np.cumsum(counts[present], out=bounds[1:])
+    return order[skip:], present, bounds
+
+
+@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
+def _table_cumulative(max_abs: int, code: int) -> tuple[int, np.ndarray]:
+    """:func:`_table_frequencies` as its first symbol above the floor and the running sums of the
+    frequencies from there, from 0 (what the compiled coder reads)."""
+    lo, near = _table_frequencies(max_abs, code)
+    cumulative = np.zeros(near.size + 1, dtype=np.int64)
+    np.cumsum(near, out=cumulative[1:])
+    cumulative.flags.writeable = False
+    return lo, cumulative
 
 
 def _side_info(codes: np.ndarray) -> bytes:
@@ -445,16 +466,15 @@ class _Bands(NamedTuple):
 def _encode_ans_with(q: np.ndarray, b: _Bands, max_abs: int) -> bytes:
     # Zero codes compress well: most high-frequency bands are empty at low rates.
     side = _side_info(b.codes)
-    groups = _groups(b.per_value)
     if kernels.enabled():  # the same words, without building constriction's tables
-        tables = [_table_frequencies(max_abs, code) for code, _ in groups]
-        words = kernels.encode_table_words(
-            [q[where] + max_abs for _, where in groups], [lo for lo, _ in tables], [near for _, near in tables],
-            2 * max_abs + 1)
+        order, present, bounds = _grouped(b.per_value)
+        tables = [_table_cumulative(max_abs, code) for code in present.tolist()]
+        words = kernels.encode_table_words(q[order] + max_abs, bounds, [lo for lo, _ in tables],
+                                           [cumulative for _, cumulative in tables], 2 * max_abs + 1)
     else:
         coder = constriction.stream.stack.AnsCoder()
         # A stack coder decodes last-in first-out: push the groups in reverse.
-        for code, where in reversed(groups):
+        for code, where in reversed(_groups(b.per_value)):
             coder.encode_reverse((q[where] + max_abs).astype(np.int32), _table_model(max_abs, code))
         words = coder.get_compressed()
     return _ANS_HEAD.pack(b.layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()

@@ -77,20 +77,18 @@ def encode_mask_words(lines: np.ndarray, ctx: np.ndarray, stripe: int, prior_one
                                     int(stripe), prior_ones, float(prior_total))
 
 
-def encode_table_words(symbols: list[np.ndarray], lows: list[int], nears: list[np.ndarray], n: int) -> np.ndarray:
-    """The ANS words of groups of symbols 0..n-1, each group with its table (``coding._table_frequencies``:
-    a floor of 1 of 2**24 but ``nears[g]`` from symbol ``lows[g]``), pushed as ``coding._encode_ans_with``
-    pushes them to constriction: the last group first, each group last symbol first."""
+def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, lows: list[int], cumulatives: list[np.ndarray],
+                       n: int) -> np.ndarray:
+    """The ANS words of groups of symbols 0..n-1 (group g: ``symbols[bounds[g]:bounds[g + 1]]``), each
+    with its table (``coding._table_cumulative``: a floor of 1 of 2**24 but the frequencies whose running
+    sums ``cumulatives[g]`` holds, from symbol ``lows[g]``), pushed as ``coding._encode_ans_with`` pushes
+    them to constriction: the last group first, each group last symbol first."""
     module = _state["module"]
-    bounds = np.zeros(len(symbols) + 1, dtype=np.int64)
-    bounds[1:] = np.cumsum([s.size for s in symbols])
-    near_bounds = np.zeros(len(nears) + 1, dtype=np.int64)
-    near_bounds[1:] = np.cumsum([a.size for a in nears])
-    # Running sums of each table's frequencies, from 0: the cumulative frequency below a symbol.
-    csum = np.concatenate([np.concatenate(([0], np.cumsum(a))) for a in nears]) if nears else np.zeros(0, np.int64)
-    return module.encode_table_words(
-        np.concatenate(symbols).astype(np.int64) if symbols else np.zeros(0, np.int64), bounds,
-        np.asarray(lows, dtype=np.int64), csum.astype(np.int64), near_bounds, int(n))
+    near_bounds = np.zeros(len(cumulatives) + 1, dtype=np.int64)
+    np.cumsum([a.size - 1 for a in cumulatives], out=near_bounds[1:])
+    csum = np.concatenate(cumulatives) if cumulatives else np.zeros(0, np.int64)
+    return module.encode_table_words(np.ascontiguousarray(symbols, dtype=np.int64), np.asarray(bounds, np.int64),
+                                     np.asarray(lows, dtype=np.int64), csum, near_bounds, int(n))
 
 
 def pull(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
