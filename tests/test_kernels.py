@@ -177,3 +177,27 @@ def test_a_second_process_reads_the_compiled_code_from_the_cache(tmp_path):
     assert any(name.endswith(".nbc") for name in first)
     subprocess.run([sys.executable, "-c", code], check=True, env=env)
     assert cached() == first
+
+
+def test_gridding_bits_equal(jit):
+    # Cells, counts, mean heights, the gridding RMSE and the spread (far points: two layers in some
+    # cells), whole and chunk by chunk, with the kernels and without.
+    from dftpcc import grid
+
+    rng = np.random.default_rng(5)
+    for n in (1, 7, 5000, 70_000):
+        x, y = rng.uniform(-30, 70, (2, n))
+        z = 0.3 * x + rng.normal(0, 0.2, n)
+        z[rng.random(n) < 0.1] += 25.0  # a canopy above some of the ground
+        points = np.c_[x, y, z]
+        g = grid.fit_grid(points, 0.7)
+        out = {}
+        for on in (True, False):
+            jit(on)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                whole = grid.rasterize(points, g)
+                parts = grid.rasterize_chunks(lambda: iter(np.array_split(points, 3)), g)
+            out[on] = [(d.heights.tobytes(), d.mask.tobytes(), d.counts.tobytes(), d.gridding_rmse, d.spread)
+                       for d in (whole, parts)]
+        assert out[True] == out[False], n

@@ -179,3 +179,50 @@ def push(values, known, coarse):  # pragma: no cover - compiled
             # the blend w * v + (1 - w) * up with w 0 or 1, the same bits (signs of zero too)
             out[i, j] = v + 0.0 * up if known[i, j] else up + v
     return out
+
+
+@njit(cache=True, nogil=True)
+def axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows):  # pragma: no cover - compiled
+    # grid._axis_cells in one pass: floor((x - x0) * inv_u), the same for y, row * cols + col
+    # (each rounding as numpy does it, one operation at a time), and z - z0; ok False as soon
+    # as a point falls outside the grid (or is NaN).
+    n = points.shape[0]
+    idx = np.empty(n, dtype=np.int64)
+    z = np.empty(n)
+    for i in range(n):
+        u = np.floor((points[i, 0] - x0) * inv_u)
+        v = np.floor((points[i, 1] - y0) * inv_v)
+        if not (u >= 0.0 and u < cols and v >= 0.0 and v < rows):
+            return idx[:0], z[:0], False
+        idx[i] = np.int64(v * cols + u)
+        z[i] = points[i, 2] - z0
+    return idx, z, True
+
+
+@njit(cache=True, nogil=True)
+def cell_sums(idx, z, size):  # pragma: no cover - compiled
+    # np.bincount(idx, minlength=size) and np.bincount(idx, weights=z, minlength=size), in one
+    # pass: each bin's sum in the points' order, from 0.0, as numpy's loop adds them.
+    count = np.zeros(size, dtype=np.int64)
+    total = np.zeros(size)
+    for i in range(idx.size):
+        count[idx[i]] += 1
+        total[idx[i]] += z[i]
+    return count, total
+
+
+@njit(cache=True, nogil=True)
+def squared_distances(idx, z, heights, tolerance_sq):  # pragma: no cover - compiled
+    # (z - heights[idx])**2 per point, their maximum and how many exceed tolerance_sq.
+    sq = np.empty(idx.size)
+    largest = 0.0
+    far = 0
+    for i in range(idx.size):
+        d = z[i] - heights[idx[i]]
+        s = d * d
+        sq[i] = s
+        if s > largest:
+            largest = s
+        if s > tolerance_sq:
+            far += 1
+    return sq, largest, far

@@ -16,6 +16,7 @@ from typing import Callable, Iterable
 import numpy as np
 from scipy import ndimage
 
+from . import kernels
 from .dem import DEM, MULTI_HEIGHT_TOLERANCE_CELLS, Grid, HeightSpread, as_points
 from .errors import InvalidInputError, MultiHeightWarning
 from .limits import check_grid_size
@@ -252,9 +253,11 @@ def _axis_cells(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]
     """:meth:`Grid.flat_index` and the heights above ``grid.z0`` for an axis-aligned grid, block by
     block (the same arithmetic, so the same cells); None when a point lies outside the grid."""
     n = points.shape[0]
+    inv_u, inv_v, cols, rows = 1.0 / grid.resolution, 1.0 / grid.dy, grid.cols, grid.rows
+    if kernels.enabled() and points.dtype == np.float64:  # the same, in one compiled pass
+        return kernels.axis_cells(points, grid.x0, grid.y0, grid.z0, inv_u, inv_v, cols, rows)
     idx, z = np.empty(n, dtype=np.int64), np.empty(n)
     u, v = np.empty(min(n, BLOCK_POINTS)), np.empty(min(n, BLOCK_POINTS))
-    inv_u, inv_v, cols, rows = 1.0 / grid.resolution, 1.0 / grid.dy, grid.cols, grid.rows
     for start in range(0, n, BLOCK_POINTS):
         block = points[start:start + BLOCK_POINTS]
         m = block.shape[0]
@@ -287,6 +290,11 @@ class _CellHeights:
         self.acc = np.full(size, fill)
 
     def add(self, idx: np.ndarray, z: np.ndarray) -> None:
+        if self.aggregate == "mean" and kernels.enabled():  # both bincounts in one compiled pass
+            count, total = kernels.cell_sums(idx, z, self.size)
+            self.count += count
+            self.acc += total
+            return
         self.count += np.bincount(idx, minlength=self.size)
         if self.aggregate == "mean":
             self.acc += np.bincount(idx, weights=z, minlength=self.size)
@@ -315,17 +323,23 @@ class _SpreadCounter:
         # Squared distances block by block, so the gathered heights and the
         # differences stay in cache; the sums run over the whole arrays, adding
         # in the same order as one pass would.
-        sq = np.empty(idx.size)
-        for start in range(0, idx.size, BLOCK_POINTS):
-            dz = sq[start:start + BLOCK_POINTS]
-            np.subtract(z[start:start + BLOCK_POINTS], heights[idx[start:start + BLOCK_POINTS]], out=dz)
-            np.multiply(dz, dz, out=dz)
+        tolerance_sq = self.tolerance * self.tolerance
+        if kernels.enabled():  # the squares, their maximum and the far count in one compiled pass
+            sq, largest, n_far = kernels.squared_distances(idx, z, heights, tolerance_sq)
+        else:
+            sq = np.empty(idx.size)
+            for start in range(0, idx.size, BLOCK_POINTS):
+                dz = sq[start:start + BLOCK_POINTS]
+                np.subtract(z[start:start + BLOCK_POINTS], heights[idx[start:start + BLOCK_POINTS]], out=dz)
+                np.multiply(dz, dz, out=dz)
+            largest = float(sq.max()) if sq.size else 0.0
+            n_far = -1  # counted below
         self.points += sq.size
-        self.sq_sum += float(sq.sum())
-        if sq.size:
-            self.max_sq = max(self.max_sq, float(sq.max()))
-        far = sq > self.tolerance * self.tolerance
-        n_far = int(np.count_nonzero(far))
+        self.sq_sum += float(sq.sum())  # numpy's pairwise sum either way: its bits reach the file
+        self.max_sq = max(self.max_sq, largest)
+        if n_far:
+            far = sq > tolerance_sq
+            n_far = int(np.count_nonzero(far))
         if n_far:
             self.far_points += n_far
             self.far_sq_sum += float(np.sum(sq, where=far))

@@ -32,7 +32,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["load", "enabled", "encode_mask_words", "encode_table_words", "pull", "push"]
+__all__ = ["load", "enabled", "encode_mask_words", "encode_table_words", "pull", "push", "axis_cells", "cell_sums",
+           "squared_distances"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
 #: codec's constants (the mask coder's prior, the tables) as arguments, so imports run one way.
@@ -108,3 +109,28 @@ def _compiled_module():
     from . import _compiled  # ImportError without numba: the numpy path
 
     return _compiled
+
+
+def axis_cells(points: np.ndarray, x0: float, y0: float, z0: float, inv_u: float, inv_v: float, cols: int,
+               rows: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``grid._axis_cells``: the flat cell index and the height above ``z0`` of every point of an
+    axis-aligned grid, the same arithmetic; None when a point lies outside the grid."""
+    idx, z, ok = _state["module"].axis_cells(points, float(x0), float(y0), float(z0), float(inv_u), float(inv_v),
+                                             int(cols), int(rows))
+    return (idx, z) if ok else None
+
+
+def cell_sums(idx: np.ndarray, z: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.bincount(idx, minlength=size)`` and ``np.bincount(idx, weights=z, minlength=size)``, one pass."""
+    return _state["module"].cell_sums(np.ascontiguousarray(idx, dtype=np.int64),
+                                      np.ascontiguousarray(z, dtype=np.float64), int(size))
+
+
+def squared_distances(idx: np.ndarray, z: np.ndarray, heights: np.ndarray,
+                      tolerance_sq: float) -> tuple[np.ndarray, float, int]:
+    """``(z - heights[idx])**2``, its maximum (0 for no points) and the count above ``tolerance_sq``."""
+    sq, largest, far = _state["module"].squared_distances(np.ascontiguousarray(idx, dtype=np.int64),
+                                                          np.ascontiguousarray(z, dtype=np.float64),
+                                                          np.ascontiguousarray(heights, dtype=np.float64),
+                                                          float(tolerance_sq))
+    return sq, float(largest), int(far)
