@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from dftpcc import coding, fill, kernels, occupancy
+from dftpcc.errors import CorruptFileError
 
 pytest.importorskip("numba")
 
@@ -75,6 +76,58 @@ def test_mask_coder_bytes_equal_on_a_striped_map(jit):
     fast = occupancy.encode_mask(mask)
     jit(False)
     assert fast == occupancy.encode_mask(mask)
+
+
+def _context_blob(mask: np.ndarray, stripe: int | None) -> bytes:
+    """The mask context-coded whatever the bitmap would cost (noise and full masks too), as encode_mask
+    lays it out."""
+    if stripe is None:
+        stripe = occupancy.STRIPE_LINES if mask.size >= occupancy.STRIPED_CELLS else max(mask.shape)
+    transposed = mask.shape[0] > mask.shape[1]
+    lines = (mask.T if transposed else mask).astype(np.uint8)
+    return occupancy._HEAD.pack(occupancy.KIND_CONTEXT, transposed) + occupancy._encode_context(
+        lines, min(stripe, lines.shape[0]))
+
+
+def _decoded(jit, blob: bytes, shape: tuple[int, int]):
+    """What each path makes of a blob: ``{True: kernel, False: numpy}``, a mask or CorruptFileError's
+    message (any other exception fails the test)."""
+    out = {}
+    for on in (True, False):
+        jit(on)
+        try:
+            out[on] = occupancy.decode_mask(blob, shape)
+        except CorruptFileError as exc:
+            out[on] = str(exc)
+    return out
+
+
+def _same(out) -> bool:
+    fast, slow = out[True], out[False]
+    if isinstance(fast, str) or isinstance(slow, str):
+        return fast == slow
+    return fast.shape == slow.shape and fast.dtype == slow.dtype and np.array_equal(fast, slow)
+
+
+def test_mask_decoder_gives_the_numpy_paths_mask(jit):
+    for mask, stripe in _masks(np.random.default_rng(0)):
+        for blob in (_context_blob(mask, stripe), occupancy.encode_mask(mask, stripe=stripe)):
+            out = _decoded(jit, blob, mask.shape)
+            assert _same(out), (mask.shape, stripe)
+            assert np.array_equal(out[True], mask), (mask.shape, stripe)
+
+
+@pytest.mark.parametrize("shape", [(700, 530), (530, 700)])
+def test_mask_decoder_gives_the_numpy_paths_mask_on_a_striped_map(jit, shape):
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    mask = (np.hypot(xx - 200, yy - 300) < 260) & (rng.random(yy.shape) < 0.97)
+    mask[:, 400:] |= (np.mod(np.hypot(xx - 450, yy - 300), 7) < 1)[:, 400:]  # rings beside the blob
+    assert mask.size >= occupancy.STRIPED_CELLS
+    blob = _context_blob(mask, None)
+    assert occupancy._STRIPES.unpack_from(blob, occupancy._HEAD.size)[0] == occupancy.STRIPE_LINES
+    out = _decoded(jit, blob, shape)
+    assert _same(out) and np.array_equal(out[True], mask)
 
 
 def test_push_pull_fill_bits_equal(jit):

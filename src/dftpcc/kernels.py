@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["load", "enabled", "encode_mask_words", "encode_table_words", "pull", "push"]
+__all__ = ["load", "enabled", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
 #: codec's constants (the mask coder's prior, the tables) as arguments, so imports run one way.
@@ -75,6 +75,25 @@ def encode_mask_words(lines: np.ndarray, ctx: np.ndarray, stripe: int, prior_one
     module = _state["module"]
     return module.encode_mask_words(np.ascontiguousarray(lines, dtype=np.uint8), np.ascontiguousarray(ctx),
                                     int(stripe), prior_ones, float(prior_total))
+
+
+def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, stripe: int, prior_ones: np.ndarray,
+                      prior_total: float) -> np.ndarray:
+    """The inverse of :func:`encode_mask_words`, as ``occupancy._decode_context`` decodes with constriction.
+
+    ``words``: the ANS words (uint32, their last word not zero: constriction refuses that, and so must
+    the caller); ``lines``: the line-major mask, ``(n_stripes * stripe, width)`` uint8, zeros but line 0 of
+    every stripe after the first (the seed lines); the other lines are decoded into it in place, and it
+    is returned. Any words decode to some mask, as they do with constriction (which decodes on from its
+    state alone past the last word)."""
+    # The kernel writes into lines without bounds checks: its shape must be what it assumes.
+    if lines.dtype != np.uint8 or lines.ndim != 2 or not lines.flags.c_contiguous:
+        raise ValueError("lines must be a C-contiguous 2-d uint8 array")
+    if stripe < 1 or n_lines < 0 or lines.shape[0] < -(-n_lines // stripe) * stripe:
+        raise ValueError("lines must hold every line of the stripes")
+    return _state["module"].decode_mask_lines(np.ascontiguousarray(words, dtype=np.uint32), lines, int(n_lines),
+                                              int(stripe), np.ascontiguousarray(prior_ones, dtype=np.float64),
+                                              float(prior_total))
 
 
 def encode_table_words(symbols: list[np.ndarray], lows: list[int], nears: list[np.ndarray], n: int) -> np.ndarray:
