@@ -130,6 +130,61 @@ def test_mask_decoder_gives_the_numpy_paths_mask_on_a_striped_map(jit, shape):
     assert _same(out) and np.array_equal(out[True], mask)
 
 
+def _damaged(rng: np.random.Generator, blob: bytes):
+    """Mutations of a context-coded blob's ANS words: bit flips, truncation to any number of words,
+    words appended (random, zero, one, copies), random words, a zero last word."""
+    stripe, seed_bytes = occupancy._STRIPES.unpack_from(blob, occupancy._HEAD.size)
+    at = occupancy._HEAD.size + occupancy._STRIPES.size + seed_bytes
+    head, words = blob[:at], np.frombuffer(blob, dtype="<u4", offset=at).copy()
+    n = words.size
+    for kind in range(7):
+        w = words.copy()
+        if kind == 0 and n:  # a few bits flipped anywhere
+            for _ in range(int(rng.integers(1, 4))):
+                i = int(rng.integers(0, n))
+                w[i] ^= np.uint32(1 << int(rng.integers(0, 32)))
+        elif kind == 1 and n:  # one bit flipped in the last two words (the coder's first state)
+            i = n - 1 - int(rng.integers(0, min(n, 2)))
+            w[i] ^= np.uint32(1 << int(rng.integers(0, 32)))
+        elif kind == 2:  # truncated: the first k words, or the last k
+            k = int(rng.integers(0, n + 1))
+            w = w[:k] if rng.random() < 0.5 else w[n - k:]
+        elif kind == 3:  # words appended
+            choices = [rng.integers(0, 2**32, 3, dtype=np.uint64), np.zeros(1), np.ones(1), w[-2:] if n else np.ones(2)]
+            extra = choices[int(rng.integers(0, len(choices)))]
+            w = np.concatenate([w, np.asarray(extra, dtype=np.uint64).astype(np.uint32)])
+        elif kind == 4:  # random words, as many as the real ones or a few
+            w = rng.integers(0, 2**32, int(rng.choice([n, rng.integers(0, 5)])), dtype=np.uint64).astype(np.uint32)
+        elif kind == 5 and n:  # a zero last word (constriction refuses it)
+            w[-1] = 0
+        elif kind == 6 and n:  # a tiny last word: a one-word state that runs out early
+            w[-1] = np.uint32(int(rng.integers(1, 4)))
+        else:
+            continue
+        yield kind, head + w.astype("<u4").tobytes()
+
+
+def test_mask_decoder_matches_the_numpy_path_on_damaged_words(jit):
+    # Every damage decodes to the numpy path's mask or fails with its CorruptFileError, never otherwise.
+    rng = np.random.default_rng(5)
+    blobs = [(_context_blob(mask, stripe), mask.shape) for mask, stripe in _masks(np.random.default_rng(4))]
+    yy, xx = np.mgrid[:600, :450]
+    big = np.hypot(xx - 220, yy - 300) < 200
+    blobs.append((occupancy.encode_mask(big), big.shape))
+    outcomes = {"mask": 0, "error": 0}
+    tried = 0
+    for round_ in range(6):
+        for blob, shape in blobs if round_ < 5 else blobs[-1:] * 20:
+            for kind, bad in _damaged(rng, blob):
+                out = _decoded(jit, bad, shape)
+                assert _same(out), (shape, kind, out[True] if isinstance(out[True], str) else "mask",
+                                    out[False] if isinstance(out[False], str) else "mask")
+                outcomes["error" if isinstance(out[False], str) else "mask"] += 1
+                tried += 1
+    assert tried >= 3000
+    assert outcomes["error"] and outcomes["mask"]
+
+
 def test_push_pull_fill_bits_equal(jit):
     # Every level of push-pull the kernels take (odd sizes, zeros and negative zeros among the
     # known values, which the blend keeps), against the numpy path, bit for bit.
