@@ -271,7 +271,8 @@ def test_a_second_process_reads_the_compiled_code_from_the_cache(tmp_path):
     code = ("import numpy as np; from dftpcc import fill, kernels, occupancy, mapbuilder\n"
             "assert kernels.load()\n"
             "m = np.random.default_rng(0).random((80, 90)) < 0.2\n"
-            "occupancy.encode_mask(m); fill.fill_empty(np.ones(m.shape), m)\n"
+            "blob = occupancy.encode_mask(m); fill.fill_empty(np.ones(m.shape), m)\n"
+            "assert blob[0] == occupancy.KIND_CONTEXT and (occupancy.decode_mask(blob, m.shape) == m).all()\n"
             "b = mapbuilder.MapBuilder(0.5, tile_size=64); b.add(np.c_[np.random.default_rng(1).uniform(0, 50, (3000, 2)),"
             " np.zeros(3000)]); b.encode()\n")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "DFTPCC_JIT": "1"}
@@ -282,5 +283,6 @@ def test_a_second_process_reads_the_compiled_code_from_the_cache(tmp_path):
     subprocess.run([sys.executable, "-c", code], check=True, env=env)
     first = cached()
     assert any(name.endswith(".nbc") for name in first)
+    assert any("decode_mask_lines" in name for name in first)  # the mask decoder is cached too
     subprocess.run([sys.executable, "-c", code], check=True, env=env)
     assert cached() == first
