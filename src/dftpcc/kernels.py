@@ -10,6 +10,10 @@ the probability of a 0 quantized to ``1 + floor((1 - p) * (2**24 - 2) /
 ((1 - p) + p))`` of 2**24; the coder's 64-bit state, 32-bit words, a word
 written when the state would overflow, the state's words last). The words
 are those of the numpy path, bit for bit (``tests/test_kernels.py``). The
+mask's decoder is one loop too, over the cells in decoding order, with
+constriction's decoding (the state from the last two words, a word read
+whenever the state drops below 2**32, decoding on from the state alone once
+the words run out): the numpy path's mask from any words, damaged ones too. The
 coefficient coder's integer tables (:mod:`dftpcc.coding`) are coded the same
 way, without building constriction's models, and push-pull's levels
 (:mod:`dftpcc.fill`) are pulled and pushed in one pass each, with the same
