@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from dftpcc import coding, fill, kernels, occupancy
+from dftpcc.errors import CorruptFileError
 
 pytest.importorskip("numba")
 
@@ -75,6 +76,113 @@ def test_mask_coder_bytes_equal_on_a_striped_map(jit):
     fast = occupancy.encode_mask(mask)
     jit(False)
     assert fast == occupancy.encode_mask(mask)
+
+
+def _context_blob(mask: np.ndarray, stripe: int | None) -> bytes:
+    """The mask context-coded whatever the bitmap would cost (noise and full masks too), as encode_mask
+    lays it out."""
+    if stripe is None:
+        stripe = occupancy.STRIPE_LINES if mask.size >= occupancy.STRIPED_CELLS else max(mask.shape)
+    transposed = mask.shape[0] > mask.shape[1]
+    lines = (mask.T if transposed else mask).astype(np.uint8)
+    return occupancy._HEAD.pack(occupancy.KIND_CONTEXT, transposed) + occupancy._encode_context(
+        lines, min(stripe, lines.shape[0]))
+
+
+def _decoded(jit, blob: bytes, shape: tuple[int, int]):
+    """What each path makes of a blob: ``{True: kernel, False: numpy}``, a mask or CorruptFileError's
+    message (any other exception fails the test)."""
+    out = {}
+    for on in (True, False):
+        jit(on)
+        try:
+            out[on] = occupancy.decode_mask(blob, shape)
+        except CorruptFileError as exc:
+            out[on] = str(exc)
+    return out
+
+
+def _same(out) -> bool:
+    fast, slow = out[True], out[False]
+    if isinstance(fast, str) or isinstance(slow, str):
+        return fast == slow
+    return fast.shape == slow.shape and fast.dtype == slow.dtype and np.array_equal(fast, slow)
+
+
+def test_mask_decoder_gives_the_numpy_paths_mask(jit):
+    for mask, stripe in _masks(np.random.default_rng(0)):
+        for blob in (_context_blob(mask, stripe), occupancy.encode_mask(mask, stripe=stripe)):
+            out = _decoded(jit, blob, mask.shape)
+            assert _same(out), (mask.shape, stripe)
+            assert np.array_equal(out[True], mask), (mask.shape, stripe)
+
+
+@pytest.mark.parametrize("shape", [(700, 530), (530, 700)])
+def test_mask_decoder_gives_the_numpy_paths_mask_on_a_striped_map(jit, shape):
+    rng = np.random.default_rng(1)
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    mask = (np.hypot(xx - 200, yy - 300) < 260) & (rng.random(yy.shape) < 0.97)
+    mask[:, 400:] |= (np.mod(np.hypot(xx - 450, yy - 300), 7) < 1)[:, 400:]  # rings beside the blob
+    assert mask.size >= occupancy.STRIPED_CELLS
+    blob = _context_blob(mask, None)
+    assert occupancy._STRIPES.unpack_from(blob, occupancy._HEAD.size)[0] == occupancy.STRIPE_LINES
+    out = _decoded(jit, blob, shape)
+    assert _same(out) and np.array_equal(out[True], mask)
+
+
+def _damaged(rng: np.random.Generator, blob: bytes):
+    """Mutations of a context-coded blob's ANS words: bit flips, truncation to any number of words,
+    words appended (random, zero, one, copies), random words, a zero last word."""
+    stripe, seed_bytes = occupancy._STRIPES.unpack_from(blob, occupancy._HEAD.size)
+    at = occupancy._HEAD.size + occupancy._STRIPES.size + seed_bytes
+    head, words = blob[:at], np.frombuffer(blob, dtype="<u4", offset=at).copy()
+    n = words.size
+    for kind in range(7):
+        w = words.copy()
+        if kind == 0 and n:  # a few bits flipped anywhere
+            for _ in range(int(rng.integers(1, 4))):
+                i = int(rng.integers(0, n))
+                w[i] ^= np.uint32(1 << int(rng.integers(0, 32)))
+        elif kind == 1 and n:  # one bit flipped in the last two words (the coder's first state)
+            i = n - 1 - int(rng.integers(0, min(n, 2)))
+            w[i] ^= np.uint32(1 << int(rng.integers(0, 32)))
+        elif kind == 2:  # truncated: the first k words, or the last k
+            k = int(rng.integers(0, n + 1))
+            w = w[:k] if rng.random() < 0.5 else w[n - k:]
+        elif kind == 3:  # words appended
+            choices = [rng.integers(0, 2**32, 3, dtype=np.uint64), np.zeros(1), np.ones(1), w[-2:] if n else np.ones(2)]
+            extra = choices[int(rng.integers(0, len(choices)))]
+            w = np.concatenate([w, np.asarray(extra, dtype=np.uint64).astype(np.uint32)])
+        elif kind == 4:  # random words, as many as the real ones or a few
+            w = rng.integers(0, 2**32, int(rng.choice([n, rng.integers(0, 5)])), dtype=np.uint64).astype(np.uint32)
+        elif kind == 5 and n:  # a zero last word (constriction refuses it)
+            w[-1] = 0
+        elif kind == 6 and n:  # a tiny last word: a one-word state that runs out early
+            w[-1] = np.uint32(int(rng.integers(1, 4)))
+        else:
+            continue
+        yield kind, head + w.astype("<u4").tobytes()
+
+
+def test_mask_decoder_matches_the_numpy_path_on_damaged_words(jit):
+    # Every damage decodes to the numpy path's mask or fails with its CorruptFileError, never otherwise.
+    rng = np.random.default_rng(5)
+    blobs = [(_context_blob(mask, stripe), mask.shape) for mask, stripe in _masks(np.random.default_rng(4))]
+    yy, xx = np.mgrid[:600, :450]
+    big = np.hypot(xx - 220, yy - 300) < 200
+    blobs.append((occupancy.encode_mask(big), big.shape))
+    outcomes = {"mask": 0, "error": 0}
+    tried = 0
+    for round_ in range(6):
+        for blob, shape in blobs if round_ < 5 else blobs[-1:] * 20:
+            for kind, bad in _damaged(rng, blob):
+                out = _decoded(jit, bad, shape)
+                assert _same(out), (shape, kind, out[True] if isinstance(out[True], str) else "mask",
+                                    out[False] if isinstance(out[False], str) else "mask")
+                outcomes["error" if isinstance(out[False], str) else "mask"] += 1
+                tried += 1
+    assert tried >= 3000
+    assert outcomes["error"] and outcomes["mask"]
 
 
 def test_push_pull_fill_bits_equal(jit):
@@ -164,7 +272,8 @@ def test_a_second_process_reads_the_compiled_code_from_the_cache(tmp_path):
     code = ("import numpy as np; from dftpcc import fill, kernels, occupancy, mapbuilder\n"
             "assert kernels.load()\n"
             "m = np.random.default_rng(0).random((80, 90)) < 0.2\n"
-            "occupancy.encode_mask(m); fill.fill_empty(np.ones(m.shape), m)\n"
+            "blob = occupancy.encode_mask(m); fill.fill_empty(np.ones(m.shape), m)\n"
+            "assert blob[0] == occupancy.KIND_CONTEXT and (occupancy.decode_mask(blob, m.shape) == m).all()\n"
             "b = mapbuilder.MapBuilder(0.5, tile_size=64); b.add(np.c_[np.random.default_rng(1).uniform(0, 50, (3000, 2)),"
             " np.zeros(3000)]); b.encode()\n")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "DFTPCC_JIT": "1"}
@@ -175,6 +284,7 @@ def test_a_second_process_reads_the_compiled_code_from_the_cache(tmp_path):
     subprocess.run([sys.executable, "-c", code], check=True, env=env)
     first = cached()
     assert any(name.endswith(".nbc") for name in first)
+    assert any("decode_mask_lines" in name for name in first)  # the mask decoder is cached too
     subprocess.run([sys.executable, "-c", code], check=True, env=env)
     assert cached() == first
 

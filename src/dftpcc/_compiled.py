@@ -95,6 +95,96 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: n
 
 
 @njit(cache=True, nogil=True)
+def decode_mask_lines(words, lines, n_lines, stripe, prior_ones, prior_total):  # pragma: no cover - compiled
+    # The inverse of encode_mask_words, as occupancy._decode_context decodes with constriction:
+    # lines (n_stripes * stripe, width), zeros but line 0 of every stripe after the first (the
+    # seeds), gets the other lines in place. Decoding order as there: step t decodes line t of
+    # every stripe that has one (line 0 of the first only); within a step the outside cells
+    # (context 0), the inside ones (255), the rest, each by stripe and column; the probability of a
+    # context from the counts of the steps before.
+    #
+    # constriction's AnsCoder(words) (stack.rs, from_compressed): the state is the last word, and
+    # the one before it as its low word if there is one (no word: state 0; the caller refuses a
+    # last word of zero, as constriction does). A decode: quantile = the state's low 24 bits; the
+    # symbol whose interval holds it (a 0 below zero_prob); state = (state >> 24) * probability +
+    # quantile - left; below 2**32 the state takes the next word down as its low word, if any is
+    # left. Past the last word it keeps decoding from the state alone, as constriction does.
+    width = lines.shape[1]
+    n_stripes = (n_lines + stripe - 1) // stripe
+    mask24 = np.uint64(TOTAL - 1)
+    total = np.uint64(TOTAL)
+    low = np.uint64(1) << np.uint64(32)
+    pos = words.size - 1  # the next word to read
+    state = np.uint64(0)
+    if pos >= 0:
+        state = np.uint64(words[pos])
+        pos -= 1
+        if pos >= 0:
+            state = (state << np.uint64(32)) | np.uint64(words[pos])
+            pos -= 1
+    above = np.zeros((n_stripes, width), dtype=np.uint8)  # codes of line t - 1
+    older = np.zeros((n_stripes, width), dtype=np.uint8)  # bits 5-7 of the contexts: line t - 2
+    codes = np.empty(width, dtype=np.uint8)
+    ctx = np.empty(n_stripes * width, dtype=np.uint8)
+    zero_prob = np.empty(256, dtype=np.uint64)
+    ones = np.zeros(256, dtype=np.int64)
+    seen = np.zeros(256, dtype=np.int64)
+    stamp = np.full(256, -1, dtype=np.int64)  # the step whose probability of context c is known
+    for t in range(stripe):
+        active = 1 if t == 0 else (n_lines - t + stripe - 1) // stripe  # stripes that have a line t
+        # The contexts of the step's cells, and the probability of each context they have, from
+        # the counts of the steps before (all of them before any cell of the step is counted).
+        for s in range(active):
+            for j in range(width):
+                c = above[s, j] | older[s, j]
+                ctx[s * width + j] = c
+                if stamp[c] != t:
+                    stamp[c] = t
+                    p = (ones[c] + prior_ones[c]) / (seen[c] + prior_total)
+                    q0 = 1.0 - p
+                    zero_prob[c] = np.uint64(np.int64(q0 * (FREE / (q0 + p))) + 1)
+        for kind in range(3):
+            for s in range(active):
+                row = s * stripe + t
+                for j in range(width):
+                    c = ctx[s * width + j]
+                    this = 0 if c == 0 else (1 if c == 255 else 2)
+                    if this != kind:
+                        continue
+                    z = zero_prob[c]
+                    quantile = state & mask24
+                    if quantile < z:
+                        bit = 0
+                        state = (state >> np.uint64(PRECISION)) * z + quantile
+                    else:
+                        bit = 1
+                        state = (state >> np.uint64(PRECISION)) * (total - z) + (quantile - z)
+                    if state < low and pos >= 0:
+                        state = (state << np.uint64(32)) | np.uint64(words[pos])
+                        pos -= 1
+                    lines[row, j] = bit
+                    seen[c] += 1
+                    ones[c] += bit
+        if t == 0:
+            active = n_stripes  # the seeds are line 0 of the other stripes
+        # The codes of line t (occupancy._codes: bit k the cell at offset k - 2, zeros past the
+        # ends); line 1 of a stripe takes line 0 as the line before last as well.
+        for s in range(active):
+            row = s * stripe + t
+            window = 0
+            for i in range(width + 2):
+                cell = np.int64(lines[row, i]) if i < width else 0
+                window = (window >> 1) | (cell << 4)
+                if i >= 2:
+                    codes[i - 2] = window
+            for j in range(width):
+                before = codes[j] if t == 0 else above[s, j]
+                older[s, j] = (np.int64(before) << 4) & 0xE0
+                above[s, j] = codes[j]
+    return lines
+
+
+@njit(cache=True, nogil=True)
 def _left(i, lo, csum, at, size, n):  # pragma: no cover - compiled
     # constriction's left cumulative of symbol i: floor(C / 2**24 * (2**24 - n)) + i, C the frequencies below i
     if i < lo:

@@ -10,6 +10,10 @@ the probability of a 0 quantized to ``1 + floor((1 - p) * (2**24 - 2) /
 ((1 - p) + p))`` of 2**24; the coder's 64-bit state, 32-bit words, a word
 written when the state would overflow, the state's words last). The words
 are those of the numpy path, bit for bit (``tests/test_kernels.py``). The
+mask's decoder is one loop too, over the cells in decoding order, with
+constriction's decoding (the state from the last two words, a word read
+whenever the state drops below 2**32, decoding on from the state alone once
+the words run out): the numpy path's mask from any words, damaged ones too. The
 coefficient coder's integer tables (:mod:`dftpcc.coding`) are coded the same
 way, without building constriction's models, and push-pull's levels
 (:mod:`dftpcc.fill`) are pulled and pushed in one pass each, with the same
@@ -32,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["load", "enabled", "encode_mask_words", "encode_table_words", "pull", "push", "axis_cells", "cell_sums",
-           "squared_distances"]
+__all__ = ["load", "enabled", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
+           "axis_cells", "cell_sums", "squared_distances"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
 #: codec's constants (the mask coder's prior, the tables) as arguments, so imports run one way.
@@ -76,6 +80,25 @@ def encode_mask_words(lines: np.ndarray, ctx: np.ndarray, stripe: int, prior_one
     module = _state["module"]
     return module.encode_mask_words(np.ascontiguousarray(lines, dtype=np.uint8), np.ascontiguousarray(ctx),
                                     int(stripe), prior_ones, float(prior_total))
+
+
+def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, stripe: int, prior_ones: np.ndarray,
+                      prior_total: float) -> np.ndarray:
+    """The inverse of :func:`encode_mask_words`, as ``occupancy._decode_context`` decodes with constriction.
+
+    ``words``: the ANS words (uint32, their last word not zero: constriction refuses that, and so must
+    the caller); ``lines``: the line-major mask, ``(n_stripes * stripe, width)`` uint8, zeros but line 0 of
+    every stripe after the first (the seed lines); the other lines are decoded into it in place, and it
+    is returned. Any words decode to some mask, as they do with constriction (which decodes on from its
+    state alone past the last word)."""
+    # The kernel writes into lines without bounds checks: its shape must be what it assumes.
+    if lines.dtype != np.uint8 or lines.ndim != 2 or not lines.flags.c_contiguous:
+        raise ValueError("lines must be a C-contiguous 2-d uint8 array")
+    if stripe < 1 or n_lines < 0 or lines.shape[0] < -(-n_lines // stripe) * stripe:
+        raise ValueError("lines must hold every line of the stripes")
+    return _state["module"].decode_mask_lines(np.ascontiguousarray(words, dtype=np.uint32), lines, int(n_lines),
+                                              int(stripe), np.ascontiguousarray(prior_ones, dtype=np.float64),
+                                              float(prior_total))
 
 
 def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, lows: list[int], cumulatives: list[np.ndarray],

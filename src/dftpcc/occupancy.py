@@ -300,6 +300,18 @@ def _decode_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
     # Stripe s, line t is row s of lines[:, t]; rows past the map stay empty.
     lines = np.zeros((n_stripes, stripe, width), dtype=np.uint8)
     lines[1:, 0] = _decode_seeds(payload[_STRIPES.size:words_at], n_stripes - 1, width)
+    if kernels.enabled():  # the same mask in one compiled pass
+        words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
+        if words.size and words[-1] == 0:
+            # constriction refuses words that end in a zero word: its own message, as below.
+            try:
+                constriction.stream.stack.AnsCoder(words)
+            except Exception as exc:  # noqa: BLE001
+                raise CorruptFileError(f"occupancy mask does not decode: {exc}") from None
+            raise CorruptFileError("occupancy mask does not decode: its words end in a zero word")
+        flat = lines.reshape(-1, width)
+        kernels.decode_mask_lines(words, flat, n_lines, stripe, PRIOR_ONES, PRIOR_TOTAL)
+        return flat[:n_lines].view(bool)
     padded = np.zeros((n_stripes, width + 4), dtype=np.uint8)  # lines with two empty cells each side
     ones, total = np.zeros(CONTEXTS), np.zeros(CONTEXTS)
     above = older = np.zeros((1, width), dtype=np.uint8)
