@@ -27,12 +27,11 @@ import math
 import os
 import statistics
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import DEFAULT_DATA, finish_run, load_average, markdown_table, run_arguments
+from benchmarks.common import DEFAULT_DATA, finish_run, load_average, markdown_table, numpy_path, run_arguments
 from dftpcc import kernels
 from dftpcc.delta import make_delta
 from dftpcc.mapbuilder import MapBuilder
@@ -113,20 +112,6 @@ def prefill(terrain: Terrain, resolution: float, cells: int) -> tuple[MapBuilder
     builder.add(np.c_[xx.ravel(), yy.ravel(), terrain(xx.ravel(), yy.ravel())])
     builder.encode()
     return builder, half
-
-
-@contextmanager
-def numpy_path():
-    """Inside: the codec on numpy alone (``DFTPCC_JIT=0``), the anchor of the compiled kernels."""
-    before = os.environ.get("DFTPCC_JIT")
-    os.environ["DFTPCC_JIT"] = "0"
-    try:
-        yield
-    finally:
-        if before is None:
-            del os.environ["DFTPCC_JIT"]
-        else:
-            os.environ["DFTPCC_JIT"] = before
 
 
 def latency(terrain: Terrain, resolutions, map_cells, scans_timed: int) -> str:

@@ -37,11 +37,11 @@ from typing import Any, Callable, Iterator  # noqa: E402
 import numpy as np  # noqa: E402
 
 import dftpcc  # noqa: E402
-from dftpcc import analysis, coding, container, decoder, encoder, mapfile, occupancy, spectrum  # noqa: E402
+from dftpcc import analysis, coding, container, decoder, encoder, kernels, mapfile, occupancy, spectrum  # noqa: E402
 from dftpcc.files import dem_from_geotiff  # noqa: E402
 
 from benchmarks.common import (  # noqa: E402
-    finish_run, load_average, markdown_table, run_arguments,
+    finish_run, load_average, markdown_table, numpy_path, run_arguments,
 )
 
 #: Point clouds of the issue: (file, cell size in metres).
@@ -186,13 +186,25 @@ def cloud_section(name: str, resolution: float, data: Path, repeats: int) -> tup
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the forest's MultiHeightWarning: noted in the doc already
         compress = lambda: dftpcc.compress(points, params)  # noqa: E731
-        compress()  # warm caches (coefficient order, table models) as a long-running process has them
-        t_c, blob = walls(compress, repeats)
-        cpu_c = list(LAST_CPU)
-        t_d, out = walls(lambda: dftpcc.decompress(blob), repeats)
-        cpu_d = list(LAST_CPU)
-        c_stages = staged(compress, COMPRESS_STAGES, repeats)
-        d_stages = staged(lambda: dftpcc.decompress(blob), DECOMPRESS_STAGES, repeats)
+        with numpy_path():
+            compress()  # warm caches (coefficient order, table models) as a long-running process has them
+            t_c, blob = walls(compress, repeats)
+            cpu_c = list(LAST_CPU)
+            t_d, out = walls(lambda: dftpcc.decompress(blob), repeats)
+            cpu_d = list(LAST_CPU)
+            c_stages = staged(compress, COMPRESS_STAGES, repeats)
+            d_stages = staged(lambda: dftpcc.decompress(blob), DECOMPRESS_STAGES, repeats)
+        jit = None
+        if kernels.enabled():  # the same in a process that loaded the compiled kernels
+            compress()
+            tj_c, blob_j = walls(compress, repeats)
+            cpuj_c = list(LAST_CPU)
+            tj_d, out_j = walls(lambda: dftpcc.decompress(blob_j), repeats)
+            cpuj_d = list(LAST_CPU)
+            same = blob_j == blob and np.array_equal(out_j, out)
+            jit = ["dftpcc, compiled kernels", span(tj_c), f"{1000 * med(cpuj_c):.1f}", f"{n / med(tj_c) / 1e6:.2f}",
+                   span(tj_d), f"{1000 * med(cpuj_d):.1f}", f"{n / med(tj_d) / 1e6:.2f}",
+                   f"{out.shape[0] / med(tj_d) / 1e6:.2f}" + ("" if same else " (FILES DIFFER)")]
     e_draco, d_draco, draco_bytes, cpu_draco = draco(points, repeats)
     m = out.shape[0]
     rate_c, rate_d = n / med(t_c), n / med(t_d)
@@ -211,7 +223,9 @@ def cloud_section(name: str, resolution: float, data: Path, repeats: int) -> tup
              ["DracoPy", span(e_draco), f"{1000 * med(cpu_draco[0]):.1f}", f"{n / med(e_draco) / 1e6:.2f}",
               span(d_draco), f"{1000 * med(cpu_draco[1]):.1f}", f"{n / med(d_draco) / 1e6:.2f}",
               f"{n / med(d_draco) / 1e6:.2f}"],
-             ["dftpcc / DracoPy speed", "", "", f"{over_c:.1f}x", "", "", f"{over_d:.1f}x", ""]]),
+             ["dftpcc / DracoPy speed", "", "", f"{over_c:.1f}x", "", "", f"{over_d:.1f}x", ""]]
+            + ([jit, ["compiled / numpy time", "", "", f"{med(tj_c) / med(t_c):.2f}", "", "",
+                      f"{med(tj_d) / med(t_d):.2f}", ""]] if jit else [])),
         "",
         "Compress, per stage:",
         "",
@@ -230,6 +244,11 @@ def cloud_section(name: str, resolution: float, data: Path, repeats: int) -> tup
         f"{'PASS' if over_c >= MIN_OVER_DRACO else 'MISS'}; decompress {over_d:.1f}x its decoder",
     ]
     return "\n".join(lines), verdicts
+
+
+def dem_numpy_rows(data: Path, repeats: int) -> list[list[str]]:
+    with numpy_path():
+        return dem_rows(data, repeats)
 
 
 def dem_rows(data: Path, repeats: int) -> list[list[str]]:
@@ -301,6 +320,7 @@ def main() -> None:
     repeats = args.repeats or (QUICK_REPEATS if args.quick else REPEATS)
     data = Path(args.data)
     spectrum.FFT_WORKERS = ONE_THREAD  # scipy.fft on one worker, as every anchor here
+    compiled = kernels.load()  # numba's import and first calls happen here, outside every clock
     start = time.perf_counter()
     wanted = args.files or [name for name, _ in CLOUDS]
     sections, verdicts = [], []
@@ -311,13 +331,18 @@ def main() -> None:
             verdicts += v
     parts = [f"{repeats} repeats; times are wall-clock medians with the range over the repeats in brackets. "
              + " ".join(__doc__.split("\n\n")[1].split())]
+    parts.append("The rows `dftpcc` are the numpy path (`DFTPCC_JIT=0`, what a one-shot `dftpcc compress` runs); "
+                 + ("the rows `dftpcc, compiled kernels` the same calls in this process with the numba kernels "
+                    "(`dftpcc[fast]`) loaded, as a long-running program (or `DFTPCC_JIT=1`) has them, their files "
+                    "compared with the numpy path's. Stage tables and the DEMs: the numpy path."
+                    if compiled else "numba is not installed here, so there is no compiled row."))
     parts += sections
     if not args.no_dems:
         parts.append("### GeoTIFF DEMs: M cells/s, dftpcc / LERC / HTJ2K\n\n" + " ".join(__doc__.split("\n\n")[2].split())
                      + "\n\n" + markdown_table(
                          ["DEM", "cells", "max error mm", "bytes dftpcc / LERC / HTJ2K", "encode M cells/s",
                           "decode M cells/s", "encode time LERC / HTJ2K over dftpcc",
-                          "decode time LERC / HTJ2K over dftpcc"], dem_rows(data, repeats)))
+                          "decode time LERC / HTJ2K over dftpcc"], dem_numpy_rows(data, repeats)))
     parts.append("### Start-up\n\nWall time of a fresh interpreter running each command (the interpreter's own "
                  "start included).\n\n" + markdown_table(["command", "ms median (range)"], startup_rows(repeats)))
     parts.append("### Targets\n\n" + "\n".join(f"- {v}" for v in verdicts))

@@ -209,6 +209,20 @@ def median_times(fn: Callable[[], Any], repeats: int) -> tuple[float, float, Any
     return statistics.median(walls), statistics.median(cpus), result
 
 
+@contextmanager
+def numpy_path():
+    """Inside: the codec on numpy alone (``DFTPCC_JIT=0``), the anchor of the compiled kernels."""
+    before = os.environ.get("DFTPCC_JIT")
+    os.environ["DFTPCC_JIT"] = "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["DFTPCC_JIT"]
+        else:
+            os.environ["DFTPCC_JIT"] = before
+
+
 def load_average() -> str:
     """The machine's 1-minute load average and core count, to read the timings by."""
     try:
