@@ -302,8 +302,9 @@ def cell_sums(idx, z, size):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def squared_distances(idx, z, heights, tolerance_sq):  # pragma: no cover - compiled
-    # (z - heights[idx])**2 per point, their maximum and how many exceed tolerance_sq.
+def squared_distances(idx, z, heights, tolerance_sq, far_cells):  # pragma: no cover - compiled
+    # (z - heights[idx])**2 per point, their maximum and how many exceed tolerance_sq, whose
+    # cells are marked in far_cells.
     sq = np.empty(idx.size)
     largest = 0.0
     far = 0
@@ -315,4 +316,5 @@ def squared_distances(idx, z, heights, tolerance_sq):  # pragma: no cover - comp
             largest = s
         if s > tolerance_sq:
             far += 1
+            far_cells[idx[i]] = True
     return sq, largest, far

@@ -324,8 +324,11 @@ class _SpreadCounter:
         # differences stay in cache; the sums run over the whole arrays, adding
         # in the same order as one pass would.
         tolerance_sq = self.tolerance * self.tolerance
-        if kernels.enabled():  # the squares, their maximum and the far count in one compiled pass
-            sq, largest, n_far = kernels.squared_distances(idx, z, heights, tolerance_sq)
+        marked = kernels.enabled()
+        if marked:  # the squares, their maximum, the far count and their cells in one compiled pass
+            if self.far_cells is None:
+                self.far_cells = np.zeros(self.grid.size, dtype=bool)
+            sq, largest, n_far = kernels.squared_distances(idx, z, heights, tolerance_sq, self.far_cells)
         else:
             sq = np.empty(idx.size)
             for start in range(0, idx.size, BLOCK_POINTS):
@@ -343,9 +346,10 @@ class _SpreadCounter:
         if n_far:
             self.far_points += n_far
             self.far_sq_sum += float(np.sum(sq, where=far))
-            if self.far_cells is None:
-                self.far_cells = np.zeros(self.grid.size, dtype=bool)
-            self.far_cells[idx.compress(far)] = True
+            if not marked:
+                if self.far_cells is None:
+                    self.far_cells = np.zeros(self.grid.size, dtype=bool)
+                self.far_cells[idx.compress(far)] = True
 
     def dem(self, heights: np.ndarray, mask: np.ndarray, count: np.ndarray) -> DEM:
         """The DEM, with its gridding RMSE and spread; warns when the spread is large."""

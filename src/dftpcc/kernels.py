@@ -149,11 +149,15 @@ def cell_sums(idx: np.ndarray, z: np.ndarray, size: int) -> tuple[np.ndarray, np
                                       np.ascontiguousarray(z, dtype=np.float64), int(size))
 
 
-def squared_distances(idx: np.ndarray, z: np.ndarray, heights: np.ndarray,
-                      tolerance_sq: float) -> tuple[np.ndarray, float, int]:
-    """``(z - heights[idx])**2``, its maximum (0 for no points) and the count above ``tolerance_sq``."""
+def squared_distances(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance_sq: float,
+                      far_cells: np.ndarray) -> tuple[np.ndarray, float, int]:
+    """``(z - heights[idx])**2``, its maximum (0 for no points) and the count above ``tolerance_sq``,
+    whose cells it sets True in ``far_cells`` (bool, one per cell of the grid, in place)."""
+    # idx are cells of the grid (the kernel does not check them): heights and far_cells hold one per cell.
+    if far_cells.dtype != np.bool_ or not far_cells.flags.c_contiguous or far_cells.size != heights.size:
+        raise ValueError("far_cells must be a contiguous bool array of one value per cell, as heights")
     sq, largest, far = _state["module"].squared_distances(np.ascontiguousarray(idx, dtype=np.int64),
                                                           np.ascontiguousarray(z, dtype=np.float64),
                                                           np.ascontiguousarray(heights, dtype=np.float64),
-                                                          float(tolerance_sq))
+                                                          float(tolerance_sq), far_cells)
     return sq, float(largest), int(far)
