@@ -36,8 +36,9 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: n
     n, w = lines.shape
     n_stripes = (n + stripe - 1) // stripe
     # Per step, per context: the integer probability of a 0 (constriction's quantization).
-    # Only the contexts a step's cells have are computed (a few of the 256 on most steps), from
-    # the counts of the steps before it.
+    # Only the contexts a step's cells have are computed (a few of the 256 on most steps), at the
+    # first cell of the step with that context, before any of its cells is counted: so from the
+    # counts of the steps before it.
     zero_prob = np.empty((stripe, 256), dtype=np.int64)
     ones = np.zeros(256, dtype=np.int64)
     seen = np.zeros(256, dtype=np.int64)
@@ -55,12 +56,6 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: n
                     p = (ones[c] + prior_ones[c]) / (seen[c] + prior_total)
                     q0 = 1.0 - p
                     zero_prob[s, c] = np.int64(q0 * (FREE / (q0 + p))) + 1
-        for k in range(k_end):
-            line = k * stripe + s
-            if line >= n:
-                break
-            for j in range(w):
-                c = ctx[line, j]
                 seen[c] += 1
                 ones[c] += lines[line, j]
     # A stack: the cells go in last first. Decoding order: step by step; within a step the
