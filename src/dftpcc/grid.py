@@ -342,7 +342,8 @@ class _SpreadCounter:
         self.max_sq = max(self.max_sq, largest)
         if n_far:
             far = sq > tolerance_sq
-            n_far = int(np.count_nonzero(far))
+            if not marked:  # the kernel counted them already
+                n_far = int(np.count_nonzero(far))
         if n_far:
             self.far_points += n_far
             self.far_sq_sum += float(np.sum(sq, where=far))
