@@ -265,7 +265,8 @@ def _contexts(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             + 32 * bp[1:w + 1] + 64 * bp[2:w + 2] + 128 * bp[3:w + 3])
 
 
-def _mask_context(p: bytes, rows: int, cols: int, transposed: int) -> np.ndarray:
+def _mask_context(p: bytes, rows: int, cols: int, transposed: int, first_seed: bool) -> np.ndarray:
+    # Kind 2, or kind 3 (first_seed): line 0 of the first stripe is a seed too, step 0 codes nothing.
     # The lines run along the longer axis: transposed is 1 exactly when rows > cols.
     if transposed != int(rows > cols):
         raise ValueError("occupancy mask runs along the wrong axis")
@@ -278,7 +279,8 @@ def _mask_context(p: bytes, rows: int, cols: int, transposed: int) -> np.ndarray
     L = min(stripe, n)
     n_stripes = -(-n // L)
     lines = np.zeros((n, w), np.uint8)
-    for s, bits in enumerate(_seed_lines(p[10:10 + seed_bytes], n_stripes - 1, w), start=1):
+    first = int(first_seed)
+    for s, bits in enumerate(_seed_lines(p[10:10 + seed_bytes], n_stripes - 1 + first, w), start=1 - first):
         lines[s * L] = bits
     coder = constriction.stream.stack.AnsCoder(_words(p[10 + seed_bytes:]))
     popcount = np.array([bin(c).count("1") for c in range(256)], float)
@@ -287,7 +289,7 @@ def _mask_context(p: bytes, rows: int, cols: int, transposed: int) -> np.ndarray
     nn = np.zeros(256)
     zeros = np.zeros(w, np.uint8)
     bern = constriction.stream.model.Bernoulli
-    for t in range(L):
+    for t in range(first, L):
         idx = [s * L + t for s in range(n_stripes if t else 1) if s * L + t < n]
         ctx = []
         for i in idx:
@@ -325,8 +327,8 @@ def _mask(p: bytes, rows: int, cols: int) -> np.ndarray:
             raise ValueError("occupancy mask has the wrong size for the grid")
         bits = np.unpackbits(np.frombuffer(raw, np.uint8), count=rows * cols)
         return bits.reshape(rows, cols).astype(bool)
-    if kind == 2:
-        return _mask_context(p, rows, cols, transposed).astype(bool)
+    if kind in (2, 3):
+        return _mask_context(p, rows, cols, transposed, kind == 3).astype(bool)
     raise ValueError(f"occupancy mask has unknown coding {kind}")
 
 

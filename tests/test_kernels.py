@@ -78,15 +78,16 @@ def test_mask_coder_bytes_equal_on_a_striped_map(jit):
     assert fast == occupancy.encode_mask(mask)
 
 
-def _context_blob(mask: np.ndarray, stripe: int | None) -> bytes:
+def _context_blob(mask: np.ndarray, stripe: int | None, first_seed: bool = False) -> bytes:
     """The mask context-coded whatever the bitmap would cost (noise and full masks too), as encode_mask
-    lays it out."""
+    lays it out (kind 3 with ``first_seed``)."""
     if stripe is None:
         stripe = occupancy.STRIPE_LINES if mask.size >= occupancy.STRIPED_CELLS else max(mask.shape)
     transposed = mask.shape[0] > mask.shape[1]
     lines = (mask.T if transposed else mask).astype(np.uint8)
-    return occupancy._HEAD.pack(occupancy.KIND_CONTEXT, transposed) + occupancy._encode_context(
-        lines, min(stripe, lines.shape[0]))
+    kind = occupancy.KIND_SEEDED if first_seed else occupancy.KIND_CONTEXT
+    return occupancy._HEAD.pack(kind, transposed) + occupancy._encode_context(
+        lines, min(stripe, lines.shape[0]), first_seed=first_seed)
 
 
 def _decoded(jit, blob: bytes, shape: tuple[int, int]):
@@ -109,9 +110,19 @@ def _same(out) -> bool:
     return fast.shape == slow.shape and fast.dtype == slow.dtype and np.array_equal(fast, slow)
 
 
+def test_kind_3_words_equal(jit):
+    # Kind 3 (a tile's mask: the first line a seed too), whatever the bitmap would cost.
+    for mask, stripe in _masks(np.random.default_rng(2)):
+        jit(True)
+        fast = _context_blob(mask, stripe, first_seed=True)
+        jit(False)
+        assert fast == _context_blob(mask, stripe, first_seed=True), (mask.shape, stripe)
+
+
 def test_mask_decoder_gives_the_numpy_paths_mask(jit):
     for mask, stripe in _masks(np.random.default_rng(0)):
-        for blob in (_context_blob(mask, stripe), occupancy.encode_mask(mask, stripe=stripe)):
+        for blob in (_context_blob(mask, stripe), _context_blob(mask, stripe, first_seed=True),
+                     occupancy.encode_mask(mask, stripe=stripe, first_seed=True)):
             out = _decoded(jit, blob, mask.shape)
             assert _same(out), (mask.shape, stripe)
             assert np.array_equal(out[True], mask), (mask.shape, stripe)
@@ -124,10 +135,11 @@ def test_mask_decoder_gives_the_numpy_paths_mask_on_a_striped_map(jit, shape):
     mask = (np.hypot(xx - 200, yy - 300) < 260) & (rng.random(yy.shape) < 0.97)
     mask[:, 400:] |= (np.mod(np.hypot(xx - 450, yy - 300), 7) < 1)[:, 400:]  # rings beside the blob
     assert mask.size >= occupancy.STRIPED_CELLS
-    blob = _context_blob(mask, None)
-    assert occupancy._STRIPES.unpack_from(blob, occupancy._HEAD.size)[0] == occupancy.STRIPE_LINES
-    out = _decoded(jit, blob, shape)
-    assert _same(out) and np.array_equal(out[True], mask)
+    for first_seed in (False, True):
+        blob = _context_blob(mask, None, first_seed)
+        assert occupancy._STRIPES.unpack_from(blob, occupancy._HEAD.size)[0] == occupancy.STRIPE_LINES
+        out = _decoded(jit, blob, shape)
+        assert _same(out) and np.array_equal(out[True], mask)
 
 
 def _damaged(rng: np.random.Generator, blob: bytes):
@@ -167,7 +179,8 @@ def _damaged(rng: np.random.Generator, blob: bytes):
 def test_mask_decoder_matches_the_numpy_path_on_damaged_words(jit):
     # Every damage decodes to the numpy path's mask or fails with its CorruptFileError, never otherwise.
     rng = np.random.default_rng(5)
-    blobs = [(_context_blob(mask, stripe), mask.shape) for mask, stripe in _masks(np.random.default_rng(4))]
+    blobs = [(_context_blob(mask, stripe, first_seed=t % 3 == 0), mask.shape)
+             for t, (mask, stripe) in enumerate(_masks(np.random.default_rng(4)))]
     yy, xx = np.mgrid[:600, :450]
     big = np.hypot(xx - 220, yy - 300) < 200
     blobs.append((occupancy.encode_mask(big), big.shape))

@@ -138,3 +138,47 @@ def test_random_words_never_crash(striped):
         except CorruptFileError:
             continue
         assert out.shape == mask.shape and out.dtype == bool
+
+
+def _tile_of_a_map(rows: int, cols: int, seed: int) -> np.ndarray:
+    """A tile cut from the middle of a footprint: its first line runs through occupied cells."""
+    return _footprint(3 * rows, 3 * cols, seed)[rows:2 * rows, cols:2 * cols]
+
+
+@pytest.mark.parametrize("shape", [(200, 300), (300, 200), (600, 520)])
+def test_a_tile_cut_through_the_map_sends_its_first_line_as_a_seed(shape):
+    # Kind 2 codes the first line's occupied cells in the empty context, at about 4 bits each,
+    # and teaches the empty context to expect them; kind 3 sends the line as run lengths.
+    tile = _tile_of_a_map(*shape, seed=3)
+    first_line = tile[0] if shape[0] <= shape[1] else tile[:, 0]
+    assert first_line.mean() > 0.5
+    kind2 = occupancy.encode_mask(tile)
+    kind3 = occupancy.encode_mask(tile, first_seed=True)
+    assert kind2[0] == occupancy.KIND_CONTEXT and kind3[0] == occupancy.KIND_SEEDED
+    # About 4 bits of each of the line's occupied cells (not 8 of them: the counts matter too).
+    assert len(kind2) - len(kind3) >= first_line.sum() * 4 / 8 * 0.8
+    np.testing.assert_array_equal(occupancy.decode_mask(kind3, tile.shape), tile)
+    # Its frame holds a seed for every stripe, the first included.
+    _, stripe, seeds, _ = _blob_parts(kind3)
+    n_stripes = -(-min(shape) // min(stripe, min(shape)))
+    lines = tile.T if shape[0] > shape[1] else tile
+    np.testing.assert_array_equal(occupancy._decode_seeds(seeds, n_stripes, max(shape)),
+                                  lines[::min(stripe, min(shape))])
+
+
+def test_an_empty_first_line_keeps_kind_2():
+    # The map's own edge: nothing to gain from a seed, and the 1.0 bytes stay.
+    mask = _footprint(120, 90, seed=4)
+    assert not mask[:, 0].any() and not mask[0].any()
+    assert occupancy.encode_mask(mask, first_seed=True) == occupancy.encode_mask(mask)
+
+
+@given(st.integers(1, 40), st.integers(1, 40), st.integers(1, 50), st.floats(0, 1), st.integers(0, 2**32 - 1))
+@settings(max_examples=60, deadline=None)
+def test_kind_3_round_trips_with_any_stripe(rows, cols, stripe, density, seed):
+    mask = np.random.default_rng(seed).random((rows, cols)) < density
+    transposed = rows > cols
+    lines = (mask.T if transposed else mask).astype(np.uint8)
+    blob = occupancy._HEAD.pack(occupancy.KIND_SEEDED, transposed) + occupancy._encode_context(
+        lines, min(stripe, lines.shape[0]), first_seed=True)
+    np.testing.assert_array_equal(occupancy.decode_mask(blob, mask.shape), mask)

@@ -307,6 +307,9 @@ def test_tiled_point_cloud_with_empty_tiles(field_ground):
     empty = [k + 1 for k, c in enumerate(layout["cells"]) if c == 0]
     assert empty, layout["cells"]
     assert not {tile for _tag, tile, *_ in layout["entries"]} & set(empty)
+    # Tiles whose first line cuts through the field send it as a seed (MASK kind 3), the others not.
+    kinds = {payload[0] for tag, _k, payload in craft.split_tiled(data) if tag == b"MASK"}
+    assert {2, 3} <= kinds, kinds
 
 
 @pytest.mark.parametrize("coder", ["ans", "zstd"])

@@ -32,7 +32,8 @@ def _flush(words, count, state):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: no cover - compiled
+def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first):  # pragma: no cover - compiled
+    # first: 1 for kind 3, whose line 0 of the first stripe is a seed too (not coded), else 0
     n, w = lines.shape
     n_stripes = (n + stripe - 1) // stripe
     # Per step, per context: the integer probability of a 0 (constriction's quantization).
@@ -44,7 +45,7 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: n
     seen = np.zeros(256, dtype=np.int64)
     stamp = np.full(256, -1, dtype=np.int64)  # the last step whose probability of context c is known
     for s in range(stripe):
-        k_end = 1 if s == 0 else n_stripes
+        k_end = 1 - first if s == 0 else n_stripes
         for k in range(k_end):
             line = k * stripe + s
             if line >= n:
@@ -64,7 +65,7 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: n
     count = 0
     state = np.uint64(0)
     for s in range(stripe - 1, -1, -1):
-        k_end = 1 if s == 0 else n_stripes
+        k_end = 1 - first if s == 0 else n_stripes
         for kind in range(2, -1, -1):
             for k in range(k_end - 1, -1, -1):
                 line = k * stripe + s
@@ -90,10 +91,10 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total):  # pragma: n
 
 
 @njit(cache=True, nogil=True)
-def decode_mask_lines(words, lines, n_lines, stripe, prior_ones, prior_total):  # pragma: no cover - compiled
+def decode_mask_lines(words, lines, n_lines, stripe, prior_ones, prior_total, first):  # pragma: no cover - compiled
     # The inverse of encode_mask_words, as occupancy._decode_context decodes with constriction:
     # lines (n_stripes * stripe, width), zeros but line 0 of every stripe after the first (the
-    # seeds), gets the other lines in place. Decoding order as there: step t decodes line t of
+    # seeds; with first = 1, kind 3, line 0 of the first stripe too), gets the other lines in place. Decoding order as there: step t decodes line t of
     # every stripe that has one (line 0 of the first only); within a step the outside cells
     # (context 0), the inside ones (255), the rest, each by stripe and column; the probability of a
     # context from the counts of the steps before.
@@ -125,41 +126,43 @@ def decode_mask_lines(words, lines, n_lines, stripe, prior_ones, prior_total):  
     ones = np.zeros(256, dtype=np.int64)
     seen = np.zeros(256, dtype=np.int64)
     stamp = np.full(256, -1, dtype=np.int64)  # the step whose probability of context c is known
+    active = 1
     for t in range(stripe):
-        active = 1 if t == 0 else (n_lines - t + stripe - 1) // stripe  # stripes that have a line t
-        # The contexts of the step's cells, and the probability of each context they have, from
-        # the counts of the steps before (all of them before any cell of the step is counted).
-        for s in range(active):
-            for j in range(width):
-                c = above[s, j] | older[s, j]
-                ctx[s * width + j] = c
-                if stamp[c] != t:
-                    stamp[c] = t
-                    p = (ones[c] + prior_ones[c]) / (seen[c] + prior_total)
-                    q0 = 1.0 - p
-                    zero_prob[c] = np.uint64(np.int64(q0 * (FREE / (q0 + p))) + 1)
-        for kind in range(3):
+        if t >= first:  # kind 3: line 0 of every stripe is a seed, step 0 decodes nothing
+            active = 1 if t == 0 else (n_lines - t + stripe - 1) // stripe  # stripes that have a line t
+            # The contexts of the step's cells, and the probability of each context they have, from
+            # the counts of the steps before (all of them before any cell of the step is counted).
             for s in range(active):
-                row = s * stripe + t
                 for j in range(width):
-                    c = ctx[s * width + j]
-                    this = 0 if c == 0 else (1 if c == 255 else 2)
-                    if this != kind:
-                        continue
-                    z = zero_prob[c]
-                    quantile = state & mask24
-                    if quantile < z:
-                        bit = 0
-                        state = (state >> np.uint64(PRECISION)) * z + quantile
-                    else:
-                        bit = 1
-                        state = (state >> np.uint64(PRECISION)) * (total - z) + (quantile - z)
-                    if state < low and pos >= 0:
-                        state = (state << np.uint64(32)) | np.uint64(words[pos])
-                        pos -= 1
-                    lines[row, j] = bit
-                    seen[c] += 1
-                    ones[c] += bit
+                    c = above[s, j] | older[s, j]
+                    ctx[s * width + j] = c
+                    if stamp[c] != t:
+                        stamp[c] = t
+                        p = (ones[c] + prior_ones[c]) / (seen[c] + prior_total)
+                        q0 = 1.0 - p
+                        zero_prob[c] = np.uint64(np.int64(q0 * (FREE / (q0 + p))) + 1)
+            for kind in range(3):
+                for s in range(active):
+                    row = s * stripe + t
+                    for j in range(width):
+                        c = ctx[s * width + j]
+                        this = 0 if c == 0 else (1 if c == 255 else 2)
+                        if this != kind:
+                            continue
+                        z = zero_prob[c]
+                        quantile = state & mask24
+                        if quantile < z:
+                            bit = 0
+                            state = (state >> np.uint64(PRECISION)) * z + quantile
+                        else:
+                            bit = 1
+                            state = (state >> np.uint64(PRECISION)) * (total - z) + (quantile - z)
+                        if state < low and pos >= 0:
+                            state = (state << np.uint64(32)) | np.uint64(words[pos])
+                            pos -= 1
+                        lines[row, j] = bit
+                        seen[c] += 1
+                        ones[c] += bit
         if t == 0:
             active = n_stripes  # the seeds are line 0 of the other stripes
         # The codes of line t (occupancy._codes: bit k the cell at offset k - 2, zeros past the

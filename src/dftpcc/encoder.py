@@ -166,7 +166,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
     # A tiled map codes each tile's mask on its own; their bytes together are the mask's.
-    mask_blob: Any = ([occupancy.encode_mask(an.tile_cells(dem.mask, k)) for k in an.occupied] if tile
+    mask_blob: Any = ([occupancy.encode_mask(an.tile_cells(dem.mask, k), first_seed=True) for k in an.occupied] if tile
                       else occupancy.encode_mask(an.kept_cells))
 
     on_stage("encode")

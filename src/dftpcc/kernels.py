@@ -74,21 +74,22 @@ def enabled() -> bool:
 
 
 def encode_mask_words(lines: np.ndarray, ctx: np.ndarray, stripe: int, prior_ones: np.ndarray,
-                      prior_total: float) -> np.ndarray:
+                      prior_total: float, first_seed: bool = False) -> np.ndarray:
     """The context coder's ANS words of the line-major mask ``lines`` (uint8, 0/1) with the contexts
-    ``ctx`` (see ``occupancy._contexts``): what ``occupancy._encode_context`` gets from constriction."""
+    ``ctx`` (see ``occupancy._contexts``): what ``occupancy._encode_context`` gets from constriction
+    (``first_seed``: kind 3, line 0 of the first stripe not coded)."""
     module = _state["module"]
     return module.encode_mask_words(np.ascontiguousarray(lines, dtype=np.uint8), np.ascontiguousarray(ctx),
-                                    int(stripe), prior_ones, float(prior_total))
+                                    int(stripe), prior_ones, float(prior_total), int(first_seed))
 
 
 def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, stripe: int, prior_ones: np.ndarray,
-                      prior_total: float) -> np.ndarray:
+                      prior_total: float, first_seed: bool = False) -> np.ndarray:
     """The inverse of :func:`encode_mask_words`, as ``occupancy._decode_context`` decodes with constriction.
 
     ``words``: the ANS words (uint32, their last word not zero: constriction refuses that, and so must
     the caller); ``lines``: the line-major mask, ``(n_stripes * stripe, width)`` uint8, zeros but line 0 of
-    every stripe after the first (the seed lines); the other lines are decoded into it in place, and it
+    every stripe after the first (the seed lines; of the first too with ``first_seed``, kind 3); the other lines are decoded into it in place, and it
     is returned. Any words decode to some mask, as they do with constriction (which decodes on from its
     state alone past the last word)."""
     # The kernel writes into lines without bounds checks: its shape must be what it assumes.
@@ -98,7 +99,7 @@ def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, stripe
         raise ValueError("lines must hold every line of the stripes")
     return _state["module"].decode_mask_lines(np.ascontiguousarray(words, dtype=np.uint32), lines, int(n_lines),
                                               int(stripe), np.ascontiguousarray(prior_ones, dtype=np.float64),
-                                              float(prior_total))
+                                              float(prior_total), int(first_seed))
 
 
 def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, lows: list[int], cumulatives: list[np.ndarray],

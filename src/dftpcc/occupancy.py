@@ -14,6 +14,9 @@ run lengths. Within a step, the cells whose context is all empty or all
 full (most cells of a real footprint) are decoded with one fixed model
 each, the rest with one model per cell.
 
+A tile's first line is a cut through the map, not the map's edge: there
+kind 3 sends it as a seed too (format 1.1's tiles only).
+
 A bit-packed, zstd'd bitmap is the fallback when it is smaller.
 """
 
@@ -40,6 +43,8 @@ __all__ = ["encode_mask", "decode_mask", "STRIPE_LINES"]
 #: coder without stripes, was only written by pre-release builds.
 KIND_ZSTD = 0
 KIND_CONTEXT = 2
+#: Kind 2 with line 0 of the first stripe sent as a seed as well (format 1.1).
+KIND_SEEDED = 3
 _HEAD = struct.Struct("<BB")  # kind, transposed
 _STRIPES = struct.Struct("<II")  # lines per stripe, bytes of the seed frame
 CONTEXTS = 256
@@ -166,29 +171,34 @@ def _contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
     return ctx
 
 
-def _seed_lines(lines: np.ndarray, stripe: int) -> np.ndarray:
-    """Line 0 of every stripe but the first: sent as run lengths, before the context-coded cells."""
-    return lines[stripe::stripe]
+def _seed_lines(lines: np.ndarray, stripe: int, first_seed: bool = False) -> np.ndarray:
+    """Line 0 of every stripe but the first (of every stripe with ``first_seed``): sent as run
+    lengths, before the context-coded cells."""
+    return lines[0 if first_seed else stripe::stripe]
 
 
-def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = None) -> bytes:
-    """The context-coded mask; ``seed_frame``: :func:`_encode_seeds` of its seed lines, if known."""
+def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = None,
+                    first_seed: bool = False) -> bytes:
+    """The context-coded mask (kind 2, or 3 with ``first_seed``); ``seed_frame``:
+    :func:`_encode_seeds` of its seed lines, if known."""
     n_lines, width = lines.shape
     ctx = _contexts(lines, stripe)
     if seed_frame is None:
-        seed_frame = _encode_seeds(_seed_lines(lines, stripe))
+        seed_frame = _encode_seeds(_seed_lines(lines, stripe, first_seed))
     head = _STRIPES.pack(stripe, len(seed_frame)) + seed_frame
     if kernels.enabled():  # the same words in one compiled pass
-        return head + kernels.encode_mask_words(lines, ctx, stripe, PRIOR_ONES, PRIOR_TOTAL).astype("<u4").tobytes()
+        return head + kernels.encode_mask_words(lines, ctx, stripe, PRIOR_ONES, PRIOR_TOTAL,
+                                                first_seed).astype("<u4").tobytes()
     # Step s decodes line s of every stripe (line 0 of the first stripe only, the
-    # others' are seeds): by stripe, then column. The lines in that order:
+    # others' are seeds; none with first_seed): by stripe, then column. The lines in that order:
     line = np.arange(n_lines)
     step_of = line % stripe
     if stripe >= n_lines:  # one stripe (a tile's mask): the lines in their own order, step = line
-        steps, bits, c = step_of, lines, ctx
+        first = int(first_seed)
+        steps, bits, c = step_of[first:], lines[first:], ctx[first:]
     else:
         order = np.lexsort((line // stripe, step_of))
-        order = order[(step_of[order] > 0) | (order == 0)]
+        order = order[(step_of[order] > 0) | ((order == 0) & (not first_seed))]
         steps, bits, c = step_of[order], lines[order], ctx[order]
     # Decoding order: step by step; within a step the outside cells, then the
     # inside cells, then the rest, each by stripe and column. The decoder takes
@@ -287,8 +297,9 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     return head + coder.get_compressed().astype("<u4").tobytes()
 
 
-def _decode_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
+def _decode_context(payload: bytes, shape: tuple[int, int], first_seed: bool = False) -> np.ndarray:
     n_lines, width = shape
+    first = int(first_seed)
     if len(payload) < _STRIPES.size:
         raise CorruptFileError("occupancy mask is truncated")
     stripe, seed_bytes = _STRIPES.unpack_from(payload, 0)
@@ -299,7 +310,7 @@ def _decode_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
     n_stripes = math.ceil(n_lines / stripe)
     # Stripe s, line t is row s of lines[:, t]; rows past the map stay empty.
     lines = np.zeros((n_stripes, stripe, width), dtype=np.uint8)
-    lines[1:, 0] = _decode_seeds(payload[_STRIPES.size:words_at], n_stripes - 1, width)
+    lines[1 - first:, 0] = _decode_seeds(payload[_STRIPES.size:words_at], n_stripes - 1 + first, width)
     if kernels.enabled():  # the same mask in one compiled pass
         words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
         if words.size and words[-1] == 0:
@@ -310,7 +321,7 @@ def _decode_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
                 raise CorruptFileError(f"occupancy mask does not decode: {exc}") from None
             raise CorruptFileError("occupancy mask does not decode: its words end in a zero word")
         flat = lines.reshape(-1, width)
-        kernels.decode_mask_lines(words, flat, n_lines, stripe, PRIOR_ONES, PRIOR_TOTAL)
+        kernels.decode_mask_lines(words, flat, n_lines, stripe, PRIOR_ONES, PRIOR_TOTAL, first_seed)
         return flat[:n_lines].view(bool)
     padded = np.zeros((n_stripes, width + 4), dtype=np.uint8)  # lines with two empty cells each side
     ones, total = np.zeros(CONTEXTS), np.zeros(CONTEXTS)
@@ -320,26 +331,27 @@ def _decode_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
                                                    .astype(np.uint32))
         model = _bernoulli()
         for t in range(stripe):
-            active = 1 if t == 0 else -(-(n_lines - t) // stripe)  # stripes that have a line t
-            ctx = (above[:active] | older[:active]).ravel()
-            prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)
-            line = np.empty(ctx.size, dtype=np.uint8)
-            outside, inside = ctx == OUTSIDE, ctx == INSIDE
-            for where, c in ((outside, OUTSIDE), (inside, INSIDE)):
-                n = np.count_nonzero(where)
-                if n:
-                    bits = coder.decode(_bernoulli(prob[c]), n)
-                    line[where] = bits
-                    ones[c] += np.count_nonzero(bits)
-                    total[c] += n
-            rest = ~(outside | inside)
-            rest_ctx = ctx[rest]
-            if rest_ctx.size:
-                bits = coder.decode(model, prob[rest_ctx])
-                line[rest] = bits
-                ones += np.bincount(rest_ctx, weights=bits, minlength=CONTEXTS)
-                total += np.bincount(rest_ctx, minlength=CONTEXTS)
-            lines[:active, t] = line.reshape(active, width)
+            if t >= first:  # kind 3: line 0 of every stripe is a seed
+                active = 1 if t == 0 else -(-(n_lines - t) // stripe)  # stripes that have a line t
+                ctx = (above[:active] | older[:active]).ravel()
+                prob = (ones + PRIOR_ONES) / (total + PRIOR_TOTAL)
+                line = np.empty(ctx.size, dtype=np.uint8)
+                outside, inside = ctx == OUTSIDE, ctx == INSIDE
+                for where, c in ((outside, OUTSIDE), (inside, INSIDE)):
+                    n = np.count_nonzero(where)
+                    if n:
+                        bits = coder.decode(_bernoulli(prob[c]), n)
+                        line[where] = bits
+                        ones[c] += np.count_nonzero(bits)
+                        total[c] += n
+                rest = ~(outside | inside)
+                rest_ctx = ctx[rest]
+                if rest_ctx.size:
+                    bits = coder.decode(model, prob[rest_ctx])
+                    line[rest] = bits
+                    ones += np.bincount(rest_ctx, weights=bits, minlength=CONTEXTS)
+                    total += np.bincount(rest_ctx, minlength=CONTEXTS)
+                lines[:active, t] = line.reshape(active, width)
             if t == 0:
                 active = n_stripes  # the seeds are line 0 of the other stripes
             padded[:active, 2:-2] = lines[:active, t]
@@ -358,7 +370,7 @@ def _decode_context(payload: bytes, shape: tuple[int, int]) -> np.ndarray:
     return lines.reshape(-1, width)[:n_lines].view(bool)
 
 
-def encode_mask(mask: np.ndarray, *, stripe: int | None = None) -> bytes:
+def encode_mask(mask: np.ndarray, *, stripe: int | None = None, first_seed: bool = False) -> bytes:
     """Code the occupancy mask; the smaller of the context model and zstd wins.
 
     The context coder runs along the longer axis, line after line across
@@ -370,6 +382,9 @@ def encode_mask(mask: np.ndarray, *, stripe: int | None = None) -> bytes:
     stripe : int, optional
         Lines per stripe; default :data:`STRIPE_LINES` on masks of at least
         :data:`STRIPED_CELLS` cells, else one stripe.
+    first_seed : bool
+        Also try kind 3, the first line sent as a seed (format 1.1: a tile's mask, whose first
+        line cuts through the map), when that line has an occupied cell; kind 2 on a tie.
     """
     if stripe is None:
         stripe = STRIPE_LINES if mask.size >= STRIPED_CELLS else max(mask.shape)
@@ -386,7 +401,11 @@ def encode_mask(mask: np.ndarray, *, stripe: int | None = None) -> bytes:
     if len(bitmap) < _HEAD.size + _STRIPES.size + len(seed_frame):
         return bitmap
     context = _HEAD.pack(KIND_CONTEXT, transposed) + _encode_context(lines, stripe, seed_frame)
-    return min([context, bitmap], key=len)  # the context coder on a tie, as always
+    choices = [context, bitmap]  # the context coder on a tie, as always
+    # An empty first line costs kind 2 next to nothing (and teaches the empty context what it is).
+    if first_seed and lines[0].any():
+        choices.insert(1, _HEAD.pack(KIND_SEEDED, transposed) + _encode_context(lines, stripe, first_seed=True))
+    return min(choices, key=len)
 
 
 def decode_mask(blob: bytes | memoryview, shape: tuple[int, int]) -> np.ndarray:
@@ -396,12 +415,13 @@ def decode_mask(blob: bytes | memoryview, shape: tuple[int, int]) -> np.ndarray:
         raise CorruptFileError("occupancy mask is truncated")
     kind, transposed = _HEAD.unpack_from(blob, 0)
     payload = blob[_HEAD.size:]
-    if kind == KIND_CONTEXT:
+    if kind in (KIND_CONTEXT, KIND_SEEDED):
         # The encoder always runs along the longer axis (fewest sequential
         # lines); a file claiming otherwise could make decoding crawl.
         if transposed != (shape[0] > shape[1]):
             raise CorruptFileError("occupancy mask runs along the wrong axis")
-        lines = _decode_context(payload, (shape[1], shape[0]) if transposed else shape)
+        lines = _decode_context(payload, (shape[1], shape[0]) if transposed else shape,
+                                first_seed=kind == KIND_SEEDED)
         return lines.T.copy() if transposed else lines
     if kind != KIND_ZSTD:
         raise CorruptFileError(f"occupancy mask has unknown coding {kind}")

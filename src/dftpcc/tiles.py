@@ -498,7 +498,7 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
         resid = encode_residual(q, params.coder, mask)
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
-    mask_code = occupancy.encode_mask(mask) if job.mask_code is None else job.mask_code
+    mask_code = occupancy.encode_mask(mask, first_seed=True) if job.mask_code is None else job.mask_code
     coef_code = an.encode_stream(stream, progressive=False) if job.coef_code is None else job.coef_code
     return TileCode(job.k, mask_code, coef_code, resid, int(mask.sum()), dot(err, err), float(np.abs(err).max()),
                     weighted)

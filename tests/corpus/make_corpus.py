@@ -215,6 +215,7 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
     out["paper_nan_coefficient"] = (craft.replace_section(paper, b"COEF", bytes(coef)), C, "non-finite heights")
     out.update(_sparse_residual_cases(seeds["compact_max_error_sparse"], C))
     out.update(tiled_cases(seeds["tiled"]))
+    out.update(first_seed_cases(seeds["tiled_first_seed"]))
     return out
 
 
@@ -312,6 +313,20 @@ def tiled_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
         "tiled_coef_chunks_fall_short": (_short_chunks(craft.tiled_file(64, 64, 32, {1: 100}, cutoff=0.0)), C,
                                          r"tile 1 \(tile row 0, column 0\): coefficient chunks hold 1599 values, "
                                          "expected 1600"),
+    }
+
+
+def first_seed_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
+    """A tile's MASK of kind 3 (its first line a seed too) given the other kind's byte, and back:
+    the seed frame then holds one line more, or one fewer, than the kind says."""
+    C = "CorruptFileError"
+    k, mask = next((k, p) for t, k, p in craft.split_tiled(tiled) if t == b"MASK" and p[0] == 3)
+    other = next((j, p) for t, j, p in craft.split_tiled(tiled) if t == b"MASK" and p[0] == 2)
+    return {
+        "tiled_mask_kind_3_read_as_2": (craft.replace_section(tiled, b"MASK", b"\x02" + mask[1:], tile=k), C,
+                                        f"tile {k} .*occupancy mask has seed lines it does not need"),
+        "tiled_mask_kind_2_read_as_3": (craft.replace_section(tiled, b"MASK", b"\x03" + other[1][1:], tile=other[0]),
+                                        C, f"tile {other[0]} .*occupancy mask"),
     }
 
 

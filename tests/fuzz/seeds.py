@@ -55,6 +55,10 @@ def seed_files() -> dict[str, bytes]:
         for name, options in SEED_OPTIONS.items():
             out[name] = dftpcc.compress(points, **options)
         out["one_cell"] = dftpcc.compress(np.array([[5.0, 7.0, 1.25]]), resolution=1.0)
+        # Denser points in 32-cell tiles: a tile whose first line cuts through the map sends it as a
+        # seed (MASK kind 3).
+        out["tiled_first_seed"] = dftpcc.compress(regolith_plain(6000, size=40.0, craters=3, rocks=10, seed=11),
+                                                  resolution=1.0, cutoff=0.8, tile_size=32)
         out["with_crs"] = dftpcc.compress(
             points[::4], resolution=2.0, crs={"wkt": 'LOCAL_CS["rover frame"]', "las_vlrs": [
                 {"record_id": 34735, "description": "GeoKeyDirectoryTag", "data": "AQABAAAAAQA="}]})
