@@ -324,3 +324,26 @@ def test_gridding_bits_equal(jit):
             out[on] = [(d.heights.tobytes(), d.mask.tobytes(), d.counts.tobytes(), d.gridding_rmse, d.spread)
                        for d in (whole, parts)]
         assert out[True] == out[False], n
+
+
+def test_extremes_equal_numpys(jit):
+    # One compiled pass gives numpy's minima and maxima; a zero among them goes to numpy
+    # (which of 0.0 and -0.0 is the minimum is numpy's to say).
+    from dftpcc import grid
+
+    rng = np.random.default_rng(6)
+    clouds = [rng.normal(0, 1e5, (n, 3)) for n in (1, 2, 17, 100_001)]
+    zeros = np.abs(np.round(rng.uniform(-3, 3, (1000, 3))))  # minima 0.0, with -0.0 among them
+    zeros[::7] *= -1.0
+    zeros[::7] = np.where(zeros[::7] == 0, -0.0, -zeros[::7])
+    clouds.append(zeros)
+    clouds.append(np.c_[rng.uniform(4e5, 5e5, (500, 2)), rng.uniform(-4e3, 9e3, 500), rng.random((500, 2))])
+    for points in clouds:
+        jit(True)
+        fast = grid.extremes(points)
+        jit(False)
+        slow = grid.extremes(points)
+        assert np.array(fast).tobytes() == np.array(slow).tobytes()
+        assert fast == (points[:, 0].min(), points[:, 0].max(), points[:, 1].min(), points[:, 1].max(),
+                        points[:, 2].min(), points[:, 2].max())
+    assert kernels.extremes(zeros) is None

@@ -270,6 +270,28 @@ def push(values, known, coarse):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def extremes(points):  # pragma: no cover - compiled
+    # The smallest and largest x, y and z of finite points (N, 3+), in one pass.
+    x_lo = y_lo = z_lo = np.inf
+    x_hi = y_hi = z_hi = -np.inf
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if x < x_lo:
+            x_lo = x
+        if x > x_hi:
+            x_hi = x
+        if y < y_lo:
+            y_lo = y
+        if y > y_hi:
+            y_hi = y
+        if z < z_lo:
+            z_lo = z
+        if z > z_hi:
+            z_hi = z
+    return x_lo, x_hi, y_lo, y_hi, z_lo, z_hi
+
+
+@njit(cache=True, nogil=True)
 def axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows):  # pragma: no cover - compiled
     # grid._axis_cells in one pass: floor((x - x0) * inv_u), the same for y, row * cols + col
     # (each rounding as numpy does it, one operation at a time), and z - z0; ok False as soon
@@ -301,9 +323,10 @@ def cell_sums(idx, z, size):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def squared_distances(idx, z, heights, tolerance_sq, far_cells):  # pragma: no cover - compiled
-    # (z - heights[idx])**2 per point, their maximum and how many exceed tolerance_sq, whose
-    # cells are marked in far_cells.
+    # (z - heights[idx])**2 per point, their maximum, and those that exceed tolerance_sq, in order
+    # (sq[sq > tolerance_sq]), whose cells are marked in far_cells.
     sq = np.empty(idx.size)
+    far_sq = np.empty(idx.size)
     largest = 0.0
     far = 0
     for i in range(idx.size):
@@ -313,6 +336,7 @@ def squared_distances(idx, z, heights, tolerance_sq, far_cells):  # pragma: no c
         if s > largest:
             largest = s
         if s > tolerance_sq:
+            far_sq[far] = s
             far += 1
             far_cells[idx[i]] = True
-    return sq, largest, far
+    return sq, largest, far_sq[:far]

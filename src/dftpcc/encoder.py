@@ -21,7 +21,7 @@ from .analysis import Analysis, Trial
 from .container import Header, TileIndex, check_grid, pack, pack_tiled
 from .dem import DEM, as_points
 from .errors import CoarseMapWarning, InvalidInputError
-from .grid import _fit_grid, _rasterize, auto_resolution
+from .grid import _fit_grid, _rasterize, auto_resolution, extremes
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
@@ -106,9 +106,10 @@ def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str,
     on_stage("grid")
     params = params_of(params, shortcuts)
     points = as_points(points)
-    check_heights(float(points[:, 2].min()), float(points[:, 2].max()))  # before gridding overflows on them
-    return encode_dem(_grid_points(points, params), params, point_count=int(points.shape[0]), crs=crs,
-                      on_stage=on_stage)
+    x_lo, x_hi, y_lo, y_hi, z_lo, z_hi = extremes(points)
+    check_heights(z_lo, z_hi)  # before gridding overflows on them
+    return encode_dem(_grid_points(points, params, (x_lo, x_hi, y_lo, y_hi)), params,
+                      point_count=int(points.shape[0]), crs=crs, on_stage=on_stage)
 
 
 def grid_points(points: np.ndarray, params: Params) -> DEM:
@@ -116,10 +117,12 @@ def grid_points(points: np.ndarray, params: Params) -> DEM:
     return _grid_points(as_points(points), params)
 
 
-def _grid_points(points: np.ndarray, params: Params) -> DEM:
-    """:func:`grid_points` of checked points: each pass over millions of points counts."""
+def _grid_points(points: np.ndarray, params: Params,
+                 xy_extremes: tuple[float, float, float, float] | None = None) -> DEM:
+    """:func:`grid_points` of checked points (``xy_extremes``: their x_lo, x_hi, y_lo, y_hi, if
+    known): each pass over millions of points counts."""
     resolution = auto_resolution(points) if params.resolution == "auto" else params.resolution
-    return _rasterize(points, _fit_grid(points, resolution, params.frame), params.aggregate)
+    return _rasterize(points, _fit_grid(points, resolution, params.frame, xy_extremes), params.aggregate)
 
 
 def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,

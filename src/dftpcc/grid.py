@@ -23,6 +23,7 @@ from .limits import check_grid_size
 
 __all__ = [
     "fit_grid",
+    "extremes",
     "rasterize",
     "rasterize_chunks",
     "check_chunked_aggregate",
@@ -51,6 +52,17 @@ AUTO_POINTS_PER_CELL = 4.0
 #: scratch arrays stay in the core's cache, so a cloud is read from memory once per
 #: pass instead of once per column and operation (2x faster on 2.8 M points).
 BLOCK_POINTS = 16384
+
+
+def extremes(points: np.ndarray) -> tuple[float, float, float, float, float, float]:
+    """x_lo, x_hi, y_lo, y_hi, z_lo, z_hi of checked points (N, 3+), N > 0 (one compiled pass when
+    the kernels are loaded, the same values)."""
+    if kernels.enabled() and points.dtype == np.float64:
+        found = kernels.extremes(points)
+        if found is not None:
+            return found
+    z = points[:, 2]
+    return (*_xy_extremes(points), float(z.min()), float(z.max()))
 
 
 def _xy_extremes(points: np.ndarray) -> tuple[float, float, float, float]:
@@ -108,11 +120,13 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
     return _fit_grid(as_points(points), resolution, frame)
 
 
-def _fit_grid(points: np.ndarray, resolution: float, frame: str) -> Grid:
-    """:func:`fit_grid` of points :func:`~dftpcc.dem.as_points` has checked already."""
+def _fit_grid(points: np.ndarray, resolution: float, frame: str,
+              xy_extremes: tuple[float, float, float, float] | None = None) -> Grid:
+    """:func:`fit_grid` of points :func:`~dftpcc.dem.as_points` has checked already (whose
+    x_lo, x_hi, y_lo, y_hi the caller may have found: :func:`extremes`)."""
     _check_resolution(resolution)
     angle = _min_area_angle(points[:, :2]) if frame == "oriented" else 0.0
-    x_lo, x_hi, y_lo, y_hi = _xy_extremes(points)
+    x_lo, x_hi, y_lo, y_hi = _xy_extremes(points) if xy_extremes is None else xy_extremes
     if angle:
         c, s = math.cos(angle), math.sin(angle)
         u = c * points[:, 0] + s * points[:, 1]
@@ -317,18 +331,17 @@ class _SpreadCounter:
         self.tolerance = MULTI_HEIGHT_TOLERANCE_CELLS * grid.resolution
         self.points = self.far_points = 0
         self.sq_sum = self.far_sq_sum = self.max_sq = 0.0
-        self.far_cells: np.ndarray | None = None  # allocated at the first far point
+        self.far_cells: np.ndarray | None = None  # allocated at the first far point (or kernel call)
 
     def add(self, idx: np.ndarray, z: np.ndarray, heights: np.ndarray) -> None:
         # Squared distances block by block, so the gathered heights and the
         # differences stay in cache; the sums run over the whole arrays, adding
         # in the same order as one pass would.
         tolerance_sq = self.tolerance * self.tolerance
-        marked = kernels.enabled()
-        if marked:  # the squares, their maximum, the far count and their cells in one compiled pass
+        if kernels.enabled():  # the squares, their maximum, the far ones and their cells in one compiled pass
             if self.far_cells is None:
                 self.far_cells = np.zeros(self.grid.size, dtype=bool)
-            sq, largest, n_far = kernels.squared_distances(idx, z, heights, tolerance_sq, self.far_cells)
+            sq, largest, far_sq = kernels.squared_distances(idx, z, heights, tolerance_sq, self.far_cells)
         else:
             sq = np.empty(idx.size)
             for start in range(0, idx.size, BLOCK_POINTS):
@@ -336,21 +349,18 @@ class _SpreadCounter:
                 np.subtract(z[start:start + BLOCK_POINTS], heights[idx[start:start + BLOCK_POINTS]], out=dz)
                 np.multiply(dz, dz, out=dz)
             largest = float(sq.max()) if sq.size else 0.0
-            n_far = -1  # counted below
-        self.points += sq.size
-        self.sq_sum += float(sq.sum())  # numpy's pairwise sum either way: its bits reach the file
-        self.max_sq = max(self.max_sq, largest)
-        if n_far:
             far = sq > tolerance_sq
-            if not marked:  # the kernel counted them already
-                n_far = int(np.count_nonzero(far))
-        if n_far:
-            self.far_points += n_far
-            self.far_sq_sum += float(np.sum(sq, where=far))
-            if not marked:
+            far_sq = sq[far]
+            if far_sq.size:
                 if self.far_cells is None:
                     self.far_cells = np.zeros(self.grid.size, dtype=bool)
-                self.far_cells[idx.compress(far)] = True
+                self.far_cells[idx[far]] = True
+        self.points += sq.size
+        # numpy's pairwise sums on both paths (of the far squares in the points' order): their bits reach the file
+        self.sq_sum += float(sq.sum())
+        self.max_sq = max(self.max_sq, largest)
+        self.far_points += far_sq.size
+        self.far_sq_sum += float(far_sq.sum())
 
     def dem(self, heights: np.ndarray, mask: np.ndarray, count: np.ndarray) -> DEM:
         """The DEM, with its gridding RMSE and spread; warns when the spread is large."""

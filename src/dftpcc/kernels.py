@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["load", "enabled", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
+           "extremes",
            "axis_cells", "cell_sums", "squared_distances"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
@@ -135,6 +136,13 @@ def _compiled_module():
     return _compiled
 
 
+def extremes(points: np.ndarray) -> tuple[float, float, float, float, float, float] | None:
+    """x_lo, x_hi, y_lo, y_hi, z_lo, z_hi of finite float64 points (N, 3+), N > 0, in one pass; None
+    where numpy's reductions could differ (a zero among them: which of 0.0 and -0.0 is the minimum)."""
+    found = tuple(float(v) for v in _state["module"].extremes(points))
+    return None if 0.0 in found else found  # type: ignore[return-value]
+
+
 def axis_cells(points: np.ndarray, x0: float, y0: float, z0: float, inv_u: float, inv_v: float, cols: int,
                rows: int) -> tuple[np.ndarray, np.ndarray] | None:
     """``grid._axis_cells``: the flat cell index and the height above ``z0`` of every point of an
@@ -151,14 +159,14 @@ def cell_sums(idx: np.ndarray, z: np.ndarray, size: int) -> tuple[np.ndarray, np
 
 
 def squared_distances(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance_sq: float,
-                      far_cells: np.ndarray) -> tuple[np.ndarray, float, int]:
-    """``(z - heights[idx])**2``, its maximum (0 for no points) and the count above ``tolerance_sq``,
+                      far_cells: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """``sq = (z - heights[idx])**2``, its maximum (0 for no points) and ``sq[sq > tolerance_sq]``,
     whose cells it sets True in ``far_cells`` (bool, one per cell of the grid, in place)."""
     # idx are cells of the grid (the kernel does not check them): heights and far_cells hold one per cell.
     if far_cells.dtype != np.bool_ or not far_cells.flags.c_contiguous or far_cells.size != heights.size:
         raise ValueError("far_cells must be a contiguous bool array of one value per cell, as heights")
-    sq, largest, far = _state["module"].squared_distances(np.ascontiguousarray(idx, dtype=np.int64),
+    sq, largest, far_sq = _state["module"].squared_distances(np.ascontiguousarray(idx, dtype=np.int64),
                                                           np.ascontiguousarray(z, dtype=np.float64),
                                                           np.ascontiguousarray(heights, dtype=np.float64),
                                                           float(tolerance_sq), far_cells)
-    return sq, float(largest), int(far)
+    return sq, float(largest), far_sq
