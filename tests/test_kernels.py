@@ -347,3 +347,21 @@ def test_extremes_equal_numpys(jit):
         assert fast == (points[:, 0].min(), points[:, 0].max(), points[:, 1].min(), points[:, 1].max(),
                         points[:, 2].min(), points[:, 2].max())
     assert kernels.extremes(zeros) is None
+
+
+def test_rebuilt_points_equal(jit):
+    # One point per occupied cell, row-major, the same float64 bits either way.
+    from dftpcc import grid, rebuild
+
+    rng = np.random.default_rng(7)
+    for rows, cols in ((1, 1), (3, 70), (257, 130)):
+        points = np.c_[rng.uniform(4.5e5, 4.5e5 + cols, 4 * rows * cols), rng.uniform(5.2e6, 5.2e6 + rows, 4 * rows * cols),
+                       rng.normal(300, 20, 4 * rows * cols)]
+        g = grid.fit_grid(points, 1.0)
+        dem = grid.rasterize(points[rng.random(len(points)) < 0.3], g)
+        out = {}
+        for on in (True, False):
+            jit(on)
+            out[on] = rebuild.dem_to_points(dem)
+        assert out[True].dtype == out[False].dtype and out[True].shape == out[False].shape
+        assert out[True].tobytes() == out[False].tobytes()

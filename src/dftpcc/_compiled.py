@@ -31,6 +31,22 @@ def _flush(words, count, state):  # pragma: no cover - compiled
     return words[:count].copy()
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _push(words, count, state, bit, z):  # pragma: no cover - compiled
+    # constriction's Bernoulli push of one bit whose 0 has the integer probability z (of 2**24)
+    if bit:
+        left, prob = z, TOTAL - z
+    else:
+        left, prob = 0, z
+    if (state >> np.uint64(64 - PRECISION)) >= np.uint64(prob):
+        words[count] = np.uint32(state & np.uint64(0xFFFFFFFF))
+        count += 1
+        state = state >> np.uint64(32)
+    prob_u = np.uint64(prob)
+    state = ((state // prob_u) << np.uint64(PRECISION)) | (np.uint64(left) + state % prob_u)
+    return count, state
+
+
 @njit(cache=True, nogil=True)
 def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first):  # pragma: no cover - compiled
     # first: 1 for kind 3, whose line 0 of the first stripe is a seed too (not coded), else 0
@@ -60,33 +76,39 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first):  # pr
                 seen[c] += 1
                 ones[c] += lines[line, j]
     # A stack: the cells go in last first. Decoding order: step by step; within a step the
-    # outside cells (context 0), the inside ones (255), the rest, each by stripe and column.
+    # outside cells (context 0), the inside ones (255), the rest, each by stripe and column. So per
+    # step, one pass backwards pushes the rest and keeps the bits of the outside and inside cells
+    # (one probability each in a step), which are pushed after it, inside first.
     words = np.empty(n * w + 4, dtype=np.uint32)
+    outside = np.empty(n_stripes * w, dtype=np.uint8)
+    inside = np.empty(n_stripes * w, dtype=np.uint8)
     count = 0
     state = np.uint64(0)
     for s in range(stripe - 1, -1, -1):
         k_end = 1 - first if s == 0 else n_stripes
-        for kind in range(2, -1, -1):
-            for k in range(k_end - 1, -1, -1):
-                line = k * stripe + s
-                if line >= n:
-                    continue
-                for j in range(w - 1, -1, -1):
-                    c = ctx[line, j]
-                    this = 0 if c == 0 else (1 if c == 255 else 2)
-                    if this != kind:
-                        continue
-                    z = zero_prob[s, c]
-                    if lines[line, j]:
-                        left, prob = z, TOTAL - z
-                    else:
-                        left, prob = 0, z
-                    if (state >> np.uint64(64 - PRECISION)) >= np.uint64(prob):
-                        words[count] = np.uint32(state & np.uint64(0xFFFFFFFF))
-                        count += 1
-                        state = state >> np.uint64(32)
-                    prob_u = np.uint64(prob)
-                    state = ((state // prob_u) << np.uint64(PRECISION)) | (np.uint64(left) + state % prob_u)
+        n_out = n_in = 0
+        for k in range(k_end - 1, -1, -1):
+            line = k * stripe + s
+            if line >= n:
+                continue
+            for j in range(w - 1, -1, -1):
+                c = ctx[line, j]
+                if c == 0:
+                    outside[n_out] = lines[line, j]
+                    n_out += 1
+                elif c == 255:
+                    inside[n_in] = lines[line, j]
+                    n_in += 1
+                else:
+                    count, state = _push(words, count, state, lines[line, j], zero_prob[s, c])
+        if n_in:
+            z = zero_prob[s, 255]
+            for t in range(n_in):
+                count, state = _push(words, count, state, inside[t], z)
+        if n_out:
+            z = zero_prob[s, 0]
+            for t in range(n_out):
+                count, state = _push(words, count, state, outside[t], z)
     return _flush(words, count, state)
 
 
@@ -292,6 +314,28 @@ def extremes(points):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def cell_points(mask, xs, ys, heights, z0):  # pragma: no cover - compiled
+    # rebuild.dem_to_points on an axis-aligned grid: (xs[col], ys[row], heights + z0) of every
+    # occupied cell, row-major, in one pass.
+    rows, cols = mask.shape
+    n = 0
+    for i in range(rows):
+        for j in range(cols):
+            n += mask[i, j]
+    out = np.empty((n, 3))
+    k = 0
+    for i in range(rows):
+        y = ys[i]
+        for j in range(cols):
+            if mask[i, j]:
+                out[k, 0] = xs[j]
+                out[k, 1] = y
+                out[k, 2] = heights[i, j] + z0
+                k += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
 def axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows):  # pragma: no cover - compiled
     # grid._axis_cells in one pass: floor((x - x0) * inv_u), the same for y, row * cols + col
     # (each rounding as numpy does it, one operation at a time), and z - z0; ok False as soon
@@ -310,15 +354,12 @@ def axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows):  # pragma: no cove
 
 
 @njit(cache=True, nogil=True)
-def cell_sums(idx, z, size):  # pragma: no cover - compiled
-    # np.bincount(idx, minlength=size) and np.bincount(idx, weights=z, minlength=size), in one
-    # pass: each bin's sum in the points' order, from 0.0, as numpy's loop adds them.
-    count = np.zeros(size, dtype=np.int64)
-    total = np.zeros(size)
+def cell_sums(idx, z, count, total):  # pragma: no cover - compiled
+    # count += np.bincount(idx) and total += np.bincount(idx, weights=z) onto zeros, in one pass
+    # and in place: each bin's sum in the points' order, from 0.0, as numpy's loop adds them.
     for i in range(idx.size):
         count[idx[i]] += 1
         total[idx[i]] += z[i]
-    return count, total
 
 
 @njit(cache=True, nogil=True)

@@ -302,13 +302,20 @@ class _CellHeights:
         self.count = np.zeros(size, dtype=np.int64)
         fill = {"mean": 0.0, "min": np.inf, "max": -np.inf}[aggregate]
         self.acc = np.full(size, fill)
+        self.empty = True  # no point added yet: count and acc hold their starting values
 
     def add(self, idx: np.ndarray, z: np.ndarray) -> None:
         if self.aggregate == "mean" and kernels.enabled():  # both bincounts in one compiled pass
-            count, total = kernels.cell_sums(idx, z, self.size)
-            self.count += count
-            self.acc += total
+            if self.empty:  # onto the zeros themselves: the same sums, no arrays to allocate and add
+                kernels.cell_sums(idx, z, self.count, self.acc)
+            else:
+                count, total = np.zeros(self.size, dtype=np.int64), np.zeros(self.size)
+                kernels.cell_sums(idx, z, count, total)
+                self.count += count
+                self.acc += total
+            self.empty = False
             return
+        self.empty = False
         self.count += np.bincount(idx, minlength=self.size)
         if self.aggregate == "mean":
             self.acc += np.bincount(idx, weights=z, minlength=self.size)

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["load", "enabled", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
-           "extremes",
+           "extremes", "cell_points",
            "axis_cells", "cell_sums", "squared_distances"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
@@ -143,6 +143,17 @@ def extremes(points: np.ndarray) -> tuple[float, float, float, float, float, flo
     return None if 0.0 in found else found  # type: ignore[return-value]
 
 
+def cell_points(mask: np.ndarray, xs: np.ndarray, ys: np.ndarray, heights: np.ndarray, z0: float) -> np.ndarray:
+    """``rebuild.dem_to_points`` of an axis-aligned grid: ``(xs[col], ys[row], heights + z0)`` of every
+    cell set in ``mask`` (rows, cols), row-major; ``xs`` one x per column, ``ys`` one y per row."""
+    rows, cols = mask.shape
+    if xs.shape != (cols,) or ys.shape != (rows,) or heights.shape != mask.shape:
+        raise ValueError("xs, ys and heights must match the mask's columns, rows and shape")
+    return _state["module"].cell_points(np.ascontiguousarray(mask, dtype=np.bool_), np.ascontiguousarray(xs, dtype=np.float64),
+                                        np.ascontiguousarray(ys, dtype=np.float64),
+                                        np.ascontiguousarray(heights, dtype=np.float64), float(z0))
+
+
 def axis_cells(points: np.ndarray, x0: float, y0: float, z0: float, inv_u: float, inv_v: float, cols: int,
                rows: int) -> tuple[np.ndarray, np.ndarray] | None:
     """``grid._axis_cells``: the flat cell index and the height above ``z0`` of every point of an
@@ -152,10 +163,16 @@ def axis_cells(points: np.ndarray, x0: float, y0: float, z0: float, inv_u: float
     return (idx, z) if ok else None
 
 
-def cell_sums(idx: np.ndarray, z: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """``np.bincount(idx, minlength=size)`` and ``np.bincount(idx, weights=z, minlength=size)``, one pass."""
-    return _state["module"].cell_sums(np.ascontiguousarray(idx, dtype=np.int64),
-                                      np.ascontiguousarray(z, dtype=np.float64), int(size))
+def cell_sums(idx: np.ndarray, z: np.ndarray, count: np.ndarray, total: np.ndarray) -> None:
+    """``count += np.bincount(idx, minlength=count.size)`` and ``total += np.bincount(idx, weights=z,
+    minlength=total.size)``, in one pass and in place; the same bits where ``count`` and ``total``
+    were zeros (each bin sums its points in order, from 0.0)."""
+    # The kernel indexes without checks: idx are cells of the grid, the arrays one value per cell.
+    if (count.dtype != np.int64 or total.dtype != np.float64 or count.shape != total.shape or count.ndim != 1
+            or not (count.flags.c_contiguous and total.flags.c_contiguous) or idx.shape != z.shape):
+        raise ValueError("count (int64) and total (float64) must be contiguous arrays of one value per cell")
+    _state["module"].cell_sums(np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(z, dtype=np.float64),
+                               count, total)
 
 
 def squared_distances(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance_sq: float,
