@@ -48,7 +48,7 @@ def _push(words, count, state, bit, z):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first):  # pragma: no cover - compiled
+def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first, words):  # pragma: no cover - compiled
     # first: 1 for kind 3, whose line 0 of the first stripe is a seed too (not coded), else 0
     n, w = lines.shape
     n_stripes = (n + stripe - 1) // stripe
@@ -79,7 +79,7 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first):  # pr
     # outside cells (context 0), the inside ones (255), the rest, each by stripe and column. So per
     # step, one pass backwards pushes the rest and keeps the bits of the outside and inside cells
     # (one probability each in a step), which are pushed after it, inside first.
-    words = np.empty(n * w + 4, dtype=np.uint32)
+    # words: the caller's, n * w + 4 of them (see axis_cells)
     outside = np.empty(n_stripes * w, dtype=np.uint8)
     inside = np.empty(n_stripes * w, dtype=np.uint8)
     count = 0
@@ -239,11 +239,10 @@ def encode_table_words(symbols, bounds, lows, csum, near_bounds, n):  # pragma: 
 
 
 @njit(cache=True, nogil=True)
-def pull(values, known):  # pragma: no cover - compiled
+def pull(values, known, mean, any_known):  # pragma: no cover - compiled
+    # mean, any_known: the caller's zeros, (rows + 1) // 2 x (cols + 1) // 2 (see axis_cells)
     r, c = values.shape
-    rc, cc = (r + 1) // 2, (c + 1) // 2
-    mean = np.zeros((rc, cc))
-    any_known = np.zeros((rc, cc), dtype=np.bool_)
+    rc, cc = mean.shape
     for i in range(rc):
         a, b = 2 * i, 2 * i + 1
         for j in range(cc):
@@ -263,14 +262,13 @@ def pull(values, known):  # pragma: no cover - compiled
                 # (row pair) + (row pair), as fill._pairs adds the blocks
                 mean[i, j] = ((v00 + v01) + (v10 + v11)) / np.float64(n)
                 any_known[i, j] = True
-    return mean, any_known
 
 
 @njit(cache=True, nogil=True)
-def push(values, known, coarse):  # pragma: no cover - compiled
+def push(values, known, coarse, out):  # pragma: no cover - compiled
+    # out: the caller's, the shape of values (see axis_cells)
     r, c = values.shape
     rc, cc = coarse.shape
-    out = np.empty((r, c))
     for i in range(r):
         k = i >> 1
         kn = k + 1 if i & 1 else k - 1  # the coarse row this output leans on, clamped
@@ -288,7 +286,6 @@ def push(values, known, coarse):  # pragma: no cover - compiled
             up = 0.75 * own + 0.25 * side
             # the blend w * v + (1 - w) * up with w 0 or 1, the same bits (signs of zero too)
             out[i, j] = v + 0.0 * up if known[i, j] else up + v
-    return out
 
 
 @njit(cache=True, nogil=True)
@@ -314,15 +311,10 @@ def extremes(points):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def cell_points(mask, xs, ys, heights, z0):  # pragma: no cover - compiled
+def cell_points(mask, xs, ys, heights, z0, out):  # pragma: no cover - compiled
     # rebuild.dem_to_points on an axis-aligned grid: (xs[col], ys[row], heights + z0) of every
-    # occupied cell, row-major, in one pass.
+    # occupied cell, row-major, in one pass, into out (one row per occupied cell).
     rows, cols = mask.shape
-    n = 0
-    for i in range(rows):
-        for j in range(cols):
-            n += mask[i, j]
-    out = np.empty((n, 3))
     k = 0
     for i in range(rows):
         y = ys[i]
@@ -332,25 +324,24 @@ def cell_points(mask, xs, ys, heights, z0):  # pragma: no cover - compiled
                 out[k, 1] = y
                 out[k, 2] = heights[i, j] + z0
                 k += 1
-    return out
 
 
 @njit(cache=True, nogil=True)
-def axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows):  # pragma: no cover - compiled
+def axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows, idx, z):  # pragma: no cover - compiled
     # grid._axis_cells in one pass: floor((x - x0) * inv_u), the same for y, row * cols + col
     # (each rounding as numpy does it, one operation at a time), and z - z0; ok False as soon
     # as a point falls outside the grid (or is NaN).
+    # idx, z: the caller's arrays of one value per point (numpy allocates large arrays on huge
+    # pages; an allocation in here would fault every 4 kB page in).
     n = points.shape[0]
-    idx = np.empty(n, dtype=np.int64)
-    z = np.empty(n)
     for i in range(n):
         u = np.floor((points[i, 0] - x0) * inv_u)
         v = np.floor((points[i, 1] - y0) * inv_v)
         if not (u >= 0.0 and u < cols and v >= 0.0 and v < rows):
-            return idx[:0], z[:0], False
+            return False
         idx[i] = np.int64(v * cols + u)
         z[i] = points[i, 2] - z0
-    return idx, z, True
+    return True
 
 
 @njit(cache=True, nogil=True)
@@ -363,11 +354,10 @@ def cell_sums(idx, z, count, total):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def squared_distances(idx, z, heights, tolerance_sq, far_cells):  # pragma: no cover - compiled
+def squared_distances(idx, z, heights, tolerance_sq, far_cells, sq, far_sq):  # pragma: no cover - compiled
     # (z - heights[idx])**2 per point, their maximum, and those that exceed tolerance_sq, in order
     # (sq[sq > tolerance_sq]), whose cells are marked in far_cells.
-    sq = np.empty(idx.size)
-    far_sq = np.empty(idx.size)
+    # sq, far_sq: the caller's arrays of one value per point (see axis_cells)
     largest = 0.0
     far = 0
     for i in range(idx.size):
@@ -380,4 +370,4 @@ def squared_distances(idx, z, heights, tolerance_sq, far_cells):  # pragma: no c
             far_sq[far] = s
             far += 1
             far_cells[idx[i]] = True
-    return sq, largest, far_sq[:far]
+    return largest, far
