@@ -715,7 +715,8 @@ def _decode_tile(data: bytes, k: int, secs: dict, g: dict, params: dict, size: i
     r0, r1, c0, c1 = _tile_box(k, rows, cols, size, tx)
     h, w = r1 - r0, c1 - c0
     name = f"tile {k}: "
-    mask = _mask(_payload(data, b"MASK", secs[b"MASK"], name), h, w)
+    # A full tile without MASK: every cell.
+    mask = _mask(_payload(data, b"MASK", secs[b"MASK"], name), h, w) if b"MASK" in secs else np.ones((h, w), bool)
     if int(mask.sum()) != count:
         raise ValueError(f"{name}occupancy mask disagrees with the tile index")
     # The coded window: the tile and M cells around it, within the map.
@@ -796,8 +797,12 @@ def _tiled_grid(data: bytes, entries, sec: dict, g: dict, params: dict,
     coded = (b"MASK", b"COEF", b"RESD") if e > 0 else (b"MASK", b"COEF")
     for k in range(1, n + 1):
         have = tiles.get(k, {})
+        r0, r1, c0, c1 = _tile_box(k, rows, cols, size, tx)
+        full = cells[k - 1] == (r1 - r0) * (c1 - c0)
         for tag in (b"MASK", b"COEF", b"RESD"):
             wanted = cells[k - 1] > 0 and tag in coded
+            if tag == b"MASK" and full and tag not in have:
+                continue  # a full tile may leave its mask out
             if (tag in have) != wanted:
                 raise ValueError(f"tile {k}: section {tag!r} " + ("is missing" if wanted else "is not expected"))
     base = _base_layer(sec[b"BASE"], rows, cols, size, float(params["cutoff"]), float(params["step"]),

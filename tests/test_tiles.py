@@ -87,6 +87,39 @@ def test_a_map_in_one_tile_is_written_as_today(gale):
     assert whole[9] == 0  # format 1.0
 
 
+def test_a_full_tile_has_no_mask_section_and_one_with_it_still_reads():
+    # A full tile's mask is implied by its count (format.md, TIDX); files written before held it.
+    from dftpcc import occupancy
+
+    from .fuzz import craft
+
+    dem = _terrain()
+    data = encode_dem(dem, make_params(tile_size=64, cutoff=0.8, step=0.01))
+    tg, cells = TileGrid(dem.grid.rows, dem.grid.cols, 64), dftpcc.open(data).header.tiles.cells
+    full = {k + 1 for k in range(tg.count) if cells[k] == np.prod(tg.shape(k))}
+    partial = {k + 1 for k in range(tg.count) if 0 < cells[k] < np.prod(tg.shape(k))}
+    assert len(full) >= 10 and partial
+    sections = craft.split_tiled(data)
+    assert {k for tag, k, _ in sections if tag == b"MASK"} == partial
+    # The same map with a bitmap for every full tile, as the writer made it before: the same DEM.
+    with_masks = []
+    for tag, k, payload in sections:
+        if tag == b"COEF" and k in full:
+            with_masks.append((b"MASK", k, occupancy.encode_mask(np.ones(tg.shape(k - 1), dtype=bool))))
+        with_masks.append((tag, k, payload))
+    old = craft.join_tiled(with_masks)
+    assert len(old) > len(data)
+    a, b = _decoded(data), _decoded(old)
+    assert np.array_equal(a.mask, b.mask) and a.heights.tobytes() == b.heights.tobytes()
+    # A mask the tile's count says is full must decode full.
+    k = min(full)
+    holed = np.ones(tg.shape(k - 1), dtype=bool)
+    holed[0, 0] = False
+    lying = craft.join_tiled([(b"MASK", k, occupancy.encode_mask(holed))] + sections)
+    with pytest.raises(CorruptFileError, match=f"tile {k} .*cell count"):
+        _decoded(lying)
+
+
 def test_tiled_round_trip_and_stated_errors():
     dem = _terrain()
     data = encode_dem(dem, make_params(tile_size=64, cutoff=0.8, step=0.01))

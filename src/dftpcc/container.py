@@ -314,7 +314,7 @@ def tiled_parts(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, 
     entries, payloads = [], []
     for k, mask_blob, coef_blob, resid_blob in tiles:
         for tag, blob in ((b"MASK", mask_blob), (b"COEF", coef_blob), (b"RESD", resid_blob)):
-            if tag == b"RESD" and not blob:
+            if tag != b"COEF" and not blob:  # no residual layer; a full tile's mask (format.md, TIDX)
                 continue
             entries.append((k, tag, len(blob), zlib.crc32(blob)))
             payloads.append(blob)
@@ -987,6 +987,8 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     for k in sorted(set(tiles) | set(np.flatnonzero(index.cells).tolist())):
         have = set(tiles.get(k, {}))
         need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 else set()) if index.cells[k] else set()
+        if index.cells[k] == math.prod(index.tiling.shape(k)) and b"MASK" not in have:
+            need.discard(b"MASK")  # a full tile may leave its mask out: every cell (format.md, TIDX)
         if have != need:
             raise CorruptFileError(f"tile {k + 1} has sections {_names(have)} where its index entry needs "
                                    f"{_names(need)}")

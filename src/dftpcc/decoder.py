@@ -176,7 +176,8 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -
     params, grid, index = header.params, header.grid, header.tiles
     r0, r1, c0, c1 = index.tiling.bounds(k)
     shape = (r1 - r0, c1 - c0)
-    mask = occupancy.decode_mask(blobs[b"MASK"], shape)
+    # A full tile may come without its mask (the container checked its count is h x w).
+    mask = occupancy.decode_mask(blobs[b"MASK"], shape) if b"MASK" in blobs else np.ones(shape, dtype=bool)
     if int(mask.sum()) != index.cells[k]:
         raise CorruptFileError("occupancy mask disagrees with the tile index's cell count")
     w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)

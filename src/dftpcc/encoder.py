@@ -25,7 +25,7 @@ from .grid import _fit_grid, _rasterize, auto_resolution, extremes
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
-from .tiles import TileCode, TiledAnalysis, code_tile, tile_overlap
+from .tiles import TileCode, TiledAnalysis, code_tile, tile_mask_code, tile_overlap
 
 __all__ = ["compress", "encode_dem", "choose_for_tiles", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
            "QUANT_FLOOR_FRACTION"]
@@ -169,7 +169,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
     # A tiled map codes each tile's mask on its own; their bytes together are the mask's.
-    mask_blob: Any = ([occupancy.encode_mask(an.tile_cells(dem.mask, k), first_seed=True) for k in an.occupied] if tile
+    mask_blob: Any = ([tile_mask_code(an.tile_cells(dem.mask, k)) for k in an.occupied] if tile
                       else occupancy.encode_mask(an.kept_cells))
 
     on_stage("encode")

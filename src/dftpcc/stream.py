@@ -477,7 +477,8 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
     for batch in _batches(blocks):
         on_stage("encode", batch[0].tiles[0] / n)
         for code in (code for codes in run(_code_block, batch, job) for code in codes):
-            spool.add(code.k, b"MASK", code.mask)
+            if code.mask:  # none for a full tile
+                spool.add(code.k, b"MASK", code.mask)
             spool.add(code.k, b"COEF", code.coef)
             if code.resid:
                 spool.add(code.k, b"RESD", code.resid)

@@ -27,7 +27,7 @@ from .params import Params
 from .residual import encode_residual, residual
 
 __all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "base_limit", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
-           "tile_grid_of", "TiledAnalysis", "TiledTrial"]
+           "tile_grid_of", "tile_mask_code", "TiledAnalysis", "TiledTrial"]
 
 #: The base layer holds the map's frequencies up to this many cycles per tile
 #: along the longer side: what a tile alone would pay for in every tile.
@@ -470,6 +470,12 @@ def _tile_params(params: Params) -> Params:
 _WINDOW_GRID = dict(x0=0.0, y0=0.0, z0=0.0, resolution=1.0)
 
 
+def tile_mask_code(mask: np.ndarray) -> bytes:
+    """A tile's ``MASK`` payload: none (b"") for a full tile, whose mask the reader takes as every
+    cell (docs/format.md, TIDX); else its own coding, the first line a seed where that is shorter."""
+    return b"" if mask.all() else occupancy.encode_mask(mask, first_seed=True)
+
+
 def code_tile(job: TileJob, params: Params, refill_step: float | None = None) -> TileCode:
     """Code one tile at ``params.cutoff`` and ``params.step``: a pure function of the job, so the
     bytes are the same whichever process or machine runs it.
@@ -498,7 +504,7 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
         resid = encode_residual(q, params.coder, mask)
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
-    mask_code = occupancy.encode_mask(mask, first_seed=True) if job.mask_code is None else job.mask_code
+    mask_code = tile_mask_code(mask) if job.mask_code is None else job.mask_code
     coef_code = an.encode_stream(stream, progressive=False) if job.coef_code is None else job.coef_code
     return TileCode(job.k, mask_code, coef_code, resid, int(mask.sum()), dot(err, err), float(np.abs(err).max()),
                     weighted)

@@ -216,6 +216,7 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
     out.update(_sparse_residual_cases(seeds["compact_max_error_sparse"], C))
     out.update(tiled_cases(seeds["tiled"]))
     out.update(first_seed_cases(seeds["tiled_first_seed"]))
+    out.update(full_tile_cases(seeds["tiled_coarse"]))
     return out
 
 
@@ -328,6 +329,18 @@ def first_seed_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
         "tiled_mask_kind_2_read_as_3": (craft.replace_section(tiled, b"MASK", b"\x03" + other[1][1:], tile=other[0]),
                                         C, f"tile {other[0]} .*occupancy mask"),
     }
+
+
+def full_tile_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
+    """A full tile (tile 1 of the 2 x 2 seed; no MASK, its count implies it) given a mask with a hole."""
+    from dftpcc import occupancy
+
+    sections = craft.split_tiled(tiled)
+    assert not any(tag == b"MASK" and k == 1 for tag, k, _ in sections)
+    holed = np.ones((16, 16), dtype=bool)
+    holed[5, 7] = False
+    return {"tiled_full_tile_mask_with_a_hole": (craft.join_tiled([(b"MASK", 1, occupancy.encode_mask(holed))] + sections),
+                                                 "CorruptFileError", r"tile 1 \(tile row 0, column 0\): .*cell count")}
 
 
 def _short_chunks(tiled: bytes) -> bytes:
