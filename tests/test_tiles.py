@@ -120,6 +120,33 @@ def test_a_full_tile_has_no_mask_section_and_one_with_it_still_reads():
         _decoded(lying)
 
 
+@pytest.mark.parametrize("options", [dict(cutoff=0.97, step=0.01), dict(target_max_error=0.4), dict(target_rmse=0.5)],
+                         ids=["fixed", "max-error", "rmse"])
+def test_at_a_high_cutoff_the_base_layer_may_hold_the_whole_circle(options):
+    # Where the cutoff's circle fits in MAX_BASE_CYCLES cycles per tile, the writer also tries a base
+    # layer that holds all of it, and keeps the smaller file (here 2 of 3 take it).
+    from dftpcc import encoder
+
+    dem = _terrain()
+    params = make_params(tile_size=64, **options)
+    data = encode_dem(dem, params)
+    first, cutoff = encoder._encode(dem, params.replace(resolution=dem.grid.resolution), int(dem.mask.sum()), None,
+                                    encoder.no_stage, None, None, tiles.BASE_CYCLES_PER_TILE)
+    cover = tiles.covering_cycles(dem.grid.shape, 64, cutoff)
+    assert 1 < cover <= tiles.MAX_BASE_CYCLES
+    m = dftpcc.open(data)
+    reach = m.header.tiles.base_cycles
+    # Either the first file, or the covering one when it is smaller.
+    assert data == first if reach == 1 else (reach == cover and len(data) < len(first))
+    rebuilt = m.read_dem()
+    err = (rebuilt.heights - dem.heights)[dem.mask]
+    assert np.abs(err).max() <= m.header.stats["dem_max_error_m"] * (1 + 1e-6)
+    if "target_max_error" in options:
+        assert np.abs(err).max() <= options["target_max_error"]
+    if reach > 1:
+        assert _seam_ratio(dem, rebuilt, 64) <= SEAM_RATIO
+
+
 def test_tiled_round_trip_and_stated_errors():
     dem = _terrain()
     data = encode_dem(dem, make_params(tile_size=64, cutoff=0.8, step=0.01))

@@ -25,7 +25,8 @@ from .grid import _fit_grid, _rasterize, auto_resolution, extremes
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
-from .tiles import TileCode, TiledAnalysis, code_tile, tile_mask_code, tile_overlap
+from .tiles import (BASE_CYCLES_PER_TILE, MAX_BASE_CYCLES, TileCode, TiledAnalysis, code_tile, covering_cycles,
+                    tile_mask_code, tile_overlap)
 
 __all__ = ["compress", "encode_dem", "choose_for_tiles", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
            "QUANT_FLOOR_FRACTION"]
@@ -159,11 +160,32 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     check_heights(float(dem.grid.z0 + occupied.min()), float(dem.grid.z0 + occupied.max()))
     if not tile:
         check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
+        return _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, None)[0]
+    data, cutoff = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, BASE_CYCLES_PER_TILE)
+    # Where the cutoff's whole circle takes at most MAX_BASE_CYCLES cycles per tile, the base layer
+    # may hold all of it, and the tiles only what the quantizer leaves: no seam can show, and few
+    # tiles repeat the map's frequencies. Kept when smaller (a size target keeps its first file).
+    cycles = covering_cycles(dem.grid.shape, tile, cutoff)
+    if params.target_bpp <= 0 and BASE_CYCLES_PER_TILE < cycles <= MAX_BASE_CYCLES:
+        with warnings.catch_warnings():  # the first run has said whatever this one would
+            warnings.simplefilter("ignore")
+            other, _ = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, cycles)
+        if len(other) < len(data):
+            return other
+    return data
+
+
+def _encode(dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
+            fill: Callable[..., np.ndarray] | None, map_tiles: Callable[..., list] | None,
+            base_cycles: int | None) -> tuple[bytes, float]:
+    """:func:`encode_dem` of a checked map (``base_cycles``: a tiled map's base reach, cycles per
+    tile; None: untiled): its bytes and the cutoff they were coded with."""
+    tile = params.tile_size
     on_stage("spectrum")
     searching = params.has_target and params.cutoff is None
     an: Analysis | TiledAnalysis
-    if tile:
-        an = TiledAnalysis(dem, params, tile, searching=searching)
+    if base_cycles is not None:
+        an = TiledAnalysis(dem, params, tile, searching=searching, base_cycles=base_cycles)
     else:
         an = Analysis(dem, params, searching=searching, fill=fill)
     if params.target_max_error > 0:
@@ -186,9 +208,10 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         # The file's statistics are made of this trial's errors: kept, not computed again.
         trial = an.trial(cutoff, step) if tile else an.trial(cutoff, step, keep_errors=True)
         if params.step == 0.0:
-            _flag_coarse(dem, trial, occupied)
+            _flag_coarse(dem, trial, dem.heights[dem.mask])
         coefs = b"" if tile else an.encode(trial)  # a tiled map codes its tiles when packing
-        return _pack(Choice(an, trial, coefs), params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles)
+        return (_pack(Choice(an, trial, coefs), params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles),
+                cutoff)
     # Rate control. For a size target the header's own bytes count too: start
     # from an estimate, then shrink the budget by any overshoot.
     overhead = _length(mask_blob) + HEADER_ESTIMATE
@@ -205,7 +228,7 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
             continue
         data = _pack(choice, params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles)
         if params.target_bpp <= 0 or 8 * len(data) <= params.target_bpp * point_count:
-            return data
+            return data, choice.trial.cutoff
         # Measured now: everything but the coefficients, plus room for the
         # statistics' digits to change with the next candidate.
         overhead = len(data) - choice.size + STATS_SLACK

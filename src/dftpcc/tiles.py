@@ -2,8 +2,9 @@
 
 A map larger than one tile is coded in two layers (docs/format.md, *Tiles*):
 the base layer holds the whole grid's DCT coefficients up to one cycle per
-tile, and each tile codes with its own DCT what the plane and the base layer
-leave on its cells. Both share one cutoff and one quantizer step.
+tile (or the cutoff's whole circle, where that is a few cycles: see
+:func:`covering_cycles`), and each tile codes with its own DCT what the plane
+and the base layer leave on its cells. Both share one cutoff and one quantizer step.
 :class:`TiledAnalysis` gives rate control (:mod:`dftpcc.ratecontrol`) the same
 view of a tiled map that :class:`~dftpcc.analysis.Analysis` gives of a whole
 one, so every target works unchanged.
@@ -26,11 +27,13 @@ from .fill import fill_empty, fit_plane, plane_values
 from .params import Params
 from .residual import encode_residual, residual
 
-__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "base_limit", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
+__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "base_limit", "covering_cycles", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
            "tile_grid_of", "tile_mask_code", "TiledAnalysis", "TiledTrial"]
 
 #: The base layer holds the map's frequencies up to this many cycles per tile
-#: along the longer side: what a tile alone would pay for in every tile.
+#: along the longer side: what a tile alone would pay for in every tile. (The
+#: encoder also tries the reach that holds the cutoff's whole circle, up to
+#: MAX_BASE_CYCLES, and keeps the smaller file.)
 BASE_CYCLES_PER_TILE = 1
 #: The largest base reach a file may state (TIDX), cycles per tile.
 MAX_BASE_CYCLES = 8
@@ -48,6 +51,12 @@ _SLACK = 1 + 1e-12
 def base_limit(shape: tuple[int, int], tile: int, cutoff: float, cycles: int) -> float:
     """Largest radius of the base layer: ``cycles`` per tile along the longer side, within the cutoff's circle."""
     return min(max(shape) / tile * cycles, spectrum.radius_limit(shape, cutoff)) * _SLACK
+
+
+def covering_cycles(shape: tuple[int, int], tile: int, cutoff: float) -> int:
+    """The fewest cycles per tile (along the longer side) whose base layer holds the cutoff's whole
+    circle: beyond it, :func:`base_limit` is the cutoff's radius."""
+    return max(1, math.ceil(spectrum.radius_limit(shape, cutoff) * tile / max(shape)))
 
 
 def base_order(shape: tuple[int, int], tile: int, cutoff: float,
