@@ -163,8 +163,9 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         return _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, None)[0]
     data, cutoff = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, BASE_CYCLES_PER_TILE)
     # Where the cutoff's whole circle takes at most MAX_BASE_CYCLES cycles per tile, the base layer
-    # may hold all of it, and the tiles only what the quantizer leaves: no seam can show, and few
-    # tiles repeat the map's frequencies. Kept when smaller (a size target keeps its first file).
+    # may hold all of it, and the tiles only what its quantization leaves: the tiles no longer repeat
+    # the map's frequencies, so their edges rarely show. Kept when smaller (a size target keeps its
+    # first file). The second run repeats the plane fit and fill of the first (TiledAnalysis).
     cycles = covering_cycles(dem.grid.shape, tile, cutoff)
     if params.target_bpp <= 0 and BASE_CYCLES_PER_TILE < cycles <= MAX_BASE_CYCLES:
         with warnings.catch_warnings():  # the first run has said whatever this one would
