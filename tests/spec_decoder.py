@@ -610,7 +610,6 @@ MAX_TILES = 1 << 20
 TILES_PER_FILE_BYTE = 64
 TIDX_CODING = 1
 TIDX_HEAD = struct.Struct("<BIHB")  # coding, T, overlap M, base reach K
-MAX_BASE_REACH = 8
 # A 1.1 file fixes these parameters (format.md, "What changes in a 1.1 file").
 TILED_PARAMS = {"transform": "dct", "storage": "quantized", "detrend": "plane", "mask": "exact"}
 
@@ -626,8 +625,6 @@ def _tile_index(p: bytes, n: int, size: int) -> tuple[int, np.ndarray, np.ndarra
     if len(p) < TIDX_HEAD.size:
         raise ValueError("tile index is truncated")
     coding, t, overlap, reach = TIDX_HEAD.unpack_from(p, 0)
-    if reach > MAX_BASE_REACH:
-        raise ValueError(f"base reach {reach} is more than {MAX_BASE_REACH} cycles per tile")
     if coding != TIDX_CODING:
         raise ValueError(f"tile index has unknown coding {coding}")
     if t != size:

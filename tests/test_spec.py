@@ -339,6 +339,15 @@ def test_tiled_cutoffs(cutoff):
     check_tiled(encode_tiled(synthetic_dem(90, 70, 3), tile_size=32, cutoff=cutoff))
 
 
+def test_tiled_base_reach_past_eight_cycles():
+    """On a small map the writer may take a base layer of the cutoff's whole circle at a reach past 8
+    cycles per tile (tiles.covering_reach): TIDX states any u8, and the spec decoder follows it."""
+    data = encode_tiled(synthetic_dem(90, 70, 3), tile_size=16, cutoff=0.0, step=0.1)
+    layout = check_tiled(data)
+    reach = spec_decoder._tile_index(layout["sections"][b"TIDX"], len(layout["cells"]), 16)[1]
+    assert reach > 8, reach
+
+
 def test_tiled_region_matches_the_whole_decode():
     """A bbox decode reads the same points as the whole decode gives inside the box."""
     data = encode_tiled(synthetic_dem(90, 70, 4), tile_size=32)

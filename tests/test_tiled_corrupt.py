@@ -147,7 +147,7 @@ def test_a_base_layer_of_millions_of_coefficients_in_a_kilobyte_is_refused():
 
 
 def test_the_base_layer_counts_at_the_reach_the_index_states():
-    """TIDX may state a base reach up to 8 cycles per tile: the budget counts the base layer's
+    """TIDX may state any base reach (a u8; here 8 cycles per tile): the budget counts the base layer's
     frequency pairs at that reach, not at the 1 cycle dftpcc writes, so a 374-byte file cannot make
     one 16 x 16 tile's decode enumerate 4 million of them."""
     crafted = craft.tiled_file(2048, 2048, 16, {1: 200}, cutoff=0.0, reach=8)

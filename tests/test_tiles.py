@@ -123,8 +123,8 @@ def test_a_full_tile_has_no_mask_section_and_one_with_it_still_reads():
 @pytest.mark.parametrize("options", [dict(cutoff=0.97, step=0.01), dict(target_max_error=0.4), dict(target_rmse=0.5)],
                          ids=["fixed", "max-error", "rmse"])
 def test_at_a_high_cutoff_the_base_layer_may_hold_the_whole_circle(options):
-    # Where the cutoff's circle fits in MAX_BASE_CYCLES cycles per tile, the writer also tries a base
-    # layer that holds all of it, and keeps the smaller file (here 2 of 3 take it).
+    # Where the cutoff's circle is a small base layer (tiles.covering_reach), the writer also tries a
+    # base layer that holds all of it, and keeps the smaller file (here 2 of 3 take it).
     from dftpcc import encoder
 
     dem = _terrain()
@@ -132,8 +132,8 @@ def test_at_a_high_cutoff_the_base_layer_may_hold_the_whole_circle(options):
     data = encode_dem(dem, params)
     first, cutoff = encoder._encode(dem, params.replace(resolution=dem.grid.resolution), int(dem.mask.sum()), None,
                                     encoder.no_stage, None, None, tiles.BASE_CYCLES_PER_TILE)
-    cover = tiles.covering_cycles(dem.grid.shape, 64, cutoff)
-    assert 1 < cover <= tiles.MAX_BASE_CYCLES
+    cover = tiles.covering_reach(dem.grid.shape, 64, cutoff)
+    assert cover is not None and cover > 1
     m = dftpcc.open(data)
     reach = m.header.tiles.base_cycles
     # Either the first file, or the covering one when it is smaller.
@@ -300,9 +300,14 @@ def test_a_tiled_header_over_the_whole_grid_limit_is_written():
 def test_the_overlap_follows_the_cutoff_and_rate_control_measures_the_file(cutoff):
     """A tile's window widens with the cutoff (tiles.tile_overlap); rate control's trials, built
     for every cutoff from one analysis, must see the windows the file is written with."""
+    from dftpcc import encoder
+
     dem = _terrain()
-    params = make_params(tile_size=64, cutoff=cutoff, step=0.02)
-    data = encode_dem(dem, params)
+    params = make_params(tile_size=64, cutoff=cutoff, step=0.02, resolution=dem.grid.resolution)
+    # The writer's first file, with the base reach of one cycle per tile that rate control searches
+    # at (a base layer covering its cutoff's circle is tried after, in a second search).
+    data, _ = encoder._encode(dem, params, int(dem.mask.sum()), None, encoder.no_stage, None, None,
+                              tiles.BASE_CYCLES_PER_TILE)
     m = dftpcc.open(data)
     assert m.header.tiles.overlap == tiles.tile_overlap(cutoff, 64) == (8 if cutoff < 0.29 else 16)
     an = tiles.TiledAnalysis(dem, make_params(tile_size=64), 64, searching=True)  # built for every cutoff

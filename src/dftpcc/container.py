@@ -79,8 +79,6 @@ MAX_TILED_CELLS = 1 << 36
 #: The tile index's coding byte.
 TIDX_CODING = 1
 _TIDX_HEAD = struct.Struct("<BIHB")
-#: Largest base-layer reach a file may state, cycles per tile.
-MAX_BASE_CYCLES = 8
 #: Sections of tile 0 a tiled file must hold, and the sections a tile holds.
 REQUIRED_TILED = (b"GEOM", b"PARM", b"STAT", b"TIDX", b"BASE")
 TILE_TAGS = (b"MASK", b"COEF", b"RESD")
@@ -1066,8 +1064,6 @@ def _unpack_index(payload: memoryview, grid: Grid, params: Params, ncells: int, 
     _check_tiled_params(params, grid, size)
     if overlap > size // 2:
         raise CorruptFileError(f"tile overlap {overlap} is more than half the tile size {size}")
-    if base_cycles > MAX_BASE_CYCLES:
-        raise CorruptFileError(f"base layer reach {base_cycles} cycles per tile is more than {MAX_BASE_CYCLES}")
     tiling = TileGrid(grid.rows, grid.cols, size)
     n = tiling.count
     if n > TILES_PER_FILE_BYTE * file_size:

@@ -25,7 +25,7 @@ from .grid import _fit_grid, _rasterize, auto_resolution, extremes
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
-from .tiles import (BASE_CYCLES_PER_TILE, MAX_BASE_CYCLES, TileCode, TiledAnalysis, code_tile, covering_cycles,
+from .tiles import (BASE_CYCLES_PER_TILE, TileCode, TiledAnalysis, code_tile, covering_reach,
                     tile_mask_code, tile_overlap)
 
 __all__ = ["compress", "encode_dem", "choose_for_tiles", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
@@ -162,12 +162,13 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
         return _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, None)[0]
     data, cutoff = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, BASE_CYCLES_PER_TILE)
-    # Where the cutoff's whole circle takes at most MAX_BASE_CYCLES cycles per tile, the base layer
-    # may hold all of it, and the tiles only what its quantization leaves: the tiles no longer repeat
-    # the map's frequencies, so their edges rarely show. Kept when smaller (a size target keeps its
-    # first file). The second run repeats the plane fit and fill of the first (TiledAnalysis).
-    cycles = covering_cycles(dem.grid.shape, tile, cutoff)
-    if params.target_bpp <= 0 and BASE_CYCLES_PER_TILE < cycles <= MAX_BASE_CYCLES:
+    # Where the cutoff's whole circle is a small base layer (covering_reach), the base layer may hold
+    # all of it, and the tiles only what its quantization leaves: the tiles no longer repeat the
+    # map's frequencies (nor pay for them in their own headers), so their edges rarely show. Kept when
+    # smaller (a size target keeps its first file). The second run repeats the plane fit and fill of
+    # the first (TiledAnalysis).
+    cycles = covering_reach(dem.grid.shape, tile, cutoff)
+    if params.target_bpp <= 0 and cycles is not None and cycles > BASE_CYCLES_PER_TILE:
         with warnings.catch_warnings():  # the first run has said whatever this one would
             warnings.simplefilter("ignore")
             other, _ = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, cycles)

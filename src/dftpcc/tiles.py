@@ -2,8 +2,8 @@
 
 A map larger than one tile is coded in two layers (docs/format.md, *Tiles*):
 the base layer holds the whole grid's DCT coefficients up to one cycle per
-tile (or the cutoff's whole circle, where that is a few cycles: see
-:func:`covering_cycles`), and each tile codes with its own DCT what the plane
+tile (or the cutoff's whole circle, where that base is small: see
+:func:`covering_reach`), and each tile codes with its own DCT what the plane
 and the base layer leave on its cells. Both share one cutoff and one quantizer step.
 :class:`TiledAnalysis` gives rate control (:mod:`dftpcc.ratecontrol`) the same
 view of a tiled map that :class:`~dftpcc.analysis.Analysis` gives of a whole
@@ -27,16 +27,20 @@ from .fill import fill_empty, fit_plane, plane_values
 from .params import Params
 from .residual import encode_residual, residual
 
-__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "base_limit", "covering_cycles", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
+__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "MAX_COVERING_COEFS", "base_limit", "covering_cycles", "covering_reach", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
            "tile_grid_of", "tile_mask_code", "TiledAnalysis", "TiledTrial"]
 
 #: The base layer holds the map's frequencies up to this many cycles per tile
 #: along the longer side: what a tile alone would pay for in every tile. (The
-#: encoder also tries the reach that holds the cutoff's whole circle, up to
-#: MAX_BASE_CYCLES, and keeps the smaller file.)
+#: encoder also tries the reach that holds the cutoff's whole circle, see
+#: covering_reach, and keeps the smaller file.)
 BASE_CYCLES_PER_TILE = 1
-#: The largest base reach a file may state (TIDX), cycles per tile.
-MAX_BASE_CYCLES = 8
+#: The most base coefficients a base layer holding the cutoff's whole circle may have: every
+#: decode of a region reads and evaluates the whole base layer (a few tens of kB and about 20 ms
+#: on a 512-cell tile at this size), so the writer tries it on small maps and coarse rates only.
+MAX_COVERING_COEFS = 1 << 17
+#: The largest base reach TIDX can state (a u8), cycles per tile.
+MAX_BASE_CYCLES = 255
 #: Cells of the neighbouring tiles a tile's transform also spans on each side, at the
 #: cutoffs that ring least (see tile_overlap), and the unit a wider overlap grows by.
 TILE_OVERLAP = 8
@@ -57,6 +61,17 @@ def covering_cycles(shape: tuple[int, int], tile: int, cutoff: float) -> int:
     """The fewest cycles per tile (along the longer side) whose base layer holds the cutoff's whole
     circle: beyond it, :func:`base_limit` is the cutoff's radius."""
     return max(1, math.ceil(spectrum.radius_limit(shape, cutoff) * tile / max(shape)))
+
+
+def covering_reach(shape: tuple[int, int], tile: int, cutoff: float) -> int | None:
+    """The base reach (cycles per tile) that holds the cutoff's whole circle, if that base layer has at
+    most :data:`MAX_COVERING_COEFS` coefficients and TIDX can state it; else None."""
+    cycles = covering_cycles(shape, tile, cutoff)
+    radius = spectrum.radius_limit(shape, cutoff)
+    # The circle's quarter in (i, j) holds about pi r^2 pairs: only count them exactly when near the cap.
+    if cycles > MAX_BASE_CYCLES or math.pi * radius * radius > 2 * MAX_COVERING_COEFS:
+        return None
+    return cycles if base_order(shape, tile, cutoff, cycles)[0].size <= MAX_COVERING_COEFS else None
 
 
 def base_order(shape: tuple[int, int], tile: int, cutoff: float,

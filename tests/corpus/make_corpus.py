@@ -306,7 +306,7 @@ def tiled_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
         # 8.4 million base coefficients (a 4095-tile strip of 2048-cell tiles, at cutoff 0) in 1.5 KB.
         "tiled_base_bomb": (craft.tiled_file(2048, 2047 * 2048 + 16, 2048, {2048: 100}, cutoff=0.0), R,
                             "refusing to decode"),
-        # The base layer as far as TIDX's reach allows (8 cycles per tile, at cutoff 0): 1.4 million
+        # A base layer of 8 cycles per tile at cutoff 0 (already the whole 1200 x 1200 grid): 1.4 million
         # base coefficients beside 1.4 million cells of tiles, each half within the budget of a small file.
         "tiled_base_reach_bomb": (craft.tiled_file(1200, 1200, 16, {1: 100}, cutoff=0.0, reach=8), R,
                                   "refusing to decode 2,880,000 cells"),
