@@ -721,11 +721,12 @@ def _decode_tile(data: bytes, k: int, secs: dict, g: dict, params: dict, size: i
     wc0, wc1 = max(0, c0 - overlap), min(cols, c1 + overlap)
     hh, ww = wr1 - wr0, wc1 - wc0
     pos, radius, angle = _dct_prefix(hh, ww, float(params["cutoff"]))
-    values = _stream(_payload(data, b"COEF", secs[b"COEF"], name), len(pos), radius, angle, free=True)
-    if np.iscomplexobj(values):
-        raise ValueError(f"{name}holds float coefficients")
     coefs = np.zeros(hh * ww)
-    coefs[pos] = values * float(params["step"])
+    if b"COEF" in secs:  # none: every coefficient 0
+        values = _stream(_payload(data, b"COEF", secs[b"COEF"], name), len(pos), radius, angle, free=True)
+        if np.iscomplexobj(values):
+            raise ValueError(f"{name}holds float coefficients")
+        coefs[pos] = values * float(params["step"])
     window = sfft.idctn(coefs.reshape(hh, ww), type=2, norm="ortho")
     height = window[r0 - wr0:r1 - wr0, c0 - wc0:c1 - wc0]
     # The base layer and the plane on the tile's own cells of the map.
@@ -800,6 +801,8 @@ def _tiled_grid(data: bytes, entries, sec: dict, g: dict, params: dict,
             wanted = cells[k - 1] > 0 and tag in coded
             if tag == b"MASK" and full and tag not in have:
                 continue  # a full tile may leave its mask out
+            if tag == b"COEF" and tag not in have:
+                continue  # and any tile its coefficients, all 0 then
             if (tag in have) != wanted:
                 raise ValueError(f"tile {k}: section {tag!r} " + ("is missing" if wanted else "is not expected"))
     base = _base_layer(sec[b"BASE"], rows, cols, size, float(params["cutoff"]), float(params["step"]),
@@ -808,7 +811,7 @@ def _tiled_grid(data: bytes, entries, sec: dict, g: dict, params: dict,
     mask = np.zeros((rows, cols), bool)
     for k in range(1, n + 1):
         if cells[k - 1]:
-            r, col, h = _decode_tile(data, k, tiles[k], g, params, size, overlap, int(cells[k - 1]), base, tx)
+            r, col, h = _decode_tile(data, k, tiles.get(k, {}), g, params, size, overlap, int(cells[k - 1]), base, tx)
             heights[r, col] = h
             mask[r, col] = True
     return mask, heights

@@ -346,6 +346,27 @@ def test_tiled_base_reach_past_eight_cycles():
     layout = check_tiled(data)
     reach = spec_decoder._tile_index(layout["sections"][b"TIDX"], len(layout["cells"]), 16)[1]
     assert reach > 8, reach
+    # The base layer leaves the tiles little: those whose coefficients are all 0 have no COEF.
+    with_coef = {tile for tag, tile, *_ in layout["entries"] if tag == b"COEF"}
+    occupied = {k + 1 for k, c in enumerate(layout["cells"]) if c}
+    assert with_coef < occupied, (with_coef, occupied)
+
+
+def test_a_tile_may_hold_its_zero_coefficients(monkeypatch):
+    """Files written before tiles left out all-zero coefficients hold a COEF of zeros: they read
+    the same, to the bit, as the file without them."""
+    from dftpcc import tiles
+
+    dem = synthetic_dem(90, 70, 3)
+    lean = encode_tiled(dem, tile_size=16, cutoff=0.0, step=0.1)
+    monkeypatch.setattr(tiles, "tile_coef_code", lambda an, stream, **kw: an.encode_stream(
+        stream, progressive=False, **kw))
+    full = encode_tiled(dem, tile_size=16, cutoff=0.0, step=0.1)
+    assert len(lean) < len(full)
+    check_tiled(full)
+    a, b = dftpcc.open(lean).read_dem(), dftpcc.open(full).read_dem()
+    np.testing.assert_array_equal(a.heights, b.heights)
+    np.testing.assert_array_equal(spec_decoder.decode(lean), spec_decoder.decode(full))
 
 
 def test_tiled_region_matches_the_whole_decode():

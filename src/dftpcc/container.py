@@ -312,7 +312,7 @@ def tiled_parts(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, 
     entries, payloads = [], []
     for k, mask_blob, coef_blob, resid_blob in tiles:
         for tag, blob in ((b"MASK", mask_blob), (b"COEF", coef_blob), (b"RESD", resid_blob)):
-            if tag != b"COEF" and not blob:  # no residual layer; a full tile's mask (format.md, TIDX)
+            if not blob:  # no residual layer; a full tile's mask; all-zero coefficients (format.md, TIDX)
                 continue
             entries.append((k, tag, len(blob), zlib.crc32(blob)))
             payloads.append(blob)
@@ -333,9 +333,18 @@ def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes,
         raise ValueError("a tiled header needs its tile index")
     with _as_writer():
         _check_tiled_params(header.params, header.grid, index.tiling.size)
-        occupied = sorted({k for k, *_ in entries})
-        if occupied != [int(k) for k in np.flatnonzero(index.cells)]:
-            raise CorruptFileError("the tiles written are not the occupied tiles of the index")
+        # An occupied tile may have no section at all: full, without a residual layer, every
+        # coefficient 0 (format.md, TIDX).
+        written: dict[int, set[bytes]] = {}
+        for k, tag, *_ in entries:
+            written.setdefault(k, set()).add(tag)
+        if not set(written) <= {int(k) for k in np.flatnonzero(index.cells)}:
+            raise CorruptFileError("sections are written for tiles the index has no cells in")
+        for k in map(int, np.flatnonzero(index.cells)):
+            tags = written.get(k, set())
+            if (b"MASK" not in tags and index.cells[k] != math.prod(index.tiling.shape(k))
+                    or (b"RESD" in tags) != (header.params.target_max_error > 0)):
+                raise CorruptFileError(f"tile {k + 1} is written with sections {_names(tags)}")
         if int(index.cells.sum()) != header.cell_count:
             raise CorruptFileError("tile cells do not add up to the map's")
     sections = _map_sections(header) + [(b"TIDX", _pack_index(index)), (b"BASE", base_blob)]
@@ -987,6 +996,8 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
         need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 else set()) if index.cells[k] else set()
         if index.cells[k] == math.prod(index.tiling.shape(k)) and b"MASK" not in have:
             need.discard(b"MASK")  # a full tile may leave its mask out: every cell (format.md, TIDX)
+        if b"COEF" not in have:
+            need.discard(b"COEF")  # and any tile its coefficients: all 0
         if have != need:
             raise CorruptFileError(f"tile {k + 1} has sections {_names(have)} where its index entry needs "
                                    f"{_names(need)}")

@@ -181,16 +181,19 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -
     if int(mask.sum()) != index.cells[k]:
         raise CorruptFileError("occupancy mask disagrees with the tile index's cell count")
     w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)
-    lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0))
-    n = spectrum.kept_count(lay, params.cutoff)
-    order, radii, angles = spectrum.kept_order(lay, params.cutoff)
-    stream = coding.decode_coefficients(blobs[b"COEF"], n, radius=radii[:n], angle=angles[:n], progressive=False)
-    if stream.dtype.kind != "i" or stream.size != n:
-        raise CorruptFileError("tile coefficients are not one integer per kept coefficient")
-    corner_shape, where = spectrum.corner(lay, order[:n])
-    coefs = np.zeros(corner_shape)
-    coefs.ravel()[where] = coding.dequantize(stream, params.step)
-    heights = spectrum.inverse(coefs, lay)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
+    if b"COEF" in blobs:
+        lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0))
+        n = spectrum.kept_count(lay, params.cutoff)
+        order, radii, angles = spectrum.kept_order(lay, params.cutoff)
+        stream = coding.decode_coefficients(blobs[b"COEF"], n, radius=radii[:n], angle=angles[:n], progressive=False)
+        if stream.dtype.kind != "i" or stream.size != n:
+            raise CorruptFileError("tile coefficients are not one integer per kept coefficient")
+        corner_shape, where = spectrum.corner(lay, order[:n])
+        coefs = np.zeros(corner_shape)
+        coefs.ravel()[where] = coding.dequantize(stream, params.step)
+        heights = spectrum.inverse(coefs, lay)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
+    else:  # every coefficient 0 (format.md, TIDX)
+        heights = np.zeros(shape)
     heights += tiles.base_heights(base.values, base.i, base.j, grid.shape, (r0, r1), (c0, c1), exact=False)
     a, b, c = header.plane
     heights += a + b * np.arange(c0, c1, dtype=float)[None, :] + c * np.arange(r0, r1, dtype=float)[:, None]

@@ -25,7 +25,7 @@ from .grid import _fit_grid, _rasterize, auto_resolution, extremes
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
-from .tiles import (BASE_CYCLES_PER_TILE, TileCode, TiledAnalysis, code_tile, covering_reach,
+from .tiles import (BASE_CYCLES_PER_TILE, TileCode, TiledAnalysis, code_tile, covering_cutoff, covering_reach,
                     tile_mask_code, tile_overlap)
 
 __all__ = ["compress", "encode_dem", "choose_for_tiles", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
@@ -164,17 +164,24 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     data, cutoff = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, BASE_CYCLES_PER_TILE)
     # Where the cutoff's whole circle is a small base layer (covering_reach), the base layer may hold
     # all of it, and the tiles only what its quantization leaves: the tiles no longer repeat the
-    # map's frequencies (nor pay for them in their own headers), so their edges rarely show. Kept when
-    # smaller (a size target keeps its first file). The second run repeats the plane fit and fill of
-    # the first (TiledAnalysis).
-    cycles = covering_reach(dem.grid.shape, tile, cutoff)
-    if params.target_bpp <= 0 and cycles is not None and cycles > BASE_CYCLES_PER_TILE:
-        with warnings.catch_warnings():  # the first run has said whatever this one would
-            warnings.simplefilter("ignore")
-            other, _ = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, cycles)
-        if len(other) < len(data):
-            return other
-    return data
+    # map's frequencies (nor pay for them in their own headers), so their edges rarely show. The
+    # reach is that of the first run's cutoff or, where rate control chooses the cutoff and that
+    # circle is too large, of the lowest cutoff whose circle is not (in small tiles the first run
+    # may keep every frequency, and pay for them in every tile); rate control then searches again.
+    # Kept when smaller (a size target keeps its first file). The second run repeats the plane fit
+    # and fill of the first (TiledAnalysis).
+    if params.target_bpp > 0:
+        return data
+    lowest = covering_cutoff(dem.grid.shape, tile)
+    if params.has_target and params.cutoff is None:
+        cutoff = max(cutoff, 1.0 if lowest is None else lowest)
+    cycles = covering_reach(dem.grid.shape, tile, cutoff) if cutoff < 1 else None
+    if cycles is None or cycles <= BASE_CYCLES_PER_TILE:
+        return data
+    with warnings.catch_warnings():  # the first run has said whatever this one would
+        warnings.simplefilter("ignore")
+        other, _ = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, cycles)
+    return other if len(other) < len(data) else data
 
 
 def _encode(dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,

@@ -522,7 +522,7 @@ class MapBuilder:
             k = (tile[0] - i0) * tile_cols + (tile[1] - j0)
             blobs = read_tile(source, header, k)
             cells, squared, largest, weighted = arrays["figures"][n]
-            builder._codes[tile] = TileCode(k, bytes(blobs.get(b"MASK", b"")), bytes(blobs[b"COEF"]),
+            builder._codes[tile] = TileCode(k, bytes(blobs.get(b"MASK", b"")), bytes(blobs.get(b"COEF", b"")),
                                             bytes(blobs.get(b"RESD", b"")), int(cells), float(squared),
                                             float(largest), float(weighted))
         return builder

@@ -479,7 +479,8 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
         for code in (code for codes in run(_code_block, batch, job) for code in codes):
             if code.mask:  # none for a full tile
                 spool.add(code.k, b"MASK", code.mask)
-            spool.add(code.k, b"COEF", code.coef)
+            if code.coef:  # none when every coefficient is 0
+                spool.add(code.k, b"COEF", code.coef)
             if code.resid:
                 spool.add(code.k, b"RESD", code.resid)
             cells[code.k], rmse[code.k], max_error[code.k] = code.cells, code.rmse, code.max_error

@@ -27,8 +27,8 @@ from .fill import fill_empty, fit_plane, plane_values
 from .params import Params
 from .residual import encode_residual, residual
 
-__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "MAX_COVERING_COEFS", "base_limit", "covering_cycles", "covering_reach", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
-           "tile_grid_of", "tile_mask_code", "TiledAnalysis", "TiledTrial"]
+__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "MAX_COVERING_COEFS", "base_limit", "covering_cycles", "covering_reach", "covering_cutoff", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
+           "tile_grid_of", "tile_coef_code", "tile_mask_code", "TiledAnalysis", "TiledTrial"]
 
 #: The base layer holds the map's frequencies up to this many cycles per tile
 #: along the longer side: what a tile alone would pay for in every tile. (The
@@ -72,6 +72,20 @@ def covering_reach(shape: tuple[int, int], tile: int, cutoff: float) -> int | No
     if cycles > MAX_BASE_CYCLES or math.pi * radius * radius > 2 * MAX_COVERING_COEFS:
         return None
     return cycles if base_order(shape, tile, cutoff, cycles)[0].size <= MAX_COVERING_COEFS else None
+
+
+def covering_cutoff(shape: tuple[int, int], tile: int) -> float | None:
+    """The lowest cutoff, in hundredths, whose whole circle :func:`covering_reach` accepts (None if
+    none below 1 does): where rate control chooses the cutoff, the covering base layer is tried with
+    the reach of the larger of this and the cutoff chosen with one cycle per tile."""
+    low, high = -1, 100  # in hundredths: `high` is accepted (or 100: none is), `low` is not
+    while high - low > 1:  # the base layer shrinks as the cutoff rises
+        mid = (low + high) // 2
+        if covering_reach(shape, tile, mid / 100) is None:
+            low = mid
+        else:
+            high = mid
+    return high / 100 if high < 100 else None
 
 
 def base_order(shape: tuple[int, int], tile: int, cutoff: float,
@@ -421,7 +435,7 @@ class TiledAnalysis:
         out = [coding.encode_coefficients(base, radius=self.base_radius[: base.size],
                                           angle=self.base_angle[: base.size], coder=self.params.coder,
                                           exhaustive=exhaustive, progressive=False)]
-        out += [an.encode_stream(piece, exhaustive=exhaustive, progressive=False)
+        out += [tile_coef_code(an, piece, exhaustive=exhaustive)
                 for (_, an), piece in zip(self.tiles_with(overlap), pieces[1:])]
         self._last_parts = (stream, exhaustive, out)
         return out
@@ -494,6 +508,13 @@ def _tile_params(params: Params) -> Params:
 _WINDOW_GRID = dict(x0=0.0, y0=0.0, z0=0.0, resolution=1.0)
 
 
+def tile_coef_code(an: Analysis, stream: np.ndarray, *, exhaustive: bool = True) -> bytes:
+    """A tile's COEF section of ``stream``: none (b"") when every value is 0 (format.md, TIDX)."""
+    if not stream.any():
+        return b""
+    return an.encode_stream(stream, exhaustive=exhaustive, progressive=False)
+
+
 def tile_mask_code(mask: np.ndarray) -> bytes:
     """A tile's ``MASK`` payload: none (b"") for a full tile, whose mask the reader takes as every
     cell (docs/format.md, TIDX); else its own coding, the first line a seed where that is shorter."""
@@ -529,6 +550,6 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
     mask_code = tile_mask_code(mask) if job.mask_code is None else job.mask_code
-    coef_code = an.encode_stream(stream, progressive=False) if job.coef_code is None else job.coef_code
+    coef_code = tile_coef_code(an, stream) if job.coef_code is None else job.coef_code
     return TileCode(job.k, mask_code, coef_code, resid, int(mask.sum()), dot(err, err), float(np.abs(err).max()),
                     weighted)
