@@ -333,17 +333,14 @@ def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes,
         raise ValueError("a tiled header needs its tile index")
     with _as_writer():
         _check_tiled_params(header.params, header.grid, index.tiling.size)
-        # An occupied tile may have no section at all: full, without a residual layer, every
-        # coefficient 0 (format.md, TIDX).
+        # The reader's rule, on the sections written (an occupied tile may have none at all: full,
+        # without a residual layer, every coefficient 0).
         written: dict[int, set[bytes]] = {}
         for k, tag, *_ in entries:
             written.setdefault(k, set()).add(tag)
-        if not set(written) <= {int(k) for k in np.flatnonzero(index.cells)}:
-            raise CorruptFileError("sections are written for tiles the index has no cells in")
-        for k in map(int, np.flatnonzero(index.cells)):
+        for k in sorted(set(written) | set(np.flatnonzero(index.cells).tolist())):
             tags = written.get(k, set())
-            if (b"MASK" not in tags and index.cells[k] != math.prod(index.tiling.shape(k))
-                    or (b"RESD" in tags) != (header.params.target_max_error > 0)):
+            if tags != _tile_needs(index, header.params, k, tags):
                 raise CorruptFileError(f"tile {k + 1} is written with sections {_names(tags)}")
         if int(index.cells.sum()) != header.cell_count:
             raise CorruptFileError("tile cells do not add up to the map's")
@@ -993,11 +990,7 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     # file may name would cost a second in Python.
     for k in sorted(set(tiles) | set(np.flatnonzero(index.cells).tolist())):
         have = set(tiles.get(k, {}))
-        need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 else set()) if index.cells[k] else set()
-        if index.cells[k] == math.prod(index.tiling.shape(k)) and b"MASK" not in have:
-            need.discard(b"MASK")  # a full tile may leave its mask out: every cell (format.md, TIDX)
-        if b"COEF" not in have:
-            need.discard(b"COEF")  # and any tile its coefficients: all 0
+        need = _tile_needs(index, params, k, have)
         if have != need:
             raise CorruptFileError(f"tile {k + 1} has sections {_names(have)} where its index entry needs "
                                    f"{_names(need)}")
@@ -1045,6 +1038,20 @@ def read_tile(source: Source, header: Header, k: int) -> dict[bytes, memoryview]
         out[tag] = _checked(source, start, length, crc,
                             f"tile {k + 1} (tile row {i}, column {j}): section {tag.decode().strip()}")
     return out
+
+
+def _tile_needs(index: TileIndex, params: Params, k: int, have: set[bytes]) -> set[bytes]:
+    """The sections tile ``k`` (0-based) must hold, given those it has (format.md, TIDX): MASK and
+    COEF, and RESD with a maximum-error target, when it has cells; a full tile may leave its MASK
+    out (every cell), any tile its COEF (every coefficient 0)."""
+    if not index.cells[k]:
+        return set()
+    need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 else set())
+    if index.cells[k] == math.prod(index.tiling.shape(k)) and b"MASK" not in have:
+        need.discard(b"MASK")
+    if b"COEF" not in have:
+        need.discard(b"COEF")
+    return need
 
 
 def _check_tiled_params(params: Params, grid: Grid, size: Any) -> None:

@@ -172,8 +172,8 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     # and fill of the first (TiledAnalysis).
     if params.target_bpp > 0:
         return data
-    lowest = covering_cutoff(dem.grid.shape, tile)
     if params.has_target and params.cutoff is None:
+        lowest = covering_cutoff(dem.grid.shape, tile)
         cutoff = max(cutoff, 1.0 if lowest is None else lowest)
     cycles = covering_reach(dem.grid.shape, tile, cutoff) if cutoff < 1 else None
     if cycles is None or cycles <= BASE_CYCLES_PER_TILE:
