@@ -51,3 +51,13 @@ def small_terrain() -> np.ndarray:
     from dftpcc.experiments.terrain import regolith_plain
 
     return regolith_plain(20_000, size=40.0, craters=4, rocks=30, seed=3)
+
+
+@pytest.fixture
+def tile_masks(monkeypatch):
+    """The writer codes each tile's mask and residual layer, as for a map over
+    ``tiles.MAP_MASK_CELLS`` cells, rather than the map mask and map residual at tile 0 it writes
+    for a small map (docs/format.md, *Tile sections*)."""
+    from dftpcc import encoder
+
+    monkeypatch.setattr(encoder, "MAP_MASK_CELLS", 0)

@@ -179,9 +179,10 @@ def _sections(data: bytes) -> dict[bytes, bytes]:
         if tag not in sections:
             raise ValueError(f"section {tag!r} is missing")
     if tiled:
-        for tag in (b"MASK", b"COEF", b"RESD"):
-            if tag in sections:
-                raise ValueError(f"tile 0 of a tiled file holds a {tag!r} section")
+        if b"COEF" in sections:  # a MASK at tile 0 is the map mask, a RESD the map residual
+            raise ValueError("tile 0 of a tiled file holds a b'COEF' section")
+        if b"RESD" in sections and b"MASK" not in sections:
+            raise ValueError("tile 0 holds a map residual without the map mask")
     return sections
 
 
@@ -608,7 +609,7 @@ TILE_MIN, TILE_MAX = 16, 65536  # T, cells
 MAX_GRID_CELLS_TILED = 1 << 36
 MAX_TILES = 1 << 20
 TILES_PER_FILE_BYTE = 64
-TIDX_CODING = 1
+TIDX_CODINGS = (1, 2)  # 2: the errors in byte planes
 TIDX_HEAD = struct.Struct("<BIHB")  # coding, T, overlap M, base reach K
 # A 1.1 file fixes these parameters (format.md, "What changes in a 1.1 file").
 TILED_PARAMS = {"transform": "dct", "storage": "quantized", "detrend": "plane", "mask": "exact"}
@@ -625,7 +626,7 @@ def _tile_index(p: bytes, n: int, size: int) -> tuple[int, np.ndarray, np.ndarra
     if len(p) < TIDX_HEAD.size:
         raise ValueError("tile index is truncated")
     coding, t, overlap, reach = TIDX_HEAD.unpack_from(p, 0)
-    if coding != TIDX_CODING:
+    if coding not in TIDX_CODINGS:
         raise ValueError(f"tile index has unknown coding {coding}")
     if t != size:
         raise ValueError("tile index states another tile size than PARM")
@@ -654,7 +655,10 @@ def _tile_index(p: bytes, n: int, size: int) -> tuple[int, np.ndarray, np.ndarra
     cells = (planes[0] | planes[1] << 8 | planes[2] << 16 | planes[3] << 24).astype(np.int64)
     if int(np.count_nonzero(cells)) != m:
         raise ValueError("tile index holds figures for another number of tiles than have cells")
-    figures = np.frombuffer(raw[4 * n:], "<f4").astype(np.float64)
+    figure_bytes = np.frombuffer(raw[4 * n:], np.uint8)
+    if coding == 2:  # 4 byte planes of the 2m values
+        figure_bytes = figure_bytes.reshape(4, 2 * m).T.copy()
+    figures = figure_bytes.view("<f4").reshape(-1).astype(np.float64)
     rmse, max_error = figures[:m], figures[m:]
     if not (np.all(np.isfinite(figures)) and np.all(figures >= 0)):
         raise ValueError("tile index holds a negative or non-finite error")
@@ -706,14 +710,20 @@ def _phi(n: int, k: int, cells: np.ndarray) -> np.ndarray:
 
 
 def _decode_tile(data: bytes, k: int, secs: dict, g: dict, params: dict, size: int, overlap: int,
-                 count: int, base: np.ndarray, tx: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 count: int, base: np.ndarray, tx: int,
+                 map_mask: np.ndarray | None = None,
+                 map_resid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows, columns (map indices, row-major within the tile) and heights above z0 of tile k."""
     rows, cols = g["rows"], g["cols"]
     r0, r1, c0, c1 = _tile_box(k, rows, cols, size, tx)
     h, w = r1 - r0, c1 - c0
     name = f"tile {k}: "
-    # A full tile without MASK: every cell.
-    mask = _mask(_payload(data, b"MASK", secs[b"MASK"], name), h, w) if b"MASK" in secs else np.ones((h, w), bool)
+    if map_mask is not None:  # the map mask's cells of the tile
+        mask = map_mask[r0:r1, c0:c1]
+    elif b"MASK" in secs:
+        mask = _mask(_payload(data, b"MASK", secs[b"MASK"], name), h, w)
+    else:  # a full tile without MASK: every cell
+        mask = np.ones((h, w), bool)
     if int(mask.sum()) != count:
         raise ValueError(f"{name}occupancy mask disagrees with the tile index")
     # The coded window: the tile and M cells around it, within the map.
@@ -737,7 +747,9 @@ def _decode_tile(data: bytes, k: int, secs: dict, g: dict, params: dict, size: i
     r, col = np.nonzero(mask)  # row-major within the tile
     hv = height[r, col]
     e = float(params["target_max_error"])
-    if e > 0:
+    if map_resid is not None:  # the map residual's integers at the tile's cells
+        hv = hv + map_resid[r0:r1, c0:c1][r, col] * 2 * e * (1 - 1e-6)
+    elif e > 0:
         q = _residual(_payload(data, b"RESD", secs[b"RESD"], name), mask)
         if np.iscomplexobj(q):
             raise ValueError(f"{name}residual layer holds float values")
@@ -793,13 +805,27 @@ def _tiled_grid(data: bytes, entries, sec: dict, g: dict, params: dict,
     if max(tiles) > n:
         raise ValueError(f"section of tile {max(tiles)}, beyond the {n} tiles")
     coded = (b"MASK", b"COEF", b"RESD") if e > 0 else (b"MASK", b"COEF")
+    map_mask = None
+    if b"MASK" in sec:  # the map mask: no tile holds a MASK
+        coded = tuple(t for t in coded if t != b"MASK")
+        map_mask = _mask(sec[b"MASK"], rows, cols)
+    map_resid = None
+    if b"RESD" in sec:  # the map residual (only beside the map mask): no tile holds a RESD
+        if e <= 0:
+            raise ValueError("a map residual in a file without a maximum-error target")
+        coded = tuple(t for t in coded if t != b"RESD")
+        q = _residual(sec[b"RESD"], map_mask)
+        if np.iscomplexobj(q):
+            raise ValueError("map residual holds float values")
+        map_resid = np.zeros((rows, cols), np.int64)
+        map_resid[map_mask] = q
     for k in range(1, n + 1):
         have = tiles.get(k, {})
         r0, r1, c0, c1 = _tile_box(k, rows, cols, size, tx)
         full = cells[k - 1] == (r1 - r0) * (c1 - c0)
         for tag in (b"MASK", b"COEF", b"RESD"):
             wanted = cells[k - 1] > 0 and tag in coded
-            if tag == b"MASK" and full and tag not in have:
+            if tag == b"MASK" and full and tag not in have and map_mask is None:
                 continue  # a full tile may leave its mask out
             if tag == b"COEF" and tag not in have:
                 continue  # and any tile its coefficients, all 0 then
@@ -811,7 +837,8 @@ def _tiled_grid(data: bytes, entries, sec: dict, g: dict, params: dict,
     mask = np.zeros((rows, cols), bool)
     for k in range(1, n + 1):
         if cells[k - 1]:
-            r, col, h = _decode_tile(data, k, tiles.get(k, {}), g, params, size, overlap, int(cells[k - 1]), base, tx)
+            r, col, h = _decode_tile(data, k, tiles.get(k, {}), g, params, size, overlap, int(cells[k - 1]), base, tx,
+                                     map_mask, map_resid)
             heights[r, col] = h
             mask[r, col] = True
     return mask, heights

@@ -300,7 +300,7 @@ def test_tiled_real_dem(tmp_path):
     assert tile_shapes(layout)[-1] == (81, 92)
 
 
-def test_tiled_point_cloud_with_empty_tiles(field_ground):
+def test_tiled_point_cloud_with_empty_tiles(field_ground, tile_masks):
     """The IGN field's quarter disc at 1 m in 128-cell tiles: a corner tile holds no cell, no section."""
     data = dftpcc.compress(field_ground, resolution=1.0, tile_size=128)
     layout = check_tiled(data)
@@ -312,8 +312,121 @@ def test_tiled_point_cloud_with_empty_tiles(field_ground):
     assert {2, 3} <= kinds, kinds
 
 
+def test_a_small_tiled_map_keeps_its_mask_whole_at_tile_0(field_ground, monkeypatch):
+    """The field at 1 m in 128-cell tiles: the map mask at tile 0 and no tile's MASK, shorter than
+    the tiles' masks, and the same map to the bit in both readers."""
+    from dftpcc import encoder
+
+    data = dftpcc.compress(field_ground, resolution=1.0, tile_size=128)
+    layout = check_tiled(data)
+    masks = [(tile, payload) for tag, tile, payload in craft.split_tiled(data) if tag == b"MASK"]
+    assert [tile for tile, _p in masks] == [0]
+    monkeypatch.setattr(encoder, "MAP_MASK_CELLS", 0)
+    own = dftpcc.compress(field_ground, resolution=1.0, tile_size=128)
+    assert not any(tag == b"MASK" and tile == 0 for tag, tile, _p in craft.split_tiled(own))
+    assert len(data) < len(own)
+    assert dftpcc.open(data).info()["stats"]["mask_bytes"] == len(masks[0][1])
+    a, b = dftpcc.open(data).read_dem(), dftpcc.open(own).read_dem()
+    np.testing.assert_array_equal(a.mask, b.mask)
+    assert a.heights.tobytes() == b.heights.tobytes()
+    np.testing.assert_array_equal(spec_decoder.decode(data), spec_decoder.decode(own))
+    assert layout["cells"].tolist() == check_tiled(own)["cells"].tolist()
+    # A region reads the map mask and its tiles only.
+    whole = spec_decoder.decode(data)
+    box = [whole[:, 0].min() + 100, whole[:, 1].min() + 100, whole[:, 0].min() + 200, whole[:, 1].min() + 300]
+    inside = ((whole[:, 0] >= box[0]) & (whole[:, 0] <= box[2]) & (whole[:, 1] >= box[1]) & (whole[:, 1] <= box[3]))
+    np.testing.assert_allclose(dftpcc.open(data).read_points(bbox=box), whole[inside], rtol=0, atol=ATOL)
+
+
+def test_a_map_mask_refuses_what_disagrees_with_it():
+    """A tile's MASK beside the map mask, a map mask whose cells per tile are not the index's, and
+    a map mask of another shape: both readers refuse them (dftpcc with its own error)."""
+    from dftpcc import occupancy
+
+    data = encode_tiled(synthetic_dem(90, 70, 5), tile_size=32)
+    sections = split_tiled(data)
+    i = next(i for i, (tag, tile, _p) in enumerate(sections) if tag == b"MASK")
+    assert sections[i][1] == 0
+    mask = occupancy.decode_mask(sections[i][2], (90, 70))
+    tile_mask = occupancy.encode_mask(mask[:32, :32], first_seed=True)
+    moved = mask.copy()
+    r, c = np.argwhere(mask[:32, :32])[0]
+    moved[r, c] = False
+    r, c = np.argwhere(~mask[32:64, :32])[0]
+    moved[32 + r, c] = True  # the same count over the map, one cell more in tile 4, one less in tile 1
+    cases = {
+        "a tile's MASK too": (sections + [(b"MASK", 1, tile_mask)], "tile 1 has sections"),
+        "cells in other tiles": ([(t, k, occupancy.encode_mask(moved) if j == i else p)
+                                  for j, (t, k, p) in enumerate(sections)], "cell count"),
+        "another shape": ([(t, k, occupancy.encode_mask(mask[:, :64]) if j == i else p)
+                           for j, (t, k, p) in enumerate(sections)], "map mask"),
+    }
+    for name, (lying, message) in cases.items():
+        lie = join_tiled(lying)
+        with pytest.raises(dftpcc.DftpccError, match=message):
+            dftpcc.open(lie).read_dem()
+        with pytest.raises(ValueError):
+            spec_decoder.decode(lie)
+
+
+def test_a_small_tiled_map_keeps_its_residual_whole_at_tile_0(field_ground, monkeypatch):
+    """The field at 1 m in 128-cell tiles within 8 cm: the map residual beside the map mask at tile
+    0, no tile's RESD, shorter than each tile's, the same integers so the same map to the bit, in
+    both readers and for a region."""
+    from dftpcc import encoder
+
+    data = dftpcc.compress(field_ground, resolution=1.0, tile_size=128, target_max_error=0.08)
+    check_tiled(data)
+    at = {(tag, tile) for tag, tile, _p in craft.split_tiled(data) if tag in (b"MASK", b"RESD")}
+    assert at == {(b"MASK", 0), (b"RESD", 0)}
+    monkeypatch.setattr(encoder, "map_residual", lambda an, masks, codes, coder: (masks, b""))
+    own = dftpcc.compress(field_ground, resolution=1.0, tile_size=128, target_max_error=0.08)
+    assert (b"RESD", 0) not in {(tag, tile) for tag, tile, _p in craft.split_tiled(own)}
+    assert len(data) < len(own)
+    info = dftpcc.open(data).info()["stats"]
+    assert info["residual_bytes"] == len(craft.section(data, b"RESD"))
+    assert info["dem_max_error_m"] <= 0.08
+    a, b = dftpcc.open(data).read_dem(), dftpcc.open(own).read_dem()
+    np.testing.assert_array_equal(a.mask, b.mask)
+    assert a.heights.tobytes() == b.heights.tobytes()
+    whole = spec_decoder.decode(data)
+    np.testing.assert_array_equal(whole, spec_decoder.decode(own))
+    box = [whole[:, 0].min() + 100, whole[:, 1].min() + 100, whole[:, 0].min() + 200, whole[:, 1].min() + 300]
+    inside = ((whole[:, 0] >= box[0]) & (whole[:, 0] <= box[2]) & (whole[:, 1] >= box[1]) & (whole[:, 1] <= box[3]))
+    np.testing.assert_allclose(dftpcc.open(data).read_points(bbox=box), whole[inside], rtol=0, atol=ATOL)
+
+
+def test_a_map_residual_refuses_what_disagrees_with_it():
+    """A map residual without the map mask, beside a tile's RESD, without a bound, or of another
+    count than the map mask's cells: both readers refuse them (dftpcc with its own error)."""
+    from dftpcc import occupancy
+    from dftpcc.residual import decode_residual, encode_residual
+
+    data = encode_tiled(synthetic_dem(90, 70, 5), tile_size=32, target_max_error=0.05)
+    sections = split_tiled(data)
+    assert {(tag, tile) for tag, tile, _p in sections if tag in (b"MASK", b"RESD")} == {(b"MASK", 0), (b"RESD", 0)}
+    mask = occupancy.decode_mask(craft.section(data, b"MASK"), (90, 70))
+    q = decode_residual(craft.section(data, b"RESD"), mask)
+    fewer = mask.copy()
+    fewer[tuple(np.argwhere(mask)[0])] = False
+    cases = {
+        "no map mask": (join_tiled([s for s in sections if s[:2] != (b"MASK", 0)]), "needs the map mask"),
+        "a tile's RESD too": (join_tiled(sections + [(b"RESD", 1, craft.section(data, b"RESD"))]),
+                              "tile 1 has sections"),
+        "no bound": (craft.with_json(data, b"PARM", {**craft.json_of(data, b"PARM"), "target_max_error": 0.0}),
+                     "without a maximum-error target"),
+        "one value short": (craft.replace_section(data, b"RESD", encode_residual(q[1:], "ans", fewer)),
+                            "map residual: "),
+    }
+    for name, (lie, message) in cases.items():
+        with pytest.raises(dftpcc.DftpccError, match=message):
+            dftpcc.open(lie).read_dem()
+        with pytest.raises(ValueError):
+            spec_decoder.decode(lie)
+
+
 @pytest.mark.parametrize("coder", ["ans", "zstd"])
-def test_tiled_max_error_has_a_residual_layer_per_tile(coder):
+def test_tiled_max_error_has_a_residual_layer_per_tile(coder, tile_masks):
     data = encode_tiled(synthetic_dem(150, 100, 1), tile_size=64, target_max_error=0.02, coder=coder)
     layout = check_tiled(data)
     resd = {tile for tag, tile, *_ in layout["entries"] if tag == b"RESD"}
@@ -369,6 +482,43 @@ def test_a_tile_may_hold_its_zero_coefficients(monkeypatch):
     np.testing.assert_array_equal(spec_decoder.decode(lean), spec_decoder.decode(full))
 
 
+def test_tile_index_errors_in_either_layout():
+    """TIDX coding 2 (the errors in byte planes, as written) and coding 1 (one after another, as
+    files written before) state the same figures to both readers; the figures written are at least
+    the measured ones, within 2^-15, with their 8 low mantissa bits 0, and none above the map's."""
+    import zstandard
+
+    dem = synthetic_dem(90, 70, 6)
+    data = encode_tiled(dem, tile_size=32, target_max_error=0.02)
+    sections = split_tiled(data)
+    k = next(i for i, (tag, _t, _p) in enumerate(sections) if tag == b"TIDX")
+    tidx = sections[k][2]
+    assert tidx[0] == 2
+    body = zstandard.ZstdDecompressor().decompress(tidx[8:])
+    n = 3 * 3
+    planes = np.frombuffer(body[4 * n:], np.uint8).reshape(4, -1)
+    figures = planes.T.copy().view("<f4").ravel()
+    capped = figures == figures[figures.size // 2:].max()  # the largest max error: the map's, in STAT
+    assert capped.sum() >= 1 and not planes[0][~capped].any()  # the low mantissa byte of the others
+    raw = planes.T.copy().tobytes()
+    sections[k] = (b"TIDX", 0, bytes([1]) + tidx[1:8] + zstandard.ZstdCompressor().compress(body[:4 * n] + raw))
+    old = join_tiled(sections)
+    a, b = dftpcc.open(data), dftpcc.open(old)
+    assert a.info()["tiles"] == b.info()["tiles"]
+    np.testing.assert_array_equal(spec_decoder.decode(data), spec_decoder.decode(old))
+    assert check_tiled(old)["cells"].tolist() == check_tiled(data)["cells"].tolist()
+    # Stated against measured, per tile.
+    heights = a.read_dem().heights
+    stated_max = a.info()["stats"]["dem_max_error_m"]
+    for t in a.info()["tiles"]["tiles"]:
+        r, c = t["row"] * 32, t["col"] * 32
+        m = dem.mask[r:r + 32, c:c + 32]
+        err = (heights[r:r + 32, c:c + 32] - dem.heights[r:r + 32, c:c + 32])[m]
+        for stated, measured in ((t["dem_rmse_m"], np.sqrt(np.mean(err ** 2))), (t["dem_max_error_m"], np.abs(err).max())):
+            assert measured * (1 - 1e-6) <= stated <= measured * (1 + 2 ** -14) + 1e-12
+        assert t["dem_max_error_m"] <= stated_max
+
+
 def test_tiled_region_matches_the_whole_decode():
     """A bbox decode reads the same points as the whole decode gives inside the box."""
     data = encode_tiled(synthetic_dem(90, 70, 4), tile_size=32)
@@ -406,7 +556,7 @@ def with_tile_index(data: bytes, cells: np.ndarray) -> bytes:
     return join_tiled(sections)
 
 
-def test_tiled_refusals():
+def test_tiled_refusals(tile_masks):
     """Lying tiled files: both decoders refuse them (dftpcc with its own error)."""
     data = encode_tiled(synthetic_dem(90, 70, 5), tile_size=32)
     layout = check_tiled(data)

@@ -87,7 +87,7 @@ def test_a_map_in_one_tile_is_written_as_today(gale):
     assert whole[9] == 0  # format 1.0
 
 
-def test_a_full_tile_has_no_mask_section_and_one_with_it_still_reads():
+def test_a_full_tile_has_no_mask_section_and_one_with_it_still_reads(tile_masks):
     # A full tile's mask is implied by its count (format.md, TIDX); files written before held it.
     from dftpcc import occupancy
 

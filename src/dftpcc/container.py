@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import dataclasses
 import json
 import math
 import struct
@@ -76,8 +77,11 @@ MAX_TILES = 1 << 20
 TILES_PER_FILE_BYTE = 64
 #: rows x cols of a tiled map, at most (MAX_CELLS applies to each tile).
 MAX_TILED_CELLS = 1 << 36
-#: The tile index's coding byte.
-TIDX_CODING = 1
+#: The tile index's coding byte: 1, its errors one after another (read only); 2, in byte planes.
+TIDX_CODING = 2
+TIDX_CODINGS = (1, 2)
+#: The low mantissa bits the writer rounds the tile index's errors up to 0 (format.md, TIDX).
+TIDX_ERROR_LOW_BITS = 8
 _TIDX_HEAD = struct.Struct("<BIHB")
 #: Sections of tile 0 a tiled file must hold, and the sections a tile holds.
 REQUIRED_TILED = (b"GEOM", b"PARM", b"STAT", b"TIDX", b"BASE")
@@ -153,6 +157,12 @@ class TileIndex:
         DEM error per tile measured at compression, metres (NaN for empty tiles).
     sections : dict
         Tile (0-based) -> tag -> (offset, length, CRC-32) of its payloads in the file.
+    map_mask : bool
+        Whether tile 0 holds the map mask (format.md, *Tile sections*): then no tile holds a MASK,
+        and a tile's mask is the map mask's cells of it.
+    map_resid : bool
+        Whether tile 0 holds the map residual (only beside the map mask): then no tile holds a
+        RESD, and a tile's residual integers are the map residual's at its cells.
     """
 
     tiling: TileGrid
@@ -162,6 +172,8 @@ class TileIndex:
     rmse: np.ndarray
     max_error: np.ndarray
     sections: dict[int, dict[bytes, tuple[int, int, int]]] = field(default_factory=dict)
+    map_mask: bool = False
+    map_resid: bool = False
 
     def tile_bytes(self, k: int) -> int:
         """Bytes of tile ``k``'s payloads."""
@@ -290,7 +302,8 @@ def _assemble(sections: list[tuple[bytes, int, bytes]], version: tuple[int, int]
     return head + b"".join(p for _, _, p in sections)
 
 
-def pack_tiled(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, bytes, bytes]]) -> bytes:
+def pack_tiled(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, bytes, bytes]],
+               map_mask: bytes = b"", map_resid: bytes = b"") -> bytes:
     """Serialise a tiled map (version 1.1, docs/format.md *Tiles*).
 
     Parameters
@@ -302,12 +315,17 @@ def pack_tiled(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, b
         The BASE section.
     tiles : list of (k, mask, coef, resid)
         Each occupied tile (0-based ``k``, ascending) and its sections
-        (``resid`` empty without a maximum-error target).
+        (``resid`` empty without a maximum-error target or with a map residual; ``mask`` empty
+        with a map mask).
+    map_mask, map_resid : bytes
+        The whole grid's MASK and RESD payloads, at tile 0 (empty: the tiles hold their own; a map
+        residual needs the map mask).
     """
-    return b"".join(tiled_parts(header, base_blob, tiles))
+    return b"".join(tiled_parts(header, base_blob, tiles, map_mask, map_resid))
 
 
-def tiled_parts(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, bytes, bytes]]) -> list[bytes]:
+def tiled_parts(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, bytes, bytes]],
+                map_mask: bytes = b"", map_resid: bytes = b"") -> list[bytes]:
     """:func:`pack_tiled`'s bytes in pieces: the head (preamble, table, tile 0), then each payload."""
     entries, payloads = [], []
     for k, mask_blob, coef_blob, resid_blob in tiles:
@@ -316,10 +334,16 @@ def tiled_parts(header: Header, base_blob: bytes, tiles: list[tuple[int, bytes, 
                 continue
             entries.append((k, tag, len(blob), zlib.crc32(blob)))
             payloads.append(blob)
-    return [tiled_head(header, base_blob, entries)] + payloads
+    return [tiled_head(header, base_blob, entries, map_mask, map_resid)] + payloads
 
 
-def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes, int, int]]) -> bytes:
+def entry_bytes(tile: int, length: int) -> int:
+    """Bytes of the section table entry of a payload of ``length`` bytes at ``tile``."""
+    return 4 + len(_leb128(tile)) + len(_leb128(length)) + _CRC.size
+
+
+def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes, int, int]],
+               map_mask: bytes = b"", map_resid: bytes = b"") -> bytes:
     """The start of a tiled file: preamble, section table and tile 0's payloads, for tile sections
     ``(k, tag, length, crc)`` whose payloads follow it in that order.
 
@@ -328,11 +352,12 @@ def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes,
     keeps its payloads aside until the table is known).
     """
     check_header(header)
-    index = header.tiles
-    if index is None:
+    if header.tiles is None:
         raise ValueError("a tiled header needs its tile index")
+    index = dataclasses.replace(header.tiles, map_mask=bool(map_mask), map_resid=bool(map_resid))
     with _as_writer():
         _check_tiled_params(header.params, header.grid, index.tiling.size)
+        _check_map_resid(index, header.params)
         # The reader's rule, on the sections written (an occupied tile may have none at all: full,
         # without a residual layer, every coefficient 0).
         written: dict[int, set[bytes]] = {}
@@ -345,6 +370,7 @@ def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes,
         if int(index.cells.sum()) != header.cell_count:
             raise CorruptFileError("tile cells do not add up to the map's")
     sections = _map_sections(header) + [(b"TIDX", _pack_index(index)), (b"BASE", base_blob)]
+    sections += [(tag, blob) for tag, blob in ((b"MASK", map_mask), (b"RESD", map_resid)) if blob]
     table = [(tag, 0, len(p), zlib.crc32(p)) for tag, p in sections]
     table += [(tag, k + 1, length, crc) for k, tag, length, crc in entries]
     if len(table) > MAX_SECTIONS_TILED:
@@ -356,9 +382,11 @@ def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes,
 def _pack_index(index: TileIndex) -> bytes:
     cells = index.cells.astype("<u4")
     occupied = index.cells > 0
-    errors = [np.frombuffer(b"".join(_f32_up(float(v)) for v in values[occupied]), dtype="<f4")
-              for values in (index.rmse, index.max_error)]
-    body = cells.view(np.uint8).reshape(-1, 4).T.tobytes() + b"".join(e.tobytes() for e in errors)
+    rmse, max_error = (_f32_coarse_up(values[occupied]) for values in (index.rmse, index.max_error))
+    if max_error.size:  # no tile states more than the map's maximum error (their maximum, in STAT)
+        max_error = np.minimum(max_error, _f32_coarse_up(index.max_error[occupied].max(keepdims=True), 0))
+    errors = np.concatenate([rmse, max_error]).astype("<f4")
+    body = b"".join(a.view(np.uint8).reshape(-1, 4).T.tobytes() for a in (cells, errors))
     frame = zstandard.ZstdCompressor(level=19, write_content_size=True).compress(body)
     return _TIDX_HEAD.pack(TIDX_CODING, index.tiling.size, index.overlap, index.base_cycles) + frame
 
@@ -617,6 +645,18 @@ def _f32_up(value: float) -> bytes:
     if float(f) < value:
         f = np.nextafter(f, np.float32(np.inf))
     return _F32.pack(f)
+
+
+def _f32_coarse_up(values: np.ndarray, low_bits: int = TIDX_ERROR_LOW_BITS) -> np.ndarray:
+    """Finite ``values`` >= 0 as float32 not below them whose ``low_bits`` low mantissa bits are 0
+    (a carry into the exponent is the next power of two, still not below): zstd shortens those."""
+    values = np.asarray(values, dtype=np.float64)
+    f = values.astype(np.float32)
+    f = np.where(f < values, np.nextafter(f, np.float32(np.inf)), f).astype(np.float32)
+    step = np.uint32(1 << low_bits) if low_bits else np.uint32(1)
+    bits = f.view(np.uint32)
+    coarse = ((bits + (step - np.uint32(1))) & ~(step - np.uint32(1))).view(np.float32)
+    return np.where(np.isfinite(coarse), coarse, f).astype(np.float32)
 
 
 def _pack_stats(stats: dict[str, Any]) -> bytes:
@@ -935,7 +975,8 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
 
     An untiled map is read whole and parsed as by :func:`unpack`. A tiled
     one returns a header whose ``tiles`` says where each tile's sections lie
-    (read them with :func:`read_tile`) and the blobs ``b"BASE"``.
+    (read them with :func:`read_tile`) and the blobs ``b"BASE"`` and, if tile 0 holds the map mask,
+    ``b"MASK"``.
     """
     entries, offset, minor = _table_of(source)
     if not _is_tiled(entries):
@@ -956,15 +997,15 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     for tag, tile, length, crc in entries:
         start, offset = offset, offset + length
         if tile == 0:
-            if tag in TILE_TAGS:
+            if tag == b"COEF":  # a MASK there is the map mask, a RESD the map residual
                 raise CorruptFileError(f"a tiled map holds no section {tag.decode().strip()} at tile 0")
             found.setdefault(tag, (start, length, crc))
         elif tag in TILE_TAGS:
             tiles.setdefault(tile - 1, {}).setdefault(tag, (start, length, crc))
     payloads: dict[bytes, memoryview] = {}
-    for tag in REQUIRED_TILED + (b"CRS ",):
+    for tag in REQUIRED_TILED + (b"CRS ", b"MASK", b"RESD"):
         if tag not in found:
-            if tag == b"CRS ":
+            if tag in (b"CRS ", b"MASK", b"RESD"):
                 continue
             raise CorruptFileError(f"section {tag.decode().strip()} is missing")
         start, length, crc = found[tag]
@@ -982,6 +1023,8 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     _check_coef_count(coef_count, rows * cols)
     grid, crs = _grid_and_crs(fields, geom, payloads.get(b"CRS "))
     index = _unpack_index(payloads[b"TIDX"], grid, params, ncells, source.size)
+    index.map_mask, index.map_resid = b"MASK" in payloads, b"RESD" in payloads
+    _check_map_resid(index, params)
     # Any tag: format.md refuses tile numbers above the count, not only those of MASK, COEF, RESD.
     last = max(tile for _tag, tile, _length, _crc in entries)
     if last > index.tiling.count:
@@ -995,12 +1038,12 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
             raise CorruptFileError(f"tile {k + 1} has sections {_names(have)} where its index entry needs "
                                    f"{_names(need)}")
     index.sections = tiles
-    for key, tag in _DERIVED_STATS.items():
+    for key, tag in _DERIVED_STATS.items():  # the tiles' sections, and tile 0's BASE, map mask and residual
         stats.setdefault(key, sum(t.get(tag, (0, 0, 0))[1] for t in tiles.values())
-                         + (found[b"BASE"][1] if tag == b"COEF" else 0))
+                         + found.get(b"BASE" if tag == b"COEF" else tag, (0, 0, 0))[1])
     header = Header(grid=grid, params=params, point_count=npoints, cell_count=ncells,
                     plane=(pa, pb, pc), crs=crs, stats=stats, coef_count=coef_count, tiles=index)
-    return header, {b"BASE": payloads[b"BASE"]}
+    return header, {tag: payloads[tag] for tag in (b"BASE", b"MASK", b"RESD") if tag in payloads}
 
 
 def _is_tiled(entries: list[tuple[bytes, int, int, int]]) -> bool:
@@ -1043,15 +1086,24 @@ def read_tile(source: Source, header: Header, k: int) -> dict[bytes, memoryview]
 def _tile_needs(index: TileIndex, params: Params, k: int, have: set[bytes]) -> set[bytes]:
     """The sections tile ``k`` (0-based) must hold, given those it has (format.md, TIDX): MASK and
     COEF, and RESD with a maximum-error target, when it has cells; a full tile may leave its MASK
-    out (every cell), any tile its COEF (every coefficient 0)."""
+    out (every cell), any tile its COEF (every coefficient 0); no tile has a MASK with a map mask,
+    nor a RESD with a map residual."""
     if not index.cells[k]:
         return set()
-    need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 else set())
-    if index.cells[k] == math.prod(index.tiling.shape(k)) and b"MASK" not in have:
+    need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 and not index.map_resid else set())
+    if index.map_mask or (index.cells[k] == math.prod(index.tiling.shape(k)) and b"MASK" not in have):
         need.discard(b"MASK")
     if b"COEF" not in have:
         need.discard(b"COEF")
     return need
+
+
+def _check_map_resid(index: TileIndex, params: Params) -> None:
+    """A RESD at tile 0 is the map residual: it needs the map mask (its cells) and a bound."""
+    if index.map_resid and not index.map_mask:
+        raise CorruptFileError("a map residual (RESD at tile 0) needs the map mask (MASK at tile 0)")
+    if index.map_resid and not params.target_max_error > 0:
+        raise CorruptFileError("a map residual (RESD at tile 0) in a file without a maximum-error target")
 
 
 def _check_tiled_params(params: Params, grid: Grid, size: Any) -> None:
@@ -1077,7 +1129,7 @@ def _unpack_index(payload: memoryview, grid: Grid, params: Params, ncells: int, 
     if len(raw) < _TIDX_HEAD.size:
         raise CorruptFileError("tile index is too short")
     coding, size, overlap, base_cycles = _TIDX_HEAD.unpack_from(raw, 0)
-    if coding != TIDX_CODING:
+    if coding not in TIDX_CODINGS:
         raise CorruptFileError(f"tile index has unknown coding {coding}")
     _check_tiled_params(params, grid, size)
     if overlap > size // 2:
@@ -1114,7 +1166,10 @@ def _unpack_index(payload: memoryview, grid: Grid, params: Params, ncells: int, 
             raise CorruptFileError(f"tile {k + 1} claims {cells[k]} cells in a {h} x {w} tile")
     if int(cells.sum()) != ncells:
         raise CorruptFileError(f"the tiles' cells add up to {int(cells.sum())}, the map states {ncells}")
-    errors = np.frombuffer(body[4 * n:], dtype="<f4").astype(np.float64)
+    errors = np.frombuffer(body[4 * n:], dtype=np.uint8)
+    if coding == 2:  # byte planes
+        errors = errors.reshape(4, -1).T.copy()
+    errors = errors.view("<f4").ravel().astype(np.float64)
     if not (np.isfinite(errors).all() and (errors >= 0).all()):
         raise CorruptFileError("tile index holds a negative or non-finite error")
     rmse, max_error = np.full(n, np.nan), np.full(n, np.nan)

@@ -108,7 +108,7 @@ class _Base:
         self.values = coding.dequantize(q, params.step)
 
 
-def decode_tiled(header: Header, base_blob: Any, read: Callable[[int], dict[bytes, Any]], *,
+def decode_tiled(header: Header, shared: dict[bytes, Any], read: Callable[[int], dict[bytes, Any]], *,
                  rows: tuple[int, int] | None = None, cols: tuple[int, int] | None = None,
                  map_tiles: Callable[..., list] | None = None) -> DEM:
     """Rebuild a tiled map, or the window ``rows`` x ``cols`` (cell ranges) of it, decoding only its tiles.
@@ -117,8 +117,9 @@ def decode_tiled(header: Header, base_blob: Any, read: Callable[[int], dict[byte
     ----------
     header : Header
         Of a tiled map (``header.tiles`` set).
-    base_blob : bytes
-        The BASE section.
+    shared : dict
+        Tile 0's coded sections (:func:`dftpcc.container.unpack_source`): ``b"BASE"``, and
+        ``b"MASK"`` and ``b"RESD"`` when it holds the map mask and the map residual.
     read : callable
         ``read(k)`` gives tile ``k``'s checked sections (see :func:`dftpcc.container.read_tile`).
     rows, cols : (start, stop), optional
@@ -137,13 +138,30 @@ def decode_tiled(header: Header, base_blob: Any, read: Callable[[int], dict[byte
     grid, index = header.grid, header.tiles
     rows = rows or (0, grid.rows)
     cols = cols or (0, grid.cols)
-    base = _Base(header, base_blob)
+    base = _Base(header, shared[b"BASE"])
+    map_mask = None
+    if index.map_mask:  # decoded whole for any region (format.md, Tile sections)
+        try:
+            map_mask = occupancy.decode_mask(shared[b"MASK"], grid.shape)
+        except CorruptFileError as exc:
+            raise CorruptFileError(f"map mask: {exc}") from None
+    map_resid = None
+    if index.map_resid:  # decoded whole too, onto the map's cells
+        assert map_mask is not None  # the container refuses a map residual without the map mask
+        try:
+            q = decode_residual(shared[b"RESD"], map_mask)
+        except CorruptFileError as exc:
+            raise CorruptFileError(f"map residual: {exc}") from None
+        map_resid = np.zeros(grid.shape, dtype=np.int64)
+        map_resid[map_mask] = q
     out_grid = grid if (rows, cols) == ((0, grid.rows), (0, grid.cols)) else \
         grid.window(rows[0], cols[0], rows[1] - rows[0], cols[1] - cols[0])
     heights = np.zeros(out_grid.shape)
     mask = np.zeros(out_grid.shape, dtype=bool)
     wanted = [k for k in index.tiling.touching(rows, cols) if index.cells[k]]
-    jobs = [(k, {tag: bytes(blob) for tag, blob in read(k).items()}) for k in wanted]
+    jobs = [(k, {tag: bytes(blob) for tag, blob in read(k).items()},
+             *(None if whole is None else _tile_of(whole, index.tiling.bounds(k)) for whole in (map_mask, map_resid)))
+            for k in wanted]
     decoded = (map_tiles or _serial)(_decode_job, jobs, header, base)
     for k, (h, m) in zip(wanted, decoded):
         r0, r1, c0, c1 = index.tiling.bounds(k)
@@ -159,25 +177,35 @@ def _serial(func: Callable[..., Any], items: list, *args: Any) -> list:
     return [func(item, *args) for item in items]
 
 
-def _decode_job(job: tuple[int, dict[bytes, bytes]], header: Header, base: _Base) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_decode_tile` of ``(k, sections)``, its errors naming the tile."""
-    k, blobs = job
+def _tile_of(whole: np.ndarray, bounds: tuple[int, int, int, int]) -> np.ndarray:
+    r0, r1, c0, c1 = bounds
+    return whole[r0:r1, c0:c1].copy()  # its own array: a job travels to a worker
+
+
+def _decode_job(job: tuple[int, dict[bytes, bytes], np.ndarray | None, np.ndarray | None], header: Header,
+                base: _Base) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_decode_tile` of ``(k, sections, its cells of the map mask and of the map residual, or
+    None)``, its errors naming the tile."""
+    k, blobs, mask, resid = job
     try:
-        return _decode_tile(header, base, k, blobs)
+        return _decode_tile(header, base, k, blobs, mask, resid)
     except CorruptFileError as exc:
         assert header.tiles is not None
         i, j = divmod(k, header.tiles.tiling.tile_cols)
         raise CorruptFileError(f"tile {k + 1} (tile row {i}, column {j}): {exc}") from None
 
 
-def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """Heights (relative to z0) and mask of tile ``k``."""
+def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any],
+                 mask: np.ndarray | None = None, resid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Heights (relative to z0) and mask of tile ``k``; ``mask``, ``resid``: its cells of the map mask
+    and of the map residual's integers (on the map's grid), if tile 0 holds them."""
     assert header.tiles is not None
     params, grid, index = header.params, header.grid, header.tiles
     r0, r1, c0, c1 = index.tiling.bounds(k)
     shape = (r1 - r0, c1 - c0)
     # A full tile may come without its mask (the container checked its count is h x w).
-    mask = occupancy.decode_mask(blobs[b"MASK"], shape) if b"MASK" in blobs else np.ones(shape, dtype=bool)
+    if mask is None:
+        mask = occupancy.decode_mask(blobs[b"MASK"], shape) if b"MASK" in blobs else np.ones(shape, dtype=bool)
     if int(mask.sum()) != index.cells[k]:
         raise CorruptFileError("occupancy mask disagrees with the tile index's cell count")
     w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)
@@ -197,7 +225,9 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any]) -
     heights += tiles.base_heights(base.values, base.i, base.j, grid.shape, (r0, r1), (c0, c1), exact=False)
     a, b, c = header.plane
     heights += a + b * np.arange(c0, c1, dtype=float)[None, :] + c * np.arange(r0, r1, dtype=float)[:, None]
-    if b"RESD" in blobs:
+    if resid is not None:
+        heights[mask] += resid[mask] * residual_step(params.target_max_error)
+    elif b"RESD" in blobs:
         q = decode_residual(blobs[b"RESD"], mask)
         heights[mask] += q * residual_step(params.target_max_error)
     if not np.isfinite(heights[mask]).all():

@@ -9,24 +9,26 @@ packs the file with the errors it promises (:mod:`dftpcc.container`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
-from typing import Any, Callable
+from collections.abc import Iterable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
 from .sums import dot
 from . import coding, occupancy, ratecontrol, spectrum
 from .analysis import Analysis, Trial
-from .container import Header, TileIndex, check_grid, pack, pack_tiled
+from .container import Header, TileIndex, check_grid, entry_bytes, pack, pack_tiled
 from .dem import DEM, as_points
 from .errors import CoarseMapWarning, InvalidInputError
 from .grid import _fit_grid, _rasterize, auto_resolution, extremes
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
-from .tiles import (BASE_CYCLES_PER_TILE, TileCode, TiledAnalysis, code_tile, covering_cutoff, covering_reach,
-                    tile_mask_code, tile_overlap)
+from .tiles import (BASE_CYCLES_PER_TILE, MAP_MASK_CELLS, TileCode, TiledAnalysis, code_tile, covering_cutoff,
+                    covering_reach, tile_mask_code, tile_overlap)
 
 __all__ = ["compress", "encode_dem", "choose_for_tiles", "grid_points", "params_of", "check_heights", "Stage", "no_stage",
            "QUANT_FLOOR_FRACTION"]
@@ -199,9 +201,8 @@ def _encode(dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | No
         an = Analysis(dem, params, searching=searching, fill=fill)
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
-    # A tiled map codes each tile's mask on its own; their bytes together are the mask's.
-    mask_blob: Any = ([tile_mask_code(an.tile_cells(dem.mask, k)) for k in an.occupied] if tile
-                      else occupancy.encode_mask(an.kept_cells))
+    mask_blob: bytes | TiledMasks = tiled_masks(an) if isinstance(an, TiledAnalysis) else \
+        occupancy.encode_mask(an.kept_cells)
 
     on_stage("encode")
     if not params.has_target:
@@ -274,8 +275,56 @@ def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | 
     return params.replace(cutoff=choice.trial.cutoff, step=choice.trial.step), choice.analysis.refill_step
 
 
-def _length(mask_blob: bytes | list[bytes]) -> int:
-    return sum(map(len, mask_blob)) if isinstance(mask_blob, list) else len(mask_blob)
+class TiledMasks(NamedTuple):
+    """A tiled map's masks: the map mask at tile 0 (b"": none) and each occupied tile's ``MASK``
+    (b"": none), in the order of ``TiledAnalysis.occupied``."""
+
+    map: bytes
+    tiles: list[bytes]
+
+
+def tiled_masks(an: TiledAnalysis) -> TiledMasks:
+    """The masks of a tiled map: the whole grid's at tile 0 where it has at most
+    :data:`~dftpcc.tiles.MAP_MASK_CELLS` cells and that is shorter, entries counted, than the tiles'
+    own (each pays its header, seeds and entry, and its context model learns the map again);
+    else each tile's (docs/format.md, *Tile sections*)."""
+    mask = an.dem.mask
+    per = [tile_mask_code(an.tile_cells(mask, k)) for k in an.occupied]
+    if mask.size > MAP_MASK_CELLS or not any(per):  # too large to decode for every region; or all full
+        return TiledMasks(b"", per)
+    whole = occupancy.encode_mask(mask)
+    if _entries([(0, whole)]) < _entries(zip([k + 1 for k in an.occupied], per)):
+        return TiledMasks(whole, [b""] * len(per))
+    return TiledMasks(b"", per)
+
+
+def map_residual(an: TiledAnalysis, masks: TiledMasks, codes: list[TileCode], coder: str) -> tuple[TiledMasks, bytes]:
+    """The map residual (tile 0's ``RESD``, beside the map mask) where the two are shorter,
+    entries counted, than ``masks`` and the tiles' residual layers; else ``masks`` and b""
+    (docs/format.md, *Tile sections*). A sparse residual is mostly its nonzero map, whose context
+    model learns the map again in every tile, as a mask's does. ``codes`` hold their integers
+    (``TileJob.keep_residual``), in the order of ``an.occupied``."""
+    mask = an.dem.mask
+    q = np.zeros(mask.shape, dtype=np.int64)
+    for c in codes:
+        an.tile_cells(q, c.k)[an.tile_cells(mask, c.k)] = c.residual
+    whole_mask = masks.map or occupancy.encode_mask(mask)
+    whole = encode_residual(q[mask], coder, mask)
+    theirs = (_entries([(0, masks.map)] + [(k + 1, b) for k, b in zip(an.occupied, masks.tiles)])
+              + _entries((c.k + 1, c.resid) for c in codes))
+    if _entries([(0, whole_mask), (0, whole)]) < theirs:
+        return TiledMasks(whole_mask, [b""] * len(masks.tiles)), whole
+    return masks, b""
+
+
+def _entries(parts: Iterable[tuple[int, bytes]]) -> int:
+    """Bytes of the payloads ``(tile number in the table, payload)`` and of their section entries (b"": none)."""
+    return sum(entry_bytes(t, len(b)) + len(b) for t, b in parts if b)
+
+
+def _length(mask_blob: bytes | TiledMasks) -> int:
+    return len(mask_blob.map) + sum(map(len, mask_blob.tiles)) if isinstance(mask_blob, TiledMasks) \
+        else len(mask_blob)
 
 
 def _kept(an: Analysis | TiledAnalysis, cutoff: float) -> np.ndarray:
@@ -339,7 +388,7 @@ def _check_max_error(an: Analysis, bound: float) -> None:
             f"workable target is {coding.round_up(need):g} m")
 
 
-def _overhead(an: Analysis, params: Params, mask_blob: bytes, point_count: int, crs: dict[str, Any] | None) -> int:
+def _overhead(an: Analysis, params: Params, mask_blob: bytes | TiledMasks, point_count: int, crs: dict[str, Any] | None) -> int:
     """Bytes of the file besides its coded coefficients, measured by packing it without them."""
     trial = an.trial(max(ratecontrol.cutoffs(params)), an.tiny_step())
     return len(_pack(Choice(an, trial, b""), params, mask_blob, point_count, crs, no_stage,
@@ -360,13 +409,13 @@ def _flag_coarse(dem: DEM, trial: Trial, heights: np.ndarray | None = None) -> N
             f"(e.g. --classes 2), or give a --step or a --target-rmse", CoarseMapWarning, stacklevel=3)
 
 
-def _pack(choice: Choice, params: Params, mask_blob: bytes | list[bytes], point_count: int,
+def _pack(choice: Choice, params: Params, mask_blob: bytes | TiledMasks, point_count: int,
           crs: dict[str, Any] | None, on_stage: Stage, *, map_tiles: Callable[..., list] | None = None,
           header_only: bool = False) -> bytes:
     """Measure what the decoder will rebuild and pack the file with those figures
     (``header_only``: a tiled map without its tiles' coefficients, to measure the rest)."""
     if isinstance(choice.analysis, TiledAnalysis):
-        assert isinstance(mask_blob, list)
+        assert isinstance(mask_blob, TiledMasks)
         return _pack_tiled(choice, params, mask_blob, point_count, crs, on_stage, map_tiles, header_only)
     assert isinstance(mask_blob, bytes)
     an, trial = choice.analysis, choice.trial
@@ -385,7 +434,7 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | list[bytes], point_
     return pack(header, mask_blob, choice.coefs, choice.residual_blob)
 
 
-def _pack_tiled(choice: Choice, params: Params, mask_blobs: list[bytes], point_count: int,
+def _pack_tiled(choice: Choice, params: Params, masks: TiledMasks, point_count: int,
                 crs: dict[str, Any] | None, on_stage: Stage, map_tiles: Callable[..., list] | None = None,
                 header_only: bool = False) -> bytes:
     """:func:`_pack` of a tiled map: the base layer, then every tile coded on its own at the
@@ -397,27 +446,38 @@ def _pack_tiled(choice: Choice, params: Params, mask_blobs: list[bytes], point_c
     dem = an.dem
     n = an.tiling.count
     cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
+    map_resid = b""
     if not header_only:
         q = an.base_at(params.cutoff, params.step)
         base_blob = an.base_blob(q)
         on_stage("encode tiles")
-        codes = (map_tiles or serial_map)(code_tile, an.jobs(q, params.cutoff, params.step), params,
-                                          an.refill_step)
+        jobs = an.jobs(q, params.cutoff, params.step)
+        # A small map may keep its residual whole, which needs the tiles' integers.
+        whole = params.target_max_error > 0 and dem.mask.size <= MAP_MASK_CELLS
+        for job, blob in zip(jobs, masks.tiles):  # coded already, or none (a full tile; the map mask)
+            job.mask_code, job.keep_residual = blob, whole
+        codes = (map_tiles or serial_map)(code_tile, jobs, params, an.refill_step)
+        if whole:
+            masks, map_resid = map_residual(an, masks, codes, params.coder)
+            codes = [dataclasses.replace(c, residual=None, **({"mask": b"", "resid": b""} if map_resid else {}))
+                     for c in codes]
     else:  # measuring the header's own bytes: every tile without coefficients
         base_blob = b""
         codes = [TileCode(k, blob, b"", b"", int(an.tile_cells(dem.mask, k).sum()), 0.0, 0.0)
-                 for k, blob in zip(an.occupied, mask_blobs)]
+                 for k, blob in zip(an.occupied, masks.tiles)]
     for c in codes:
         cells[c.k], rmse[c.k], max_error[c.k] = c.cells, c.rmse, c.max_error
     occupied = int(cells.sum())
     stats = _tiled_stats(dem, codes, occupied, base_blob, params)
+    stats["mask_bytes"] += len(masks.map)
+    stats["residual_bytes"] += len(map_resid)
     index = TileIndex(tiling=an.tiling, overlap=tile_overlap(params.cutoff, an.tile), base_cycles=an.base_cycles,
                       cells=cells, rmse=rmse, max_error=max_error)
     header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=occupied,
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.base_count(params.cutoff),
                     tiles=index)
     on_stage("container")
-    return pack_tiled(header, base_blob, [(c.k, c.mask, c.coef, c.resid) for c in codes])
+    return pack_tiled(header, base_blob, [(c.k, c.mask, c.coef, c.resid) for c in codes], masks.map, map_resid)
 
 
 def serial_map(func: Callable[..., Any], items: list, *args: Any) -> list:

@@ -127,7 +127,7 @@ class CompressedMap:
                 raise InvalidInputError("a tiled map (format 1.1) decodes at its own cutoff only")
             rows, cols = window or ((0, self.grid.rows), (0, self.grid.cols))
             self._check_budget(rows, cols)
-            dem = decode_tiled(self.header, self._blobs[b"BASE"],
+            dem = decode_tiled(self.header, self._blobs,
                                lambda k: read_tile(self._source, self.header, k), rows=rows, cols=cols,
                                map_tiles=map_tiles)
         if bbox is not None:
@@ -144,7 +144,7 @@ class CompressedMap:
         if not (0 <= rows[0] < rows[1] <= g.rows and 0 <= cols[0] < cols[1] <= g.cols):
             raise InvalidInputError(f"window rows {rows}, cols {cols} is not inside the {g.rows} x {g.cols} grid")
         self._check_budget(rows, cols)
-        return decode_tiled(self.header, self._blobs[b"BASE"], lambda k: read_tile(self._source, self.header, k),
+        return decode_tiled(self.header, self._blobs, lambda k: read_tile(self._source, self.header, k),
                             rows=rows, cols=cols, map_tiles=map_tiles)
 
     def read_points(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None) -> np.ndarray:
@@ -179,12 +179,15 @@ class CompressedMap:
         tiling = self.header.tiles.tiling
         # Every cell of the tiles touched, empty tiles too: the DEM decoded spans them all, so a
         # small file naming a huge, nearly empty grid must not allocate it. Plus the base layer,
-        # whose coefficient count grows with the grid, not with the tiles decoded.
+        # whose coefficient count grows with the grid, not with the tiles decoded, and the map mask
+        # and residual.
         s = tiling.size
         height = min(tiling.rows, -(-rows[1] // s) * s) - rows[0] // s * s
         width = min(tiling.cols, -(-cols[1] // s) * s) - cols[0] // s * s
         cells = height * width + _base_extent(self.header.grid, s, self.header.params.cutoff,
                                               self.header.tiles.base_cycles)
+        # Decoded whole for any region.
+        cells += self.header.grid.size * (int(self.header.tiles.map_mask) + int(self.header.tiles.map_resid))
         allowed = cells_allowed(self.size, self._max_cells)
         if cells > allowed:
             raise ResourceLimitError(

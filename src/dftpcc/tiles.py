@@ -27,7 +27,7 @@ from .fill import fill_empty, fit_plane, plane_values
 from .params import Params
 from .residual import encode_residual, residual
 
-__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "MAX_COVERING_COEFS", "base_limit", "covering_cycles", "covering_reach", "covering_cutoff", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
+__all__ = ["BASE_CYCLES_PER_TILE", "MAX_BASE_CYCLES", "MAP_MASK_CELLS", "MAX_COVERING_COEFS", "base_limit", "covering_cycles", "covering_reach", "covering_cutoff", "TILE_OVERLAP", "WIDE_OVERLAP_CUTOFF", "tile_overlap", "coded_window", "TileJob", "TileCode", "code_tile", "base_order", "base_basis", "base_heights", "base_coefficients",
            "tile_grid_of", "tile_coef_code", "tile_mask_code", "TiledAnalysis", "TiledTrial"]
 
 #: The base layer holds the map's frequencies up to this many cycles per tile
@@ -41,6 +41,10 @@ BASE_CYCLES_PER_TILE = 1
 MAX_COVERING_COEFS = 1 << 17
 #: The largest base reach TIDX can state (a u8), cycles per tile.
 MAX_BASE_CYCLES = 255
+#: A tiled map of at most this many cells may keep its mask and residual layer whole at tile 0 (the
+#: map mask and map residual, format.md, *Tile sections*): every region's decode decodes them, a
+#: few tens of milliseconds at this size.
+MAP_MASK_CELLS = 1 << 20
 #: Cells of the neighbouring tiles a tile's transform also spans on each side, at the
 #: cutoffs that ring least (see tile_overlap), and the unit a wider overlap grows by.
 TILE_OVERLAP = 8
@@ -467,6 +471,8 @@ class TileJob:
         then keeps it instead of coding it again (a growing map whose scan only
         added points to occupied cells keeps its mask; one whose cells kept
         their means but not their counts keeps both and updates its errors).
+    keep_residual : bool
+        Return the residual layer's integers too (:attr:`TileCode.residual`), for a map residual.
     """
 
     k: int
@@ -477,6 +483,7 @@ class TileJob:
     counts: np.ndarray | None = None
     mask_code: bytes | None = None
     coef_code: bytes | None = None
+    keep_residual: bool = False
 
 
 @dataclass
@@ -491,6 +498,7 @@ class TileCode:
     squared_error: float
     max_error: float
     weighted_squared_error: float = 0.0  # sum of points per cell x squared error
+    residual: np.ndarray | None = None  # the RESD integers, one per occupied cell (TileJob.keep_residual)
 
     @property
     def rmse(self) -> float:
@@ -543,7 +551,7 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     target = job.rest[r0:r1, c0:c1]
     mask = job.mask[r0:r1, c0:c1]
     rebuilt = heights[r0:r1, c0:c1] + job.base_error
-    resid = b""
+    resid, q = b"", None
     if params.target_max_error > 0:
         q, rebuilt = residual(target, rebuilt, mask, mask, params.target_max_error)
         resid = encode_residual(q, params.coder, mask)
@@ -552,4 +560,4 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     mask_code = tile_mask_code(mask) if job.mask_code is None else job.mask_code
     coef_code = tile_coef_code(an, stream) if job.coef_code is None else job.coef_code
     return TileCode(job.k, mask_code, coef_code, resid, int(mask.sum()), dot(err, err), float(np.abs(err).max()),
-                    weighted)
+                    weighted, q if job.keep_residual else None)

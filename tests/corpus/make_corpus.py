@@ -217,6 +217,7 @@ def cases() -> dict[str, tuple[bytes, str, str | None]]:
     out.update(tiled_cases(seeds["tiled"]))
     out.update(first_seed_cases(seeds["tiled_first_seed"]))
     out.update(full_tile_cases(seeds["tiled_coarse"]))
+    out.update(map_residual_cases(seeds["tiled_map_residual"]))
     return out
 
 
@@ -245,6 +246,30 @@ def _sparse_residual_cases(data: bytes, corrupt: str) -> dict[str, tuple[bytes, 
 def _flip_in_tile(data: bytes, tag: bytes, tile: int) -> bytes:
     start = next(off for t, k, off, _len, _crc in craft.table(data) if t == tag and k == tile)
     return _flip(data, start + 3, 2)
+
+
+def map_residual_cases(data: bytes) -> dict[str, tuple[bytes, str, str | None]]:
+    """A RESD at tile 0 is the map residual: only beside the map mask and with a bound, and then no
+    tile holds one (the seed: 40 x 40 cells in 16-cell tiles, the map mask and residual at tile 0)."""
+    from dftpcc import occupancy
+    from dftpcc.residual import decode_residual, encode_residual
+
+    C = "CorruptFileError"
+    sections = craft.split_tiled(data)
+    mask = occupancy.decode_mask(craft.section(data, b"MASK"), (40, 40))
+    q = decode_residual(craft.section(data, b"RESD"), mask)
+    fewer = mask.copy()
+    fewer[np.argwhere(mask)[-1][0], np.argwhere(mask)[-1][1]] = False
+    return {
+        "tiled_map_residual_without_map_mask": (craft.join_tiled([s for s in sections if s[:2] != (b"MASK", 0)]), C,
+                                                "needs the map mask"),
+        "tiled_map_residual_beside_a_tile_residual": (craft.join_tiled(
+            sections + [(b"RESD", 1, craft.section(data, b"RESD"))]), C, "tile 1 has sections"),
+        "tiled_map_residual_without_bound": (_json_section(data, b"PARM", target_max_error=0.0), C,
+                                             "without a maximum-error target"),
+        "tiled_map_residual_one_value_short": (craft.replace_section(data, b"RESD", encode_residual(
+            q[:-1], "ans", fewer)), C, "map residual: "),
+    }
 
 
 def tiled_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
@@ -286,8 +311,12 @@ def tiled_cases(tiled: bytes) -> dict[str, tuple[bytes, str, str | None]]:
                                "tile 3 has sections COEF where its index entry needs COEF, MASK"),
         "tiled_empty_tile_has_sections": (craft.join_tiled(sections + [(t, 9, p) for t, _k, p in tile_3]), C,
                                           "tile 9 has sections COEF, MASK where its index entry needs none"),
-        "tiled_mask_at_tile_0": (craft.join_tiled(sections[:1] + [(b"MASK", 0, tile_3[0][2])] + sections[1:]), C,
-                                 "no section MASK at tile 0"),
+        # A MASK at tile 0 is the map mask: then no tile holds one, and it is the whole grid's.
+        "tiled_map_mask_beside_tile_masks": (craft.join_tiled(sections[:1] + [(b"MASK", 0, tile_3[0][2])]
+                                                              + sections[1:]), C, "where its index entry needs"),
+        "tiled_map_mask_of_one_tile": (craft.join_tiled([s for s in sections[:1] + [(b"MASK", 0, tile_3[0][2])]
+                                                         + sections[1:] if not (s[0] == b"MASK" and s[1])]), C,
+                                       "map mask: "),
         "tiled_base_missing": (craft.join_tiled([s for s in sections if s[0] != b"BASE"]), C,
                                "section BASE is missing"),
         "tiled_base_count_lies": (craft.with_stat(tiled, coef_count=craft.stat_of(tiled)["coef_count"] + 1), C,

@@ -281,21 +281,26 @@ def tile_index(data: bytes) -> dict:
     n = -(-g["rows"] // size) * -(-g["cols"] // size)
     body = zstandard.ZstdDecompressor().decompress(raw[TIDX_HEAD.size:])
     cells = np.frombuffer(body[:4 * n], np.uint8).reshape(4, n).T.copy().view("<u4").ravel().astype(np.int64)
+    figures = np.frombuffer(body[4 * n:], np.uint8)
+    if coding == 2:  # the figures in 4 byte planes too
+        figures = figures[: figures.size - figures.size % 4].reshape(4, -1).T.copy()
     return {"coding": coding, "size": size, "overlap": overlap, "reach": reach, "cells": cells,
-            "figures": np.frombuffer(body[4 * n:], "<f4").astype(np.float64)}
+            "figures": figures.view("<f4").ravel().astype(np.float64)}
 
 
 def pack_tile_index(cells, *, size: int, overlap: int, coding: int = 1, figures=None,
                     content_size: bool = True, reach: int = 1) -> bytes:
     """A TIDX payload: u32 cells per tile as 4 byte planes, then the f32 figures (0.01 m each
-    by default: an RMSE and a maximum error per occupied tile), in one zstd frame."""
+    by default: an RMSE and a maximum error per occupied tile; one after another with coding 1, in
+    byte planes with coding 2), in one zstd frame."""
     import zstandard
 
     cells = np.asarray(cells, dtype=np.int64)
     planes = cells.astype("<u4").view(np.uint8).reshape(-1, 4).T.tobytes()
     if figures is None:
         figures = np.full(2 * int(np.count_nonzero(cells)), 0.01)
-    body = planes + np.asarray(figures, "<f4").tobytes()
+    figures = np.asarray(figures, "<f4")
+    body = planes + (figures.view(np.uint8).reshape(-1, 4).T.tobytes() if coding == 2 else figures.tobytes())
     frame = zstandard.ZstdCompressor(write_content_size=content_size).compress(body)
     return TIDX_HEAD.pack(coding, size, overlap, reach) + frame
 

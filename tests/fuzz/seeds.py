@@ -7,9 +7,11 @@ them to DIR as ``NAME.dftpc``.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import warnings
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
@@ -39,6 +41,36 @@ SEED_OPTIONS: dict[str, dict] = {
     # 32-cell tiles at f_c 0.8 overlap by 16 cells (tiles.tile_overlap), half a tile: the widest a reader takes.
     "tiled_wide_overlap": dict(resolution=1.0, cutoff=0.8, tile_size=32),
 }
+#: The tiled seeds above hold each tile's mask and residual layer, as a map of more than
+#: tiles.MAP_MASK_CELLS cells does; these hold the map mask (and the map residual) at tile 0
+#: (format.md, Tile sections), as the writer codes a small map.
+MAP_MASK_OPTIONS: dict[str, dict] = {
+    "tiled_map_mask": dict(resolution=1.0, cutoff=0.8, tile_size=16),
+    "tiled_map_residual": dict(resolution=1.0, cutoff=0.6, tile_size=16, target_max_error=0.05),
+}
+#: The map mask beside each tile's residual layer: what the writer keeps where the map residual is
+#: not the shorter.
+MAP_MASK_TILE_RESIDUALS: dict[str, dict] = {
+    "tiled_map_mask_max_error": dict(resolution=1.0, cutoff=0.6, tile_size=16, target_max_error=0.05),
+}
+
+
+@contextlib.contextmanager
+def tile_masks():
+    """Within it, the writer codes each tile's mask, whatever the map's size."""
+    from dftpcc import encoder
+
+    with mock.patch.object(encoder, "MAP_MASK_CELLS", 0):
+        yield
+
+
+@contextlib.contextmanager
+def tile_residuals():
+    """Within it, the writer keeps each tile's residual layer, never the map residual."""
+    from dftpcc import encoder
+
+    with mock.patch.object(encoder, "map_residual", lambda an, masks, codes, coder: (masks, b"")):
+        yield
 
 
 def _terrain() -> np.ndarray:
@@ -52,13 +84,19 @@ def seed_files() -> dict[str, bytes]:
     out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for name, options in SEED_OPTIONS.items():
+        with tile_masks():
+            for name, options in SEED_OPTIONS.items():
+                out[name] = dftpcc.compress(points, **options)
+            # Denser points in 32-cell tiles: a tile whose first line cuts through the map sends it as a
+            # seed (MASK kind 3).
+            out["tiled_first_seed"] = dftpcc.compress(regolith_plain(6000, size=40.0, craters=3, rocks=10, seed=11),
+                                                      resolution=1.0, cutoff=0.8, tile_size=32)
+        for name, options in MAP_MASK_OPTIONS.items():
             out[name] = dftpcc.compress(points, **options)
+        with tile_residuals():
+            for name, options in MAP_MASK_TILE_RESIDUALS.items():
+                out[name] = dftpcc.compress(points, **options)
         out["one_cell"] = dftpcc.compress(np.array([[5.0, 7.0, 1.25]]), resolution=1.0)
-        # Denser points in 32-cell tiles: a tile whose first line cuts through the map sends it as a
-        # seed (MASK kind 3).
-        out["tiled_first_seed"] = dftpcc.compress(regolith_plain(6000, size=40.0, craters=3, rocks=10, seed=11),
-                                                  resolution=1.0, cutoff=0.8, tile_size=32)
         out["with_crs"] = dftpcc.compress(
             points[::4], resolution=2.0, crs={"wkt": 'LOCAL_CS["rover frame"]', "las_vlrs": [
                 {"record_id": 34735, "description": "GeoKeyDirectoryTag", "data": "AQABAAAAAQA="}]})
