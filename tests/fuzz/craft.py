@@ -284,8 +284,10 @@ def tile_index(data: bytes) -> dict:
     figures = np.frombuffer(body[4 * n:], np.uint8)
     if coding == 2:  # the figures in 4 byte planes too
         figures = figures[: figures.size - figures.size % 4].reshape(4, -1).T.copy()
+    with np.errstate(invalid="ignore"):  # a mutated file's figures may be signalling NaNs
+        figures = figures.view("<f4").ravel().astype(np.float64)
     return {"coding": coding, "size": size, "overlap": overlap, "reach": reach, "cells": cells,
-            "figures": figures.view("<f4").ravel().astype(np.float64)}
+            "figures": figures}
 
 
 def pack_tile_index(cells, *, size: int, overlap: int, coding: int = 1, figures=None,
