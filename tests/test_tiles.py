@@ -120,31 +120,72 @@ def test_a_full_tile_has_no_mask_section_and_one_with_it_still_reads(tile_masks)
         _decoded(lying)
 
 
+def _candidates(dem: DEM, params) -> tuple[list[bytes], int]:
+    """The files encode_dem chooses among (first run, covering base layer with and without the tiles'
+    own coefficients; a target the base layer alone cannot reach has no third), and the covering reach."""
+    from dftpcc import encoder
+
+    params = params.replace(resolution=dem.grid.resolution)
+    args = (dem, params, int(dem.mask.sum()), None, encoder.no_stage, None, None)
+    first, cutoff = encoder._encode(*args, tiles.BASE_CYCLES_PER_TILE)
+    if params.has_target and params.cutoff is None:
+        lowest = tiles.covering_cutoff(dem.grid.shape, params.tile_size)
+        cutoff = max(cutoff, 1.0 if lowest is None else lowest)
+    cover = tiles.covering_reach(dem.grid.shape, params.tile_size, cutoff)
+    assert cover is not None and cover > 1
+    out = [first, encoder._encode(*args, cover, True)[0]]
+    if params.has_target:  # at fixed settings the base layer alone would lose the tiles' refinement
+        try:
+            out.append(encoder._encode(*args, cover, False)[0])
+        except InvalidInputError:
+            pass
+    return out, cover
+
+
 @pytest.mark.parametrize("options", [dict(cutoff=0.97, step=0.01), dict(target_max_error=0.4), dict(target_rmse=0.5)],
                          ids=["fixed", "max-error", "rmse"])
 def test_at_a_high_cutoff_the_base_layer_may_hold_the_whole_circle(options):
     # Where the cutoff's circle is a small base layer (tiles.covering_reach), the writer also tries a
-    # base layer that holds all of it, and keeps the smaller file (here 2 of 3 take it).
-    from dftpcc import encoder
-
+    # base layer that holds all of it, with and (given a target) without the tiles' own
+    # coefficients, and keeps the smallest file (the first of equals).
     dem = _terrain()
     params = make_params(tile_size=64, **options)
     data = encode_dem(dem, params)
-    first, cutoff = encoder._encode(dem, params.replace(resolution=dem.grid.resolution), int(dem.mask.sum()), None,
-                                    encoder.no_stage, None, None, tiles.BASE_CYCLES_PER_TILE)
-    cover = tiles.covering_reach(dem.grid.shape, 64, cutoff)
-    assert cover is not None and cover > 1
+    files, cover = _candidates(dem, params)
+    assert data == min(files, key=len)
     m = dftpcc.open(data)
     reach = m.header.tiles.base_cycles
-    # Either the first file, or the covering one when it is smaller.
-    assert data == first if reach == 1 else (reach == cover and len(data) < len(first))
+    assert reach == (1 if data == files[0] else cover)
     rebuilt = m.read_dem()
     err = (rebuilt.heights - dem.heights)[dem.mask]
     assert np.abs(err).max() <= m.header.stats["dem_max_error_m"] * (1 + 1e-6)
     if "target_max_error" in options:
         assert np.abs(err).max() <= options["target_max_error"]
+    if "target_rmse" in options:
+        assert np.sqrt(np.mean(err ** 2)) <= options["target_rmse"] * (1 + 1e-9)
     if reach > 1:
         assert _seam_ratio(dem, rebuilt, 64) <= SEAM_RATIO
+
+
+def test_a_small_map_in_small_tiles_may_be_its_base_layer_alone(gale):
+    # Gale at 1 % of its relief in 128-cell tiles: each of the nine tiles' COEF (entry, headers, a
+    # few coefficients) cost some 40 bytes, a third of the file; the base layer of the cutoff's
+    # whole circle alone holds the target in about the untiled file's bytes (issue 12: 1.338 before).
+    from .fuzz import craft
+
+    dem = gale[0]
+    target = 0.01 * float(np.std(dem.heights[dem.mask] + dem.grid.z0))
+    untiled = encode_dem(dem, make_params(target_rmse=target))
+    data = encode_dem(dem, make_params(target_rmse=target, tile_size=128))
+    m = dftpcc.open(data)
+    assert m.tiled and m.header.tiles.base_cycles > 1
+    assert not [k for tag, k, _ in craft.split_tiled(data) if tag == b"COEF"]
+    assert len(data) <= 1.05 * len(untiled)
+    rebuilt = m.read_dem()
+    err = (rebuilt.heights - dem.heights)[dem.mask]
+    assert np.sqrt(np.mean(err ** 2)) <= target * (1 + 1e-9)
+    assert np.sqrt(np.mean(err ** 2)) <= m.header.stats["dem_rmse_m"] * (1 + 1e-6)
+    assert _seam_ratio(dem, rebuilt, 128) <= SEAM_RATIO
 
 
 def test_tiled_round_trip_and_stated_errors():

@@ -171,7 +171,9 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     # circle is too large, of the lowest cutoff whose circle is not (in small tiles the first run
     # may keep every frequency, and pay for them in every tile); rate control then searches again.
     # Kept when smaller (a size target keeps its first file). The second run repeats the plane fit
-    # and fill of the first (TiledAnalysis).
+    # and fill of the first (TiledAnalysis). With a target, a third run codes that base layer
+    # alone, every tile without coefficients of its own: on a small map in small tiles, each tile's
+    # COEF entry and stream headers (about 40 bytes) cost more than its few coefficients save.
     if params.target_bpp > 0:
         return data
     if params.has_target and params.cutoff is None:
@@ -180,23 +182,34 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     cycles = covering_reach(dem.grid.shape, tile, cutoff) if cutoff < 1 else None
     if cycles is None or cycles <= BASE_CYCLES_PER_TILE:
         return data
-    with warnings.catch_warnings():  # the first run has said whatever this one would
+    with warnings.catch_warnings():  # the first run has said whatever these would
         warnings.simplefilter("ignore")
-        other, _ = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, cycles)
-    return other if len(other) < len(data) else data
+        # Without a target the settings fix the quality, and a base layer alone would lose the
+        # tiles' refinement of it: only a target compares files of equal quality.
+        for tile_coefs in (True, False) if params.has_target else (True,):
+            try:
+                other, _ = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, cycles, tile_coefs)
+            except InvalidInputError:  # a target the base layer alone cannot reach
+                if tile_coefs:
+                    raise
+                continue
+            data = other if len(other) < len(data) else data
+    return data
 
 
 def _encode(dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
             fill: Callable[..., np.ndarray] | None, map_tiles: Callable[..., list] | None,
-            base_cycles: int | None) -> tuple[bytes, float]:
+            base_cycles: int | None, tile_coefs: bool = True) -> tuple[bytes, float]:
     """:func:`encode_dem` of a checked map (``base_cycles``: a tiled map's base reach, cycles per
-    tile; None: untiled): its bytes and the cutoff they were coded with."""
+    tile; None: untiled; ``tile_coefs``: whether its tiles code coefficients, TiledAnalysis): its
+    bytes and the cutoff they were coded with."""
     tile = params.tile_size
     on_stage("spectrum")
     searching = params.has_target and params.cutoff is None
     an: Analysis | TiledAnalysis
     if base_cycles is not None:
-        an = TiledAnalysis(dem, params, tile, searching=searching, base_cycles=base_cycles)
+        an = TiledAnalysis(dem, params, tile, searching=searching, base_cycles=base_cycles,
+                           tile_coefs=tile_coefs)
     else:
         an = Analysis(dem, params, searching=searching, fill=fill)
     if params.target_max_error > 0:

@@ -4,7 +4,8 @@ A map larger than one tile is coded in two layers (docs/format.md, *Tiles*):
 the base layer holds the whole grid's DCT coefficients up to one cycle per
 tile (or the cutoff's whole circle, where that base is small: see
 :func:`covering_reach`), and each tile codes with its own DCT what the plane
-and the base layer leave on its cells. Both share one cutoff and one quantizer step.
+and the base layer leave on its cells (or nothing, where a covering base layer
+alone makes the smaller file at a target). Both share one cutoff and one quantizer step.
 :class:`TiledAnalysis` gives rate control (:mod:`dftpcc.ratecontrol`) the same
 view of a tiled map that :class:`~dftpcc.analysis.Analysis` gives of a whole
 one, so every target works unchanged.
@@ -136,7 +137,8 @@ def base_heights(values: np.ndarray, i: np.ndarray, j: np.ndarray, shape: tuple[
     the matrices' shapes and its threads (a band's cells came out otherwise
     under ``OPENBLAS_NUM_THREADS=1``). ``exact=False`` (the decoder): BLAS,
     about 1.5 ms faster on a 512-cell tile (a quarter of its read), with
-    heights that may differ in their last bit between windows.
+    heights that may differ in their last bit between windows. (Rate control's trials, which
+    evaluate the whole grid, use its inverse DCT instead: :meth:`TiledAnalysis.trial`.)
     """
     h, w = rows[1] - rows[0], cols[1] - cols[0]
     if values.size == 0:
@@ -232,12 +234,20 @@ class TiledAnalysis:
         Tile side, cells.
     searching : bool
         As for Analysis: whether trials may ask for any cutoff.
+    base_cycles : int
+        The base layer's reach, cycles per tile (TIDX).
+    tile_coefs : bool
+        Whether the tiles code coefficients of their own. False: the map is its base layer alone
+        (a base layer holding the cutoff's whole circle, :func:`covering_reach`), and no tile has a
+        ``COEF``; on a small map of small tiles each tile's section entry and stream headers
+        (about 40 bytes) cost more than what its few coefficients save.
     """
 
     def __init__(self, dem: DEM, params: Params, tile: int, *, searching: bool,
-                 base_cycles: int = BASE_CYCLES_PER_TILE):
+                 base_cycles: int = BASE_CYCLES_PER_TILE, tile_coefs: bool = True):
         self.dem, self.params, self.tile = dem, params, tile
         self.base_cycles = base_cycles
+        self.tile_coefs = tile_coefs
         self.searching = searching
         self.tiling = tile_grid_of(dem.grid, tile)
         self.mask = self.kept_cells = dem.mask
@@ -273,6 +283,8 @@ class TiledAnalysis:
         found = self._by_overlap.get(overlap)
         if found is not None:
             return found
+        if not self.tile_coefs:
+            return self._by_overlap.setdefault(overlap, [])
         if self.refill_step is not None:
             raise RuntimeError("a refilled tiled analysis holds the tiles of one cutoff's overlap only")
         tile_params = _tile_params(self.params)
@@ -319,7 +331,8 @@ class TiledAnalysis:
             counts = None if self.dem.counts is None else self.dem.counts[r0:r1, c0:c1]
             out.append(TileJob(k, self.rest[w0:w1, v0:v1], self.dem.mask[w0:w1, v0:v1],
                                (r0 - w0, r1 - w0, c0 - v0, c1 - v0),
-                               decoded[r0:r1, c0:c1] - self.base_exact[r0:r1, c0:c1], counts))
+                               decoded[r0:r1, c0:c1] - self.base_exact[r0:r1, c0:c1], counts,
+                               coefs=self.tile_coefs))
         return out
 
     # -- what rate control asks of an analysis --------------------------------------------------
@@ -371,8 +384,11 @@ class TiledAnalysis:
         grid = self.dem.grid
         nb = self.base_count(cutoff)
         base = coding.quantize(self.base_coefs[:nb], step, self.params.deadzone)
-        heights = self.trend + base_heights(coding.dequantize(base, step), self.base_i[:nb], self.base_j[:nb],
-                                            grid.shape, (0, grid.rows), (0, grid.cols))
+        # A trial measures the whole map's errors for rate control: the inverse DCT of the base
+        # layer's corner gives them some five times faster than base_heights' exact sums on a large
+        # base layer, with bits that depend on the grid's shape only (as every transform's here,
+        # and unlike BLAS's). The tiles are coded against the exact base layer (jobs).
+        heights = self.trend + self._base_map(coding.dequantize(base, step), nb)
         trials = []
         overlap = tile_overlap(cutoff, self.tile)
         for k, an in self.tiles_with(overlap):
@@ -387,6 +403,15 @@ class TiledAnalysis:
         return TiledTrial(cutoff, step, stream, heights, float(np.sqrt(np.mean(err * err))),
                           float(np.abs(err).max()), base=base, tiles=trials)
 
+    def _base_map(self, values: np.ndarray, n: int) -> np.ndarray:
+        """The base layer of the first ``n`` coefficients ``values`` on the whole grid, by the inverse DCT."""
+        if n == 0:
+            return np.zeros(self.dem.grid.shape)
+        i, j = self.base_i[:n], self.base_j[:n]
+        corner = np.zeros((int(i.max()) + 1, int(j.max()) + 1))
+        corner[i, j] = values
+        return spectrum.inverse(corner, self.lay)
+
     def proxy_rmse(self, cutoff: float, step: float) -> float:
         """As :meth:`Analysis.proxy_rmse`, over the base layer and every tile (each orthonormal)."""
         kept, lost = self._proxy_parts(cutoff)
@@ -400,6 +425,9 @@ class TiledAnalysis:
         if cached is None:
             kept = [self.base_coefs[: self.base_count(cutoff)]]
             lost = 0.0
+            if not self.tile_coefs:  # what the base layer leaves on the occupied cells, all lost
+                left = self.rest[self.mask]
+                lost = dot(left, left) * self.mask.size / left.size
             for _, an in self.tiles_at(cutoff):
                 n = an.count(cutoff)
                 kept.append(an.reals(n))
@@ -473,6 +501,9 @@ class TileJob:
         their means but not their counts keeps both and updates its errors).
     keep_residual : bool
         Return the residual layer's integers too (:attr:`TileCode.residual`), for a map residual.
+    coefs : bool
+        False: the tile codes no coefficients (no ``COEF``); its heights are the base layer's
+        (``TiledAnalysis.tile_coefs``).
     """
 
     k: int
@@ -484,6 +515,7 @@ class TileJob:
     mask_code: bytes | None = None
     coef_code: bytes | None = None
     keep_residual: bool = False
+    coefs: bool = True
 
 
 @dataclass
@@ -538,19 +570,24 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     job already holds (``job.mask_code``, ``job.coef_code``) are kept, not coded again; the errors
     are always measured.
     """
-    tile_params = _tile_params(params)
-    sub = DEM(grid=Grid(rows=job.rest.shape[0], cols=job.rest.shape[1], **_WINDOW_GRID),
-              heights=job.rest, mask=job.mask)
-    # The errors are measured on the tile's own cells below, not over the window (as a trial
-    # would), and the energy outside the circle serves rate control only.
-    an = Analysis(sub, tile_params, searching=False, outside_energy=False)
-    if refill_step is not None and an.refillable:
-        an = an.refilled(an.trial(params.cutoff, refill_step))
-    stream, heights = an.rebuilt(params.cutoff, params.step)
     r0, r1, c0, c1 = job.inner
     target = job.rest[r0:r1, c0:c1]
     mask = job.mask[r0:r1, c0:c1]
-    rebuilt = heights[r0:r1, c0:c1] + job.base_error
+    coef_code = b""
+    if job.coefs:
+        tile_params = _tile_params(params)
+        sub = DEM(grid=Grid(rows=job.rest.shape[0], cols=job.rest.shape[1], **_WINDOW_GRID),
+                  heights=job.rest, mask=job.mask)
+        # The errors are measured on the tile's own cells below, not over the window (as a trial
+        # would), and the energy outside the circle serves rate control only.
+        an = Analysis(sub, tile_params, searching=False, outside_energy=False)
+        if refill_step is not None and an.refillable:
+            an = an.refilled(an.trial(params.cutoff, refill_step))
+        stream, heights = an.rebuilt(params.cutoff, params.step)
+        rebuilt = heights[r0:r1, c0:c1] + job.base_error
+        coef_code = tile_coef_code(an, stream) if job.coef_code is None else job.coef_code
+    else:  # the base layer's heights alone
+        rebuilt = job.base_error
     resid, q = b"", None
     if params.target_max_error > 0:
         q, rebuilt = residual(target, rebuilt, mask, mask, params.target_max_error)
@@ -558,6 +595,5 @@ def code_tile(job: TileJob, params: Params, refill_step: float | None = None) ->
     err = (rebuilt - target)[mask]
     weighted = float(np.sum(job.counts[mask] * err * err)) if job.counts is not None else 0.0
     mask_code = tile_mask_code(mask) if job.mask_code is None else job.mask_code
-    coef_code = tile_coef_code(an, stream) if job.coef_code is None else job.coef_code
     return TileCode(job.k, mask_code, coef_code, resid, int(mask.sum()), dot(err, err), float(np.abs(err).max()),
                     weighted, q if job.keep_residual else None)
