@@ -312,6 +312,16 @@ def test_tiled_point_cloud_with_empty_tiles(field_ground, tile_masks):
     assert {2, 3} <= kinds, kinds
 
 
+@pytest.mark.parametrize("target", [dict(target_rmse=0.05), dict(target_max_error=0.1)], ids=["rmse", "max-error"])
+def test_a_tiled_map_may_be_its_base_layer_alone(field_ground, target):
+    """The field at 1 m in 128-cell tiles at a target: the base layer holds the cutoff's whole
+    circle and no tile has a COEF (format.md, TIDX: the tiles' heights are the base layer's)."""
+    data = dftpcc.compress(field_ground, resolution=1.0, tile_size=128, **target)
+    layout = check_tiled(data)
+    assert not [k for tag, k, *_ in layout["entries"] if tag == b"COEF" and k > 0]
+    assert max(layout["cells"]) > 0 and b"BASE" in layout["sections"]
+
+
 def test_a_small_tiled_map_keeps_its_mask_whole_at_tile_0(field_ground, monkeypatch):
     """The field at 1 m in 128-cell tiles: the map mask at tile 0 and no tile's MASK, shorter than
     the tiles' masks, and the same map to the bit in both readers."""

@@ -47,6 +47,8 @@ SEED_OPTIONS: dict[str, dict] = {
 MAP_MASK_OPTIONS: dict[str, dict] = {
     "tiled_map_mask": dict(resolution=1.0, cutoff=0.8, tile_size=16),
     "tiled_map_residual": dict(resolution=1.0, cutoff=0.6, tile_size=16, target_max_error=0.05),
+    # At a target the base layer alone is the smaller file here: no tile has a COEF.
+    "tiled_base_only": dict(resolution=1.0, tile_size=16, target_rmse=0.02),
 }
 #: The map mask beside each tile's residual layer: what the writer keeps where the map residual is
 #: not the shorter.
