@@ -162,8 +162,10 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     check_heights(float(dem.grid.z0 + occupied.min()), float(dem.grid.z0 + occupied.max()))
     if not tile:
         check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
-        return _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, None)[0]
-    data, cutoff = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, BASE_CYCLES_PER_TILE)
+        return _encode(_analysis(dem, params, on_stage, fill), params, point_count, crs, on_stage, map_tiles)[0]
+    first = _analysis(dem, params, on_stage, base_cycles=BASE_CYCLES_PER_TILE)
+    masks = tiled_masks(first)  # every run's: they depend on the occupancy alone
+    data, cutoff = _encode(first, params, point_count, crs, on_stage, map_tiles, masks)
     # Where the cutoff's whole circle is a small base layer (covering_reach), the base layer may hold
     # all of it, and the tiles only what its quantization leaves: the tiles no longer repeat the
     # map's frequencies (nor pay for them in their own headers), so their edges rarely show. The
@@ -172,7 +174,8 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     # may keep every frequency, and pay for them in every tile); rate control then searches again.
     # Kept when smaller (a size target keeps its first file). The second run repeats the plane fit
     # and fill of the first (TiledAnalysis). With a target, a third run codes that base layer
-    # alone, every tile without coefficients of its own: on a small map in small tiles, each tile's
+    # alone, every tile without coefficients of its own (TiledAnalysis.without_tile_coefs, which
+    # shares the second's plane, fill and base layer): on a small map in small tiles, each tile's
     # COEF entry and stream headers (about 40 bytes) cost more than its few coefficients save.
     if params.target_bpp > 0:
         return data
@@ -184,38 +187,44 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         return data
     with warnings.catch_warnings():  # the first run has said whatever these would
         warnings.simplefilter("ignore")
+        covering = _analysis(dem, params, on_stage, base_cycles=cycles)
         # Without a target the settings fix the quality, and a base layer alone would lose the
         # tiles' refinement of it: only a target compares files of equal quality.
-        for tile_coefs in (True, False) if params.has_target else (True,):
+        for an in (covering, covering.without_tile_coefs()) if params.has_target else (covering,):
             try:
-                other, _ = _encode(dem, params, point_count, crs, on_stage, fill, map_tiles, cycles, tile_coefs)
+                other, _ = _encode(an, params, point_count, crs, on_stage, map_tiles, masks)
             except InvalidInputError:  # a target the base layer alone cannot reach
-                if tile_coefs:
+                if an.tile_coefs:
                     raise
                 continue
             data = other if len(other) < len(data) else data
     return data
 
 
-def _encode(dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
-            fill: Callable[..., np.ndarray] | None, map_tiles: Callable[..., list] | None,
-            base_cycles: int | None, tile_coefs: bool = True) -> tuple[bytes, float]:
-    """:func:`encode_dem` of a checked map (``base_cycles``: a tiled map's base reach, cycles per
-    tile; None: untiled; ``tile_coefs``: whether its tiles code coefficients, TiledAnalysis): its
-    bytes and the cutoff they were coded with."""
-    tile = params.tile_size
+def _analysis(dem: DEM, params: Params, on_stage: Stage, fill: Callable[..., np.ndarray] | None = None, *,
+              base_cycles: int | None = None) -> Analysis | TiledAnalysis:
+    """The analysis :func:`_encode` codes a checked map from: whole, or tiled with a base reach of
+    ``base_cycles`` cycles per tile."""
     on_stage("spectrum")
     searching = params.has_target and params.cutoff is None
-    an: Analysis | TiledAnalysis
-    if base_cycles is not None:
-        an = TiledAnalysis(dem, params, tile, searching=searching, base_cycles=base_cycles,
-                           tile_coefs=tile_coefs)
-    else:
-        an = Analysis(dem, params, searching=searching, fill=fill)
+    if base_cycles is None:
+        return Analysis(dem, params, searching=searching, fill=fill)
+    return TiledAnalysis(dem, params, params.tile_size, searching=searching, base_cycles=base_cycles)
+
+
+def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs: dict[str, Any] | None,
+            on_stage: Stage, map_tiles: Callable[..., list] | None,
+            masks: TiledMasks | None = None) -> tuple[bytes, float]:
+    """:func:`encode_dem` of a checked map's analysis (``masks``: a tiled map's, when known): its
+    bytes and the cutoff they were coded with."""
+    dem, tile = an.dem, params.tile_size
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
-    mask_blob: bytes | TiledMasks = tiled_masks(an) if isinstance(an, TiledAnalysis) else \
-        occupancy.encode_mask(an.kept_cells)
+    mask_blob: bytes | TiledMasks
+    if isinstance(an, TiledAnalysis):
+        mask_blob = tiled_masks(an) if masks is None else masks
+    else:
+        mask_blob = occupancy.encode_mask(an.kept_cells)
 
     on_stage("encode")
     if not params.has_target:

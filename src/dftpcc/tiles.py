@@ -236,18 +236,14 @@ class TiledAnalysis:
         As for Analysis: whether trials may ask for any cutoff.
     base_cycles : int
         The base layer's reach, cycles per tile (TIDX).
-    tile_coefs : bool
-        Whether the tiles code coefficients of their own. False: the map is its base layer alone
-        (a base layer holding the cutoff's whole circle, :func:`covering_reach`), and no tile has a
-        ``COEF``; on a small map of small tiles each tile's section entry and stream headers
-        (about 40 bytes) cost more than what its few coefficients save.
     """
 
     def __init__(self, dem: DEM, params: Params, tile: int, *, searching: bool,
-                 base_cycles: int = BASE_CYCLES_PER_TILE, tile_coefs: bool = True):
+                 base_cycles: int = BASE_CYCLES_PER_TILE):
         self.dem, self.params, self.tile = dem, params, tile
         self.base_cycles = base_cycles
-        self.tile_coefs = tile_coefs
+        #: Whether the tiles code coefficients of their own (False: :meth:`without_tile_coefs`).
+        self.tile_coefs = True
         self.searching = searching
         self.tiling = tile_grid_of(dem.grid, tile)
         self.mask = self.kept_cells = dem.mask
@@ -435,6 +431,18 @@ class TiledAnalysis:
                 lost += dot(dropped, dropped) + an.outside_energy
             cached = self._proxy_cache[cutoff] = (np.concatenate(kept), lost)
         return cached
+
+    def without_tile_coefs(self) -> "TiledAnalysis":
+        """This map as its base layer alone: no tile codes coefficients (no ``COEF``), and the plane,
+        fill and base layer are this analysis's, not computed again. For a base layer holding the
+        cutoff's whole circle (:func:`covering_reach`): on a small map of small tiles each tile's
+        section entry and stream headers (about 40 bytes) cost more than its few coefficients save."""
+        out = copy.copy(self)
+        out.tile_coefs = False
+        out._by_overlap = {}
+        out.tiles = out.tiles_with(out.overlap)
+        out._splits, out._last_parts, out._proxy_cache = {}, None, {}
+        return out
 
     def refilled(self, trial: TiledTrial) -> "TiledAnalysis":
         """The analysis refilled at ``trial``: the tiles of its cutoff's overlap only (rate control
