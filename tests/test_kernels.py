@@ -365,3 +365,59 @@ def test_rebuilt_points_equal(jit):
             out[on] = rebuild.dem_to_points(dem)
         assert out[True].dtype == out[False].dtype and out[True].shape == out[False].shape
         assert out[True].tobytes() == out[False].tobytes()
+
+
+def test_plane_fit_bits_equal(jit):
+    # fit_plane's sums in two compiled passes add as numpy's mean and sum do (pairwise), to the bit:
+    # masks from one cell to more than numpy's 128-value blocks, holes, lines, a full grid.
+    from dftpcc import dem as dem_mod
+
+    rng = np.random.default_rng(9)
+    for t in range(60):
+        rows, cols = (int(v) for v in rng.integers(1, 90, 2))
+        heights = 1e3 * rng.random() + rng.normal(0, rng.uniform(0.01, 50), (rows, cols))
+        mask = rng.random((rows, cols)) < [0.02, 0.5, 1.0][t % 3]
+        if t % 7 == 0:
+            mask[:] = False
+            mask[rows // 2] = True  # one line: the normal equations are singular
+        g = dem_mod.Grid(x0=0.0, y0=0.0, z0=0.0, resolution=1.0, rows=rows, cols=cols)
+        d = dem_mod.DEM(grid=g, heights=np.where(mask, heights, 0.0), mask=mask)
+        fits = {}
+        for on in (True, False):
+            jit(on)
+            fits[on] = fill.fit_plane(d)
+        assert fits[True] == fits[False], (t, rows, cols)
+
+
+def test_pairwise_sums_equal_numpys(jit):
+    # The compiled sums add as np.sum does (its identity 0.0, then pairwise: blocks of up to 128 in
+    # eight accumulators, halved at multiples of 8 above), on sizes around every boundary of that plan.
+    from dftpcc import _compiled
+
+    rng = np.random.default_rng(13)
+    sizes = [*range(0, 300), 1023, 1024, 1025, 8191, 8192, 8193, 65_537, 1_234_567]
+    for n in sizes:
+        a = rng.standard_normal(n) * 10.0 ** rng.uniform(-3, 6)
+        assert _compiled.array_sum(a) == np.sum(a), n
+        leaves = _compiled._pairwise_plan(n)
+        assert leaves[leaves[:, 0] >= 0, 1].sum() == n
+
+
+def test_distance_sums_equal_numpys(jit):
+    # The spread's figures from one compiled pass: the sums of the squares and of the far ones (in
+    # the points' order), their maximum, how many are far and their cells, as numpy gives them.
+    rng = np.random.default_rng(17)
+    for n in (0, 1, 7, 8, 129, 5000, 300_001):
+        cells = max(1, n // 3)
+        idx = rng.integers(0, cells, n)
+        z = rng.standard_normal(n)
+        heights = 0.5 * rng.standard_normal(cells)
+        for tolerance_sq in (0.0, 0.5, 1.5, 100.0):  # all far, some, few, none
+            sq = (z - heights[idx]) ** 2
+            far = sq > tolerance_sq
+            marked = np.zeros(cells, bool)
+            marked[idx[far]] = True
+            found = np.zeros(cells, bool)
+            got = kernels.distance_sums(idx, z, heights, tolerance_sq, found)
+            assert got == (float(sq.sum()), float(sq.max()) if n else 0.0, int(far.sum()), float(sq[far].sum()))
+            assert np.array_equal(found, marked)

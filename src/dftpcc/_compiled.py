@@ -353,21 +353,201 @@ def cell_sums(idx, z, count, total):  # pragma: no cover - compiled
         total[idx[i]] += z[i]
 
 
+# numpy's pairwise summation (``np.add.reduce`` of a contiguous float64 array: its identity 0.0
+# plus the sum below), so that a sum computed here has numpy's bits: n < 8 values added in turn;
+# up to 128 with eight interleaved accumulators; more halved (at a multiple of 8), each half summed
+# so, the two added. numba's cache cannot load recursive functions, so the halving is a plan: the
+# tree's leaves and additions in post-order (a leaf: its start and length; an addition: -1, -1),
+# evaluated on a stack by each kind of sum below.
+PAIRWISE_BLOCK = 128
+
+
 @njit(cache=True, nogil=True)
-def squared_distances(idx, z, heights, tolerance_sq, far_cells, sq, far_sq):  # pragma: no cover - compiled
-    # (z - heights[idx])**2 per point, their maximum, and those that exceed tolerance_sq, in order
-    # (sq[sq > tolerance_sq]), whose cells are marked in far_cells.
-    # sq, far_sq: the caller's arrays of one value per point (see axis_cells)
-    largest = 0.0
-    far = 0
-    for i in range(idx.size):
-        d = z[i] - heights[idx[i]]
-        s = d * d
-        sq[i] = s
-        if s > largest:
-            largest = s
-        if s > tolerance_sq:
-            far_sq[far] = s
-            far += 1
-            far_cells[idx[i]] = True
-    return largest, far
+def _pairwise_plan(n):  # pragma: no cover - compiled
+    # a halved block keeps at least 57 values (half of 129, less 7): fewer than n // 32 + 1 leaves
+    ops = np.empty((2 * (n // 32) + 8, 2), dtype=np.int64)
+    lo_s, n_s, stage = np.empty(64, np.int64), np.empty(64, np.int64), np.zeros(64, np.int64)
+    lo_s[0], n_s[0], top, k = 0, n, 0, 0
+    while top >= 0:
+        lo, m = lo_s[top], n_s[top]
+        if m <= PAIRWISE_BLOCK:
+            ops[k, 0], ops[k, 1] = lo, m
+            k += 1
+            top -= 1
+            continue
+        half = m // 2
+        half -= half % 8
+        if stage[top] == 0:  # the left half next
+            stage[top] = 1
+            lo_s[top + 1], n_s[top + 1], stage[top + 1] = lo, half, 0
+            top += 1
+        elif stage[top] == 1:  # then the right half
+            stage[top] = 2
+            lo_s[top + 1], n_s[top + 1], stage[top + 1] = lo + half, m - half, 0
+            top += 1
+        else:  # both halves summed: add them
+            ops[k, 0], ops[k, 1] = -1, -1
+            k += 1
+            top -= 1
+    return ops[:k]
+
+
+@njit(cache=True, nogil=True)
+def _leaf(a, lo, n):  # pragma: no cover - compiled
+    # (a view and non-negative ranges: LLVM then schedules the eight accumulators well)
+    b = a[lo:lo + n]
+    if n < 8:
+        r = 0.0
+        for i in range(n):
+            r += b[i]
+        return r
+    r0, r1, r2, r3, r4, r5, r6, r7 = b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]
+    for k in range(1, n // 8):
+        i = 8 * k
+        r0 += b[i]
+        r1 += b[i + 1]
+        r2 += b[i + 2]
+        r3 += b[i + 3]
+        r4 += b[i + 4]
+        r5 += b[i + 5]
+        r6 += b[i + 6]
+        r7 += b[i + 7]
+    r = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for i in range(n - n % 8, n):
+        r += b[i]
+    return r
+
+
+@njit(cache=True, nogil=True)
+def _leaf_dot(a, b, lo, n):  # pragma: no cover - compiled
+    # _leaf of the products a[i] * b[i]
+    p, q = a[lo:lo + n], b[lo:lo + n]
+    if n < 8:
+        r = 0.0
+        for i in range(n):
+            r += p[i] * q[i]
+        return r
+    r0, r1, r2, r3 = p[0] * q[0], p[1] * q[1], p[2] * q[2], p[3] * q[3]
+    r4, r5, r6, r7 = p[4] * q[4], p[5] * q[5], p[6] * q[6], p[7] * q[7]
+    for k in range(1, n // 8):
+        i = 8 * k
+        r0 += p[i] * q[i]
+        r1 += p[i + 1] * q[i + 1]
+        r2 += p[i + 2] * q[i + 2]
+        r3 += p[i + 3] * q[i + 3]
+        r4 += p[i + 4] * q[i + 4]
+        r5 += p[i + 5] * q[i + 5]
+        r6 += p[i + 6] * q[i + 6]
+        r7 += p[i + 7] * q[i + 7]
+    r = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for i in range(n - n % 8, n):
+        r += p[i] * q[i]
+    return r
+
+
+@njit(cache=True, nogil=True)
+def array_sum(a):  # pragma: no cover - compiled
+    # np.sum(a) of a contiguous 1-d float64 array, to the bit
+    ops = _pairwise_plan(a.size)
+    vals, top = np.empty(64), -1
+    for k in range(ops.shape[0]):
+        if ops[k, 0] >= 0:
+            top += 1
+            vals[top] = _leaf(a, ops[k, 0], ops[k, 1])
+        else:
+            top -= 1
+            vals[top] = vals[top] + vals[top + 1]
+    return 0.0 + vals[0]
+
+
+@njit(cache=True, nogil=True)
+def array_dot(a, b):  # pragma: no cover - compiled
+    # np.sum(np.multiply(a, b)) of two contiguous 1-d float64 arrays of one size, to the bit
+    ops = _pairwise_plan(a.size)
+    vals, top = np.empty(64), -1
+    for k in range(ops.shape[0]):
+        if ops[k, 0] >= 0:
+            top += 1
+            vals[top] = _leaf_dot(a, b, ops[k, 0], ops[k, 1])
+        else:
+            top -= 1
+            vals[top] = vals[top] + vals[top + 1]
+    return 0.0 + vals[0]
+
+
+@njit(cache=True, nogil=True)
+def plane_sums(heights, mask, x, y, z):  # pragma: no cover - compiled
+    # fill.fit_plane's sums: the column, row and height of every occupied cell (row-major, into
+    # x, y, z: the caller's arrays of one value per occupied cell, and one more), their means, and
+    # the five sums of products of the centred values, each as numpy's mean and np.sum add them.
+    rows, cols = mask.shape
+    k = 0
+    for i in range(rows):
+        for j in range(cols):  # without branches: a cell is kept by counting it
+            x[k] = j
+            y[k] = i
+            z[k] = heights[i, j]
+            k += mask[i, j]
+    n = k
+    mx, my, mz = array_sum(x[:n]) / n, array_sum(y[:n]) / n, array_sum(z[:n]) / n
+    # The products' sums leaf by leaf of one plan: each leaf's values centred (x - mx, as numpy's
+    # x -= mx rounds) into blocks in cache, then its five sums as _leaf_dot adds them.
+    ops = _pairwise_plan(n)
+    bx, by, bz = np.empty(PAIRWISE_BLOCK), np.empty(PAIRWISE_BLOCK), np.empty(PAIRWISE_BLOCK)
+    vals, top = np.empty((64, 5)), -1
+    for k in range(ops.shape[0]):
+        lo, m = ops[k, 0], ops[k, 1]
+        if lo < 0:
+            top -= 1
+            for q in range(5):
+                vals[top, q] = vals[top, q] + vals[top + 1, q]
+            continue
+        for i in range(m):
+            bx[i] = x[lo + i] - mx
+            by[i] = y[lo + i] - my
+            bz[i] = z[lo + i] - mz
+        top += 1
+        vals[top, 0] = _leaf_dot(bx, bx, 0, m)
+        vals[top, 1] = _leaf_dot(bx, by, 0, m)
+        vals[top, 2] = _leaf_dot(by, by, 0, m)
+        vals[top, 3] = _leaf_dot(bx, bz, 0, m)
+        vals[top, 4] = _leaf_dot(by, bz, 0, m)
+    return (mx, my, mz, 0.0 + vals[0, 0], 0.0 + vals[0, 1], 0.0 + vals[0, 2], 0.0 + vals[0, 3],
+            0.0 + vals[0, 4])
+
+
+@njit(cache=True, nogil=True)
+def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq, far_at):  # pragma: no cover - compiled
+    # grid._SpreadCounter.add's figures in one pass: np.sum of sq = (z - heights[idx])**2, its
+    # maximum (0 for no points), how many exceed tolerance_sq and np.sum of those (in order), their
+    # cells marked in far_cells; far_sq, far_at: the caller's scratch of one value per point (the
+    # far squares and their cells). Each leaf of the pairwise plan makes its squares into a block
+    # in cache and adds them as _leaf does. A block with a far point keeps its far ones without
+    # branches (a forest's points are far or near at random); most blocks of ground have none.
+    ops = _pairwise_plan(idx.size)
+    block, vals, top = np.empty(PAIRWISE_BLOCK), np.empty(64), -1
+    largest, far = 0.0, 0
+    for k in range(ops.shape[0]):
+        lo, n = ops[k, 0], ops[k, 1]
+        if lo < 0:
+            top -= 1
+            vals[top] = vals[top] + vals[top + 1]
+            continue
+        cells, heights_of = idx[lo:lo + n], z[lo:lo + n]
+        block_max = 0.0
+        for i in range(n):
+            d = heights_of[i] - heights[cells[i]]
+            s = d * d
+            block[i] = s
+            block_max = max(block_max, s)
+        largest = max(largest, block_max)
+        if block_max > tolerance_sq:
+            for i in range(n):
+                far_sq[far] = block[i]
+                far_at[far] = cells[i]
+                far += block[i] > tolerance_sq
+        top += 1
+        vals[top] = _leaf(block, 0, n)
+    for j in range(far):
+        far_cells[far_at[j]] = True
+    return 0.0 + vals[0], largest, far, array_sum(far_sq[:far])

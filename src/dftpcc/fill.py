@@ -28,23 +28,26 @@ def fit_plane(dem: DEM) -> tuple[float, float, float]:
     # a few passes over the cells instead of a least-squares solve on them.
     # Column and row of each occupied cell, row-major (np.nonzero's order),
     # made as floats directly: cheaper than two index arrays and a 2-D gather.
-    n_rows, n_cols = mask.shape
-    x = np.broadcast_to(np.arange(n_cols, dtype=float), mask.shape)[mask]
-    y = np.repeat(np.arange(n_rows, dtype=float), np.count_nonzero(mask, axis=1))
-    mx, my, mz = x.mean(), y.mean(), z.mean()
-    x -= mx
-    y -= my
-    z -= mz
-    # The five sums of products (dftpcc.sums.dot's arithmetic), written into one
-    # scratch array: fresh products for each would cost more than the sums.
-    scratch = np.empty_like(z)
+    if kernels.enabled():  # the same sums in two compiled passes
+        mx, my, mz, xx, xy, yy, xz, yz = kernels.plane_sums(dem.heights, mask, z.size)
+    else:
+        n_rows, n_cols = mask.shape
+        x = np.broadcast_to(np.arange(n_cols, dtype=float), mask.shape)[mask]
+        y = np.repeat(np.arange(n_rows, dtype=float), np.count_nonzero(mask, axis=1))
+        mx, my, mz = x.mean(), y.mean(), z.mean()
+        x -= mx
+        y -= my
+        z -= mz
+        # The five sums of products (dftpcc.sums.dot's arithmetic), written into one
+        # scratch array: fresh products for each would cost more than the sums.
+        scratch = np.empty_like(z)
 
-    def dot_(a: np.ndarray, b: np.ndarray) -> float:
-        return float(np.sum(np.multiply(a, b, out=scratch)))
+        def dot_(a: np.ndarray, b: np.ndarray) -> float:
+            return float(np.sum(np.multiply(a, b, out=scratch)))
 
-    xy = dot_(x, y)
-    normal = np.array([[dot_(x, x), xy], [xy, dot_(y, y)]])
-    rhs = np.array([dot_(x, z), dot_(y, z)])
+        xx, xy, yy, xz, yz = dot_(x, x), dot_(x, y), dot_(y, y), dot_(x, z), dot_(y, z)
+    normal = np.array([[xx, xy], [xy, yy]])
+    rhs = np.array([xz, yz])
     try:
         b, c = np.linalg.solve(normal, rhs)
     except np.linalg.LinAlgError:  # all cells on one line: fit along it only

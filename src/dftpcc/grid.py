@@ -341,33 +341,34 @@ class _SpreadCounter:
         self.far_cells: np.ndarray | None = None  # allocated at the first far point (or kernel call)
 
     def add(self, idx: np.ndarray, z: np.ndarray, heights: np.ndarray) -> None:
-        # Squared distances block by block, so the gathered heights and the
-        # differences stay in cache; the sums run over the whole arrays, adding
-        # in the same order as one pass would.
+        # numpy's pairwise sums on both paths (of the far squares in the points' order): their bits
+        # reach the file.
         tolerance_sq = self.tolerance * self.tolerance
-        if kernels.enabled():  # the squares, their maximum, the far ones and their cells in one compiled pass
+        if kernels.enabled():  # the sums, the maximum, the far points and their cells in one compiled pass
             if self.far_cells is None:
                 self.far_cells = np.zeros(self.grid.size, dtype=bool)
-            sq, largest, far_sq = kernels.squared_distances(idx, z, heights, tolerance_sq, self.far_cells)
+            sq_sum, largest, far, far_sum = kernels.distance_sums(idx, z, heights, tolerance_sq, self.far_cells)
         else:
+            # Squared distances block by block, so the gathered heights and the differences stay
+            # in cache; the sums run over the whole arrays, adding in the same order as one pass would.
             sq = np.empty(idx.size)
             for start in range(0, idx.size, BLOCK_POINTS):
                 dz = sq[start:start + BLOCK_POINTS]
                 np.subtract(z[start:start + BLOCK_POINTS], heights[idx[start:start + BLOCK_POINTS]], out=dz)
                 np.multiply(dz, dz, out=dz)
             largest = float(sq.max()) if sq.size else 0.0
-            far = sq > tolerance_sq
-            far_sq = sq[far]
+            is_far = sq > tolerance_sq
+            far_sq = sq[is_far]
             if far_sq.size:
                 if self.far_cells is None:
                     self.far_cells = np.zeros(self.grid.size, dtype=bool)
-                self.far_cells[idx[far]] = True
-        self.points += sq.size
-        # numpy's pairwise sums on both paths (of the far squares in the points' order): their bits reach the file
-        self.sq_sum += float(sq.sum())
+                self.far_cells[idx[is_far]] = True
+            sq_sum, far, far_sum = float(sq.sum()), far_sq.size, float(far_sq.sum())
+        self.points += idx.size
+        self.sq_sum += sq_sum
         self.max_sq = max(self.max_sq, largest)
-        self.far_points += far_sq.size
-        self.far_sq_sum += float(far_sq.sum())
+        self.far_points += far
+        self.far_sq_sum += far_sum
 
     def dem(self, heights: np.ndarray, mask: np.ndarray, count: np.ndarray) -> DEM:
         """The DEM, with its gridding RMSE and spread; warns when the spread is large."""

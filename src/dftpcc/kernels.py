@@ -18,6 +18,10 @@ coefficient coder's integer tables (:mod:`dftpcc.coding`) are coded the same
 way, without building constriction's models, and push-pull's levels
 (:mod:`dftpcc.fill`) are pulled and pushed in one pass each, with the same
 float operations in the same order (so the same bits, signs of zero too).
+Sums whose bits reach a file (the gridding's spread, the plane's normal
+equations) are added as ``np.sum`` adds them: its identity 0.0, then numpy's
+pairwise summation (blocks of up to 128 values in eight accumulators, halved
+at multiples of 8 above that), made as the values are, without their arrays.
 
 Loading numba takes a fresh process about 0.3 s, more than a small map's
 whole compression, so the kernels are used only once something asks for
@@ -38,7 +42,7 @@ import numpy as np
 
 __all__ = ["load", "enabled", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
            "extremes", "cell_points",
-           "axis_cells", "cell_sums", "squared_distances"]
+           "axis_cells", "cell_sums", "distance_sums", "plane_sums"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
 #: codec's constants (the mask coder's prior, the tables) as arguments, so imports run one way.
@@ -189,16 +193,37 @@ def cell_sums(idx: np.ndarray, z: np.ndarray, count: np.ndarray, total: np.ndarr
                                count, total)
 
 
-def squared_distances(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance_sq: float,
-                      far_cells: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-    """``sq = (z - heights[idx])**2``, its maximum (0 for no points) and ``sq[sq > tolerance_sq]``,
-    whose cells it sets True in ``far_cells`` (bool, one per cell of the grid, in place)."""
+def distance_sums(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance_sq: float,
+                  far_cells: np.ndarray) -> tuple[float, float, int, float]:
+    """With ``sq = (z - heights[idx])**2``: ``sq.sum()``, its maximum (0 for no points), how many
+    exceed ``tolerance_sq`` and the sum of those (``sq[sq > tolerance_sq].sum()``), each to numpy's
+    bits (pairwise sums); the far points' cells are set True in ``far_cells`` (bool, one per cell
+    of the grid, in place)."""
     # idx are cells of the grid (the kernel does not check them): heights and far_cells hold one per cell.
     if far_cells.dtype != np.bool_ or not far_cells.flags.c_contiguous or far_cells.size != heights.size:
         raise ValueError("far_cells must be a contiguous bool array of one value per cell, as heights")
-    sq, far_sq = np.empty(idx.size), np.empty(idx.size)  # numpy's allocation: see axis_cells
-    largest, far = _state["module"].squared_distances(np.ascontiguousarray(idx, dtype=np.int64),
-                                                      np.ascontiguousarray(z, dtype=np.float64),
-                                                      np.ascontiguousarray(heights, dtype=np.float64),
-                                                      float(tolerance_sq), far_cells, sq, far_sq)
-    return sq, float(largest), far_sq[:far]
+    if idx.shape != z.shape or idx.ndim != 1:
+        raise ValueError("idx and z must be 1-d arrays of one value per point")
+    # The far squares and their cells, in order; numpy's allocation: see axis_cells.
+    far_sq, far_at = np.empty(idx.size), np.empty(idx.size, dtype=np.int64)
+    total, largest, far, far_total = _state["module"].distance_sums(
+        np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(z, dtype=np.float64),
+        np.ascontiguousarray(heights, dtype=np.float64).reshape(-1), float(tolerance_sq), far_cells, far_sq, far_at)
+    return float(total), float(largest), int(far), float(far_total)
+
+
+def plane_sums(heights: np.ndarray, mask: np.ndarray,
+               occupied: int) -> tuple[float, float, float, float, float, float, float, float]:
+    """``fill.fit_plane``'s sums, to the bit: the means of the column, row and height of the
+    ``occupied`` cells set in ``mask`` (rows, cols), and the sums of products xx, xy, yy, xz, yz of
+    the centred values, each added as numpy's ``mean`` and ``sum`` add (pairwise)."""
+    if heights.shape != mask.shape or heights.ndim != 2:
+        raise ValueError("heights and mask must be 2-d arrays of one shape")
+    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    if int(np.count_nonzero(mask)) != occupied:
+        raise ValueError("occupied must count the cells set in mask")
+    # One more value each than occupied cells: the kernel writes every cell's, keeping the occupied
+    # ones (numpy's allocation: see axis_cells).
+    x, y, z = np.empty(occupied + 1), np.empty(occupied + 1), np.empty(occupied + 1)
+    found = _state["module"].plane_sums(np.ascontiguousarray(heights, dtype=np.float64), mask, x, y, z)
+    return tuple(float(v) for v in found)  # type: ignore[return-value]
