@@ -56,6 +56,14 @@ def _masks(rng: np.random.Generator):
         yield m, [None, 1, 2, 3, 64, 5][t % 6]
 
 
+def test_mask_contexts_equal_numpys(jit):
+    # Each cell's context (the line before, the line before last, per stripe) from one compiled pass.
+    for mask, stripe in _masks(np.random.default_rng(4)):
+        lines = mask.astype(np.uint8)
+        for s in {stripe or lines.shape[0], 1, 2, 64}:
+            assert np.array_equal(kernels.mask_contexts(lines, s), occupancy._contexts(lines, s)), (mask.shape, s)
+
+
 def test_mask_coder_bytes_equal(jit):
     for mask, stripe in _masks(np.random.default_rng(0)):
         jit(True)

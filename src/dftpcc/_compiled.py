@@ -48,6 +48,38 @@ def _push(words, count, state, bit, z):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def mask_contexts(lines, stripe, ctx):  # pragma: no cover - compiled
+    # occupancy._contexts into ctx (uint8, the shape of lines): bits 0-4 the cells at offsets
+    # -2..+2 of the line before, bits 5-7 those at -1..+1 of the line before last (line 1 of a
+    # stripe: line 0 again; line 0: nothing), each a window slid along the line.
+    n, w = lines.shape
+    for line in range(n):
+        t = line % stripe
+        if t == 0:
+            for j in range(w):
+                ctx[line, j] = 0
+            continue
+        a = line - 1
+        o = a if t == 1 else line - 2
+        code = np.int64(0)
+        if w > 0:
+            code = np.int64(lines[a, 0]) << 3
+        if w > 1:
+            code |= np.int64(lines[a, 1]) << 4
+        old = np.int64(0)
+        if w > 0:
+            old = np.int64(lines[o, 0]) << 7
+        for j in range(w):
+            code >>= 1
+            if j + 2 < w:
+                code |= np.int64(lines[a, j + 2]) << 4
+            old = (old >> 1) & 0x60
+            if j + 1 < w:
+                old |= np.int64(lines[o, j + 1]) << 7
+            ctx[line, j] = code | old
+
+
+@njit(cache=True, nogil=True)
 def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first, words):  # pragma: no cover - compiled
     # first: 1 for kind 3, whose line 0 of the first stripe is a seed too (not coded), else 0
     n, w = lines.shape

@@ -74,6 +74,8 @@ class Analysis:
         # A consistent fill starts from the smooth one (see refilled()).
         method = "smooth" if params.fill == "consistent" else params.fill
         filled = (fill or fill_empty)(dem.heights - self.trend, dem.mask, method=method)
+        if fill is not None:  # an experiment's fill may hand back an array it keeps: the transform overwrites
+            filled = np.array(filled, dtype=np.float64, order="C")
         self.lay = spectrum.layout(params.transform, params.storage, dem.grid.shape)
         order, radii, angles = spectrum.kept_order(self.lay, 0.0 if searching else params.cutoff_or_default)
         self.order = order
@@ -86,8 +88,9 @@ class Analysis:
         self.parseval = spectrum.mse_per_squared_error(self.lay)
 
     def _sorted_transform(self, filled: np.ndarray) -> np.ndarray:
-        """The kept coefficients of ``filled``, sorted; also sets :attr:`outside_energy`."""
-        full = spectrum.forward(filled, self.lay).ravel()
+        """The kept coefficients of ``filled`` (a grid of this analysis's own, which the transform
+        overwrites), sorted; also sets :attr:`outside_energy`."""
+        full = spectrum.forward(filled, self.lay, overwrite=True).ravel()
         #: Squared magnitude of the coefficients outside the sorted circle (0 when searching):
         #: what any trial loses to the low-pass, for :meth:`proxy_rmse` (None: not measured).
         self.outside_energy: float | None = 0.0 if self._measure_outside else None

@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["load", "enabled", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
+__all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
            "extremes", "cell_points",
            "axis_cells", "cell_sums", "distance_sums", "plane_sums"]
 
@@ -88,6 +88,16 @@ def encode_mask_words(lines: np.ndarray, ctx: np.ndarray, stripe: int, prior_one
     words = np.empty(lines.size + 4, dtype=np.uint32)  # numpy's allocation: huge pages (see axis_cells)
     return module.encode_mask_words(lines, np.ascontiguousarray(ctx), int(stripe), prior_ones, float(prior_total),
                                     int(first_seed), words)
+
+
+def mask_contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
+    """``occupancy._contexts`` of the line-major mask ``lines`` (uint8, 0/1), in one pass."""
+    lines = np.ascontiguousarray(lines, dtype=np.uint8)
+    if lines.ndim != 2 or stripe < 1:
+        raise ValueError("lines must be a 2-d mask and stripe at least 1")
+    ctx = np.empty_like(lines)  # numpy's allocation: see axis_cells
+    _state["module"].mask_contexts(lines, int(stripe), ctx)
+    return ctx
 
 
 def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, stripe: int, prior_ones: np.ndarray,

@@ -182,7 +182,7 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
     """The context-coded mask (kind 2, or 3 with ``first_seed``); ``seed_frame``:
     :func:`_encode_seeds` of its seed lines, if known."""
     n_lines, width = lines.shape
-    ctx = _contexts(lines, stripe)
+    ctx = kernels.mask_contexts(lines, stripe) if kernels.enabled() else _contexts(lines, stripe)
     if seed_frame is None:
         seed_frame = _encode_seeds(_seed_lines(lines, stripe, first_seed))
     head = _STRIPES.pack(stripe, len(seed_frame)) + seed_frame

@@ -176,13 +176,17 @@ def mse_per_squared_error(lay: Layout) -> float:
     return {"dct": 1.0 / n, "half": 2.0 / n, "full": 1.0 / (n * n)}[lay.kind]
 
 
-def forward(values: np.ndarray, lay: Layout) -> np.ndarray:
-    """Transform a DEM (rows, cols) to coefficients of ``lay.coef_shape``."""
+def forward(values: np.ndarray, lay: Layout, *, overwrite: bool = False) -> np.ndarray:
+    """Transform a DEM (rows, cols) to coefficients of ``lay.coef_shape``.
+
+    ``overwrite``: ``values`` (float64, C-contiguous) may be overwritten: the DCT then runs in
+    place, the same bits without a second grid (on a tall grid, a tenth of its time).
+    """
     if lay.kind == "full":
         return sfft.fftshift(sfft.fft2(values, workers=FFT_WORKERS))
     if lay.kind == "half":
         return sfft.rfft2(values, norm="ortho", workers=FFT_WORKERS)
-    return sfft.dctn(values, type=2, norm="ortho", workers=FFT_WORKERS)
+    return sfft.dctn(values, type=2, norm="ortho", workers=FFT_WORKERS, overwrite_x=overwrite)
 
 
 def inverse(coefs: np.ndarray, lay: Layout, *, first_axis: int | None = None) -> np.ndarray:
