@@ -429,3 +429,33 @@ def test_distance_sums_equal_numpys(jit):
             got = kernels.distance_sums(idx, z, heights, tolerance_sq, found)
             assert got == (float(sq.sum()), float(sq.max()) if n else 0.0, int(far.sum()), float(sq[far].sum()))
             assert np.array_equal(found, marked)
+
+
+def test_trial_figures_equal_numpys(jit):
+    # A trial's errors, RMSE and largest error, and the step search's quantization error, from
+    # compiled passes, as numpy gives them; where numpy would refuse or differ the kernels step aside.
+    rng = np.random.default_rng(21)
+    for rows, cols in ((1, 1), (3, 50), (40, 37), (200, 300)):
+        heights, ref = rng.normal(0, 5, (2, rows, cols))
+        for mask in (rng.random((rows, cols)) < 0.6, np.ones((rows, cols), bool)):
+            err = (heights - ref)[mask]
+            found = kernels.masked_errors(heights, ref, mask)
+            if not err.size:
+                assert found is None
+                continue
+            got, sq_sum, largest = found
+            assert np.array_equal(got, err)
+            assert (float(np.sqrt(sq_sum / err.size)), largest) == (float(np.sqrt(np.mean(err * err))),
+                                                                    float(np.abs(err).max()))
+        assert kernels.masked_errors(heights, ref, np.zeros((rows, cols), bool)) is None
+    nan = np.ones((4, 4))
+    nan[1, 1] = np.nan
+    assert kernels.masked_errors(nan, np.zeros((4, 4)), np.ones((4, 4), bool)) is None
+    for n in (0, 5, 129, 32_768):
+        values = rng.laplace(0, 10.0 ** rng.uniform(-2, 2), n)
+        for step in (1e-3, 0.05, 0.7, 40.0):
+            for deadzone in (0.0, 0.2):
+                err = values - coding.dequantize(coding.quantize(values, step, deadzone), step)
+                assert kernels.quantization_sq_error(values, step, deadzone) == float(np.sum(err * err))
+    assert kernels.quantization_sq_error(np.array([1e300, 1.0]), 1e-300, 0.0) is None  # past 2**63: quantize refuses
+    assert kernels.quantization_sq_error(np.array([np.nan]), 1.0, 0.0) is None

@@ -583,3 +583,46 @@ def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq, far_at):  # 
     for j in range(far):
         far_cells[far_at[j]] = True
     return 0.0 + vals[0], largest, far, array_sum(far_sq[:far])
+
+
+@njit(cache=True, nogil=True)
+def masked_errors(heights, ref, mask, out):  # pragma: no cover - compiled
+    # (heights - ref)[mask] into out (row-major; the caller's array of one value per set cell, and
+    # one more), np.sum of their squares (pairwise, as np.mean(err * err) adds them) and np.abs(err).max()
+    rows, cols = mask.shape
+    k = 0
+    for i in range(rows):
+        for j in range(cols):  # without branches: a cell is kept by counting it
+            out[k] = heights[i, j] - ref[i, j]
+            k += mask[i, j]
+    largest = 0.0
+    for i in range(k):
+        largest = max(largest, abs(out[i]))
+    errors = out[:k]
+    return array_dot(errors, errors), largest
+
+
+@njit(cache=True, nogil=True)
+def quantization_sq_error(values, step, offset):  # pragma: no cover - compiled
+    # coding.choose_step's sq_error: np.sum of (v - q * step)**2 with q = sign(v) * floor(|v| / step +
+    # offset) as an int64 (coding.quantize, offset = 0.5 - deadzone), pairwise as np.sum adds; and
+    # whether every q stayed below 2**63 (else the caller refuses, as quantize does)
+    ops = _pairwise_plan(values.size)
+    block, vals, top = np.empty(PAIRWISE_BLOCK), np.empty(64), -1
+    ok = True
+    for k in range(ops.shape[0]):
+        lo, n = ops[k, 0], ops[k, 1]
+        if lo < 0:
+            top -= 1
+            vals[top] = vals[top] + vals[top + 1]
+            continue
+        for i in range(n):
+            v = values[lo + i]
+            q = np.floor(np.abs(v) / step + offset)
+            ok &= q < 9.223372036854775808e18
+            qi = np.int64(np.sign(v) * q) if q < 9.223372036854775808e18 else np.int64(0)
+            e = v - np.float64(qi) * step
+            block[i] = e * e
+        top += 1
+        vals[top] = _leaf(block, 0, n)
+    return 0.0 + vals[0], ok

@@ -449,7 +449,8 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | TiledMasks, point_c
     # Without a residual layer the decoder rebuilds the trial's heights, whose errors it may have kept.
     errors = trial.errors if choice.residual is None else None
     stats = _stats(dem, heights, occupied, len(mask_blob), len(choice.coefs), len(choice.residual_blob),
-                   int(an.kept_cells.sum()) - int(occupied.sum()), params, errors=errors)
+                   int(an.kept_cells.sum()) - int(occupied.sum()), params, errors=errors,
+                   figures=None if errors is None else (trial.rmse, trial.max_error))
     header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(an.kept_cells.sum()),
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.count(params.cutoff))
     on_stage("container")
@@ -529,14 +530,17 @@ def _tiled_stats(dem: DEM, codes: list[TileCode], occupied: int, base_blob: byte
 
 
 def _stats(dem: DEM, heights: np.ndarray, occupied: np.ndarray, mask_bytes: int, coef_bytes: int,
-           residual_bytes: int, interpolated: int, params: Params, *, errors: np.ndarray | None = None) -> dict[str, Any]:
+           residual_bytes: int, interpolated: int, params: Params, *, errors: np.ndarray | None = None,
+           figures: tuple[float, float] | None = None) -> dict[str, Any]:
     """The figures a file states of the map it rebuilds (docs/format.md, STAT); ``errors``:
-    ``(heights - dem.heights)[occupied]`` if the caller has them."""
+    ``(heights - dem.heights)[occupied]`` if the caller has them, ``figures`` their RMSE and
+    largest magnitude (``Trial.rmse``, ``Trial.max_error``: the same arithmetic)."""
     floor = dem.gridding_rmse or 0.0
     err = (heights - dem.heights)[occupied] if errors is None else errors
+    rmse, largest = (float(np.sqrt(np.mean(err * err))), float(np.abs(err).max())) if figures is None else figures
     stats: dict[str, Any] = {
-        "dem_rmse_m": float(np.sqrt(np.mean(err * err))),
-        "dem_max_error_m": float(np.abs(err).max()),
+        "dem_rmse_m": rmse,
+        "dem_max_error_m": largest,
         "gridding_rmse_m": floor,
         "mask_bytes": mask_bytes,
         "coef_bytes": coef_bytes,

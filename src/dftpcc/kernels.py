@@ -42,7 +42,8 @@ import numpy as np
 
 __all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
            "extremes", "cell_points",
-           "axis_cells", "cell_sums", "distance_sums", "plane_sums"]
+           "axis_cells", "cell_sums", "distance_sums", "plane_sums",
+           "masked_errors", "quantization_sq_error"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
 #: codec's constants (the mask coder's prior, the tables) as arguments, so imports run one way.
@@ -237,3 +238,27 @@ def plane_sums(heights: np.ndarray, mask: np.ndarray,
     x, y, z = np.empty(occupied + 1), np.empty(occupied + 1), np.empty(occupied + 1)
     found = _state["module"].plane_sums(np.ascontiguousarray(heights, dtype=np.float64), mask, x, y, z)
     return tuple(float(v) for v in found)  # type: ignore[return-value]
+
+
+def masked_errors(heights: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float, float] | None:
+    """``err = (heights - ref)[mask]``, ``np.sum(err * err)`` and ``np.abs(err).max()`` to numpy's
+    bits, in two passes; None where numpy's figures could differ (no set cell, a NaN)."""
+    if not (heights.shape == ref.shape == mask.shape and heights.ndim == 2):
+        raise ValueError("heights, ref and mask must be 2-d arrays of one shape")
+    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    out = np.empty(mask.size + 1)  # every cell's error is written, the set ones kept (numpy's allocation)
+    sq_sum, largest = _state["module"].masked_errors(np.ascontiguousarray(heights, dtype=np.float64),
+                                                     np.ascontiguousarray(ref, dtype=np.float64), mask, out)
+    n = int(np.count_nonzero(mask))
+    if n == 0 or not np.isfinite(sq_sum):
+        return None
+    return out[:n], float(sq_sum), float(largest)
+
+
+def quantization_sq_error(values: np.ndarray, step: float, deadzone: float) -> float | None:
+    """``coding.choose_step``'s error of quantizing ``values`` (float64) with ``step``: the sum of
+    squares of ``values - dequantize(quantize(values, step, deadzone), step)`` to numpy's bits; None
+    where ``quantize`` would refuse (an integer past 2**63), so the caller raises as it does."""
+    total, ok = _state["module"].quantization_sq_error(np.ascontiguousarray(values, dtype=np.float64), float(step),
+                                                       0.5 - float(deadzone))
+    return float(total) if ok else None
