@@ -207,8 +207,8 @@ def _analysis(dem: DEM, params: Params, on_stage: Stage, fill: Callable[..., np.
     ``base_cycles`` cycles per tile."""
     on_stage("spectrum")
     searching = params.has_target and params.cutoff is None
-    if base_cycles is None:
-        return Analysis(dem, params, searching=searching, fill=fill)
+    if base_cycles is None:  # the energy the low-pass drops: rate control's, a fixed setting needs none
+        return Analysis(dem, params, searching=searching, fill=fill, outside_energy=params.has_target)
     return TiledAnalysis(dem, params, params.tile_size, searching=searching, base_cycles=base_cycles)
 
 
