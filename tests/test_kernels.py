@@ -459,3 +459,15 @@ def test_trial_figures_equal_numpys(jit):
                 assert kernels.quantization_sq_error(values, step, deadzone) == float(np.sum(err * err))
     assert kernels.quantization_sq_error(np.array([1e300, 1.0]), 1e-300, 0.0) is None  # past 2**63: quantize refuses
     assert kernels.quantization_sq_error(np.array([np.nan]), 1.0, 0.0) is None
+
+
+def test_weighted_error_sum_equals_numpys(jit):
+    # The vertical RMSE's sum of point counts times squared errors, walked over the set cells.
+    rng = np.random.default_rng(23)
+    for rows, cols in ((1, 1), (2, 300), (64, 65), (300, 200)):
+        counts = rng.integers(0, 9, (rows, cols))
+        mask = counts > 0
+        err = rng.normal(0, 0.3, int(mask.sum()))
+        assert kernels.weighted_sq_sum(counts, mask, err) == float(np.sum(counts[mask] * err * err))
+    with pytest.raises(ValueError):
+        kernels.weighted_sq_sum(counts, mask, err[:-1])

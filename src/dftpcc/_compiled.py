@@ -626,3 +626,30 @@ def quantization_sq_error(values, step, offset):  # pragma: no cover - compiled
         top += 1
         vals[top] = _leaf(block, 0, n)
     return 0.0 + vals[0], ok
+
+
+@njit(cache=True, nogil=True)
+def weighted_sq_sum(counts, mask, errors, scratch):  # pragma: no cover - compiled
+    # np.sum(counts[mask] * errors * errors) (counts: int64, one per cell; errors: one per set cell,
+    # row-major), each product as numpy makes it ((count * e) * e), added pairwise as np.sum adds;
+    # scratch: the caller's, one value per set cell and one more (the set cells' counts)
+    rows, cols = mask.shape
+    k = 0
+    for i in range(rows):
+        for j in range(cols):  # without branches: a cell is kept by counting it
+            scratch[k] = counts[i, j]
+            k += mask[i, j]
+    ops = _pairwise_plan(errors.size)
+    block, vals, top = np.empty(PAIRWISE_BLOCK), np.empty(64), -1
+    for k in range(ops.shape[0]):
+        lo, m = ops[k, 0], ops[k, 1]
+        if lo < 0:
+            top -= 1
+            vals[top] = vals[top] + vals[top + 1]
+            continue
+        for t in range(m):
+            e = errors[lo + t]
+            block[t] = (scratch[lo + t] * e) * e
+        top += 1
+        vals[top] = _leaf(block, 0, m)
+    return 0.0 + vals[0]

@@ -18,7 +18,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from .sums import dot
-from . import coding, occupancy, ratecontrol, spectrum
+from . import coding, kernels, occupancy, ratecontrol, spectrum
 from .analysis import Analysis, Trial
 from .container import Header, TileIndex, check_grid, entry_bytes, pack, pack_tiled
 from .dem import DEM, as_points
@@ -556,6 +556,10 @@ def _stats(dem: DEM, heights: np.ndarray, occupied: np.ndarray, mask_bytes: int,
         stats.update({key: full[key] for key in SPREAD_STATS})
     if dem.counts is not None and params.aggregate == "mean":
         # Per cell, points scatter about their mean, so the errors add in quadrature.
-        weighted = float(np.sum(dem.counts[occupied] * err * err)) / max(int(dem.counts.sum()), 1)
+        if kernels.enabled() and dem.counts.dtype == np.int64:  # the same sum in one compiled pass
+            weighted = kernels.weighted_sq_sum(dem.counts, occupied, err)
+        else:
+            weighted = float(np.sum(dem.counts[occupied] * err * err))
+        weighted /= max(int(dem.counts.sum()), 1)
         stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
     return stats

@@ -43,7 +43,7 @@ import numpy as np
 __all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
            "extremes", "cell_points",
            "axis_cells", "cell_sums", "distance_sums", "plane_sums",
-           "masked_errors", "quantization_sq_error"]
+           "masked_errors", "quantization_sq_error", "weighted_sq_sum"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
 #: codec's constants (the mask coder's prior, the tables) as arguments, so imports run one way.
@@ -262,3 +262,16 @@ def quantization_sq_error(values: np.ndarray, step: float, deadzone: float) -> f
     total, ok = _state["module"].quantization_sq_error(np.ascontiguousarray(values, dtype=np.float64), float(step),
                                                        0.5 - float(deadzone))
     return float(total) if ok else None
+
+
+def weighted_sq_sum(counts: np.ndarray, mask: np.ndarray, errors: np.ndarray) -> float:
+    """``np.sum(counts[mask] * errors * errors)`` to numpy's bits, without the products' arrays
+    (``counts``: int64 per cell; ``errors``: one per set cell of ``mask``, row-major)."""
+    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    if counts.shape != mask.shape or counts.ndim != 2 or errors.ndim != 1:
+        raise ValueError("counts and mask must be 2-d arrays of one shape, errors 1-d")
+    if errors.size != int(np.count_nonzero(mask)):  # the kernel walks the set cells without bounds checks
+        raise ValueError("errors must hold one value per set cell of mask")
+    scratch = np.empty(errors.size + 1)  # the set cells' counts (numpy's allocation: see axis_cells)
+    return float(_state["module"].weighted_sq_sum(np.ascontiguousarray(counts, dtype=np.int64), mask,
+                                                  np.ascontiguousarray(errors, dtype=np.float64), scratch))
