@@ -83,7 +83,7 @@ DECOMPRESS_STAGES = (
     ("decode the mask", occupancy, "decode_mask", 0),
     ("decode coefficients", coding, "decode_coefficients", 0),
     ("inverse transform", spectrum, "inverse", 0),
-    ("add the plane", decoder, "plane_values", 0),
+    ("add the plane", decoder, "add_plane", 0),
     ("rebuild points", mapfile, "dem_to_points", 0),
 )
 

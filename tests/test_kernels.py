@@ -471,3 +471,13 @@ def test_weighted_error_sum_equals_numpys(jit):
         assert kernels.weighted_sq_sum(counts, mask, err) == float(np.sum(counts[mask] * err * err))
     with pytest.raises(ValueError):
         kernels.weighted_sq_sum(counts, mask, err[:-1])
+
+
+def test_plane_added_in_place_equals_numpys(jit):
+    rng = np.random.default_rng(29)
+    for rows, cols in ((1, 1), (7, 300), (257, 129)):
+        heights = rng.normal(0, 3, (rows, cols))
+        plane = tuple(float(v) for v in rng.normal(0, [100, 0.1, 0.1]))
+        mine = heights.copy()
+        kernels.add_plane(mine, plane)
+        assert np.array_equal(mine, heights + fill.plane_values(plane, heights.shape))

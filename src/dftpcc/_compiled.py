@@ -653,3 +653,14 @@ def weighted_sq_sum(counts, mask, errors, scratch):  # pragma: no cover - compil
         top += 1
         vals[top] = _leaf(block, 0, m)
     return 0.0 + vals[0]
+
+
+@njit(cache=True, nogil=True)
+def add_plane(heights, a, b, c):  # pragma: no cover - compiled
+    # heights += fill.plane_values((a, b, c), heights.shape), in place: each cell's (a + b * col) + c * row,
+    # as numpy's broadcast evaluates it, then added
+    rows, cols = heights.shape
+    for i in range(rows):
+        ci = c * i
+        for j in range(cols):
+            heights[i, j] += (a + b * j) + ci

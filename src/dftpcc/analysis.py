@@ -147,7 +147,9 @@ class Analysis:
             shape, where = self._corner(values.size)
             coefs = np.zeros(shape, dtype=values.dtype)
             coefs.ravel()[where] = values
-            return spectrum.inverse(coefs, self.lay, first_axis=1) + self.trend
+            heights = spectrum.inverse(coefs, self.lay, first_axis=1)
+            heights += self.trend  # in place: the inverse's grid is this trial's own
+            return heights
         coefs = np.zeros(self.lay.coef_shape, dtype=values.dtype)
         coefs.ravel()[self.order[: values.size]] = values
         return spectrum.inverse(coefs, self.lay) + self.trend

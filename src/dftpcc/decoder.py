@@ -16,7 +16,7 @@ from . import coding, occupancy, spectrum, tiles
 from .container import Header
 from .dem import DEM
 from .errors import CorruptFileError, InvalidInputError
-from .fill import plane_values
+from .fill import add_plane
 from .params import check_cutoff
 from .residual import decode_residual, residual_step
 
@@ -80,7 +80,7 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     coefs.ravel()[where] = values
     heights = spectrum.inverse(coefs, lay)
     if params.detrend == "plane":
-        heights += plane_values(header.plane, grid.shape)
+        add_plane(heights, header.plane)
     complete = values.size == n and cutoff is None
     if b"RESD" in blobs and complete:
         # The residual layer only applies to the full-resolution map it was computed for.

@@ -15,7 +15,7 @@ from . import kernels
 from .dem import DEM
 from .errors import InvalidInputError
 
-__all__ = ["fit_plane", "plane_values", "fill_empty", "footprint"]
+__all__ = ["fit_plane", "plane_values", "add_plane", "fill_empty", "footprint"]
 
 
 def fit_plane(dem: DEM) -> tuple[float, float, float]:
@@ -61,6 +61,14 @@ def plane_values(plane: tuple[float, float, float], shape: tuple[int, int]) -> n
     rows = np.arange(shape[0], dtype=float)[:, None]
     cols = np.arange(shape[1], dtype=float)[None, :]
     return a + b * cols + c * rows
+
+
+def add_plane(heights: np.ndarray, plane: tuple[float, float, float]) -> None:
+    """``heights += plane_values(plane, heights.shape)``, in place (float64 heights)."""
+    if kernels.enabled() and heights.dtype == np.float64 and heights.flags.c_contiguous:
+        kernels.add_plane(heights, plane)  # the same sums, without the plane's grid
+    else:
+        heights += plane_values(plane, heights.shape)
 
 
 def fill_empty(heights: np.ndarray, mask: np.ndarray, *, method: str = "smooth") -> np.ndarray:

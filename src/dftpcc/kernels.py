@@ -43,7 +43,8 @@ import numpy as np
 __all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
            "extremes", "cell_points",
            "axis_cells", "cell_sums", "distance_sums", "plane_sums",
-           "masked_errors", "quantization_sq_error", "weighted_sq_sum"]
+           "masked_errors", "quantization_sq_error", "weighted_sq_sum",
+           "add_plane"]
 
 #: :mod:`dftpcc._compiled` once :func:`load` imported it, and whether it tried. The kernels take the
 #: codec's constants (the mask coder's prior, the tables) as arguments, so imports run one way.
@@ -275,3 +276,12 @@ def weighted_sq_sum(counts: np.ndarray, mask: np.ndarray, errors: np.ndarray) ->
     scratch = np.empty(errors.size + 1)  # the set cells' counts (numpy's allocation: see axis_cells)
     return float(_state["module"].weighted_sq_sum(np.ascontiguousarray(counts, dtype=np.int64), mask,
                                                   np.ascontiguousarray(errors, dtype=np.float64), scratch))
+
+
+def add_plane(heights: np.ndarray, plane: tuple[float, float, float]) -> None:
+    """``heights += fill.plane_values(plane, heights.shape)`` in place, to the bit, in one pass
+    (``heights``: a C-contiguous 2-d float64 array)."""
+    if heights.dtype != np.float64 or heights.ndim != 2 or not heights.flags.c_contiguous:
+        raise ValueError("heights must be a C-contiguous 2-d float64 array")
+    a, b, c = (float(v) for v in plane)
+    _state["module"].add_plane(heights, a, b, c)
