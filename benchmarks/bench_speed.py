@@ -56,7 +56,7 @@ ONE_THREAD = 1
 U16_MAX = 65535
 #: Targets of issue 16.
 MIN_COMPRESS_RATE = 20e6     # original points per second
-MIN_DECOMPRESS_RATE = 40e6   # original points per second
+MIN_DECOMPRESS_RATE = 40e6   # decoded points per second (one per occupied cell: the points a user gets)
 MIN_OVER_DRACO = 10.0        # times DracoPy's encoder speed, for compress (decompress's ratio is shown too)
 
 #: Stages timed inside compress: (label, module, attribute, depth). A stage's time
@@ -202,6 +202,8 @@ def cloud_section(name: str, resolution: float, data: Path, repeats: int) -> tup
             tj_d, out_j = walls(lambda: dftpcc.decompress(blob_j), repeats)
             cpuj_d = list(LAST_CPU)
             same = blob_j == blob and np.array_equal(out_j, out)
+            cj_stages = staged(compress, COMPRESS_STAGES, repeats)
+            dj_stages = staged(lambda: dftpcc.decompress(blob_j), DECOMPRESS_STAGES, repeats)
             jit = ["dftpcc, compiled kernels", span(tj_c), f"{1000 * med(cpuj_c):.1f}", f"{n / med(tj_c) / 1e6:.2f}",
                    span(tj_d), f"{1000 * med(cpuj_d):.1f}", f"{n / med(tj_d) / 1e6:.2f}",
                    f"{out.shape[0] / med(tj_d) / 1e6:.2f}" + ("" if same else " (FILES DIFFER)")]
@@ -236,13 +238,20 @@ def cloud_section(name: str, resolution: float, data: Path, repeats: int) -> tup
         stage_table(d_stages, DECOMPRESS_STAGES, n),
         "",
     ]
-    verdicts = [
-        f"{name}: compress {rate_c / 1e6:.1f} M pts/s (>= {MIN_COMPRESS_RATE / 1e6:g}) "
-        f"{'PASS' if rate_c >= MIN_COMPRESS_RATE else 'MISS'}; decompress {rate_d / 1e6:.1f} M pts/s "
-        f"(>= {MIN_DECOMPRESS_RATE / 1e6:g}) {'PASS' if rate_d >= MIN_DECOMPRESS_RATE else 'MISS'}; "
-        f"compress {over_c:.1f}x DracoPy's encoder (>= {MIN_OVER_DRACO:g}x) "
-        f"{'PASS' if over_c >= MIN_OVER_DRACO else 'MISS'}; decompress {over_d:.1f}x its decoder",
-    ]
+    if jit:
+        lines += ["Compress, per stage, compiled kernels:", "", stage_table(cj_stages, COMPRESS_STAGES, n), "",
+                  "Decompress, per stage, compiled kernels:", "", stage_table(dj_stages, DECOMPRESS_STAGES, n), ""]
+
+    def verdict(path: str, t_comp: list[float], t_dec: list[float]) -> str:
+        rate, decoded, over = n / med(t_comp), m / med(t_dec), med(e_draco) / med(t_comp)
+        return (f"{name}, {path}: compress {rate / 1e6:.1f} M pts/s (>= {MIN_COMPRESS_RATE / 1e6:g}) "
+                f"{'PASS' if rate >= MIN_COMPRESS_RATE else 'MISS'}; decompress {decoded / 1e6:.1f} M decoded pts/s "
+                f"(>= {MIN_DECOMPRESS_RATE / 1e6:g}) {'PASS' if decoded >= MIN_DECOMPRESS_RATE else 'MISS'} "
+                f"({n / med(t_dec) / 1e6:.1f} M original pts/s); compress {over:.1f}x DracoPy's encoder "
+                f"(>= {MIN_OVER_DRACO:g}x) {'PASS' if over >= MIN_OVER_DRACO else 'MISS'}; decompress "
+                f"{med(d_draco) / med(t_dec):.1f}x its decoder")
+
+    verdicts = [verdict("numpy path", t_c, t_d)] + ([verdict("compiled kernels", tj_c, tj_d)] if jit else [])
     return "\n".join(lines), verdicts
 
 
@@ -334,7 +343,8 @@ def main() -> None:
     parts.append("The rows `dftpcc` are the numpy path (`DFTPCC_JIT=0`, what a one-shot `dftpcc compress` runs); "
                  + ("the rows `dftpcc, compiled kernels` the same calls in this process with the numba kernels "
                     "(`dftpcc[fast]`) loaded, as a long-running program (or `DFTPCC_JIT=1`) has them, their files "
-                    "compared with the numpy path's. Stage tables and the DEMs: the numpy path."
+                    "compared with the numpy path's. Stage tables: each path's own; the DEMs: the numpy path. "
+                    "The targets are judged on each path, decompress on the decoded points."
                     if compiled else "numba is not installed here, so there is no compiled row."))
     parts += sections
     if not args.no_dems:
