@@ -255,9 +255,13 @@ def cloud_section(name: str, resolution: float, data: Path, repeats: int) -> tup
     return "\n".join(lines), verdicts
 
 
-def dem_numpy_rows(data: Path, repeats: int) -> list[list[str]]:
+def dem_path_rows(data: Path, repeats: int, compiled: bool) -> list[list[str]]:
+    """Each DEM's row on the numpy path, then (``compiled``) with the kernels, the anchors timed again."""
     with numpy_path():
-        return dem_rows(data, repeats)
+        rows = [["numpy", *row] for row in dem_rows(data, repeats)]
+    if compiled:
+        rows += [["compiled", *row] for row in dem_rows(data, repeats)]
+    return rows
 
 
 def dem_rows(data: Path, repeats: int) -> list[list[str]]:
@@ -343,16 +347,16 @@ def main() -> None:
     parts.append("The rows `dftpcc` are the numpy path (`DFTPCC_JIT=0`, what a one-shot `dftpcc compress` runs); "
                  + ("the rows `dftpcc, compiled kernels` the same calls in this process with the numba kernels "
                     "(`dftpcc[fast]`) loaded, as a long-running program (or `DFTPCC_JIT=1`) has them, their files "
-                    "compared with the numpy path's. Stage tables: each path's own; the DEMs: the numpy path. "
+                    "compared with the numpy path's. Stage tables and DEM rows: each path's own. "
                     "The targets are judged on each path, decompress on the decoded points."
                     if compiled else "numba is not installed here, so there is no compiled row."))
     parts += sections
     if not args.no_dems:
         parts.append("### GeoTIFF DEMs: M cells/s, dftpcc / LERC / HTJ2K\n\n" + " ".join(__doc__.split("\n\n")[2].split())
                      + "\n\n" + markdown_table(
-                         ["DEM", "cells", "max error mm", "bytes dftpcc / LERC / HTJ2K", "encode M cells/s",
-                          "decode M cells/s", "encode time LERC / HTJ2K over dftpcc",
-                          "decode time LERC / HTJ2K over dftpcc"], dem_numpy_rows(data, repeats)))
+                         ["dftpcc path", "DEM", "cells", "max error mm", "bytes dftpcc / LERC / HTJ2K",
+                          "encode M cells/s", "decode M cells/s", "encode time LERC / HTJ2K over dftpcc",
+                          "decode time LERC / HTJ2K over dftpcc"], dem_path_rows(data, repeats, compiled)))
     parts.append("### Start-up\n\nWall time of a fresh interpreter running each command (the interpreter's own "
                  "start included).\n\n" + markdown_table(["command", "ms median (range)"], startup_rows(repeats)))
     parts.append("### Targets\n\n" + "\n".join(f"- {v}" for v in verdicts))
