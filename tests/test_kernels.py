@@ -7,7 +7,6 @@ import warnings
 import numpy as np
 import pytest
 
-import dftpcc
 from dftpcc import coding, fill, kernels, occupancy
 from dftpcc.errors import CorruptFileError
 
@@ -482,22 +481,3 @@ def test_plane_added_in_place_equals_numpys(jit):
         mine = heights.copy()
         kernels.add_plane(mine, plane)
         assert np.array_equal(mine, heights + fill.plane_values(plane, heights.shape))
-
-
-def test_compress_refuses_nonfinite_points_on_both_paths(jit):
-    # The finiteness check rides on the extremes' compiled pass: the same refusal, the same message.
-    from dftpcc.errors import InvalidInputError
-
-    rng = np.random.default_rng(31)
-    for bad in (np.nan, np.inf, -np.inf):
-        points = rng.uniform(0, 50, (2000, 3))
-        points[[3, 1500], 1] = bad
-        messages = []
-        for on in (True, False):
-            jit(on)
-            with pytest.raises(InvalidInputError) as err:
-                dftpcc.compress(points, resolution=1.0)
-            messages.append(str(err.value))
-        assert messages[0] == messages[1] and "2 of 2000 point(s)" in messages[0]
-        jit(True)
-        assert kernels.extremes(points) is None

@@ -323,13 +323,10 @@ def push(values, known, coarse, out):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def extremes(points):  # pragma: no cover - compiled
     # The smallest and largest x, y and z of finite points (N, 3+), in one pass.
-    # nan: the sum of every x - x, y - y, z - z: 0 unless a coordinate is NaN or infinite
     x_lo = y_lo = z_lo = np.inf
     x_hi = y_hi = z_hi = -np.inf
-    nan = 0.0
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        nan += (x - x) + (y - y) + (z - z)
         if x < x_lo:
             x_lo = x
         if x > x_hi:
@@ -342,7 +339,7 @@ def extremes(points):  # pragma: no cover - compiled
             z_lo = z
         if z > z_hi:
             z_hi = z
-    return x_lo, x_hi, y_lo, y_hi, z_lo, z_hi, nan == 0.0
+    return x_lo, x_hi, y_lo, y_hi, z_lo, z_hi
 
 
 @njit(cache=True, nogil=True)

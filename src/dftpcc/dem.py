@@ -264,14 +264,11 @@ def _as_xyz(points: np.ndarray) -> np.ndarray:
     return np.asarray(points[:, :3], dtype=np.float64)
 
 
-def as_points(points: np.ndarray, *, finite: bool = True) -> np.ndarray:
-    """``points`` as a finite (N, 3) float64 array with at least one row, or a clear error
-    (``finite=False``: not checked here; the caller checks, e.g. ``grid.extremes(..., check=True)``)."""
+def as_points(points: np.ndarray) -> np.ndarray:
+    """``points`` as a finite (N, 3) float64 array with at least one row, or a clear error."""
     points = _as_xyz(points)
     if points.shape[0] == 0:
         raise InvalidInputError("the point cloud is empty")
-    if not finite:
-        return points
     # One sum is finite exactly when every value is (or when a huge value
     # overflowed it): the exact row-wise check runs only then.
     if np.isfinite(points.sum()):

@@ -108,8 +108,8 @@ def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str,
     """
     on_stage("grid")
     params = params_of(params, shortcuts)
-    points = as_points(points, finite=False)  # their finiteness: checked in extremes' pass
-    x_lo, x_hi, y_lo, y_hi, z_lo, z_hi = extremes(points, check=True)
+    points = as_points(points)
+    x_lo, x_hi, y_lo, y_hi, z_lo, z_hi = extremes(points)
     check_heights(z_lo, z_hi)  # before gridding overflows on them
     return encode_dem(_grid_points(points, params, (x_lo, x_hi, y_lo, y_hi)), params,
                       point_count=int(points.shape[0]), crs=crs, on_stage=on_stage)

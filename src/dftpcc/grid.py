@@ -54,16 +54,13 @@ AUTO_POINTS_PER_CELL = 4.0
 BLOCK_POINTS = 16384
 
 
-def extremes(points: np.ndarray, *, check: bool = False) -> tuple[float, float, float, float, float, float]:
+def extremes(points: np.ndarray) -> tuple[float, float, float, float, float, float]:
     """x_lo, x_hi, y_lo, y_hi, z_lo, z_hi of checked points (N, 3+), N > 0 (one compiled pass when
-    the kernels are loaded, the same values); ``check``: of points :func:`~dftpcc.dem.as_points`
-    has not checked for finiteness, refused as it refuses them (the compiled pass checks too)."""
+    the kernels are loaded, the same values)."""
     if kernels.enabled() and points.dtype == np.float64:
         found = kernels.extremes(points)
         if found is not None:
             return found
-    if check:
-        points = as_points(points)
     z = points[:, 2]
     return (*_xy_extremes(points), float(z.min()), float(z.max()))
 

@@ -160,12 +160,10 @@ def _compiled_module():
 
 
 def extremes(points: np.ndarray) -> tuple[float, float, float, float, float, float] | None:
-    """x_lo, x_hi, y_lo, y_hi, z_lo, z_hi of float64 points (N, 3+), N > 0, in one pass; None where
-    a coordinate is not finite or numpy's reductions could differ (a zero among them: which of 0.0
-    and -0.0 is the minimum)."""
-    *found, finite = _state["module"].extremes(points)
-    values = tuple(float(v) for v in found)
-    return None if not finite or 0.0 in values else values  # type: ignore[return-value]
+    """x_lo, x_hi, y_lo, y_hi, z_lo, z_hi of finite float64 points (N, 3+), N > 0, in one pass; None
+    where numpy's reductions could differ (a zero among them: which of 0.0 and -0.0 is the minimum)."""
+    found = tuple(float(v) for v in _state["module"].extremes(points))
+    return None if 0.0 in found else found  # type: ignore[return-value]
 
 
 def cell_points(mask: np.ndarray, xs: np.ndarray, ys: np.ndarray, heights: np.ndarray, z0: float) -> np.ndarray:
