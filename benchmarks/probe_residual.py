@@ -12,8 +12,9 @@ coder pays somewhat more):
   neighbours (``2|W| + 2|N| + |NW| + |NE| + |WW| + |NN|`` of the residual, in 12 classes of
   equal population);
 - **predictive coding of the quantized heights** (what lossless image coders do): the heights on
-  steps of 2E from their minimum, each predicted from its causal neighbours (planar ``W + N - NW``
-  and LOCO-I's median predictor), the prediction error coded alone and given the local gradient
+  steps of 2E from their minimum, each predicted from its causal neighbours (planar ``W + N - NW``,
+  LOCO-I's median predictor, and a linear predictor of seven neighbours whose weights are fitted
+  by least squares over the map), the prediction error coded alone and given the local gradient
   activity ``|W - WW| + |N - NW| + |N - NE| + |W - NW| + |N - NN| + |NE - NNE|`` in 12 classes.
 
 JPEG XL (libjxl, effort 7, one thread) on the same quantized heights is measured in the same run,
@@ -98,10 +99,24 @@ def predictive_estimates(levels: np.ndarray, mask: np.ndarray) -> dict[str, tupl
     median = np.where(nw >= np.maximum(w, north), np.minimum(w, north),
                       np.where(nw <= np.minimum(w, north), np.maximum(w, north), w + north - nw))
     out = {}
-    for name, prediction in (("planar", w + north - nw), ("median", median)):
+    for name, prediction in (("planar", w + north - nw), ("median", median),
+                             ("least squares", least_squares_prediction(levels, mask, n))):
         error = (levels - prediction)[mask]
         out[name] = (entropy_bytes(error), conditional_bytes(error, activity[mask]))
     return out
+
+
+#: The causal neighbours a least-squares predictor weighs.
+LS_NEIGHBOURS = ("W", "N", "NW", "NE", "WW", "NN", "NNE")
+
+
+def least_squares_prediction(levels: np.ndarray, mask: np.ndarray, n: dict[str, np.ndarray]) -> np.ndarray:
+    """Each level predicted as the rounded weighted sum of its :data:`LS_NEIGHBOURS`, the weights
+    fitted by least squares over the occupied cells of the whole map (a file would carry its seven
+    weights; their bytes are not counted)."""
+    x = np.stack([n[k][mask].astype(np.float64) for k in LS_NEIGHBOURS], axis=1)
+    weights, *_ = np.linalg.lstsq(x, levels[mask].astype(np.float64), rcond=None)
+    return np.rint(sum(wk * n[k].astype(np.float64) for wk, k in zip(weights, LS_NEIGHBOURS))).astype(np.int64)
 
 
 def main() -> None:
@@ -130,6 +145,7 @@ def main() -> None:
                          f"{rctx:,.0f} ({(rctx - resd) / size:+.1%} of the file)",
                          f"{pred['planar'][0]:,.0f} / {pred['planar'][1]:,.0f}",
                          f"{pred['median'][0]:,.0f} / {pred['median'][1]:,.0f}",
+                         f"{pred['least squares'][0]:,.0f} / {pred['least squares'][1]:,.0f}",
                          f"{jxl_bytes:,}" if jxl_bytes else "—",
                          f"{size / jxl_bytes:.3f}" if jxl_bytes else "—",
                          f"{with_context / jxl_bytes:.3f}" if jxl_bytes else "—",
@@ -139,6 +155,7 @@ def main() -> None:
     print(markdown_table(
         ["DEM", "E", "dftpcc bytes", "RESD bytes", "RESD order-0 bound", "RESD given context (bound)",
          "planar prediction: order-0 / given activity", "median prediction: order-0 / given activity",
+         "least-squares prediction (7 neighbours): order-0 / given activity",
          "JPEG XL lossless, 2E steps", "dftpcc / JPEG XL", "with RESD at its context bound / JPEG XL",
          "best prediction bound / JPEG XL"], rows))
     print(f"\nRun time {time.perf_counter() - t0:.0f} s; {load_average()} at the end.")
