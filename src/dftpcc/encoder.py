@@ -161,8 +161,9 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
     occupied = dem.heights[dem.mask]
     check_heights(float(dem.grid.z0 + occupied.min()), float(dem.grid.z0 + occupied.max()))
     if not tile:
-        check_grid(dem.grid, point_count=point_count, cell_count=int(dem.mask.sum()), params=params)
-        return _encode(_analysis(dem, params, on_stage, fill), params, point_count, crs, on_stage, map_tiles)[0]
+        check_grid(dem.grid, point_count=point_count, cell_count=occupied.size, params=params)
+        return _encode(_analysis(dem, params, on_stage, fill), params, point_count, crs, on_stage, map_tiles,
+                       occupied_heights=occupied)[0]
     first = _analysis(dem, params, on_stage, base_cycles=BASE_CYCLES_PER_TILE)
     masks = tiled_masks(first)  # every run's: they depend on the occupancy alone
     data, cutoff = _encode(first, params, point_count, crs, on_stage, map_tiles, masks)
@@ -214,9 +215,10 @@ def _analysis(dem: DEM, params: Params, on_stage: Stage, fill: Callable[..., np.
 
 def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs: dict[str, Any] | None,
             on_stage: Stage, map_tiles: Callable[..., list] | None,
-            masks: TiledMasks | None = None) -> tuple[bytes, float]:
-    """:func:`encode_dem` of a checked map's analysis (``masks``: a tiled map's, when known): its
-    bytes and the cutoff they were coded with."""
+            masks: TiledMasks | None = None, *, occupied_heights: np.ndarray | None = None) -> tuple[bytes, float]:
+    """:func:`encode_dem` of a checked map's analysis (``masks``: a tiled map's, when known;
+    ``occupied_heights``: ``dem.heights[dem.mask]``, if the caller has them): its bytes and the
+    cutoff they were coded with."""
     dem, tile = an.dem, params.tile_size
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
@@ -240,7 +242,7 @@ def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs:
         # The file's statistics are made of this trial's errors: kept, not computed again.
         trial = an.trial(cutoff, step) if tile else an.trial(cutoff, step, keep_errors=True)
         if params.step == 0.0:
-            _flag_coarse(dem, trial, dem.heights[dem.mask])
+            _flag_coarse(dem, trial, occupied_heights)
         coefs = b"" if tile else an.encode(trial)  # a tiled map codes its tiles when packing
         return (_pack(Choice(an, trial, coefs), params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles),
                 cutoff)
@@ -448,10 +450,11 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | TiledMasks, point_c
         _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, params.target_max_error)
     # Without a residual layer the decoder rebuilds the trial's heights, whose errors it may have kept.
     errors = trial.errors if choice.residual is None else None
+    kept = int(an.kept_cells.sum())
     stats = _stats(dem, heights, occupied, len(mask_blob), len(choice.coefs), len(choice.residual_blob),
-                   int(an.kept_cells.sum()) - int(occupied.sum()), params, errors=errors,
+                   kept - int(occupied.sum()), params, errors=errors,
                    figures=None if errors is None else (trial.rmse, trial.max_error))
-    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=int(an.kept_cells.sum()),
+    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=kept,
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.count(params.cutoff))
     on_stage("container")
     return pack(header, mask_blob, choice.coefs, choice.residual_blob)
