@@ -14,7 +14,7 @@ coder pays somewhat more):
 - **predictive coding of the quantized heights** (what lossless image coders do): the heights on
   steps of 2E from their minimum, each predicted from its causal neighbours (planar ``W + N - NW``,
   LOCO-I's median predictor, and a linear predictor of seven neighbours whose weights are fitted
-  by least squares over the map), the prediction error coded alone and given the local gradient
+  by least squares over the map, or per activity class), the prediction error coded alone and given the local gradient
   activity ``|W - WW| + |N - NW| + |N - NE| + |W - NW| + |N - NN| + |NE - NNE|`` in 12 classes.
 
 JPEG XL (libjxl, effort 7, one thread) on the same quantized heights is measured in the same run,
@@ -98,9 +98,12 @@ def predictive_estimates(levels: np.ndarray, mask: np.ndarray) -> dict[str, tupl
                 + np.abs(north - n["NN"]) + np.abs(n["NE"] - n["NNE"]))
     median = np.where(nw >= np.maximum(w, north), np.minimum(w, north),
                       np.where(nw <= np.minimum(w, north), np.maximum(w, north), w + north - nw))
+    edges = np.unique(np.quantile(activity[mask], np.linspace(0, 1, CLASSES + 1)[1:-1]))
+    classes = np.searchsorted(edges, activity, side="right")
     out = {}
     for name, prediction in (("planar", w + north - nw), ("median", median),
-                             ("least squares", least_squares_prediction(levels, mask, n))):
+                             ("least squares", least_squares_prediction(levels, mask, n)),
+                             ("least squares per class", least_squares_prediction(levels, mask, n, classes))):
         error = (levels - prediction)[mask]
         out[name] = (entropy_bytes(error), conditional_bytes(error, activity[mask]))
     return out
@@ -110,13 +113,20 @@ def predictive_estimates(levels: np.ndarray, mask: np.ndarray) -> dict[str, tupl
 LS_NEIGHBOURS = ("W", "N", "NW", "NE", "WW", "NN", "NNE")
 
 
-def least_squares_prediction(levels: np.ndarray, mask: np.ndarray, n: dict[str, np.ndarray]) -> np.ndarray:
+def least_squares_prediction(levels: np.ndarray, mask: np.ndarray, n: dict[str, np.ndarray],
+                             classes: np.ndarray | None = None) -> np.ndarray:
     """Each level predicted as the rounded weighted sum of its :data:`LS_NEIGHBOURS`, the weights
-    fitted by least squares over the occupied cells of the whole map (a file would carry its seven
-    weights; their bytes are not counted)."""
-    x = np.stack([n[k][mask].astype(np.float64) for k in LS_NEIGHBOURS], axis=1)
-    weights, *_ = np.linalg.lstsq(x, levels[mask].astype(np.float64), rcond=None)
-    return np.rint(sum(wk * n[k].astype(np.float64) for wk, k in zip(weights, LS_NEIGHBOURS))).astype(np.int64)
+    fitted by least squares over the occupied cells of the whole map, or of each activity class
+    (``classes``: one per cell); a file would carry the weights, whose bytes are not counted."""
+    x = np.stack([n[k].astype(np.float64) for k in LS_NEIGHBOURS], axis=-1)
+    groups = np.zeros(levels.shape, dtype=np.int64) if classes is None else classes
+    prediction = np.zeros(levels.shape)
+    for g in np.unique(groups[mask]):
+        fit = mask & (groups == g)
+        weights, *_ = np.linalg.lstsq(x[fit], levels[fit].astype(np.float64), rcond=None)
+        at = groups == g
+        prediction[at] = x[at] @ weights
+    return np.rint(prediction).astype(np.int64)
 
 
 def main() -> None:
@@ -146,6 +156,7 @@ def main() -> None:
                          f"{pred['planar'][0]:,.0f} / {pred['planar'][1]:,.0f}",
                          f"{pred['median'][0]:,.0f} / {pred['median'][1]:,.0f}",
                          f"{pred['least squares'][0]:,.0f} / {pred['least squares'][1]:,.0f}",
+                         f"{pred['least squares per class'][0]:,.0f} / {pred['least squares per class'][1]:,.0f}",
                          f"{jxl_bytes:,}" if jxl_bytes else "—",
                          f"{size / jxl_bytes:.3f}" if jxl_bytes else "—",
                          f"{with_context / jxl_bytes:.3f}" if jxl_bytes else "—",
@@ -156,6 +167,7 @@ def main() -> None:
         ["DEM", "E", "dftpcc bytes", "RESD bytes", "RESD order-0 bound", "RESD given context (bound)",
          "planar prediction: order-0 / given activity", "median prediction: order-0 / given activity",
          "least-squares prediction (7 neighbours): order-0 / given activity",
+         "least squares per activity class: order-0 / given activity",
          "JPEG XL lossless, 2E steps", "dftpcc / JPEG XL", "with RESD at its context bound / JPEG XL",
          "best prediction bound / JPEG XL"], rows))
     print(f"\nRun time {time.perf_counter() - t0:.0f} s; {load_average()} at the end.")
