@@ -247,10 +247,12 @@ def masked_errors(heights: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> tup
     if not (heights.shape == ref.shape == mask.shape and heights.ndim == 2):
         raise ValueError("heights, ref and mask must be 2-d arrays of one shape")
     mask = np.ascontiguousarray(mask, dtype=np.bool_)
-    out = np.empty(mask.size + 1)  # every cell's error is written, the set ones kept (numpy's allocation)
+    n = int(np.count_nonzero(mask))
+    # Every cell's error is written at the count of set cells before it, so one more than the set
+    # cells holds them all (numpy's allocation: see axis_cells).
+    out = np.empty(n + 1)
     sq_sum, largest = _state["module"].masked_errors(np.ascontiguousarray(heights, dtype=np.float64),
                                                      np.ascontiguousarray(ref, dtype=np.float64), mask, out)
-    n = int(np.count_nonzero(mask))
     if n == 0 or not np.isfinite(sq_sum):
         return None
     return out[:n], float(sq_sum), float(largest)
