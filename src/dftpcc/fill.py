@@ -9,7 +9,6 @@ so it meets no artificial cliff; :func:`footprint` says which empty cells a
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 from . import kernels
 from .dem import DEM
@@ -251,5 +250,7 @@ def _push_pull(values: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 def footprint(mask: np.ndarray) -> np.ndarray:
     """Occupied cells plus the empty ones the map encloses (one-cell gaps closed, holes filled)."""
+    from scipy import ndimage  # here, not at import: only a footprint mask needs it (30-60 ms to load)
+
     closed = ndimage.binary_closing(mask, structure=np.ones((3, 3), bool), border_value=0) | mask
     return ndimage.binary_fill_holes(closed)
