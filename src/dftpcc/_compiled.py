@@ -389,8 +389,9 @@ def cell_sums(idx, z, count, total):  # pragma: no cover - compiled
 # plus the sum below), so that a sum computed here has numpy's bits: n < 8 values added in turn;
 # up to 128 with eight interleaved accumulators; more halved (at a multiple of 8), each half summed
 # so, the two added. numba's cache cannot load recursive functions, so the halving is a plan: the
-# tree's leaves and additions in post-order (a leaf: its start and length; an addition: -1, -1),
-# evaluated on a stack by each kind of sum below.
+# tree's leaves and additions in post-order (a leaf: its start and length; an addition: -1, -1).
+# A sum's kernel makes each leaf's values (a block of at most 128, in cache), adds them with _leaf,
+# and _fold adds the leaves' sums up the tree.
 PAIRWISE_BLOCK = 128
 
 
@@ -422,6 +423,27 @@ def _pairwise_plan(n):  # pragma: no cover - compiled
             k += 1
             top -= 1
     return ops[:k]
+
+
+@njit(cache=True, nogil=True)
+def _leaves(ops):  # pragma: no cover - compiled
+    # the plan's leaves, in order: (start, length) rows
+    return ops[ops[:, 0] >= 0]
+
+
+@njit(cache=True, nogil=True)
+def _fold(ops, leaf_sums):  # pragma: no cover - compiled
+    # the plan's additions over the sums of its leaves (in the leaves' order), and numpy's identity
+    vals, top, k = np.empty(64), -1, 0
+    for r in range(ops.shape[0]):
+        if ops[r, 0] >= 0:
+            top += 1
+            vals[top] = leaf_sums[k]
+            k += 1
+        else:
+            top -= 1
+            vals[top] = vals[top] + vals[top + 1]
+    return 0.0 + vals[0]
 
 
 @njit(cache=True, nogil=True)
@@ -481,30 +503,22 @@ def _leaf_dot(a, b, lo, n):  # pragma: no cover - compiled
 def array_sum(a):  # pragma: no cover - compiled
     # np.sum(a) of a contiguous 1-d float64 array, to the bit
     ops = _pairwise_plan(a.size)
-    vals, top = np.empty(64), -1
-    for k in range(ops.shape[0]):
-        if ops[k, 0] >= 0:
-            top += 1
-            vals[top] = _leaf(a, ops[k, 0], ops[k, 1])
-        else:
-            top -= 1
-            vals[top] = vals[top] + vals[top + 1]
-    return 0.0 + vals[0]
+    leaves = _leaves(ops)
+    sums = np.empty(leaves.shape[0])
+    for k in range(leaves.shape[0]):
+        sums[k] = _leaf(a, leaves[k, 0], leaves[k, 1])
+    return _fold(ops, sums)
 
 
 @njit(cache=True, nogil=True)
 def array_dot(a, b):  # pragma: no cover - compiled
     # np.sum(np.multiply(a, b)) of two contiguous 1-d float64 arrays of one size, to the bit
     ops = _pairwise_plan(a.size)
-    vals, top = np.empty(64), -1
-    for k in range(ops.shape[0]):
-        if ops[k, 0] >= 0:
-            top += 1
-            vals[top] = _leaf_dot(a, b, ops[k, 0], ops[k, 1])
-        else:
-            top -= 1
-            vals[top] = vals[top] + vals[top + 1]
-    return 0.0 + vals[0]
+    leaves = _leaves(ops)
+    sums = np.empty(leaves.shape[0])
+    for k in range(leaves.shape[0]):
+        sums[k] = _leaf_dot(a, b, leaves[k, 0], leaves[k, 1])
+    return _fold(ops, sums)
 
 
 @njit(cache=True, nogil=True)
@@ -525,27 +539,22 @@ def plane_sums(heights, mask, x, y, z):  # pragma: no cover - compiled
     # The products' sums leaf by leaf of one plan: each leaf's values centred (x - mx, as numpy's
     # x -= mx rounds) into blocks in cache, then its five sums as _leaf_dot adds them.
     ops = _pairwise_plan(n)
+    leaves = _leaves(ops)
     bx, by, bz = np.empty(PAIRWISE_BLOCK), np.empty(PAIRWISE_BLOCK), np.empty(PAIRWISE_BLOCK)
-    vals, top = np.empty((64, 5)), -1
-    for k in range(ops.shape[0]):
-        lo, m = ops[k, 0], ops[k, 1]
-        if lo < 0:
-            top -= 1
-            for q in range(5):
-                vals[top, q] = vals[top, q] + vals[top + 1, q]
-            continue
+    sums = np.empty((5, leaves.shape[0]))
+    for k in range(leaves.shape[0]):
+        lo, m = leaves[k, 0], leaves[k, 1]
         for i in range(m):
             bx[i] = x[lo + i] - mx
             by[i] = y[lo + i] - my
             bz[i] = z[lo + i] - mz
-        top += 1
-        vals[top, 0] = _leaf_dot(bx, bx, 0, m)
-        vals[top, 1] = _leaf_dot(bx, by, 0, m)
-        vals[top, 2] = _leaf_dot(by, by, 0, m)
-        vals[top, 3] = _leaf_dot(bx, bz, 0, m)
-        vals[top, 4] = _leaf_dot(by, bz, 0, m)
-    return (mx, my, mz, 0.0 + vals[0, 0], 0.0 + vals[0, 1], 0.0 + vals[0, 2], 0.0 + vals[0, 3],
-            0.0 + vals[0, 4])
+        sums[0, k] = _leaf_dot(bx, bx, 0, m)
+        sums[1, k] = _leaf_dot(bx, by, 0, m)
+        sums[2, k] = _leaf_dot(by, by, 0, m)
+        sums[3, k] = _leaf_dot(bx, bz, 0, m)
+        sums[4, k] = _leaf_dot(by, bz, 0, m)
+    return (mx, my, mz, _fold(ops, sums[0]), _fold(ops, sums[1]), _fold(ops, sums[2]), _fold(ops, sums[3]),
+            _fold(ops, sums[4]))
 
 
 @njit(cache=True, nogil=True)
@@ -553,18 +562,14 @@ def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq, far_at):  # 
     # grid._SpreadCounter.add's figures in one pass: np.sum of sq = (z - heights[idx])**2, its
     # maximum (0 for no points), how many exceed tolerance_sq and np.sum of those (in order), their
     # cells marked in far_cells; far_sq, far_at: the caller's scratch of one value per point (the
-    # far squares and their cells). Each leaf of the pairwise plan makes its squares into a block
-    # in cache and adds them as _leaf does. A block with a far point keeps its far ones without
-    # branches (a forest's points are far or near at random); most blocks of ground have none.
+    # far squares and their cells). A block with a far point keeps its far ones without branches
+    # (a forest's points are far or near at random); most blocks of ground have none.
     ops = _pairwise_plan(idx.size)
-    block, vals, top = np.empty(PAIRWISE_BLOCK), np.empty(64), -1
+    leaves = _leaves(ops)
+    block, sums = np.empty(PAIRWISE_BLOCK), np.empty(leaves.shape[0])
     largest, far = 0.0, 0
-    for k in range(ops.shape[0]):
-        lo, n = ops[k, 0], ops[k, 1]
-        if lo < 0:
-            top -= 1
-            vals[top] = vals[top] + vals[top + 1]
-            continue
+    for k in range(leaves.shape[0]):
+        lo, n = leaves[k, 0], leaves[k, 1]
         cells, heights_of = idx[lo:lo + n], z[lo:lo + n]
         block_max = 0.0
         for i in range(n):
@@ -578,11 +583,10 @@ def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq, far_at):  # 
                 far_sq[far] = block[i]
                 far_at[far] = cells[i]
                 far += block[i] > tolerance_sq
-        top += 1
-        vals[top] = _leaf(block, 0, n)
+        sums[k] = _leaf(block, 0, n)
     for j in range(far):
         far_cells[far_at[j]] = True
-    return 0.0 + vals[0], largest, far, array_sum(far_sq[:far])
+    return _fold(ops, sums), largest, far, array_sum(far_sq[:far])
 
 
 @njit(cache=True, nogil=True)
@@ -608,14 +612,11 @@ def quantization_sq_error(values, step, offset):  # pragma: no cover - compiled
     # offset) as an int64 (coding.quantize, offset = 0.5 - deadzone), pairwise as np.sum adds; and
     # whether every q stayed below 2**63 (else the caller refuses, as quantize does)
     ops = _pairwise_plan(values.size)
-    block, vals, top = np.empty(PAIRWISE_BLOCK), np.empty(64), -1
+    leaves = _leaves(ops)
+    block, sums = np.empty(PAIRWISE_BLOCK), np.empty(leaves.shape[0])
     ok = True
-    for k in range(ops.shape[0]):
-        lo, n = ops[k, 0], ops[k, 1]
-        if lo < 0:
-            top -= 1
-            vals[top] = vals[top] + vals[top + 1]
-            continue
+    for k in range(leaves.shape[0]):
+        lo, n = leaves[k, 0], leaves[k, 1]
         for i in range(n):
             v = values[lo + i]
             q = np.floor(np.abs(v) / step + offset)
@@ -623,9 +624,8 @@ def quantization_sq_error(values, step, offset):  # pragma: no cover - compiled
             qi = np.int64(np.sign(v) * q) if q < 9.223372036854775808e18 else np.int64(0)
             e = v - np.float64(qi) * step
             block[i] = e * e
-        top += 1
-        vals[top] = _leaf(block, 0, n)
-    return 0.0 + vals[0], ok
+        sums[k] = _leaf(block, 0, n)
+    return _fold(ops, sums), ok
 
 
 @njit(cache=True, nogil=True)
@@ -640,19 +640,15 @@ def weighted_sq_sum(counts, mask, errors, scratch):  # pragma: no cover - compil
             scratch[k] = counts[i, j]
             k += mask[i, j]
     ops = _pairwise_plan(errors.size)
-    block, vals, top = np.empty(PAIRWISE_BLOCK), np.empty(64), -1
-    for k in range(ops.shape[0]):
-        lo, m = ops[k, 0], ops[k, 1]
-        if lo < 0:
-            top -= 1
-            vals[top] = vals[top] + vals[top + 1]
-            continue
+    leaves = _leaves(ops)
+    block, sums = np.empty(PAIRWISE_BLOCK), np.empty(leaves.shape[0])
+    for k in range(leaves.shape[0]):
+        lo, m = leaves[k, 0], leaves[k, 1]
         for t in range(m):
             e = errors[lo + t]
             block[t] = (scratch[lo + t] * e) * e
-        top += 1
-        vals[top] = _leaf(block, 0, m)
-    return 0.0 + vals[0]
+        sums[k] = _leaf(block, 0, m)
+    return _fold(ops, sums)
 
 
 @njit(cache=True, nogil=True)

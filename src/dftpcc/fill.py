@@ -20,16 +20,18 @@ __all__ = ["fit_plane", "plane_values", "add_plane", "fill_empty", "footprint"]
 def fit_plane(dem: DEM) -> tuple[float, float, float]:
     """Least-squares plane ``a + b*col + c*row`` (metres) through the occupied cells."""
     mask = dem.mask
-    z = dem.heights[mask]
-    if z.size < 3:
+    occupied = int(np.count_nonzero(mask))
+    if occupied < 3:
+        z = dem.heights[mask]
         return (float(z.mean()) if z.size else 0.0, 0.0, 0.0)
     # Normal equations on centred coordinates: 3 x 3, well conditioned, and
     # a few passes over the cells instead of a least-squares solve on them.
     # Column and row of each occupied cell, row-major (np.nonzero's order),
     # made as floats directly: cheaper than two index arrays and a 2-D gather.
     if kernels.enabled():  # the same sums in two compiled passes
-        mx, my, mz, xx, xy, yy, xz, yz = kernels.plane_sums(dem.heights, mask, z.size)
+        mx, my, mz, xx, xy, yy, xz, yz = kernels.plane_sums(dem.heights, mask)
     else:
+        z = dem.heights[mask]
         n_rows, n_cols = mask.shape
         x = np.broadcast_to(np.arange(n_cols, dtype=float), mask.shape)[mask]
         y = np.repeat(np.arange(n_rows, dtype=float), np.count_nonzero(mask, axis=1))

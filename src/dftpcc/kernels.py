@@ -224,16 +224,16 @@ def distance_sums(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance
     return float(total), float(largest), int(far), float(far_total)
 
 
-def plane_sums(heights: np.ndarray, mask: np.ndarray,
-               occupied: int) -> tuple[float, float, float, float, float, float, float, float]:
+def plane_sums(heights: np.ndarray, mask: np.ndarray) -> tuple[float, float, float, float, float, float, float, float]:
     """``fill.fit_plane``'s sums, to the bit: the means of the column, row and height of the
-    ``occupied`` cells set in ``mask`` (rows, cols), and the sums of products xx, xy, yy, xz, yz of
+    cells set in ``mask`` (rows, cols; at least one), and the sums of products xx, xy, yy, xz, yz of
     the centred values, each added as numpy's ``mean`` and ``sum`` add (pairwise)."""
     if heights.shape != mask.shape or heights.ndim != 2:
         raise ValueError("heights and mask must be 2-d arrays of one shape")
     mask = np.ascontiguousarray(mask, dtype=np.bool_)
-    if int(np.count_nonzero(mask)) != occupied:
-        raise ValueError("occupied must count the cells set in mask")
+    occupied = int(np.count_nonzero(mask))
+    if occupied == 0:
+        raise ValueError("mask must have a set cell")
     # One more value each than occupied cells: the kernel writes every cell's, keeping the occupied
     # ones (numpy's allocation: see axis_cells).
     x, y, z = np.empty(occupied + 1), np.empty(occupied + 1), np.empty(occupied + 1)
