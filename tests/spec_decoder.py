@@ -440,9 +440,77 @@ def _stream(p: bytes, total: int, radius: np.ndarray, angle: np.ndarray, *, free
     return np.concatenate(values)
 
 
+def _predicted_residual(body: bytes, mask: np.ndarray) -> np.ndarray:
+    """RESD kind 5 (format.md, *Kind 5, predicted residual*), cell by cell in wavefront order."""
+    if len(body) < 29:
+        raise ValueError("predicted residual has a wrong length")
+    a = struct.unpack_from("<7i", body, 0)
+    listed = body[28]
+    if max(abs(x) for x in a) >= 1 << 24 or not 1 <= listed <= 64 or len(body) < 29 + listed:
+        raise ValueError("predicted residual has an implausible header")
+    codes = list(body[29:29 + listed]) + [0] * (64 - listed)
+    coded = [k for k in range(64) if codes[k]]
+    at = 29 + listed + 2 * len(coded)
+    if len(body) < at or (len(body) - at) % 4:
+        raise ValueError("predicted residual has a wrong length")
+    widths = [0] * 64
+    for k, m in zip(coded, struct.unpack_from(f"<{len(coded)}H", body, 29 + listed)):
+        widths[k] = m
+    if max(widths) > 1 << 15:
+        raise ValueError("predicted residual has an implausible header")
+    if sum(2 * widths[k] + 1 for k in coded) > 16 * int(mask.sum()) + (1 << 19):
+        raise ValueError("predicted residual asks for too large tables")
+    rows, cols = mask.shape
+    coder = constriction.stream.stack.AnsCoder(_words(body[at:]))
+    v = [[0] * cols for _ in range(rows)]
+    e = [[0] * cols for _ in range(rows)]
+
+    def at(grid, r, c, up, left):  # a neighbour under rules 1-4
+        if r == 0 and c == 0:
+            return 0
+        if up and r == 0:
+            return grid[0][c - 1]
+        if not up and c == 0:
+            return grid[r - 1][0]
+        return grid[max(r - up, 0)][min(max(c - left, 0), cols - 1)]
+
+    offsets = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0), (2, -1))
+    for k in range(2 * (rows - 1) + cols):
+        cells = [(r, k - 2 * r) for r in range(rows) if 0 <= k - 2 * r < cols]
+        classes = {}
+        for r, c in cells:
+            if mask[r, c]:
+                act = sum(m * abs(at(e, r, c, up, left)) for m, (up, left) in zip((2, 2, 1, 1, 1, 1, 0), offsets))
+                b = act.bit_length()
+                cls = 0 if act == 0 else min(63, 2 * b - 1 + ((act >> (b - 2)) & 1 if b >= 2 else 0))
+                classes.setdefault(cls, []).append((r, c))
+        for cls in sorted(classes):
+            if codes[cls]:
+                got = coder.decode(_table_model(widths[cls], codes[cls]), len(classes[cls]))
+                for (r, c), sym in zip(classes[cls], got.tolist()):
+                    e[r][c] = sym - widths[cls]
+        for r, c in cells:
+            if mask[r, c]:
+                total = sum(w * at(v, r, c, up, left) for w, (up, left) in zip(a, offsets))
+                v[r][c] = ((total + (1 << 15)) >> 16) + e[r][c]
+            else:
+                v[r][c] = at(v, r, c, 0, 1)
+            if abs(v[r][c]) >= 1 << 31:
+                raise ValueError("predicted residual value out of range")
+    return np.array([v[r][c] for r in range(rows) for c in range(cols) if mask[r, c]], dtype=np.int64)
+
+
 def _residual(p: bytes, mask: np.ndarray) -> np.ndarray:
-    """A RESD section: chunks as COEF's (radius and angle 0), or one chunk of kind 4 (sparse)."""
+    """A RESD section: chunks as COEF's (radius and angle 0), or one chunk of kind 4 (sparse) or
+    kind 5 (predicted)."""
     total = int(mask.sum())
+    if len(p) >= 20 and struct.unpack_from("<I", p, 16)[0] == 5:
+        nchunks, = struct.unpack_from("<I", p, 0)
+        count, nbytes, crc, _kind = struct.unpack_from("<4I", p, 4)
+        body = p[20:20 + nbytes]
+        if nchunks != 1 or count != total or 20 + nbytes != len(p) or zlib.crc32(body) != crc:
+            raise ValueError("predicted residual chunk is not the section's one whole chunk")
+        return _predicted_residual(body, mask)
     if len(p) >= 20 and struct.unpack_from("<I", p, 16)[0] == 4:  # chunk 0's kind (its header: count, bytes, crc, kind)
         nchunks, = struct.unpack_from("<I", p, 0)
         count, nbytes, crc, _kind = struct.unpack_from("<4I", p, 4)

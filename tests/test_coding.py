@@ -379,3 +379,126 @@ def test_a_sparse_residual_with_bytes_between_its_magnitudes_and_signs_is_refuse
         spec_decoder._residual(section, kept)
     np.testing.assert_array_equal(spec_decoder._residual(encode_residual(q, "ans", kept), kept), q)
     assert length > 0
+
+
+def _rough_levels(seed: int, shape: tuple[int, int]) -> np.ndarray:
+    """Heights on integer steps of a rough surface (integrated noise): neighbours predict each
+    other, as on alpine terrain at a fine bound."""
+    rng = np.random.default_rng(seed)
+    z = np.cumsum(np.cumsum(rng.normal(0, 1.0, shape), 0), 1) + rng.normal(0, 2.0, shape)
+    return np.round(z).astype(np.int64)
+
+
+def test_a_rough_residual_is_coded_predicted_and_decodes_as_the_document_says():
+    """Where the residual is the map itself, RESD kind 5 (each value predicted from its decoded
+    neighbours, its error coded given theirs) is written, far smaller than the chunks; the library
+    and the document's reader decode it alike, holes and all."""
+    from dftpcc.residual import decode_residual, encode_residual
+
+    from . import spec_decoder
+
+    levels = _rough_levels(7, (60, 75))
+    kept = np.ones(levels.shape, bool)
+    kept[20:30, 10:40] = False  # a hole
+    kept[:, -3:] = False  # cells past the footprint at every row's end
+    kept[0, 0] = False  # the first cell too
+    q = levels[kept]
+    blob = encode_residual(q, "ans", kept)
+    assert _chunk_kinds(blob) == [coding.KIND_PREDICTED_RESIDUAL]
+    assert len(blob) < 0.6 * len(encode_residual(q, "ans", kept, predicted=False))
+    np.testing.assert_array_equal(decode_residual(blob, kept), q)
+    np.testing.assert_array_equal(spec_decoder._residual(blob, kept), q)
+    # A zstd file keeps zstd chunks; kind 5 belongs to RESD alone: a coefficient stream refuses it.
+    assert set(_chunk_kinds(encode_residual(q, "zstd", kept))) == {coding.KIND_INT}
+    flat = np.zeros(q.size)
+    with pytest.raises(CorruptFileError, match="unknown kind 5"):
+        coding.decode_coefficients(blob, q.size, radius=flat, angle=flat, progressive=False)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 9), (9, 1), (2, 2), (3, 5), (5, 3), (4, 64)])
+def test_a_predicted_residual_takes_every_edge_rule(shape):
+    """Grids of one row, one column and two of each: the rules for neighbours off the grid."""
+    from dftpcc.residual import _decode_predicted, _encode_predicted
+
+    from . import spec_decoder
+
+    rng = np.random.default_rng(shape[0] * 100 + shape[1])
+    levels = _rough_levels(shape[0] + shape[1], shape) * 5
+    for kept in (np.ones(shape, bool), rng.random(shape) < 0.6):
+        if not kept.any():
+            continue
+        q = levels[kept]
+        payload = _encode_predicted(q, kept)
+        np.testing.assert_array_equal(_decode_predicted(payload, kept), q)
+        section = coding.one_chunk(q.size, payload, coding.KIND_PREDICTED_RESIDUAL)
+        np.testing.assert_array_equal(spec_decoder._residual(section, kept), q)
+
+
+def test_predicted_weights_are_exact_and_sum_to_one():
+    """The least-squares weights come from exact sums and an exact solve, in 1/2**16, summing to 1:
+    a constant map is predicted exactly, and a plane leaves no error away from the edges."""
+    from dftpcc.residual import WEIGHT_BITS, _WEIGHTS, _encode_predicted
+
+    kept = np.ones((30, 40), bool)
+    flat = np.full(kept.shape, 17, np.int64)
+    plane = np.add.outer(3 * np.arange(30), 2 * np.arange(40)).astype(np.int64)
+    for grid in (flat, plane):
+        payload = _encode_predicted(grid.ravel(), kept)
+        *weights, listed = _WEIGHTS.unpack_from(payload, 0)
+        assert sum(weights) == 1 << WEIGHT_BITS
+        # Few classes, few words: the errors are at the edges only.
+        assert len(payload) < _WEIGHTS.size + 100, (len(payload), listed)
+
+
+def _predicted_payload(weights, codes, widths, words: bytes) -> bytes:
+    from dftpcc.residual import _WEIGHTS
+
+    return (_WEIGHTS.pack(*weights, len(codes)) + bytes(codes)
+            + np.array([m for m, c in zip(widths, codes) if c], "<u2").tobytes() + words)
+
+
+def test_a_predicted_residual_that_lies_is_refused():
+    from dftpcc.residual import _WEIGHTS, decode_residual, encode_residual
+
+    from . import spec_decoder
+
+    levels = _rough_levels(3, (30, 40))
+    kept = np.ones(levels.shape, bool)
+    q = levels.ravel()
+    blob = encode_residual(q, "ans", kept)
+    assert _chunk_kinds(blob) == [coding.KIND_PREDICTED_RESIDUAL]
+    payload = blob[20:]
+    *weights, listed = _WEIGHTS.unpack_from(payload, 0)
+    codes = list(payload[_WEIGHTS.size:_WEIGHTS.size + listed])
+    n_coded = sum(1 for c in codes if c)
+    widths_at = _WEIGHTS.size + listed
+    coded_widths = iter(np.frombuffer(payload, "<u2", count=n_coded, offset=widths_at).tolist())
+    widths = [next(coded_widths) if c else 0 for c in codes]
+    words = payload[widths_at + 2 * n_coded:]
+    assert _predicted_payload(weights, codes, widths, words) == payload
+
+    def chunk(p: bytes) -> bytes:
+        return coding.one_chunk(q.size, p, coding.KIND_PREDICTED_RESIDUAL)
+
+    cases = [
+        ("implausible header", chunk(_predicted_payload([1 << 24] + weights[1:], codes, widths, words))),
+        ("implausible header", chunk(_predicted_payload(weights, codes, [(1 << 15) + 1] * listed, words))),
+        ("implausible header", chunk(_WEIGHTS.pack(*weights, 0) + payload[_WEIGHTS.size:])),  # no class listed
+        ("implausible header", chunk(_WEIGHTS.pack(*weights, 65) + payload[_WEIGHTS.size:])),
+        ("wrong length", chunk(payload + b"\x00")),
+        ("wrong length", chunk(payload[:_WEIGHTS.size + 3])),
+        ("wrong length", chunk(payload[:10])),
+        # Every class coded over 2**15 symbols: tables far beyond what 1,200 values may ask for.
+        ("larger probability tables", chunk(_predicted_payload(weights, [128] * 64, [1 << 15] * 64, words))),
+        # W weighted 2**23 / 2**16 = 128: each value 128 times its west neighbour's, soon past 2**31.
+        ("beyond 2\\*\\*31", chunk(_predicted_payload([1 << 23] + [0] * 6, codes, widths, words))),
+    ]
+    for message, section in cases:
+        with pytest.raises(CorruptFileError, match=message):
+            decode_residual(section, kept)
+        with pytest.raises(ValueError):
+            spec_decoder._residual(section, kept)
+    with pytest.raises(CorruptFileError, match="only chunk"):
+        decode_residual(coding.one_chunk(q.size - 1, payload, coding.KIND_PREDICTED_RESIDUAL), kept)
+    with pytest.raises(CorruptFileError):
+        decode_residual(struct.pack("<I", 2) + blob[4:] + blob[4:], kept)

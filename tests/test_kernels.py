@@ -481,3 +481,56 @@ def test_plane_added_in_place_equals_numpys(jit):
         mine = heights.copy()
         kernels.add_plane(mine, plane)
         assert np.array_equal(mine, heights + fill.plane_values(plane, heights.shape))
+
+
+def test_predicted_residual_words_match_constriction(jit):
+    """RESD kind 5 pushes a group per class and wavefront, many groups sharing a few tables of
+    several sizes: the compiled coder writes constriction's words for them, bit for bit."""
+    from dftpcc.residual import _decode_predicted, _encode_predicted
+
+    rng = np.random.default_rng(9)
+    for shape in ((1, 1), (1, 9), (9, 1), (2, 2), (3, 7), (40, 33), (120, 90)):
+        z = np.cumsum(np.cumsum(rng.normal(0, 2.0, shape), 0), 1) + rng.normal(0, 3.0, shape)
+        kept = rng.random(shape) < 0.9
+        kept[0, 0] = True
+        q = np.round(z).astype(np.int64)[kept]
+        jit(True)
+        compiled = _encode_predicted(q, kept)
+        jit(False)
+        plain = _encode_predicted(q, kept)
+        assert compiled == plain
+        np.testing.assert_array_equal(_decode_predicted(plain, kept), q)
+        jit(True)
+        np.testing.assert_array_equal(_decode_predicted(plain, kept), q)
+
+
+def test_predicted_residual_decodes_alike_on_both_paths_whatever_its_words(jit):
+    """Damaged words decode to the same values on both paths (constriction decodes any words to
+    some symbols), or both refuse them: a zero last word, values past 2**31."""
+    from dftpcc.residual import _decode_predicted, _encode_predicted
+
+    rng = np.random.default_rng(4)
+    z = np.cumsum(np.cumsum(rng.normal(0, 2.0, (30, 41)), 0), 1)
+    kept = rng.random(z.shape) < 0.85
+    payload = _encode_predicted(np.round(z).astype(np.int64)[kept], kept)
+    kinds = set()
+    for trial in range(40):
+        damaged = bytearray(payload)
+        for _ in range(1 + trial % 4):
+            at = int(rng.integers(len(payload) - 64, len(payload)))
+            damaged[at] ^= 1 << int(rng.integers(0, 8))
+        if trial % 10 == 0:
+            damaged[-4:] = b"\0\0\0\0"
+        outcomes = []
+        for on in (True, False):
+            jit(on)
+            try:
+                outcomes.append(_decode_predicted(bytes(damaged), kept))
+            except CorruptFileError as exc:
+                outcomes.append(str(exc))
+        kinds.add(type(outcomes[0]))
+        if isinstance(outcomes[0], str):
+            assert outcomes[0] == outcomes[1]
+        else:
+            np.testing.assert_array_equal(outcomes[0], outcomes[1])
+    assert kinds == {str, np.ndarray}  # some damage decodes, some is refused

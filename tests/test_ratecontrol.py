@@ -6,6 +6,7 @@ independently gridded DEM, not by trusting the statistics the file states.
 
 from __future__ import annotations
 
+import struct
 import warnings
 
 import numpy as np
@@ -203,10 +204,11 @@ def test_a_max_error_search_goes_coarser_while_the_file_shrinks(monkeypatch):
     coarsest step of the fixed ladder (16 times the bound) on Davos at 1 cm. The search doubles the
     step at the cutoffs that were still shrinking there, keeps the guarantee, and finds a smaller
     file than the fixed ladder."""
-    from dftpcc import ratecontrol
+    from dftpcc import ratecontrol, residual
 
     dem, _, encode = _load("dems/earth_davos_10m.tif", None, None)
     bound = 0.01
+    monkeypatch.setattr(residual, "_encode_predicted", lambda q, kept: None)  # the search alone
     found = encode(target_max_error=bound)
     monkeypatch.setattr(ratecontrol, "MAX_ERROR_STEP_FACTOR_LIMIT", ratecontrol.MAX_ERROR_STEP_FACTORS[-1])
     ladder = encode(target_max_error=bound)
@@ -216,3 +218,38 @@ def test_a_max_error_search_goes_coarser_while_the_file_shrinks(monkeypatch):
         err = np.abs(cmap.read_dem().heights - dem.heights)[dem.mask]
     assert len(found) < 0.97 * len(ladder), (len(found), len(ladder))
     assert err.max() <= bound
+
+
+def test_rough_terrain_at_a_fine_bound_is_predicted_rather_than_low_passed(monkeypatch):
+    """Davos at 1 and 20 cm: the smallest file has no spectrum, and its residual layer, the heights
+    on steps of 2E, is predicted from their neighbours (RESD kind 5); smaller than the best
+    low-pass with a chunked residual, within the bound, and decoded as the document says on a
+    window of it."""
+    from dftpcc import residual
+    from dftpcc.container import _sections
+
+    from . import spec_decoder
+
+    dem, _, encode = _load("dems/earth_davos_10m.tif", None, None)
+    for bound in (0.01, 0.2):
+        found = encode(target_max_error=bound)
+        sections, _ = _sections(memoryview(found), allow_truncated_coef=False)
+        assert struct.unpack_from("<I", bytes(sections[b"RESD"]), 16)[0] == 5
+        with dftpcc.open(found) as cmap:
+            err = np.abs(cmap.read_dem().heights - dem.heights)[dem.mask]
+        assert err.max() <= bound
+        with monkeypatch.context() as m:
+            m.setattr(residual, "_encode_predicted", lambda q, kept: None)
+            without = encode(target_max_error=bound)
+        assert len(found) < 0.93 * len(without), (bound, len(found), len(without))
+    # A window of Davos through the document's reader (cell by cell in Python: a small one).
+    from dftpcc.dem import DEM
+
+    window = DEM(grid=dem.grid.window(200, 300, 48, 64), heights=dem.heights[200:248, 300:364],
+                 mask=dem.mask[200:248, 300:364])
+    from dftpcc.encoder import encode_dem
+
+    data = encode_dem(window, make_params(resolution=dem.grid.resolution, target_max_error=0.01))
+    sections, _ = _sections(memoryview(data), allow_truncated_coef=False)
+    assert struct.unpack_from("<I", bytes(sections[b"RESD"]), 16)[0] == 5
+    np.testing.assert_allclose(spec_decoder.decode(data), dftpcc.decompress(data), rtol=0, atol=1e-9)

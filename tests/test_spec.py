@@ -196,6 +196,29 @@ def test_dft_tied_radii(rows):
         assert spec_decoder._geom(sections[b"GEOM"])["rows"] == rows
 
 
+def rough(seed: int, rows: int, cols: int, *, holes: bool = True) -> np.ndarray:
+    """A rough surface (integrated noise), a point per cell of 1 m, a hole in it: at a fine bound
+    its cheapest residual layer is predicted (RESD kind 5)."""
+    rng = np.random.default_rng(seed)
+    z = np.cumsum(np.cumsum(rng.normal(0, 0.3, (rows, cols)), 0), 1) * 0.1 + rng.normal(0, 0.02, (rows, cols))
+    yy, xx = np.mgrid[:rows, :cols] + 0.5
+    keep = np.hypot(yy - rows / 3, xx - cols / 2) > rows / 6 if holes else np.ones((rows, cols), bool)
+    return np.column_stack([xx[keep] + 4.5e5, yy[keep] + 5.2e6, z[keep] + 300.0])
+
+
+@pytest.mark.parametrize("holes", [False, True])
+@pytest.mark.parametrize("bound", [0.005, 0.02])
+def test_a_rough_map_has_a_predicted_residual_layer(holes, bound):
+    data = dftpcc.compress(rough(3, 40, 52, holes=holes), resolution=1.0, target_max_error=bound)
+    sections = check(data)
+    assert chunk_kinds(sections[b"RESD"]) == {5}
+    got = dftpcc.decompress(data)
+    pts = rough(3, 40, 52, holes=holes)
+    order = np.lexsort((pts[:, 0], pts[:, 1]))  # the rebuilt points are row-major, one per cell
+    assert got.shape == pts.shape
+    assert np.abs(got[:, 2] - pts[order, 2]).max() <= bound
+
+
 def test_every_coding_is_exercised(small):
     """The option sets above reach every MASK and COEF kind the document defines."""
     kinds = set()
@@ -208,6 +231,9 @@ def test_every_coding_is_exercised(small):
     assert chunk_kinds(fine[b"COEF"]) == {0, 3}
     coarse = spec_decoder._sections(dftpcc.compress(small, resolution=1.0, **SMALL_OPTIONS["max-error-coarse"]))
     assert chunk_kinds(coarse[b"RESD"]) == {4}
+    # Rough terrain at a fine bound: the residual is the map, predicted (kind 5).
+    predicted = spec_decoder._sections(dftpcc.compress(rough(3, 40, 52), resolution=1.0, target_max_error=0.01))
+    assert chunk_kinds(predicted[b"RESD"]) == {5}
 
 
 # --------------------------------------------------------------------------- crafted headers
@@ -603,3 +629,19 @@ def test_tiled_refusals(tile_masks):
         with pytest.raises(ValueError):
             spec_decoder.decode(crafted)
             pytest.fail(f"{name}: the spec decoder decoded it")
+
+
+def test_tiled_rough_map_has_predicted_residual_layers(tile_masks):
+    """Each tile's residual takes its own layout; on rough terrain at a fine bound, kind 5."""
+    from dftpcc.dem import DEM, Grid
+
+    rng = np.random.default_rng(4)
+    heights = np.cumsum(np.cumsum(rng.normal(0, 0.03, (70, 90)), 0), 1) + rng.normal(0, 0.02, (70, 90))
+    mask = np.ones(heights.shape, bool)
+    mask[30:40, 20:50] = False
+    dem = DEM(Grid(4.5e5, 5.2e6, 100.0, 1.0, 70, 90), heights, mask, gridding_rmse=0.0)
+    data = encode_tiled(dem, tile_size=32, target_max_error=0.005)
+    check_tiled(data)
+    kinds = [chunk_kinds(payload) for tag, _k, payload in craft.split_tiled(data) if tag == b"RESD"]
+    # The four full tiles at least; the thin last ones (6 rows, 26 columns) may keep chunks.
+    assert len(kinds) == 9 and kinds.count({5}) >= 4, kinds

@@ -249,14 +249,16 @@ def _left(i, lo, csum, at, size, n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def encode_table_words(symbols, bounds, lows, csum, near_bounds, n):  # pragma: no cover - compiled
+def encode_table_words(symbols, bounds, tables, lows, csum, near_bounds, alphabets):  # pragma: no cover - compiled
     words = np.empty(symbols.size + 4, dtype=np.uint32)
     count = 0
     state = np.uint64(0)
     for g in range(bounds.size - 2, -1, -1):
-        lo = lows[g]
-        at = near_bounds[g] + g  # each table's running sums hold one more entry than its frequencies
-        size = near_bounds[g + 1] - near_bounds[g]
+        t = tables[g]
+        n = alphabets[t]
+        lo = lows[t]
+        at = near_bounds[t] + t  # each table's running sums hold one more entry than its frequencies
+        size = near_bounds[t + 1] - near_bounds[t]
         for k in range(bounds[g + 1] - 1, bounds[g] - 1, -1):
             i = symbols[k]
             left = _left(i, lo, csum, at, size, n)
@@ -660,3 +662,127 @@ def add_plane(heights, a, b, c):  # pragma: no cover - compiled
         ci = c * i
         for j in range(cols):
             heights[i, j] += (a + b * j) + ci
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _neighbour_at(r, c, up, left, cols):  # pragma: no cover - compiled
+    # residual._neighbour for one cell: the flat index of a neighbour under format.md's edge rules,
+    # -1 for (0, 0)'s, which is 0
+    if r == 0 and c == 0:
+        return -1
+    if up > 0 and r == 0:
+        return c - 1
+    if up == 0 and c == 0:
+        return (r - 1) * cols
+    rr = max(r - up, 0)
+    cc = min(max(c - left, 0), cols - 1)
+    return rr * cols + cc
+
+
+@njit(cache=True, nogil=True)
+def decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alphabets, table_of, values):  # pragma: no cover - compiled
+    # RESD kind 5 (residual._decode_predicted): values (rows * cols, zeros) gets every cell's V in
+    # wavefront order; the errors of the rebuilt cells are decoded a wavefront at a time, by class
+    # (classes ascending, rows ascending within one), with table table_of[class] as
+    # encode_table_words reads it, and constriction's decoding as in decode_mask_lines. Returns 0,
+    # or 1 when a value reaches 2**31.
+    rows, cols = kept.shape
+    ups = (0, 1, 1, 1, 0, 2, 2)
+    lefts = (1, 0, 1, -1, 2, 0, -1)
+    act_w = (2, 2, 1, 1, 1, 1, 0)
+    mask24 = np.uint64(TOTAL - 1)
+    low = np.uint64(1) << np.uint64(32)
+    pos = words.size - 1
+    state = np.uint64(0)
+    if pos >= 0:
+        state = np.uint64(words[pos])
+        pos -= 1
+        if pos >= 0:
+            state = (state << np.uint64(32)) | np.uint64(words[pos])
+            pos -= 1
+    errors = np.zeros(rows * cols, dtype=np.int64)
+    longest = min(rows, (cols + 1) // 2 + 1)
+    cls = np.empty(longest, dtype=np.int64)
+    order = np.empty(longest, dtype=np.int64)
+    count = np.zeros(64, dtype=np.int64)
+    start = np.zeros(65, dtype=np.int64)
+    half = np.int64(1) << np.int64(15)
+    limit = np.int64(1) << np.int64(31)
+    for k in range(2 * (rows - 1) + cols):
+        r_lo = max(0, (k - cols + 2) // 2)
+        r_hi = min(rows - 1, k // 2)
+        m = r_hi - r_lo + 1
+        count[:] = 0
+        for i in range(m):
+            r = r_lo + i
+            c = k - 2 * r
+            cls[i] = -1
+            if kept[r, c]:
+                a = np.int64(0)
+                for n in range(7):
+                    if act_w[n]:
+                        at = _neighbour_at(r, c, ups[n], lefts[n], cols)
+                        if at >= 0:
+                            a += act_w[n] * abs(errors[at])
+                if a == 0:
+                    g = 0
+                else:
+                    b = 0
+                    x = a
+                    while x:
+                        b += 1
+                        x >>= 1
+                    s = (a >> (b - 2)) & 1 if b >= 2 else 0
+                    g = min(63, 2 * b - 1 + s)
+                if codes[g]:
+                    cls[i] = g
+                    count[g] += 1
+        start[0] = 0
+        for g in range(64):
+            start[g + 1] = start[g] + count[g]
+        for g in range(64):
+            count[g] = start[g]
+        for i in range(m):
+            if cls[i] >= 0:
+                order[count[cls[i]]] = i
+                count[cls[i]] += 1
+        for j in range(start[64]):
+            i = order[j]
+            t = table_of[cls[i]]
+            n_sym = alphabets[t]
+            lo = lows[t]
+            at = near_bounds[t] + t
+            size = near_bounds[t + 1] - near_bounds[t]
+            quantile = np.int64(state & mask24)
+            a_, b_ = 0, n_sym - 1  # the symbol: the last whose left cumulative is at most the quantile
+            while a_ < b_:
+                mid = (a_ + b_ + 1) // 2
+                if _left(mid, lo, csum, at, size, n_sym) <= quantile:
+                    a_ = mid
+                else:
+                    b_ = mid - 1
+            left = _left(a_, lo, csum, at, size, n_sym)
+            right = TOTAL if a_ == n_sym - 1 else _left(a_ + 1, lo, csum, at, size, n_sym)
+            state = (state >> np.uint64(PRECISION)) * np.uint64(right - left) + np.uint64(quantile - left)
+            if state < low and pos >= 0:
+                state = (state << np.uint64(32)) | np.uint64(words[pos])
+                pos -= 1
+            r = r_lo + i
+            errors[r * cols + k - 2 * r] = a_ - (alphabets[t] - 1) // 2
+        for i in range(m):
+            r = r_lo + i
+            c = k - 2 * r
+            if kept[r, c]:
+                total = np.int64(0)
+                for n in range(7):
+                    at = _neighbour_at(r, c, ups[n], lefts[n], cols)
+                    if at >= 0 and weights[n]:
+                        total += weights[n] * values[at]
+                v = ((total + half) >> np.int64(16)) + errors[r * cols + c]
+            else:
+                at = _neighbour_at(r, c, 0, 1, cols)
+                v = values[at] if at >= 0 else np.int64(0)
+            if v >= limit or v <= -limit:
+                return 1
+            values[r * cols + c] = v
+    return 0

@@ -125,6 +125,16 @@ class Analysis:
             out.coefs = out._sorted_transform(np.where(self.mask, data, trial.heights - self.trend))
         return out
 
+    def untrended(self) -> Analysis:
+        """This analysis with a plane of 0 (the file still says ``detrend='plane'``), for a trial
+        whose coefficients are all 0, so that its residual is the heights themselves: on steps of
+        the residual's quantizer a sloping plane would add a staircase, which a predictor of
+        neighbouring heights pays for (``RESD`` kind 5)."""
+        out = copy.copy(self)
+        if self.params.detrend == "plane":
+            out.plane, out.trend = (0.0, 0.0, 0.0), 0.0
+        return out
+
     def count(self, cutoff: float) -> int:
         """Coefficients kept at ``cutoff``."""
         return spectrum.kept_count(self.lay, cutoff, self.radii)

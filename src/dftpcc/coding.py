@@ -57,6 +57,7 @@ KIND_INT = 0  # zigzag byte planes, zstd
 KIND_COMPLEX64 = 1  # raw little-endian complex64 (the paper)
 KIND_ANS_TABLE = 3  # two-sided geometric per band from integer tables, ANS-coded
 KIND_SPARSE_RESIDUAL = 4  # RESD only, its one chunk: nonzero map, magnitudes, signs (dftpcc.residual)
+KIND_PREDICTED_RESIDUAL = 5  # RESD only, its one chunk: prediction errors by context (dftpcc.residual)
 # (Kind 2, ANS with constriction's QuantizedLaplace, was written only by pre-release
 # drafts; it is refused as any unknown kind.)
 #: Ways to cut a chunk into frequency bands, one scale each:

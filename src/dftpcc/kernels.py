@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "encode_table_words", "pull", "push",
+__all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "decode_predicted", "encode_table_words", "pull", "push",
            "extremes", "cell_points",
            "axis_cells", "cell_sums", "distance_sums", "plane_sums",
            "masked_errors", "quantization_sq_error", "weighted_sq_sum",
@@ -121,18 +121,44 @@ def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, stripe
                                               float(prior_total), int(first_seed))
 
 
+def decode_predicted(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, codes: np.ndarray,
+                     lows: list[int], cumulatives: list[np.ndarray], alphabets: np.ndarray) -> np.ndarray | None:
+    """``RESD`` kind 5's values V on the whole grid (``residual._decode_predicted``), in one compiled
+    pass; None when one reaches 2**31. ``lows``, ``cumulatives``, ``alphabets``: the tables of the
+    classes of nonzero ``codes``, in class order (as :func:`encode_table_words` takes them);
+    ``words``: as for :func:`decode_mask_lines`."""
+    near_bounds = np.zeros(len(cumulatives) + 1, dtype=np.int64)
+    np.cumsum([a.size - 1 for a in cumulatives], out=near_bounds[1:])
+    csum = np.concatenate(cumulatives) if cumulatives else np.zeros(0, np.int64)
+    table_of = np.full(len(codes), -1, dtype=np.int64)
+    table_of[np.flatnonzero(codes)] = np.arange(np.count_nonzero(codes))
+    values = np.zeros(kept.size, dtype=np.int64)
+    status = _state["module"].decode_predicted(
+        np.ascontiguousarray(words, dtype=np.uint32), np.ascontiguousarray(kept, dtype=np.bool_),
+        np.ascontiguousarray(weights, dtype=np.int64), np.ascontiguousarray(codes, dtype=np.uint8),
+        np.asarray(lows, dtype=np.int64), csum, near_bounds, np.ascontiguousarray(alphabets, dtype=np.int64),
+        table_of, values)
+    return None if status else values
+
+
 def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, lows: list[int], cumulatives: list[np.ndarray],
-                       n: int) -> np.ndarray:
+                       n: int | np.ndarray, tables: np.ndarray | None = None) -> np.ndarray:
     """The ANS words of groups of symbols 0..n-1 (group g: ``symbols[bounds[g]:bounds[g + 1]]``), each
     with its table (``coding._table_cumulative``: a floor of 1 of 2**24 but the frequencies whose running
-    sums ``cumulatives[g]`` holds, from symbol ``lows[g]``), pushed as ``coding._encode_ans_with`` pushes
-    them to constriction: the last group first, each group last symbol first."""
+    sums ``cumulatives[t]`` holds, from symbol ``lows[t]``; t is ``tables[g]``, else g), pushed as
+    ``coding._encode_ans_with`` pushes them to constriction: the last group first, each group last
+    symbol first. Many groups may share a few tables (``RESD`` kind 5: a group per class and wavefront);
+    ``n``: one alphabet size for all the tables, or one for each."""
     module = _state["module"]
     near_bounds = np.zeros(len(cumulatives) + 1, dtype=np.int64)
     np.cumsum([a.size - 1 for a in cumulatives], out=near_bounds[1:])
     csum = np.concatenate(cumulatives) if cumulatives else np.zeros(0, np.int64)
+    if tables is None:
+        tables = np.arange(len(cumulatives), dtype=np.int64)
+    alphabets = np.broadcast_to(np.asarray(n, dtype=np.int64), (len(cumulatives),))
     return module.encode_table_words(np.ascontiguousarray(symbols, dtype=np.int64), np.asarray(bounds, np.int64),
-                                     np.asarray(lows, dtype=np.int64), csum, near_bounds, int(n))
+                                     np.asarray(tables, dtype=np.int64), np.asarray(lows, dtype=np.int64), csum,
+                                     near_bounds, np.ascontiguousarray(alphabets))
 
 
 def pull(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

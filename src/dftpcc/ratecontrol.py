@@ -147,22 +147,28 @@ def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progres
     Every cutoff is tried at the steps of :data:`MAX_ERROR_STEP_FACTORS`; then, at each cutoff
     whose smallest file came at the coarsest of them and lies within :data:`MAX_ERROR_EXTEND_WITHIN`
     of the best, the step doubles while the file shrinks (rough terrain, where the residual layer
-    carries most of the map), up to :data:`MAX_ERROR_STEP_FACTOR_LIMIT`.
+    carries most of the map), up to :data:`MAX_ERROR_STEP_FACTOR_LIMIT`. The candidates' residual
+    layers are sized without the predicted layout (the slowest to code); it is tried at the end, on
+    the best candidate and on the map with no spectrum at all (every coefficient quantized to 0, at
+    the highest cutoff tried): on rough terrain, predicting the heights from their neighbours beats
+    any low-pass.
     """
     bound = params.target_max_error
     quantized = params.storage == "quantized"
     factors = MAX_ERROR_STEP_FACTORS if quantized else (0.0,)
     best: Choice | None = None
 
-    def attempt(cutoff: float, factor: float) -> int | None:
-        """The candidate's size, or None when its coefficients alone lose to the best file."""
+    def attempt(cutoff: float, factor: float | None, predicted: bool = False) -> int | None:
+        """The candidate's size, or None when its coefficients alone lose to the best file
+        (``factor`` None: the map with no spectrum, nor a plane)."""
         nonlocal best
-        trial = an.trial(cutoff, bound * factor)
-        coefs = an.encode(trial, exhaustive=False)
+        on = an if factor is not None else an.untrended()
+        trial = on.trial(cutoff, bound * factor if factor is not None else _empty_step(an, cutoff))
+        coefs = on.encode(trial, exhaustive=False)
         if best is not None and len(coefs) >= best.size:
             return None  # not smaller even with an empty residual layer: no need to code one
-        q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
-        choice = Choice(an, trial, coefs, q, encode_residual(q, params.coder, an.kept_cells))
+        q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        choice = Choice(on, trial, coefs, q, encode_residual(q, params.coder, on.kept_cells, predicted=predicted))
         if best is None or choice.size < best.size:
             best = choice
         return choice.size
@@ -186,7 +192,20 @@ def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progres
             if found is None or found >= smallest:
                 break
             smallest = found
+    if best.residual is not None:
+        layer = encode_residual(best.residual, params.coder, an.kept_cells)
+        if len(layer) < len(best.residual_blob):
+            best.residual_blob = layer
+    if quantized:
+        attempt(max(tried), None, predicted=True)
     return best
+
+
+def _empty_step(an: Analysis, cutoff: float) -> float:
+    """A step at which every coefficient inside ``cutoff`` quantizes to 0 (or the coarsest a file
+    can state, should the coefficients be larger than that)."""
+    peak = float(np.abs(an.reals(an.count(cutoff))).max(initial=0.0))
+    return max(4.0 * peak, an.tiny_step(), 1e-9)
 
 
 def for_bpp(an: Analysis, params: Params, budget: int, progress: Progress = _no_progress) -> Choice:

@@ -5,20 +5,26 @@ is quantized with a step of twice the bound (so rounding leaves at most the
 bound) and coded as one integer per rebuilt cell, row-major, in the RESD
 section. Interpolated (footprint) cells have no measured height and get 0.
 
-Two layouts (docs/format.md, ``RESD``): the values in chunks, as coefficients
-are; or, where most are 0, one *sparse* chunk: which cells are not 0, as a
+Three layouts (docs/format.md, ``RESD``): the values in chunks, as coefficients
+are; where most are 0, one *sparse* chunk: which cells are not 0, as a
 picture coded with the occupancy mask's context model (the corrections cluster
-where the terrain is rough), then their magnitudes and signs. The smaller wins.
+where the terrain is rough), then their magnitudes and signs; or one
+*predicted* chunk, where the residual is the map itself (rough terrain): each
+value predicted from seven decoded neighbours with least-squares weights, and
+the prediction's error coded given the neighbours' errors, as lossless image
+coders do. The smallest wins.
 """
 
 from __future__ import annotations
 
 import struct
+from fractions import Fraction
 from typing import Any
 
+import constriction
 import numpy as np
 
-from . import coding, occupancy
+from . import coding, kernels, occupancy
 from .errors import CorruptFileError
 
 __all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual"]
@@ -61,18 +67,26 @@ def residual(target: np.ndarray, rebuilt: np.ndarray, measured: np.ndarray, kept
     return q, heights
 
 
-def encode_residual(q: np.ndarray, coder: str, kept: np.ndarray) -> bytes:
+def encode_residual(q: np.ndarray, coder: str, kept: np.ndarray, *, predicted: bool = True) -> bytes:
     """The RESD section of ``q``, one integer per ``True`` cell of ``kept`` (row-major): the
-    chunked layout, or the sparse one where at least half the values are 0 and it is shorter."""
+    chunked layout; the sparse one where at least half the values are 0 and it is shorter; the
+    predicted one (``predicted``, ANS files) where it is shorter than both. Rate control sizes
+    its many candidates without the predicted layout, the slowest to code, and tries it on the
+    few that may win (:func:`dftpcc.ratecontrol.for_max_error`)."""
     flat = np.zeros(q.size)  # one band per chunk: the residual has no frequency
     # Every band layout puts all values in band 0, so there is no layout to choose.
-    chunked = coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
+    best = coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
     # At a coarse bound most values are 0, which kind 3 codes at 0.07 bits or more each (its scale
     # floor, MIN_SCALE), however they cluster: the sparse layout codes where they are not.
-    if 2 * np.count_nonzero(q) > q.size:
-        return chunked
-    sparse = _encode_sparse(q, coder, kept)
-    return sparse if len(sparse) < len(chunked) else chunked
+    if 2 * np.count_nonzero(q) <= q.size:
+        sparse = _encode_sparse(q, coder, kept)
+        best = sparse if len(sparse) < len(best) else best
+    if predicted and coder == "ans" and q.size:
+        payload = _encode_predicted(q, kept)
+        if payload is not None:
+            chunk = coding.one_chunk(q.size, payload, coding.KIND_PREDICTED_RESIDUAL)
+            best = chunk if len(chunk) < len(best) else best
+    return best
 
 
 _LENGTH = struct.Struct("<I")
@@ -123,12 +137,258 @@ def _decode_sparse(payload: bytes, kept: np.ndarray) -> np.ndarray:
     return q
 
 
+# The predicted layout (RESD kind 5, docs/format.md). Its values V fill the residual's whole grid
+# in wavefronts of equal 2r + c, so that every neighbour a cell needs is in an earlier one: a
+# decoder does a wavefront at a time, with numpy, though each value depends on its west neighbour.
+
+#: The seven neighbours of a cell, as (rows up, columns left), in the order of the weights.
+NEIGHBOURS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0), (2, -1))  # W N NW NE WW NN NNE
+#: Multiplier of each neighbour's |error| in a cell's activity (NNE's error does not count).
+ACTIVITY_WEIGHTS = (2, 2, 1, 1, 1, 1, 0)
+CLASSES = 64
+WEIGHT_BITS = 16
+#: Weights are below this in magnitude, values below VALUE_LIMIT: no sum leaves 64 bits.
+WEIGHT_LIMIT = 1 << 24
+VALUE_LIMIT = 1 << 31
+#: Cells whose differences from their west neighbour exceed this are left out of the fit
+#: (they would dominate it, and exact integer sums of their products could pass 64 bits).
+FIT_LIMIT = 1 << 15
+_WEIGHTS = struct.Struct("<7iB")  # the weights, then how many classes the header lists
+
+
+def _neighbour(up: int, left: int, r: np.ndarray, c: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Flat index of one neighbour of the cells (r, c) under format.md's edge rules: rows × cols
+    is the cell (0, 0)'s "neighbour", a zero."""
+    rows, cols = shape
+    idx = np.maximum(r - up, 0) * cols + np.clip(c - left, 0, cols - 1)
+    if up:
+        idx = np.where(r == 0, c - 1, idx)  # row 0: the rows above are W
+    else:
+        idx = np.where(c == 0, (r - 1) * cols, idx)  # column 0: W and WW are N
+    return np.where((r == 0) & (c == 0), rows * cols, idx)
+
+
+#: Cells a decoder gathers the neighbours of at once (a few MB of indices).
+WAVEFRONT_BLOCK_CELLS = 1 << 16
+
+
+def _wavefront_blocks(shape: tuple[int, int]):
+    """The grid's cells in wavefront order (format.md), in blocks of whole wavefronts of about
+    :data:`WAVEFRONT_BLOCK_CELLS` cells: yields each block's flat cell indices, their seven
+    neighbours' (7 x cells) and where each wavefront starts in the block (and the end)."""
+    rows, cols = shape
+    waves = np.arange(2 * (rows - 1) + cols)
+    r_lo = np.maximum(0, (waves - cols + 2) // 2)
+    sizes = np.minimum(rows - 1, waves // 2) - r_lo + 1
+    ends = np.cumsum(sizes)
+    k0 = 0
+    while k0 < waves.size:
+        k1 = max(k0 + 1, int(np.searchsorted(ends, ends[k0] - sizes[k0] + WAVEFRONT_BLOCK_CELLS, side="right")))
+        n = sizes[k0:k1]
+        first = np.repeat(ends[k0:k1] - n - (ends[k0] - sizes[k0]), n)
+        r = np.repeat(r_lo[k0:k1], n) + np.arange(int(n.sum())) - first
+        c = np.repeat(waves[k0:k1], n) - 2 * r
+        nbs = np.stack([_neighbour(up, left, r, c, shape) for up, left in NEIGHBOURS])
+        yield r * cols + c, nbs, np.append(0, np.cumsum(n))
+        k0 = k1
+
+
+def _classes(activity: np.ndarray) -> np.ndarray:
+    """Context class of each activity: two per octave (format.md), 0 for no activity."""
+    _, b = np.frexp(activity.astype(np.float64))  # the bit length: exact, activities are below 2**53
+    b = b.astype(np.int64)
+    second = np.where(b >= 2, (activity >> np.maximum(b - 2, 0)) & 1, 0)
+    return np.where(activity > 0, np.minimum(CLASSES - 1, 2 * b - 1 + second), 0)
+
+
+def _prediction(weights: np.ndarray, values: list[np.ndarray]) -> np.ndarray:
+    total = np.zeros(values[0].shape, dtype=np.int64)
+    for a, v in zip(weights.tolist(), values):
+        if a:
+            total += a * v
+    return (total + (1 << (WEIGHT_BITS - 1))) >> WEIGHT_BITS
+
+
+def _filled(q: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """The grid of values V: ``q`` at the kept cells, and at the others their W (format.md)."""
+    rows, cols = kept.shape
+    grid = np.zeros(kept.shape, dtype=np.int64)
+    grid[kept] = q
+    # Column 0 takes the value above, back to the last kept cell (0 above the first).
+    first = np.where(kept[:, 0], np.arange(rows), -1)
+    np.maximum.accumulate(first, out=first)
+    grid[:, 0] = np.where(first >= 0, grid[np.maximum(first, 0), 0], 0)
+    # Every row then carries its last kept cell (or its column 0) to the right.
+    known = np.where(kept | (np.arange(cols) == 0), np.arange(cols), 0)
+    np.maximum.accumulate(known, axis=1, out=known)
+    return np.take_along_axis(grid, known, axis=1)
+
+
+def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
+    """Least-squares weights (sum 2**16) of the neighbours' ``values`` for ``target``, from exact
+    integer sums and an exact solve, so the file is the same on every machine."""
+    d = [v - values[0] for v in values[1:]]  # the six others, relative to W
+    y = target - values[0]
+    usable = np.abs(y) <= FIT_LIMIT
+    for x in d:
+        usable &= np.abs(x) <= FIT_LIMIT
+    d = [x[usable] for x in d]
+    y = y[usable]
+    m = len(d)
+    # The normal equations, plus 1 on the diagonal so they always have a solution.
+    a = [[Fraction(int(np.dot(d[i], d[j])) + (i == j)) for j in range(m)] + [Fraction(int(np.dot(d[i], y)))]
+         for i in range(m)]
+    for col in range(m):  # Gauss-Jordan: the matrix is positive definite, so no pivot is 0
+        pivot = a[col][col]
+        a[col] = [v / pivot for v in a[col]]
+        for row in range(m):
+            if row != col and a[row][col]:
+                factor = a[row][col]
+                a[row] = [v - factor * p for v, p in zip(a[row], a[col])]
+    limit = WEIGHT_LIMIT - 1
+    others = [max(-limit, min(limit, round(a[i][m] * (1 << WEIGHT_BITS)))) for i in range(m)]
+    west = max(-limit, min(limit, (1 << WEIGHT_BITS) - sum(others)))
+    return np.array([west] + others, dtype=np.int64)
+
+
+def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
+    """Kind 5's payload for ``q``, or None when its values or errors pass the layout's limits."""
+    if np.abs(q).max() >= VALUE_LIMIT:
+        return None
+    rows, cols = kept.shape
+    grid = _filled(q, kept)
+    r, c = np.nonzero(kept)  # row-major, as q
+    padded = np.append(grid.ravel(), 0)
+    values = [padded[_neighbour(up, left, r, c, kept.shape)] for up, left in NEIGHBOURS]
+    weights = _fit_weights(values, q)
+    e = q - _prediction(weights, values)
+    if np.abs(e).max() > coding.MAX_ANS_SYMBOL:
+        return None
+    errors = np.zeros(rows * cols + 1, dtype=np.int64)
+    errors[r * cols + c] = np.abs(e)
+    activity = np.zeros(q.size, dtype=np.int64)
+    for (up, left), k in zip(NEIGHBOURS, ACTIVITY_WEIGHTS):
+        if k:
+            activity += k * errors[_neighbour(up, left, r, c, kept.shape)]
+    classes = _classes(activity)
+    lo, band_codes, _ = coding._band_statistics(e, classes)
+    codes = np.zeros(CLASSES, dtype=np.uint8)
+    codes[lo:lo + band_codes.size] = band_codes
+    max_abs = np.zeros(CLASSES, dtype=np.int64)
+    np.maximum.at(max_abs, classes, np.abs(e))
+    max_abs[codes == 0] = 0
+    if _table_entries(codes, max_abs) > coding.table_budget(q.size):
+        return None
+    # Decoding order: wavefront, then class, then row; cells of code 0 are not coded.
+    per_cell = codes[classes]
+    coded = np.flatnonzero(per_cell)
+    wave = 2 * r[coded] + c[coded]
+    order = coded[np.lexsort((r[coded], classes[coded], wave))]
+    key = (2 * r[order] + c[order]) * CLASSES + classes[order]
+    starts = np.flatnonzero(np.diff(key, prepend=-1))
+    bounds = np.append(starts, order.size)
+    group_classes = classes[order[starts]]
+    symbols = e[order] + max_abs[classes[order]]
+    present = np.flatnonzero(codes)
+    if kernels.enabled():  # the same words, without building constriction's tables
+        tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
+        words = kernels.encode_table_words(symbols, bounds, [lo for lo, _ in tables], [cum for _, cum in tables],
+                                           2 * max_abs[present] + 1, np.searchsorted(present, group_classes))
+    else:
+        coder = constriction.stream.stack.AnsCoder()
+        symbols32 = symbols.astype(np.int32)
+        for g in range(starts.size - 1, -1, -1):  # a stack: the last group first
+            k = int(group_classes[g])
+            coder.encode_reverse(symbols32[bounds[g]:bounds[g + 1]], coding._table_model(int(max_abs[k]), int(codes[k])))
+        words = coder.get_compressed()
+    listed = int(present[-1]) + 1 if present.size else 1
+    return (_WEIGHTS.pack(*weights.tolist(), listed) + codes[:listed].tobytes()
+            + max_abs[present].astype("<u2").tobytes() + words.astype("<u4").tobytes())
+
+
+def _table_entries(codes: np.ndarray, max_abs: np.ndarray) -> int:
+    """Table entries a decoder builds: 2 max_abs + 1 for each class of nonzero code."""
+    return int(np.sum(2 * max_abs[codes > 0] + 1))
+
+
+def _decode_predicted(payload: bytes, kept: np.ndarray) -> np.ndarray:
+    what = "predicted residual layer"
+    if len(payload) < _WEIGHTS.size:
+        raise CorruptFileError(f"{what} has a wrong length")
+    *head, listed = _WEIGHTS.unpack_from(payload, 0)
+    weights = np.array(head, dtype=np.int64)
+    if np.abs(weights).max() >= WEIGHT_LIMIT or not 1 <= listed <= CLASSES:
+        raise CorruptFileError(f"{what} has an implausible header")
+    if len(payload) < _WEIGHTS.size + listed:
+        raise CorruptFileError(f"{what} has a wrong length")
+    codes = np.zeros(CLASSES, dtype=np.uint8)
+    codes[:listed] = np.frombuffer(payload, dtype=np.uint8, count=listed, offset=_WEIGHTS.size)
+    words_at = _WEIGHTS.size + listed + 2 * int(np.count_nonzero(codes))
+    if len(payload) < words_at or (len(payload) - words_at) % 4:
+        raise CorruptFileError(f"{what} has a wrong length")
+    max_abs = np.zeros(CLASSES, dtype=np.int64)
+    max_abs[codes > 0] = np.frombuffer(payload, dtype="<u2", count=int(np.count_nonzero(codes)),
+                                       offset=_WEIGHTS.size + listed)
+    if max_abs.max() > coding.MAX_ANS_SYMBOL:
+        raise CorruptFileError(f"{what} has an implausible header")
+    rows, cols = kept.shape
+    count = int(np.count_nonzero(kept))
+    if _table_entries(codes, max_abs) > coding.table_budget(count):
+        raise CorruptFileError(f"{what} asks for larger probability tables than its {count} values allow")
+    words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
+    if kernels.enabled():  # the same values in one compiled pass
+        if words.size and words[-1] == 0:  # constriction refuses such words: its own message
+            try:
+                constriction.stream.stack.AnsCoder(words)
+            except Exception as exc:  # noqa: BLE001
+                raise CorruptFileError(f"{what} does not decode: {exc}") from None
+            raise CorruptFileError(f"{what} does not decode: its words end in a zero word")
+        present = np.flatnonzero(codes)
+        tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
+        found = kernels.decode_predicted(words, kept, weights, codes, [lo for lo, _ in tables],
+                                         [cum for _, cum in tables], 2 * max_abs[present] + 1)
+        if found is None:
+            raise CorruptFileError(f"{what} decodes to values beyond 2**31")
+        return found[kept.ravel()]
+    flat_kept = np.append(kept.ravel(), False)
+    values = np.zeros(rows * cols + 1, dtype=np.int64)  # the last: the zero of the edge rules
+    errors = np.zeros(rows * cols + 1, dtype=np.int64)
+    activity_of = [(n, k) for n, k in enumerate(ACTIVITY_WEIGHTS) if k]
+    try:
+        coder = constriction.stream.stack.AnsCoder(words)
+        for cells, nbs, bounds in _wavefront_blocks(kept.shape):
+            rebuilt_all = flat_kept[cells]
+            for k0, k1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
+                at, rebuilt = cells[k0:k1], rebuilt_all[k0:k1]
+                if rebuilt.any():
+                    activity = np.zeros(k1 - k0, dtype=np.int64)
+                    for n, weight in activity_of:
+                        activity += weight * np.abs(errors[nbs[n, k0:k1]])
+                    classes = np.where(rebuilt, _classes(activity), -1)
+                    coded = classes[rebuilt]
+                    for cls in np.unique(coded[codes[coded] > 0]).tolist():
+                        where = at[classes == cls]
+                        width = int(max_abs[cls])
+                        errors[where] = coder.decode(coding._table_model(width, int(codes[cls])), where.size) - width
+                neighbours = [values[nbs[n, k0:k1]] for n in range(len(NEIGHBOURS))]
+                out = np.where(rebuilt, _prediction(weights, neighbours) + errors[at], neighbours[0])
+                if out.size and np.abs(out).max() >= VALUE_LIMIT:  # (a grid of one column has empty wavefronts)
+                    raise CorruptFileError(f"{what} decodes to values beyond 2**31")
+                values[at] = out
+    except CorruptFileError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
+        raise CorruptFileError(f"{what} does not decode: {exc}") from None
+    return values[:-1][kept.ravel()]
+
+
 def decode_residual(blob: Any, kept: np.ndarray) -> np.ndarray:
     """The integers of a RESD section, one per ``True`` cell of ``kept``."""
     count = int(kept.sum())
     flat = np.zeros(count)
     q = coding.decode_coefficients(blob, count, radius=flat, angle=flat,
-                                   whole={coding.KIND_SPARSE_RESIDUAL: lambda p: _decode_sparse(p, kept)})
+                                   whole={coding.KIND_SPARSE_RESIDUAL: lambda p: _decode_sparse(p, kept),
+                                          coding.KIND_PREDICTED_RESIDUAL: lambda p: _decode_predicted(p, kept)})
     if q.dtype.kind != "i" or q.size != count:
         raise CorruptFileError("residual layer is not one integer per rebuilt cell")
     return q

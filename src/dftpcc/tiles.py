@@ -295,6 +295,11 @@ class TiledAnalysis:
         self._by_overlap[overlap] = out
         return out
 
+    def untrended(self) -> TiledAnalysis:
+        """This analysis (:meth:`Analysis.untrended`): the tiles are coded against the plane and the
+        base layer, so a tiled map keeps its plane even where its spectrum is empty."""
+        return self
+
     def tile_cells(self, values: np.ndarray, k: int) -> np.ndarray:
         """The cells of tile ``k`` of a map-sized array."""
         r0, r1, c0, c1 = self.tiling.bounds(k)

@@ -75,6 +75,16 @@ def tile_residuals():
         yield
 
 
+def _rough() -> np.ndarray:
+    """Rough terrain (integrated noise, a point per 1 m cell, 24 x 30 cells): at a fine bound its
+    residual layer is predicted (RESD kind 5)."""
+    rng = np.random.default_rng(12)
+    z = np.cumsum(np.cumsum(rng.normal(0, 0.05, (24, 30)), 0), 1) + rng.normal(0, 0.003, (24, 30))
+    yy, xx = np.mgrid[:24, :30] + 0.5
+    keep = np.hypot(yy - 8, xx - 15) > 4  # a hole
+    return np.column_stack([xx[keep], yy[keep], z[keep] + 50.0])
+
+
 def _terrain() -> np.ndarray:
     # Irregular footprint (a disc sector) so masks have holes and edges.
     return regolith_plain(4000, size=40.0, craters=3, rocks=10, seed=11)
@@ -98,6 +108,11 @@ def seed_files() -> dict[str, bytes]:
         with tile_residuals():
             for name, options in MAP_MASK_TILE_RESIDUALS.items():
                 out[name] = dftpcc.compress(points, **options)
+        # RESD kind 5, in a one-tile file and in 16-cell tiles (each tile's own residual layer).
+        out["compact_max_error_predicted"] = dftpcc.compress(_rough(), resolution=1.0, target_max_error=0.005)
+        with tile_masks(), tile_residuals():
+            out["tiled_max_error_predicted"] = dftpcc.compress(_rough(), resolution=1.0, tile_size=16,
+                                                               target_max_error=0.005)
         out["one_cell"] = dftpcc.compress(np.array([[5.0, 7.0, 1.25]]), resolution=1.0)
         out["with_crs"] = dftpcc.compress(
             points[::4], resolution=2.0, crs={"wkt": 'LOCAL_CS["rover frame"]', "las_vlrs": [
