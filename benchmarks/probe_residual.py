@@ -17,6 +17,9 @@ coder pays somewhat more):
   by least squares over the map, or per activity class), the prediction error coded alone and given the local gradient
   activity ``|W - WW| + |N - NW| + |N - NE| + |W - NW| + |N - NN| + |NE - NNE|`` in 12 classes.
 
+(The predictive layer these estimates argued for is now built: docs/format.md, ``RESD`` kind 5,
+its errors coded given the neighbours' errors; docs/benchmarks.md has what it gives.)
+
 JPEG XL (libjxl, effort 7, one thread) on the same quantized heights is measured in the same run,
 as benchmarks/max_error.py charges it (its bytes plus the raster anchors' 64-byte header and
 occupancy bitmap). The DEMs and bounds are max_error.py's.
