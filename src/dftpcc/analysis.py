@@ -143,6 +143,11 @@ class Analysis:
         kept = self.coefs[:n]
         return kept.view(np.float64) if np.iscomplexobj(kept) else kept
 
+    def largest(self, cutoff: float) -> np.ndarray:
+        """The values kept at ``cutoff`` (as :meth:`TiledAnalysis.largest`: for the steps that
+        depend on the largest of them)."""
+        return self.reals(self.count(cutoff))
+
     def tiny_step(self) -> float:
         """A step fine enough that quantization is negligible next to any sensible target (0 unquantized)."""
         scale = float(np.abs(self.reals(min(self.coefs.size, 1))).max()) if self.coefs.size else 1.0

@@ -233,7 +233,7 @@ def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs:
         cutoff, step = params.cutoff_or_default, params.step
         if params.storage == "quantized" and step == 0.0:
             target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
-            step = coding.choose_step(_kept(an, cutoff), target_rmse=target,
+            step = coding.choose_step(an.largest(cutoff), target_rmse=target,
                                       n_cells=dem.grid.size, deadzone=params.deadzone)
         if params.storage == "quantized":
             _check_step(an, cutoff, step)
@@ -289,7 +289,7 @@ def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | 
         cutoff, step = params.cutoff_or_default, params.step
         if step == 0.0:
             target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
-            step = coding.choose_step(_kept(an, cutoff), target_rmse=target, n_cells=dem.grid.size,
+            step = coding.choose_step(an.largest(cutoff), target_rmse=target, n_cells=dem.grid.size,
                                       deadzone=params.deadzone)
         return params.replace(cutoff=cutoff, step=coding.short_step(step)), None
     if params.target_max_error > 0:
@@ -351,11 +351,6 @@ def _length(mask_blob: bytes | TiledMasks) -> int:
         else len(mask_blob)
 
 
-def _kept(an: Analysis | TiledAnalysis, cutoff: float) -> np.ndarray:
-    """The coefficients kept at ``cutoff`` (of every tile and the base layer of a tiled map)."""
-    return an.largest(cutoff) if isinstance(an, TiledAnalysis) else an.reals(an.count(cutoff))
-
-
 def _check_tiled(params: Params) -> None:
     """Refuse parameters a tiled map cannot be coded with (docs/format.md, *Tiles*)."""
     wrong = {name: getattr(params, name) for name, need in
@@ -383,7 +378,7 @@ def _height_range(an: Analysis) -> str:
 
 def _check_step(an: Analysis, cutoff: float, step: float) -> None:
     """Refuse, before quantizing, a step so fine that the integers would wrap (see :func:`coding.finest_step`)."""
-    finest = coding.finest_step(_kept(an, cutoff))
+    finest = coding.finest_step(an.largest(cutoff))
     if coding.short_step(step) < finest:
         raise InvalidInputError(
             f"quantizer step {step:g} m is too fine for this map's height range ({_height_range(an)}): its "

@@ -204,7 +204,7 @@ def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progres
 def _empty_step(an: Analysis, cutoff: float) -> float:
     """A step at which every coefficient inside ``cutoff`` quantizes to 0 (or the coarsest a file
     can state, should the coefficients be larger than that)."""
-    peak = float(np.abs(an.reals(an.count(cutoff))).max(initial=0.0))
+    peak = float(np.abs(an.largest(cutoff)).max(initial=0.0))
     return max(4.0 * peak, an.tiny_step(), 1e-9)
 
 
