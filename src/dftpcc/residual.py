@@ -259,7 +259,8 @@ def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
     grid = _filled(q, kept)
     r, c = np.nonzero(kept)  # row-major, as q
     padded = np.append(grid.ravel(), 0)
-    values = [padded[_neighbour(up, left, r, c, kept.shape)] for up, left in NEIGHBOURS]
+    where = [_neighbour(up, left, r, c, kept.shape) for up, left in NEIGHBOURS]
+    values = [padded[at] for at in where]
     weights = _fit_weights(values, q)
     e = q - _prediction(weights, values)
     if np.abs(e).max() > coding.MAX_ANS_SYMBOL:
@@ -267,9 +268,9 @@ def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
     errors = np.zeros(rows * cols + 1, dtype=np.int64)
     errors[r * cols + c] = np.abs(e)
     activity = np.zeros(q.size, dtype=np.int64)
-    for (up, left), k in zip(NEIGHBOURS, ACTIVITY_WEIGHTS):
+    for at, k in zip(where, ACTIVITY_WEIGHTS):
         if k:
-            activity += k * errors[_neighbour(up, left, r, c, kept.shape)]
+            activity += k * errors[at]
     classes = _classes(activity)
     lo, band_codes, _ = coding._band_statistics(e, classes)
     codes = np.zeros(CLASSES, dtype=np.uint8)
