@@ -55,3 +55,24 @@ def test_dct_and_dft_keep_the_same_frequencies():
     full = spectrum.kept_order(spectrum.Layout("full", shape), 0.8)[0].size
     assert dct == pytest.approx(math.pi * r * r, rel=0.05)
     assert full == pytest.approx(math.pi * r * r, rel=0.05)
+
+
+@pytest.mark.parametrize("shape", [(741, 702), (2125, 414), (414, 2125), (7, 3), (1, 9), (9, 1), (1, 1), (64, 64)])
+def test_a_dct_corner_has_the_bits_of_the_whole_transform(shape):
+    """A file at a fixed cutoff transforms only the corner its circle needs (the second pass on
+    the corner's lines alone): the same bits as the whole transform's corner, whatever corner,
+    and the orthonormal DCT-II of scipy's dctn to round-off."""
+    from scipy import fft as sfft
+
+    rng = np.random.default_rng(shape[0] * 7 + shape[1])
+    x = rng.normal(0, 100, shape)
+    lay = spectrum.layout("dct", "quantized", shape)
+    whole = spectrum.forward(x.copy(), lay)
+    np.testing.assert_allclose(whole, sfft.dctn(x, type=2, norm="ortho"), rtol=0, atol=1e-12 * np.abs(x).sum())
+    for kr, kc in ((1, 1), (max(1, shape[0] // 4), max(1, shape[1] // 3)), (shape[0], 1), shape):
+        part = spectrum.forward(x.copy(), lay, overwrite=True, corner=(kr, kc))
+        assert part.shape == (kr, kc) and part.tobytes() == whole[:kr, :kc].tobytes()
+    # Cut at 0.8, the analysis keeps those corner's coefficients, bit for bit.
+    order, _, _ = spectrum.kept_order(lay, 0.8)
+    corner_shape, where = spectrum.corner(lay, order)
+    assert spectrum.forward(x.copy(), lay, corner=corner_shape).ravel()[where].tobytes() == whole.ravel()[order].tobytes()
