@@ -41,6 +41,27 @@ def test_compress_info_decompress(tmp_path, cloud_file, small_terrain, capsys):
     assert back.shape[0] == info["points_rebuilt"]
 
 
+def test_info_names_the_residual_layers_layout(tmp_path, capsys):
+    """A maximum-error file says how its residual layer is coded: on rough terrain at a fine bound
+    it is predicted from decoded neighbours (RESD kind 5), the spectrum empty; coarser, sparse."""
+    rng = np.random.default_rng(3)
+    z = np.cumsum(np.cumsum(rng.normal(0, 0.03, (40, 52)), 0), 1) + rng.normal(0, 0.02, (40, 52))
+    yy, xx = np.mgrid[:40, :52] + 0.5
+    cloud = tmp_path / "rough.npy"
+    np.save(cloud, np.column_stack([xx.ravel() + 4.5e5, yy.ravel() + 5.2e6, z.ravel() + 300.0]))
+    layouts = {}
+    for bound in ("0.005", "0.5"):
+        out = tmp_path / f"rough_{bound}.dftpc"
+        assert main(["compress", str(cloud), str(out), "-r", "1", "--target-max-error", bound, "-q"]) == 0
+        assert main(["info", str(out), "--json"]) == 0
+        layouts[bound] = json.loads(capsys.readouterr().out)["residual_layout"]
+        assert main(["info", str(out)]) == 0
+        assert "residual" in capsys.readouterr().out
+    assert layouts["0.005"] == "predicted" and layouts["0.5"] != "predicted", layouts
+    assert main(["info", str(tmp_path / "rough_0.005.dftpc")]) == 0
+    assert "(predicted from decoded neighbours)" in capsys.readouterr().out
+
+
 def test_paper_profile_from_the_command_line(tmp_path, cloud_file, capsys):
     out = tmp_path / "p.dftpc"
     assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "--profile", "paper", "-q"]) == 0

@@ -502,3 +502,17 @@ def test_a_predicted_residual_that_lies_is_refused():
         decode_residual(coding.one_chunk(q.size - 1, payload, coding.KIND_PREDICTED_RESIDUAL), kept)
     with pytest.raises(CorruptFileError):
         decode_residual(struct.pack("<I", 2) + blob[4:] + blob[4:], kept)
+
+
+def test_the_residual_layout_is_named_from_its_first_chunk():
+    from dftpcc.residual import encode_residual, layout_of
+
+    kept = np.ones((60, 75), bool)
+    rough = _rough_levels(7, kept.shape).ravel()
+    sparse = np.zeros(kept.size, np.int64)
+    sparse[100:110] = 1
+    dense = np.round(np.random.default_rng(1).laplace(0, 3, kept.size)).astype(np.int64)
+    assert layout_of(encode_residual(rough, "ans", kept)) == "predicted"
+    assert layout_of(encode_residual(sparse, "ans", kept)) == "sparse"
+    assert layout_of(encode_residual(dense, "ans", kept)) == "chunks"
+    assert layout_of(b"") == layout_of(struct.pack("<I", 0)) == "chunks"

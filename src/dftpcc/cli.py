@@ -280,6 +280,11 @@ def _coordinate(value: float, unit: str) -> str:
     return f"{value:.6f}°" if unit == "°" else f"{value:,.3f} {unit}"
 
 
+#: How ``dftpcc info`` describes a residual layer's layout (docs/format.md, ``RESD``).
+RESIDUAL_LAYOUTS = {"chunks": "chunks", "sparse": "sparse: the cells that need a correction",
+                    "predicted": "predicted from decoded neighbours"}
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from .mapfile import open as open_map
 
@@ -312,7 +317,8 @@ def cmd_info(args: argparse.Namespace) -> int:
         ("errors", _errors_text(s, v)),
         ("sections", f"mask {s.get('mask_bytes'):,} B, coefficients {s.get('coef_bytes'):,} B "
                      f"({s.get('coef_count'):,} values)"
-                     + (f", residual {s['residual_bytes']:,} B" if s.get("residual_bytes") else "")),
+                     + (f", residual {s['residual_bytes']:,} B" if s.get("residual_bytes") else "")
+                     + (f" ({RESIDUAL_LAYOUTS[info['residual_layout']]})" if "residual_layout" in info else "")),
         ("CRS", u["crs"] or "none"),
     ]
     if "tiles" in info:

@@ -23,6 +23,7 @@ from .dem import DEM, Grid
 from .errors import InvalidInputError, ResourceLimitError
 from .params import Params
 from .rebuild import dem_to_points
+from .residual import layout_of
 from .spectrum import radius_limit
 from .units import units_of
 
@@ -216,6 +217,8 @@ class CompressedMap:
             "crs": (h.crs.get("wkt") or ("LAS GeoKeys" if h.crs.get("las_vlrs") else None)),
             "stats": h.stats,
         }
+        if b"RESD" in self._blobs:  # an untiled file's residual layer, or a tiled one's map residual
+            out["residual_layout"] = layout_of(self._blobs[b"RESD"])
         if h.tiles is not None:
             index = h.tiles
             tiling = index.tiling

@@ -27,7 +27,7 @@ import numpy as np
 from . import coding, kernels, occupancy
 from .errors import CorruptFileError
 
-__all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual"]
+__all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual", "layout_of"]
 
 #: The residual layer aims this much inside the promised bound, so float
 #: round-off in the decoder's inverse transform cannot break the guarantee.
@@ -381,6 +381,19 @@ def _decode_predicted(payload: bytes, kept: np.ndarray) -> np.ndarray:
     except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
         raise CorruptFileError(f"{what} does not decode: {exc}") from None
     return values[:-1][kept.ravel()]
+
+
+#: What ``dftpcc info`` calls each layout, by the kind of a RESD's first chunk.
+LAYOUT_NAMES = {coding.KIND_SPARSE_RESIDUAL: "sparse", coding.KIND_PREDICTED_RESIDUAL: "predicted"}
+
+
+def layout_of(blob: Any) -> str:
+    """The layout of a RESD section, from its first chunk's header: ``"predicted"`` (kind 5),
+    ``"sparse"`` (kind 4) or ``"chunks"`` (kinds 0 and 3, and a section too short to say)."""
+    view = memoryview(blob)
+    if len(view) < 4 + coding._CHUNK.size or struct.unpack_from("<I", view, 0)[0] == 0:
+        return "chunks"
+    return LAYOUT_NAMES.get(coding._CHUNK.unpack_from(view, 4)[3], "chunks")
 
 
 def decode_residual(blob: Any, kept: np.ndarray) -> np.ndarray:
