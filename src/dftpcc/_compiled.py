@@ -144,6 +144,21 @@ def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first, words)
     return _flush(words, count, state)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ans_start(words):  # pragma: no cover - compiled
+    # constriction's AnsCoder(words): the state is the last word, with the one before it as its low
+    # word if there is one (no word: state 0); and the next word to read
+    pos = words.size - 1
+    state = np.uint64(0)
+    if pos >= 0:
+        state = np.uint64(words[pos])
+        pos -= 1
+        if pos >= 0:
+            state = (state << np.uint64(32)) | np.uint64(words[pos])
+            pos -= 1
+    return state, pos
+
+
 @njit(cache=True, nogil=True)
 def decode_mask_lines(words, lines, n_lines, stripe, prior_ones, prior_total, first):  # pragma: no cover - compiled
     # The inverse of encode_mask_words, as occupancy._decode_context decodes with constriction:
@@ -164,14 +179,7 @@ def decode_mask_lines(words, lines, n_lines, stripe, prior_ones, prior_total, fi
     mask24 = np.uint64(TOTAL - 1)
     total = np.uint64(TOTAL)
     low = np.uint64(1) << np.uint64(32)
-    pos = words.size - 1  # the next word to read
-    state = np.uint64(0)
-    if pos >= 0:
-        state = np.uint64(words[pos])
-        pos -= 1
-        if pos >= 0:
-            state = (state << np.uint64(32)) | np.uint64(words[pos])
-            pos -= 1
+    state, pos = _ans_start(words)
     above = np.zeros((n_stripes, width), dtype=np.uint8)  # codes of line t - 1
     older = np.zeros((n_stripes, width), dtype=np.uint8)  # bits 5-7 of the contexts: line t - 2
     codes = np.empty(width, dtype=np.uint8)
@@ -692,14 +700,7 @@ def decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alpha
     act_w = (2, 2, 1, 1, 1, 1, 0)
     mask24 = np.uint64(TOTAL - 1)
     low = np.uint64(1) << np.uint64(32)
-    pos = words.size - 1
-    state = np.uint64(0)
-    if pos >= 0:
-        state = np.uint64(words[pos])
-        pos -= 1
-        if pos >= 0:
-            state = (state << np.uint64(32)) | np.uint64(words[pos])
-            pos -= 1
+    state, pos = _ans_start(words)
     errors = np.zeros(rows * cols, dtype=np.int64)
     longest = min(rows, (cols + 1) // 2 + 1)
     cls = np.empty(longest, dtype=np.int64)

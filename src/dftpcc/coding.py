@@ -511,6 +511,17 @@ def _log_geometric() -> tuple[np.ndarray, np.ndarray]:
     return np.log2((1 - t) / (1 + t)), np.log2(np.maximum(t, 1e-300))
 
 
+def check_ans_words(words: np.ndarray, what: str) -> None:
+    """Refuse, with constriction's own message, ANS words that constriction would not take: a last
+    word of 0. The compiled decoders read words as they are, so they ask here first."""
+    if words.size and words[-1] == 0:
+        try:
+            constriction.stream.stack.AnsCoder(words)
+        except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
+            raise CorruptFileError(f"{what} does not decode: {exc}") from None
+        raise CorruptFileError(f"{what} does not decode: its words end in a zero word")
+
+
 def table_budget(count: int) -> int:
     """Most table entries (models x symbols) an ANS chunk of ``count`` values may ask
     the decoder to build: models cost time to build, so a crafted chunk must not

@@ -121,15 +121,21 @@ def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, stripe
                                               float(prior_total), int(first_seed))
 
 
+def _packed_tables(cumulatives: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Tables' running sums end to end, and where each table's frequencies start (and the end),
+    as the compiled table coders read them."""
+    near_bounds = np.zeros(len(cumulatives) + 1, dtype=np.int64)
+    np.cumsum([a.size - 1 for a in cumulatives], out=near_bounds[1:])
+    return (np.concatenate(cumulatives) if cumulatives else np.zeros(0, np.int64)), near_bounds
+
+
 def decode_predicted(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, codes: np.ndarray,
                      lows: list[int], cumulatives: list[np.ndarray], alphabets: np.ndarray) -> np.ndarray | None:
     """``RESD`` kind 5's values V on the whole grid (``residual._decode_predicted``), in one compiled
     pass; None when one reaches 2**31. ``lows``, ``cumulatives``, ``alphabets``: the tables of the
     classes of nonzero ``codes``, in class order (as :func:`encode_table_words` takes them);
     ``words``: as for :func:`decode_mask_lines`."""
-    near_bounds = np.zeros(len(cumulatives) + 1, dtype=np.int64)
-    np.cumsum([a.size - 1 for a in cumulatives], out=near_bounds[1:])
-    csum = np.concatenate(cumulatives) if cumulatives else np.zeros(0, np.int64)
+    csum, near_bounds = _packed_tables(cumulatives)
     table_of = np.full(len(codes), -1, dtype=np.int64)
     table_of[np.flatnonzero(codes)] = np.arange(np.count_nonzero(codes))
     values = np.zeros(kept.size, dtype=np.int64)
@@ -150,9 +156,7 @@ def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, lows: list[int],
     symbol first. Many groups may share a few tables (``RESD`` kind 5: a group per class and wavefront);
     ``n``: one alphabet size for all the tables, or one for each."""
     module = _state["module"]
-    near_bounds = np.zeros(len(cumulatives) + 1, dtype=np.int64)
-    np.cumsum([a.size - 1 for a in cumulatives], out=near_bounds[1:])
-    csum = np.concatenate(cumulatives) if cumulatives else np.zeros(0, np.int64)
+    csum, near_bounds = _packed_tables(cumulatives)
     if tables is None:
         tables = np.arange(len(cumulatives), dtype=np.int64)
     alphabets = np.broadcast_to(np.asarray(n, dtype=np.int64), (len(cumulatives),))

@@ -34,7 +34,7 @@ with warnings.catch_warnings():
     import constriction
 
 from . import kernels
-from .coding import unzstd
+from .coding import check_ans_words, unzstd
 from .errors import CorruptFileError
 
 __all__ = ["encode_mask", "decode_mask", "STRIPE_LINES"]
@@ -313,13 +313,7 @@ def _decode_context(payload: bytes, shape: tuple[int, int], first_seed: bool = F
     lines[1 - first:, 0] = _decode_seeds(payload[_STRIPES.size:words_at], n_stripes - 1 + first, width)
     if kernels.enabled():  # the same mask in one compiled pass
         words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
-        if words.size and words[-1] == 0:
-            # constriction refuses words that end in a zero word: its own message, as below.
-            try:
-                constriction.stream.stack.AnsCoder(words)
-            except Exception as exc:  # noqa: BLE001
-                raise CorruptFileError(f"occupancy mask does not decode: {exc}") from None
-            raise CorruptFileError("occupancy mask does not decode: its words end in a zero word")
+        check_ans_words(words, "occupancy mask")  # constriction's own message, as below
         flat = lines.reshape(-1, width)
         kernels.decode_mask_lines(words, flat, n_lines, stripe, PRIOR_ONES, PRIOR_TOTAL, first_seed)
         return flat[:n_lines].view(bool)

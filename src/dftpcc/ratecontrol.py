@@ -20,7 +20,7 @@ import numpy as np
 from .analysis import Analysis, Trial
 from .errors import InvalidInputError
 from .params import Params
-from .residual import encode_residual, residual
+from .residual import encode_residual, predicted_residual, residual
 
 __all__ = ["Choice", "choose", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES"]
 
@@ -193,8 +193,8 @@ def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progres
                 break
             smallest = found
     if best.residual is not None:
-        layer = encode_residual(best.residual, params.coder, an.kept_cells)
-        if len(layer) < len(best.residual_blob):
+        layer = predicted_residual(best.residual, params.coder, best.analysis.kept_cells)
+        if layer is not None and len(layer) < len(best.residual_blob):
             best.residual_blob = layer
     if quantized:
         attempt(max(tried), None, predicted=True)

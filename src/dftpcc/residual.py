@@ -27,7 +27,8 @@ import numpy as np
 from . import coding, kernels, occupancy
 from .errors import CorruptFileError
 
-__all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual", "layout_of"]
+__all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual", "layout_of",
+           "predicted_residual"]
 
 #: The residual layer aims this much inside the promised bound, so float
 #: round-off in the decoder's inverse transform cannot break the guarantee.
@@ -81,12 +82,19 @@ def encode_residual(q: np.ndarray, coder: str, kept: np.ndarray, *, predicted: b
     if 2 * np.count_nonzero(q) <= q.size:
         sparse = _encode_sparse(q, coder, kept)
         best = sparse if len(sparse) < len(best) else best
-    if predicted and coder == "ans" and q.size:
-        payload = _encode_predicted(q, kept)
-        if payload is not None:
-            chunk = coding.one_chunk(q.size, payload, coding.KIND_PREDICTED_RESIDUAL)
-            best = chunk if len(chunk) < len(best) else best
+    if predicted:
+        chunk = predicted_residual(q, coder, kept)
+        best = chunk if chunk is not None and len(chunk) < len(best) else best
     return best
+
+
+def predicted_residual(q: np.ndarray, coder: str, kept: np.ndarray) -> bytes | None:
+    """The RESD section of ``q`` in the predicted layout (one kind-5 chunk), or None where it does
+    not apply: a zstd file, no values, or values and errors past the layout's limits."""
+    if coder != "ans" or not q.size:
+        return None
+    payload = _encode_predicted(q, kept)
+    return None if payload is None else coding.one_chunk(q.size, payload, coding.KIND_PREDICTED_RESIDUAL)
 
 
 _LENGTH = struct.Struct("<I")
@@ -185,8 +193,8 @@ def _wavefront_blocks(shape: tuple[int, int]):
     while k0 < waves.size:
         k1 = max(k0 + 1, int(np.searchsorted(ends, ends[k0] - sizes[k0] + WAVEFRONT_BLOCK_CELLS, side="right")))
         n = sizes[k0:k1]
-        first = np.repeat(ends[k0:k1] - n - (ends[k0] - sizes[k0]), n)
-        r = np.repeat(r_lo[k0:k1], n) + np.arange(int(n.sum())) - first
+        starts = np.cumsum(n) - n  # of each wavefront in the block
+        r = np.repeat(r_lo[k0:k1] - starts, n) + np.arange(int(n.sum()))
         c = np.repeat(waves[k0:k1], n) - 2 * r
         nbs = np.stack([_neighbour(up, left, r, c, shape) for up, left in NEIGHBOURS])
         yield r * cols + c, nbs, np.append(0, np.cumsum(n))
@@ -338,12 +346,7 @@ def _decode_predicted(payload: bytes, kept: np.ndarray) -> np.ndarray:
         raise CorruptFileError(f"{what} asks for larger probability tables than its {count} values allow")
     words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
     if kernels.enabled():  # the same values in one compiled pass
-        if words.size and words[-1] == 0:  # constriction refuses such words: its own message
-            try:
-                constriction.stream.stack.AnsCoder(words)
-            except Exception as exc:  # noqa: BLE001
-                raise CorruptFileError(f"{what} does not decode: {exc}") from None
-            raise CorruptFileError(f"{what} does not decode: its words end in a zero word")
+        coding.check_ans_words(words, what)
         present = np.flatnonzero(codes)
         tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
         found = kernels.decode_predicted(words, kept, weights, codes, [lo for lo, _ in tables],
