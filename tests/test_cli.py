@@ -62,6 +62,24 @@ def test_info_names_the_residual_layers_layout(tmp_path, capsys):
     assert "(predicted from decoded neighbours)" in capsys.readouterr().out
 
 
+def test_an_rmse_target_met_by_a_residual_layer_says_so(tmp_path, capsys):
+    """Rough terrain near its floor: the smallest file within the RMSE asked for is the heights on
+    steps of 2E, predicted from their neighbours, and the file states E as its target. The
+    summary names the target asked for and how it was met, not only the bound the file states."""
+    rng = np.random.default_rng(3)
+    z = np.cumsum(np.cumsum(rng.normal(0, 0.03, (40, 52)), 0), 1) + rng.normal(0, 0.02, (40, 52))
+    yy, xx = np.mgrid[:40, :52] + 0.5
+    cloud = tmp_path / "rough.npy"
+    np.save(cloud, np.column_stack([xx.ravel() + 4.5e5, yy.ravel() + 5.2e6, z.ravel() + 300.0]))
+    out = tmp_path / "rough.dftpc"
+    assert main(["compress", str(cloud), str(out), "-r", "1", "--target-rmse", "0.003"]) == 0
+    said = capsys.readouterr().out
+    assert "for DEM RMSE <= 3.00 mm, met by a residual layer of max error <= " in said, said
+    with dftpcc.open(out) as cmap:
+        assert cmap.params.target_max_error > 0 and cmap.info()["residual_layout"] == "predicted"
+        assert cmap.info()["stats"]["dem_rmse_m"] <= 0.003
+
+
 def test_paper_profile_from_the_command_line(tmp_path, cloud_file, capsys):
     out = tmp_path / "p.dftpc"
     assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "--profile", "paper", "-q"]) == 0

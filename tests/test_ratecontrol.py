@@ -253,3 +253,93 @@ def test_rough_terrain_at_a_fine_bound_is_predicted_rather_than_low_passed(monke
     sections, _ = _sections(memoryview(data), allow_truncated_coef=False)
     assert struct.unpack_from("<I", bytes(sections[b"RESD"]), 16)[0] == 5
     np.testing.assert_allclose(spec_decoder.decode(data), dftpcc.decompress(data), rtol=0, atol=1e-9)
+
+
+def test_a_scattered_map_at_an_rmse_target_is_predicted_rather_than_low_passed(monkeypatch):
+    """The coastal plain's ground at 2 m (39 % of cells occupied, scattered): near the gridding
+    floor a transform must code the empty cells too, and the smallest file within the RMSE is the
+    heights on steps of 2E predicted from their neighbours. Its PARM states E as
+    target_max_error; the decoded map meets the RMSE asked for and every cell is within E. A
+    looser target, where the low-pass is smaller, keeps it."""
+    from dftpcc import ratecontrol
+
+    dem, _, encode = _load("pointclouds/coastal_plain_ign.laz", 2.0, [2])
+    target = 0.0275
+    found = encode(target_rmse=target)
+    with dftpcc.open(found) as cmap:
+        assert cmap.info().get("residual_layout") == "predicted"
+        assert cmap.params.target_rmse == 0.0 and target <= cmap.params.target_max_error <= 2 * target
+        err = (cmap.read_dem().heights - dem.heights)[dem.mask]
+        assert np.abs(err).max() <= cmap.params.target_max_error
+    assert np.sqrt(np.mean(err ** 2)) <= target
+    monkeypatch.setattr(ratecontrol, "predicted_for_rmse", lambda an, params: None)
+    low_passed = encode(target_rmse=target)
+    assert len(found) < 0.8 * len(low_passed), (len(found), len(low_passed))
+    monkeypatch.undo()
+    with dftpcc.open(encode(target_rmse=0.0933)) as cmap:
+        assert cmap.params.target_rmse == 0.0933 and cmap.info().get("residual_layout") is None
+
+
+def _rough_scattered(n=160, seed=1):
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5)
+    z = 100 + np.cumsum(rng.normal(0, 1, (n, n)), 0) + np.cumsum(rng.normal(0, 1, (n, n)), 1)
+    keep = rng.random((n, n)) > 0.4
+    return np.c_[x[keep], y[keep], z[keep]]
+
+
+def test_a_map_with_no_spectrum_is_offered_only_where_its_residual_can_carry_it():
+    """A rough, scattered map at an RMSE target: whole, its smallest file is predicted; tiled, the
+    tiles would code their residuals against bases the map's trial only approximates, and with the
+    footprint mask the cells without a height would all be rebuilt at 0, so neither is offered
+    one. Every file meets the target."""
+    pts = _rough_scattered()
+    grid = fit_grid(pts, 1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dem = rasterize(pts, grid)
+        for options, layout in (({}, "predicted"), ({"tile_size": 64}, None), ({"mask": "footprint"}, None)):
+            data = dftpcc.compress(pts, resolution=1.0, target_rmse=0.2, **options)
+            with dftpcc.open(data) as cmap:
+                assert cmap.info().get("residual_layout") == layout, options
+                rebuilt = cmap.read_dem().heights
+            err = (rebuilt - dem.heights)[dem.mask]
+            assert np.sqrt(np.mean(err ** 2)) <= 0.2, options
+            if options.get("mask") == "footprint":  # the enclosed empty cells: between their neighbours
+                assert np.nanmin(rebuilt) >= dem.heights[dem.mask].min() - 5.0
+
+
+def test_an_rmse_file_with_a_residual_layer_decodes_as_the_document_says():
+    """docs/format.md, RESD: a file made for an RMSE target that holds a residual layer states its
+    bound as target_max_error; the document's reader decodes it as any maximum-error file."""
+    from . import spec_decoder
+
+    pts = _rough_scattered(n=40, seed=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        data = dftpcc.compress(pts, resolution=1.0, target_rmse=0.2)
+    with dftpcc.open(data) as cmap:
+        assert cmap.info().get("residual_layout") == "predicted" and cmap.params.target_max_error > 0
+    np.testing.assert_allclose(spec_decoder.decode(data), dftpcc.decompress(data), rtol=0, atol=1e-9)
+
+
+def test_the_map_with_no_spectrum_needs_every_rebuilt_cell_measured():
+    """With the footprint mask the cells a map encloses are rebuilt without a measured height: with
+    no spectrum their residual is 0 and they would decode at the map's base height, not between
+    their neighbours, however small the file. So the spectrum-free candidate is not built for
+    them, at a maximum-error target as at an RMSE one; it is when every rebuilt cell is measured."""
+    from dftpcc import ratecontrol
+    from dftpcc.analysis import Analysis
+
+    rng = np.random.default_rng(5)
+    n = 64
+    x, y = np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5)
+    z = np.cumsum(rng.normal(0, 1, (n, n)), 0) + np.cumsum(rng.normal(0, 1, (n, n)), 1)
+    keep = rng.random((n, n)) > 0.01
+    pts = np.c_[x[keep], y[keep], z[keep]]
+    dem = rasterize(pts, fit_grid(pts, 1.0))
+    for mask, expected in (("exact", True), ("footprint", False)):
+        params = make_params(resolution=1.0, target_max_error=0.2, mask=mask)
+        an = Analysis(dem, params, searching=True, outside_energy=True)
+        assert (ratecontrol._spectrum_free(an, params) is not None) == expected, mask
+        assert (ratecontrol.predicted_map(an, params, 0.2) is not None) == expected, mask

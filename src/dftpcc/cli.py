@@ -171,11 +171,15 @@ def _errors_text(stats: dict[str, Any], unit: str) -> str:
     return text
 
 
-def _choice_text(p: dict[str, Any], unit: str) -> str:
-    """Which cutoff and step the file uses, and who chose them."""
+def _choice_text(p: dict[str, Any], unit: str, asked: dict[str, Any] | None = None) -> str:
+    """Which cutoff and step the file uses, and who chose them (``asked``: the targets asked for;
+    an RMSE target a residual layer meets makes a file that states the layer's bound instead)."""
     quantized = p["storage"] == "quantized"
     step = f", step {length(p['step'], unit)}" if quantized else ""
     target = _target_text(p, unit)
+    wanted = _target_text(asked or {}, unit)
+    if wanted and target and wanted != target:
+        target = f"{wanted}, met by a residual layer of {target}"
     if target:
         chosen = ("step" if p["cutoff_given"] else "cutoff and step" if quantized else "cutoff")
         return f"cutoff {p['cutoff']:g}{step} ({chosen} chosen by rate control for {target})"
@@ -211,7 +215,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
          f"{args.output}: {info['bytes']:,} bytes, {info['bits_per_point']:.4g} bits/point "
          f"({info['points_original']:,} points -> {info['points_rebuilt']:,} cells of "
          f"{length(info['grid']['resolution_m'], unit)}) [{time.perf_counter() - t0:.2f} s]",
-         f"  {_choice_text(params, info['units']['vertical'])}",
+         f"  {_choice_text(params, info['units']['vertical'], options)}",
          f"  promises {_errors_text(info['stats'], info['units']['vertical'])}")
     return 0
 
@@ -266,11 +270,11 @@ def _decompress_bag(args: argparse.Namespace) -> int:
 
 def _target_text(p: dict, unit: str = "m") -> str:
     """The rate-control target of parameters ``p``, or '' when there is none."""
-    if p.get("target_rmse", 0) > 0:
+    if (p.get("target_rmse") or 0) > 0:
         return f"DEM RMSE <= {length(p['target_rmse'], unit)}"
-    if p.get("target_max_error", 0) > 0:
+    if (p.get("target_max_error") or 0) > 0:
         return f"max error <= {length(p['target_max_error'], unit)}"
-    if p.get("target_bpp", 0) > 0:
+    if (p.get("target_bpp") or 0) > 0:
         return f"<= {p['target_bpp']:g} bits/point"
     return ""
 

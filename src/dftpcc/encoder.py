@@ -442,7 +442,10 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | TiledMasks, point_c
     dem, occupied = an.dem, an.mask
     heights = trial.heights
     if choice.residual is not None:
-        _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, params.target_max_error)
+        # The file states the bound its residual layer was made for, whatever the target: the
+        # decoder's step, and the promise an RMSE target met by a residual layer keeps as well.
+        params = params.replace(target_rmse=0.0, target_max_error=choice.bound)
+        _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, choice.bound)
     # Without a residual layer the decoder rebuilds the trial's heights, whose errors it may have kept.
     errors = trial.errors if choice.residual is None else None
     kept = int(an.kept_cells.sum())

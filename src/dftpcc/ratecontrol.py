@@ -48,6 +48,9 @@ REFILL_STEP_RANGE = 1.25
 REFILL_STEP_ITERATIONS = 4
 #: Share of rate control's time the first search takes (for progress display; the refill takes the rest).
 FIRST_SEARCH_SHARE = 0.8
+#: Bisections on the bound of a map with no spectrum that is to meet an RMSE target (between
+#: the target and twice it: a factor 2 ** (1 / 1024) apart at the end).
+RMSE_BOUND_ITERATIONS = 10
 
 
 #: Told the fraction of a search done, in [0, 1] (progress display).
@@ -67,6 +70,9 @@ class Choice:
     coefs: bytes
     residual: np.ndarray | None = None
     residual_blob: bytes = b""
+    #: The residual layer's bound (metres): every occupied cell within it. The file states it as
+    #: its ``target_max_error``, also when the layer serves an RMSE target (:func:`predicted_map`).
+    bound: float = 0.0
 
     @property
     def size(self) -> int:
@@ -158,17 +164,14 @@ def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progres
     factors = MAX_ERROR_STEP_FACTORS if quantized else (0.0,)
     best: Choice | None = None
 
-    def attempt(cutoff: float, factor: float | None, predicted: bool = False) -> int | None:
-        """The candidate's size, or None when its coefficients alone lose to the best file
-        (``factor`` None: the map with no spectrum, nor a plane)."""
+    def attempt(cutoff: float, factor: float) -> int | None:
+        """The candidate's size, or None when its coefficients alone lose to the best file."""
         nonlocal best
-        on = an if factor is not None else an.untrended()
-        trial = on.trial(cutoff, bound * factor if factor is not None else _empty_step(an, cutoff))
-        coefs = on.encode(trial, exhaustive=False)
+        trial = an.trial(cutoff, bound * factor)
+        coefs = an.encode(trial, exhaustive=False)
         if best is not None and len(coefs) >= best.size:
             return None  # not smaller even with an empty residual layer: no need to code one
-        q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
-        choice = Choice(on, trial, coefs, q, encode_residual(q, params.coder, on.kept_cells, predicted=predicted))
+        choice = _corrected(an, trial, coefs, params.coder, bound, predicted=False)
         if best is None or choice.size < best.size:
             best = choice
         return choice.size
@@ -196,9 +199,64 @@ def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progres
         layer = predicted_residual(best.residual, params.coder, best.analysis.kept_cells)
         if layer is not None and len(layer) < len(best.residual_blob):
             best.residual_blob = layer
-    if quantized:
-        attempt(max(tried), None, predicted=True)
+    spectrum_free = predicted_map(an, params, bound)
+    if spectrum_free is not None and spectrum_free.size < best.size:
+        best = spectrum_free
     return best
+
+
+def _corrected(an: Analysis, trial: Trial, coefs: bytes, coder: str, bound: float, *,
+               predicted: bool = True) -> Choice:
+    """``trial`` with the residual layer that brings every occupied cell within ``bound``."""
+    q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
+    return Choice(an, trial, coefs, q, encode_residual(q, coder, an.kept_cells, predicted=predicted), bound)
+
+
+def _spectrum_free(an: Analysis, params: Params) -> tuple[Analysis, Trial] | None:
+    """The map with no spectrum and no plane (every coefficient quantized to 0, at the highest
+    cutoff tried), whose residual is the heights themselves; None where the residual cannot
+    carry the map: unquantized storage (no step to quantize to 0), or cells the file rebuilds
+    without a measured height (``mask='footprint'``), which would all be rebuilt at 0."""
+    if params.storage != "quantized" or np.count_nonzero(an.kept_cells) != np.count_nonzero(an.mask):
+        return None
+    on = an.untrended()
+    cutoff = max(cutoffs(params))
+    return on, on.trial(cutoff, _empty_step(an, cutoff))
+
+
+def predicted_map(an: Analysis, params: Params, bound: float) -> Choice | None:
+    """The map with no spectrum, every occupied cell within ``bound`` through its residual layer
+    alone (predicted from decoded neighbours where that layout is the smallest): on rough terrain,
+    and on scattered maps whose transform must code the empty cells too, this beats any low-pass.
+    None where it does not apply (:func:`_spectrum_free`)."""
+    found = _spectrum_free(an, params)
+    if found is None:
+        return None
+    on, trial = found
+    return _corrected(on, trial, on.encode(trial, exhaustive=False), params.coder, bound)
+
+
+def predicted_for_rmse(an: Analysis, params: Params) -> Choice | None:
+    """:func:`predicted_map` at the coarsest bound whose map meets ``params.target_rmse`` (a
+    bisection between the target, which always meets it, and twice the target); None where it does
+    not apply, and on a tiled map, whose tiles would code their residuals against bases the
+    map's trial only approximates: the RMSE a file states must be the one it has."""
+    found = None if an.params.tile_size else _spectrum_free(an, params)
+    if found is None:
+        return None
+    on, trial = found
+    target = params.target_rmse
+
+    def meets(bound: float) -> bool:
+        _, heights = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        err = (heights - on.dem.heights)[on.mask]
+        return float(np.sqrt(np.mean(err * err))) <= target
+
+    lo, hi = target, 2.0 * target
+    for _ in range(RMSE_BOUND_ITERATIONS):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if meets(mid) else (lo, mid)
+    return _corrected(on, trial, on.encode(trial), params.coder, lo)
 
 
 def _empty_step(an: Analysis, cutoff: float) -> float:
@@ -260,13 +318,14 @@ def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
                 f"included) alone need {8 * fixed_bytes / point_count:.4f} bits/point")
         choice = for_bpp(an, params, budget, progress)
     # The search sized candidates with one band layout; the file gets the best per chunk.
-    choice.coefs = an.encode(choice.trial)
+    choice.coefs = choice.analysis.encode(choice.trial)
     return choice
 
 
 def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
            progress: Progress = _no_progress) -> Choice:
-    """Rate control, then (``fill='consistent'``) a second choice at the same cutoff, empty cells refilled.
+    """Rate control, then (``fill='consistent'``) a second choice at the same cutoff, empty cells
+    refilled; for an RMSE target, then the map with no spectrum (:func:`predicted_for_rmse`).
 
     For an RMSE target the step is searched again upwards, refilling at each
     step tried: a fill consistent with the coded map lowers the error on the
@@ -286,8 +345,16 @@ def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
     """
     first = _search(an, params, point_count, fixed_bytes, lambda f: progress(FIRST_SEARCH_SHARE * f))
     progress(FIRST_SEARCH_SHARE)
-    if not an.refillable:
-        return first
+    best = _refined(an, params, first, point_count, fixed_bytes) if an.refillable else first
+    if params.target_rmse > 0:
+        spectrum_free = predicted_for_rmse(an, params)
+        if spectrum_free is not None and spectrum_free.size < best.size:
+            best = spectrum_free
+    return best
+
+
+def _refined(an: Analysis, params: Params, first: Choice, point_count: int, fixed_bytes: int) -> Choice:
+    """:func:`choose`'s second choice, at ``first``'s cutoff with the empty cells refilled, if better."""
     if params.target_rmse > 0:
         if params.storage != "quantized":
             return first  # no step to search
