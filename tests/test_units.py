@@ -54,8 +54,12 @@ def test_compress_says_what_rate_control_chose_and_what_the_file_promises(tmp_pa
     lines = capsys.readouterr().out.splitlines()
     m = dftpcc.open(out)
     assert lines[0].startswith(f"{out}: {m.size:,} bytes") and "cells of 0.500 m" in lines[0]
+    # At this target the field's smallest file is a coarse low-pass with a sparse residual layer:
+    # the summary names the bound it was made for, which the file promises too.
+    assert m.params.target_max_error > 0.03
     assert lines[1].strip() == (f"cutoff {m.params.cutoff:g}, step {length(m.params.step)} (cutoff and step chosen by "
-                                f"rate control for DEM RMSE <= 30.0 mm)")
+                                f"rate control for DEM RMSE <= 30.0 mm, met by a residual layer of max error <= "
+                                f"{length(m.params.target_max_error)})")
     assert lines[2].strip().startswith(f"promises DEM RMSE {length(m.header.stats['dem_rmse_m'])}, max ")
     assert main(["info", str(out)]) == 0
     assert "CRS         EPSG:2154" in capsys.readouterr().out  # an authority code, not WKT cut at 70 characters

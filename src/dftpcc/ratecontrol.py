@@ -20,7 +20,7 @@ import numpy as np
 from .analysis import Analysis, Trial
 from .errors import InvalidInputError
 from .params import Params
-from .residual import encode_residual, predicted_residual, residual
+from .residual import encode_residual, predicted_residual, residual, residual_step
 
 __all__ = ["Choice", "choose", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES"]
 
@@ -48,9 +48,14 @@ REFILL_STEP_RANGE = 1.25
 REFILL_STEP_ITERATIONS = 4
 #: Share of rate control's time the first search takes (for progress display; the refill takes the rest).
 FIRST_SEARCH_SHARE = 0.8
-#: Bisections on the bound of a map with no spectrum that is to meet an RMSE target (between
-#: the target and twice it: a factor 2 ** (1 / 1024) apart at the end).
-RMSE_BOUND_ITERATIONS = 10
+#: Bisections (geometric) on the bound of a residual layer that is to meet an RMSE target,
+#: between the target and the map's largest error: 10 ** 5 apart become a factor 1.0002.
+RMSE_BOUND_ITERATIONS = 16
+#: ... held this fraction inside the target (see :func:`_coarsest_bound`).
+RMSE_BOUND_MARGIN = 1e-9
+#: Steps (times the RMSE target) of the low-passed maps a residual layer may correct for an RMSE
+#: target: the first at every cutoff, the others at the best (:func:`corrected_for_rmse`).
+CORRECTED_STEP_FACTORS = (8.0, 4.0, 16.0)
 
 
 #: Told the fraction of a search done, in [0, 1] (progress display).
@@ -71,7 +76,7 @@ class Choice:
     residual: np.ndarray | None = None
     residual_blob: bytes = b""
     #: The residual layer's bound (metres): every occupied cell within it. The file states it as
-    #: its ``target_max_error``, also when the layer serves an RMSE target (:func:`predicted_map`).
+    #: its ``target_max_error``, also when the layer serves an RMSE target (:func:`corrected_for_rmse`).
     bound: float = 0.0
 
     @property
@@ -236,27 +241,91 @@ def predicted_map(an: Analysis, params: Params, bound: float) -> Choice | None:
     return _corrected(on, trial, on.encode(trial, exhaustive=False), params.coder, bound)
 
 
-def predicted_for_rmse(an: Analysis, params: Params) -> Choice | None:
-    """:func:`predicted_map` at the coarsest bound whose map meets ``params.target_rmse`` (a
-    bisection between the target, which always meets it, and twice the target); None where it does
-    not apply, and on a tiled map, whose tiles would code their residuals against bases the
-    map's trial only approximates: the RMSE a file states must be the one it has."""
-    found = None if an.params.tile_size else _spectrum_free(an, params)
-    if found is None:
+def corrected_for_rmse(an: Analysis, params: Params, first: Choice) -> Choice | None:
+    """The smallest low-passed map with a residual layer that meets ``params.target_rmse``, or the
+    map with no spectrum (:func:`_spectrum_free`) with one; None where neither applies.
+
+    A layer at a bound E corrects only the cells whose error passes E, so a coarse step that
+    leaves a few walls, ridges and gap edges far off the target, brought back by a sparse layer,
+    can cost less than the step fine enough to meet the target everywhere (the fragmented coastal
+    plain near the floor). The bases: the step of the first of :data:`CORRECTED_STEP_FACTORS` times the
+    target at each cutoff from ``first``'s (the low-pass alone's choice) up, until the file has
+    grown twice in a row or is :data:`GIVE_UP_FACTOR` times the best, ``first`` included; then the
+    other factors at the best cutoff. Each base gets
+    the coarsest bound that meets the target (:func:`_coarsest_bound`). None on a tiled map,
+    whose tiles would code their residuals against bases the map's trial only approximates (the
+    RMSE a file states must be the one it has), and for unquantized storage.
+    """
+    if an.params.tile_size or params.storage != "quantized":
         return None
-    on, trial = found
     target = params.target_rmse
+    best: Choice | None = None
+
+    def attempt(on: Analysis, trial: Trial, *, predicted: bool = False) -> int | None:
+        """The candidate's size; None when ``trial`` needs no layer, or its coefficients alone
+        lose to the best."""
+        nonlocal best
+        bound = _coarsest_bound(on, trial, target)
+        if bound is None:
+            return None  # the low-pass alone meets the target: for_rmse's search has seen it
+        coefs = on.encode(trial, exhaustive=False)
+        if best is not None and len(coefs) >= best.size:
+            return None
+        choice = _corrected(on, trial, coefs, params.coder, bound, predicted=predicted)
+        if best is None or choice.size < best.size:
+            best = choice
+        return choice.size
+
+    first_factor, *others = CORRECTED_STEP_FACTORS
+    last, rises = None, 0
+    for cutoff in (c for c in cutoffs(params) if c >= first.trial.cutoff):
+        size = attempt(an, an.trial(cutoff, first_factor * target))
+        if size is None:
+            continue
+        rises = rises + 1 if last is not None and size > last else 0
+        last = size
+        if rises == 2 or size > GIVE_UP_FACTOR * min(best.size, first.size):
+            break  # past the best cutoff: the layer grows faster than the spectrum shrinks
+    if best is not None:
+        cutoff = best.trial.cutoff
+        for factor in others:
+            attempt(an, an.trial(cutoff, factor * target))
+        assert best.residual is not None
+        layer = predicted_residual(best.residual, params.coder, an.kept_cells)
+        if layer is not None and len(layer) < len(best.residual_blob):
+            best.residual_blob = layer
+    spectrum_free = _spectrum_free(an, params)
+    if spectrum_free is not None:
+        attempt(*spectrum_free, predicted=True)
+    if best is not None:
+        best.coefs = best.analysis.encode(best.trial)
+    return best
+
+
+def _coarsest_bound(an: Analysis, trial: Trial, target: float) -> float | None:
+    """The coarsest residual bound (a bisection of :data:`RMSE_BOUND_ITERATIONS` between the
+    target, which always meets it, and the trial's largest error, which does not) at which
+    ``trial`` corrected by its residual layer is within ``target`` RMSE on the occupied cells;
+    None when the trial alone is."""
+    err = (an.dem.heights - trial.heights)[an.mask]
+    if float(np.sqrt(np.mean(err * err))) <= target:
+        return None
+    # Held a hair inside the target: the encoder rebuilds the corrected heights by another route
+    # (residual()), whose rounding may differ in the last bit.
+    goal = target * (1.0 - RMSE_BOUND_MARGIN)
 
     def meets(bound: float) -> bool:
-        _, heights = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
-        err = (heights - on.dem.heights)[on.mask]
-        return float(np.sqrt(np.mean(err * err))) <= target
+        step = residual_step(bound)
+        left = err - np.round(err / step) * step
+        return float(np.sqrt(np.mean(left * left))) <= goal
 
-    lo, hi = target, 2.0 * target
+    lo, hi = target, float(np.abs(err).max())
     for _ in range(RMSE_BOUND_ITERATIONS):
+        if hi <= lo * (1.0 + 1e-6):
+            break
         mid = math.sqrt(lo * hi)
         lo, hi = (mid, hi) if meets(mid) else (lo, mid)
-    return _corrected(on, trial, on.encode(trial), params.coder, lo)
+    return lo
 
 
 def _empty_step(an: Analysis, cutoff: float) -> float:
@@ -325,7 +394,7 @@ def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
 def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
            progress: Progress = _no_progress) -> Choice:
     """Rate control, then (``fill='consistent'``) a second choice at the same cutoff, empty cells
-    refilled; for an RMSE target, then the map with no spectrum (:func:`predicted_for_rmse`).
+    refilled; for an RMSE target, then the maps with a residual layer (:func:`corrected_for_rmse`).
 
     For an RMSE target the step is searched again upwards, refilling at each
     step tried: a fill consistent with the coded map lowers the error on the
@@ -347,9 +416,9 @@ def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
     progress(FIRST_SEARCH_SHARE)
     best = _refined(an, params, first, point_count, fixed_bytes) if an.refillable else first
     if params.target_rmse > 0:
-        spectrum_free = predicted_for_rmse(an, params)
-        if spectrum_free is not None and spectrum_free.size < best.size:
-            best = spectrum_free
+        corrected = corrected_for_rmse(an, params, first)
+        if corrected is not None and corrected.size < best.size:
+            best = corrected
     return best
 
 
