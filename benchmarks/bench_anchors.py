@@ -156,7 +156,8 @@ def dftpcc_codec(name: str, profile: str, settings: list[tuple[Any, float]], poi
 
     def split(blob: bytes) -> dict:
         stats = dftpcc.open(blob).header.stats
-        mask, coef = stats.get("mask_bytes", 0), stats.get("coef_bytes", 0)
+        mask = stats.get("mask_bytes", 0)
+        coef = stats.get("coef_bytes", 0) + stats.get("residual_bytes", 0)
         return {"mask": mask, "coef": coef, "header": len(blob) - mask - coef}
 
     return Codec(name, settings, encode, dftpcc.decompress, describe, is_anchor=False, split=split)
@@ -558,7 +559,8 @@ def split_table(m: dict) -> str:
     header = ["level", "codec", "setting (cheapest frontier point meeting the level)", "RMSE mm", "bits/pt",
               "mask", "coefficients / codestream", "header & framing"]
     return ("Where the bits go (bits/pt; LERC keeps its mask inside its codestream; dftpcc's "
-            "header & framing = file size - stats['mask_bytes'] - stats['coef_bytes']):\n\n"
+            "coefficients include its residual layer, stats['residual_bytes']; its header & framing = file size - "
+            "stats['mask_bytes'] - stats['coef_bytes'] - stats['residual_bytes']):\n\n"
             + markdown_table(header, rows) + "\n\n")
 
 
