@@ -65,18 +65,23 @@ def run_demo(*, n_points: int = 300_000, resolution: float = 0.25, out: str | No
     t0 = time.perf_counter()
     data = compress(points, resolution=resolution, target_rmse=target)
     m = open_map(data)
+    stats = m.header.stats
+    layer = (f" and a residual layer of max error {m.params.target_max_error * 1000:.1f} mm"
+             if stats.get("residual_bytes") else "")
     show(f"\nrate control, --target-rmse {target * 1000:.1f} mm: chose f_c {m.params.cutoff}, step "
-          f"{m.params.step * 1000:.1f} mm -> {len(data):,} bytes ({8 * len(data) / points.shape[0]:.3f} bits/pt), "
-          f"DEM RMSE {m.header.stats['dem_rmse_m'] * 1000:.1f} mm [{time.perf_counter() - t0:.1f} s]")
-    full = open_map(data).read_dem()
-    coef_bytes = m.header.stats["coef_bytes"]
-    head = len(data) - coef_bytes  # everything before the coefficients (mask included) must arrive
+          f"{m.params.step * 1000:.1f} mm{layer} -> {len(data):,} bytes ({8 * len(data) / points.shape[0]:.3f} "
+          f"bits/pt), DEM RMSE {stats['dem_rmse_m'] * 1000:.1f} mm [{time.perf_counter() - t0:.1f} s]")
+    full = m.read_dem()
+    coef_bytes, resd_bytes = stats["coef_bytes"], stats.get("residual_bytes", 0)
+    # Everything before the coefficients (mask included) must arrive; a residual layer comes last.
+    head = len(data) - coef_bytes - resd_bytes
     show("progressive decoding of that file: header and mask, then a part of the coefficients, as if "
           "the rest had not arrived:")
-    for fraction in DEMO_PREFIXES:
-        n = head + int(coef_bytes * fraction)
+    prefixes = [(head + int(coef_bytes * f), f"{f:4.0%} of the coefficients") for f in DEMO_PREFIXES]
+    if resd_bytes:
+        prefixes.append((len(data), "and the residual layer"))
+    for n, what in prefixes:
         dem = open_map(data, max_bytes=n).read_dem()
         err = (dem.heights - full.heights)[full.mask]
-        show(f"  first {n:>7,} bytes ({fraction:4.0%} of the coefficients): RMSE "
-              f"{np.sqrt(np.mean(err * err)) * 1000:7.1f} mm from the full decode")
+        show(f"  first {n:>7,} bytes ({what}): RMSE {np.sqrt(np.mean(err * err)) * 1000:7.1f} mm from the full decode")
     return rows
