@@ -352,3 +352,55 @@ def test_the_map_with_no_spectrum_needs_every_rebuilt_cell_measured():
         an = Analysis(dem, params, searching=True, outside_energy=True)
         assert (ratecontrol._spectrum_free(an, params) is not None) == expected, mask
         assert (ratecontrol.predicted_map(an, params, 0.2) is not None) == expected, mask
+
+
+def _hills_with_walls(n=96, seed=3, walls=40):
+    """Gentle hills (a few long waves) with ``walls`` single cells standing 3 m proud and a tenth
+    of the cells empty: a low-pass meets a fine RMSE only at a fine step, where the walls cost
+    every frequency."""
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(n) + 0.5, np.arange(n) + 0.5)
+    z = 2.0 * np.sin(x / 17.0) + 1.5 * np.cos(y / 23.0) + 0.01 * rng.normal(size=x.shape)
+    cells = rng.choice(n * n, walls, replace=False)
+    z.ravel()[cells] += 3.0
+    keep = rng.random(n * n) > 0.1
+    keep[cells] = True
+    return np.c_[x.ravel(), y.ravel(), z.ravel()][keep]
+
+
+@pytest.mark.parametrize("mask", ["exact", "footprint"])
+def test_a_few_far_off_cells_are_corrected_rather_than_low_passed(monkeypatch, mask):
+    """At an RMSE target a coarse low-pass keeps the hills within it and a sparse residual layer
+    brings back the walls it leaves far off: a file with a spectrum (cutoff below the highest tried)
+    and a layer at a bound well past the target, smaller than the low-pass alone, whose decoded map
+    meets the target with every cell within the bound it states, as the document's reader decodes
+    it. With the footprint mask too (the low-pass rebuilds the cells without a height)."""
+    from dftpcc import ratecontrol
+
+    from . import spec_decoder
+
+    pts = _hills_with_walls()
+    dem = rasterize(pts, fit_grid(pts, 1.0))
+    target = 0.1
+    data = dftpcc.compress(pts, resolution=1.0, target_rmse=target, mask=mask)
+    with dftpcc.open(data) as cmap:
+        assert cmap.params.cutoff < max(ratecontrol.CUTOFF_CANDIDATES)
+        bound = cmap.params.target_max_error
+        assert cmap.params.target_rmse == 0.0 and bound > 2 * target
+        assert cmap.info().get("residual_layout") in ("sparse", "predicted", "chunked")
+        err = (cmap.read_dem().heights - dem.heights)[dem.mask]
+    assert np.abs(err).max() <= bound and np.sqrt(np.mean(err ** 2)) <= target
+    np.testing.assert_allclose(spec_decoder.decode(data), dftpcc.decompress(data), rtol=0, atol=1e-9)
+    monkeypatch.setattr(ratecontrol, "corrected_for_rmse", lambda an, params, first: None)
+    low_passed = dftpcc.compress(pts, resolution=1.0, target_rmse=target, mask=mask)
+    assert len(data) < 0.9 * len(low_passed), (len(data), len(low_passed))
+
+
+def test_a_tiled_map_at_an_rmse_target_gets_no_residual_layer():
+    """A tiled map's tiles would code their residuals against bases the map's trial only
+    approximates, so its RMSE target is met by the low-pass alone, and met."""
+    pts = _hills_with_walls(n=128)
+    data = dftpcc.compress(pts, resolution=1.0, target_rmse=0.1, tile_size=64)
+    with dftpcc.open(data) as cmap:
+        assert cmap.params.target_rmse == 0.1 and cmap.params.target_max_error == 0.0
+        assert cmap.header.stats["dem_rmse_m"] <= 0.1
