@@ -200,14 +200,21 @@ def for_max_error(an: Analysis, params: Params, progress: Progress = _no_progres
             if found is None or found >= smallest:
                 break
             smallest = found
-    if best.residual is not None:
-        layer = predicted_residual(best.residual, params.coder, best.analysis.kept_cells)
-        if layer is not None and len(layer) < len(best.residual_blob):
-            best.residual_blob = layer
+    _try_predicted_layout(best, params.coder)
     spectrum_free = predicted_map(an, params, bound)
     if spectrum_free is not None and spectrum_free.size < best.size:
         best = spectrum_free
     return best
+
+
+def _try_predicted_layout(choice: Choice, coder: str) -> None:
+    """Give ``choice`` its residual layer in the predicted layout where that is shorter: the
+    search sizes its candidates without it (the slowest to code) and tries it on the winner."""
+    if choice.residual is None:
+        return
+    layer = predicted_residual(choice.residual, coder, choice.analysis.kept_cells)
+    if layer is not None and len(layer) < len(choice.residual_blob):
+        choice.residual_blob = layer
 
 
 def _corrected(an: Analysis, trial: Trial, coefs: bytes, coder: str, bound: float, *,
@@ -248,11 +255,11 @@ def corrected_for_rmse(an: Analysis, params: Params, first: Choice) -> Choice | 
     A layer at a bound E corrects only the cells whose error passes E, so a coarse step that
     leaves a few walls, ridges and gap edges far off the target, brought back by a sparse layer,
     can cost less than the step fine enough to meet the target everywhere (the fragmented coastal
-    plain near the floor). The bases: the step of the first of :data:`CORRECTED_STEP_FACTORS` times the
-    target at each cutoff from ``first``'s (the low-pass alone's choice) up, until the file has
-    grown twice in a row or is :data:`GIVE_UP_FACTOR` times the best, ``first`` included; then the
-    other factors at the best cutoff. Each base gets
-    the coarsest bound that meets the target (:func:`_coarsest_bound`). None on a tiled map,
+    plain near the floor). The bases: the first of :data:`CORRECTED_STEP_FACTORS` times the target
+    as the step, at each cutoff from ``first``'s (the low-pass alone's choice) up, until the file
+    has grown twice in a row or is :data:`GIVE_UP_FACTOR` times the best, ``first`` included; then
+    the other factors at the best cutoff. Each base gets the coarsest bound that meets the target
+    (:func:`_coarsest_bound`). None on a tiled map,
     whose tiles would code their residuals against bases the map's trial only approximates (the
     RMSE a file states must be the one it has), and for unquantized storage.
     """
@@ -290,10 +297,7 @@ def corrected_for_rmse(an: Analysis, params: Params, first: Choice) -> Choice | 
         cutoff = best.trial.cutoff
         for factor in others:
             attempt(an, an.trial(cutoff, factor * target))
-        assert best.residual is not None
-        layer = predicted_residual(best.residual, params.coder, an.kept_cells)
-        if layer is not None and len(layer) < len(best.residual_blob):
-            best.residual_blob = layer
+        _try_predicted_layout(best, params.coder)
     spectrum_free = _spectrum_free(an, params)
     if spectrum_free is not None:
         attempt(*spectrum_free, predicted=True)
