@@ -176,6 +176,20 @@ def _neighbour(up: int, left: int, r: np.ndarray, c: np.ndarray, shape: tuple[in
     return np.where((r == 0) & (c == 0), rows * cols, idx)
 
 
+def _shifted(grid: np.ndarray, up: int, left: int) -> np.ndarray:
+    """Each cell's neighbour (``up`` rows up, ``left`` columns left) in ``grid``, under the edge
+    rules of :func:`_neighbour`: ``grid.ravel()[_neighbour(up, left, r, c)]`` at every cell at
+    once, by whole rows and columns instead of a gather of flat indices."""
+    rows, cols = grid.shape
+    out = grid[np.maximum(np.arange(rows) - up, 0)][:, np.clip(np.arange(cols) - left, 0, cols - 1)]
+    if up:
+        out[0, 1:] = grid[0, :-1]  # row 0: the rows above are W
+    else:
+        out[1:, 0] = grid[:-1, 0]  # column 0: W and WW are N
+    out[0, 0] = 0
+    return out
+
+
 #: Cells a decoder gathers the neighbours of at once (a few MB of indices).
 WAVEFRONT_BLOCK_CELLS = 1 << 16
 
@@ -232,19 +246,31 @@ def _filled(q: np.ndarray, kept: np.ndarray) -> np.ndarray:
     return np.take_along_axis(grid, known, axis=1)
 
 
+#: Rows of :func:`_exact_products`'s blocks: with every value within FIT_LIMIT, each product is
+#: below 2**30 and a block's sums below 2**52, so float64 adds them exactly, in any order.
+PRODUCT_BLOCK = 1 << 22
+
+
+def _exact_products(x: np.ndarray) -> np.ndarray:
+    """``x @ x.T`` of an integer (k, n) array whose values are within FIT_LIMIT, exactly (int64):
+    summed in float64 by blocks, which is exact below 2**53 and a matrix product's speed."""
+    total = np.zeros((x.shape[0], x.shape[0]), dtype=np.int64)
+    for at in range(0, x.shape[1], PRODUCT_BLOCK):
+        block = x[:, at:at + PRODUCT_BLOCK].astype(np.float64)
+        total += (block @ block.T).astype(np.int64)
+    return total
+
+
 def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
     """Least-squares weights (sum 2**16) of the neighbours' ``values`` for ``target``, from exact
     integer sums and an exact solve, so the file is the same on every machine."""
-    d = [v - values[0] for v in values[1:]]  # the six others, relative to W
-    y = target - values[0]
-    usable = np.abs(y) <= FIT_LIMIT
-    for x in d:
-        usable &= np.abs(x) <= FIT_LIMIT
-    d = [x[usable] for x in d]
-    y = y[usable]
-    m = len(d)
+    d = np.stack([*values[1:], target])  # the six others, then the target, relative to W
+    d -= values[0]
+    usable = np.abs(d, out=np.empty_like(d)).max(axis=0) <= FIT_LIMIT
+    m = len(values) - 1
+    sums = _exact_products(d if usable.all() else d[:, usable])
     # The normal equations, plus 1 on the diagonal so they always have a solution.
-    a = [[Fraction(int(np.dot(d[i], d[j])) + (i == j)) for j in range(m)] + [Fraction(int(np.dot(d[i], y)))]
+    a = [[Fraction(int(sums[i, j]) + (i == j)) for j in range(m)] + [Fraction(int(sums[i, m]))]
          for i in range(m)]
     for col in range(m):  # Gauss-Jordan: the matrix is positive definite, so no pivot is 0
         pivot = a[col][col]
@@ -266,19 +292,17 @@ def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
     rows, cols = kept.shape
     grid = _filled(q, kept)
     r, c = np.nonzero(kept)  # row-major, as q
-    padded = np.append(grid.ravel(), 0)
-    where = [_neighbour(up, left, r, c, kept.shape) for up, left in NEIGHBOURS]
-    values = [padded[at] for at in where]
+    values = [_shifted(grid, up, left)[kept] for up, left in NEIGHBOURS]
     weights = _fit_weights(values, q)
     e = q - _prediction(weights, values)
     if np.abs(e).max() > coding.MAX_ANS_SYMBOL:
         return None
-    errors = np.zeros(rows * cols + 1, dtype=np.int64)
-    errors[r * cols + c] = np.abs(e)
+    errors = np.zeros(kept.shape, dtype=np.int64)
+    errors[kept] = np.abs(e)
     activity = np.zeros(q.size, dtype=np.int64)
-    for at, k in zip(where, ACTIVITY_WEIGHTS):
+    for (up, left), k in zip(NEIGHBOURS, ACTIVITY_WEIGHTS):
         if k:
-            activity += k * errors[at]
+            activity += k * _shifted(errors, up, left)[kept]
     classes = _classes(activity)
     lo, band_codes, _ = coding._band_statistics(e, classes)
     codes = np.zeros(CLASSES, dtype=np.uint8)
@@ -291,8 +315,11 @@ def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
     # Decoding order: wavefront, then class, then row; cells of code 0 are not coded.
     per_cell = codes[classes]
     coded = np.flatnonzero(per_cell)
-    wave = 2 * r[coded] + c[coded]
-    order = coded[np.lexsort((r[coded], classes[coded], wave))]
+    # By wave, then class, then row: two stable sorts of small keys (radix sorts), class first;
+    # ``coded`` is row-major, so cells of one wave and class stay in row order.
+    by_class = coded[np.argsort(classes[coded].astype(np.uint8), kind="stable")]
+    wave = 2 * r[by_class] + c[by_class]
+    order = by_class[np.argsort(wave.astype(np.uint16 if rows * 2 + cols < 1 << 16 else np.int64), kind="stable")]
     key = (2 * r[order] + c[order]) * CLASSES + classes[order]
     starts = np.flatnonzero(np.diff(key, prepend=-1))
     bounds = np.append(starts, order.size)
