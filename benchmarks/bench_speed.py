@@ -308,6 +308,43 @@ def dem_rows(data: Path, repeats: int) -> list[list[str]]:
     return rows
 
 
+def transform_rows(data: Path, repeats: int) -> list[list[str]]:
+    """Per DEM: the DCT alone (scipy.fft, float64, one worker) against LERC at dftpcc's bound, in
+    M cells/s: what a codec built on one transform of the whole grid cannot beat. A decoder runs
+    at least one 1-D inverse pass over every output cell (the other axis's pass may skip the zero
+    rows of a low-passed spectrum), the faster of the two axes' passes; an encoder that states
+    the error of its file, at least one forward and one such inverse pass."""
+    import lerc
+    import scipy.fft
+
+    rows = []
+    for path in sorted((data / "dems").glob("*.tif")):
+        dem, _ = dem_from_geotiff(path)
+        cells = dem.grid.size
+        heights, valid = dem.heights, dem.mask.astype(np.uint8)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            blob = encoder.encode_dem(dem, dftpcc.make_params(cutoff=CUTOFF))
+        bound = float(dftpcc.open(blob).header.stats["dem_max_error_m"])
+        coefs = scipy.fft.dctn(heights, norm="ortho", workers=ONE_THREAD)
+        t_f, _ = walls(lambda: scipy.fft.dctn(heights, norm="ortho", workers=ONE_THREAD), repeats)
+        t_i, _ = walls(lambda: scipy.fft.idctn(coefs, norm="ortho", workers=ONE_THREAD), repeats)
+        t_pass, t_fpass = (min((walls(lambda a=axis: fn(x, norm="ortho", axis=a, workers=ONE_THREAD), repeats)[0]
+                                for axis in (0, 1)), key=med)
+                           for fn, x in ((scipy.fft.idct, coefs), (scipy.fft.dct, heights)))
+        _, _, lerc_buf = lerc.encode(heights, 1, True, valid, bound, 1)
+        t_le, _ = walls(lambda: lerc.encode(heights, 1, True, valid, bound, 1), repeats)
+        t_ld, _ = walls(lambda: lerc.decode(bytes(lerc_buf)), repeats)
+
+        def rate(t: list[float]) -> str:
+            return f"{cells / med(t) / 1e6:.1f}"
+
+        rows.append([path.name, f"{dem.grid.rows} x {dem.grid.cols}", rate(t_f), rate(t_i), rate(t_pass),
+                     rate(t_le), rate(t_ld), f"{(med(t_fpass) + med(t_pass)) / med(t_le):.2f}",
+                     f"{2 * med(t_pass) / med(t_ld):.2f}"])
+    return rows
+
+
 #: Start-up commands timed in fresh processes: the library's import and the CLI's help.
 STARTUP = (("import dftpcc", ("-c", "import dftpcc")), ("dftpcc --help", ("-m", "dftpcc", "--help")))
 
@@ -357,6 +394,12 @@ def main() -> None:
                          ["dftpcc path", "DEM", "cells", "max error mm", "bytes dftpcc / LERC / HTJ2K",
                           "encode M cells/s", "decode M cells/s", "encode time LERC / HTJ2K over dftpcc",
                           "decode time LERC / HTJ2K over dftpcc"], dem_path_rows(data, repeats, compiled)))
+        parts.append("### GeoTIFF DEMs: the transform alone against LERC\n\n" + " ".join(
+            transform_rows.__doc__.split()) + " Ratios above 1: the transform alone is slower than the "
+            "goal (LERC's encode; half LERC's decode).\n\n" + markdown_table(
+                ["DEM", "cells", "forward DCT M cells/s", "inverse DCT M cells/s", "one inverse pass M cells/s",
+                 "LERC encode M cells/s", "LERC decode M cells/s", "a forward and an inverse pass time / LERC encode time",
+                 "one inverse pass time / half LERC decode time"], transform_rows(data, repeats)))
     parts.append("### Start-up\n\nWall time of a fresh interpreter running each command (the interpreter's own "
                  "start included).\n\n" + markdown_table(["command", "ms median (range)"], startup_rows(repeats)))
     parts.append("### Targets\n\n" + "\n".join(f"- {v}" for v in verdicts))
