@@ -65,7 +65,10 @@ def test_info_names_the_residual_layers_layout(tmp_path, capsys):
 def test_an_rmse_target_met_by_a_residual_layer_says_so(tmp_path, capsys):
     """Rough terrain near its floor: the smallest file within the RMSE asked for is the heights on
     steps of 2E, predicted from their neighbours, and the file states E as its target. The
-    summary names the target asked for and how it was met, not only the bound the file states."""
+    summary names the target asked for and how it was met, not only the bound the file states;
+    so does ``info`` later, from the target the file keeps in STAT (and the document's reader)."""
+    from . import spec_decoder
+
     rng = np.random.default_rng(3)
     z = np.cumsum(np.cumsum(rng.normal(0, 0.03, (40, 52)), 0), 1) + rng.normal(0, 0.02, (40, 52))
     yy, xx = np.mgrid[:40, :52] + 0.5
@@ -78,6 +81,11 @@ def test_an_rmse_target_met_by_a_residual_layer_says_so(tmp_path, capsys):
     with dftpcc.open(out) as cmap:
         assert cmap.params.target_max_error > 0 and cmap.info()["residual_layout"] == "predicted"
         assert cmap.info()["stats"]["dem_rmse_m"] <= 0.003
+        assert cmap.params.target_rmse == 0.0 and cmap.header.stats["target_rmse_m"] == pytest.approx(0.003)
+    assert spec_decoder._header(spec_decoder._sections(out.read_bytes()))[2]["target_rmse_m"] == pytest.approx(0.003)
+    assert main(["info", str(out)]) == 0
+    shown = capsys.readouterr().out
+    assert "target      DEM RMSE <= 3.00 mm, met by a residual layer of max error <= " in shown, shown
 
 
 def test_paper_profile_from_the_command_line(tmp_path, cloud_file, capsys):

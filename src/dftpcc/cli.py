@@ -171,15 +171,12 @@ def _errors_text(stats: dict[str, Any], unit: str) -> str:
     return text
 
 
-def _choice_text(p: dict[str, Any], unit: str, asked: dict[str, Any] | None = None) -> str:
-    """Which cutoff and step the file uses, and who chose them (``asked``: the targets asked for;
-    an RMSE target a residual layer meets makes a file that states the layer's bound instead)."""
+def _choice_text(p: dict[str, Any], unit: str, stats: dict[str, Any]) -> str:
+    """Which cutoff and step the file uses, and who chose them (``stats``: the file's, for the
+    RMSE target a residual layer met)."""
     quantized = p["storage"] == "quantized"
     step = f", step {length(p['step'], unit)}" if quantized else ""
-    target = _target_text(p, unit)
-    wanted = _target_text(asked or {}, unit)
-    if wanted and target and wanted != target:
-        target = f"{wanted}, met by a residual layer of {target}"
+    target = _target_text(p, unit, stats)
     if target:
         chosen = ("step" if p["cutoff_given"] else "cutoff and step" if quantized else "cutoff")
         return f"cutoff {p['cutoff']:g}{step} ({chosen} chosen by rate control for {target})"
@@ -215,7 +212,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
          f"{args.output}: {info['bytes']:,} bytes, {info['bits_per_point']:.4g} bits/point "
          f"({info['points_original']:,} points -> {info['points_rebuilt']:,} cells of "
          f"{length(info['grid']['resolution_m'], unit)}) [{time.perf_counter() - t0:.2f} s]",
-         f"  {_choice_text(params, info['units']['vertical'], options)}",
+         f"  {_choice_text(params, info['units']['vertical'], info['stats'])}",
          f"  promises {_errors_text(info['stats'], info['units']['vertical'])}")
     return 0
 
@@ -268,8 +265,13 @@ def _decompress_bag(args: argparse.Namespace) -> int:
     return 0
 
 
-def _target_text(p: dict, unit: str = "m") -> str:
-    """The rate-control target of parameters ``p``, or '' when there is none."""
+def _target_text(p: dict, unit: str = "m", stats: dict | None = None) -> str:
+    """The rate-control target of parameters ``p``, or '' when there is none. An RMSE target met by a
+    residual layer is in the file's ``stats`` (``target_rmse_m``; its parameters state the layer's bound)."""
+    asked = (stats or {}).get("target_rmse_m") or 0
+    if asked > 0 and (p.get("target_max_error") or 0) > 0:
+        return (f"DEM RMSE <= {length(asked, unit)}, met by a residual layer of max error "
+                f"<= {length(p['target_max_error'], unit)}")
     if (p.get("target_rmse") or 0) > 0:
         return f"DEM RMSE <= {length(p['target_rmse'], unit)}"
     if (p.get("target_max_error") or 0) > 0:
@@ -306,7 +308,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         cells = f"{length(g['resolution_m'], h)} x {length(g['resolution_y_m'], h)}"
     if u["geographic"]:
         cells += " of longitude x latitude"
-    target = _target_text(p, v)
+    target = _target_text(p, v, s)
     rows = [
         ("file", f"{info['file']} ({info['bytes']:,} bytes, format {info['format_version']})"),
         ("points", f"{info['points_original']:,} original, {info['points_rebuilt']:,} rebuilt"),

@@ -441,9 +441,12 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | TiledMasks, point_c
     params = params.replace(cutoff=trial.cutoff, step=trial.step)
     dem, occupied = an.dem, an.mask
     heights = trial.heights
+    asked_rmse = 0.0
     if choice.residual is not None:
         # The file states the bound its residual layer was made for, whatever the target: the
         # decoder's step, and the promise an RMSE target met by a residual layer keeps as well.
+        # Such an RMSE target goes to STAT (target_rmse_m), so the file still says what it was made for.
+        asked_rmse = params.target_rmse
         params = params.replace(target_rmse=0.0, target_max_error=choice.bound)
         _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, choice.bound)
     # Without a residual layer the decoder rebuilds the trial's heights, whose errors it may have kept.
@@ -452,6 +455,8 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | TiledMasks, point_c
     stats = _stats(dem, heights, occupied, len(mask_blob), len(choice.coefs), len(choice.residual_blob),
                    kept - int(occupied.sum()), params, errors=errors,
                    figures=None if errors is None else (trial.rmse, trial.max_error))
+    if asked_rmse > 0:
+        stats["target_rmse_m"] = asked_rmse
     header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=kept,
                     plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.count(params.cutoff))
     on_stage("container")
