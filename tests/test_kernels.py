@@ -243,6 +243,71 @@ def test_table_coder_words_equal_constriction(jit):
         assert np.array_equal(words, coder.get_compressed()), (t, max_abs)
 
 
+def _coefficient_chunks(rng: np.random.Generator):
+    """ANS chunks as encode_coefficients writes them: a ring-ordered stream of decaying values, of
+    lengths from one value to a long chunk, wide and narrow alphabets, every band layout."""
+    for t in range(60):
+        n = int(rng.choice([1, 2, 7, 256, 1000, 5000, 20000]))
+        radius = np.sort(rng.uniform(0, 300, n))
+        angle = rng.uniform(0, 1, n)
+        scale = 40.0 * np.exp(-radius / rng.uniform(5, 200)) * rng.uniform(0.1, 10)
+        q = np.round(rng.laplace(0, scale)).astype(np.int64)
+        if t % 7 == 0:
+            q[rng.random(n) < 0.9] = 0  # mostly empty bands
+        if t % 11 == 0:
+            q[0] = 20000  # a wide alphabet
+        yield q, radius, angle
+
+
+def test_coefficient_decoder_gives_constrictions_values(jit):
+    """The compiled coefficient decoder reads the values the numpy path (constriction) reads, for the
+    chunk's own layout and for every other layout forced on it."""
+    rng = np.random.default_rng(12)
+    layouts_seen = set()
+    for q, radius, angle in _coefficient_chunks(rng):
+        payload = coding._encode_ans(q, radius, angle, exhaustive=True)
+        if payload is None:
+            continue
+        layouts_seen.add(payload[0])
+        for b in (coding._Bands.of(q, radius, angle, k) for k in range(len(coding.BAND_LAYOUTS))):
+            if b.table_work(int(np.abs(q).max())) > coding.table_budget(q.size):
+                continue
+            forced = coding._encode_ans_with(q, b, int(np.abs(q).max()))
+            for on in (True, False):
+                jit(on)
+                np.testing.assert_array_equal(coding._decode_ans(forced, radius, angle, "chunk"), q)
+    assert len(layouts_seen) > 1
+
+
+def test_coefficient_decoder_matches_the_numpy_path_on_damaged_words(jit):
+    """Damaged words decode to the same values on both paths, or both refuse them with one message."""
+    rng = np.random.default_rng(5)
+    kinds = set()
+    for trial, (q, radius, angle) in enumerate(_coefficient_chunks(rng)):
+        payload = coding._encode_ans(q, radius, angle, exhaustive=True)
+        if payload is None or len(payload) < 16:
+            continue
+        damaged = bytearray(payload)
+        for _ in range(1 + trial % 3):
+            at = int(rng.integers(len(payload) // 2, len(payload)))
+            damaged[at] ^= 1 << int(rng.integers(0, 8))
+        if trial % 5 == 0:
+            damaged[-4:] = b"\0\0\0\0"
+        outcomes = []
+        for on in (True, False):
+            jit(on)
+            try:
+                outcomes.append(coding._decode_ans(bytes(damaged), radius, angle, "chunk"))
+            except CorruptFileError as exc:
+                outcomes.append(str(exc))
+        kinds.add(type(outcomes[0]))
+        if isinstance(outcomes[0], str):
+            assert outcomes[0] == outcomes[1]
+        else:
+            np.testing.assert_array_equal(outcomes[0], outcomes[1])
+    assert kinds == {str, np.ndarray}
+
+
 def test_whole_files_equal(jit):
     """A map with a patchy footprint, untiled and tiled, at a fixed step and at a max-error bound:
     the same bytes with the kernels and without."""

@@ -256,6 +256,78 @@ def _left(i, lo, csum, at, size, n):  # pragma: no cover - compiled
     return np.int64((c / float(TOTAL)) * float(TOTAL - n)) + i
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pop_table(words, state, pos, lo, csum, at, size, n):  # pragma: no cover - compiled
+    # One symbol decoded with a table of encode_table_words (symbols 0..n-1), as constriction's
+    # AnsCoder.decode does (see decode_mask_lines): the last symbol whose left cumulative is at most
+    # the quantile; then the state and the next word to read.
+    quantile = np.int64(state & np.uint64(TOTAL - 1))
+    a, b = 0, n - 1
+    while a < b:
+        mid = (a + b + 1) // 2
+        if _left(mid, lo, csum, at, size, n) <= quantile:
+            a = mid
+        else:
+            b = mid - 1
+    left = _left(a, lo, csum, at, size, n)
+    right = TOTAL if a == n - 1 else _left(a + 1, lo, csum, at, size, n)
+    state = (state >> np.uint64(PRECISION)) * np.uint64(right - left) + np.uint64(quantile - left)
+    if state < (np.uint64(1) << np.uint64(32)) and pos >= 0:
+        state = (state << np.uint64(32)) | np.uint64(words[pos])
+        pos -= 1
+    return a, state, pos
+
+
+@njit(cache=True, nogil=True)
+def decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, alphabets, out):  # pragma: no cover - compiled
+    # coding._decode_ans's constriction loop in one pass: the values of each nonzero code c, codes
+    # ascending and positions ascending within one (a stable counting sort), decoded with table
+    # table_of[c] into out[position] as symbol - (n - 1) // 2; values of code 0 stay as they are.
+    count = np.zeros(257, dtype=np.int64)
+    for i in range(per_value.size):
+        count[np.int64(per_value[i]) + 1] += 1
+    for c in range(256):
+        count[c + 1] += count[c]
+    order = np.empty(per_value.size, dtype=np.int64)
+    fill = count[:256].copy()
+    for i in range(per_value.size):
+        c = np.int64(per_value[i])
+        order[fill[c]] = i
+        fill[c] += 1
+    state, pos = _ans_start(words)
+    lefts = np.empty(alphabets.max() + 1 if alphabets.size else 1, dtype=np.int64)
+    mask24 = np.uint64(TOTAL - 1)
+    low = np.uint64(1) << np.uint64(32)
+    for c in range(1, 256):
+        if count[c + 1] == count[c]:
+            continue
+        # The table's left cumulatives, once for the code's values (a search then reads integers).
+        t = table_of[c]
+        n = alphabets[t]
+        lo = lows[t]
+        at = near_bounds[t] + t
+        size = near_bounds[t + 1] - near_bounds[t]
+        for i in range(n):
+            lefts[i] = _left(i, lo, csum, at, size, n)
+        lefts[n] = TOTAL
+        half = (n - 1) // 2
+        for j in range(count[c], count[c + 1]):
+            quantile = np.int64(state & mask24)
+            a, b = 0, n - 1  # as _pop_table
+            while a < b:
+                mid = (a + b + 1) // 2
+                if lefts[mid] <= quantile:
+                    a = mid
+                else:
+                    b = mid - 1
+            state = (state >> np.uint64(PRECISION)) * np.uint64(lefts[a + 1] - lefts[a]) \
+                + np.uint64(quantile - lefts[a])
+            if state < low and pos >= 0:
+                state = (state << np.uint64(32)) | np.uint64(words[pos])
+                pos -= 1
+            out[order[j]] = a - half
+
+
 @njit(cache=True, nogil=True)
 def encode_table_words(symbols, bounds, tables, lows, csum, near_bounds, alphabets):  # pragma: no cover - compiled
     words = np.empty(symbols.size + 4, dtype=np.uint32)
@@ -698,8 +770,6 @@ def decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alpha
     ups = (0, 1, 1, 1, 0, 2, 2)
     lefts = (1, 0, 1, -1, 2, 0, -1)
     act_w = (2, 2, 1, 1, 1, 1, 0)
-    mask24 = np.uint64(TOTAL - 1)
-    low = np.uint64(1) << np.uint64(32)
     state, pos = _ans_start(words)
     errors = np.zeros(rows * cols, dtype=np.int64)
     longest = min(rows, (cols + 1) // 2 + 1)
@@ -754,22 +824,9 @@ def decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alpha
             lo = lows[t]
             at = near_bounds[t] + t
             size = near_bounds[t + 1] - near_bounds[t]
-            quantile = np.int64(state & mask24)
-            a_, b_ = 0, n_sym - 1  # the symbol: the last whose left cumulative is at most the quantile
-            while a_ < b_:
-                mid = (a_ + b_ + 1) // 2
-                if _left(mid, lo, csum, at, size, n_sym) <= quantile:
-                    a_ = mid
-                else:
-                    b_ = mid - 1
-            left = _left(a_, lo, csum, at, size, n_sym)
-            right = TOTAL if a_ == n_sym - 1 else _left(a_ + 1, lo, csum, at, size, n_sym)
-            state = (state >> np.uint64(PRECISION)) * np.uint64(right - left) + np.uint64(quantile - left)
-            if state < low and pos >= 0:
-                state = (state << np.uint64(32)) | np.uint64(words[pos])
-                pos -= 1
+            symbol, state, pos = _pop_table(words, state, pos, lo, csum, at, size, n_sym)
             r = r_lo + i
-            errors[r * cols + k - 2 * r] = a_ - (alphabets[t] - 1) // 2
+            errors[r * cols + k - 2 * r] = symbol - (alphabets[t] - 1) // 2
         for i in range(m):
             r = r_lo + i
             c = k - 2 * r

@@ -572,9 +572,18 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
         codes = np.frombuffer(unzstd(zstandard.ZstdDecompressor(), side, ncodes, what), dtype=np.uint8)
     if codes.size != ncodes:
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
-    out = np.zeros(bands.size, dtype=np.int64)
     words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
-    groups = _groups(codes[bands - lo])
+    per_value = codes[bands - lo]
+    if kernels.enabled():  # the same values, the groups sorted and decoded in one compiled pass
+        present = np.flatnonzero(np.bincount(per_value, minlength=256)[1:]) + 1
+        if present.size * (2 * max_abs + 1) > table_budget(bands.size):
+            raise CorruptFileError(f"{what} asks for larger probability tables than its {bands.size} values allow")
+        check_ans_words(words, what)
+        tables = [_table_cumulative(max_abs, code) for code in present.tolist()]
+        return kernels.decode_coded_values(words, per_value, present, [lo for lo, _ in tables],
+                                           [cumulative for _, cumulative in tables], 2 * max_abs + 1)
+    out = np.zeros(bands.size, dtype=np.int64)
+    groups = _groups(per_value)
     if len(groups) * (2 * max_abs + 1) > table_budget(bands.size):
         raise CorruptFileError(f"{what} asks for larger probability tables than its {bands.size} values allow")
     try:

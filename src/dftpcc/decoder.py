@@ -50,12 +50,13 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     if int(mask.sum()) != header.cell_count:
         raise CorruptFileError("occupancy mask disagrees with the header's cell count")
     lay = spectrum.layout(params.transform, params.storage, grid.shape)
-    n = spectrum.kept_count(lay, params.cutoff)
+    order, radii, angles = spectrum.kept_order(lay, params.cutoff)
+    n = spectrum.kept_count(lay, params.cutoff, radii)  # all of them (a search, not a pass over the grid)
     if n != header.coef_count:
         raise CorruptFileError("coefficient count disagrees with the grid and cutoff")
-    order, radii, angles = spectrum.kept_order(lay, params.cutoff)
     per_coef = spectrum.values_per_coefficient(lay, params.storage)
-    radius, angle = np.repeat(radii[:n], per_coef), np.repeat(angles[:n], per_coef)
+    radius, angle = (radii[:n], angles[:n]) if per_coef == 1 else \
+        (np.repeat(radii[:n], per_coef), np.repeat(angles[:n], per_coef))
     stream = coding.decode_coefficients(blobs[b"COEF"], n * per_coef, radius=radius, angle=angle,
                                         allow_partial=allow_partial)
     if stream.size == 0:  # a prefix too short for one whole chunk: the map is its trend
@@ -71,9 +72,10 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
             raise CorruptFileError("complex64 file holds integer coefficients")
         values = stream
     if cutoff is not None:
-        values = values[: spectrum.kept_count(lay, cutoff)]
+        values = values[: spectrum.kept_count(lay, cutoff, radii)]
     if lay.kind == "dct":  # only the low-frequency corner: the inverse pads it with zeros
-        shape, where = spectrum.corner(lay, order[: values.size])
+        shape, where = spectrum.kept_corner(lay, params.cutoff) if values.size == order.size else \
+            spectrum.corner(lay, order[: values.size])
     else:
         shape, where = lay.coef_shape, order[: values.size]
     coefs = np.zeros(shape, dtype=values.dtype)
@@ -211,12 +213,12 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any],
     w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)
     if b"COEF" in blobs:
         lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0))
-        n = spectrum.kept_count(lay, params.cutoff)
         order, radii, angles = spectrum.kept_order(lay, params.cutoff)
-        stream = coding.decode_coefficients(blobs[b"COEF"], n, radius=radii[:n], angle=angles[:n], progressive=False)
+        n = order.size
+        stream = coding.decode_coefficients(blobs[b"COEF"], n, radius=radii, angle=angles, progressive=False)
         if stream.dtype.kind != "i" or stream.size != n:
             raise CorruptFileError("tile coefficients are not one integer per kept coefficient")
-        corner_shape, where = spectrum.corner(lay, order[:n])
+        corner_shape, where = spectrum.kept_corner(lay, params.cutoff)
         coefs = np.zeros(corner_shape)
         coefs.ravel()[where] = coding.dequantize(stream, params.step)
         heights = spectrum.inverse(coefs, lay)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]

@@ -40,7 +40,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "decode_predicted", "encode_table_words", "pull", "push",
+__all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "decode_predicted", "encode_table_words",
+           "decode_coded_values", "pull", "push",
            "extremes", "cell_points",
            "axis_cells", "cell_sums", "distance_sums", "plane_sums",
            "masked_errors", "quantization_sq_error", "weighted_sq_sum",
@@ -145,6 +146,24 @@ def decode_predicted(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, c
         np.asarray(lows, dtype=np.int64), csum, near_bounds, np.ascontiguousarray(alphabets, dtype=np.int64),
         table_of, values)
     return None if status else values
+
+
+def decode_coded_values(words: np.ndarray, per_value: np.ndarray, present: np.ndarray, lows: list[int],
+                        cumulatives: list[np.ndarray], n: int) -> np.ndarray:
+    """``coding._decode_ans``'s values in one compiled pass: each value's scale code ``per_value``
+    (uint8; 0: the value is 0), the nonzero codes ``present`` among them, ascending, with their tables
+    (``coding._table_cumulative``) of one alphabet of ``n`` symbols; ``words``: as for
+    :func:`decode_mask_lines`. The values of one code are decoded in turn, codes ascending, as
+    :func:`encode_table_words` pushes them."""
+    csum, near_bounds = _packed_tables(cumulatives)
+    table_of = np.zeros(256, dtype=np.int64)
+    table_of[np.asarray(present, dtype=np.int64)] = np.arange(len(present))
+    out = np.zeros(per_value.size, dtype=np.int64)
+    _state["module"].decode_coded_values(np.ascontiguousarray(words, dtype=np.uint32),
+                                         np.ascontiguousarray(per_value, dtype=np.uint8), table_of,
+                                         np.asarray(lows, dtype=np.int64), csum, near_bounds,
+                                         np.full(len(cumulatives), n, dtype=np.int64), out)
+    return out
 
 
 def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, lows: list[int], cumulatives: list[np.ndarray],

@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import math
 import threading
+from typing import Any, Callable
 
 import numpy as np
 import scipy.fft as sfft
@@ -110,8 +111,9 @@ def radius_limit(shape: tuple[int, int], cutoff: float) -> float:
     return (1.0 - cutoff) * math.hypot(n / 2.0, m / 2.0)
 
 
-_ORDER_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-_ORDER_CACHE_SIZE = 8
+#: Coefficient orders and their corners, by layout and cutoff (:func:`_cached`): eight of each.
+_ORDER_CACHE: dict[tuple, Any] = {}
+_ORDER_CACHE_SIZE = 16
 #: The cache is shared by threads (zarr codes chunks in threads).
 _ORDER_LOCK = threading.Lock()
 
@@ -131,15 +133,28 @@ def kept_order(lay: Layout, cutoff: float = 0.0) -> tuple[np.ndarray, np.ndarray
     inside the circle are sorted, and results are cached per shape and
     cutoff: sweeps and rate control ask many times.
     """
-    key = (lay.kind, lay.shape, cutoff)
+    def make() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        flat_radius = lay.radius.ravel()
+        inside = np.flatnonzero(flat_radius <= _limit(lay, cutoff)) if cutoff > 0 else np.arange(flat_radius.size)
+        order = inside[np.argsort(flat_radius[inside], kind="stable")]
+        return order, flat_radius[order], lay.angle_of(order)
+
+    return _cached(("order", lay.kind, lay.shape, cutoff), make)
+
+
+def kept_corner(lay: Layout, cutoff: float) -> tuple[tuple[int, int], np.ndarray]:
+    """:func:`corner` of all of :func:`kept_order`'s coefficients, cached as it is: what a
+    decoder scatters a whole stream into."""
+    return _cached(("corner", lay.kind, lay.shape, cutoff), lambda: corner(lay, kept_order(lay, cutoff)[0]))
+
+
+def _cached(key: tuple, make: Callable[[], Any]) -> Any:
+    """``make()``, kept for ``key`` among the last few (read-only arrays: callers share them)."""
     with _ORDER_LOCK:
         found = _ORDER_CACHE.get(key)
     if found is not None:
         return found
-    flat_radius = lay.radius.ravel()
-    inside = np.flatnonzero(flat_radius <= _limit(lay, cutoff)) if cutoff > 0 else np.arange(flat_radius.size)
-    order = inside[np.argsort(flat_radius[inside], kind="stable")]
-    found = (order, flat_radius[order], lay.angle_of(order))
+    found = make()
     with _ORDER_LOCK:
         while len(_ORDER_CACHE) >= _ORDER_CACHE_SIZE:
             _ORDER_CACHE.pop(next(iter(_ORDER_CACHE)))
