@@ -156,7 +156,9 @@ def test_rate_control_keeps_its_promise_and_the_consistent_fill_never_costs_more
             err = (cmap.read_dem().heights - dem.heights)[dem.mask]
         assert float(np.sqrt(np.mean(err**2))) <= target * (1 + REL) + ABS
         assert cmap.header.stats["dem_rmse_m"] <= target * (1 + REL) + ABS
-        files[fill] = cmap.header.stats["coef_bytes"]
+        # What the choice weighs: the coefficients and any residual layer (an RMSE target may
+        # take a coarse low-pass and a layer: ratecontrol.corrected_for_rmse).
+        files[fill] = cmap.header.stats["coef_bytes"] + cmap.header.stats.get("residual_bytes", 0)
     # The refilled search is kept only when it is smaller.
     assert files["consistent"] <= files["smooth"], files
 
