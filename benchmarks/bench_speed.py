@@ -62,7 +62,7 @@ MIN_OVER_DRACO = 10.0        # times DracoPy's encoder speed, for compress (deco
 #: Stages timed inside compress: (label, module, attribute, depth). A stage's time
 #: includes the stages indented below it.
 COMPRESS_STAGES = (
-    ("check the points", encoder, "as_points", 0),
+    ("check and survey the points", encoder, "survey", 0),
     ("check heights", encoder, "check_heights", 0),
     ("fit the grid", encoder, "_fit_grid", 0),
     ("rasterize", encoder, "_rasterize", 0),

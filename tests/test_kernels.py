@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dftpcc import coding, fill, kernels, occupancy
-from dftpcc.errors import CorruptFileError
+from dftpcc.errors import CorruptFileError, InvalidInputError
 
 pytest.importorskip("numba")
 
@@ -399,7 +399,7 @@ def test_gridding_bits_equal(jit):
         assert out[True] == out[False], n
 
 
-def test_extremes_equal_numpys(jit):
+def test_survey_equals_numpys(jit):
     # One compiled pass gives numpy's minima and maxima; a zero among them goes to numpy
     # (which of 0.0 and -0.0 is the minimum is numpy's to say).
     from dftpcc import grid
@@ -411,15 +411,35 @@ def test_extremes_equal_numpys(jit):
     zeros[::7] = np.where(zeros[::7] == 0, -0.0, -zeros[::7])
     clouds.append(zeros)
     clouds.append(np.c_[rng.uniform(4e5, 5e5, (500, 2)), rng.uniform(-4e3, 9e3, 500), rng.random((500, 2))])
+    # Heights whose sum rounds differently in another order: the mean must be numpy's pairwise one.
+    clouds.append(np.c_[rng.random((70_001, 2)), rng.normal(0, 1, 70_001) * 10.0 ** rng.integers(-8, 9, 70_001)])
     for points in clouds:
         jit(True)
-        fast = grid.extremes(points)
+        fast = grid.survey(points)[1]
         jit(False)
-        slow = grid.extremes(points)
+        slow = grid.survey(points)[1]
         assert np.array(fast).tobytes() == np.array(slow).tobytes()
         assert fast == (points[:, 0].min(), points[:, 0].max(), points[:, 1].min(), points[:, 1].max(),
-                        points[:, 2].min(), points[:, 2].max())
-    assert kernels.extremes(zeros) is None
+                        points[:, 2].min(), points[:, 2].max(), points[:, 2].mean())
+        assert grid.extremes(points) == fast[:6]
+    assert kernels.survey(zeros) is None
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("column", [0, 1, 2])
+def test_survey_refuses_what_numpy_refuses(jit, bad, column):
+    """A NaN or an infinity anywhere: both paths refuse the cloud with one message."""
+    from dftpcc import grid
+
+    points = np.random.default_rng(2).normal(0, 10, (5000, 3))
+    points[4321, column] = bad
+    messages = []
+    for on in (True, False):
+        jit(on)
+        with pytest.raises(InvalidInputError) as info:
+            grid.survey(points)
+        messages.append(str(info.value))
+    assert messages[0] == messages[1] and "4321" in messages[0]
 
 
 def test_rebuilt_points_equal(jit):

@@ -403,25 +403,38 @@ def push(values, known, coarse, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def extremes(points):  # pragma: no cover - compiled
-    # The smallest and largest x, y and z of finite points (N, 3+), in one pass.
+def survey(points):  # pragma: no cover - compiled
+    # extremes and np.sum(points[:, 2]) (numpy's pairwise sum of the column: its leaves, each summed
+    # while its rows are in cache for the extremes), in one pass over the cloud; and whether a NaN
+    # was seen (a NaN is never an extreme; an infinity is).
+    n = points.shape[0]
     x_lo = y_lo = z_lo = np.inf
     x_hi = y_hi = z_hi = -np.inf
-    for i in range(points.shape[0]):
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        if x < x_lo:
-            x_lo = x
-        if x > x_hi:
-            x_hi = x
-        if y < y_lo:
-            y_lo = y
-        if y > y_hi:
-            y_hi = y
-        if z < z_lo:
-            z_lo = z
-        if z > z_hi:
-            z_hi = z
-    return x_lo, x_hi, y_lo, y_hi, z_lo, z_hi
+    nan = False
+    ops = _pairwise_plan(n)
+    leaves = _leaves(ops)
+    sums = np.empty(leaves.shape[0])
+    z = points[:, 2]
+    for k in range(leaves.shape[0]):
+        lo, m = leaves[k, 0], leaves[k, 1]
+        sums[k] = _leaf(z, lo, m)
+        for i in range(lo, lo + m):
+            x, y, h = points[i, 0], points[i, 1], points[i, 2]
+            if x < x_lo:
+                x_lo = x
+            if x > x_hi:
+                x_hi = x
+            if y < y_lo:
+                y_lo = y
+            if y > y_hi:
+                y_hi = y
+            if h < z_lo:
+                z_lo = h
+            if h > z_hi:
+                z_hi = h
+            if x != x or y != y or h != h:
+                nan = True
+    return x_lo, x_hi, y_lo, y_hi, z_lo, z_hi, _fold(ops, sums), nan
 
 
 @njit(cache=True, nogil=True)

@@ -264,11 +264,14 @@ def _as_xyz(points: np.ndarray) -> np.ndarray:
     return np.asarray(points[:, :3], dtype=np.float64)
 
 
-def as_points(points: np.ndarray) -> np.ndarray:
-    """``points`` as a finite (N, 3) float64 array with at least one row, or a clear error."""
+def as_points(points: np.ndarray, *, finite: bool = True) -> np.ndarray:
+    """``points`` as a finite (N, 3) float64 array with at least one row, or a clear error
+    (``finite=False``: not checked for NaN and infinities, for a caller whose own pass checks them)."""
     points = _as_xyz(points)
     if points.shape[0] == 0:
         raise InvalidInputError("the point cloud is empty")
+    if not finite:
+        return points
     # One sum is finite exactly when every value is (or when a huge value
     # overflowed it): the exact row-wise check runs only then.
     if np.isfinite(points.sum()):

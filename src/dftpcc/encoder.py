@@ -23,7 +23,7 @@ from .analysis import Analysis, Trial
 from .container import Header, TileIndex, check_grid, entry_bytes, pack, pack_tiled
 from .dem import DEM, as_points
 from .errors import CoarseMapWarning, InvalidInputError
-from .grid import _fit_grid, _rasterize, auto_resolution, extremes
+from .grid import Survey, _fit_grid, _rasterize, auto_resolution, survey
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
@@ -108,10 +108,9 @@ def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str,
     """
     on_stage("grid")
     params = params_of(params, shortcuts)
-    points = as_points(points)
-    x_lo, x_hi, y_lo, y_hi, z_lo, z_hi = extremes(points)
-    check_heights(z_lo, z_hi)  # before gridding overflows on them
-    return encode_dem(_grid_points(points, params, (x_lo, x_hi, y_lo, y_hi)), params,
+    points, known = survey(points)
+    check_heights(known.z_lo, known.z_hi)  # before gridding overflows on them
+    return encode_dem(_grid_points(points, params, known), params,
                       point_count=int(points.shape[0]), crs=crs, on_stage=on_stage)
 
 
@@ -120,12 +119,11 @@ def grid_points(points: np.ndarray, params: Params) -> DEM:
     return _grid_points(as_points(points), params)
 
 
-def _grid_points(points: np.ndarray, params: Params,
-                 xy_extremes: tuple[float, float, float, float] | None = None) -> DEM:
-    """:func:`grid_points` of checked points (``xy_extremes``: their x_lo, x_hi, y_lo, y_hi, if
-    known): each pass over millions of points counts."""
+def _grid_points(points: np.ndarray, params: Params, known: Survey | None = None) -> DEM:
+    """:func:`grid_points` of checked points (``known``: their :func:`~dftpcc.grid.survey`, if
+    made): each pass over millions of points counts."""
     resolution = auto_resolution(points) if params.resolution == "auto" else params.resolution
-    return _rasterize(points, _fit_grid(points, resolution, params.frame, xy_extremes), params.aggregate)
+    return _rasterize(points, _fit_grid(points, resolution, params.frame, known), params.aggregate)
 
 
 def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,

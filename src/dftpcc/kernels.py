@@ -35,6 +35,7 @@ Compiled code is cached beside the package (numba's ``cache=True``, or in
 
 from __future__ import annotations
 
+import math
 import os
 from typing import Any
 
@@ -42,7 +43,7 @@ import numpy as np
 
 __all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "decode_predicted", "encode_table_words",
            "decode_coded_values", "pull", "push",
-           "extremes", "cell_points",
+           "survey", "cell_points",
            "axis_cells", "cell_sums", "distance_sums", "plane_sums",
            "masked_errors", "quantization_sq_error", "weighted_sq_sum",
            "add_plane"]
@@ -208,11 +209,15 @@ def _compiled_module():
     return _compiled
 
 
-def extremes(points: np.ndarray) -> tuple[float, float, float, float, float, float] | None:
-    """x_lo, x_hi, y_lo, y_hi, z_lo, z_hi of finite float64 points (N, 3+), N > 0, in one pass; None
-    where numpy's reductions could differ (a zero among them: which of 0.0 and -0.0 is the minimum)."""
-    found = tuple(float(v) for v in _state["module"].extremes(points))
-    return None if 0.0 in found else found  # type: ignore[return-value]
+def survey(points: np.ndarray) -> tuple[float, float, float, float, float, float, float] | None:
+    """x_lo, x_hi, y_lo, y_hi, z_lo, z_hi and ``np.sum(points[:, 2])`` of float64 points (N, 3+), N > 0,
+    in one pass, to numpy's bits; None when a coordinate is not finite (the caller's numpy path says
+    which) or where numpy's reductions could differ (a zero extreme: which of 0.0 and -0.0 is the minimum)."""
+    *found, nan = _state["module"].survey(points)
+    extremes = tuple(float(v) for v in found[:6])
+    if nan or 0.0 in extremes or not all(math.isfinite(v) for v in extremes):
+        return None
+    return (*extremes, float(found[6]))  # type: ignore[return-value]
 
 
 def cell_points(mask: np.ndarray, xs: np.ndarray, ys: np.ndarray, heights: np.ndarray, z0: float) -> np.ndarray:
