@@ -653,11 +653,11 @@ def plane_sums(heights, mask, x, y, z):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq, far_at):  # pragma: no cover - compiled
+def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq):  # pragma: no cover - compiled
     # grid._SpreadCounter.add's figures in one pass: np.sum of sq = (z - heights[idx])**2, its
     # maximum (0 for no points), how many exceed tolerance_sq and np.sum of those (in order), their
-    # cells marked in far_cells; far_sq, far_at: the caller's scratch of one value per point (the
-    # far squares and their cells). A block with a far point keeps its far ones without branches
+    # cells marked in far_cells; far_sq: the caller's scratch of one value per point (the far
+    # squares). A block with a far point keeps its far ones and marks their cells without branches
     # (a forest's points are far or near at random); most blocks of ground have none.
     ops = _pairwise_plan(idx.size)
     leaves = _leaves(ops)
@@ -675,12 +675,11 @@ def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq, far_at):  # 
         largest = max(largest, block_max)
         if block_max > tolerance_sq:
             for i in range(n):
+                is_far = block[i] > tolerance_sq
                 far_sq[far] = block[i]
-                far_at[far] = cells[i]
-                far += block[i] > tolerance_sq
+                far += is_far
+                far_cells[cells[i]] |= is_far
         sums[k] = _leaf(block, 0, n)
-    for j in range(far):
-        far_cells[far_at[j]] = True
     return _fold(ops, sums), largest, far, array_sum(far_sq[:far])
 
 

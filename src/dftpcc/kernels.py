@@ -270,11 +270,11 @@ def distance_sums(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance
         raise ValueError("far_cells must be a contiguous bool array of one value per cell, as heights")
     if idx.shape != z.shape or idx.ndim != 1:
         raise ValueError("idx and z must be 1-d arrays of one value per point")
-    # The far squares and their cells, in order; numpy's allocation: see axis_cells.
-    far_sq, far_at = np.empty(idx.size), np.empty(idx.size, dtype=np.int64)
+    # The far squares, in order; numpy's allocation: see axis_cells.
+    far_sq = np.empty(idx.size)
     total, largest, far, far_total = _state["module"].distance_sums(
         np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(z, dtype=np.float64),
-        np.ascontiguousarray(heights, dtype=np.float64).reshape(-1), float(tolerance_sq), far_cells, far_sq, far_at)
+        np.ascontiguousarray(heights, dtype=np.float64).reshape(-1), float(tolerance_sq), far_cells, far_sq)
     return float(total), float(largest), int(far), float(far_total)
 
 
