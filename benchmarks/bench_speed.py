@@ -255,6 +255,66 @@ def cloud_section(name: str, resolution: float, data: Path, repeats: int) -> tup
     return "\n".join(lines), verdicts
 
 
+@contextmanager
+def cores(n: int | None) -> Iterator[None]:
+    """Inside: one map's coding on ``n`` cores (1: every stage in this thread and scipy.fft on one
+    worker, as the one-core tables; None: the library's defaults, every core the process may use:
+    the mask's coder beside the spectrum, scipy.fft on the cores left)."""
+    saved = kernels.CORES, spectrum.FFT_WORKERS
+    kernels.CORES, spectrum.FFT_WORKERS = (1, ONE_THREAD) if n == 1 else (None, -1)
+    try:
+        yield
+    finally:
+        kernels.CORES, spectrum.FFT_WORKERS = saved
+
+
+def two_core_rows(data: Path, repeats: int, clouds: list[str], *, dems: bool = True) -> list[list[str]]:
+    """Per input, compiled kernels: compress and decompress on one core and on two, the repeats of
+    the two settings interleaved (so that both see the same load), their bytes and points compared."""
+    inputs: list[tuple[str, Callable[[], bytes], Callable[[bytes], Any], int, str]] = []
+    for name, resolution in CLOUDS:
+        if name not in clouds:
+            continue
+        points = np.ascontiguousarray(dftpcc.read(data / "pointclouds" / name).points)
+        params = dftpcc.make_params(resolution=resolution, cutoff=CUTOFF)
+        inputs.append((name, lambda p=points, q=params: dftpcc.compress(p, q), dftpcc.decompress,
+                       points.shape[0], "pts"))
+    for path in sorted((data / "dems").glob("*.tif")) if dems else ():
+        dem, _ = dem_from_geotiff(path)
+        params = dftpcc.make_params(cutoff=CUTOFF)
+        inputs.append((path.name, lambda d=dem, q=params: encoder.encode_dem(d, q),
+                       lambda b: decoder.decode_dem(*container.unpack(b)).heights, dem.grid.size, "cells"))
+    rows = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for name, encode, decode, count, unit in inputs:
+            t: dict[tuple[str, int | None], list[float]] = {}
+            out: dict[int | None, tuple[bytes, Any]] = {}
+            for n in (1, None):
+                with cores(n):
+                    blob = encode()  # warm caches, outside the clocks
+                    out[n] = blob, decode(blob)
+            for _ in range(repeats):
+                for n in (1, None):
+                    with cores(n):
+                        for what, fn in (("compress", encode), ("decompress", lambda: decode(out[n][0]))):
+                            t0 = time.perf_counter()
+                            fn()
+                            t.setdefault((what, n), []).append(time.perf_counter() - t0)
+            same = out[1][0] == out[None][0] and np.array_equal(out[1][1], out[None][1])
+            decoded = out[1][1].shape[0] if unit == "pts" else count
+
+            def ratio(what: str) -> str:
+                return f"{med(t[(what, 1)]) / med(t[(what, None)]):.2f}x"
+
+            rows.append([name, f"{count:,} {unit}", span(t[("compress", 1)]), span(t[("compress", None)]),
+                         ratio("compress"), span(t[("decompress", 1)]), span(t[("decompress", None)]),
+                         ratio("decompress"),
+                         f"{count / med(t[('compress', None)]) / 1e6:.1f} / {decoded / med(t[('decompress', None)]) / 1e6:.1f}",
+                         "yes" if same else "NO"])
+    return rows
+
+
 def dem_path_rows(data: Path, repeats: int, compiled: bool) -> list[list[str]]:
     """Each DEM's row on the numpy path, then (``compiled``) with the kernels, the anchors timed again."""
     with numpy_path():
@@ -369,7 +429,8 @@ def main() -> None:
     args = parser.parse_args()
     repeats = args.repeats or (QUICK_REPEATS if args.quick else REPEATS)
     data = Path(args.data)
-    spectrum.FFT_WORKERS = ONE_THREAD  # scipy.fft on one worker, as every anchor here
+    # One core, as every anchor here: scipy.fft on one worker, no stage beside another.
+    spectrum.FFT_WORKERS, kernels.CORES = ONE_THREAD, 1
     compiled = kernels.load()  # numba's import and first calls happen here, outside every clock
     start = time.perf_counter()
     wanted = args.files or [name for name, _ in CLOUDS]
@@ -400,6 +461,26 @@ def main() -> None:
                 ["DEM", "cells", "forward DCT M cells/s", "inverse DCT M cells/s", "one inverse pass M cells/s",
                  "LERC encode M cells/s", "LERC decode M cells/s", "a forward and an inverse pass time / LERC encode time",
                  "one inverse pass time / half LERC decode time"], transform_rows(data, repeats)))
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    two_cores = ("### Two cores: the mask beside the spectrum (compiled kernels)\n\n"
+                 "Reported apart from the one-core figures above. One core: every stage in one thread and "
+                 "scipy.fft on one worker (the tables above). Two cores: the library's defaults on this "
+                 "2-core machine, the occupancy mask coded (or decoded) on a second thread while the spectrum "
+                 "is transformed, quantized and coded (`kernels.Side`, grids of at least "
+                 f"{kernels.SIDE_MIN_CELLS:,} cells), scipy.fft on the core left meanwhile and on both "
+                 "otherwise. The two settings' repeats alternate, so both see the same load; 'same' compares "
+                 "their files and decoded points. Rates: original points (or grid cells) per second for "
+                 "compress, decoded points (cells) per second for decompress.\n\n")
+    if not compiled:
+        parts.append(two_cores + "numba is not installed here, so nothing runs beside the spectrum.")
+    elif usable < 2:
+        parts.append(two_cores + f"Not measured: this process may use {usable} core (run it without taskset).")
+    else:
+        parts.append(two_cores + markdown_table(
+            ["input", "size", "compress ms, one core", "two cores", "speed-up", "decompress ms, one core",
+             "two cores", "speed-up", "two cores: M compressed / M decoded per s", "same"],
+            two_core_rows(data, repeats, [n for n, _ in CLOUDS if any(n.startswith(w) for w in wanted)],
+                          dems=not args.no_dems)))
     parts.append("### Start-up\n\nWall time of a fresh interpreter running each command (the interpreter's own "
                  "start included).\n\n" + markdown_table(["command", "ms median (range)"], startup_rows(repeats)))
     parts.append("### Targets\n\n" + "\n".join(f"- {v}" for v in verdicts))

@@ -619,3 +619,113 @@ def test_predicted_residual_decodes_alike_on_both_paths_whatever_its_words(jit):
         else:
             np.testing.assert_array_equal(outcomes[0], outcomes[1])
     assert kinds == {str, np.ndarray}  # some damage decodes, some is refused
+
+
+# --- A stage beside the spectrum (kernels.Side) -------------------------------------------------------
+
+
+@pytest.fixture
+def beside(jit, monkeypatch):
+    """The kernels loaded; yields a switch: ``use(n)`` lets one map's coding use ``n`` cores,
+    on grids of any size (the mask's coder then runs on a thread of its own for ``n`` > 1)."""
+    monkeypatch.setattr(kernels, "SIDE_MIN_CELLS", 0)
+
+    def use(cores: int) -> None:
+        monkeypatch.setattr(kernels, "CORES", cores)
+
+    return use
+
+
+def _patchy_points():
+    rng = np.random.default_rng(5)
+    x, y = rng.uniform(0, 150, (2, 80_000))
+    keep = (np.hypot(x - 75, y - 75) < 70) & (rng.random(x.size) < 0.8)
+    z = 4 * np.sin(x / 11) + 2 * np.cos(y / 7) + 0.05 * rng.standard_normal(x.size)
+    return np.c_[x, y, z][keep]
+
+
+def test_side_runs_on_a_thread_of_its_own_only_when_it_may(beside, monkeypatch):
+    import threading
+
+    where = []
+
+    def stage(value):
+        where.append(threading.current_thread())
+        return 2 * value
+
+    for cores, elsewhere in ((2, True), (1, False)):
+        beside(cores)
+        side = kernels.Side(stage, 21, cells=10)
+        assert side.result() == 42
+        assert (where[-1] is not threading.current_thread()) is elsewhere
+        assert side.cores_left == (1 if elsewhere else None)
+    beside(2)
+    monkeypatch.setattr(kernels, "SIDE_MIN_CELLS", 100)  # too small a grid: at once, here
+    assert kernels.Side(stage, 1, cells=99).cores_left is None and where[-1] is threading.current_thread()
+    monkeypatch.setenv("DFTPCC_JIT", "0")  # numpy's passes would wait for each other: at once, here
+    assert kernels.Side(stage, 1, cells=10**6).cores_left is None and where[-1] is threading.current_thread()
+
+
+def test_side_raises_its_stages_error(beside):
+    def stage():
+        raise CorruptFileError("the stage's own words")
+
+    for cores in (1, 2):
+        beside(cores)
+        with pytest.raises(CorruptFileError, match="the stage's own words"):
+            kernels.Side(stage, cells=10).result()
+
+
+def test_files_and_points_equal_with_the_mask_beside(beside):
+    """Untiled maps at a fixed step, with the automatic step and at targets: the same bytes, and the
+    same decoded points, whether the mask is coded beside the spectrum or before it."""
+    import dftpcc
+
+    points = _patchy_points()
+    for options in ({"cutoff": 0.7, "step": 0.01}, {"cutoff": 0.7}, {"target_rmse": 0.05},
+                    {"target_max_error": 0.05}, {"cutoff": 0.7, "mask": "footprint"}):
+        out = {}
+        for cores in (1, 2):
+            beside(cores)
+            blob = dftpcc.compress(points, resolution=0.5, **options)
+            out[cores] = blob, dftpcc.decompress(blob)
+        assert out[1][0] == out[2][0], options
+        assert np.array_equal(out[1][1], out[2][1]), options
+
+
+def test_a_damaged_file_fails_on_its_mask_first_with_the_mask_beside(beside):
+    """A file whose mask and coefficients are both damaged: the mask's error, as a serial decoder
+    (which checks the mask first) gives it, on one core or two."""
+    import dftpcc
+
+    from .fuzz import craft
+
+    blob = dftpcc.compress(_patchy_points(), resolution=0.5, cutoff=0.7)
+    mask = craft.section(blob, b"MASK")
+    coef = craft.section(blob, b"COEF")
+    other = dftpcc.compress(_patchy_points()[::2], resolution=0.5, cutoff=0.7)  # a valid mask of another count
+    for bad_mask, message in ((mask[:3], "occupancy mask"), (craft.section(other, b"MASK"), "disagrees with the header")):
+        damaged = craft.fix_crcs(craft.replace_section(craft.replace_section(blob, b"MASK", bad_mask),
+                                                       b"COEF", coef[: len(coef) // 3]))
+        errors = set()
+        for cores in (1, 2):
+            beside(cores)
+            with pytest.raises(CorruptFileError, match=message) as caught:
+                dftpcc.decompress(damaged)
+            errors.add(str(caught.value))
+        assert len(errors) == 1, errors
+
+
+def test_a_forked_child_codes_with_the_mask_beside(beside):
+    # A child forked after the pool's threads started has none of them: it must start its own, not
+    # wait for the parent's.
+    import multiprocessing
+
+    import dftpcc
+
+    beside(2)
+    points = _patchy_points()
+    blob = dftpcc.compress(points, resolution=0.5, cutoff=0.7)
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        child = pool.apply_async(dftpcc.compress, (points,), {"resolution": 0.5, "cutoff": 0.7})
+        assert child.get(timeout=60) == blob

@@ -76,3 +76,25 @@ def test_a_dct_corner_has_the_bits_of_the_whole_transform(shape):
     order, _, _ = spectrum.kept_order(lay, 0.8)
     corner_shape, where = spectrum.corner(lay, order)
     assert spectrum.forward(x.copy(), lay, corner=corner_shape).ravel()[where].tobytes() == whole.ravel()[order].tobytes()
+
+
+def test_fft_workers_hold_for_this_thread_and_leave_the_bits_alone():
+    import threading
+
+    rng = np.random.default_rng(3)
+    heights = rng.standard_normal((300, 170))
+    lay = spectrum.layout("dct", "quantized", heights.shape)
+    before = spectrum.forward(heights, lay), spectrum.inverse(spectrum.forward(heights, lay)[:40, :30], lay)
+    seen = {}
+    with spectrum.fft_workers(1):
+        seen["here"] = spectrum._fft_workers()
+        other = threading.Thread(target=lambda: seen.update(there=spectrum._fft_workers()))
+        other.start()
+        other.join()
+        inside = spectrum.forward(heights, lay), spectrum.inverse(spectrum.forward(heights, lay)[:40, :30], lay)
+        with spectrum.fft_workers(None):
+            seen["none"] = spectrum._fft_workers()
+    assert seen == {"here": 1, "there": spectrum.FFT_WORKERS, "none": spectrum.FFT_WORKERS}
+    assert spectrum._fft_workers() == spectrum.FFT_WORKERS
+    for a, b in zip(before, inside):
+        assert a.tobytes() == b.tobytes()

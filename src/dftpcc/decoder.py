@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import coding, occupancy, spectrum, tiles
+from . import coding, kernels, occupancy, spectrum, tiles
 from .container import Header
 from .dem import DEM
 from .errors import CorruptFileError, InvalidInputError
@@ -46,9 +46,36 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
         if cutoff < params.cutoff:
             raise InvalidInputError(
                 f"cannot decode at cutoff {cutoff}: the file keeps only frequencies up to cutoff {params.cutoff}")
-    mask = occupancy.decode_mask(blobs[b"MASK"], grid.shape)
+    # The mask decodes beside the spectrum (on a second core, with the compiled kernels); a damaged
+    # file still fails on its mask first, as a serial decoder checks it first.
+    side = kernels.Side(occupancy.decode_mask, blobs[b"MASK"], grid.shape, cells=grid.size)
+    try:
+        with spectrum.fft_workers(side.cores_left):
+            heights, complete = _spectrum_heights(header, blobs, cutoff, allow_partial)
+    except Exception:
+        _checked_mask(side.result(), header)
+        raise
+    mask = _checked_mask(side.result(), header)
+    if b"RESD" in blobs and complete:
+        # The residual layer only applies to the full-resolution map it was computed for.
+        q = decode_residual(blobs[b"RESD"], mask)
+        heights[mask] += q * residual_step(params.target_max_error)
+    if not np.isfinite(heights).all() and not np.isfinite(heights[mask]).all():
+        raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
+    return DEM(grid=grid, heights=heights, mask=mask)
+
+
+def _checked_mask(mask: np.ndarray, header: Header) -> np.ndarray:
     if int(mask.sum()) != header.cell_count:
         raise CorruptFileError("occupancy mask disagrees with the header's cell count")
+    return mask
+
+
+def _spectrum_heights(header: Header, blobs: dict[bytes, Any], cutoff: float | None,
+                      allow_partial: bool) -> tuple[np.ndarray, bool]:
+    """The heights of an untiled file's coefficients and plane (relative to z0, before any residual
+    layer), and whether every coefficient was decoded at the file's own cutoff."""
+    params, grid = header.params, header.grid
     lay = spectrum.layout(params.transform, params.storage, grid.shape)
     order, radii, angles = spectrum.kept_order(lay, params.cutoff)
     n = spectrum.kept_count(lay, params.cutoff, radii)  # all of them (a search, not a pass over the grid)
@@ -83,14 +110,7 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     heights = spectrum.inverse(coefs, lay)
     if params.detrend == "plane":
         add_plane(heights, header.plane)
-    complete = values.size == n and cutoff is None
-    if b"RESD" in blobs and complete:
-        # The residual layer only applies to the full-resolution map it was computed for.
-        q = decode_residual(blobs[b"RESD"], mask)
-        heights[mask] += q * residual_step(params.target_max_error)
-    if not np.isfinite(heights).all() and not np.isfinite(heights[mask]).all():
-        raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
-    return DEM(grid=grid, heights=heights, mask=mask)
+    return heights, values.size == n and cutoff is None
 
 
 class _Base:

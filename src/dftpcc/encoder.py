@@ -221,29 +221,35 @@ def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs:
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
     mask_blob: bytes | TiledMasks
+    side = None
     if isinstance(an, TiledAnalysis):
         mask_blob = tiled_masks(an) if masks is None else masks
-    else:
-        mask_blob = occupancy.encode_mask(an.kept_cells)
+    else:  # coded beside the trial and the coefficients (on a second core, with the compiled kernels)
+        side = kernels.Side(occupancy.encode_mask, an.kept_cells, cells=dem.grid.size)
 
     on_stage("encode")
     if not params.has_target:
         cutoff, step = params.cutoff_or_default, params.step
-        if params.storage == "quantized" and step == 0.0:
-            target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
-            step = coding.choose_step(an.largest(cutoff), target_rmse=target,
-                                      n_cells=dem.grid.size, deadzone=params.deadzone)
-        if params.storage == "quantized":
-            _check_step(an, cutoff, step)
-        # No refill without a target: at a fixed step it lowers the error by a
-        # few per cent rather than the size, for two more transforms.
-        # The file's statistics are made of this trial's errors: kept, not computed again.
-        trial = an.trial(cutoff, step) if tile else an.trial(cutoff, step, keep_errors=True)
-        if params.step == 0.0:
-            _flag_coarse(dem, trial, occupied_heights)
-        coefs = b"" if tile else an.encode(trial)  # a tiled map codes its tiles when packing
+        with spectrum.fft_workers(None if side is None else side.cores_left):
+            if params.storage == "quantized" and step == 0.0:
+                target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
+                step = coding.choose_step(an.largest(cutoff), target_rmse=target,
+                                          n_cells=dem.grid.size, deadzone=params.deadzone)
+            if params.storage == "quantized":
+                _check_step(an, cutoff, step)
+            # No refill without a target: at a fixed step it lowers the error by a
+            # few per cent rather than the size, for two more transforms.
+            # The file's statistics are made of this trial's errors: kept, not computed again.
+            trial = an.trial(cutoff, step) if tile else an.trial(cutoff, step, keep_errors=True)
+            if params.step == 0.0:
+                _flag_coarse(dem, trial, occupied_heights)
+            coefs = b"" if tile else an.encode(trial)  # a tiled map codes its tiles when packing
+        if side is not None:
+            mask_blob = side.result()
         return (_pack(Choice(an, trial, coefs), params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles),
                 cutoff)
+    if side is not None:  # rate control weighs the mask's bytes from its start
+        mask_blob = side.result()
     # Rate control. For a size target the header's own bytes count too: start
     # from an estimate, then shrink the budget by any overshoot.
     overhead = _length(mask_blob) + HEADER_ESTIMATE

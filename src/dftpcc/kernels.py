@@ -37,11 +37,13 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["load", "enabled", "mask_contexts", "encode_mask_words", "decode_mask_lines", "decode_predicted", "encode_table_words",
+__all__ = ["load", "enabled", "Side", "CORES", "SIDE_MIN_CELLS", "mask_contexts", "encode_mask_words", "decode_mask_lines", "decode_predicted", "encode_table_words",
            "decode_coded_values", "pull", "push",
            "survey", "cell_points",
            "axis_cells", "cell_sums", "distance_sums", "plane_sums",
@@ -80,6 +82,73 @@ def enabled() -> bool:
     if _state["module"] is None and not _state["tried"] and _env() == "1":
         load()
     return _state["module"] is not None
+
+
+#: Cores one map's coding may use at once; None: every core this process may run on
+#: (``os.sched_getaffinity``, so ``taskset`` counts). 1 keeps every stage in the caller's thread.
+CORES: int | None = None
+
+#: A stage runs beside the caller only on grids of at least this many cells: below, its
+#: fraction of a millisecond is not worth a thread's hand-over (about 0.1 ms).
+SIDE_MIN_CELLS = 1 << 18
+
+_pool: dict[str, ThreadPoolExecutor] = {}
+_pool_lock = threading.Lock()
+
+
+def _cores() -> int:
+    if CORES is not None:
+        return max(1, int(CORES))
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+class Side:
+    """``fn(*args)`` run on a thread of its own, beside the caller's work on the same map, or at once.
+
+    Beside the caller when the compiled kernels are in use (they release the GIL for their whole
+    pass; numpy's many short passes and constriction's calls would mostly wait for each other),
+    the process may use more than one core (:data:`CORES`) and the grid has at least
+    :data:`SIDE_MIN_CELLS` cells; otherwise ``fn`` runs at once, in the caller's thread, as a serial
+    coder would. Either way :meth:`result` gives its value or raises its error: the bytes do not
+    depend on where it ran. The occupancy mask's coder is the stage that runs so (its own
+    arrays, nothing shared with the spectrum's): ``encoder`` and ``decoder`` use it.
+
+    Attributes
+    ----------
+    cores_left : int or None
+        Cores the caller's own work may use meanwhile (for :func:`dftpcc.spectrum.fft_workers`);
+        None when nothing runs beside it.
+    """
+
+    def __init__(self, fn: Callable[..., Any], *args: Any, cells: int):
+        cores = _cores() if enabled() and cells >= SIDE_MIN_CELLS else 1
+        self._future: Future | None = None
+        self.cores_left: int | None = None
+        if cores > 1:
+            self._future = _executor().submit(fn, *args)
+            self.cores_left = cores - 1
+        else:
+            self._value = fn(*args)
+
+    def result(self) -> Any:
+        """``fn(*args)``, waiting for it if it runs beside; its exception if it raised one."""
+        return self._value if self._future is None else self._future.result()
+
+
+if hasattr(os, "register_at_fork"):  # a forked child has none of the pool's threads: it makes its own
+    os.register_at_fork(after_in_child=_pool.clear)
+
+
+def _executor() -> ThreadPoolExecutor:
+    # One pool for the process; several callers (zarr's chunk threads) may each have a stage beside.
+    with _pool_lock:
+        if "pool" not in _pool:
+            _pool["pool"] = ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 2),
+                                               thread_name_prefix="dftpcc-side")
+        return _pool["pool"]
 
 
 def encode_mask_words(lines: np.ndarray, ctx: np.ndarray, stripe: int, prior_ones: np.ndarray,

@@ -24,10 +24,11 @@ frequencies whichever transform is used.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import threading
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import scipy.fft as sfft
@@ -38,6 +39,7 @@ __all__ = [
     "radius_limit",
     "forward",
     "inverse",
+    "fft_workers",
     "corner",
     "kept_order",
     "kept_count",
@@ -47,6 +49,30 @@ __all__ = [
 
 #: Worker threads for scipy.fft; -1 uses every core.
 FFT_WORKERS = -1
+
+#: This thread's worker count while :func:`fft_workers` holds one.
+_this_thread = threading.local()
+
+
+@contextlib.contextmanager
+def fft_workers(workers: int | None) -> Iterator[None]:
+    """Run this thread's transforms on ``workers`` threads (None: :data:`FFT_WORKERS`) inside the block.
+
+    For a stage of the same map running beside them on another core (:class:`dftpcc.kernels.Side`):
+    the transforms then take the cores it leaves. The coefficients' bits do not depend on it (each
+    1-D line is transformed whole by one thread).
+    """
+    before = getattr(_this_thread, "workers", None)
+    _this_thread.workers = workers
+    try:
+        yield
+    finally:
+        _this_thread.workers = before
+
+
+def _fft_workers() -> int:
+    workers = getattr(_this_thread, "workers", None)
+    return FFT_WORKERS if workers is None else workers
 
 
 class Layout:
@@ -206,14 +232,14 @@ def forward(values: np.ndarray, lay: Layout, *, overwrite: bool = False,
     whatever corner is asked.
     """
     if lay.kind == "full":
-        return sfft.fftshift(sfft.fft2(values, workers=FFT_WORKERS))
+        return sfft.fftshift(sfft.fft2(values, workers=_fft_workers()))
     if lay.kind == "half":
-        return sfft.rfft2(values, norm="ortho", workers=FFT_WORKERS)
+        return sfft.rfft2(values, norm="ortho", workers=_fft_workers())
     kr, kc = lay.coef_shape if corner is None else corner
     rows, cols = lay.shape
 
     def dct(x: np.ndarray, axis: int, **kw) -> np.ndarray:
-        return sfft.dct(x, type=2, axis=axis, norm="ortho", workers=FFT_WORKERS, **kw)
+        return sfft.dct(x, type=2, axis=axis, norm="ortho", workers=_fft_workers(), **kw)
 
     if rows > cols:
         return dct(dct(values, 0, overwrite_x=overwrite)[:kr], 1)[:, :kc]
@@ -231,13 +257,13 @@ def inverse(coefs: np.ndarray, lay: Layout, *, first_axis: int | None = None) ->
     order gives the same bits as the whole zero-padded array in that order.
     """
     if lay.kind == "full":
-        return sfft.ifft2(sfft.ifftshift(coefs), workers=FFT_WORKERS).real
+        return sfft.ifft2(sfft.ifftshift(coefs), workers=_fft_workers()).real
     if lay.kind == "half":
-        return sfft.irfft2(coefs, s=lay.shape, norm="ortho", workers=FFT_WORKERS)
+        return sfft.irfft2(coefs, s=lay.shape, norm="ortho", workers=_fft_workers())
     (n, m), (kr, kc) = lay.shape, coefs.shape
 
     def idct(x: np.ndarray, size: int, axis: int) -> np.ndarray:  # zero-pads x to size
-        return sfft.idct(x, type=2, n=size, axis=axis, norm="ortho", workers=FFT_WORKERS)
+        return sfft.idct(x, type=2, n=size, axis=axis, norm="ortho", workers=_fft_workers())
 
     if first_axis is None:
         first_axis = 1 if kr * m <= n * kc else 0
