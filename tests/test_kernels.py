@@ -658,12 +658,19 @@ def test_side_runs_on_a_thread_of_its_own_only_when_it_may(beside, monkeypatch):
         side = kernels.Side(stage, 21, cells=10)
         assert side.result() == 42
         assert (where[-1] is not threading.current_thread()) is elsewhere
-        assert side.cores_left == (1 if elsewhere else None)
+        assert side.cores_left() is None  # done: no limit left on the caller
     beside(2)
+    release = threading.Event()
+    side = kernels.Side(release.wait, 30, cells=10)
+    assert side.cores_left() == 1  # while it runs, the caller has the other core
+    release.set()
+    assert side.result() is True and side.cores_left() is None
     monkeypatch.setattr(kernels, "SIDE_MIN_CELLS", 100)  # too small a grid: at once, here
-    assert kernels.Side(stage, 1, cells=99).cores_left is None and where[-1] is threading.current_thread()
+    kernels.Side(stage, 1, cells=99)
+    assert where[-1] is threading.current_thread()
     monkeypatch.setenv("DFTPCC_JIT", "0")  # numpy's passes would wait for each other: at once, here
-    assert kernels.Side(stage, 1, cells=10**6).cores_left is None and where[-1] is threading.current_thread()
+    kernels.Side(stage, 1, cells=10**6)
+    assert where[-1] is threading.current_thread()
 
 
 def test_side_raises_its_stages_error(beside):

@@ -94,7 +94,11 @@ def test_fft_workers_hold_for_this_thread_and_leave_the_bits_alone():
         inside = spectrum.forward(heights, lay), spectrum.inverse(spectrum.forward(heights, lay)[:40, :30], lay)
         with spectrum.fft_workers(None):
             seen["none"] = spectrum._fft_workers()
-    assert seen == {"here": 1, "there": spectrum.FFT_WORKERS, "none": spectrum.FFT_WORKERS}
+        asked = iter([1, None])
+        with spectrum.fft_workers(lambda: next(asked)):  # asked before each transform
+            seen["asked"] = spectrum._fft_workers(), spectrum._fft_workers()
+    assert seen == {"here": 1, "there": spectrum.FFT_WORKERS, "none": spectrum.FFT_WORKERS,
+                    "asked": (1, spectrum.FFT_WORKERS)}
     assert spectrum._fft_workers() == spectrum.FFT_WORKERS
     for a, b in zip(before, inside):
         assert a.tobytes() == b.tobytes()

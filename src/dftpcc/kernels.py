@@ -116,22 +116,23 @@ class Side:
     depend on where it ran. The occupancy mask's coder is the stage that runs so (its own
     arrays, nothing shared with the spectrum's): ``encoder`` and ``decoder`` use it.
 
-    Attributes
-    ----------
-    cores_left : int or None
-        Cores the caller's own work may use meanwhile (for :func:`dftpcc.spectrum.fft_workers`);
-        None when nothing runs beside it.
     """
 
     def __init__(self, fn: Callable[..., Any], *args: Any, cells: int):
         cores = _cores() if enabled() and cells >= SIDE_MIN_CELLS else 1
         self._future: Future | None = None
-        self.cores_left: int | None = None
+        self._left = cores - 1
         if cores > 1:
             self._future = _executor().submit(fn, *args)
-            self.cores_left = cores - 1
         else:
             self._value = fn(*args)
+
+    def cores_left(self) -> int | None:
+        """The cores the caller's own work may use now: all but this stage's while it runs, None
+        (no limit) once it is done or when it ran at once. For :func:`dftpcc.spectrum.fft_workers`,
+        which asks before each transform: a map whose mask codes in no time (a full raster) keeps
+        every core for its transforms."""
+        return None if self._future is None or self._future.done() else self._left
 
     def result(self) -> Any:
         """``fn(*args)``, waiting for it if it runs beside; its exception if it raised one."""

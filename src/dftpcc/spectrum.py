@@ -55,12 +55,13 @@ _this_thread = threading.local()
 
 
 @contextlib.contextmanager
-def fft_workers(workers: int | None) -> Iterator[None]:
-    """Run this thread's transforms on ``workers`` threads (None: :data:`FFT_WORKERS`) inside the block.
+def fft_workers(workers: int | Callable[[], int | None] | None) -> Iterator[None]:
+    """Run this thread's transforms on ``workers`` threads (None: :data:`FFT_WORKERS`) inside the block;
+    a callable is asked before each transform.
 
-    For a stage of the same map running beside them on another core (:class:`dftpcc.kernels.Side`):
-    the transforms then take the cores it leaves. The coefficients' bits do not depend on it (each
-    1-D line is transformed whole by one thread).
+    For a stage of the same map running beside them on another core (:meth:`dftpcc.kernels.Side.cores_left`):
+    the transforms then take the cores it leaves while it runs. The coefficients' bits do not depend
+    on it (each 1-D line is transformed whole by one thread).
     """
     before = getattr(_this_thread, "workers", None)
     _this_thread.workers = workers
@@ -72,6 +73,8 @@ def fft_workers(workers: int | None) -> Iterator[None]:
 
 def _fft_workers() -> int:
     workers = getattr(_this_thread, "workers", None)
+    if callable(workers):
+        workers = workers()
     return FFT_WORKERS if workers is None else workers
 
 
