@@ -39,7 +39,8 @@ bench-memory: $(STAMP)
 bench-zarr: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_zarr $(ARGS)
 
-# Per-stage speed on one core against DracoPy, LERC and HTJ2K (~1 min; ARGS=--quick for 3 repeats): rewrites its section of docs/benchmarks.md.
+# Per-stage speed on one core against DracoPy, LERC and HTJ2K, then one core against two apart (~1 min; needs both cores, so no taskset;
+# ARGS=--quick for 3 repeats): rewrites its section of docs/benchmarks.md.
 .PHONY: bench-speed
 bench-speed: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_speed $(ARGS)

@@ -31,6 +31,10 @@ lives for a whole drive) or the environment variable ``DFTPCC_JIT=1``.
 (the ``fast`` extra) everything runs on numpy, with the same files.
 Compiled code is cached beside the package (numba's ``cache=True``, or in
 ``NUMBA_CACHE_DIR``), so only the first run on a machine compiles.
+
+As the kernels release the GIL, a stage of a map can run on another core
+beside the caller's work on the same map (:class:`Side`: the occupancy mask
+while the spectrum is coded or decoded), with the same bytes.
 """
 
 from __future__ import annotations
