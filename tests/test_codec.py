@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -243,3 +245,31 @@ def test_another_fill_plugs_into_the_encoder(small_terrain):
     zeros = encode_dem(dem, params, fill=lambda h, m, method: np.where(m, h, 0.0))
     assert zeros != encode_dem(dem, params)
     assert dftpcc.open(zeros).header.stats["dem_rmse_m"] <= 0.05
+
+
+def _shrubland(seed: int = 5) -> np.ndarray:
+    """Nearly flat ground (10 cm of relief) under points scattered by 0.5 m (shrubs): the
+    automatic step follows the scatter, so it is coarse for the map's own relief."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 60, (40_000, 2))
+    ground = 0.1 * np.sin(xy[:, 0] / 9) * np.cos(xy[:, 1] / 11)
+    return np.column_stack([xy, ground + np.abs(rng.normal(0, 0.5, len(xy)))])
+
+
+def test_an_automatic_step_coarser_than_the_relief_warns():
+    from dftpcc.errors import CoarseMapWarning
+
+    with pytest.warns(CoarseMapWarning, match=r"automatic step of [0-9.]+ m .* keep ground points only"):
+        dftpcc.compress(_shrubland(), resolution=1.0)
+    with warnings.catch_warnings():  # a step the user gave is theirs: no warning
+        warnings.simplefilter("error", CoarseMapWarning)
+        dftpcc.compress(_shrubland(), resolution=1.0, step=0.5)
+
+
+def test_a_map_without_a_step_does_not_warn_of_one():
+    # The paper profile stores the coefficients themselves: there is no step to call coarse.
+    from dftpcc.errors import CoarseMapWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CoarseMapWarning)
+        dftpcc.compress(_shrubland(), resolution=1.0, profile="paper")

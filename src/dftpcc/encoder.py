@@ -241,7 +241,7 @@ def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs:
             # few per cent rather than the size, for two more transforms.
             # The file's statistics are made of this trial's errors: kept, not computed again.
             trial = an.trial(cutoff, step) if tile else an.trial(cutoff, step, keep_errors=True)
-            if params.step == 0.0:
+            if params.step == 0.0 and params.storage == "quantized":  # a step was chosen for the user
                 _flag_coarse(dem, trial, occupied_heights)
             coefs = b"" if tile else an.encode(trial)  # a tiled map codes its tiles when packing
         if side is not None:
