@@ -461,7 +461,7 @@ def main() -> None:
                 ["DEM", "cells", "forward DCT M cells/s", "inverse DCT M cells/s", "one inverse pass M cells/s",
                  "LERC encode M cells/s", "LERC decode M cells/s", "a forward and an inverse pass time / LERC encode time",
                  "one inverse pass time / half LERC decode time"], transform_rows(data, repeats)))
-    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    usable = kernels.available_cores()
     two_cores = ("### Two cores: the mask beside the spectrum (compiled kernels)\n\n"
                  "Reported apart from the one-core figures above. One core: every stage in one thread and "
                  "scipy.fft on one worker (the tables above). Two cores: the library's defaults on this "

@@ -47,7 +47,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["load", "enabled", "Side", "CORES", "SIDE_MIN_CELLS", "mask_contexts", "encode_mask_words", "decode_mask_lines", "decode_predicted", "encode_table_words",
+__all__ = ["load", "enabled", "Side", "CORES", "SIDE_MIN_CELLS", "available_cores", "mask_contexts", "encode_mask_words", "decode_mask_lines", "decode_predicted", "encode_table_words",
            "decode_coded_values", "pull", "push",
            "survey", "cell_points",
            "axis_cells", "cell_sums", "distance_sums", "plane_sums",
@@ -89,7 +89,7 @@ def enabled() -> bool:
 
 
 #: Cores one map's coding may use at once; None: every core this process may run on
-#: (``os.sched_getaffinity``, so ``taskset`` counts). 1 keeps every stage in the caller's thread.
+#: (:func:`available_cores`). 1 keeps every stage in the caller's thread.
 CORES: int | None = None
 
 #: A stage runs beside the caller only on grids of at least this many cells, where a patchy mask's
@@ -101,13 +101,16 @@ _pool: dict[str, ThreadPoolExecutor] = {}
 _pool_lock = threading.Lock()
 
 
-def _cores() -> int:
-    if CORES is not None:
-        return max(1, int(CORES))
+def available_cores() -> int:
+    """The cores this process may run on (``os.sched_getaffinity``, so ``taskset`` counts)."""
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         return os.cpu_count() or 1
+
+
+def _cores() -> int:
+    return available_cores() if CORES is None else max(1, int(CORES))
 
 
 class Side:
@@ -120,7 +123,6 @@ class Side:
     coder would. Either way :meth:`result` gives its value or raises its error: the bytes do not
     depend on where it ran. The occupancy mask's coder is the stage that runs so (its own
     arrays, nothing shared with the spectrum's): ``encoder`` and ``decoder`` use it.
-
     """
 
     def __init__(self, fn: Callable[..., Any], *args: Any, cells: int):
