@@ -46,6 +46,10 @@ LATTICE_TOLERANCE = 1e-6
 #: Margin, in cells, around a rotated grid (see fit_grid).
 ROTATED_MARGIN = 1e-6
 
+#: Minimum-area rectangles whose areas differ by less than this fraction are a tie (oriented
+#: frame), broken by the smallest angle.
+ANGLE_TIE_TOLERANCE = 1e-9
+
 #: ``auto`` resolution aims at this many points per occupied cell.
 AUTO_POINTS_PER_CELL = 4.0
 
@@ -118,7 +122,10 @@ def _min_area_angle(xy: np.ndarray) -> float:
     u = c * hull[:, 0] + s * hull[:, 1]
     v = -s * hull[:, 0] + c * hull[:, 1]
     areas = np.ptp(u, axis=1) * np.ptp(v, axis=1)
-    return float(angles[int(np.argmin(areas))])
+    # Rectangles of equal area (a tie in exact arithmetic) differ in their last bits with the
+    # points' centre: the hull of a whole cloud and of its chunks must choose the same one.
+    tied = areas <= areas.min() * (1.0 + ANGLE_TIE_TOLERANCE)
+    return float(angles[int(np.argmax(tied))])  # the smallest angle of the tie
 
 
 def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> Grid:
