@@ -37,7 +37,8 @@ from typing import Any, Callable, Iterator  # noqa: E402
 import numpy as np  # noqa: E402
 
 import dftpcc  # noqa: E402
-from dftpcc import analysis, coding, container, decoder, encoder, kernels, mapfile, occupancy, spectrum  # noqa: E402
+from dftpcc import analysis, coding, decoder, encoder, kernels, mapfile, occupancy, spectrum  # noqa: E402
+from dftpcc import format as fmt  # noqa: E402
 from dftpcc.files import dem_from_geotiff  # noqa: E402
 
 from benchmarks.common import (  # noqa: E402
@@ -283,7 +284,7 @@ def two_core_rows(data: Path, repeats: int, clouds: list[str], *, dems: bool = T
         dem, _ = dem_from_geotiff(path)
         params = dftpcc.make_params(cutoff=CUTOFF)
         inputs.append((path.name, lambda d=dem, q=params: encoder.encode_dem(d, q),
-                       lambda b: decoder.decode_dem(*container.unpack(b)).heights, dem.grid.size, "cells"))
+                       lambda b: decoder.decode_dem(*fmt.reader.unpack(b)).heights, dem.grid.size, "cells"))
     rows = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -338,7 +339,7 @@ def dem_rows(data: Path, repeats: int) -> list[list[str]]:
             encode = lambda: encoder.encode_dem(dem, params)  # noqa: E731
             encode()
             t_c, blob = walls(encode, repeats)
-            t_d, _ = walls(lambda: decoder.decode_dem(*container.unpack(blob)), repeats)
+            t_d, _ = walls(lambda: decoder.decode_dem(*fmt.reader.unpack(blob)), repeats)
         bound = float(dftpcc.open(blob).header.stats["dem_max_error_m"])
         heights, valid = dem.heights, dem.mask.astype(np.uint8)
 

@@ -41,7 +41,7 @@ from benchmarks import max_error
 from benchmarks.bench_anchors import CASES
 from benchmarks.common import DEFAULT_DATA, library_label, load, load_average, markdown_table, pick_cases
 from benchmarks.rasters import make_raster
-from dftpcc.container import _sections
+from dftpcc.format.reader import _sections
 from dftpcc.residual import decode_residual
 
 #: Classes of context activity, each holding the same share of the cells.

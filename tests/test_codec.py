@@ -203,7 +203,8 @@ def test_file_records_what_the_dem_cannot_represent():
 
 def test_stated_errors_round_up_even_when_subnormal():
     # hypothesis once found a map whose error was 5e-324 m
-    from dftpcc.container import _F32, _f32_up
+    from dftpcc.format.sections import F32 as _F32
+    from dftpcc.format.sections import f32_up as _f32_up
 
     for value in (0.0, 5e-324, 1e-310, 1e-45, 0.017891234567, 0.1, 0.10000000100, 2.0, 123456.789, 3e38):
         (stored,) = _F32.unpack(_f32_up(value))

@@ -19,7 +19,7 @@ import pytest
 import zstandard
 
 import dftpcc
-from dftpcc import container
+from dftpcc import format as fmt
 from dftpcc.dem import Grid
 from dftpcc.errors import CorruptFileError, InvalidInputError, ResourceLimitError
 
@@ -105,7 +105,7 @@ def test_the_widest_64_bit_tile_is_read_and_skipped(good):
     extra = b"future tile"
     entries = [craft.entry(t, 0, len(p), zlib.crc32(p)) for t, p in sections]
     entries.append(craft.entry(b"GEOM", (1 << 64) - 1, len(extra), zlib.crc32(extra)))
-    head = craft.PREAMBLE.pack(container.MAGIC, 1, 0, 0, len(entries)) + b"".join(entries)
+    head = craft.PREAMBLE.pack(fmt.sections.MAGIC, 1, 0, 0, len(entries)) + b"".join(entries)
     tiled = head + craft.CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections) + extra
     assert len(craft.leb128((1 << 64) - 1)) == 10
     np.testing.assert_array_equal(dftpcc.decompress(tiled), dftpcc.decompress(good))
@@ -267,7 +267,7 @@ def test_a_huge_but_allowed_target_writes_a_file_the_reader_opens(cloud_file, ta
     points = np.load(cloud_file)
     data = dftpcc.compress(points, resolution=1.0, **target)
     with dftpcc.open(data) as m:
-        assert 0 < m.params.step <= container.MAX_COORDINATE_M
+        assert 0 < m.params.step <= fmt.validate.MAX_COORDINATE_M
         assert np.isfinite(m.read_points()).all()
 
 
@@ -280,17 +280,17 @@ def test_a_grid_beyond_the_coordinate_limit_is_refused_before_any_work(monkeypat
         encoder.compress(points, resolution=10.0)
 
 
-def _header(**changes) -> container.Header:
+def _header(**changes) -> fmt.header.Header:
     grid = Grid(x0=0.0, y0=0.0, z0=0.0, resolution=1.0, rows=4, cols=5)
     fields = dict(grid=grid, params=dftpcc.make_params(resolution=1.0, cutoff=0.5, step=0.01),
                   point_count=20, cell_count=20, coef_count=7, stats={"dem_rmse_m": 0.1})
     fields.update(changes)
-    return container.Header(**fields)
+    return fmt.header.Header(**fields)
 
 
 def test_pack_writes_what_unpack_reads():
-    data = container.pack(_header(), b"mask", b"coef")
-    header, blobs = container.unpack(data)
+    data = fmt.writer.pack(_header(), b"mask", b"coef")
+    header, blobs = fmt.reader.unpack(data)
     assert (header.grid, header.coef_count, blobs[b"MASK"].tobytes()) == (_header().grid, 7, b"mask")
 
 
@@ -317,4 +317,4 @@ def test_pack_writes_what_unpack_reads():
 ])
 def test_pack_refuses_a_header_the_reader_would_refuse(changes, message):
     with pytest.raises(InvalidInputError, match=f"cannot write this map: .*{message}"):
-        container.pack(_header(**changes), b"mask", b"coef")
+        fmt.writer.pack(_header(**changes), b"mask", b"coef")

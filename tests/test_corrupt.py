@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 
 import dftpcc
-from dftpcc import cli, container, encoder, limits
+from dftpcc import cli, encoder, limits
+from dftpcc import format as fmt
 from dftpcc.errors import (
     CorruptFileError,
     DftpccError,
@@ -283,7 +284,7 @@ def test_info_prints_a_stat_section_with_unusual_fields(capsys, tmp_path, good):
     stats["vertical_rmse_m"] = 0.01
     stored = {k: v for k, v in stats.items() if k not in ("mask_bytes", "coef_bytes", "residual_bytes")}
     path = tmp_path / "odd.dftpc"
-    path.write_bytes(craft.replace_section(good, b"STAT", container._pack_stats(stored)))
+    path.write_bytes(craft.replace_section(good, b"STAT", fmt.header.pack_stats(stored)))
     assert cli.main(["info", str(path)]) == 0
     out, err = capsys.readouterr()
     assert err == ""
@@ -381,7 +382,7 @@ def test_the_largest_grid_a_small_file_gets_decodes_within_its_budget(profile, t
 def test_binary_stat_round_trips_and_skips_fields_it_does_not_know(good):
     stats = dftpcc.open(good).header.stats
     raw = craft.section(good, b"STAT")
-    assert raw[0] == container.STAT_BINARY
+    assert raw[0] == fmt.header.STAT_BINARY
     # A later writer's fields: one float (id 99) and one integer (id 200), in front.
     later = raw[:1] + b"\x63" + b"\x00\x00\x80\x3f" + b"\xc8\x96\x01" + raw[1:]
     assert dftpcc.open(craft.replace_section(good, b"STAT", later)).header.stats == stats

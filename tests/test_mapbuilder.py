@@ -11,7 +11,9 @@ import pytest
 
 import dftpcc
 from dftpcc.cli import main
-from dftpcc.container import Source, read_tile, unpack_source
+from dftpcc.format.source import Source
+from dftpcc.format.reader import read_tile
+from dftpcc.format.reader import unpack_source
 from dftpcc.errors import InvalidInputError
 from dftpcc.mapbuilder import HEIGHT_QUANTUM_M, MapBuilder, StateRecoveredWarning, is_growing, state_path
 from dftpcc.tiles import TILE_OVERLAP

@@ -12,7 +12,8 @@ import re
 import pytest
 
 import dftpcc
-from dftpcc import container, params
+from dftpcc import format as fmt
+from dftpcc import params
 from dftpcc.errors import CorruptFileError, InvalidInputError
 
 from .fuzz import craft
@@ -20,7 +21,7 @@ from .fuzz.seeds import seed_files
 
 
 def test_the_coordinate_limit_has_one_home():
-    assert container.MAX_COORDINATE_M is params.MAX_COORDINATE_M == 1e12
+    assert fmt.validate.MAX_COORDINATE_M is params.MAX_COORDINATE_M == 1e12
 
 
 @pytest.mark.parametrize("field", ["step", "target_rmse", "target_max_error"])

@@ -231,7 +231,7 @@ def test_rough_terrain_at_a_fine_bound_is_predicted_rather_than_low_passed(monke
     low-pass with a chunked residual, within the bound, and decoded as the document says on a
     window of it."""
     from dftpcc import residual
-    from dftpcc.container import _sections
+    from dftpcc.format.reader import _sections
 
     from . import spec_decoder
 

@@ -18,7 +18,7 @@ import pytest
 
 import dftpcc
 from dftpcc import cli
-from dftpcc.container import _params_for_file
+from dftpcc.format.header import params_for_file as _params_for_file
 from dftpcc.dem import DEM, Grid
 from dftpcc.encoder import encode_dem
 from dftpcc.errors import InvalidInputError, MissingDependencyError

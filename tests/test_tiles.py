@@ -12,7 +12,7 @@ import pytest
 
 import dftpcc
 from dftpcc import tiles
-from dftpcc.container import Source
+from dftpcc.format.source import Source
 from dftpcc.dem import DEM, Grid, TileGrid
 from dftpcc.encoder import encode_dem
 from dftpcc.errors import CorruptFileError, InvalidInputError
@@ -324,7 +324,9 @@ def test_cli_tile_size_bbox_and_info(tmp_path):
 def test_a_tiled_header_over_the_whole_grid_limit_is_written():
     """A tiled map is read tile by tile: its grid may pass MAX_CELLS (a 20,000 x 20,000 GeoTIFF),
     and the writer's checks must let it through before the tiles are coded, as the reader does."""
-    from dftpcc.container import Header, TileIndex, tiled_head
+    from dftpcc.format.header import Header
+    from dftpcc.format.index import TileIndex
+    from dftpcc.format.writer import tiled_head
     from dftpcc.limits import MAX_CELLS
 
     rows = cols = 20_000

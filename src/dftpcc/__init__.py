@@ -3,10 +3,10 @@
 Pipeline, one module per stage::
 
     io (read) -> grid (DEM) -> fill, spectrum (condition, transform, low-pass)
-    -> encoder (analysis, ratecontrol, residual; coding, occupancy) -> container (.dftpc bytes)
+    -> encoder (analysis, ratecontrol, residual; coding, occupancy) -> format (.dftpc bytes: one writer, one reader)
     -> decoder -> rebuild (points) -> metrics (measure)
 
-``mapfile.open`` reads a file through container, decoder and rebuild;
+``mapfile.open`` reads a file through format, decoder and rebuild;
 ``files`` joins io to the codec; ``experiments`` holds the paper's sweep
 and comparison on top; ``cli`` is the command line.
 

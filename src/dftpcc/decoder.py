@@ -8,19 +8,25 @@ the plane back and, for a complete file, the residual layer.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Callable
 
 import numpy as np
 
 from . import coding, kernels, occupancy, spectrum, tiles
-from .container import Header
+from .format import Header
 from .dem import DEM
 from .errors import CorruptFileError, InvalidInputError
 from .fill import add_plane
 from .params import check_cutoff
 from .residual import decode_residual, residual_step
 
-__all__ = ["decode_dem", "decode_tiled"]
+__all__ = ["decode_dem", "decode_tiled", "decode_window", "Whole"]
+
+#: An untiled map's window is rebuilt from its basis vectors (cost about ``h * kc * (kr + w)``
+#: multiply-adds) rather than by the whole grid's inverse transform (about ``n * m * log2(n * m)``
+#: times this factor) when that is less work.
+WINDOW_TRANSFORM_FACTOR = 4.0
 
 
 def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None = None,
@@ -31,7 +37,7 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     ----------
     header : Header
     blobs : dict
-        Coded sections from :func:`dftpcc.container.unpack`.
+        Coded sections from :func:`dftpcc.format.unpack`.
     cutoff : float, optional
         Decode with a larger cutoff than the file was made with (fewer
         coefficients, coarser map). Must be at least the file's cutoff.
@@ -113,6 +119,92 @@ def _spectrum_heights(header: Header, blobs: dict[bytes, Any], cutoff: float | N
     return heights, values.size == n and cutoff is None
 
 
+class Whole:
+    """An untiled (1.0) map read as the one-tile, no-base case: its mask, its kept DCT corner (or, for
+    another transform, its decoded heights) and its residual, decoded once; a window's heights are
+    then the inverse transform evaluated on that window only (:meth:`heights`)."""
+
+    def __init__(self, header: Header, blobs: dict[bytes, Any]):
+        params, grid = header.params, header.grid
+        self.header = header
+        self.mask = _checked_mask(occupancy.decode_mask(blobs[b"MASK"], grid.shape), header)
+        self.lay = spectrum.layout(params.transform, params.storage, grid.shape)
+        self.corner: np.ndarray | None = None
+        self.dem: np.ndarray | None = None
+        if self.lay.kind == "dct" and params.storage == "quantized":
+            self.corner = _dct_corner(header, blobs[b"COEF"])
+        else:  # the paper's DFT layouts: decoded whole, then cut
+            self.dem, _ = _spectrum_heights(header, blobs, None, False)
+        self.resid = None
+        if b"RESD" in blobs:
+            self.resid = np.zeros(grid.shape)
+            self.resid[self.mask] = decode_residual(blobs[b"RESD"], self.mask) * residual_step(params.target_max_error)
+
+    def heights(self, rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
+        """Heights (relative to z0) of the cells ``rows`` x ``cols``."""
+        (r0, r1), (c0, c1) = rows, cols
+        if self.dem is not None:
+            out = self.dem[r0:r1, c0:c1].copy()
+        else:
+            assert self.corner is not None
+            n, m = self.lay.shape
+            kr, kc = self.corner.shape
+            h, w = r1 - r0, c1 - c0
+            # The inverse on the window alone (orthonormal DCT-II basis at its samples) when that is
+            # less work than the whole grid's transform; else the whole transform, cut.
+            if h * kc * (kr + w) < n * m * (math.log2(n) + math.log2(m) + 1) * WINDOW_TRANSFORM_FACTOR:
+                out = tiles.base_basis(n, kr, r0, r1) @ self.corner @ tiles.base_basis(m, kc, c0, c1).T
+            else:
+                out = spectrum.inverse(self.corner, self.lay)[r0:r1, c0:c1]
+            if self.header.params.detrend == "plane":
+                a, b, c = self.header.plane
+                out += a + b * np.arange(c0, c1, dtype=float)[None, :] + c * np.arange(r0, r1, dtype=float)[:, None]
+        if self.resid is not None:
+            out += self.resid[r0:r1, c0:c1]
+        mask = self.mask[r0:r1, c0:c1]
+        if not np.isfinite(out[mask]).all():
+            raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
+        return out
+
+
+def _dct_corner(header: Header, blob: Any) -> np.ndarray:
+    """The dequantized low-frequency corner of an untiled DCT map's coefficients (the rest are 0)."""
+    params, grid = header.params, header.grid
+    lay = spectrum.layout(params.transform, params.storage, grid.shape)
+    order, radii, angles = spectrum.kept_order(lay, params.cutoff)
+    n = spectrum.kept_count(lay, params.cutoff, radii)
+    if n != header.coef_count:
+        raise CorruptFileError("coefficient count disagrees with the grid and cutoff")
+    stream = coding.decode_coefficients(blob, n, radius=radii[:n], angle=angles[:n])
+    if stream.dtype.kind != "i" or stream.size != n:
+        raise CorruptFileError("quantized file holds float coefficients" if stream.dtype.kind != "i" else
+                               "coefficient section holds fewer values than the header states")
+    shape, where = spectrum.kept_corner(lay, params.cutoff)
+    corner = np.zeros(shape)
+    corner.ravel()[where] = coding.dequantize(stream, params.step)
+    return corner
+
+
+def decode_window(header: Header, shared: dict[bytes, Any], read: Callable[[int], dict[bytes, Any]], *,
+                  rows: tuple[int, int] | None = None, cols: tuple[int, int] | None = None,
+                  map_tiles: Callable[..., list] | None = None, whole: "Whole | None" = None) -> DEM:
+    """The one reader path: the DEM of the cells ``rows`` x ``cols`` of any map (default all of it).
+
+    A tiled map decodes only the tiles the window touches (:func:`decode_tiled`); an untiled one is
+    its single tile: its mask, coefficients and residual decoded once (``whole``, which a caller
+    reading several windows keeps) and the inverse transform evaluated on the window only.
+    """
+    if header.tiles is not None:
+        return decode_tiled(header, shared, read, rows=rows, cols=cols, map_tiles=map_tiles)
+    grid = header.grid
+    rows = rows or (0, grid.rows)
+    cols = cols or (0, grid.cols)
+    whole = whole or Whole(header, shared)
+    out_grid = grid if (rows, cols) == ((0, grid.rows), (0, grid.cols)) else \
+        grid.window(rows[0], cols[0], rows[1] - rows[0], cols[1] - cols[0])
+    return DEM(grid=out_grid, heights=whole.heights(rows, cols), mask=whole.mask[rows[0]:rows[1], cols[0]:cols[1]].copy())
+
+
 class _Base:
     """The decoded base layer of a tiled map: values and their frequency indices."""
 
@@ -140,10 +232,10 @@ def decode_tiled(header: Header, shared: dict[bytes, Any], read: Callable[[int],
     header : Header
         Of a tiled map (``header.tiles`` set).
     shared : dict
-        Tile 0's coded sections (:func:`dftpcc.container.unpack_source`): ``b"BASE"``, and
+        Tile 0's coded sections (:func:`dftpcc.format.unpack_source`): ``b"BASE"``, and
         ``b"MASK"`` and ``b"RESD"`` when it holds the map mask and the map residual.
     read : callable
-        ``read(k)`` gives tile ``k``'s checked sections (see :func:`dftpcc.container.read_tile`).
+        ``read(k)`` gives tile ``k``'s checked sections (see :func:`dftpcc.format.read_tile`).
     rows, cols : (start, stop), optional
         The cells wanted; default the whole map. The DEM returned covers
         exactly these cells (its grid is that window of the map's).

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import zstandard
 
-from .container import Source, leb128, read_leb128, unpack_source
+from .format import Source, leb128, read_leb128, unpack_source
 from .errors import CorruptFileError, InvalidInputError
 from .io.atomic import atomic_write, check_output
 

@@ -3,7 +3,7 @@
 :func:`encode_dem` analyses the DEM once (:mod:`dftpcc.analysis`), codes
 the occupancy mask, then either quantizes at the given cutoff and step or
 lets rate control (:mod:`dftpcc.ratecontrol`) choose them for a target, and
-packs the file with the errors it promises (:mod:`dftpcc.container`).
+packs the file with the errors it promises (:mod:`dftpcc.format`).
 :func:`compress` is the same for points: grid, rasterize, encode.
 """
 
@@ -20,7 +20,7 @@ import numpy as np
 from .sums import dot
 from . import coding, kernels, occupancy, ratecontrol, spectrum
 from .analysis import Analysis, Trial
-from .container import Header, TileIndex, check_grid, entry_bytes, pack, pack_tiled
+from .format import MapWriter, check_grid, entry_bytes
 from .dem import DEM, as_points
 from .errors import CoarseMapWarning, InvalidInputError
 from .grid import Survey, _fit_grid, _rasterize, auto_resolution, survey
@@ -38,8 +38,6 @@ __all__ = ["compress", "encode_dem", "choose_for_tiles", "grid_points", "params_
 QUANT_FLOOR_FRACTION = 0.5
 #: ... but never less than this, for DEMs gridded from one point per cell.
 MIN_QUANT_RMSE = 0.001
-#: What a file records of the points its DEM cannot represent (DEM.spread).
-SPREAD_STATS = ("unrepresented_fraction", "unrepresented_rmse_m")
 #: First guess of the bytes a file needs besides mask and coefficients
 #: (section table, parameters, statistics, CRS) when sizing to a target.
 HEADER_ESTIMATE = 600
@@ -456,15 +454,16 @@ def _pack(choice: Choice, params: Params, mask_blob: bytes | TiledMasks, point_c
     # Without a residual layer the decoder rebuilds the trial's heights, whose errors it may have kept.
     errors = trial.errors if choice.residual is None else None
     kept = int(an.kept_cells.sum())
-    stats = _stats(dem, heights, occupied, len(mask_blob), len(choice.coefs), len(choice.residual_blob),
-                   kept - int(occupied.sum()), params, errors=errors,
-                   figures=None if errors is None else (trial.rmse, trial.max_error))
-    if asked_rmse > 0:
-        stats["target_rmse_m"] = asked_rmse
-    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=kept,
-                    plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.count(params.cutoff))
+    writer = MapWriter(dem.grid, params, point_count=point_count, plane=an.plane, crs=crs)
+    rmse, largest, weighted = _figures(dem, params, heights, occupied, errors=errors,
+                                       figures=None if errors is None else (trial.rmse, trial.max_error))
+    writer.add(0, mask_blob, choice.coefs, choice.residual_blob, cells=kept, squared_error=0.0, max_error=largest,
+               weighted_squared_error=weighted)
+    extra = {"target_rmse_m": asked_rmse} if asked_rmse > 0 else {}
+    stats = writer.stats(rmse=rmse, max_error=largest, cells_interpolated=kept - int(occupied.sum()),
+                         **_map_figures(dem, params), **extra)
     on_stage("container")
-    return pack(header, mask_blob, choice.coefs, choice.residual_blob)
+    return writer.finish(stats, coef_count=an.count(params.cutoff))
 
 
 def _pack_tiled(choice: Choice, params: Params, masks: TiledMasks, point_count: int,
@@ -477,8 +476,6 @@ def _pack_tiled(choice: Choice, params: Params, masks: TiledMasks, point_count: 
     assert isinstance(an, TiledAnalysis)
     params = params.replace(cutoff=trial.cutoff, step=trial.step)
     dem = an.dem
-    n = an.tiling.count
-    cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
     map_resid = b""
     if not header_only:
         q = an.base_at(params.cutoff, params.step)
@@ -498,78 +495,43 @@ def _pack_tiled(choice: Choice, params: Params, masks: TiledMasks, point_count: 
         base_blob = b""
         codes = [TileCode(k, blob, b"", b"", int(an.tile_cells(dem.mask, k).sum()), 0.0, 0.0)
                  for k, blob in zip(an.occupied, masks.tiles)]
+    writer = MapWriter(dem.grid, params, point_count=point_count, plane=an.plane, crs=crs, tiling=an.tiling,
+                       overlap=tile_overlap(params.cutoff, an.tile), base_cycles=an.base_cycles)
     for c in codes:
-        cells[c.k], rmse[c.k], max_error[c.k] = c.cells, c.rmse, c.max_error
-    occupied = int(cells.sum())
-    stats = _tiled_stats(dem, codes, occupied, base_blob, params)
-    stats["mask_bytes"] += len(masks.map)
-    stats["residual_bytes"] += len(map_resid)
-    index = TileIndex(tiling=an.tiling, overlap=tile_overlap(params.cutoff, an.tile), base_cycles=an.base_cycles,
-                      cells=cells, rmse=rmse, max_error=max_error)
-    header = Header(grid=dem.grid, params=params, point_count=point_count, cell_count=occupied,
-                    plane=an.plane, crs=crs or {}, stats=stats, coef_count=an.base_count(params.cutoff),
-                    tiles=index)
+        writer.add_code(c)
+    stats = writer.stats(**_map_figures(dem, params))
     on_stage("container")
-    return pack_tiled(header, base_blob, [(c.k, c.mask, c.coef, c.resid) for c in codes], masks.map, map_resid)
+    return writer.finish(stats, coef_count=an.base_count(params.cutoff), base=base_blob, map_mask=masks.map,
+                         map_resid=map_resid)
 
 
 def serial_map(func: Callable[..., Any], items: list, *args: Any) -> list:
     return [func(item, *args) for item in items]
 
 
-def _tiled_stats(dem: DEM, codes: list[TileCode], occupied: int, base_blob: bytes, params: Params) -> dict[str, Any]:
-    """The whole map's figures from its tiles' (docs/format.md, STAT)."""
-    floor = dem.gridding_rmse or 0.0
-    stats: dict[str, Any] = {
-        "dem_rmse_m": math.sqrt(sum(c.squared_error for c in codes) / occupied),
-        "dem_max_error_m": max(c.max_error for c in codes),
-        "gridding_rmse_m": floor,
-        "mask_bytes": sum(len(c.mask) for c in codes),
-        "coef_bytes": len(base_blob) + sum(len(c.coef) for c in codes),
-        "residual_bytes": sum(len(c.resid) for c in codes),
-        "cells_interpolated": 0,
-    }
+def _map_figures(dem: DEM, params: Params) -> dict[str, Any]:
+    """What :meth:`MapWriter.stats` needs of the map besides its tiles: the gridding floor, the points
+    one height per cell could not hold, and the points the vertical error is averaged over."""
     spread = dem.spread
-    if spread is not None and spread.unrepresented_points:
-        full = spread.as_stats()
-        stats.update({key: full[key] for key in SPREAD_STATS})
-    if dem.counts is not None and params.aggregate == "mean":
-        weighted = sum(c.weighted_squared_error for c in codes) / max(int(dem.counts.sum()), 1)
-        stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
-    return stats
+    mean = dem.counts is not None and params.aggregate == "mean"
+    return {"gridding_rmse": dem.gridding_rmse or 0.0,
+            "spread": spread.as_stats() if spread is not None and spread.unrepresented_points else None,
+            "vertical_points": max(int(dem.counts.sum()), 1) if mean else None}
 
 
-def _stats(dem: DEM, heights: np.ndarray, occupied: np.ndarray, mask_bytes: int, coef_bytes: int,
-           residual_bytes: int, interpolated: int, params: Params, *, errors: np.ndarray | None = None,
-           figures: tuple[float, float] | None = None) -> dict[str, Any]:
-    """The figures a file states of the map it rebuilds (docs/format.md, STAT); ``errors``:
-    ``(heights - dem.heights)[occupied]`` if the caller has them, ``figures`` their RMSE and
-    largest magnitude (``Trial.rmse``, ``Trial.max_error``: the same arithmetic)."""
-    floor = dem.gridding_rmse or 0.0
+def _figures(dem: DEM, params: Params, heights: np.ndarray, occupied: np.ndarray, *, errors: np.ndarray | None = None,
+             figures: tuple[float, float] | None = None) -> tuple[float, float, float]:
+    """An untiled map's RMSE and largest error over its occupied cells (metres) and its points'
+    weighted squared error (metres², 0 without counts); ``errors``: ``(heights - dem.heights)[occupied]``
+    if the caller has them, ``figures`` their RMSE and largest magnitude (``Trial.rmse``,
+    ``Trial.max_error``: the same arithmetic)."""
     err = (heights - dem.heights)[occupied] if errors is None else errors
     rmse, largest = (float(np.sqrt(np.mean(err * err))), float(np.abs(err).max())) if figures is None else figures
-    stats: dict[str, Any] = {
-        "dem_rmse_m": rmse,
-        "dem_max_error_m": largest,
-        "gridding_rmse_m": floor,
-        "mask_bytes": mask_bytes,
-        "coef_bytes": coef_bytes,
-        "residual_bytes": residual_bytes,
-        "cells_interpolated": interpolated,
-    }
-    spread = dem.spread
-    if spread is not None and spread.unrepresented_points:
-        # Walls, overhangs, vegetation: what one height per cell could not hold.
-        # Two figures say it; the rest of DEM.spread would cost a small map
-        # more header than its coefficients.
-        full = spread.as_stats()
-        stats.update({key: full[key] for key in SPREAD_STATS})
+    weighted = 0.0
     if dem.counts is not None and params.aggregate == "mean":
         # Per cell, points scatter about their mean, so the errors add in quadrature.
         if kernels.enabled() and dem.counts.dtype == np.int64:  # the same sum in one compiled pass
             weighted = kernels.weighted_sq_sum(dem.counts, occupied, err)
         else:
             weighted = float(np.sum(dem.counts[occupied] * err * err))
-        weighted /= max(int(dem.counts.sum()), 1)
-        stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
-    return stats
+    return rmse, largest, weighted

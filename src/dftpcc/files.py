@@ -19,7 +19,7 @@ import numpy as np
 from . import io
 from . import stream
 from .cluster import check_executor, executor
-from .container import unpack
+from .format import unpack
 from .dem import DEM
 from .encoder import Stage, encode_dem, no_stage, params_of
 from .grid import CloudSummary, check_chunked_aggregate, rasterize, rasterize_chunks

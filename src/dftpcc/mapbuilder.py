@@ -33,6 +33,7 @@ Memory is 20 bytes per cell of the held tiles (4 for the count).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -45,7 +46,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from . import coding, kernels
-from .container import Header, Source, TileIndex, pack_tiled, read_tile, unpack_source
+from .format import Header, MapWriter, Source, read_tile, unpack_source
 from .dem import Grid, TileGrid, as_points
 from .encoder import check_heights
 from .errors import CorruptFileError, DftpccWarning, InvalidInputError
@@ -389,45 +390,29 @@ class MapBuilder:
         self._dirty.clear()
         self._mask_dirty.clear()
         self._recount.clear()
-        return pack_tiled(*self._layout())
+        return self._write()
 
-    def _layout(self) -> tuple[Header, bytes, list[tuple[int, bytes, bytes, bytes]]]:
+    def _write(self) -> bytes:
+        """The map's bytes through the one writer: the held tiles and an empty tile around them, no base
+        layer, no plane."""
         size = self.tile_size
         held = self.tiles
         i0, j0 = min(i for i, _ in held) - 1, min(j for _, j in held) - 1  # one empty tile around
         tile_rows = max(i for i, _ in held) - i0 + 2
         tile_cols = max(j for _, j in held) - j0 + 2
         tiling = TileGrid(tile_rows * size, tile_cols * size, size)
-        n = tiling.count
-        cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
-        parts = []
-        for tile in held:
-            c = self._codes[tile]
-            k = (tile[0] - i0) * tile_cols + (tile[1] - j0)
-            cells[k], rmse[k], max_error[k] = c.cells, c.rmse, c.max_error
-            parts.append((k, c.mask, c.coef, c.resid))
         ox, oy, oz = self.origin  # type: ignore[misc]
         grid = Grid(x0=ox + j0 * self.span, y0=oy + i0 * self.span, z0=oz, resolution=self.resolution,
                     rows=tiling.rows, cols=tiling.cols)
-        codes = [self._codes[t] for t in held]
-        occupied = int(cells.sum())
+        writer = MapWriter(grid, self.params, point_count=self.point_count, crs=self.crs, tiling=tiling,
+                           overlap=TILE_OVERLAP, base_cycles=0)
+        for tile in held:  # sorted: ascending tile numbers
+            writer.add_code(dataclasses.replace(self._codes[tile], k=(tile[0] - i0) * tile_cols + (tile[1] - j0)))
         floor = math.sqrt(sum(self._gridding[t] for t in held) / self.point_count)
-        stats: dict[str, Any] = {
-            "dem_rmse_m": math.sqrt(sum(c.squared_error for c in codes) / occupied),
-            "dem_max_error_m": max(c.max_error for c in codes),
-            "gridding_rmse_m": floor,
-            # Per cell the points scatter about their mean, so the errors add in quadrature.
-            "vertical_rmse_m": math.sqrt(floor * floor + sum(c.weighted_squared_error for c in codes)
-                                         / self.point_count),
-        }
-        index = TileIndex(tiling=tiling, overlap=TILE_OVERLAP, base_cycles=0, cells=cells, rmse=rmse,
-                          max_error=max_error)
-        header = Header(grid=grid, params=self.params, point_count=self.point_count, cell_count=occupied,
-                        plane=(0.0, 0.0, 0.0), crs=self.crs, stats=stats, coef_count=0, tiles=index)
+        stats = writer.stats(gridding_rmse=floor, vertical_points=self.point_count)
         base = coding.encode_coefficients(np.zeros(0, dtype=np.int64), radius=np.zeros(0), angle=np.zeros(0),
                                           coder=self.params.coder, progressive=False)
-        parts.sort()
-        return header, base, parts
+        return writer.finish(stats, coef_count=0, base=base)
 
     # -- files ---------------------------------------------------------------------------------
 

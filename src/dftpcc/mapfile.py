@@ -16,9 +16,9 @@ from typing import Any, BinaryIO, Callable, Sequence
 
 import numpy as np
 
-from .container import (MAGIC, VERSION, VERSION_TILED, Source, cells_allowed, check_max_bytes, check_max_cells,
-                        read_tile, unpack_source)
-from .decoder import decode_dem, decode_tiled
+from .format import (MAGIC, VERSION, VERSION_TILED, Source, cells_allowed, check_max_bytes, check_max_cells,
+                     read_tile, unpack_source)
+from .decoder import Whole, decode_dem, decode_window
 from .dem import DEM, Grid
 from .errors import InvalidInputError, ResourceLimitError
 from .params import Params
@@ -51,6 +51,7 @@ class CompressedMap:
         self._source = source
         self._partial = max_bytes is not None
         self._max_cells = max_cells
+        self._whole: Whole | None = None  # an untiled map's decoded mask and spectrum, once read
         self.header, self._blobs = unpack_source(source, allow_truncated_coef=self._partial,
                                                  max_cells=cells_allowed(self.size, max_cells))
 
@@ -117,36 +118,40 @@ class CompressedMap:
             tiled map, naming the damaged tile.
         """
         window = None if bbox is None else self._window(bbox)
-        if self.header.tiles is None:
+        if cutoff is not None or self._partial or (window is None and self.header.tiles is None):
+            # An untiled map whole (its mask decoded beside its spectrum), or its own features: a
+            # coarser cutoff, a prefix of the file (decoded whole).
+            if self.header.tiles is not None:
+                raise InvalidInputError("a tiled map (format 1.1) decodes at its own cutoff only")
             dem = decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
             if window is not None:
                 (r0, r1), (c0, c1) = window
                 dem = DEM(grid=dem.grid.window(r0, c0, r1 - r0, c1 - c0), heights=dem.heights[r0:r1, c0:c1],
                           mask=dem.mask[r0:r1, c0:c1])
         else:
-            if cutoff is not None:
-                raise InvalidInputError("a tiled map (format 1.1) decodes at its own cutoff only")
             rows, cols = window or ((0, self.grid.rows), (0, self.grid.cols))
-            self._check_budget(rows, cols)
-            dem = decode_tiled(self.header, self._blobs,
-                               lambda k: read_tile(self._source, self.header, k), rows=rows, cols=cols,
-                               map_tiles=map_tiles)
+            dem = self.read_window(rows, cols, map_tiles=map_tiles)
         if bbox is not None:
             dem = DEM(grid=dem.grid, heights=dem.heights, mask=dem.mask & _centres_inside(dem.grid, bbox))
         return dem
 
     def read_window(self, rows: tuple[int, int], cols: tuple[int, int], *,
                     map_tiles: Callable[..., list] | None = None) -> DEM:
-        """The DEM of the cells ``rows`` x ``cols`` (``(start, stop)`` cell ranges) of a tiled map,
-        decoding only its tiles (a map larger than memory is decoded band by band so)."""
-        if self.header.tiles is None:
-            raise InvalidInputError("read_window reads a tiled map; read an untiled one whole (read_dem)")
+        """The DEM of the cells ``rows`` x ``cols`` (``(start, stop)`` cell ranges), decoding only what
+        they need: a tiled map's tiles they touch; of an untiled map, its mask and coefficients once
+        (kept for the next window) and the inverse transform on the window alone. A map larger than
+        memory is decoded band by band so."""
         g = self.grid
         if not (0 <= rows[0] < rows[1] <= g.rows and 0 <= cols[0] < cols[1] <= g.cols):
             raise InvalidInputError(f"window rows {rows}, cols {cols} is not inside the {g.rows} x {g.cols} grid")
-        self._check_budget(rows, cols)
-        return decode_tiled(self.header, self._blobs, lambda k: read_tile(self._source, self.header, k),
-                            rows=rows, cols=cols, map_tiles=map_tiles)
+        if self.header.tiles is not None:
+            self._check_budget(rows, cols)
+        elif self._whole is None:
+            if self._partial:
+                raise InvalidInputError("a prefix of a map (max_bytes) decodes whole: use read_dem")
+            self._whole = Whole(self.header, self._blobs)
+        return decode_window(self.header, self._blobs, lambda k: read_tile(self._source, self.header, k),
+                             rows=rows, cols=cols, map_tiles=map_tiles, whole=self._whole)
 
     def read_points(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None) -> np.ndarray:
         """The rebuilt cloud, shape (cells, 3), float64, original frame (metres); ``bbox`` as for :meth:`read_dem`."""

@@ -15,9 +15,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
-import tempfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -26,7 +23,7 @@ import numpy as np
 
 from .sums import dot
 from . import coding
-from .container import Header, TileIndex, tiled_head
+from .format import MapWriter
 from .dem import DEM, Grid, TileGrid
 from .encoder import Stage, check_heights, choose_for_tiles, no_stage
 from .errors import InvalidInputError
@@ -312,12 +309,12 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
         chosen = chosen.replace(target_rmse=params.target_rmse)
         chosen = chosen.replace(resolution=grid.resolution)
         for attempt in range(RMSE_ATTEMPTS):
-            spool, index, stats, nb, base_blob = _code_bands(raster, grid, chosen, refill, tile, survey,
-                                                             (bi, bj, bradius, bangle, bcoefs), run, on_stage,
-                                                             gridding_rmse, spread)
+            writer, stats, nb, base_blob = _code_bands(raster, grid, chosen, refill, tile, survey,
+                                                       (bi, bj, bradius, bangle, bcoefs), run, on_stage,
+                                                       gridding_rmse, spread)
             if params.target_rmse <= 0 or stats["dem_rmse_m"] <= params.target_rmse:
                 break
-            spool.close()
+            writer.close()
             if attempt + 1 == RMSE_ATTEMPTS:
                 raise InvalidInputError(
                     f"target RMSE {params.target_rmse:g} m was missed on the whole map ({stats['dem_rmse_m']:.4g} m "
@@ -326,39 +323,18 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
             # by the square of the miss, a little inside.
             ratio = SAMPLE_RMSE_MARGIN * (params.target_rmse / stats["dem_rmse_m"]) ** 2
             chosen = chosen.replace(step=coding.short_step(chosen.step * ratio))
-        points = raster.point_count if raster.point_count is not None else survey["cells"]
-        header = Header(grid=grid, params=chosen, point_count=points, cell_count=int(index.cells.sum()),
-                        plane=survey["plane"], crs=raster.crs, stats=stats, coef_count=nb, tiles=index)
-        head = tiled_head(header, base_blob, spool.entries)
+        with writer:
+            start = writer.head(stats, coef_count=nb, base=base_blob)  # every check, before the file is created
 
-        def fill(tmp: Path) -> None:
-            with open(tmp, "wb") as out:
-                out.write(head)
-                spool.file.seek(0)
-                shutil.copyfileobj(spool.file, out, 1 << 20)
+            def fill(tmp: Path) -> None:
+                with open(tmp, "wb") as out:
+                    out.write(start)
+                    writer.write_payloads(out)
 
-        on_stage("write")
-        try:
+            on_stage("write")
             write(dst, fill)
-        finally:
-            spool.close()
     finally:
         raster.close()
-
-
-class _Spool:
-    """The tiles' payloads, kept in a temporary file until the section table is known."""
-
-    def __init__(self) -> None:
-        self.file = tempfile.TemporaryFile(prefix="dftpcc-tiles-")
-        self.entries: list[tuple[int, bytes, int, int]] = []
-
-    def add(self, k: int, tag: bytes, blob: bytes) -> None:
-        self.file.write(blob)
-        self.entries.append((k, tag, len(blob), zlib.crc32(blob)))
-
-    def close(self) -> None:
-        self.file.close()
 
 
 @dataclass(frozen=True)
@@ -467,40 +443,21 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
     job = _Pass(None if raster.in_memory else raster, grid.shape, grid.z0, survey["plane"], tiling,
                 (bcoefs[:nb], bi[:nb], bj[:nb]), base_error, params, refill)
     n = tiling.count
-    cells, rmse, max_error = np.zeros(n, dtype=np.int64), np.full(n, np.nan), np.full(n, np.nan)
-    spool = _Spool()
-    squared, worst, weighted = 0.0, 0.0, 0.0
-    mask_bytes = coef_bytes = resid_bytes = 0
+    points = raster.point_count if raster.point_count is not None else survey["cells"]
+    writer = MapWriter(grid, params, point_count=points, plane=survey["plane"], crs=raster.crs, tiling=tiling,
+                       overlap=tile_overlap(params.cutoff, tile), base_cycles=BASE_CYCLES_PER_TILE, spool=True)
     on_stage("encode")
-    overlap = tile_overlap(params.cutoff, tile)
-    blocks = (block for band in range(tiling.tile_rows) for block in _blocks(raster, tiling, band, overlap))
+    blocks = (block for band in range(tiling.tile_rows) for block in _blocks(raster, tiling, band, writer.overlap))
     for batch in _batches(blocks):
         on_stage("encode", batch[0].tiles[0] / n)
         for code in (code for codes in run(_code_block, batch, job) for code in codes):
-            if code.mask:  # none for a full tile
-                spool.add(code.k, b"MASK", code.mask)
-            if code.coef:  # none when every coefficient is 0
-                spool.add(code.k, b"COEF", code.coef)
-            if code.resid:
-                spool.add(code.k, b"RESD", code.resid)
-            cells[code.k], rmse[code.k], max_error[code.k] = code.cells, code.rmse, code.max_error
-            squared += code.squared_error
-            weighted += code.weighted_squared_error
-            worst = max(worst, code.max_error)
-            mask_bytes, coef_bytes, resid_bytes = (mask_bytes + len(code.mask), coef_bytes + len(code.coef),
-                                                   resid_bytes + len(code.resid))
-    total = int(cells.sum())
-    stats = {"dem_rmse_m": math.sqrt(squared / total), "dem_max_error_m": worst, "gridding_rmse_m": gridding_rmse,
-             "mask_bytes": mask_bytes, "coef_bytes": coef_bytes + len(base_blob), "residual_bytes": resid_bytes}
-    if spread is not None and spread.unrepresented_points:
-        full = spread.as_stats()
-        stats.update({key: full[key] for key in ("unrepresented_fraction", "unrepresented_rmse_m")})
+            writer.add_code(code)
     counts = getattr(raster, "dem", None) is not None and raster.dem.counts is not None
-    if counts and params.aggregate == "mean":
-        stats["vertical_rmse_m"] = math.sqrt(gridding_rmse ** 2 + weighted / max(int(raster.dem.counts.sum()), 1))
-    index = TileIndex(tiling=tiling, overlap=overlap, base_cycles=BASE_CYCLES_PER_TILE, cells=cells, rmse=rmse,
-                      max_error=max_error)
-    return spool, index, stats, nb, base_blob
+    stats = writer.stats(gridding_rmse=gridding_rmse,
+                         spread=spread.as_stats() if spread is not None and spread.unrepresented_points else None,
+                         vertical_points=max(int(raster.dem.counts.sum()), 1)
+                         if counts and params.aggregate == "mean" else None)
+    return writer, stats, nb, base_blob
 
 
 def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: bool = False,

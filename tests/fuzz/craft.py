@@ -15,7 +15,7 @@ import zlib
 
 import numpy as np
 
-from dftpcc import container
+from dftpcc import format as fmt
 
 PREAMBLE = struct.Struct("<8sBBHI")  # magic, major, minor, flags, section count
 CRC = struct.Struct("<I")
@@ -23,18 +23,18 @@ GEOM = struct.Struct("<ddddIIdQQddd")
 GEOM_FIELDS = ("x0", "y0", "z0", "resolution", "rows", "cols", "angle",
                "point_count", "cell_count", "plane_a", "plane_b", "plane_c")
 
-assert PREAMBLE.size == container._PREAMBLE.size and GEOM.size == container._GEOM.size
+assert PREAMBLE.size == fmt.sections.PREAMBLE.size and GEOM.size == fmt.header.GEOM.size
 
 
 #: Unsigned LEB128, as the container writes it.
-leb128 = container._leb128
+leb128 = fmt.sections.leb128
 
 
 def _read_leb128(data: bytes, pos: int) -> tuple[int, int] | None:
     """``(value, end)``, or None where the reader would refuse the integer (cut short, over 64 bits)."""
     try:
-        value, end = container._read_leb128(memoryview(data), pos)
-    except container._TooWide:
+        value, end = fmt.sections.read_leb128_at(memoryview(data), pos)
+    except fmt.sections.TooWide:
         return None
     return None if value is None else (value, end)
 
@@ -49,7 +49,7 @@ def _parse(data: bytes) -> tuple[list[tuple[bytes, int, int, int, int]], int] | 
     if len(data) < PREAMBLE.size:
         return None
     _magic, _major, minor, _flags, count = PREAMBLE.unpack_from(data, 0)
-    if count > (container.MAX_SECTIONS if minor == 0 else container.MAX_SECTIONS_TILED):
+    if count > (fmt.sections.MAX_SECTIONS if minor == 0 else fmt.sections.MAX_SECTIONS_TILED):
         return None
     entries, pos = [], PREAMBLE.size
     for _ in range(count):
@@ -105,16 +105,16 @@ def version_of(data: bytes) -> tuple[int, int]:
     return major, minor
 
 
-def join_tiled(sections: list[tuple[bytes, int, bytes]], *, version: tuple[int, int] = container.VERSION_TILED,
+def join_tiled(sections: list[tuple[bytes, int, bytes]], *, version: tuple[int, int] = fmt.sections.VERSION_TILED,
                flags: int = 0, count: int | None = None) -> bytes:
     """Bytes of a file holding ``(tag, tile, payload)`` sections, every checksum correct (``count`` may lie)."""
     entries = [entry(tag, tile, len(payload), zlib.crc32(payload)) for tag, tile, payload in sections]
     n = len(sections) if count is None else count
-    head = PREAMBLE.pack(container.MAGIC, version[0], version[1], flags, n) + b"".join(entries)
+    head = PREAMBLE.pack(fmt.sections.MAGIC, version[0], version[1], flags, n) + b"".join(entries)
     return head + CRC.pack(zlib.crc32(head)) + b"".join(p for _, _, p in sections)
 
 
-def join(sections: list[tuple[bytes, bytes]], *, version: tuple[int, int] = container.VERSION,
+def join(sections: list[tuple[bytes, bytes]], *, version: tuple[int, int] = fmt.sections.VERSION,
          flags: int = 0, count: int | None = None) -> bytes:
     """Bytes of a file holding ``sections``, every checksum correct.
 
@@ -122,7 +122,7 @@ def join(sections: list[tuple[bytes, bytes]], *, version: tuple[int, int] = cont
     """
     entries = [entry(tag, 0, len(payload), zlib.crc32(payload)) for tag, payload in sections]
     n = len(sections) if count is None else count
-    head = PREAMBLE.pack(container.MAGIC, version[0], version[1], flags, n) + b"".join(entries)
+    head = PREAMBLE.pack(fmt.sections.MAGIC, version[0], version[1], flags, n) + b"".join(entries)
     return head + CRC.pack(zlib.crc32(head)) + b"".join(p for _, p in sections)
 
 
@@ -154,7 +154,7 @@ def json_of(data: bytes, tag: bytes):
     which is binary, the fields it stores (:func:`stat_of`)."""
     if tag == b"STAT":
         return stat_of(data)
-    return json.loads(container._json_text(memoryview(section(data, tag)), tag.decode()))
+    return json.loads(fmt.sections.json_text(memoryview(section(data, tag)), tag.decode()))
 
 
 def with_json(data: bytes, tag: bytes, value) -> bytes:
@@ -165,7 +165,7 @@ def with_json(data: bytes, tag: bytes, value) -> bytes:
 
 def stat_of(data: bytes) -> dict:
     """The fields the binary STAT section stores (not those the reader derives from the table)."""
-    return container._unpack_stats(memoryview(section(data, b"STAT")))
+    return fmt.header.unpack_stats(memoryview(section(data, b"STAT")))
 
 
 def with_stat(data: bytes, **changes: float | int | None) -> bytes:
@@ -175,10 +175,10 @@ def with_stat(data: bytes, **changes: float | int | None) -> bytes:
     without the writer's checks, so a lie can be told: integer fields take any unsigned
     value (wider than 64 bits too), float fields any float, NaN and infinities included.
     """
-    ids = {name: i for i, name in container.STAT_FIELDS.items()}
+    ids = {name: i for i, name in fmt.header.STAT_FIELDS.items()}
     fields = stat_of(data)
     fields.update(changes)
-    out = bytearray([container.STAT_BINARY])
+    out = bytearray([fmt.header.STAT_BINARY])
     for name, value in sorted(fields.items(), key=lambda kv: ids[kv[0]]):
         if value is None:
             continue
@@ -352,7 +352,7 @@ def tiled_file(rows: int, cols: int, size: int, occupied: dict[int, int], *, ove
     total = int(cells.sum())
     geom_blob = GEOM.pack(0.0, 0.0, 0.0, 1.0, rows, cols, 0.0, total, total, 0.0, 0.0, 0.0)
     parm = json.dumps({"step": step, "tile_size": size, "cutoff": cutoff}).encode()
-    stat = bytes([container.STAT_BINARY, 128]) + leb128(int(i.size))
+    stat = bytes([fmt.header.STAT_BINARY, 128]) + leb128(int(i.size))
     head = [(b"GEOM", 0, geom_blob), (b"PARM", 0, parm), (b"STAT", 0, stat),
             (b"TIDX", 0, pack_tile_index(cells, size=size, overlap=overlap, reach=reach)),
             (b"BASE", 0, base)]

@@ -20,7 +20,7 @@ tiled (1.1) map refuses a prefix and a cutoff: bits 1 and 2 apply to it only
 when the high bits are all set, so most tiled inputs reach the tiles.
 
 The allowed allocation of a tiled map is per cell of what the file can
-justify (:func:`dftpcc.container.cells_allowed` of its size, at most its
+justify (:func:`dftpcc.format.validate.cells_allowed` of its size, at most its
 grid), not of its grid, which may reach 2**36 cells.
 
 Two engines share :func:`check`:
@@ -74,7 +74,8 @@ except ImportError:  # pragma: no cover - script mode
     from workbound import WorkLimitExceeded, measure_work  # type: ignore[no-redef]
 
 import dftpcc
-from dftpcc import container, limits
+from dftpcc import format as fmt
+from dftpcc import limits
 
 #: No input may take longer to decode (seconds).
 TIME_LIMIT_S = 1.0
@@ -133,7 +134,7 @@ def _decode(data: bytes, validated: list[int]) -> np.ndarray:
         with dftpcc.open(body, max_bytes=max_bytes) as cmap:
             grid = cmap.grid
             validated.append(grid.size if not cmap.tiled else
-                             min(grid.size, container.cells_allowed(len(body), None)))
+                             min(grid.size, fmt.validate.cells_allowed(len(body), None)))
             cutoff = (FUZZ_CUTOFF if mode & MODE_CUTOFF and untiled and cmap.params.cutoff <= FUZZ_CUTOFF
                       else None)
             bbox = None
@@ -372,7 +373,7 @@ class Mutator:
         index = rng.choice([i for i, (t, _k, _p) in enumerate(sections) if t in (b"PARM", b"CRS ")] or [0])
         tag, tile, payload = sections[index]
         try:
-            obj = json.loads(container._json_text(memoryview(payload), tag.decode()))
+            obj = json.loads(fmt.sections.json_text(memoryview(payload), tag.decode()))
         except (ValueError, RecursionError, dftpcc.DftpccError):
             obj = {}
         if isinstance(obj, dict) and obj and rng.random() < 0.8:

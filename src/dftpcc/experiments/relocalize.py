@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from ..container import Header, pack, unpack
+from ..format import restate
 from ..dem import DEM
 from ..encoder import encode_dem
 from ..errors import InvalidInputError, MissingDependencyError
@@ -426,10 +426,6 @@ def compress_file_reloc(src: str | os.PathLike[str], dst: str | os.PathLike[str]
 
 
 def with_reloc_stats(data: bytes, success: float) -> bytes:
-    """``data`` with ``reloc_success_fraction`` added to its statistics (the map itself unchanged)."""
-    header, blobs = unpack(data, max_cells=None)
-    stats = dict(header.stats, reloc_success_fraction=float(success))
-    new = Header(grid=header.grid, params=header.params, point_count=header.point_count,
-                 cell_count=header.cell_count, plane=header.plane, crs=header.crs, stats=stats,
-                 coef_count=header.coef_count)
-    return pack(new, bytes(blobs[b"MASK"]), bytes(blobs[b"COEF"]), bytes(blobs.get(b"RESD", b"")))
+    """``data`` with ``reloc_success_fraction`` added to its statistics (the map itself unchanged, tiles
+    included)."""
+    return restate(data, reloc_success_fraction=float(success))
