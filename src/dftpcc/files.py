@@ -231,8 +231,9 @@ def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *
                      cog: bool = False, force: bool = False, max_cells: int | None = None,
                      workers: int | None = None, scheduler: str | None = None,
                      on_stage: Stage = no_stage) -> int:
-    """Decode the tiled map ``src`` one band of tile rows at a time into ``dst``: a GeoTIFF (a
-    Cloud Optimized GeoTIFF with ``cog``), LAS or LAZ. Memory holds one band, never the map.
+    """Decode the map ``src`` one band of rows at a time into ``dst``: a GeoTIFF (a Cloud Optimized
+    GeoTIFF with ``cog``), LAS or LAZ. Of a tiled map memory holds one band of tiles, never the map;
+    an untiled map keeps its decoded mask and spectrum and rebuilds each band from them.
 
     Returns
     -------
@@ -247,8 +248,6 @@ def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *
     check_output(dst, force=force)
     check_executor(workers, scheduler)
     with open_map(src, max_cells=max_cells) as cmap:
-        if not cmap.tiled:
-            raise InvalidInputError(f"{src}: an untiled map decodes whole; band-by-band decoding needs a tiled map")
         with executor(workers, scheduler) as map_tiles:
             return stream.decompress_bands(cmap, dst, fmt, cog=cog, map_tiles=map_tiles, on_stage=on_stage,
                                            write=atomic_write)

@@ -29,6 +29,9 @@ from .units import units_of
 
 __all__ = ["CompressedMap", "open", "decompress", "is_dftpc", "check_bbox"]
 
+#: Rows of the bands an untiled map is written in band by band (a GeoTIFF block is 256 rows).
+UNTILED_BLOCK = 512
+
 
 class CompressedMap:
     """A ``.dftpc`` map opened for reading; use :func:`open`.
@@ -81,6 +84,12 @@ class CompressedMap:
     def tiled(self) -> bool:
         """Whether the map is coded in tiles (format 1.1), so a region decodes on its own."""
         return self.header.tiles is not None
+
+    @property
+    def block(self) -> int:
+        """Rows (and columns) of the windows a band-by-band reader asks for: a tiled map's tile size, or
+        :data:`UNTILED_BLOCK` cells of an untiled map."""
+        return self.header.tiles.tiling.size if self.header.tiles is not None else UNTILED_BLOCK
 
     @property
     def bytes_read(self) -> int:

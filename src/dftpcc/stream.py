@@ -463,7 +463,8 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
 def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: bool = False,
                      map_tiles: Map | None = None, on_stage: Stage = no_stage,
                      write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> int:
-    """Decode the tiled map ``cmap`` band of tile rows by band into ``dst`` (GeoTIFF, COG, LAS or LAZ).
+    """Decode the map ``cmap`` band by band (of :attr:`~dftpcc.mapfile.CompressedMap.block` rows) into ``dst``
+    (GeoTIFF, COG, LAS or LAZ).
 
     A GeoTIFF is decoded and written a block of :data:`BLOCK_TILES` tiles at a time; LAS and LAZ
     a band of tile rows at a time, so that the points keep their row order. Returns the points
@@ -471,12 +472,12 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
     """
     if fmt not in STREAM_FORMATS:
         raise InvalidInputError(f"band-by-band decoding writes {', '.join(STREAM_FORMATS)}, not {fmt}")
-    tiling = cmap.header.tiles.tiling
+    size = cmap.block
     grid = cmap.grid
     written = 0
 
     def bands() -> Iterator[tuple[int, DEM]]:
-        for r0, r1 in _bands(grid.rows, tiling.size):
+        for r0, r1 in _bands(grid.rows, size):
             on_stage("decode", r0 / grid.rows)
             yield r0, cmap.read_window((r0, r1), (0, grid.cols), map_tiles=map_tiles)
 
@@ -484,11 +485,11 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
         # Column strips of BLOCK_TILES tiles, each from south to north: a GeoTIFF block that
         # straddles two bands is completed by the next window written, so GDAL's cache holds
         # a strip's few partly written blocks, not a block row of the whole width.
-        width = BLOCK_TILES * tiling.size
+        width = BLOCK_TILES * size
         done, cells = 0, grid.rows * grid.cols
         for c0 in range(0, grid.cols, width):
             c1 = min(grid.cols, c0 + width)
-            for r0, r1 in _bands(grid.rows, tiling.size):
+            for r0, r1 in _bands(grid.rows, size):
                 on_stage("decode", done / cells)
                 yield r0, c0, cmap.read_window((r0, r1), (c0, c1), map_tiles=map_tiles)
                 done += (r1 - r0) * (c1 - c0)

@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import CorruptFileError, InvalidInputError
 from .header import DERIVED_STATS, Header, parse_header
 from .index import unpack_index
-from .sections import VERSION_TILED, checked, names, table, table_of
+from .sections import VERSION_TILED, checked, names, table, table_of  # noqa: F401 (table: read by tests)
 from .source import Source
 from .validate import MAX_TILED_CELLS, cells_allowed, check_map_resid, tile_needs
 
