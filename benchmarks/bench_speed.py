@@ -65,8 +65,8 @@ MIN_OVER_DRACO = 10.0        # times DracoPy's encoder speed, for compress (deco
 COMPRESS_STAGES = (
     ("check and survey the points", encoder, "survey", 0),
     ("check heights", encoder, "check_heights", 0),
-    ("fit the grid", encoder, "_fit_grid", 0),
-    ("rasterize", encoder, "_rasterize", 0),
+    ("fit the grid", encoder, "fit_grid", 0),
+    ("rasterize", encoder, "rasterize", 0),
     ("analysis", encoder, "Analysis", 0),
     ("fit the plane", analysis, "fit_plane", 1),
     ("evaluate the plane", analysis, "plane_values", 1),

@@ -14,6 +14,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import coding, kernels, occupancy, spectrum, tiles
+from .cluster import serial
 from .format import Header
 from .dem import DEM
 from .errors import CorruptFileError, InvalidInputError
@@ -276,7 +277,7 @@ def decode_tiled(header: Header, shared: dict[bytes, Any], read: Callable[[int],
     jobs = [(k, {tag: bytes(blob) for tag, blob in read(k).items()},
              *(None if whole is None else _tile_of(whole, index.tiling.bounds(k)) for whole in (map_mask, map_resid)))
             for k in wanted]
-    decoded = (map_tiles or _serial)(_decode_job, jobs, header, base)
+    decoded = (map_tiles or serial)(_decode_job, jobs, header, base)
     for k, (h, m) in zip(wanted, decoded):
         r0, r1, c0, c1 = index.tiling.bounds(k)
         # The part of the tile inside the window.
@@ -285,10 +286,6 @@ def decode_tiled(header: Header, shared: dict[bytes, Any], read: Callable[[int],
         heights[a - rows[0]:b - rows[0], c - cols[0]:d - cols[0]] = h[a - r0:b - r0, c - c0:d - c0]
         mask[a - rows[0]:b - rows[0], c - cols[0]:d - cols[0]] = m[a - r0:b - r0, c - c0:d - c0]
     return DEM(grid=out_grid, heights=heights, mask=mask)
-
-
-def _serial(func: Callable[..., Any], items: list, *args: Any) -> list:
-    return [func(item, *args) for item in items]
 
 
 def _tile_of(whole: np.ndarray, bounds: tuple[int, int, int, int]) -> np.ndarray:

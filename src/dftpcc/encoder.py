@@ -19,11 +19,12 @@ import numpy as np
 
 from .sums import dot
 from . import coding, kernels, occupancy, ratecontrol, spectrum
+from .cluster import serial
 from .analysis import Analysis, Trial
 from .format import MapWriter, check_grid, entry_bytes
 from .dem import DEM, as_points
 from .errors import CoarseMapWarning, InvalidInputError
-from .grid import Survey, _fit_grid, _rasterize, auto_resolution, survey
+from .grid import Survey, auto_resolution, fit_grid, rasterize, survey
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
@@ -121,7 +122,8 @@ def _grid_points(points: np.ndarray, params: Params, known: Survey | None = None
     """:func:`grid_points` of checked points (``known``: their :func:`~dftpcc.grid.survey`, if
     made): each pass over millions of points counts."""
     resolution = auto_resolution(points) if params.resolution == "auto" else params.resolution
-    return _rasterize(points, _fit_grid(points, resolution, params.frame, known), params.aggregate)
+    grid = fit_grid(points, resolution, frame=params.frame, known=known, checked=True)
+    return rasterize(points, grid, aggregate=params.aggregate, checked=True)
 
 
 def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
@@ -486,7 +488,7 @@ def _pack_tiled(choice: Choice, params: Params, masks: TiledMasks, point_count: 
         whole = params.target_max_error > 0 and dem.mask.size <= MAP_MASK_CELLS
         for job, blob in zip(jobs, masks.tiles):  # coded already, or none (a full tile; the map mask)
             job.mask_code, job.keep_residual = blob, whole
-        codes = (map_tiles or serial_map)(code_tile, jobs, params, an.refill_step)
+        codes = (map_tiles or serial)(code_tile, jobs, params, an.refill_step)
         if whole:
             masks, map_resid = map_residual(an, masks, codes, params.coder)
             codes = [dataclasses.replace(c, residual=None, **({"mask": b"", "resid": b""} if map_resid else {}))
@@ -503,10 +505,6 @@ def _pack_tiled(choice: Choice, params: Params, masks: TiledMasks, point_count: 
     on_stage("container")
     return writer.finish(stats, coef_count=an.base_count(params.cutoff), base=base_blob, map_mask=masks.map,
                          map_resid=map_resid)
-
-
-def serial_map(func: Callable[..., Any], items: list, *args: Any) -> list:
-    return [func(item, *args) for item in items]
 
 
 def _map_figures(dem: DEM, params: Params) -> dict[str, Any]:

@@ -128,7 +128,8 @@ def _min_area_angle(xy: np.ndarray) -> float:
     return float(angles[int(np.argmax(tied))])  # the smallest angle of the tie
 
 
-def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> Grid:
+def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis", known: Survey | None = None,
+             checked: bool = False) -> Grid:
     """The grid that encloses ``points`` at ``resolution`` metres per cell.
 
     Parameters
@@ -139,6 +140,10 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
         Cell size in metres.
     frame : {'axis', 'oriented'}
         Axis-aligned or minimum-area rotated bounding rectangle.
+    known : Survey, optional
+        The points' :func:`survey`, if the caller made it (their extremes and mean are not taken again).
+    checked : bool
+        The points were checked by :func:`~dftpcc.dem.as_points` already (an encoder's own call).
 
     Raises
     ------
@@ -149,12 +154,7 @@ def fit_grid(points: np.ndarray, resolution: float, *, frame: str = "axis") -> G
         resolution that fits), or coordinates too large for float64 to
         resolve cells of ``resolution``.
     """
-    return _fit_grid(as_points(points), resolution, frame)
-
-
-def _fit_grid(points: np.ndarray, resolution: float, frame: str, known: Survey | None = None) -> Grid:
-    """:func:`fit_grid` of points :func:`~dftpcc.dem.as_points` has checked already (whose
-    :func:`survey` the caller may have made)."""
+    points = points if checked else as_points(points)
     _check_resolution(resolution)
     angle = _min_area_angle(points[:, :2]) if frame == "oriented" else 0.0
     x_lo, x_hi, y_lo, y_hi = _xy_extremes(points) if known is None else known[:4]
@@ -214,7 +214,7 @@ def _check_precision(largest: float, resolution: float) -> None:
             f"{resolution:g} m cells; subtract an offset from x and y first")
 
 
-def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean") -> DEM:
+def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean", checked: bool = False) -> DEM:
     """Height of every cell from the points in it.
 
     Parameters
@@ -222,17 +222,15 @@ def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean") -> DEM
     points : ndarray, shape (N, 3)
     grid : Grid
     aggregate : {'mean', 'median', 'min', 'max'}
+    checked : bool
+        The points were checked by :func:`~dftpcc.dem.as_points` already.
 
     Returns
     -------
     DEM
         Heights relative to ``grid.z0`` in metres; 0 in empty cells.
     """
-    return _rasterize(as_points(points), grid, aggregate)
-
-
-def _rasterize(points: np.ndarray, grid: Grid, aggregate: str) -> DEM:
-    """:func:`rasterize` of points :func:`~dftpcc.dem.as_points` has checked already."""
+    points = points if checked else as_points(points)
     idx, z = _cells_of(points, grid)
     if aggregate == "median":
         from scipy import ndimage  # here, not at import: only the median needs it (30-60 ms to load)

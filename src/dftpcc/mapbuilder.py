@@ -51,7 +51,7 @@ from .dem import Grid, TileGrid, as_points
 from .encoder import check_heights
 from .errors import CorruptFileError, DftpccWarning, InvalidInputError
 from .io.atomic import atomic_write, check_output
-from .params import MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
+from .params import DEFAULT_CUTOFF, MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
 from .tiles import TILE_OVERLAP, TileCode, TileJob, code_tile
 
 __all__ = ["MapBuilder", "UpdateResult", "update_file", "state_path", "is_growing", "same_crs",
@@ -161,7 +161,7 @@ class MapBuilder:
         are the same either way; ``DFTPCC_JIT=0`` keeps numpy whatever this says.
     """
 
-    def __init__(self, resolution: float, *, tile_size: int = DEFAULT_GROWING_TILE_SIZE, cutoff: float = 0.8,
+    def __init__(self, resolution: float, *, tile_size: int = DEFAULT_GROWING_TILE_SIZE, cutoff: float = DEFAULT_CUTOFF,
                  step: float = DEFAULT_STEP_M, crs: dict[str, Any] | None = None,
                  origin: Sequence[float] | None = None, jit: bool = True):
         if not (isinstance(tile_size, (int, np.integer)) and not isinstance(tile_size, bool)
@@ -684,7 +684,7 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
             raise InvalidInputError("a delta needs a map to start from: the first update of a map writes none")
         base = b""
         builder = MapBuilder(resolution, tile_size=DEFAULT_GROWING_TILE_SIZE if tile_size is None else tile_size,
-                             cutoff=0.8 if cutoff is None else cutoff, step=DEFAULT_STEP_M if step is None else step)
+                             cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff, step=DEFAULT_STEP_M if step is None else step)
     else:
         base = map_path.read_bytes()
         builder = MapBuilder.from_file(map_path)

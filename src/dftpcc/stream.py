@@ -23,6 +23,7 @@ import numpy as np
 
 from .sums import dot
 from . import coding
+from .cluster import serial
 from .format import MapWriter
 from .dem import DEM, Grid, TileGrid
 from .encoder import Stage, check_heights, choose_for_tiles, no_stage
@@ -294,7 +295,7 @@ def compress_gridded(dem: DEM, dst: str | os.PathLike[str], params: Params, *, p
 def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_tiles: Map | None,
               on_stage: Stage, write: Callable[..., None], gridding_rmse: float = 0.0, spread: Any = None) -> None:
     src = raster.path
-    run = map_tiles or (lambda func, items, *args: [func(item, *args) for item in items])
+    run = map_tiles or serial
     try:
         tile = tile_size_for(params, (raster.rows, raster.cols))
         if not tile:
