@@ -276,3 +276,26 @@ def test_update_refusals_write_nothing(tmp_path, scans, capsys):
         code, err = run(capsys, *argv)  # in place
         assert code == 3 and words in err
     assert {p.name: digest(p) for p in tmp_path.iterdir() if p.is_file()} == before
+
+
+def test_a_map_compressed_growable_is_updated_like_any_growing_map(tmp_path, scans, capsys):
+    first, second = write_scans(tmp_path, scans[:5], "a.laz"), write_scans(tmp_path, scans[5:], "b.ply")
+    m = tmp_path / "m.dftpc"
+    assert run(capsys, "compress", first, m, "--growable", "-r", RES, "--tile-size", TILE, "--step", STEP) == (0, "")
+    assert state_path(m).is_file() and is_growing(dftpcc.open(m).header)
+    assert run(capsys, "update", m, second) == (0, "")
+    builder = MapBuilder.from_file(m)
+    once = new_builder(origin=builder.origin).add(
+        np.concatenate([dftpcc.read(first).points, dftpcc.read(second).points])).encode()
+    assert m.read_bytes() == once
+    # What a growing map cannot honour is refused before anything is read or written.
+    for extra, words in ((("--target-rmse", "0.01"), "--target-rmse"), ((), "--resolution")):
+        argv = ("compress", first, tmp_path / "x.dftpc", "--growable", *extra) + (("-r", RES) if extra else ())
+        code, err = run(capsys, *argv)
+        assert code == 3 and err.count("\n") == 1 and words in err, err
+    assert not (tmp_path / "x.dftpc").exists()
+    # Compressed again over it: a new map of its input alone, not an update of the old one.
+    grown = m.read_bytes()
+    assert run(capsys, "compress", first, m, "--growable", "-f", "-r", RES, "--tile-size", TILE, "--step", STEP) == (0, "")
+    assert m.read_bytes() != grown
+    assert m.read_bytes() == new_builder(origin=MapBuilder.from_file(m).origin).add(dftpcc.read(first).points).encode()

@@ -195,6 +195,8 @@ def cmd_compress(args: argparse.Namespace) -> int:
                    target_bpp=args.target_bpp, tile_size=args.tile_size)
     if args.target_reloc is not None:
         return _compress_reloc(args, options)
+    if args.growable:
+        return _compress_growable(args)
     t0 = time.perf_counter()
     with _progress(not args.quiet, COMPRESS_STAGES, verbose=args.verbose) as on_stage:
         cmap = compress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
@@ -401,6 +403,33 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 # -- growing maps: update and patch ---------------------------------------------------------------
+
+
+def _compress_growable(args: argparse.Namespace) -> int:
+    """``compress --growable``: the map written as a growing map with its state, so ``update`` can grow it."""
+    from .mapbuilder import update_file
+
+    fixed = {"--target-rmse": args.target_rmse, "--target-max-error": args.target_max_error,
+             "--target-bpp": args.target_bpp, "--profile": None if args.profile == "compact" else args.profile,
+             "--aggregate": args.aggregate, "--coder": args.coder, "--transform": args.transform,
+             "--detrend": args.detrend, "--fill": args.fill, "--mask": args.mask, "--frame": args.frame,
+             "--workers": args.workers, "--scheduler": args.scheduler, "--classes": args.classes,
+             "--chunk-points": args.chunk_points}
+    given = [flag for flag, value in fixed.items() if value is not None]
+    if given:
+        raise InvalidInputError(f"--growable writes a growing map (tiles at a fixed cutoff and step, no plane): it "
+                                f"takes no {', '.join(given)}")
+    if not isinstance(args.resolution, float):
+        raise InvalidInputError("--growable needs a cell size: give --resolution R (metres)")
+    if args.input == "-" or args.output == "-":
+        raise InvalidInputError("--growable writes a map and its state beside it: give file names, not '-'")
+    tile = args.tile_size if isinstance(args.tile_size, int) and args.tile_size else None
+    result = update_file(args.output, [args.input], new=True, resolution=args.resolution, tile_size=tile,
+                         cutoff=args.cutoff, step=args.step, force=args.force, points_topic=args.topic,
+                         pose_topic=args.pose_topic or "/odom", map_frame=args.map_frame)
+    _say(args, f"{result.path}: {result.size:,} bytes, {result.points:,} points in {result.tiles} tiles, a growing "
+               f"map ('dftpcc update {result.path} SCANS' adds to it; its state: {result.path}.state)")
+    return 0
 
 
 def cmd_update(args: argparse.Namespace) -> int:
@@ -702,6 +731,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tile-size", type=_tile_size, metavar="CELLS",
                    help=f"code the map in tiles of CELLS x CELLS that decode on their own (--bbox); 0: whole; "
                         f"default auto: tiles of {DEFAULT_TILE_SIZE} only for grids over {AUTO_TILE_CELLS:,} cells")
+    p.add_argument("--growable", action="store_true",
+                   help="write a growing map with its state (MAP.state) beside it, so 'dftpcc update' can add scans "
+                        "to it: tiles (default 256) at a fixed --cutoff (default 0.8) and --step (default 0.01 m), no "
+                        "plane and no rate control, so larger than a compressed map (docs/guide.md); needs --resolution")
     p.add_argument("--drop-nonfinite", action="store_true",
                    help="drop points with NaN or infinite coordinates instead of refusing the file")
     p.add_argument("--topic", "--points-topic", dest="topic",

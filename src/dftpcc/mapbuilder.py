@@ -479,9 +479,9 @@ class MapBuilder:
             why = ("it is not tiled" if header.tiles is None else
                    f"its base layer reaches {header.tiles.base_cycles} cycle(s) per tile" if header.tiles.base_cycles
                    else "it has a detrending plane" if any(header.plane) else "its mask is the whole map's")
-            raise InvalidInputError(f"{path}: not a growing map ({why}); a map made by 'dftpcc compress' cannot be "
-                                    f"updated: start a growing map with 'dftpcc update NEW.dftpc SCANS "
-                                    f"--resolution R'")
+            raise InvalidInputError(f"{path}: not a growing map ({why}); a map made by 'dftpcc compress' can be "
+                                    f"updated when made with --growable (or start one with 'dftpcc update "
+                                    f"NEW.dftpc SCANS --resolution R')")
         if not state.is_file():
             raise InvalidInputError(f"{path}: not a growing map: its state file {state} is missing (a growing map "
                                     f"keeps its cells' sums there; without them it cannot be updated)")
@@ -639,7 +639,7 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
                 output: str | os.PathLike[str] | None = None, delta: str | os.PathLike[str] | None = None,
                 points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
                 tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
-                force: bool = False, map_frame: str | None = None) -> UpdateResult:
+                force: bool = False, map_frame: str | None = None, new: bool = False) -> UpdateResult:
     """Add scans to a growing map and write it with its state (``dftpcc update``).
 
     Without ``output`` the map is updated in place. The map and its state
@@ -662,6 +662,9 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         Also write the delta from the old map to the new one (:mod:`dftpcc.delta`).
     resolution, tile_size, cutoff, step : optional
         Settings of a new map; for an existing one they must be its own.
+    new : bool
+        Start a new map even where ``map_path`` exists (``dftpcc compress --growable``; replacing a
+        file needs ``force``).
 
     Raises
     ------
@@ -675,7 +678,7 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     out = Path(output) if output is not None else map_path
     for target in [out, state_path(out)] + ([Path(delta)] if delta is not None else []):
         check_output(target, force=force)
-    created = not map_path.exists()
+    created = new or not map_path.exists()
     if created:
         if resolution is None:
             raise InvalidInputError(f"{map_path} does not exist: give --resolution (and --step, --cutoff, "
