@@ -2,7 +2,8 @@
 
 Each real file is compressed through the public API with the default
 options, the paper profile, each rate-control target, the footprint
-mask and tiled; the SHA-256 of every ``.dftpc`` (or the error class and message,
+mask and tiled, and a growing map is grown in three parts (each version,
+its delta and its state file); the SHA-256 of every ``.dftpc`` (or the error class and message,
 when a case is refused) is written to ``tests/digests.json`` with
 ``--write`` and compared with it otherwise. tests/test_digests.py runs
 the same comparison on the smaller files.
@@ -75,10 +76,44 @@ def digest(name: str, options: dict) -> str:
         return hashlib.sha256(out.read_bytes()).hexdigest()
 
 
+#: A growing map (``MapBuilder``): the field's ground points added in this many parts, west to east;
+#: after each, the map, the delta from the one before and the state file are recorded.
+GROWING_FILE, GROWING_PARTS = "pointclouds/field_gentle_ign.laz", 3
+
+
+def growing() -> dict[str, str]:
+    """SHA-256 of each version of a growing map, of its delta and of its state file."""
+    import numpy as np
+
+    from dftpcc.delta import make_delta
+    from dftpcc.mapbuilder import MapBuilder, state_path
+
+    def sha(data: bytes) -> str:
+        return hashlib.sha256(data).hexdigest()
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        points = dftpcc.read(DATA / GROWING_FILE, classes=[2]).points
+    out, previous = {}, b""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "grown.dftpc"
+        builder = MapBuilder(0.5, tile_size=128, step=0.01)
+        for i, part in enumerate(np.array_split(points[np.argsort(points[:, 0], kind="stable")], GROWING_PARTS)):
+            data = builder.add(part).encode()
+            builder.save(path, data=data)
+            out[f"{GROWING_FILE}|growing|{i}|map"] = sha(data)
+            if previous:
+                out[f"{GROWING_FILE}|growing|{i}|delta"] = sha(make_delta(previous, data))
+            out[f"{GROWING_FILE}|growing|{i}|state"] = sha(state_path(path).read_bytes())
+            previous = data
+    return out
+
+
 def measure(include_large: bool = True) -> dict[str, str]:
-    return {f"{name}|{case}": digest(name, options)
-            for name, large in FILES.items() if include_large or not large
-            for case, options in CASES.items()}
+    found = {f"{name}|{case}": digest(name, options)
+             for name, large in FILES.items() if include_large or not large
+             for case, options in CASES.items()}
+    return found | growing()
 
 
 def main() -> int:

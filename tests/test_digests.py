@@ -39,3 +39,10 @@ def test_the_codec_writes_the_recorded_files(name):
     for case, options in digests.CASES.items():
         key = f"{name}|{case}"
         assert digests.digest(name, options) == RECORDED[key], f"{key} changed"
+
+
+@pytest.mark.skipif(not os.environ.get("DFTPCC_DIGESTS"), reason="digests are exact: DFTPCC_DIGESTS=1 where recorded")
+def test_a_growing_map_writes_the_recorded_files():
+    data_file(digests.GROWING_FILE)
+    for key, value in digests.growing().items():
+        assert value == RECORDED[key], f"{key} changed"
