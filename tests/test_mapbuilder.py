@@ -299,3 +299,29 @@ def test_a_map_compressed_growable_is_updated_like_any_growing_map(tmp_path, sca
     assert run(capsys, "compress", first, m, "--growable", "-f", "-r", RES, "--tile-size", TILE, "--step", STEP) == (0, "")
     assert m.read_bytes() != grown
     assert m.read_bytes() == new_builder(origin=MapBuilder.from_file(m).origin).add(dftpcc.read(first).points).encode()
+
+
+def test_open_by_mode_reads_appends_and_writes(tmp_path, scans):
+    m = tmp_path / "g.dftpc"
+    with dftpcc.open(m, "w", resolution=RES, tile_size=TILE, step=STEP) as grown:
+        for points, pose in scans[:4]:
+            grown.add(points, pose)
+    with dftpcc.open(m, "a") as grown:
+        for points, pose in scans[4:]:
+            grown.add(points, pose)
+    once = new_builder(origin=MapBuilder.from_file(m).origin)
+    for points, pose in scans:
+        once.add(points, pose)
+    assert m.read_bytes() == once.encode() and state_path(m).is_file()
+    with dftpcc.open(m) as cmap:  # "r", the default
+        assert cmap.tiled and cmap.header.point_count == sum(p.shape[0] for p, _ in scans)
+    before = m.read_bytes()
+    with pytest.raises(RuntimeError), dftpcc.open(m, "a") as grown:  # an error inside writes nothing
+        grown.add(*scans[0])
+        raise RuntimeError("stop")
+    assert m.read_bytes() == before
+    for args, kw, words in (((m, "x"), {}, "mode"), ((tmp_path / "none.dftpc", "a"), {}, "no such file"),
+                            ((tmp_path / "n.dftpc", "w"), {}, "resolution"), ((m, "a"), {"step": 1.0}, "settings"),
+                            ((m, "r"), {"resolution": 1.0}, "settings")):
+        with pytest.raises(InvalidInputError, match=words):
+            dftpcc.open(*args, **kw)

@@ -540,6 +540,67 @@ class MapBuilder:
                                     f"state written with this map")
 
 
+class GrowingMap:
+    """A growing map opened to add scans: ``dftpcc.open(path, "a")`` resumes one, ``"w"`` starts one.
+
+    Like laspy's appender: :meth:`add` scans (in the map frame, or in the sensor frame with their
+    pose), and on :meth:`close` (or leaving ``with``) the map and its state are written, each
+    atomically, if anything was added. An exception inside ``with`` writes nothing. The
+    :class:`MapBuilder` it holds is :attr:`builder` (its tiles, :meth:`~MapBuilder.encode`).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], builder: MapBuilder):
+        self.path, self.builder = Path(path), builder
+        self._added = False
+
+    def add(self, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None = None) -> "GrowingMap":
+        """Add a scan (see :meth:`MapBuilder.add`)."""
+        self.builder.add(points, pose)
+        self._added = True
+        return self
+
+    def close(self) -> None:
+        """Write the map and its state if a scan was added since opening (or since the last close)."""
+        if self._added:
+            self.builder.save(self.path)
+            self._added = False
+
+    def __enter__(self) -> "GrowingMap":
+        return self
+
+    def __exit__(self, kind: type | None, *_exc: Any) -> None:
+        if kind is None:
+            self.close()
+
+    def __repr__(self) -> str:
+        return f"GrowingMap({str(self.path)!r}, {len(self.builder.tiles)} tiles, {self.builder.point_count:,} points)"
+
+
+def open_growing(path: str | os.PathLike[str], mode: str, **settings: Any) -> GrowingMap:
+    """``dftpcc.open(path, "a")``: resume the growing map ``path`` (and its state); ``"w"``: start one there,
+    with ``settings`` (``resolution`` required; ``tile_size``, ``cutoff``, ``step``, ``crs``, ``origin``).
+
+    Raises
+    ------
+    InvalidInputError
+        ``"a"`` of a file that is no growing map or has no state, or with settings (they are the
+        map's); ``"w"`` without a resolution, or over a write-protected file.
+    """
+    path = Path(path)
+    if mode == "a":
+        if settings:
+            raise InvalidInputError(f"opening {path} to append takes no settings (they are the map's): "
+                                    f"{', '.join(sorted(settings))}")
+        if not path.is_file():
+            raise InvalidInputError(f"{path}: no such file (open it with mode 'w' to start a growing map)")
+        return GrowingMap(path, MapBuilder.from_file(path))
+    if "resolution" not in settings:
+        raise InvalidInputError("a new growing map needs its cell size: dftpcc.open(path, 'w', resolution=R)")
+    for target in (path, state_path(path)):
+        check_output(target, force=True)
+    return GrowingMap(path, MapBuilder(settings.pop("resolution"), **settings))
+
+
 def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
     values = tuple(float(v) for v in origin)
     if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in values):

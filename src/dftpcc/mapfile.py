@@ -297,13 +297,20 @@ def _centres_inside(g: Grid, bbox: Sequence[float]) -> np.ndarray:
     return ((x >= xmin) & (x <= xmax) & (y >= ymin) & (y <= ymax)).reshape(g.shape)
 
 
-def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | None = None,  # noqa: A001
-         max_cells: int | None = None) -> CompressedMap:
-    """Open a compressed map from a path, a binary file object or bytes.
+def open(source: str | os.PathLike[str] | BinaryIO | bytes, mode: str = "r", *,  # noqa: A001
+         max_bytes: int | None = None, max_cells: int | None = None, **settings: Any) -> Any:
+    """Open a compressed map: ``"r"`` to read it (a :class:`CompressedMap`), ``"a"`` to add scans to a
+    growing map and ``"w"`` to start one (a :class:`~dftpcc.mapbuilder.GrowingMap`, which writes the
+    map and its state on closing), as laspy's ``open_las`` gives a reader, an appender or a writer.
 
     Parameters
     ----------
     source : path, file-like or bytes
+        A path for ``"a"`` and ``"w"``.
+    mode : {'r', 'a', 'w'}
+    settings
+        ``"w"``: the new map's ``resolution`` (metres, required), ``tile_size``, ``cutoff``, ``step``,
+        ``crs``, ``origin`` (see :class:`~dftpcc.mapbuilder.MapBuilder`).
     max_bytes : int, optional
         Read only the first ``max_bytes`` bytes, as if the rest had not been
         received yet; the map decodes from the low frequencies it holds.
@@ -324,6 +331,17 @@ def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | 
         Another major version of the format.
     """
     # The arguments first (as rasterio does): a bad one is refused before the file is touched.
+    if mode not in ("r", "a", "w"):
+        raise InvalidInputError(f"mode must be 'r' (read), 'a' (add scans to a growing map) or 'w' (start one), "
+                                f"got {mode!r}")
+    if mode != "r":
+        if max_bytes is not None or max_cells is not None or not isinstance(source, (str, os.PathLike)):
+            raise InvalidInputError(f"mode {mode!r} opens a growing map by its path, without max_bytes or max_cells")
+        from .mapbuilder import open_growing  # the writer side, loaded only for it
+
+        return open_growing(source, mode, **settings)
+    if settings:
+        raise InvalidInputError(f"reading a map takes no settings: {', '.join(sorted(settings))}")
     check_max_bytes(max_bytes)
     check_max_cells(max_cells)
     if isinstance(source, (bytes, bytearray, memoryview)):
