@@ -4,12 +4,12 @@
 (:mod:`.source`), and the one :mod:`.reader` and one :mod:`.writer` every map goes through.
 """
 
-from .header import STAT_FIELDS, Header
+from .header import STAT_FIELDS, Header, check_header
 from .index import TileIndex
 from .reader import read_tile, unpack, unpack_source
 from .sections import MAGIC, VERSION, VERSION_TILED, entry_bytes, leb128, read_leb128
 from .source import Source
-from .validate import cells_allowed, check_grid, check_header, check_max_bytes, check_max_cells
+from .validate import cells_allowed, check_grid, check_max_bytes, check_max_cells
 from .writer import MapWriter, pack, pack_tiled, restate, tiled_head, tiled_parts
 
 __all__ = [

@@ -15,8 +15,8 @@ from ..dem import Grid
 from ..errors import CorruptFileError, InvalidInputError
 from ..params import Params
 from .sections import F32, TooWide, f32_up, json_text, leb128, pack_json, read_json, read_leb128_at
-from .validate import (MAX_CELLS, check_coef_count, check_crs, check_geometry, check_params, check_points,
-                       check_row_spacing)
+from .validate import (MAX_CELLS, as_writer, check_coef_count, check_crs, check_geometry, check_params,
+                       check_points, check_row_spacing, check_grid_fields)
 
 if TYPE_CHECKING:
     from .index import TileIndex
@@ -257,3 +257,25 @@ def parse_header(payloads: dict[bytes, memoryview], *, budget: int, file_size: i
     grid, crs = grid_and_crs(fields, geom, payloads.get(b"CRS "))
     return Header(grid=grid, params=params, point_count=npoints, cell_count=ncells, plane=(pa, pb, pc),
                   crs=crs, stats=stats, coef_count=coef_count)
+
+
+def check_header(header: Header) -> None:
+    """Refuse a header :func:`unpack` would refuse, so no file is written that dftpcc cannot read.
+
+    The reader's checks on geometry, parameters, coefficient count and CRS;
+    :func:`pack` runs them first, and also refuses statistics or JSON sections
+    the reader could not take.
+
+    Raises
+    ------
+    InvalidInputError
+        "cannot write this map: <what the reader would say>".
+    """
+    g = header.grid
+    with as_writer():
+        if header.tiles is None and header.params.tile_size not in (0, "auto"):
+            raise CorruptFileError(f"an untiled map states tiles of {header.params.tile_size} cells")
+        check_grid_fields(g, header.point_count, header.cell_count, header.params, header.plane, header.tiles is not None)
+        check_params(header.params, g.resolution)
+        check_coef_count(header.coef_count, g.size)
+        check_crs(header.crs)

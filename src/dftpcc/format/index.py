@@ -4,6 +4,7 @@ its cells and its errors.
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass, field
 
@@ -128,3 +129,26 @@ def unpack_index(payload: memoryview, grid: Grid, params: Params, ncells: int, f
     rmse[occupied], max_error[occupied] = errors[: occupied.size], errors[occupied.size:]
     return TileIndex(tiling=tiling, overlap=overlap, base_cycles=base_cycles, cells=cells, rmse=rmse,
                      max_error=max_error)
+
+
+def tile_needs(index: TileIndex, params: Params, k: int, have: set[bytes]) -> set[bytes]:
+    """The sections tile ``k`` (0-based) must hold, given those it has (format.md, TIDX): MASK and
+    COEF, and RESD with a maximum-error target, when it has cells; a full tile may leave its MASK
+    out (every cell), any tile its COEF (every coefficient 0); no tile has a MASK with a map mask,
+    nor a RESD with a map residual."""
+    if not index.cells[k]:
+        return set()
+    need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 and not index.map_resid else set())
+    if index.map_mask or (index.cells[k] == math.prod(index.tiling.shape(k)) and b"MASK" not in have):
+        need.discard(b"MASK")
+    if b"COEF" not in have:
+        need.discard(b"COEF")
+    return need
+
+
+def check_map_resid(index: TileIndex, params: Params) -> None:
+    """A RESD at tile 0 is the map residual: it needs the map mask (its cells) and a bound."""
+    if index.map_resid and not index.map_mask:
+        raise CorruptFileError("a map residual (RESD at tile 0) needs the map mask (MASK at tile 0)")
+    if index.map_resid and not params.target_max_error > 0:
+        raise CorruptFileError("a map residual (RESD at tile 0) in a file without a maximum-error target")

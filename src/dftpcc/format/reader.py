@@ -10,10 +10,10 @@ import numpy as np
 
 from ..errors import CorruptFileError, InvalidInputError
 from .header import DERIVED_STATS, Header, parse_header
-from .index import unpack_index
+from .index import check_map_resid, tile_needs, unpack_index
 from .sections import VERSION_TILED, checked, names, table, table_of  # noqa: F401 (table: read by tests)
 from .source import Source
-from .validate import MAX_TILED_CELLS, cells_allowed, check_map_resid, tile_needs
+from .validate import MAX_TILED_CELLS, cells_allowed
 
 #: Sections of tile 0 a tiled file must hold, and the sections a tile holds.
 REQUIRED_TILED = (b"GEOM", b"PARM", b"STAT", b"TIDX", b"BASE")

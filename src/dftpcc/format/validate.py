@@ -7,17 +7,13 @@ from __future__ import annotations
 import base64
 import binascii
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ..dem import Grid
 from ..errors import CorruptFileError, InvalidInputError, ResourceLimitError
 from ..limits import DECODE_BYTES_PER_CELL, MAX_CELLS, cell_budget
 from ..params import MAX_COORDINATE_M, Params
 from .sections import U64_LIMIT
-
-if TYPE_CHECKING:
-    from .header import Header
-    from .index import TileIndex
 
 #: Tiles of a 1.1 file, at most, and at most this many per byte of the file.
 MAX_TILES = 1 << 20
@@ -57,32 +53,10 @@ def check_grid(grid: Grid, *, point_count: int, cell_count: int, params: Params,
         "cannot write this map: <what the reader would say>".
     """
     with as_writer():
-        _check_grid(grid, point_count, cell_count, params, plane)
+        check_grid_fields(grid, point_count, cell_count, params, plane)
 
 
-def check_header(header: Header) -> None:
-    """Refuse a header :func:`unpack` would refuse, so no file is written that dftpcc cannot read.
-
-    The reader's checks on geometry, parameters, coefficient count and CRS;
-    :func:`pack` runs them first, and also refuses statistics or JSON sections
-    the reader could not take.
-
-    Raises
-    ------
-    InvalidInputError
-        "cannot write this map: <what the reader would say>".
-    """
-    g = header.grid
-    with as_writer():
-        if header.tiles is None and header.params.tile_size not in (0, "auto"):
-            raise CorruptFileError(f"an untiled map states tiles of {header.params.tile_size} cells")
-        _check_grid(g, header.point_count, header.cell_count, header.params, header.plane, header.tiles is not None)
-        check_params(header.params, g.resolution)
-        check_coef_count(header.coef_count, g.size)
-        check_crs(header.crs)
-
-
-def _check_grid(grid: Grid, point_count: int, cell_count: int, params: Params,
+def check_grid_fields(grid: Grid, point_count: int, cell_count: int, params: Params,
                 plane: tuple[float, float, float], tiled: bool = False) -> None:
     if not (is_count(point_count) and point_count < U64_LIMIT):
         raise CorruptFileError(f"point count {point_count!r} does not fit the header's 64 bits")
@@ -206,29 +180,6 @@ def check_tiled_params(params: Params, grid: Grid, size: Any) -> None:
     count = -(-grid.rows // size) * -(-grid.cols // size)
     if count > MAX_TILES:
         raise CorruptFileError(f"{count:,} tiles of {size} cells, more than the {MAX_TILES:,} a file may hold")
-
-
-def check_map_resid(index: TileIndex, params: Params) -> None:
-    """A RESD at tile 0 is the map residual: it needs the map mask (its cells) and a bound."""
-    if index.map_resid and not index.map_mask:
-        raise CorruptFileError("a map residual (RESD at tile 0) needs the map mask (MASK at tile 0)")
-    if index.map_resid and not params.target_max_error > 0:
-        raise CorruptFileError("a map residual (RESD at tile 0) in a file without a maximum-error target")
-
-
-def tile_needs(index: TileIndex, params: Params, k: int, have: set[bytes]) -> set[bytes]:
-    """The sections tile ``k`` (0-based) must hold, given those it has (format.md, TIDX): MASK and
-    COEF, and RESD with a maximum-error target, when it has cells; a full tile may leave its MASK
-    out (every cell), any tile its COEF (every coefficient 0); no tile has a MASK with a map mask,
-    nor a RESD with a map residual."""
-    if not index.cells[k]:
-        return set()
-    need = {b"MASK", b"COEF"} | ({b"RESD"} if params.target_max_error > 0 and not index.map_resid else set())
-    if index.map_mask or (index.cells[k] == math.prod(index.tiling.shape(k)) and b"MASK" not in have):
-        need.discard(b"MASK")
-    if b"COEF" not in have:
-        need.discard(b"COEF")
-    return need
 
 
 def cells_allowed(file_size: int, max_cells: int | None) -> int:

@@ -19,12 +19,12 @@ from ..dem import Grid, TileGrid
 from ..errors import CorruptFileError, InvalidInputError, LargeGridWarning
 from ..limits import cell_budget
 from ..params import Params
-from .header import DERIVED_STATS, Header, header_sections
-from .index import TileIndex, pack_index
+from .header import DERIVED_STATS, Header, check_header, header_sections
+from .index import TileIndex, check_map_resid, pack_index, tile_needs
 from .reader import read_tile, unpack_source
 from .sections import MAX_SECTIONS_TILED, VERSION, VERSION_TILED, head, names
 from .source import Source
-from .validate import as_writer, check_header, check_map_resid, check_tiled_params, tile_needs
+from .validate import as_writer, check_tiled_params
 
 
 def pack(header: Header, mask_blob: bytes, coef_blob: bytes, resid_blob: bytes = b"") -> bytes:
