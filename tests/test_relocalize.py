@@ -18,7 +18,7 @@ import pytest
 
 import dftpcc
 from dftpcc import cli
-from dftpcc.format.header import params_for_file as _params_for_file
+from dftpcc.format.header import params_for_file as _params_for_file, params_from_file
 from dftpcc.dem import DEM, Grid
 from dftpcc.encoder import encode_dem
 from dftpcc.errors import InvalidInputError, MissingDependencyError
@@ -98,7 +98,7 @@ def test_recommend_chooses_the_smallest_file_that_relocalizes(gale, chosen):
     assert tried[-1]["success"] >= rl.RECOMMEND_FRACTION and tried[-1]["cutoff"] == chosen.params.cutoff
     assert 0.5 <= chosen.params.cutoff <= 0.85
     with dftpcc.open(chosen.data) as cmap:
-        assert cmap.params.target_reloc == 0.05
+        assert cmap.header.notes == {"target_reloc": 0.05} and cmap.info()["params"]["target_reloc"] == 0.05
         assert cmap.params.cutoff == chosen.params.cutoff
         assert cmap.header.stats["reloc_success_fraction"] == pytest.approx(chosen.success, abs=1e-6)
         points = cmap.read_points()
@@ -125,15 +125,16 @@ def test_recommend_refusals(gale):
     for bad in (0, -1, math.inf, True):
         with pytest.raises(InvalidInputError, match="positive number of metres"):
             rl.check_target_reloc(bad)
-    with pytest.raises(InvalidInputError, match="target_reloc"):
-        Params(target_reloc=-1.0)
 
 
-def test_target_reloc_is_left_out_of_files_made_without_it():
-    """Old files read unchanged; a file not made for a relocalization target has no new PARM field."""
+def test_target_reloc_is_a_note_beside_the_parameters_not_one_of_them():
+    """The codec's parameters hold no experiment's field; the file keeps it as a PARM note, read
+    back and written again unchanged, and a file made without it has none."""
     assert "target_reloc" not in _params_for_file(Params(cutoff=0.8, step=0.01))
-    assert _params_for_file(Params(cutoff=0.8, step=0.01, target_reloc=0.05))["target_reloc"] == 0.05
-    assert Params.from_json(json.dumps({"cutoff": 0.5})).target_reloc == 0.0
+    assert "target_reloc" not in {f.name for f in dataclasses.fields(Params)}
+    params, notes = params_from_file(json.dumps({"cutoff": 0.5, "step": 0.01, "target_reloc": 0.05}), 1.0)
+    assert params.cutoff == 0.5 and notes == {"target_reloc": 0.05}
+    assert params_from_file(json.dumps({"cutoff": 0.5, "step": 0.01}), 1.0)[1] == {}
 
 
 @pytest.fixture(scope="module")

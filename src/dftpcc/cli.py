@@ -383,7 +383,7 @@ def cmd_recommend(args: argparse.Namespace) -> int:
                             format=args.format, classes=args.classes, topic=args.topic, pose_topic=args.pose_topic,
                             scans=args.reloc_scans, seed=args.reloc_seed)
     if args.json:
-        print(json.dumps({"params": json.loads(chosen.params.to_json()), "bytes": len(chosen.data),
+        print(json.dumps({"params": json.loads(chosen.params.to_json()) | chosen.notes, "bytes": len(chosen.data),
                           "bits_per_point": chosen.bits_per_point, "success": chosen.success,
                           "p95_m": chosen.p95_m, "tried": chosen.tried}, indent=2, sort_keys=True))
         return 0

@@ -226,7 +226,7 @@ class CompressedMap:
                      "angle_rad": g.angle},
             # The "_m" fields are in these units: metres unless the CRS says otherwise.
             "units": dataclasses.asdict(units_of(h.crs)),
-            "params": json.loads(h.params.to_json()),
+            "params": json.loads(h.params.to_json()) | h.notes,  # notes: what a tool on top recorded
             "plane": list(h.plane),
             "crs": (h.crs.get("wkt") or ("LAS GeoKeys" if h.crs.get("las_vlrs") else None)),
             "stats": h.stats,

@@ -115,12 +115,6 @@ class Params:
         tile is coded in tiles a reader decodes one by one (docs/format.md,
         *Tiles*). 0 codes the map whole; ``'auto'`` tiles only a grid over
         :data:`AUTO_TILE_CELLS`, at :data:`DEFAULT_TILE_SIZE`.
-    target_reloc : float
-        Recorded only: > 0 when the cutoff was chosen as the smallest file
-        whose rebuilt map still relocalizes lidar scans simulated on the map
-        within this translation error, metres
-        (:func:`dftpcc.experiments.relocalize.recommend`); the encoder itself
-        ignores it.
     """
 
     resolution: float | str = "auto"
@@ -140,7 +134,6 @@ class Params:
     target_max_error: float = 0.0
     target_bpp: float = 0.0
     tile_size: int | str = "auto"
-    target_reloc: float = 0.0
 
     def __post_init__(self) -> None:
         if self.resolution != "auto":
@@ -163,7 +156,6 @@ class Params:
                 _check_height(name, value, "0 sets no target")
             elif not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise InvalidInputError(f"{name} must be a finite number >= 0, got {value!r}")
-        _check_height("target_reloc", self.target_reloc, "0 sets no target")
         if sum(v > 0 for v in targets.values()) > 1:
             raise InvalidInputError("give at most one of target_rmse, target_max_error, target_bpp")
         check_tile_size(self.tile_size)

@@ -282,7 +282,7 @@ class Recommendation:
     Attributes
     ----------
     params : Params
-        The chosen parameters (``cutoff`` set, ``target_reloc`` recorded).
+        The chosen parameters (``cutoff`` set).
     data : bytes
         The chosen file, its statistics holding ``reloc_success_fraction``.
     success : float
@@ -292,6 +292,8 @@ class Recommendation:
     bits_per_point : float
     tried : list of dict
         Every candidate measured: cutoff, bytes, bits per point, success, p95_m, median_m.
+    notes : dict
+        What the file records beside its parameters: ``target_reloc``, metres.
     """
 
     params: Params
@@ -300,6 +302,7 @@ class Recommendation:
     p95_m: float
     bits_per_point: float
     tried: list[dict[str, Any]] = field(default_factory=list)
+    notes: dict[str, Any] = field(default_factory=dict)
 
 
 def _bytes_of(size: int) -> str:
@@ -349,8 +352,9 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
     shift = -to_map[:3, 3]
     candidates = []
     for cutoff in cutoffs:
-        data = encode_dem(dem, params.replace(cutoff=cutoff, target_reloc=float(target_reloc)),
-                          point_count=point_count, crs=crs)
+        # The file records the target beside its parameters (a PARM note), as every candidate is sized.
+        data = restate(encode_dem(dem, params.replace(cutoff=cutoff), point_count=point_count, crs=crs),
+                       notes={"target_reloc": float(target_reloc)})
         candidates.append((len(data), cutoff, data))
     if not candidates:
         raise InvalidInputError("no cutoff to try")
@@ -373,9 +377,9 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
         if row["success"] >= RECOMMEND_FRACTION:
             chosen = with_reloc_stats(data, row["success"])
             with open_map(chosen) as cmap:
-                chosen_params = cmap.params
+                chosen_params, notes = cmap.params, cmap.header.notes
             return Recommendation(chosen_params, chosen, row["success"], row["p95_m"],
-                                  8.0 * len(chosen) / count, tried)
+                                  8.0 * len(chosen) / count, tried, notes)
     assert best is not None  # at least one candidate was measured
     raise InvalidInputError(
         f"target_reloc {target_reloc:g} m cannot be met: the best map reached a 95th-percentile error of "

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import math
 import struct
@@ -51,6 +52,10 @@ class Header:
         Coefficients stored (of a tiled map: its base layer's).
     tiles : TileIndex, optional
         The tile index of a tiled (version 1.1) map.
+    notes : dict
+        PARM fields :class:`Params` does not hold, kept as read and written back: a newer writer's,
+        or what a tool on top of the codec records (the relocalization experiment's
+        ``target_reloc``, metres).
     """
 
     grid: Grid
@@ -62,6 +67,7 @@ class Header:
     stats: dict[str, Any] = field(default_factory=dict)
     coef_count: int = 0
     tiles: "TileIndex | None" = None
+    notes: dict[str, Any] = field(default_factory=dict)
 
 
 #: Parameter values a version-1 file leaves out. Frozen here, apart from the
@@ -72,7 +78,6 @@ V1_PARAM_DEFAULTS: dict[str, Any] = {
     "detrend": "plane", "fill": "consistent", "storage": "quantized", "step": 0.0, "deadzone": 0.1,
     "coder": "ans", "mask": "exact", "target_rmse": 0.0, "target_max_error": 0.0, "target_bpp": 0.0,
     "tile_size": 0,
-    "target_reloc": 0.0,
 }
 #: Statistics the reader derives from the section table instead of storing them.
 DERIVED_STATS = {"mask_bytes": b"MASK", "coef_bytes": b"COEF", "residual_bytes": b"RESD"}
@@ -89,11 +94,14 @@ def params_for_file(params: Params) -> dict[str, Any]:
             if k != "resolution" and (k not in V1_PARAM_DEFAULTS or V1_PARAM_DEFAULTS[k] != v)}
 
 
-def params_from_file(text: str, resolution: float) -> Params:
+def params_from_file(text: str, resolution: float) -> tuple[Params, dict[str, Any]]:
+    """The parameters a PARM section states, and its fields :class:`Params` does not hold (notes)."""
     stored = json.loads(text)
     if not isinstance(stored, dict):
         raise InvalidInputError("parameters must be a JSON object")
-    return Params.from_json(json.dumps(V1_PARAM_DEFAULTS | {"resolution": resolution} | stored))
+    held = {f.name for f in dataclasses.fields(Params)}
+    notes = {k: v for k, v in stored.items() if k not in held}
+    return Params.from_json(json.dumps(V1_PARAM_DEFAULTS | {"resolution": resolution} | stored)), notes
 
 
 #: Binary STAT: a marker byte, then records of a u8 field id and its value:
@@ -203,10 +211,10 @@ def grid_and_crs(fields: tuple, geom: memoryview, crs_payload: memoryview | None
                 resolution_y=res_y or None), crs
 
 
-def parse_params(payload: memoryview, res: float) -> Params:
-    """The PARM section, checked (a file states its cutoff, resolution and step)."""
+def parse_params(payload: memoryview, res: float) -> tuple[Params, dict[str, Any]]:
+    """The PARM section, checked (a file states its cutoff, resolution and step), and its notes."""
     try:
-        params = params_from_file(json_text(payload, "PARM"), res)
+        params, notes = params_from_file(json_text(payload, "PARM"), res)
     except CorruptFileError as exc:
         raise CorruptFileError(f"parameter section is invalid: {exc}") from None
     except (InvalidInputError, TypeError, UnicodeDecodeError, ValueError, OverflowError) as exc:
@@ -214,7 +222,7 @@ def parse_params(payload: memoryview, res: float) -> Params:
     except RecursionError:
         raise CorruptFileError("parameter section nests JSON too deeply") from None
     check_params(params, res)
-    return params
+    return params, notes
 
 
 def header_sections(header: Header) -> list[tuple[bytes, bytes]]:
@@ -227,7 +235,7 @@ def header_sections(header: Header) -> list[tuple[bytes, bytes]]:
     info = dict(header.stats, coef_count=header.coef_count)
     return [
         (b"GEOM", geom),
-        (b"PARM", pack_json(params_for_file(header.params), "PARM")),
+        (b"PARM", pack_json(header.notes | params_for_file(header.params), "PARM")),
     ] + ([(b"CRS ", pack_json(crs_for_file(header.crs), "CRS"))] if header.crs else []) + [
         (b"STAT", pack_stats({k: v for k, v in info.items()
                                if k not in DERIVED_STATS and not (k in _OPTIONAL_STATS and v == 0)})),
@@ -247,7 +255,7 @@ def parse_header(payloads: dict[bytes, memoryview], *, budget: int, file_size: i
     fields = GEOM.unpack_from(geom, 0)
     check_geometry(fields, budget, file_size, limit=limit)
     (_x0, _y0, _z0, res, rows, cols, _angle, npoints, ncells, pa, pb, pc) = fields
-    params = parse_params(payloads[b"PARM"], res)
+    params, notes = parse_params(payloads[b"PARM"], res)
     if params.tile_size and not tiled:
         raise CorruptFileError(f"parameters state tiles of {params.tile_size} cells in an untiled (1.0) map")
     check_points(params, npoints, ncells)
@@ -256,7 +264,7 @@ def parse_header(payloads: dict[bytes, memoryview], *, budget: int, file_size: i
     check_coef_count(coef_count, rows * cols)
     grid, crs = grid_and_crs(fields, geom, payloads.get(b"CRS "))
     return Header(grid=grid, params=params, point_count=npoints, cell_count=ncells, plane=(pa, pb, pc),
-                  crs=crs, stats=stats, coef_count=coef_count)
+                  crs=crs, stats=stats, coef_count=coef_count, notes=notes)
 
 
 def check_header(header: Header) -> None:

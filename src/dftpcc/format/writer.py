@@ -165,12 +165,15 @@ class MapWriter:
     crs : dict, optional
     tiling : TileGrid, optional
         A tiled map's tiles; ``overlap`` and ``base_cycles`` as in :class:`TileIndex`.
+    notes : dict, optional
+        PARM fields beside the parameters (:attr:`Header.notes`).
     """
 
     def __init__(self, grid: Grid, params: Params, *, point_count: int, plane: tuple[float, float, float] = (0.0, 0.0, 0.0),
                  crs: dict[str, Any] | None = None, tiling: TileGrid | None = None, overlap: int = 0,
-                 base_cycles: int = 0, spool: bool = False):
+                 base_cycles: int = 0, spool: bool = False, notes: dict[str, Any] | None = None):
         self.grid, self.params, self.point_count, self.plane, self.crs = grid, params, point_count, plane, crs or {}
+        self.notes = dict(notes or {})
         self.tiling, self.overlap, self.base_cycles = tiling, overlap, base_cycles
         n = tiling.count if tiling is not None else 1
         self.cells = np.zeros(n, dtype=np.int64)
@@ -252,7 +255,7 @@ class MapWriter:
                               cells=self.cells, rmse=self.rmse, max_error=self.max_error)
         return Header(grid=self.grid, params=self.params, point_count=self.point_count,
                       cell_count=int(self.cells.sum()), plane=self.plane, crs=self.crs, stats=stats,
-                      coef_count=coef_count, tiles=index)
+                      coef_count=coef_count, tiles=index, notes=self.notes)
 
     def head(self, stats: dict[str, Any], *, coef_count: int, base: bytes = b"", map_mask: bytes = b"",
              map_resid: bytes = b"") -> bytes:
@@ -298,15 +301,17 @@ class MapWriter:
         self.close()
 
 
-def restate(data: bytes, **stats: Any) -> bytes:
-    """``data`` with further STAT fields (e.g. ``reloc_success_fraction``), the map itself unchanged:
-    the same sections, tiles included, re-written through :class:`MapWriter`."""
+def restate(data: bytes, *, notes: dict[str, Any] | None = None, **stats: Any) -> bytes:
+    """``data`` with further STAT fields (e.g. ``reloc_success_fraction``) and PARM notes (e.g.
+    ``target_reloc``), the map itself unchanged: the same sections, tiles included, re-written
+    through :class:`MapWriter`."""
     source = Source(data)
     header, shared = unpack_source(source, max_cells=None)
     writer = MapWriter(header.grid, header.params, point_count=header.point_count, plane=header.plane,
                        crs=header.crs, tiling=header.tiles.tiling if header.tiles else None,
                        overlap=header.tiles.overlap if header.tiles else 0,
-                       base_cycles=header.tiles.base_cycles if header.tiles else 0)
+                       base_cycles=header.tiles.base_cycles if header.tiles else 0,
+                       notes=header.notes | (notes or {}))
     if header.tiles is None:
         writer.cells[0] = header.cell_count
         writer.add_sections(0, shared)
