@@ -16,8 +16,8 @@ from typing import Any, BinaryIO, Callable, Sequence
 
 import numpy as np
 
-from .format import (MAGIC, VERSION, VERSION_TILED, Source, cells_allowed, check_max_bytes, check_max_cells,
-                     read_tile, unpack_source)
+from .format import (MAGIC, VERSION, VERSION_TILED, RemoteSource, Source, cells_allowed, check_max_bytes,
+                     check_max_cells, is_url, read_tile, unpack_source)
 from .decoder import Whole, decode_dem, decode_window
 from .dem import DEM, Grid
 from .errors import InvalidInputError, ResourceLimitError
@@ -349,6 +349,9 @@ def open(source: str | os.PathLike[str] | BinaryIO | bytes, mode: str = "r", *, 
     if hasattr(source, "read"):
         return CompressedMap(source.read(), getattr(source, "name", "<stream>"), max_bytes=max_bytes,
                              max_cells=max_cells)
+    if is_url(source):  # range requests: the header, then the tiles a region needs
+        remote = RemoteSource(str(source))
+        return CompressedMap(remote, str(source), max_bytes=max_bytes, max_cells=max_cells)
     path = Path(source)
     if not path.is_file():
         raise InvalidInputError(f"{path}: no such file")
