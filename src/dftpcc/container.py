@@ -37,7 +37,7 @@ from .errors import (
 )
 from .dem import Grid, TileGrid
 from .limits import DECODE_BYTES_PER_CELL, MAX_CELLS, cell_budget
-from .params import MAX_COORDINATE_M, Params
+from .params import MAX_COORDINATE_M, MIN_RESOLUTION_M, Params
 
 __all__ = [
     "MAGIC",
@@ -790,6 +790,8 @@ def _check_geometry(geom: tuple, budget: int, file_size: int, *, limit: int = MA
         raise CorruptFileError("geometry section holds non-finite or non-positive values")
     if max(abs(x0), abs(y0), abs(z0)) > MAX_COORDINATE_M:
         raise CorruptFileError(f"geometry section states an origin beyond {MAX_COORDINATE_M:g} m")
+    if res < MIN_RESOLUTION_M:
+        raise CorruptFileError(f"geometry section states a cell size of {res!r} m, below {MIN_RESOLUTION_M:g} m")
     if rows == 0 or cols == 0:
         raise CorruptFileError(f"implausible grid {rows} x {cols}")
     if res * max(rows, cols) > MAX_COORDINATE_M:
@@ -833,8 +835,9 @@ def _check_coef_count(coef_count: Any, cells: int) -> None:
 
 def _check_row_spacing(res_y: float, rows: int) -> None:
     """The optional GEOM row spacing (0 for square cells)."""
-    if not (math.isfinite(res_y) and res_y >= 0):
-        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r}")
+    if not (math.isfinite(res_y) and (res_y == 0 or res_y >= MIN_RESOLUTION_M)):
+        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r} m (a cell size of 0, square, "
+                               f"or {MIN_RESOLUTION_M:g} m or more)")
     if res_y * rows > MAX_COORDINATE_M:
         raise CorruptFileError(f"grid {rows} rows of {res_y:g} m extend beyond {MAX_COORDINATE_M:g} m")
 
