@@ -22,8 +22,8 @@ from dftpcc.mapbuilder import MapBuilder
 from .fuzz.fuzz_delta import run as fuzz_run
 from .test_mapbuilder import RES, STEP, TILE, drive, in_map_frame, run, write_scans
 
-#: Mutated deltas per CI run (about 1 s).
-FUZZ_INPUTS = 20_000
+#: Mutated deltas per CI run (about 5 s of CPU; `make fuzz` runs 100,000).
+FUZZ_INPUTS = 2_000
 
 
 @pytest.fixture(scope="module")
@@ -156,9 +156,12 @@ def test_a_damaged_delta_is_refused_as_corrupt(versions):
 
 
 def test_mutated_deltas_give_the_right_map_or_a_dftpcc_error():
+    """Structure-aware and blind mutations of deltas of real growing maps (tests/fuzz/fuzz_delta.py): a
+    dftpcc error or a version the delta names, within the memory budget, bombs of up to 4 GiB included."""
     report = fuzz_run(FUZZ_INPUTS, seed=3)
     print(report)
-    assert report["iterations"] == FUZZ_INPUTS and len(report["outcomes"]) > 1
+    assert report["iterations"] == FUZZ_INPUTS
+    assert {"applied", "CorruptFileError", "InvalidInputError"} <= set(report["outcomes"])
 
 
 def test_a_drive_updated_twice_sent_as_a_delta_patched_and_replayed_as_a_bag(tmp_path, capsys):
