@@ -257,6 +257,37 @@ def test_integers_round_to_whole_units_within_the_bound(seed, rows, cols, dtype,
 
 # --- what the codecs refuse ------------------------------------------------------------------
 
+@pytest.mark.parametrize("bound", [5e-324, 2.5e-323])
+def test_a_bound_the_arithmetic_cannot_honour_is_refused(bound):
+    """Issue 41, item 8: 5e-324 halved to 0.0, which means "no target", and a chunk came back 28 m off."""
+    rng = np.random.default_rng(2)
+    values = 3000 + 30 * np.cumsum(rng.normal(size=(24, 24)), axis=0)
+    with pytest.raises(InvalidInputError, match="too fine"):
+        encode_chunk(values, chunk_params(bound))
+    with pytest.raises(InvalidInputError, match="too fine"):
+        Dftpcc(max_error=bound, dtype="f8").encode(values)
+    with pytest.raises(InvalidInputError, match="too fine"):
+        zarr.create_array({}, shape=values.shape, chunks=values.shape, dtype="float64",
+                          serializer=DftpccCodec(max_error=bound), compressors=None)[:] = values
+
+
+def test_the_codec_checks_the_bound_after_coding(monkeypatch):
+    """Issue 41, item 8: whatever the encoder does, a chunk beyond its bound is not handed to the array."""
+    import dftpcc.chunkcodec as chunkcodec
+    from dftpcc.errors import DftpccError
+
+    rng = np.random.default_rng(3)
+    values = 3000 + 30 * np.cumsum(rng.normal(size=(24, 24)), axis=0)
+    sloppy = chunkcodec.encode_dem
+    monkeypatch.setattr(chunkcodec, "encode_dem",
+                        lambda dem, params: sloppy(dem, params.replace(target_max_error=50 * params.target_max_error)))
+    with pytest.raises(DftpccError, match="beyond its max_error of 0.1 m"):
+        encode_chunk(values, chunk_params(0.1))
+    with pytest.raises(DftpccError, match="beyond its max_error of 2.5 m"):
+        encode_chunk(np.rint(values).astype(np.int16), chunk_params(2.5))
+
+
+
 def test_refusals_are_clear():
     with pytest.raises(InvalidInputError, match="max_error must be a positive number"):
         DftpccCodec(max_error=0)

@@ -23,7 +23,10 @@ Data types and the bound
     so that rounding to the dtype cannot exceed it. Integers (int8 .. uint64)
     are coded to within ``k + 0.5`` with ``k = floor(max_error)`` and rounded
     on decode, which leaves an error of at most ``k`` (whole units); a bound
-    below 1 therefore makes an integer chunk lossless.
+    below 1 therefore makes an integer chunk lossless. A bound the arithmetic cannot
+    keep (a subnormal one that halves to 0) is refused, and every coded chunk is
+    decoded and compared with the array before it is returned: a chunk beyond its
+    bound is an error, never a write.
 
 Threads
     Zarr codes chunks in threads, and so may the codec: the encoder keeps no
@@ -42,7 +45,7 @@ import numpy as np
 from . import mapfile
 from .dem import DEM, Grid
 from .encoder import encode_dem
-from .errors import CorruptFileError, InvalidInputError, ResourceLimitError
+from .errors import CorruptFileError, DftpccError, InvalidInputError, ResourceLimitError
 from .limits import MAX_CELLS, cell_budget
 from .params import PROFILES, Params, check_cutoff, make_params
 from .residual import GUARANTEE_MARGIN
@@ -123,7 +126,11 @@ def coding_bound(max_error: float, values: np.ndarray) -> float:
         return (math.floor(max_error) + 0.5) * (1.0 - GUARANTEE_MARGIN)
     largest = float(np.max(np.abs(values))) if values.size else 0.0
     spacing = float(np.spacing(values.dtype.type(largest + max_error)))
-    return max(max_error - spacing / 2.0, max_error / 2.0)
+    bound = max(max_error - spacing / 2.0, max_error / 2.0)
+    if not bound > 0:  # a subnormal max_error halves to 0, which would mean "no target" to the encoder
+        raise InvalidInputError(f"max_error {max_error!r} is too fine for float arithmetic: the map would be coded "
+                                f"to a bound of {bound!r} (no bound at all); give at least {2 * math.ulp(0.0)!r}")
+    return bound
 
 
 def _valid_cells(values: np.ndarray, nodata: float | int | None) -> np.ndarray:
@@ -180,7 +187,22 @@ def encode_chunk(values: Any, params: Params, *, fill_value: Any = None) -> byte
     bound = coding_bound(params.target_max_error, values[valid])
     grid = Grid(x0=0.0, y0=0.0, z0=z0, resolution=float(params.resolution), rows=rows, cols=cols)
     dem = DEM(grid, np.where(valid, heights - z0, 0.0), valid)
-    return encode_dem(dem, params.replace(target_max_error=bound))
+    data = encode_dem(dem, params.replace(target_max_error=bound))
+    # The promise is checked, not assumed: the chunk is decoded as a reader will and every valid cell
+    # compared (a bound that rounded to "no target" once gave a chunk 28 m off without a word).
+    _check_bound(decode_chunk(data, values.dtype, fill_value=fill_value, shape=values.shape), values, valid,
+                 params.target_max_error)
+    return data
+
+
+def _check_bound(decoded: np.ndarray, values: np.ndarray, valid: np.ndarray, max_error: float) -> None:
+    """Raise if a decoded chunk's valid cells are not within ``max_error`` (metres; whole units of an integer dtype)."""
+    allowed = math.floor(max_error) if values.dtype.kind in "iu" else max_error
+    error = float(np.abs(decoded[valid].astype(np.float64) - values[valid].astype(np.float64)).max())
+    # The float64 difference of two nearby heights is exact (Sterbenz); an ulp of slack covers the rest.
+    if not error <= allowed + math.ulp(allowed):
+        raise DftpccError(f"the coded chunk is {error!r} m off the array at worst, beyond its max_error of "
+                          f"{max_error!r} m: not written (a dftpcc bug; please report it with the chunk)")
 
 
 def decode_chunk(data: Any, dtype: Any, *, fill_value: Any = None, shape: tuple[int, ...] | None = None,
