@@ -28,6 +28,11 @@ Data types and the bound
     decoded and compared with the array before it is returned: a chunk beyond its
     bound is an error, never a write.
 
+Chunk size
+    A chunk has at most :data:`MAX_CHUNK_CELLS` cells (2048 x 2048): coding time
+    grows faster than the chunk, so a larger one is refused with the reason
+    (the Zarr codec refuses it when the array is created).
+
 Threads
     Zarr codes chunks in threads, and so may the codec: the encoder keeps no
     zstd compressor between calls (zstandard's are not thread-safe) and the
@@ -50,7 +55,7 @@ from .limits import MAX_CELLS, cell_budget
 from .params import PROFILES, Params, check_cutoff, make_params
 from .residual import GUARANTEE_MARGIN
 
-__all__ = ["NO_DATA_MAGIC", "INSTALL_HINT", "chunk_params", "coding_bound", "encode_chunk", "decode_chunk",
+__all__ = ["NO_DATA_MAGIC", "INSTALL_HINT", "MAX_CHUNK_CELLS", "check_chunk_shape", "chunk_params", "coding_bound", "encode_chunk", "decode_chunk",
            "no_data_value", "check_dtype"]
 
 INSTALL_HINT = "pip install 'dftpcc[zarr]' (zarr, numcodecs, xarray and dask)"
@@ -61,6 +66,10 @@ _NO_DATA = struct.Struct("<8sII")
 #: Data types the codec stores: ``f`` floats, ``i``/``u`` integers of any width.
 _KINDS = "fiu"
 _FLOAT64_BYTES = 8
+#: The largest chunk the codec codes, cells (2048 x 2048): rate control's cost grows faster than the
+#: chunk (1024 x 1024 took 5.5 s, 2048 x 2048 39.5 s and 1.5 GB, 4096 x 4096 did not finish in 9 min;
+#: issue 41), so a larger chunk is refused rather than left to run for an unknown time.
+MAX_CHUNK_CELLS = 1 << 22
 
 
 def check_dtype(dtype: Any) -> np.dtype:
@@ -71,6 +80,15 @@ def check_dtype(dtype: Any) -> np.dtype:
         raise InvalidInputError(f"dftpcc stores heights as floats (up to float64) or integers; got dtype {dt} "
                                 f"(cast the array to float32 or float64 first)")
     return dt
+
+
+def check_chunk_shape(shape: tuple[int, ...]) -> None:
+    """Refuse a chunk of more than :data:`MAX_CHUNK_CELLS` cells, with the reason and what to do."""
+    if math.prod(shape) > MAX_CHUNK_CELLS:
+        raise InvalidInputError(
+            f"chunks of {' x '.join(map(str, shape))} cells are more than the {MAX_CHUNK_CELLS:,} (2048 x 2048) dftpcc "
+            f"codes in one chunk: coding time grows faster than the chunk (2048 x 2048 takes about 40 s and 1.5 GB, "
+            f"4096 x 4096 more than 9 minutes); use smaller chunks, such as 512 x 512")
 
 
 def chunk_params(max_error: Any, *, cell_size: Any = 1.0, profile: str = "compact",
@@ -171,13 +189,14 @@ def encode_chunk(values: Any, params: Params, *, fill_value: Any = None) -> byte
     Raises
     ------
     InvalidInputError
-        Not 2D, an unsupported dtype, infinite heights, NaN cells with a numeric
-        fill value, or a bound too fine for the heights.
+        Not 2D, larger than :data:`MAX_CHUNK_CELLS`, an unsupported dtype, infinite
+        heights, NaN cells with a numeric fill value, or a bound too fine for the heights.
     """
     values = np.asarray(values)
     check_dtype(values.dtype)
     if values.ndim != 2 or values.size == 0:
         raise InvalidInputError(f"dftpcc codes 2D chunks (rows, cols) of a DEM; got a chunk of shape {values.shape}")
+    check_chunk_shape(values.shape)
     valid = _valid_cells(values, no_data_value(values.dtype, fill_value))
     rows, cols = values.shape
     if not valid.any():
