@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
+import re
+import sys
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +14,86 @@ import pytest
 
 #: ../shared/data beside the checkout (CI has it there).
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+#: The checkout: its Makefile says which extras `make test` installs, its pyproject.toml what they hold.
+REPO = Path(__file__).resolve().parents[1]
+#: The file the Makefile touches in the venv once it installed the extras.
+MAKE_STAMP = ".installed"
+
+
+def makefile_extras(makefile: Path = REPO / "Makefile") -> list[str]:
+    """The extras the Makefile's ``pip install -e ".[...]"`` line installs."""
+    found = re.search(r'pip install [^\n]*-e "\.\[([^\]]+)\]"', makefile.read_text())
+    return found.group(1).split(",") if found else []
+
+
+def extra_requirements(pyproject: Path = REPO / "pyproject.toml") -> dict[str, list[str]]:
+    """Distribution names (as pip spells them) per extra of pyproject.toml."""
+    extras = tomllib.loads(pyproject.read_text())["project"]["optional-dependencies"]
+    return {extra: [re.split(r"[<>=!~;\[ ]", req, maxsplit=1)[0] for req in reqs] for extra, reqs in extras.items()}
+
+
+def extras_required() -> bool:
+    """Whether every extra the Makefile installs must be present: under CI (``CI`` non-empty), or in a
+    venv the Makefile installed (its stamp), where a missing one is a broken install, not a choice."""
+    return bool(os.environ.get("CI")) or (Path(sys.prefix) / MAKE_STAMP).is_file()
+
+
+def missing_extras() -> list[str]:
+    """``extra: distribution`` of every distribution of the Makefile's extras that is not installed."""
+    missing = []
+    requirements = extra_requirements()
+    for extra in makefile_extras():
+        for name in requirements.get(extra, []):
+            try:
+                importlib.metadata.distribution(name)
+            except importlib.metadata.PackageNotFoundError:
+                missing.append(f"{extra}: {name}")
+    return missing
+
+
+def _optional_modules() -> set[str]:
+    """Import names of distributions only extras the Makefile does not install hold (atheris)."""
+    requirements = extra_requirements()
+    installed = {name for extra in makefile_extras() for name in requirements.get(extra, [])}
+    return {name.lower().replace("-", "_") for names in requirements.values() for name in names} - {
+        name.lower().replace("-", "_") for name in installed}
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    if extras_required():
+        missing = missing_extras()
+        if missing:
+            raise pytest.UsageError(
+                f"the extras the Makefile installs must be present (CI is set, or the Makefile installed this venv), "
+                f"so that no test module is skipped for want of them; missing: {', '.join(missing)} "
+                f"(make test installs them; or pip install -e '.[{','.join(makefile_extras())}]')")
+
+
+def strict_skip(report: pytest.TestReport | pytest.CollectReport) -> None:
+    """Turn a skip for a module that could not be imported into a failure where extras are required
+    (an importorskip of a module an installed extra should give), so that no module is silently skipped."""
+    if not (report.skipped and extras_required()):
+        return
+    reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+    found = re.search(r"could not import '([\w.]+)'", reason)
+    if found and found.group(1).split(".")[0].lower() not in _optional_modules():
+        report.outcome = "failed"
+        report.longrepr = (f"{reason}: the Makefile installs the extra that provides it, and CI is set or the "
+                           f"Makefile installed this venv, so a missing module is a failure, not a skip")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector: pytest.Collector):
+    outcome = yield
+    strict_skip(outcome.get_result())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
+    outcome = yield
+    strict_skip(outcome.get_result())
 
 
 def data_file(name: str) -> Path:

@@ -199,6 +199,8 @@ def _geom(p: bytes) -> dict:
     values = (x0, y0, z0, res, angle, *plane, dy)
     if not all(math.isfinite(v) for v in values) or res <= 0 or dy < 0:
         raise ValueError("geometry section holds non-finite or non-positive values")
+    if res < 1e-9 or 0 < dy < 1e-9:
+        raise ValueError("geometry section states a cell size below 1e-9")
     if rows < 1 or cols < 1 or not 1 <= cells <= rows * cols:
         raise ValueError("implausible grid")
     return dict(x0=x0, y0=y0, z0=z0, res=res, rows=rows, cols=cols, angle=angle,

@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -18,8 +19,8 @@ from .conftest import data_file
 
 pytest.importorskip("distributed")
 
-#: Seconds beyond the connect timeout an unreachable scheduler may take to be reported.
-REPORT_SLACK_S = 20
+#: Seconds after which a command that should have ended is taken for hung (a guard, not a measure).
+HANG_GUARD_S = 600
 
 
 @pytest.fixture(scope="module")
@@ -39,13 +40,29 @@ def test_two_workers_write_the_serial_bytes(gale_tiled, tmp_path):
     assert parallel_tif.read_bytes() == serial_tif.read_bytes()
 
 
-def test_an_unreachable_scheduler_is_one_error_in_bounded_time(tmp_path):
+def test_an_unreachable_scheduler_is_one_error_in_bounded_time(tmp_path, monkeypatch):
+    """Bounded by the connect timeout dftpcc gives dask, not by a clock on a shared machine: the client is
+    asked for CONNECT_TIMEOUT_S (and dask's connect timeout set to it), and the command says so in one line."""
+    import distributed
+
+    asked = []
+    real = distributed.Client
+
+    def client(*args, **kwargs):
+        import dask
+
+        asked.append((kwargs.get("timeout"), dask.config.get("distributed.comm.timeouts.connect")))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(distributed, "Client", client)
+    with pytest.raises(ClusterError, match=f"cannot reach scheduler tcp://127.0.0.1:9 within {CONNECT_TIMEOUT_S} s"):
+        with executor(scheduler="tcp://127.0.0.1:9"):
+            pass
+    assert asked == [(CONNECT_TIMEOUT_S, f"{CONNECT_TIMEOUT_S}s")]
     out = tmp_path / "never.dftpc"
-    start = time.monotonic()
     result = subprocess.run([sys.executable, "-m", "dftpcc", "compress", str(data_file("dems/mars_gale_1m.tif")),
                              str(out), "--tile-size", "128", "--scheduler", "tcp://127.0.0.1:9"],
-                            capture_output=True, text=True)
-    assert time.monotonic() - start < CONNECT_TIMEOUT_S + REPORT_SLACK_S
+                            capture_output=True, text=True, timeout=HANG_GUARD_S)
     assert result.returncode == 10
     assert result.stderr.count("\n") == 1 and "cannot reach scheduler tcp://127.0.0.1:9" in result.stderr
     assert not out.exists() and not list(tmp_path.iterdir())
@@ -85,3 +102,91 @@ def test_local_workers_keep_glibcs_adaptive_mmap_threshold():
     with executor(workers=1) as run:
         assert run(os.environ.get, ["MALLOC_TRIM_THRESHOLD_"]) == [os.environ.get("MALLOC_TRIM_THRESHOLD_")]
         assert run(os.environ.get, ["OPENBLAS_NUM_THREADS"]) == ["1"]  # dask's other settings stay
+
+
+def test_more_workers_than_a_local_cluster_should_have_are_refused(tmp_path, capsys):
+    """Issue 41, item 6: --workers 1000000 started a million processes (1.46 GB, then a traceback)."""
+    from dftpcc.cli import main
+    from dftpcc.cluster import MAX_WORKERS_PER_CORE
+    from dftpcc.kernels import available_cores
+
+    most = MAX_WORKERS_PER_CORE * available_cores()
+    out = tmp_path / "x.dftpc"
+    for workers in (most + 1, 1_000_000):
+        with pytest.raises(InvalidInputError, match=f"more than {MAX_WORKERS_PER_CORE} per core.*--scheduler"):
+            dftpcc.compress_file(data_file("dems/mars_gale_1m.tif"), out, tile_size=128, workers=workers)
+        assert main(["compress", str(data_file("dems/mars_gale_1m.tif")), str(out), "--tile-size", "128",
+                     "--workers", str(workers)]) == 3
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"at most {most}" in err
+    assert not out.exists()
+
+
+def _descendants(pid: int) -> set[int]:
+    """Processes below ``pid`` (children, grandchildren...), from /proc."""
+    parents = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    parents[int(entry)] = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {p for p, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+#: Seconds a stopped local cluster may take to be gone, its workers included. Issue 41 asks 10 s (one
+#: run took 43 s); the graceful close took 10.0-10.7 s here, and a stop now takes 0.8-1.6 s at a load
+#: of 26 on 2 cores, so half the promise tells the two apart with room for a busy machine.
+STOP_WITHIN_S = 5
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize(("sig", "after_s"), [("SIGTERM", 2.0), ("SIGINT", 15.0)],
+                         ids=["SIGTERM-starting", "SIGINT-at-work"])
+def test_a_stop_signal_ends_a_local_cluster_and_its_workers(tmp_path, sig, after_s):
+    """Issue 41, item 6: a real `dftpcc compress --workers 2`, stopped once its workers run: the command and
+    every worker process are gone within STOP_WITHIN_S (10 s asked) of the signal, with one line and nothing written."""
+    import signal
+
+    out = tmp_path / "stopped.dftpc"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(dftpcc.__file__).parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen([sys.executable, "-m", "dftpcc", "compress", str(data_file("dems/earth_heidelberg_25m.tif")),
+                             str(out), "--tile-size", "64", "--target-max-error", "0.05", "--workers", "2"],
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        # Both workers' processes (their nannies run in the command's own process).
+        deadline = time.monotonic() + HANG_GUARD_S
+        while len(_descendants(proc.pid)) < 2 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert proc.poll() is None, "the run ended before its cluster was up"
+        time.sleep(after_s)  # the cluster still starting, or its workers at their tiles
+        workers = _descendants(proc.pid)
+        proc.send_signal(getattr(signal, sig))
+        sent = time.monotonic()
+        code = proc.wait(timeout=60)
+        ended = time.monotonic() - sent
+        while any(_alive(p) for p in workers) and time.monotonic() - sent < 60:
+            time.sleep(0.1)
+        gone = time.monotonic() - sent
+        err = proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert code == 128 + getattr(signal, sig), err
+    assert err.strip().count("\n") == 0 and ("stopped by signal" in err or "interrupted" in err), err
+    assert ended <= STOP_WITHIN_S and gone <= STOP_WITHIN_S, (ended, gone)
+    assert not out.exists() and not list(tmp_path.iterdir())

@@ -199,6 +199,18 @@ def test_a_maximum_error_too_fine_for_the_heights_is_refused(gentle, profile):
         dftpcc.compress(gentle, resolution=1.0, target_max_error=1e-300, profile=profile)
 
 
+@pytest.mark.parametrize("profile", ["compact", "paper"])
+def test_the_smallest_workable_target_is_taken_and_half_of_it_refused(gentle, profile):
+    """Issue 41, item 12: the refusal at its boundary (a check loosened 1000x passed the 1e-300 test alone)."""
+    with pytest.raises(InvalidInputError) as info:
+        dftpcc.compress(gentle, resolution=1.0, target_max_error=1e-300, profile=profile)
+    finest = float(re.search(r"smallest workable target is ([0-9.e+-]+) m", str(info.value)).group(1))
+    with pytest.raises(InvalidInputError, match=f"target maximum error {finest / 2:g} m is too fine"):
+        dftpcc.compress(gentle, resolution=1.0, target_max_error=finest / 2, profile=profile)
+    data = dftpcc.compress(gentle, resolution=1.0, target_max_error=finest, profile=profile)
+    assert dftpcc.open(data).header.stats["dem_max_error_m"] <= finest
+
+
 def test_the_cli_says_the_step_is_too_fine_in_one_line(capsys, tmp_path, gentle):
     from dftpcc import cli
 
@@ -516,3 +528,19 @@ def test_the_residual_layout_is_named_from_its_first_chunk():
     assert layout_of(encode_residual(sparse, "ans", kept)) == "sparse"
     assert layout_of(encode_residual(dense, "ans", kept)) == "chunks"
     assert layout_of(b"") == layout_of(struct.pack("<I", 0)) == "chunks"
+
+
+@pytest.mark.parametrize("bound", [1e-14, 1e-300])
+def test_residual_integers_that_would_wrap_are_refused(bound):
+    """Issue 41, item 12: residual.residual cast to int64 without the limit coding.quantize has (a cell 1e6 m
+    off at a bound of 1e-14 m is 5e19 steps: the cast wrapped to another integer without a word)."""
+    from dftpcc.residual import residual
+
+    target = np.array([[1e6, 0.0], [2.0, -3.0]])
+    rebuilt = np.zeros_like(target)
+    everywhere = np.ones(target.shape, bool)
+    with pytest.raises(InvalidInputError, match=rf"target maximum error {bound:g} m is too fine for residuals up to "
+                                                r"1e\+06 m.* smallest workable target is [0-9.e+-]+ m"):
+        residual(target, rebuilt, everywhere, everywhere, bound)
+    q, heights = residual(target, rebuilt, everywhere, everywhere, 1e-3)
+    assert np.abs(heights - target).max() <= 1e-3

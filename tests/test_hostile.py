@@ -250,8 +250,10 @@ def test_the_memory_limit_follows_the_machine(monkeypatch):
 
 @pytest.mark.parametrize("resolution", [1e-300, 5e-324])
 def test_a_vanishing_resolution_is_refused_not_overflowed(resolution):
-    with pytest.raises(InvalidInputError, match="more cells than can be counted|exceeds"):
+    with pytest.raises(InvalidInputError, match="below the smallest cell size a map may have, 1e-09 m"):
         dftpcc.compress(_terrain(10), resolution=resolution)
+    with pytest.raises(InvalidInputError, match="more cells than can be counted|exceeds"):
+        dftpcc.compress(_terrain(10, offset=(0.0, 0.0, 0.0)) * np.array([1e12, 1e12, 1.0]), resolution=1e-9)
 
 
 def test_coordinates_too_large_for_float64_cells_are_refused():

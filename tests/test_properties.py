@@ -212,6 +212,54 @@ def test_a_max_error_target_bounds_every_occupied_cell(case, factor, mask):
     assert cmap.params.target_max_error == bound
 
 
+#: Float64 spacings of the largest height by which the oracle may differ from the codec where a cell
+#: takes its lowest or highest point (no mean to round): the codec's z - z0 and z0 + h round once each.
+EXACT_ORACLE_SPACINGS = 4
+
+
+@SETTINGS
+@given(cases(), st.sampled_from([0.999, 0.99, 0.9, 0.5]), st.floats(-4500.0, 9000.0), st.sampled_from(["min", "max"]))
+def test_a_max_error_target_just_below_the_natural_error_holds_at_real_heights(case, fraction, height, aggregate):
+    """Issue 41, item 13: a target just below the error the map has without one, so that many cells end
+    near the bound, at heights of thousands of metres, against an oracle exact to a few float64 spacings
+    (a margin flipped to the wrong side stayed within the 1e-12-per-metre slack of the test above)."""
+    points, options = case
+    options = {k: v for k, v in options.items() if k not in ("cutoff", "step")} | {"aggregate": aggregate}
+    points = points + np.array([0.0, 0.0, height - float(np.median(points[:, 2]))])
+    natural = dftpcc.open(_compress(points, options)).header.stats["dem_max_error_m"]
+    top = float(np.abs(points[:, 2]).max())
+    bound = fraction * natural
+    assume(bound > 64 * np.spacing(top))  # a target the heights' floats can keep (the encoder refuses less)
+    data = _compress(points, dict(options, target_max_error=bound))
+    cmap = dftpcc.open(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rebuilt = cmap.read_dem()
+    heights, occupied = _cell_heights(points, rebuilt.grid, aggregate)
+    err = float(np.abs((rebuilt.heights + rebuilt.grid.z0 - heights)[occupied]).max())
+    event(f"worst error within {10 ** np.ceil(np.log10(max(1 - err / bound, 1e-16))):.0e} of the bound")
+    assert err <= bound + EXACT_ORACLE_SPACINGS * np.spacing(top), (err, bound)
+    assert cmap.header.stats["dem_max_error_m"] <= bound
+
+
+@SETTINGS
+@given(st.floats(1e-3, 10.0), st.floats(-4500.0, 9000.0), st.integers(0, 2**32 - 1))
+def test_the_residual_layer_keeps_its_bound_at_its_worst_case(bound, height, seed):
+    """Issue 41, item 13: residuals at and a hair around half a step (where rounding leaves the largest
+    error, step / 2) on heights of thousands of metres: every cell within the bound, to a few spacings."""
+    from dftpcc.residual import residual, residual_step
+
+    rng = np.random.default_rng(seed)
+    step = residual_step(bound)
+    rebuilt = height + rng.normal(0.0, 10 * bound, (12, 12))
+    half = rng.choice([0.5, -0.5, 0.5 - 1e-9, 0.5 + 1e-9, -0.5 - 1e-9], rebuilt.shape)
+    target = rebuilt + (rng.integers(-1000, 1000, rebuilt.shape) + half) * step
+    everywhere = np.ones(rebuilt.shape, bool)
+    _, heights = residual(target, rebuilt, everywhere, everywhere, bound)
+    top = float(np.abs(target).max() + np.abs(rebuilt).max())
+    assert float(np.abs(heights - target).max()) <= bound + EXACT_ORACLE_SPACINGS * np.spacing(top)
+
+
 #: The size search budgets this many bytes of header besides the mask before
 #: it has measured the real header (encoder.HEADER_ESTIMATE): more than a small
 #: map's whole file, so it refuses targets below it even when a file would fit.

@@ -161,3 +161,31 @@ def test_the_base_layer_counts_at_the_reach_the_index_states():
     # At the reach dftpcc writes, the same map's tile decodes within the budget.
     with dftpcc.open(craft.tiled_file(2048, 2048, 16, {1: 200}, cutoff=0.0)) as cmap:
         assert cmap.read_points(bbox=_tile_box(cmap, 1)).shape == (200, 3)
+
+
+TILED_SEEDS = ["tiled", "tiled_max_error_zstd", "tiled_max_error_sparse", "tiled_map_mask_max_error",
+               "tiled_max_error_predicted", "tiled_map_residual", "tiled_map_mask", "tiled_base_only"]
+
+
+@pytest.mark.parametrize("seed", TILED_SEEDS)
+def test_every_damaged_section_of_every_tile_is_named_with_its_tile(seed):
+    """Issue 41, item 11: a byte flipped at the start or end of any section of any tile (RESD
+    included, tile 0's too) is refused, and the error names the section and, beyond tile 0, the tile."""
+    data = seed_files()[seed]
+    table = craft.table(data)
+    assert any(tile > 0 for _tag, tile, *_ in table) or seed in ("tiled_map_residual", "tiled_base_only")
+    if seed != "tiled":
+        assert any(tag == b"RESD" for tag, *_ in table) or seed in ("tiled_map_mask", "tiled_base_only")
+    tiling = dftpcc.open(data).header.tiles.tiling
+    for tag, tile, offset, length, _crc in table:
+        name = tag.decode().strip()
+        if tile == 0:
+            expected = rf"^section {name} fails its checksum"
+        else:
+            row, column = divmod(tile - 1, tiling.tile_cols)
+            expected = rf"^tile {tile} \(tile row {row}, column {column}\): section {name} fails its checksum"
+        for pos in sorted({offset, offset + length - 1}):  # its first and last byte
+            buf = bytearray(data)
+            buf[pos] ^= 0x10
+            with pytest.raises(CorruptFileError, match=expected):
+                dftpcc.open(bytes(buf)).read_points()

@@ -380,3 +380,34 @@ def test_the_cells_inside_a_bbox_are_those_whose_centre_is_inside():
             bbox = (float(x0), float(y0), float(x1), float(y1))
             expected = ((x >= bbox[0]) & (x <= bbox[2]) & (y >= bbox[1]) & (y <= bbox[3])).reshape(g.shape)
             np.testing.assert_array_equal(mapfile._centres_inside(g, bbox), expected)
+
+
+@pytest.mark.parametrize("tile_size", [0, 64], ids=["untiled", "tiled"])
+@pytest.mark.parametrize("bbox", [(0, 0, 1.7e308, 1e7), (-1.7e308, -1.7e308, 1.7e308, 1.7e308),
+                                  (-1.7e308, 1000, 510, 1.7e308)])
+def test_a_huge_finite_bbox_is_clipped_not_overflowed(tile_size, bbox):
+    """Issue 41, item 4: cells of a fraction of a metre put 1.7e308 m beyond any integer; the window
+    is clipped to the grid in floating point first, so a huge box reads what it covers of the map."""
+    dem = _terrain(rows=150, cols=130)
+    dem = DEM(grid=Grid(x0=500.0, y0=1000.0, z0=0.0, resolution=0.25, rows=150, cols=130), heights=dem.heights,
+              mask=dem.mask)
+    m = dftpcc.open(encode_dem(dem, make_params(tile_size=tile_size, cutoff=0.8, step=0.01)))
+    part, whole = m.read_points(bbox=bbox), m.read_points()
+    inside = ((whole[:, 0] >= bbox[0]) & (whole[:, 0] <= bbox[2]) & (whole[:, 1] >= bbox[1])
+              & (whole[:, 1] <= bbox[3]))
+    assert inside.any()
+    np.testing.assert_array_equal(part, whole[inside])
+
+
+@pytest.mark.parametrize("resolution", [5e-324, 1e-300, 1e-12])
+def test_an_absurd_cell_size_is_refused_at_read_time(resolution):
+    """Issue 41, item 4: a GEOM cell size below a nanometre is no map (from 5e-324 m any bbox crashed)."""
+    from tests.fuzz import craft
+
+    data = encode_dem(_terrain(rows=40, cols=30), make_params(tile_size=0, cutoff=0.8, step=0.01))
+    crafted = craft.with_json(craft.with_geom(data, resolution=resolution), b"PARM",
+                              craft.json_of(data, b"PARM") | {"resolution": resolution})
+    with pytest.raises(CorruptFileError, match="geometry section states a cell size"):
+        dftpcc.open(crafted)
+    with pytest.raises(InvalidInputError, match="smallest cell size"):
+        make_params(resolution=resolution)

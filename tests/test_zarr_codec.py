@@ -257,6 +257,53 @@ def test_integers_round_to_whole_units_within_the_bound(seed, rows, cols, dtype,
 
 # --- what the codecs refuse ------------------------------------------------------------------
 
+@pytest.mark.parametrize("bound", [5e-324, 2.5e-323])
+def test_a_bound_the_arithmetic_cannot_honour_is_refused(bound):
+    """Issue 41, item 8: 5e-324 halved to 0.0, which means "no target", and a chunk came back 28 m off."""
+    rng = np.random.default_rng(2)
+    values = 3000 + 30 * np.cumsum(rng.normal(size=(24, 24)), axis=0)
+    with pytest.raises(InvalidInputError, match="too fine"):
+        encode_chunk(values, chunk_params(bound))
+    with pytest.raises(InvalidInputError, match="too fine"):
+        Dftpcc(max_error=bound, dtype="f8").encode(values)
+    with pytest.raises(InvalidInputError, match="too fine"):
+        zarr.create_array({}, shape=values.shape, chunks=values.shape, dtype="float64",
+                          serializer=DftpccCodec(max_error=bound), compressors=None)[:] = values
+
+
+@pytest.mark.parametrize("shape", [(4096, 4096), (2049, 2048), (1, (1 << 22) + 1)])
+def test_a_chunk_larger_than_the_codec_codes_is_refused_with_the_reason(shape):
+    """Issue 41, item 9: one 4096 x 4096 float64 chunk at max_error=0.1 did not finish in 9 minutes."""
+    from dftpcc.chunkcodec import MAX_CHUNK_CELLS
+
+    assert math.prod(shape) > MAX_CHUNK_CELLS == 2048 * 2048
+    values = np.zeros(shape)
+    with pytest.raises(InvalidInputError, match=r"more than the 4,194,304 \(2048 x 2048\).*faster than the chunk"):
+        encode_chunk(values, chunk_params(0.1))
+    with pytest.raises(InvalidInputError, match="use smaller chunks"):
+        Dftpcc(max_error=0.1, dtype="f8").encode(values)
+    with pytest.raises(InvalidInputError, match="use smaller chunks"):  # when the array is made, before any data
+        zarr.create_array({}, shape=shape, chunks=shape, dtype="float64",
+                          serializer=DftpccCodec(max_error=0.1), compressors=None)
+
+
+def test_the_codec_checks_the_bound_after_coding(monkeypatch):
+    """Issue 41, item 8: whatever the encoder does, a chunk beyond its bound is not handed to the array."""
+    import dftpcc.chunkcodec as chunkcodec
+    from dftpcc.errors import DftpccError
+
+    rng = np.random.default_rng(3)
+    values = 3000 + 30 * np.cumsum(rng.normal(size=(24, 24)), axis=0)
+    sloppy = chunkcodec.encode_dem
+    monkeypatch.setattr(chunkcodec, "encode_dem",
+                        lambda dem, params: sloppy(dem, params.replace(target_max_error=50 * params.target_max_error)))
+    with pytest.raises(DftpccError, match="beyond its max_error of 0.1 m"):
+        encode_chunk(values, chunk_params(0.1))
+    with pytest.raises(DftpccError, match="beyond its max_error of 2.5 m"):
+        encode_chunk(np.rint(values).astype(np.int16), chunk_params(2.5))
+
+
+
 def test_refusals_are_clear():
     with pytest.raises(InvalidInputError, match="max_error must be a positive number"):
         DftpccCodec(max_error=0)

@@ -23,7 +23,15 @@ Data types and the bound
     so that rounding to the dtype cannot exceed it. Integers (int8 .. uint64)
     are coded to within ``k + 0.5`` with ``k = floor(max_error)`` and rounded
     on decode, which leaves an error of at most ``k`` (whole units); a bound
-    below 1 therefore makes an integer chunk lossless.
+    below 1 therefore makes an integer chunk lossless. A bound the arithmetic cannot
+    keep (a subnormal one that halves to 0) is refused, and every coded chunk is
+    decoded and compared with the array before it is returned: a chunk beyond its
+    bound is an error, never a write.
+
+Chunk size
+    A chunk has at most :data:`MAX_CHUNK_CELLS` cells (2048 x 2048): coding time
+    grows faster than the chunk, so a larger one is refused with the reason
+    (the Zarr codec refuses it when the array is created).
 
 Threads
     Zarr codes chunks in threads, and so may the codec: the encoder keeps no
@@ -42,12 +50,12 @@ import numpy as np
 from . import mapfile
 from .dem import DEM, Grid
 from .encoder import encode_dem
-from .errors import CorruptFileError, InvalidInputError, ResourceLimitError
+from .errors import CorruptFileError, DftpccError, InvalidInputError, ResourceLimitError
 from .limits import MAX_CELLS, cell_budget
 from .params import PROFILES, Params, check_cutoff, make_params
 from .residual import GUARANTEE_MARGIN
 
-__all__ = ["NO_DATA_MAGIC", "INSTALL_HINT", "chunk_params", "coding_bound", "encode_chunk", "decode_chunk",
+__all__ = ["NO_DATA_MAGIC", "INSTALL_HINT", "MAX_CHUNK_CELLS", "check_chunk_shape", "chunk_params", "coding_bound", "encode_chunk", "decode_chunk",
            "no_data_value", "check_dtype"]
 
 INSTALL_HINT = "pip install 'dftpcc[zarr]' (zarr, numcodecs, xarray and dask)"
@@ -58,6 +66,10 @@ _NO_DATA = struct.Struct("<8sII")
 #: Data types the codec stores: ``f`` floats, ``i``/``u`` integers of any width.
 _KINDS = "fiu"
 _FLOAT64_BYTES = 8
+#: The largest chunk the codec codes, cells (2048 x 2048): rate control's cost grows faster than the
+#: chunk (1024 x 1024 took 5.5 s, 2048 x 2048 39.5 s and 1.5 GB, 4096 x 4096 did not finish in 9 min;
+#: issue 41), so a larger chunk is refused rather than left to run for an unknown time.
+MAX_CHUNK_CELLS = 1 << 22
 
 
 def check_dtype(dtype: Any) -> np.dtype:
@@ -68,6 +80,15 @@ def check_dtype(dtype: Any) -> np.dtype:
         raise InvalidInputError(f"dftpcc stores heights as floats (up to float64) or integers; got dtype {dt} "
                                 f"(cast the array to float32 or float64 first)")
     return dt
+
+
+def check_chunk_shape(shape: tuple[int, ...]) -> None:
+    """Refuse a chunk of more than :data:`MAX_CHUNK_CELLS` cells, with the reason and what to do."""
+    if math.prod(shape) > MAX_CHUNK_CELLS:
+        raise InvalidInputError(
+            f"chunks of {' x '.join(map(str, shape))} cells are more than the {MAX_CHUNK_CELLS:,} (2048 x 2048) dftpcc "
+            f"codes in one chunk: coding time grows faster than the chunk (2048 x 2048 takes about 40 s and 1.5 GB, "
+            f"4096 x 4096 more than 9 minutes); use smaller chunks, such as 512 x 512")
 
 
 def chunk_params(max_error: Any, *, cell_size: Any = 1.0, profile: str = "compact",
@@ -123,7 +144,11 @@ def coding_bound(max_error: float, values: np.ndarray) -> float:
         return (math.floor(max_error) + 0.5) * (1.0 - GUARANTEE_MARGIN)
     largest = float(np.max(np.abs(values))) if values.size else 0.0
     spacing = float(np.spacing(values.dtype.type(largest + max_error)))
-    return max(max_error - spacing / 2.0, max_error / 2.0)
+    bound = max(max_error - spacing / 2.0, max_error / 2.0)
+    if not bound > 0:  # a subnormal max_error halves to 0, which would mean "no target" to the encoder
+        raise InvalidInputError(f"max_error {max_error!r} is too fine for float arithmetic: the map would be coded "
+                                f"to a bound of {bound!r} (no bound at all); give at least {2 * math.ulp(0.0)!r}")
+    return bound
 
 
 def _valid_cells(values: np.ndarray, nodata: float | int | None) -> np.ndarray:
@@ -164,13 +189,14 @@ def encode_chunk(values: Any, params: Params, *, fill_value: Any = None) -> byte
     Raises
     ------
     InvalidInputError
-        Not 2D, an unsupported dtype, infinite heights, NaN cells with a numeric
-        fill value, or a bound too fine for the heights.
+        Not 2D, larger than :data:`MAX_CHUNK_CELLS`, an unsupported dtype, infinite
+        heights, NaN cells with a numeric fill value, or a bound too fine for the heights.
     """
     values = np.asarray(values)
     check_dtype(values.dtype)
     if values.ndim != 2 or values.size == 0:
         raise InvalidInputError(f"dftpcc codes 2D chunks (rows, cols) of a DEM; got a chunk of shape {values.shape}")
+    check_chunk_shape(values.shape)
     valid = _valid_cells(values, no_data_value(values.dtype, fill_value))
     rows, cols = values.shape
     if not valid.any():
@@ -180,7 +206,22 @@ def encode_chunk(values: Any, params: Params, *, fill_value: Any = None) -> byte
     bound = coding_bound(params.target_max_error, values[valid])
     grid = Grid(x0=0.0, y0=0.0, z0=z0, resolution=float(params.resolution), rows=rows, cols=cols)
     dem = DEM(grid, np.where(valid, heights - z0, 0.0), valid)
-    return encode_dem(dem, params.replace(target_max_error=bound))
+    data = encode_dem(dem, params.replace(target_max_error=bound))
+    # The promise is checked, not assumed: the chunk is decoded as a reader will and every valid cell
+    # compared (a bound that rounded to "no target" once gave a chunk 28 m off without a word).
+    _check_bound(decode_chunk(data, values.dtype, fill_value=fill_value, shape=values.shape), values, valid,
+                 params.target_max_error)
+    return data
+
+
+def _check_bound(decoded: np.ndarray, values: np.ndarray, valid: np.ndarray, max_error: float) -> None:
+    """Raise if a decoded chunk's valid cells are not within ``max_error`` (metres; whole units of an integer dtype)."""
+    allowed = math.floor(max_error) if values.dtype.kind in "iu" else max_error
+    error = float(np.abs(decoded[valid].astype(np.float64) - values[valid].astype(np.float64)).max())
+    # The float64 difference of two nearby heights is exact (Sterbenz); an ulp of slack covers the rest.
+    if not error <= allowed + math.ulp(allowed):
+        raise DftpccError(f"the coded chunk is {error!r} m off the array at worst, beyond its max_error of "
+                          f"{max_error!r} m: not written (a dftpcc bug; please report it with the chunk)")
 
 
 def decode_chunk(data: Any, dtype: Any, *, fill_value: Any = None, shape: tuple[int, ...] | None = None,

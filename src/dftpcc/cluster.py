@@ -11,13 +11,15 @@ Needs the optional ``distributed`` package (``pip install 'dftpcc[dask]'``).
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import time
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator, Sequence
 
 from .errors import ClusterError, InvalidInputError, MissingDependencyError
+from .kernels import available_cores
 
-__all__ = ["Map", "executor", "serial", "CONNECT_TIMEOUT_S", "NO_WORKER_TIMEOUT_S"]
+__all__ = ["Map", "executor", "serial", "CONNECT_TIMEOUT_S", "NO_WORKER_TIMEOUT_S", "MAX_WORKERS_PER_CORE"]
 
 INSTALL_HINT = "pip install 'dftpcc[dask]' (dask.distributed)"
 #: Seconds to wait for a scheduler to answer before giving up.
@@ -26,6 +28,13 @@ CONNECT_TIMEOUT_S = 10
 NO_WORKER_TIMEOUT_S = 30
 #: How often the wait for results checks that workers are left, seconds.
 POLL_S = 1.0
+#: A local cluster has at most this many workers per core: each is a process of its own (a hundred
+#: MB and a second to start), and more than a few per core only queue for the same cores; a
+#: larger cluster is one on other machines, reached with ``scheduler``.
+MAX_WORKERS_PER_CORE = 4
+#: Seconds a stopped run gives its client and local cluster each to close (their workers are killed
+#: first), so that the whole stop stays well within 10 s.
+STOP_CLOSE_S = 1
 #: Times the scheduler retries a task whose worker died before giving up on it (dask's
 #: ``allowed-failures``): a tile that kills its workers fails the run quickly.
 ALLOWED_FAILURES = 1
@@ -45,6 +54,11 @@ def check_executor(workers: int | None, scheduler: str | None) -> None:
         raise InvalidInputError("give workers (a local cluster) or a scheduler address, not both")
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise InvalidInputError(f"workers must be a whole number >= 1, got {workers!r}")
+    if workers is not None and workers > MAX_WORKERS_PER_CORE * available_cores():
+        raise InvalidInputError(
+            f"workers {workers:,} is more than {MAX_WORKERS_PER_CORE} per core of the {available_cores()} this "
+            f"process may use (at most {MAX_WORKERS_PER_CORE * available_cores()}): a larger cluster runs on other "
+            f"machines; start a dask scheduler and workers there and give its address with --scheduler")
     if scheduler is not None and (not isinstance(scheduler, str) or not scheduler):
         raise InvalidInputError(f"scheduler must be an address such as tcp://host:8786, got {scheduler!r}")
 
@@ -79,26 +93,71 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
     with dask.config.set({"distributed.scheduler.allowed-failures": ALLOWED_FAILURES,
                           "distributed.comm.timeouts.connect": f"{CONNECT_TIMEOUT_S}s",
                           "distributed.nanny.pre-spawn-environ": environ}):
-        cluster = None
+        cluster = client = None
+        started = _local_clusters()
+        children = {p.pid for p in multiprocessing.active_children()}
+        stopped = False
         try:
-            if scheduler is None:
-                # Processes, one thread each: the tiles' numpy work holds the GIL in places.
-                cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                                   dashboard_address=None, silence_logs=logging.ERROR)
-                client = distributed.Client(cluster, timeout=CONNECT_TIMEOUT_S)
-            else:
-                client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
-        except (OSError, TimeoutError, RuntimeError) as exc:  # RuntimeError: a local worker failed to start
-            if cluster is not None:
-                cluster.close()
-            where = f"scheduler {scheduler}" if scheduler else f"a local cluster of {workers} workers"
-            raise ClusterError(f"cannot reach {where} within {CONNECT_TIMEOUT_S} s: {exc}") from None
-        try:
+            try:
+                if scheduler is None:
+                    # Processes, one thread each: the tiles' numpy work holds the GIL in places.
+                    cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                       dashboard_address=None, silence_logs=logging.ERROR)
+                    client = distributed.Client(cluster, timeout=CONNECT_TIMEOUT_S)
+                else:
+                    client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError, RuntimeError) as exc:  # RuntimeError: a local worker failed to start
+                where = f"scheduler {scheduler}" if scheduler else f"a local cluster of {workers} workers"
+                raise ClusterError(f"cannot reach {where} within {CONNECT_TIMEOUT_S} s: {exc}") from None
             yield lambda func, items, *args: _gather(client, func, items, args)
+        except BaseException as exc:
+            # A stop (SIGTERM, Ctrl-C) does not wait for the tiles at work, nor for a cluster still
+            # starting: a graceful close waits for both, and took 10 s to 43 s. Their work is lost anyway.
+            stopped = not isinstance(exc, Exception)
+            raise
         finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+            clusters = [cluster] if cluster is not None else []
+            if not stopped:
+                if client is not None:
+                    client.close()
+                for c in clusters:
+                    c.close()
+            else:  # the signal may have landed inside LocalCluster(), before it was ours
+                _stop(client, clusters + [c for c in _local_clusters() - started if c is not cluster], children)
+
+
+def _stop(client: Any, clusters: list, children: set[int]) -> None:
+    """Close a client and local clusters at once on a stop: no restart, no waiting for tiles, no error
+    logs for what is meant; their worker processes (this process's children since ``children``) killed."""
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
+    for c in clusters:
+        for nanny in list(getattr(c, "workers", {}).values()):
+            nanny.auto_restart = False
+    _kill_new_children(children)
+    for closing in ([client] if client is not None else []) + clusters:
+        try:
+            closing.close(timeout=STOP_CLOSE_S)
+        except BaseException:  # noqa: BLE001 - its workers are killed; the stop goes on
+            pass
+    for c in clusters:  # else distributed closes it again at exit, waiting up to 10 s more
+        c.shutdown_on_close = False
+    _kill_new_children(children)
+
+
+def _local_clusters() -> set:
+    """The dask clusters of this process (distributed keeps a weak set of them)."""
+    from distributed.deploy.spec import SpecCluster
+
+    return set(getattr(SpecCluster, "_instances", ()))
+
+
+def _kill_new_children(before: set[int]) -> None:
+    """SIGKILL the processes this one started since ``before`` (pids): a local cluster's workers,
+    which run their nannies in this process and are its multiprocessing children."""
+    for child in multiprocessing.active_children():
+        if child.pid not in before:
+            child.kill()
+            child.join(STOP_CLOSE_S)
 
 
 def _cancelled() -> tuple[type[BaseException], ...]:

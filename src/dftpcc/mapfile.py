@@ -178,11 +178,17 @@ class CompressedMap:
             xmin, ymin, xmax, ymax = check_bbox(bbox)
         except InvalidInputError as exc:
             raise InvalidInputError(f"{exc}; {describe()}") from None
-        corners = np.array([[xmin, ymin], [xmax, ymin], [xmin, ymax], [xmax, ymax]])
-        u, v = g.to_local(corners)
-        c0, c1 = int(np.floor(u.min() / g.resolution)), int(np.floor(u.max() / g.resolution)) + 1
-        r0, r1 = int(np.floor(v.min() / g.dy)), int(np.floor(v.max() / g.dy)) + 1
-        c0, c1, r0, r1 = max(c0, 0), min(c1, g.cols), max(r0, 0), min(r1, g.rows)
+        # Clipped to the map in floating point before any integer: a finite box of 1e308 m would
+        # otherwise become an infinite cell index (or overflow rotating into the grid's axes).
+        x0, x1 = max(xmin, extent[0]), min(xmax, extent[2])
+        y0, y1 = max(ymin, extent[1]), min(ymax, extent[3])
+        c0 = c1 = r0 = r1 = 0
+        if x0 <= x1 and y0 <= y1:
+            u, v = g.to_local(np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]]))
+            cols = np.clip(np.floor(np.array([u.min(), u.max()]) / g.resolution), -1, g.cols)
+            rows = np.clip(np.floor(np.array([v.min(), v.max()]) / g.dy), -1, g.rows)
+            c0, c1 = max(int(cols[0]), 0), min(int(cols[1]) + 1, g.cols)
+            r0, r1 = max(int(rows[0]), 0), min(int(rows[1]) + 1, g.rows)
         if c0 >= c1 or r0 >= r1:
             raise InvalidInputError(f"bbox {xmin:.10g},{ymin:.10g},{xmax:.10g},{ymax:.10g} lies outside the map: "
                                     f"{describe()}")

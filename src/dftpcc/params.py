@@ -15,7 +15,7 @@ from typing import Any
 
 from .errors import InvalidInputError
 
-__all__ = ["Params", "PROFILES", "CHOICES", "DEFAULT_CUTOFF", "MAX_COORDINATE_M", "make_params", "check_cutoff",
+__all__ = ["Params", "PROFILES", "CHOICES", "DEFAULT_CUTOFF", "MAX_COORDINATE_M", "MIN_RESOLUTION_M", "make_params", "check_cutoff",
            "check_tile_size", "tile_size_for", "TILE_SIZES", "DEFAULT_TILE_SIZE", "AUTO_TILE_CELLS"]
 
 #: Cutoff ratio used when neither a cutoff nor a rate-control target is given.
@@ -28,6 +28,9 @@ DEFAULT_CUTOFF = 0.8
 #: beyond it when compressing and when reading a file's PARM, and the container
 #: checks the geometry against it (docs/format-validation.md).
 MAX_COORDINATE_M = 1e12
+#: The smallest cell a ``.dftpc`` file may state, metres (a nanometre): no survey resolves less, and
+#: below it a box's extent divided by the cell size leaves the floats (from 5e-324 m any bbox did).
+MIN_RESOLUTION_M = 1e-9
 
 AGGREGATES = ("mean", "median", "min", "max")
 FRAMES = ("axis", "oriented")
@@ -138,6 +141,9 @@ class Params:
     def __post_init__(self) -> None:
         if self.resolution != "auto":
             _check_positive("resolution", self.resolution)
+            if self.resolution < MIN_RESOLUTION_M:
+                raise InvalidInputError(f"resolution {self.resolution!r} m is below the smallest cell size a map "
+                                        f"may have, {MIN_RESOLUTION_M:g} m")
         if self.cutoff is not None:
             check_cutoff(self.cutoff)
         for name, allowed in CHOICES.items():

@@ -25,7 +25,7 @@ import constriction
 import numpy as np
 
 from . import coding, kernels, occupancy
-from .errors import CorruptFileError
+from .errors import CorruptFileError, InvalidInputError
 
 __all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual", "layout_of",
            "predicted_residual"]
@@ -62,7 +62,16 @@ def residual(target: np.ndarray, rebuilt: np.ndarray, measured: np.ndarray, kept
     """
     step = residual_step(bound)
     err = np.where(measured, target - rebuilt, 0.0)[kept]
-    q = np.round(err / step).astype(np.int64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        r = np.round(err / step)
+    # As coding.quantize: refuse rather than let the cast wrap (the encoder's checks make this a last guard).
+    if r.size and not np.abs(r).max() < coding.QUANT_LIMIT:  # also inf and NaN
+        worst = float(np.abs(err).max())
+        raise InvalidInputError(
+            f"target maximum error {bound:g} m is too fine for residuals up to {worst:g} m: their integers would "
+            f"pass 2**63 and wrap; the smallest workable target is "
+            f"{coding.round_up(coding.finest_step(err) / (2.0 * (1.0 - GUARANTEE_MARGIN))):g} m")
+    q = r.astype(np.int64)
     heights = rebuilt.copy()
     heights[kept] += q * step
     return q, heights

@@ -19,7 +19,7 @@ import asyncio
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from .chunkcodec import INSTALL_HINT, check_dtype, chunk_params, decode_chunk, encode_chunk
+from .chunkcodec import INSTALL_HINT, check_chunk_shape, check_dtype, chunk_params, decode_chunk, encode_chunk
 from .errors import InvalidInputError, MissingDependencyError
 from .params import Params
 
@@ -94,6 +94,9 @@ class DftpccCodec(ArrayBytesCodec):
         if len(shape) != 2:
             raise InvalidInputError(f"dftpcc codes 2D DEM arrays (rows, cols); this array has shape {shape}")
         check_dtype(dtype.to_native_dtype())
+        chunk_shape = getattr(chunk_grid, "chunk_shape", None)  # a regular grid: every chunk this shape
+        if chunk_shape is not None:
+            check_chunk_shape(tuple(chunk_shape))
 
     def _encode_sync(self, chunk_array: NDBuffer, chunk_spec: ArraySpec) -> Buffer | None:
         data = encode_chunk(chunk_array.as_numpy_array(), self.params, fill_value=chunk_spec.fill_value)

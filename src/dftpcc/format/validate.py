@@ -12,7 +12,7 @@ from typing import Any
 from ..dem import Grid
 from ..errors import CorruptFileError, InvalidInputError, ResourceLimitError
 from ..limits import DECODE_BYTES_PER_CELL, MAX_CELLS, cell_budget
-from ..params import MAX_COORDINATE_M, Params
+from ..params import MAX_COORDINATE_M, MIN_RESOLUTION_M, Params
 from .sections import U64_LIMIT
 
 #: Tiles of a 1.1 file, at most, and at most this many per byte of the file.
@@ -89,6 +89,8 @@ def check_geometry(geom: tuple, budget: int, file_size: int, *, limit: int = MAX
         raise CorruptFileError("geometry section holds non-finite or non-positive values")
     if max(abs(x0), abs(y0), abs(z0)) > MAX_COORDINATE_M:
         raise CorruptFileError(f"geometry section states an origin beyond {MAX_COORDINATE_M:g} m")
+    if res < MIN_RESOLUTION_M:
+        raise CorruptFileError(f"geometry section states a cell size of {res!r} m, below {MIN_RESOLUTION_M:g} m")
     if rows == 0 or cols == 0:
         raise CorruptFileError(f"implausible grid {rows} x {cols}")
     if res * max(rows, cols) > MAX_COORDINATE_M:
@@ -132,8 +134,9 @@ def check_coef_count(coef_count: Any, cells: int) -> None:
 
 def check_row_spacing(res_y: float, rows: int) -> None:
     """The optional GEOM row spacing (0 for square cells)."""
-    if not (math.isfinite(res_y) and res_y >= 0):
-        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r}")
+    if not (math.isfinite(res_y) and (res_y == 0 or res_y >= MIN_RESOLUTION_M)):
+        raise CorruptFileError(f"geometry holds an invalid row spacing {res_y!r} m (a cell size of 0, square, "
+                               f"or {MIN_RESOLUTION_M:g} m or more)")
     if res_y * rows > MAX_COORDINATE_M:
         raise CorruptFileError(f"grid {rows} rows of {res_y:g} m extend beyond {MAX_COORDINATE_M:g} m")
 
