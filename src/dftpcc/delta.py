@@ -22,6 +22,7 @@ import zstandard
 from .container import Source, leb128, read_leb128, unpack_source
 from .errors import CorruptFileError, InvalidInputError
 from .io.atomic import atomic_write, check_output
+from .io.lock import locked
 
 __all__ = ["MAGIC", "VERSION", "make_delta", "apply_delta", "read_delta", "Delta", "patch_file",
            "COPY", "DATA", "MAX_COPY_FACTOR"]
@@ -224,6 +225,8 @@ def patch_file(map_path: str | os.PathLike[str], delta_path: str | os.PathLike[s
     for path in (map_path, delta_path):
         if not Path(path).is_file():
             raise InvalidInputError(f"{path}: no such file")
-    result = apply_delta(Path(map_path).read_bytes(), Path(delta_path).read_bytes())
-    atomic_write(out, lambda tmp: Path(tmp).write_bytes(result))
+    # In place, the map is read, patched and written back: an update of it meanwhile would be lost.
+    with locked([map_path, out]):
+        result = apply_delta(Path(map_path).read_bytes(), Path(delta_path).read_bytes())
+        atomic_write(out, lambda tmp: Path(tmp).write_bytes(result))
     return len(result)

@@ -40,7 +40,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -50,6 +50,7 @@ from .dem import Grid, TileGrid, as_points
 from .encoder import check_heights
 from .errors import CorruptFileError, DftpccWarning, InvalidInputError
 from .io.atomic import atomic_write, check_output
+from .io.lock import locked
 from .params import MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
 from .tiles import TILE_OVERLAP, TileCode, TileJob, code_tile
 
@@ -654,7 +655,8 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
                 output: str | os.PathLike[str] | None = None, delta: str | os.PathLike[str] | None = None,
                 points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
                 tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
-                force: bool = False, map_frame: str | None = None) -> UpdateResult:
+                force: bool = False, map_frame: str | None = None,
+                waiting: Callable[[Path], None] | None = None) -> UpdateResult:
     """Add scans to a growing map and write it with its state (``dftpcc update``).
 
     Without ``output`` the map is updated in place. The map and its state
@@ -662,6 +664,12 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     (a truncated bag) leaves everything as it was. A map that does not
     exist yet is started, with ``resolution`` (required) and the other
     settings.
+
+    Two updates of one map at once are serialised: each holds the map's
+    lock (``MAP.lock``, :func:`dftpcc.io.lock.locked`; and the output's
+    with ``output``) from before it reads the map until its files are
+    written, so the second waits, then reads the map the first wrote: both
+    runs' scans end up in the map.
 
     Parameters
     ----------
@@ -677,6 +685,8 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         Also write the delta from the old map to the new one (:mod:`dftpcc.delta`).
     resolution, tile_size, cutoff, step : optional
         Settings of a new map; for an existing one they must be its own.
+    waiting : callable, optional
+        Called with the lock file's path when another update holds it, before waiting for it.
 
     Raises
     ------
@@ -684,12 +694,23 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         Settings or a CRS other than the map's, a map that is no growing map
         or has no state, an unreadable input; nothing is written.
     """
-    from .delta import make_delta
-
     map_path = Path(map_path)
     out = Path(output) if output is not None else map_path
     for target in [out, state_path(out)] + ([Path(delta)] if delta is not None else []):
         check_output(target, force=force)
+    with locked([map_path, out], waiting=waiting):
+        return _update_locked(map_path, out, inputs, delta=delta, points_topic=points_topic, pose_topic=pose_topic,
+                              resolution=resolution, tile_size=tile_size, cutoff=cutoff, step=step,
+                              map_frame=map_frame)
+
+
+def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike[str]], *,
+                   delta: str | os.PathLike[str] | None, points_topic: str | None, pose_topic: str | None,
+                   resolution: float | None, tile_size: int | None, cutoff: float | None, step: float | None,
+                   map_frame: str | None) -> UpdateResult:
+    """:func:`update_file` once the map is locked and the outputs checked."""
+    from .delta import make_delta
+
     created = not map_path.exists()
     if created:
         if resolution is None:
