@@ -76,3 +76,49 @@ def test_two_updates_at_once_keep_both_scans(tmp_path, scan_files):
         everything = np.concatenate([np.load(p) for p in scan_files])
         assert m.read_bytes() == new_builder(origin=origin).add(everything).encode(), "a scan was lost"
         assert sorted(p.name for p in tmp_path.iterdir()) == ["m.dftpc", "m.dftpc.state"]  # no lock file left
+
+
+# -- an output that is an input ------------------------------------------------------------------
+
+
+def _files(folder) -> dict[str, str]:
+    return {p.name: digest(p) for p in folder.iterdir() if p.is_file()}
+
+
+def test_an_output_that_is_an_input_the_map_or_its_state_is_refused(tmp_path, scan_files, capsys):
+    import os
+
+    first, a, _ = scan_files
+    m, n = tmp_path / "m.dftpc", tmp_path / "n.dftpc"
+    main = dftpcc.cli.main
+    assert main(["update", str(m), str(first), "-r", str(RES), "--tile-size", str(TILE), "--step", str(STEP), "-q"]) == 0
+    assert main(["update", str(m), str(a), "-o", str(n), "-q"]) == 0
+    (tmp_path / "link.dftpc").symlink_to(m)
+    os.link(state_path(m), tmp_path / "hard.state")
+    scan = tmp_path / "scan.npy"
+    scan.write_bytes(a.read_bytes())
+    cases = [
+        ["update", m, scan, "--delta", m],  # the delta over the map just written
+        ["update", m, scan, "--delta", state_path(m)],
+        ["update", m, scan, "--delta", tmp_path / "link.dftpc"],  # the map through a symbolic link
+        ["update", m, scan, "--delta", tmp_path / "hard.state"],  # its state through a hard link
+        ["update", m, scan, "--delta", scan],
+        ["update", m, scan, "--delta", tmp_path / "sub" / ".." / "m.dftpc"],
+        ["update", m, scan, "-o", state_path(m)],
+        ["update", m, scan, "-o", m],
+        ["update", m, scan, "-o", tmp_path / "link.dftpc"],
+        ["update", m, scan, "-o", scan],
+        ["update", m, scan, "-o", n, "--delta", state_path(n)],
+        ["update", m, scan, "-o", n, "--delta", n],
+        ["update", m, scan, "--delta", tmp_path / "m.dftpc.lock"],
+        ["patch", n, tmp_path / "none.dftpd", "-o", tmp_path / "none.dftpd"],
+        ["patch", n, tmp_path / "none.dftpd", "-o", n],
+    ]
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "none.dftpd").write_bytes(b"a delta")
+    before = _files(tmp_path)
+    for argv in cases:
+        code = main([*map(str, argv), "-q"])
+        err = capsys.readouterr().err
+        assert code == 3 and err.count("\n") == 1 and "the same file" in err, (argv, code, err)
+        assert _files(tmp_path) == before, argv

@@ -433,7 +433,8 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
                                    "A MAP that does not exist is started (give --resolution). Two updates of "
                                    "one map at once do not lose a scan: the second waits for the first (a lock "
                                    "on MAP.lock, released when the first ends or dies), then adds its scans to "
-                                   "the map the first wrote.")
+                                   "the map the first wrote. An output (-o, --delta) that is an input, the map or "
+                                   "its state, even through a link, is refused before anything is written.")
     p.add_argument("map", help="the growing map (.dftpc, with MAP.state beside it)")
     p.add_argument("input", nargs="+", help="scans: ROS bags (placed by --pose-topic) or point files in the map frame")
     p.add_argument("--output", "-o", help="write the new map (and its state) here instead of in place")

@@ -21,8 +21,8 @@ import zstandard
 
 from .container import Source, leb128, read_leb128, unpack_source
 from .errors import CorruptFileError, InvalidInputError
-from .io.atomic import atomic_write, check_output
-from .io.lock import locked
+from .io.atomic import atomic_write, check_distinct, check_output
+from .io.lock import lock_path, locked
 
 __all__ = ["MAGIC", "VERSION", "make_delta", "apply_delta", "read_delta", "Delta", "patch_file",
            "COPY", "DATA", "MAX_COPY_FACTOR"]
@@ -221,6 +221,10 @@ def patch_file(map_path: str | os.PathLike[str], delta_path: str | os.PathLike[s
         Bytes of the map written.
     """
     out = Path(map_path) if output is None else Path(output)
+    read = {f"the map {map_path}": map_path, f"the delta {delta_path}": delta_path,
+            f"the map's lock {lock_path(map_path)}": lock_path(map_path)}
+    if output is not None:
+        check_distinct({f"-o {out}": out}, read)
     check_output(out, force=force)
     for path in (map_path, delta_path):
         if not Path(path).is_file():

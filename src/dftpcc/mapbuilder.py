@@ -49,8 +49,8 @@ from .container import Header, Source, TileIndex, pack_tiled, read_tile, unpack_
 from .dem import Grid, TileGrid, as_points
 from .encoder import check_heights
 from .errors import CorruptFileError, DftpccWarning, InvalidInputError
-from .io.atomic import atomic_write, check_output
-from .io.lock import locked
+from .io.atomic import atomic_write, check_distinct, check_output
+from .io.lock import lock_path, locked
 from .params import MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
 from .tiles import TILE_OVERLAP, TileCode, TileJob, code_tile
 
@@ -696,6 +696,16 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     """
     map_path = Path(map_path)
     out = Path(output) if output is not None else map_path
+    read = {f"the map {map_path}": map_path, f"its state {state_path(map_path)}": state_path(map_path),
+            f"its lock {lock_path(map_path)}": lock_path(map_path),
+            **{f"the input {path}": path for path in inputs}}
+    written = {}
+    if output is not None:
+        read[f"the lock {lock_path(out)}"] = lock_path(out)
+        written.update({f"-o {out}": out, f"the new state {state_path(out)}": state_path(out)})
+    if delta is not None:
+        written[f"--delta {delta}"] = delta
+    check_distinct(written, read)
     for target in [out, state_path(out)] + ([Path(delta)] if delta is not None else []):
         check_output(target, force=force)
     with locked([map_path, out], waiting=waiting):

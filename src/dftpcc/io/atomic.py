@@ -16,7 +16,7 @@ from typing import Any, Iterator
 
 from ..errors import InvalidInputError
 
-__all__ = ["atomic_write", "writer_errors", "check_output"]
+__all__ = ["atomic_write", "writer_errors", "check_output", "check_distinct"]
 
 
 #: Temporary files of :func:`atomic_write`: ``.NAME.PID.TOKEN.tmpSUFFIX``.
@@ -95,6 +95,41 @@ def check_output(path: str | os.PathLike[str], *, force: bool = False) -> Path:
     except OSError as exc:
         raise _naming(path, probe, exc) from exc
     return path
+
+
+def check_distinct(outputs: dict[str, str | os.PathLike[str]], inputs: dict[str, str | os.PathLike[str]]) -> None:
+    """Refuse an output that is one of the inputs or another output, before anything is read or written.
+
+    Two names are one file when they resolve to the same path (through
+    symbolic links and ``..``) or, for files that exist, to the same device
+    and inode (hard links). Replacing an input by an output would destroy it
+    (``dftpcc update MAP SCAN --delta MAP`` wrote the delta over the new map).
+
+    Parameters
+    ----------
+    outputs, inputs : dict
+        What each file is (``"--delta FILE"``, ``"the map"``) by its path, as the message names it.
+
+    Raises
+    ------
+    InvalidInputError
+        Two of the files are one, named by what they are.
+    """
+    seen: list[tuple[str, Path, tuple[int, int] | None]] = []
+    for role, path in [*inputs.items(), *outputs.items()]:
+        seen.append((role, Path(path).resolve(), _identity(Path(path))))
+    for k, (role, resolved, ident) in enumerate(seen[len(inputs):], start=len(inputs)):
+        for other, other_resolved, other_ident in seen[:k]:
+            if resolved == other_resolved or (ident is not None and ident == other_ident):
+                raise InvalidInputError(f"{role} is {other} (the same file): give another name; nothing was written")
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
 
 
 def _naming(path: Path, tmp: Path, exc: OSError) -> OSError:
