@@ -72,9 +72,11 @@ bench-borders: $(STAMP)
 digests: $(STAMP)
 	$(BIN)/python scripts/digests.py
 
-# The decoder fuzz campaign (100,000 inputs, ~2 min); the test suite runs a short one.
+# The decoder fuzz campaign (100,000 inputs, ~2 min), then the growing map's state file (100,000 states,
+# the peak memory of every 10th measured; ~25 min on the shared box); the test suite runs short ones.
 fuzz: $(STAMP)
 	$(BIN)/python tests/fuzz/fuzz_decoder.py --iterations 100000 --seed 11
+	$(BIN)/python tests/fuzz/fuzz_state.py --iterations 100000 --seed 11 --trace-every 10
 
 # Can the rover still localize? Simulated lidar scans registered (GICP) against maps rebuilt at each cutoff
 # and target on Mars Gale, Moon Kepler, Davos and the IGN field: rewrites docs/relocalization.md and

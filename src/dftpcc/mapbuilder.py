@@ -24,9 +24,12 @@ What is kept, and why (the state file, ``MAP.state`` beside ``MAP``, an ``.npz``
   only as float32).
 * the settings (resolution, tile size, cutoff, step, lattice origin, CRS),
   the number of points added, and the SHA-256 of the map the state belongs
-  to and of the map it was updated from: an update refuses a state of
-  another map, and repairs a map left one update behind its state (the
-  state is written first, then the map; an interruption between the two).
+  to, of the map it was updated from and of the scans that update added:
+  an update refuses a state of another map, and repairs a map left one
+  update behind its state (the state is written first, then the map; an
+  interruption between the two).
+
+The state file's layout and checks are :mod:`dftpcc.mapstate`'s (docs/growing-maps.md).
 
 Memory is 20 bytes per cell of the held tiles (4 for the count).
 """
@@ -51,6 +54,7 @@ from .encoder import check_heights
 from .errors import CorruptFileError, DftpccWarning, InvalidInputError
 from .io.atomic import atomic_write, check_distinct, check_output
 from .io.lock import lock_path, locked
+from .mapstate import FIGURES as _FIGURES, STATE_VERSION, read_state, write_state
 from .params import MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
 from .tiles import TILE_OVERLAP, TileCode, TileJob, code_tile
 
@@ -69,15 +73,11 @@ DEFAULT_STEP_M = 0.01
 DEFAULT_GROWING_TILE_SIZE = 256
 #: The state file of ``MAP`` is ``MAP`` + this.
 STATE_SUFFIX = ".state"
-#: Layout of the state file; a state of another version is refused.
-STATE_VERSION = 1
 #: Points a cell may collect: counts are int32.
 MAX_CELL_POINTS = 2**31 - 1
 #: A scan's points in a tile are sorted into cells (np.unique) when fewer than the tile's cells over
 #: this, else counted in a histogram of them: the same cells and order, whichever is cheaper.
 HISTOGRAM_SHARE = 8
-#: Figures kept per coded tile: cells, squared error (m²), largest error (m), point-weighted squared error (m²).
-_FIGURES = 4
 
 
 class StateRecoveredWarning(DftpccWarning):
@@ -188,6 +188,9 @@ class MapBuilder:
         #: During :meth:`encode`: the tiles it codes, and the (heights, occupied) of those computed yet.
         self._coding: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}
         self._file_sha256: str | None = None  # of the map file this builder was read from or last saved as
+        #: SHA-256 of the scans of the update that gave this map (:func:`update_file`, docs/growing-maps.md);
+        #: None once anything else was added.
+        self.update_sha256: str | None = None
         if jit:
             kernels.load()
 
@@ -225,6 +228,7 @@ class MapBuilder:
                     np.isfinite(rotation).all() and np.isfinite(translation).all()):
                 raise InvalidInputError("a pose is a finite (3, 3) rotation and a (3,) translation")
             pts = pts @ rotation.T + translation
+        self.update_sha256 = None
         check_heights(float(pts[:, 2].min()), float(pts[:, 2].max()))
         if float(np.abs(pts[:, :2]).max()) > MAX_COORDINATE_M:
             raise InvalidInputError(f"points beyond ±{MAX_COORDINATE_M:g} m")
@@ -447,22 +451,22 @@ class MapBuilder:
         """
         data = self.encode() if data is None else data
         digest = hashlib.sha256(data).hexdigest()
-        arrays = self._state(digest, self._file_sha256)
-        atomic_write(state_path(path) if state is None else state, lambda tmp: _write_npz(tmp, arrays))
+        settings, arrays = self._state(digest, self._file_sha256)
+        atomic_write(state_path(path) if state is None else state, lambda tmp: write_state(tmp, settings, arrays))
         atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
         self._file_sha256 = digest
         return data
 
-    def _state(self, digest: str, previous: str | None) -> dict[str, np.ndarray]:
+    def _state(self, digest: str, previous: str | None) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The settings and arrays of the state file (:mod:`dftpcc.mapstate`) of the map whose SHA-256 is ``digest``."""
         held = self.tiles
         size = self.tile_size
-        settings = dict(state_version=STATE_VERSION, resolution=self.resolution, tile_size=size,
-                        cutoff=self.params.cutoff, step=self.params.step, origin=list(self.origin or ()),
-                        crs=self.crs, point_count=self.point_count, map_sha256=digest, previous_sha256=previous)
+        settings = dict(resolution=self.resolution, tile_size=size, cutoff=self.params.cutoff, step=self.params.step,
+                        origin=list(self.origin or ()), crs=self.crs, point_count=self.point_count,
+                        map_sha256=digest, previous_sha256=previous, update_sha256=self.update_sha256)
         figures = np.array([[c.cells, c.squared_error, c.max_error, c.weighted_squared_error]
                             for c in (self._codes[t] for t in held)]).reshape(-1, _FIGURES)
-        return dict(settings=np.array(json.dumps(settings)),
-                    tiles=np.array(held, dtype=np.int64).reshape(-1, 2),
+        return settings, dict(tiles=np.array(held, dtype=np.int64).reshape(-1, 2),
                     sum=np.stack([self._tiles[t].sum for t in held]) if held else np.zeros((0, size, size), np.int64),
                     sumsq=np.stack([self._tiles[t].sumsq for t in held]) if held else np.zeros((0, size, size)),
                     count=np.stack([self._tiles[t].count for t in held]) if held else np.zeros((0, size, size),
@@ -501,10 +505,14 @@ class MapBuilder:
         if not state.is_file():
             raise InvalidInputError(f"{path}: not a growing map: its state file {state} is missing (a growing map "
                                     f"keeps its cells' sums there; without them it cannot be updated)")
-        arrays, settings = _read_state(state)
-        builder = cls(settings["resolution"], tile_size=settings["tile_size"], cutoff=settings["cutoff"],
-                      step=settings["step"], crs=settings["crs"], origin=settings["origin"])
+        arrays, settings = read_state(state)
+        try:
+            builder = cls(settings["resolution"], tile_size=settings["tile_size"], cutoff=settings["cutoff"],
+                          step=settings["step"], crs=settings["crs"], origin=settings["origin"])
+        except InvalidInputError as exc:
+            raise CorruptFileError(f"{state}: the map state's settings are refused: {exc}") from None
         builder.point_count = int(settings["point_count"])
+        builder.update_sha256 = settings.get("update_sha256")
         tiles = [tuple(int(v) for v in t) for t in arrays["tiles"]]
         for n, tile in enumerate(tiles):
             builder._tiles[tile] = _Cells(arrays["sum"][n].astype(np.int64), arrays["sumsq"][n].astype(np.float64),
@@ -528,6 +536,11 @@ class MapBuilder:
             builder._codes[tile] = TileCode(k, bytes(blobs.get(b"MASK", b"")), bytes(blobs.get(b"COEF", b"")),
                                             bytes(blobs.get(b"RESD", b"")), int(cells), float(squared),
                                             float(largest), float(weighted))
+        # The map the state lays out again (head, index, statistics from the state; sections from the
+        # file) must be the file: an edited state that passes its checksum cannot give another map.
+        if pack_tiled(*builder._layout()) != data:
+            raise InvalidInputError(f"{path}: its state file {state} does not give this map (an edited state, or "
+                                    f"one of another version of it); give the state written with this map")
         return builder
 
     def _recovered(self, path: Path, state: Path, expected: str) -> "MapBuilder":
@@ -550,10 +563,17 @@ class MapBuilder:
                  and p.cutoff == self.params.cutoff and p.step == self.params.step
                  and math.isclose(g.x0, ox + j0 * self.span, abs_tol=1e-6) and
                  math.isclose(g.y0, oy + i0 * self.span, abs_tol=1e-6) and g.z0 == oz
-                 and g.angle == 0.0 and header.point_count == self.point_count)
+                 and g.angle == 0.0 and header.point_count == self.point_count
+                 and header.tiles.tiling.tile_rows == max(i for i, _ in tiles) - i0 + 2
+                 and header.tiles.tiling.tile_cols == max(j for _, j in tiles) - j0 + 2)
         if not agree:
             raise InvalidInputError(f"{path}: the map disagrees with its state file (settings or extent); give the "
                                     f"state written with this map")
+        cols = index.tiling.tile_cols
+        for n, (i, j) in enumerate(tiles):
+            if int(index.cells[(i - i0) * cols + (j - j0)]) != int(np.count_nonzero(self._tiles[(i, j)].count)):
+                raise InvalidInputError(f"{path}: the map's tile ({i}, {j}) has other occupied cells than its state "
+                                        f"file says; give the state written with this map")
 
 
 def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
@@ -561,40 +581,6 @@ def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
     if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in values):
         raise InvalidInputError(f"origin must be three finite coordinates (x, y, z) in metres, got {origin!r}")
     return values  # type: ignore[return-value]
-
-
-def _write_npz(tmp: Path, arrays: dict[str, np.ndarray]) -> None:
-    with open(tmp, "wb") as fh:  # a file object: np.savez would add .npz to a name
-        np.savez(fh, **arrays)
-
-
-#: The arrays a state file holds, with their dtype kinds.
-_STATE_ARRAYS = {"tiles": "i", "sum": "i", "sumsq": "f", "count": "i", "figures": "f", "gridding": "f"}
-
-
-def _read_state(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """The arrays and settings of a state file, checked for shape and kind."""
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in ("settings", *_STATE_ARRAYS)}
-        settings = json.loads(str(arrays.pop("settings")))
-    except (OSError, ValueError, KeyError, EOFError) as exc:
-        raise CorruptFileError(f"{path}: not a readable map state ({' '.join(str(exc).split())})") from None
-    if not isinstance(settings, dict) or settings.get("state_version") != STATE_VERSION:
-        raise CorruptFileError(f"{path}: a map state of another version ({settings.get('state_version')!r}; "
-                               f"this dftpcc reads version {STATE_VERSION})" if isinstance(settings, dict)
-                               else f"{path}: not a map state")
-    size = settings.get("tile_size")
-    n = arrays["tiles"].shape[0] if arrays["tiles"].ndim == 2 else -1
-    shapes = {"tiles": (n, 2), "sum": (n, size, size), "sumsq": (n, size, size), "count": (n, size, size),
-              "figures": (n, _FIGURES), "gridding": (n,)}
-    for name, kind in _STATE_ARRAYS.items():
-        if arrays[name].shape != shapes[name] or arrays[name].dtype.kind != kind:
-            raise CorruptFileError(f"{path}: map state array {name} has shape {arrays[name].shape}, expected "
-                                   f"{shapes[name]}")
-    if n < 1 or len({tuple(t) for t in arrays["tiles"].tolist()}) != n or (arrays["count"] < 0).any():
-        raise CorruptFileError(f"{path}: map state holds no tile, a tile twice or negative counts")
-    return arrays, settings
 
 
 # -- the update of a map file: what `dftpcc update` runs ------------------------------------------------
@@ -736,6 +722,7 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
         builder = MapBuilder.from_file(map_path)
         _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
     scans = points = 0
+    record = hashlib.sha256()
     for pts, pose, crs in _scans(inputs, points_topic, pose_topic, map_frame):
         if crs:
             if created and scans == 0:
@@ -744,10 +731,12 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
                 raise InvalidInputError(f"the scans' CRS is not the map's ({_crs_name(crs)} against "
                                         f"{_crs_name(builder.crs)}): reproject them to the map's CRS first")
         builder.add(pts, pose)
+        _record_scan(record, pts, pose)
         scans += 1
         points += int(pts.shape[0])
     if scans == 0:
         raise InvalidInputError("no scan to add")
+    builder.update_sha256 = record.hexdigest()
     recoded = len(builder.changed_tiles())
     data = builder.encode()
     patch = make_delta(base, data) if delta is not None else None
@@ -756,6 +745,16 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
         atomic_write(delta, lambda tmp: Path(tmp).write_bytes(patch))  # type: ignore[arg-type]
     return UpdateResult(out, len(data), scans, points, len(builder.tiles), recoded,
                         None if patch is None else len(patch), created)
+
+
+def _record_scan(record: Any, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """Add a scan to the SHA-256 of an update's scans (docs/growing-maps.md, *The update's record*)."""
+    record.update(np.ascontiguousarray(points, dtype="<f8").tobytes())
+    if pose is None:
+        record.update(b"none")
+    else:
+        record.update(np.ascontiguousarray(pose[0], dtype="<f8").tobytes()
+                      + np.ascontiguousarray(pose[1], dtype="<f8").tobytes())
 
 
 def _crs_name(crs: dict[str, Any]) -> str:
