@@ -122,3 +122,130 @@ def test_an_output_that_is_an_input_the_map_or_its_state_is_refused(tmp_path, sc
         err = capsys.readouterr().err
         assert code == 3 and err.count("\n") == 1 and "the same file" in err, (argv, code, err)
         assert _files(tmp_path) == before, argv
+
+
+# -- killed at every rename ----------------------------------------------------------------------
+
+#: The child SIGKILLs itself just before (or just after) its N-th rename (os.replace: every file
+#: dftpcc writes is renamed into place), and reports the renames of a run it did not kill.
+KILLER = """
+import atexit, os, signal, sys
+where, at = sys.argv[1], int(sys.argv[2])
+real, calls = os.replace, []
+
+def replace(src, dst):
+    calls.append(os.path.basename(dst))
+    if where == "before" and len(calls) == at:
+        os.kill(os.getpid(), signal.SIGKILL)
+    real(src, dst)
+    if where == "after" and len(calls) == at:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+os.replace = replace
+atexit.register(lambda: print("renamed", *calls, flush=True))
+from dftpcc import cli
+sys.exit(cli.main(sys.argv[3:]))
+"""
+
+
+def _killed(where: str, at: int, *argv) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", KILLER, where, str(at), *map(str, argv)], capture_output=True,
+                          text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def started(tmp_path_factory, scan_files):
+    """A map of the first scan, and the map and delta a clean update with the second writes."""
+    folder = tmp_path_factory.mktemp("clean")
+    first, a, _ = scan_files
+    m = folder / "m.dftpc"
+    assert dftpcc.cli.main(["update", str(m), str(first), "-r", str(RES), "--tile-size", str(TILE), "--step",
+                            str(STEP), "-q"]) == 0
+    old, old_state = m.read_bytes(), state_path(m).read_bytes()
+    run = _killed("never", 0, "update", m, a, "--delta", folder / "d.dftpd", "-q")
+    assert run.returncode == 0, run.stderr
+    renames = run.stdout.split()[1:]
+    return old, old_state, m.read_bytes(), (folder / "d.dftpd").read_bytes(), renames
+
+
+def test_an_update_renames_the_delta_then_the_state_then_the_map(started):
+    *_, renames = started
+    assert renames == ["d.dftpd", "m.dftpc.state", "m.dftpc"]
+
+
+@pytest.mark.parametrize("where, at", [("before", 1), ("before", 2), ("before", 3), ("after", 3)])
+def test_an_update_killed_at_any_rename_is_finished_by_running_it_again(tmp_path, scan_files, started, where, at):
+    from dftpcc.delta import apply_delta
+
+    _, a, b = scan_files
+    old, old_state, new, new_delta, _ = started
+    m, d = tmp_path / "m.dftpc", tmp_path / "d.dftpd"
+    m.write_bytes(old)
+    state_path(m).write_bytes(old_state)
+    killed = _killed(where, at, "update", m, a, "--delta", d, "-q")
+    assert killed.returncode == -9, killed.stderr
+    # Renamed before the state, the delta is there whenever the state moved on: the ground can follow.
+    assert m.read_bytes() in (old, new) and (d.read_bytes() == new_delta if at >= 2 or where == "after" else True)
+    rerun = subprocess.run([sys.executable, "-m", "dftpcc", "update", str(m), str(a), "--delta", str(d)],
+                           capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert m.read_bytes() == new, "the scan was added twice, or not at all"
+    assert d.read_bytes() == new_delta and apply_delta(old, d.read_bytes()) == new
+    assert dftpcc.mapbuilder.MapBuilder.from_file(m).encode() == new
+    assert ("nothing added again" in rerun.stdout) == (at >= 3 or where == "after"), rerun.stdout
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == [
+        "d.dftpd", "m.dftpc", "m.dftpc.state"]
+    # And the map grows on from there, the next delta following this one.
+    assert dftpcc.cli.main(["update", str(m), str(b), "--delta", str(tmp_path / "e.dftpd"), "-q"]) == 0
+    assert apply_delta(new, (tmp_path / "e.dftpd").read_bytes()) == m.read_bytes()
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # what the kill left, the next write removed
+
+
+def test_another_update_after_a_kill_keeps_both_scans_and_its_delta_starts_from_the_map_on_disk(
+        tmp_path, scan_files, started):
+    from dftpcc.delta import apply_delta
+
+    first, a, b = scan_files
+    old, old_state, _, _, _ = started
+    m, d = tmp_path / "m.dftpc", tmp_path / "d.dftpd"
+    m.write_bytes(old)
+    state_path(m).write_bytes(old_state)
+    assert _killed("before", 3, "update", m, a, "--delta", d, "-q").returncode == -9  # state renamed, map not
+    code = dftpcc.cli.main(["update", str(m), str(b), "--delta", str(tmp_path / "e.dftpd"), "-q"])
+    assert code == 0
+    origin = dftpcc.mapbuilder.MapBuilder.from_file(m).origin
+    everything = np.concatenate([np.load(p) for p in (first, a, b)])
+    assert m.read_bytes() == new_builder(origin=origin).add(everything).encode()
+    assert apply_delta(old, (tmp_path / "e.dftpd").read_bytes()) == m.read_bytes()
+
+
+def test_a_completed_update_run_again_adds_nothing_and_keeps_its_delta(tmp_path, scan_files, started, capsys):
+    _, a, _ = scan_files
+    old, old_state, new, new_delta, _ = started
+    m, d = tmp_path / "m.dftpc", tmp_path / "d.dftpd"
+    m.write_bytes(new)
+    state_path(m).write_bytes(started_state := _state_after(tmp_path, started, a))
+    d.write_bytes(new_delta)
+    assert dftpcc.cli.main(["update", str(m), str(a), "--delta", str(d)]) == 0
+    assert "nothing added again" in capsys.readouterr().out
+    assert m.read_bytes() == new and d.read_bytes() == new_delta and state_path(m).read_bytes() == started_state
+    # Another delta name: the map it would start from is gone; said on one line, nothing written.
+    assert dftpcc.cli.main(["update", str(m), str(a), "--delta", str(tmp_path / "other.dftpd"), "-q"]) == 3
+    assert "delta can no longer be made" in capsys.readouterr().err
+    assert not (tmp_path / "other.dftpd").exists()
+
+
+def _state_after(tmp_path, started, scan) -> bytes:
+    """The state a clean update with ``scan`` writes (in a folder of its own)."""
+    old, old_state, *_ = started
+    folder = tmp_path / "clean"
+    folder.mkdir()
+    m = folder / "m.dftpc"
+    m.write_bytes(old)
+    state_path(m).write_bytes(old_state)
+    assert dftpcc.cli.main(["update", str(m), str(scan), "-q"]) == 0
+    data = state_path(m).read_bytes()
+    for path in folder.iterdir():
+        path.unlink()
+    folder.rmdir()
+    return data

@@ -51,8 +51,8 @@ from . import coding, kernels
 from .container import Header, Source, TileIndex, pack_tiled, read_tile, unpack_source
 from .dem import Grid, TileGrid, as_points
 from .encoder import check_heights
-from .errors import CorruptFileError, DftpccWarning, InvalidInputError
-from .io.atomic import atomic_write, check_distinct, check_output
+from .errors import CorruptFileError, DftpccError, DftpccWarning, InvalidInputError
+from .io.atomic import atomic_write_all, check_distinct, check_output
 from .io.lock import lock_path, locked
 from .mapstate import FIGURES as _FIGURES, STATE_VERSION, read_state, write_state
 from .params import MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
@@ -191,6 +191,7 @@ class MapBuilder:
         #: SHA-256 of the scans of the update that gave this map (:func:`update_file`, docs/growing-maps.md);
         #: None once anything else was added.
         self.update_sha256: str | None = None
+        self._previous_sha256: str | None = None  # of the map the update that gave this one started from
         if jit:
             kernels.load()
 
@@ -437,12 +438,19 @@ class MapBuilder:
     # -- files ---------------------------------------------------------------------------------
 
     def save(self, path: str | os.PathLike[str], *, state: str | os.PathLike[str] | None = None,
-             data: bytes | None = None) -> bytes:
-        """Write the map and its state (``state``, default :func:`state_path`), each atomically.
+             data: bytes | None = None, before: list[tuple[Path, bytes]] = ()) -> bytes:  # type: ignore[assignment]
+        """Write the map and its state (``state``, default :func:`state_path`) in one transaction.
 
-        The state goes first and names the map's SHA-256; the map follows. An
-        interruption between the two leaves a state ahead of its map, which
-        :meth:`from_file` recognises and repairs by coding the map again.
+        Both are written to temporaries first (:func:`~dftpcc.io.atomic.atomic_write_all`),
+        then renamed: the state first, naming the map's SHA-256, then the map.
+        A process killed between the two renames leaves a state ahead of its
+        map, which :meth:`from_file` recognises and repairs by coding the map again.
+
+        Parameters
+        ----------
+        before : list of (path, bytes)
+            Other files of the same transaction, renamed before the state
+            (:func:`update_file`'s delta: present whenever the state moved on).
 
         Returns
         -------
@@ -452,8 +460,10 @@ class MapBuilder:
         data = self.encode() if data is None else data
         digest = hashlib.sha256(data).hexdigest()
         settings, arrays = self._state(digest, self._file_sha256)
-        atomic_write(state_path(path) if state is None else state, lambda tmp: write_state(tmp, settings, arrays))
-        atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
+        atomic_write_all([*((target, _bytes_writer(content)) for target, content in before),
+                          (state_path(path) if state is None else Path(state),
+                           lambda tmp: write_state(tmp, settings, arrays)),
+                          (Path(path), _bytes_writer(data))])
         self._file_sha256 = digest
         return data
 
@@ -513,6 +523,7 @@ class MapBuilder:
             raise CorruptFileError(f"{state}: the map state's settings are refused: {exc}") from None
         builder.point_count = int(settings["point_count"])
         builder.update_sha256 = settings.get("update_sha256")
+        builder._previous_sha256 = settings["previous_sha256"]
         tiles = [tuple(int(v) for v in t) for t in arrays["tiles"]]
         for n, tile in enumerate(tiles):
             builder._tiles[tile] = _Cells(arrays["sum"][n].astype(np.int64), arrays["sumsq"][n].astype(np.float64),
@@ -576,6 +587,10 @@ class MapBuilder:
                                         f"file says; give the state written with this map")
 
 
+def _bytes_writer(content: bytes) -> Callable[[Path], None]:
+    return lambda tmp: Path(tmp).write_bytes(content)  # type: ignore[func-returns-value]
+
+
 def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
     values = tuple(float(v) for v in origin)
     if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in values):
@@ -618,6 +633,8 @@ class UpdateResult:
     recoded: int
     delta_size: int | None
     created: bool
+    repeated: bool = False
+    """The scans were the map's last update already (a rerun of an update): none was added again."""
 
 
 def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, pose_topic: str | None,
@@ -721,6 +738,7 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
         base = map_path.read_bytes()
         builder = MapBuilder.from_file(map_path)
         _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
+    last_update = builder.update_sha256
     scans = points = 0
     record = hashlib.sha256()
     for pts, pose, crs in _scans(inputs, points_topic, pose_topic, map_frame):
@@ -736,15 +754,59 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
         points += int(pts.shape[0])
     if scans == 0:
         raise InvalidInputError("no scan to add")
+    if not created and out == map_path and record.hexdigest() == last_update:
+        with warnings.catch_warnings():  # the map was recovered from its state once already, and said so
+            warnings.simplefilter("ignore", StateRecoveredWarning)
+            again = MapBuilder.from_file(map_path)
+        return _finish_update(map_path, base, again, delta, scans, points)
     builder.update_sha256 = record.hexdigest()
     recoded = len(builder.changed_tiles())
     data = builder.encode()
     patch = make_delta(base, data) if delta is not None else None
-    builder.save(out, data=data)
-    if patch is not None:
-        atomic_write(delta, lambda tmp: Path(tmp).write_bytes(patch))  # type: ignore[arg-type]
+    # One transaction, renamed delta first: a kill after it leaves the old map and state (a rerun
+    # writes the same delta again) or the new state (a rerun finishes the update: _finish_update).
+    builder.save(out, data=data, before=[] if patch is None else [(Path(delta), patch)])  # type: ignore[arg-type]
     return UpdateResult(out, len(data), scans, points, len(builder.tiles), recoded,
                         None if patch is None else len(patch), created)
+
+
+def _finish_update(map_path: Path, base: bytes, builder: MapBuilder, delta: str | os.PathLike[str] | None,
+                   scans: int, points: int) -> UpdateResult:
+    """The scans of an in-place update are the map's last update already: write what that update did not.
+
+    Its state was written; the map too unless it was killed before (then
+    ``builder`` recovered it from the state, and ``base`` is the older map).
+    The delta was renamed before the state, so it is on disk already unless
+    this run asks for it under another name.
+    """
+    from .delta import make_delta, read_delta
+
+    data = builder.encode()
+    digest = hashlib.sha256(data).hexdigest()
+    written = hashlib.sha256(base).hexdigest() == digest
+    files: list[tuple[Path, Callable[[Path], None]]] = []
+    patch = None
+    if delta is not None:
+        start = base if not written else None
+        try:
+            known = read_delta(Path(delta).read_bytes())
+            if known.result_sha256.hex() == digest and known.base_sha256.hex() == (
+                    hashlib.sha256(start).hexdigest() if start is not None else builder._previous_sha256):
+                patch = Path(delta).read_bytes()
+        except (OSError, DftpccError):
+            pass
+        if patch is None:
+            if start is None:
+                raise InvalidInputError(f"{map_path}: its last update added these very scans (nothing added again), "
+                                        f"and its delta can no longer be made: the map it started from is gone. "
+                                        f"Send the delta that update wrote")
+            patch = make_delta(start, data)
+            files.append((Path(delta), _bytes_writer(patch)))
+    if not written:
+        files.append((map_path, _bytes_writer(data)))
+    atomic_write_all(files)
+    return UpdateResult(map_path, len(data), scans, points, len(builder.tiles), 0,
+                        None if patch is None else len(patch), False, repeated=True)
 
 
 def _record_scan(record: Any, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None) -> None:
