@@ -239,3 +239,27 @@ def test_mutated_states_are_refused_or_give_the_map_within_the_memory_budget():
     assert report["failures"] == [], report["failures"][:3]
     assert report["outcomes"].get("accepted", 0) > 0 and report["outcomes"].get("CorruptFileError", 0) > 0
     assert report["peak_over_budget_max"] <= 1.0
+
+
+def test_the_independent_reader_of_the_document_reads_what_dftpcc_writes(tmp_path):
+    from . import spec_state
+
+    scans = drive(3, heading=0.4, speed=2.0, points=500)
+    m = tmp_path / "m.dftpc"
+    for points, pose in scans:
+        path = tmp_path / f"scan{len(list(tmp_path.glob('scan*')))}.npy"
+        np.save(path, points @ pose[0].T + pose[1])
+        first = ["-r", "0.25", "--tile-size", "32", "--step", "0.005"] if not m.exists() else []
+        assert main(["update", str(m), str(path), *first, "-q"]) == 0
+    settings, arrays = spec_state.read(state_path(m))
+    mine_arrays, mine_settings = read_state(state_path(m))
+    assert settings == mine_settings
+    for name in ARRAYS:
+        assert np.array_equal(arrays[name], mine_arrays[name]), name
+    assert settings["map_sha256"] == hashlib.sha256(m.read_bytes()).hexdigest()
+    assert settings["update_sha256"] == spec_state.update_record([(np.load(path), None)])
+    damaged = bytearray(state_path(m).read_bytes())
+    damaged[len(damaged) // 2] ^= 1
+    (tmp_path / "bad.state").write_bytes(bytes(damaged))
+    with pytest.raises((spec_state.SpecError, zipfile.BadZipFile)):
+        spec_state.read(tmp_path / "bad.state")

@@ -249,3 +249,24 @@ def _state_after(tmp_path, started, scan) -> bytes:
         path.unlink()
     folder.rmdir()
     return data
+
+
+def test_an_update_waits_for_the_lock_says_so_once_and_then_adds_its_scans(tmp_path, scan_files):
+    from dftpcc.io.lock import lock_path, locked
+
+    first, a, _ = scan_files
+    m = tmp_path / "m.dftpc"
+    assert dftpcc.cli.main(["update", str(m), str(first), "-r", str(RES), "--tile-size", str(TILE), "--step",
+                            str(STEP), "-q"]) == 0
+    before = m.read_bytes()
+    with locked([m]):  # another update holds the map
+        proc = subprocess.Popen([sys.executable, "-m", "dftpcc", "update", str(m), str(a)], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        line = proc.stdout.readline()
+        assert line.strip() == f"{m}: another update holds {lock_path(m)}; waiting for it"
+        with pytest.raises(subprocess.TimeoutExpired):
+            proc.wait(timeout=2)
+        assert m.read_bytes() == before  # nothing written while it waits
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0 and err == "" and "updated with 1 scan" in out
+    assert m.read_bytes() != before and not lock_path(m).exists()
