@@ -190,12 +190,12 @@ def check(map_path: Path, state: bytes, expected: bytes, target: Path, *, trace:
     return "accepted", peak
 
 
-def run(iterations: int, *, seed: int = 0, trace_every: int = 1) -> dict:
+def run(iterations: int, *, seed: int = 0, trace_every: int = 1, progress: int = 0) -> dict:
     """Resume the seed maps with ``iterations`` mutated states; the outcomes counted, failures, peak memory."""
     jit = os.environ.get("DFTPCC_JIT")
     os.environ["DFTPCC_JIT"] = "0"
     try:
-        return _run(iterations, seed=seed, trace_every=trace_every)
+        return _run(iterations, seed=seed, trace_every=trace_every, progress=progress)
     finally:
         if jit is None:
             del os.environ["DFTPCC_JIT"]
@@ -203,7 +203,7 @@ def run(iterations: int, *, seed: int = 0, trace_every: int = 1) -> dict:
             os.environ["DFTPCC_JIT"] = jit
 
 
-def _run(iterations: int, *, seed: int, trace_every: int) -> dict:
+def _run(iterations: int, *, seed: int, trace_every: int, progress: int) -> dict:
     rnd = random.Random(seed)
     outcomes: collections.Counter = collections.Counter()
     failures: list[dict] = []
@@ -230,6 +230,9 @@ def _run(iterations: int, *, seed: int, trace_every: int) -> dict:
                 continue
             outcomes[outcome] += 1
             peak_max = max(peak_max, peak)
+            if progress and (n + 1) % progress == 0:  # a long campaign stopped early still reports
+                print(f"{n + 1} inputs, {time.perf_counter() - t0:.0f} s: {dict(outcomes)}, failures {len(failures)}, "
+                      f"peak {peak_max:,} B", file=sys.stderr, flush=True)
             if peak > MEMORY_BUDGET_BYTES:
                 failures.append({"input": n, "error": f"peak {peak:,} B over the budget {MEMORY_BUDGET_BYTES:,} B"})
     return {"iterations": iterations, "outcomes": dict(outcomes), "failures": failures, "traced": traced,
@@ -243,8 +246,9 @@ def main() -> int:
     parser.add_argument("--iterations", type=int, default=20_000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--trace-every", type=int, default=1, help="measure the peak memory of every N-th input")
+    parser.add_argument("--progress", type=int, default=5000, help="print the outcomes so far every N inputs")
     args = parser.parse_args()
-    report = run(args.iterations, seed=args.seed, trace_every=args.trace_every)
+    report = run(args.iterations, seed=args.seed, trace_every=args.trace_every, progress=args.progress)
     kinds = collections.Counter(f["error"].split(":")[0] for f in report["failures"])
     print(dict(kinds), file=sys.stderr)
     for failure in report["failures"][:5]:
