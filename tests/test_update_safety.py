@@ -211,6 +211,10 @@ def test_another_update_after_a_kill_keeps_both_scans_and_its_delta_starts_from_
     m.write_bytes(old)
     state_path(m).write_bytes(old_state)
     assert _killed("before", 3, "update", m, a, "--delta", d, "-q").returncode == -9  # state renamed, map not
+    # The next update, with other scans, is killed at the same point: the map on disk is still the
+    # oldest, two updates behind the state; running it again must still finish both.
+    assert _killed("before", 3, "update", m, b, "--delta", tmp_path / "e.dftpd", "-q").returncode == -9
+    assert m.read_bytes() == old
     code = dftpcc.cli.main(["update", str(m), str(b), "--delta", str(tmp_path / "e.dftpd"), "-q"])
     assert code == 0
     origin = dftpcc.mapbuilder.MapBuilder.from_file(m).origin

@@ -535,7 +535,7 @@ class MapBuilder:
                 raise InvalidInputError(f"{path}: its state file {state} belongs to another map (it names the map "
                                         f"{str(settings['map_sha256'])[:16]}..., this one is {digest[:16]}...); give "
                                         f"the state written with this map")
-            return builder._recovered(path, state, settings["map_sha256"])
+            return builder._recovered(path, state, settings["map_sha256"], on_disk=digest)
         builder._file_sha256 = digest
         builder._check_header(path, header, tiles)
         i0, j0 = min(i for i, _ in tiles) - 1, min(j for _, j in tiles) - 1
@@ -554,12 +554,14 @@ class MapBuilder:
                                     f"one of another version of it); give the state written with this map")
         return builder
 
-    def _recovered(self, path: Path, state: Path, expected: str) -> "MapBuilder":
+    def _recovered(self, path: Path, state: Path, expected: str, *, on_disk: str) -> "MapBuilder":
         """A state one update ahead of its map (the map was not written after it): code the map again from it."""
         data = self.encode()
         if hashlib.sha256(data).hexdigest() != expected:
             raise CorruptFileError(f"{state}: the map state does not give the map it names (damaged state)")
-        self._file_sha256 = expected
+        # The next state names the map still on disk as the one it started from (as its delta does):
+        # were that update interrupted too, the map on disk is still the one the state knows.
+        self._file_sha256 = on_disk
         warnings.warn(f"{path} is older than its state {state} (an update was interrupted before the map was "
                       f"written); the map was coded again from the state", StateRecoveredWarning, stacklevel=3)
         return self
