@@ -156,7 +156,8 @@ def test_nonfinite_figures_and_a_point_count_of_another_map(tmp_path, grown, cap
 def test_absurd_tile_indices_are_refused_as_such_not_as_out_of_memory(tmp_path, grown, capsys):
     _, _, state, _ = grown
     for far in (2**31 - 1, -(2**63), 2**40):
-        err = refused(tmp_path, grown, capsys, with_array(state, "tiles", lambda t: (t.__setitem__((-1, 0), far), t)[1]))
+        far_tile = with_array(state, "tiles", lambda t: (t.__setitem__((-1, 0), far), t)[1])
+        err = refused(tmp_path, grown, capsys, far_tile)
         assert "memory" not in err and ("tile" in err)
     # Within reach but spread over more tiles than a map holds.
     err = refused(tmp_path, grown, capsys, with_array(state, "tiles", lambda t: (t.__setitem__((-1, 0), 2**20), t)[1]))

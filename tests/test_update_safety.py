@@ -91,7 +91,8 @@ def test_an_output_that_is_an_input_the_map_or_its_state_is_refused(tmp_path, sc
     first, a, _ = scan_files
     m, n = tmp_path / "m.dftpc", tmp_path / "n.dftpc"
     main = dftpcc.cli.main
-    assert main(["update", str(m), str(first), "-r", str(RES), "--tile-size", str(TILE), "--step", str(STEP), "-q"]) == 0
+    assert main(["update", str(m), str(first), "-r", str(RES), "--tile-size", str(TILE), "--step", str(STEP),
+                 "-q"]) == 0
     assert main(["update", str(m), str(a), "-o", str(n), "-q"]) == 0
     (tmp_path / "link.dftpc").symlink_to(m)
     os.link(state_path(m), tmp_path / "hard.state")

@@ -438,7 +438,7 @@ class MapBuilder:
     # -- files ---------------------------------------------------------------------------------
 
     def save(self, path: str | os.PathLike[str], *, state: str | os.PathLike[str] | None = None,
-             data: bytes | None = None, before: list[tuple[Path, bytes]] = ()) -> bytes:  # type: ignore[assignment]
+             data: bytes | None = None, before: Sequence[tuple[Path, bytes]] = ()) -> bytes:
         """Write the map and its state (``state``, default :func:`state_path`) in one transaction.
 
         Both are written to temporaries first (:func:`~dftpcc.io.atomic.atomic_write_all`),
@@ -767,7 +767,7 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
     patch = make_delta(base, data) if delta is not None else None
     # One transaction, renamed delta first: a kill after it leaves the old map and state (a rerun
     # writes the same delta again) or the new state (a rerun finishes the update: _finish_update).
-    builder.save(out, data=data, before=[] if patch is None else [(Path(delta), patch)])  # type: ignore[arg-type]
+    builder.save(out, data=data, before=[] if patch is None or delta is None else [(Path(delta), patch)])
     return UpdateResult(out, len(data), scans, points, len(builder.tiles), recoded,
                         None if patch is None else len(patch), created)
 
