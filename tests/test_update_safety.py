@@ -275,3 +275,23 @@ def test_an_update_waits_for_the_lock_says_so_once_and_then_adds_its_scans(tmp_p
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 0 and err == "" and "updated with 1 scan" in out
     assert m.read_bytes() != before and not lock_path(m).exists()
+
+
+def test_a_map_in_a_folder_that_takes_no_file_is_still_read_without_its_lock(tmp_path, scan_files, monkeypatch):
+    import errno
+    import os
+
+    first, a, _ = scan_files
+    m, n = tmp_path / "m.dftpc", tmp_path / "n.dftpc"
+    assert dftpcc.cli.main(["update", str(m), str(first), "-r", str(RES), "--tile-size", str(TILE), "--step",
+                            str(STEP), "-q"]) == 0
+    real = os.open
+
+    def read_only(path, flags, *args):  # the map's folder is read-only (a root test cannot chmod it so)
+        if str(path) == f"{m}.lock":
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real(path, flags, *args)
+
+    monkeypatch.setattr(os, "open", read_only)
+    assert dftpcc.cli.main(["update", str(m), str(a), "-o", str(n), "-q"]) == 0
+    assert n.exists() and not (tmp_path / "n.dftpc.lock").exists()

@@ -12,6 +12,7 @@ no stale lock can block the map.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import os
 from contextlib import ExitStack, contextmanager
@@ -22,6 +23,8 @@ __all__ = ["locked", "lock_path", "LOCK_SUFFIX"]
 
 #: The lock file of ``MAP`` is ``MAP`` + this.
 LOCK_SUFFIX = ".lock"
+#: Errors of a folder that takes no new file.
+_READ_ONLY = (errno.EACCES, errno.EPERM, errno.EROFS)
 
 
 def lock_path(path: str | os.PathLike[str]) -> Path:
@@ -56,7 +59,15 @@ def locked(paths: list[str | os.PathLike[str]], *,
 @contextmanager
 def _one(path: Path, waiting: Callable[[Path], None] | None) -> Iterator[None]:
     while True:
-        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        except OSError as exc:
+            if exc.errno not in _READ_ONLY:
+                raise
+            # A folder that takes no new file takes no renamed map either: no dftpcc run can replace
+            # the file there (``update -o`` elsewhere only reads it), so there is nothing to guard.
+            yield
+            return
         try:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
