@@ -235,25 +235,32 @@ def _check_arrays(path: Path, arrays: dict[str, np.ndarray], settings: dict[str,
     if (order != np.arange(n)).any() or (np.diff(keys, axis=0) == 0).all(axis=1).any():
         raise CorruptFileError(f"{path}: the map state's tiles are out of order or held twice")
     count, sums, sumsq = arrays["count"], arrays["sum"], arrays["sumsq"]
-    if (count < 0).any():
-        raise CorruptFileError(f"{path}: the map state holds negative counts")
     total = int(count.sum(dtype=np.int64))
     if total != settings["point_count"]:
         raise CorruptFileError(f"{path}: the map state's cells hold {total:,} points, its point_count says "
                                f"{settings['point_count']:,}")
-    empty = count == 0
-    if (sums[empty] != 0).any() or (sumsq[empty] != 0).any():
-        raise CorruptFileError(f"{path}: the map state has sums in empty cells")
-    if not (np.isfinite(sumsq).all() and (sumsq >= 0).all()):
-        raise CorruptFileError(f"{path}: the map state has sums of squares that are not finite or negative")
-    # A cell's mean height above z0, like every height of a map, within ±MAX_COORDINATE_M of it.
-    if (np.abs(sums.astype(np.float64)) > count * (2 * MAX_COORDINATE_M * _MICRO)).any():
-        raise CorruptFileError(f"{path}: the map state has cell heights beyond ±{MAX_COORDINATE_M:g} m")
     figures, gridding = arrays["figures"], arrays["gridding"]
-    if not (np.isfinite(figures).all() and (figures >= 0).all() and np.isfinite(gridding).all()
-            and (gridding >= 0).all()):
+    if not (_finite_and_not_negative(figures) and _finite_and_not_negative(gridding)):
         raise CorruptFileError(f"{path}: the map state has figures that are not finite or negative")
-    occupied = np.count_nonzero(count.reshape(n, -1), axis=1)
-    if (figures[:, 0] != occupied).any() or (occupied == 0).any():
-        raise CorruptFileError(f"{path}: the map state's tile figures do not count the tiles' occupied cells "
-                               f"(or a tile is empty)")
+    # Tile by tile: the temporaries of a whole state's checks would cost as much again as the state.
+    for k in range(n):
+        cells, cell_sums, cell_squares = count[k], sums[k], sumsq[k]
+        if int(cells.min()) < 0:
+            raise CorruptFileError(f"{path}: the map state holds negative counts")
+        empty = cells == 0
+        if cell_sums[empty].any() or cell_squares[empty].any():
+            raise CorruptFileError(f"{path}: the map state has sums in empty cells")
+        if not _finite_and_not_negative(cell_squares):
+            raise CorruptFileError(f"{path}: the map state has sums of squares that are not finite or negative")
+        # A cell's mean height above z0, like every height of a map, within ±MAX_COORDINATE_M of it.
+        if (np.abs(cell_sums.astype(np.float64)) > cells * (2 * MAX_COORDINATE_M * _MICRO)).any():
+            raise CorruptFileError(f"{path}: the map state has cell heights beyond ±{MAX_COORDINATE_M:g} m")
+        occupied = cells.size - int(np.count_nonzero(empty))
+        if occupied == 0 or figures[k, 0] != occupied:
+            raise CorruptFileError(f"{path}: the map state's tile figures do not count the tiles' occupied cells "
+                                   f"(or a tile is empty)")
+
+
+def _finite_and_not_negative(values: np.ndarray) -> bool:
+    # Reductions, no temporaries: a NaN makes min() NaN, which is not >= 0.
+    return values.size == 0 or (float(values.min()) >= 0 and math.isfinite(float(values.max())))
