@@ -437,8 +437,13 @@ def cmd_update(args: argparse.Namespace) -> int:
 
     result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
                          pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
-                         cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame)
+                         cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame,
+                         waiting=lambda lock: _say(args, f"{args.map}: another update holds {lock}; waiting for it"))
     delta = f"; delta {args.delta}: {result.delta_size:,} bytes" if result.delta_size is not None else ""
+    if result.repeated:
+        _say(args, f"{result.path}: {result.size:,} bytes, {result.tiles} tiles: its last update added these "
+                   f"{result.scans} scan(s) already; nothing added again{delta}")
+        return 0
     _say(args, f"{result.path}: {result.size:,} bytes, {result.tiles} tiles ({result.recoded} coded again) "
                f"{'started' if result.created else 'updated'} with {result.scans} scan(s), "
                f"{result.points:,} points{delta}")
@@ -458,7 +463,14 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser("update", parents=[common], help="add scans to a growing map, re-coding only the tiles they change",
                        description="Add scans to a growing map (MAP and its state MAP.state), in place unless -o. "
                                    "Only the tiles the scans change are coded again; the others keep their bytes. "
-                                   "A MAP that does not exist is started (give --resolution).")
+                                   "A MAP that does not exist is started (give --resolution). Two updates of "
+                                   "one map at once do not lose a scan: the second waits for the first (a lock "
+                                   "on MAP.lock, released when the first ends or dies), then adds its scans to "
+                                   "the map the first wrote. An output (-o, --delta) that is an input, the map or "
+                                   "its state, even through a link, is refused before anything is written. The delta, "
+                                   "state and map are written together, so an update that was killed can be run "
+                                   "again as it was: it finishes the update, and scans that were the map's last "
+                                   "update are not added twice.")
     p.add_argument("map", help="the growing map (.dftpc, with MAP.state beside it)")
     p.add_argument("input", nargs="+", help="scans: ROS bags (placed by --pose-topic) or point files in the map frame")
     p.add_argument("--output", "-o", help="write the new map (and its state) here instead of in place")

@@ -22,7 +22,8 @@ import zstandard
 
 from .format import Header, Source, leb128, read_leb128, unpack_source
 from .errors import CorruptFileError, DftpccError, InvalidInputError
-from .io.atomic import atomic_write, check_output
+from .io.atomic import atomic_write, check_distinct, check_output
+from .io.lock import lock_path, locked
 
 __all__ = ["MAGIC", "VERSION", "make_delta", "apply_delta", "read_delta", "Delta", "patch_file",
            "COPY", "DATA", "MAX_COPY_FACTOR", "MAX_DATA_FACTOR"]
@@ -327,10 +328,16 @@ def patch_file(map_path: str | os.PathLike[str], delta_path: str | os.PathLike[s
         Bytes of the map written.
     """
     out = Path(map_path) if output is None else Path(output)
+    read = {f"the map {map_path}": map_path, f"the delta {delta_path}": delta_path,
+            f"the map's lock {lock_path(map_path)}": lock_path(map_path)}
+    if output is not None:
+        check_distinct({f"-o {out}": out}, read)
     check_output(out, force=force)
     for path in (map_path, delta_path):
         if not Path(path).is_file():
             raise InvalidInputError(f"{path}: no such file")
-    result = apply_delta(Path(map_path).read_bytes(), Path(delta_path).read_bytes())
-    atomic_write(out, lambda tmp: Path(tmp).write_bytes(result))
+    # In place, the map is read, patched and written back: an update of it meanwhile would be lost.
+    with locked([map_path, out]):
+        result = apply_delta(Path(map_path).read_bytes(), Path(delta_path).read_bytes())
+        atomic_write(out, lambda tmp: Path(tmp).write_bytes(result))
     return len(result)

@@ -24,9 +24,12 @@ What is kept, and why (the state file, ``MAP.state`` beside ``MAP``, an ``.npz``
   only as float32).
 * the settings (resolution, tile size, cutoff, step, lattice origin, CRS),
   the number of points added, and the SHA-256 of the map the state belongs
-  to and of the map it was updated from: an update refuses a state of
-  another map, and repairs a map left one update behind its state (the
-  state is written first, then the map; an interruption between the two).
+  to, of the map it was updated from and of the scans that update added:
+  an update refuses a state of another map, and repairs a map left one
+  update behind its state (the state is written first, then the map; an
+  interruption between the two).
+
+The state file's layout and checks are :mod:`dftpcc.mapstate`'s (docs/growing-maps.md).
 
 Memory is 20 bytes per cell of the held tiles (4 for the count).
 """
@@ -39,9 +42,10 @@ import json
 import math
 import os
 import warnings
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -49,8 +53,10 @@ from . import coding, kernels
 from .format import Header, MapWriter, Source, read_tile, unpack_source
 from .dem import Grid, TileGrid, as_points
 from .encoder import check_heights
-from .errors import CorruptFileError, DftpccWarning, InvalidInputError
-from .io.atomic import atomic_write, check_output
+from .errors import CorruptFileError, DftpccError, DftpccWarning, InvalidInputError
+from .io.atomic import atomic_write_all, check_distinct, check_output
+from .io.lock import lock_path, locked
+from .mapstate import FIGURES as _FIGURES, STATE_VERSION, read_state, write_state
 from .params import DEFAULT_CUTOFF, MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
 from .tiles import TILE_OVERLAP, TileCode, TileJob, code_tile
 
@@ -69,15 +75,11 @@ DEFAULT_STEP_M = 0.01
 DEFAULT_GROWING_TILE_SIZE = 256
 #: The state file of ``MAP`` is ``MAP`` + this.
 STATE_SUFFIX = ".state"
-#: Layout of the state file; a state of another version is refused.
-STATE_VERSION = 1
 #: Points a cell may collect: counts are int32.
 MAX_CELL_POINTS = 2**31 - 1
 #: A scan's points in a tile are sorted into cells (np.unique) when fewer than the tile's cells over
 #: this, else counted in a histogram of them: the same cells and order, whichever is cheaper.
 HISTOGRAM_SHARE = 8
-#: Figures kept per coded tile: cells, squared error (m²), largest error (m), point-weighted squared error (m²).
-_FIGURES = 4
 
 
 class StateRecoveredWarning(DftpccWarning):
@@ -188,6 +190,10 @@ class MapBuilder:
         #: During :meth:`encode`: the tiles it codes, and the (heights, occupied) of those computed yet.
         self._coding: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}
         self._file_sha256: str | None = None  # of the map file this builder was read from or last saved as
+        #: SHA-256 of the scans of the update that gave this map (:func:`update_file`, docs/growing-maps.md);
+        #: None once anything else was added.
+        self.update_sha256: str | None = None
+        self._previous_sha256: str | None = None  # of the map the update that gave this one started from
         if jit:
             kernels.load()
 
@@ -225,6 +231,7 @@ class MapBuilder:
                     np.isfinite(rotation).all() and np.isfinite(translation).all()):
                 raise InvalidInputError("a pose is a finite (3, 3) rotation and a (3,) translation")
             pts = pts @ rotation.T + translation
+        self.update_sha256 = None
         check_heights(float(pts[:, 2].min()), float(pts[:, 2].max()))
         if float(np.abs(pts[:, :2]).max()) > MAX_COORDINATE_M:
             raise InvalidInputError(f"points beyond ±{MAX_COORDINATE_M:g} m")
@@ -417,12 +424,19 @@ class MapBuilder:
     # -- files ---------------------------------------------------------------------------------
 
     def save(self, path: str | os.PathLike[str], *, state: str | os.PathLike[str] | None = None,
-             data: bytes | None = None) -> bytes:
-        """Write the map and its state (``state``, default :func:`state_path`), each atomically.
+             data: bytes | None = None, before: Sequence[tuple[Path, bytes]] = ()) -> bytes:
+        """Write the map and its state (``state``, default :func:`state_path`) in one transaction.
 
-        The state goes first and names the map's SHA-256; the map follows. An
-        interruption between the two leaves a state ahead of its map, which
-        :meth:`from_file` recognises and repairs by coding the map again.
+        Both are written to temporaries first (:func:`~dftpcc.io.atomic.atomic_write_all`),
+        then renamed: the state first, naming the map's SHA-256, then the map.
+        A process killed between the two renames leaves a state ahead of its
+        map, which :meth:`from_file` recognises and repairs by coding the map again.
+
+        Parameters
+        ----------
+        before : list of (path, bytes)
+            Other files of the same transaction, renamed before the state
+            (:func:`update_file`'s delta: present whenever the state moved on).
 
         Returns
         -------
@@ -431,22 +445,24 @@ class MapBuilder:
         """
         data = self.encode() if data is None else data
         digest = hashlib.sha256(data).hexdigest()
-        arrays = self._state(digest, self._file_sha256)
-        atomic_write(state_path(path) if state is None else state, lambda tmp: _write_npz(tmp, arrays))
-        atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
+        settings, arrays = self._state(digest, self._file_sha256)
+        atomic_write_all([*((target, _bytes_writer(content)) for target, content in before),
+                          (state_path(path) if state is None else Path(state),
+                           lambda tmp: write_state(tmp, settings, arrays)),
+                          (Path(path), _bytes_writer(data))])
         self._file_sha256 = digest
         return data
 
-    def _state(self, digest: str, previous: str | None) -> dict[str, np.ndarray]:
+    def _state(self, digest: str, previous: str | None) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The settings and arrays of the state file (:mod:`dftpcc.mapstate`) of the map whose SHA-256 is ``digest``."""
         held = self.tiles
         size = self.tile_size
-        settings = dict(state_version=STATE_VERSION, resolution=self.resolution, tile_size=size,
-                        cutoff=self.params.cutoff, step=self.params.step, origin=list(self.origin or ()),
-                        crs=self.crs, point_count=self.point_count, map_sha256=digest, previous_sha256=previous)
+        settings = dict(resolution=self.resolution, tile_size=size, cutoff=self.params.cutoff, step=self.params.step,
+                        origin=list(self.origin or ()), crs=self.crs, point_count=self.point_count,
+                        map_sha256=digest, previous_sha256=previous, update_sha256=self.update_sha256)
         figures = np.array([[c.cells, c.squared_error, c.max_error, c.weighted_squared_error]
                             for c in (self._codes[t] for t in held)]).reshape(-1, _FIGURES)
-        return dict(settings=np.array(json.dumps(settings)),
-                    tiles=np.array(held, dtype=np.int64).reshape(-1, 2),
+        return settings, dict(tiles=np.array(held, dtype=np.int64).reshape(-1, 2),
                     sum=np.stack([self._tiles[t].sum for t in held]) if held else np.zeros((0, size, size), np.int64),
                     sumsq=np.stack([self._tiles[t].sumsq for t in held]) if held else np.zeros((0, size, size)),
                     count=np.stack([self._tiles[t].count for t in held]) if held else np.zeros((0, size, size),
@@ -485,10 +501,15 @@ class MapBuilder:
         if not state.is_file():
             raise InvalidInputError(f"{path}: not a growing map: its state file {state} is missing (a growing map "
                                     f"keeps its cells' sums there; without them it cannot be updated)")
-        arrays, settings = _read_state(state)
-        builder = cls(settings["resolution"], tile_size=settings["tile_size"], cutoff=settings["cutoff"],
-                      step=settings["step"], crs=settings["crs"], origin=settings["origin"])
+        arrays, settings = read_state(state)
+        try:
+            builder = cls(settings["resolution"], tile_size=settings["tile_size"], cutoff=settings["cutoff"],
+                          step=settings["step"], crs=settings["crs"], origin=settings["origin"])
+        except InvalidInputError as exc:
+            raise CorruptFileError(f"{state}: the map state's settings are refused: {exc}") from None
         builder.point_count = int(settings["point_count"])
+        builder.update_sha256 = settings.get("update_sha256")
+        builder._previous_sha256 = settings["previous_sha256"]
         tiles = [tuple(int(v) for v in t) for t in arrays["tiles"]]
         for n, tile in enumerate(tiles):
             builder._tiles[tile] = _Cells(arrays["sum"][n].astype(np.int64), arrays["sumsq"][n].astype(np.float64),
@@ -500,7 +521,7 @@ class MapBuilder:
                 raise InvalidInputError(f"{path}: its state file {state} belongs to another map (it names the map "
                                         f"{str(settings['map_sha256'])[:16]}..., this one is {digest[:16]}...); give "
                                         f"the state written with this map")
-            return builder._recovered(path, state, settings["map_sha256"])
+            return builder._recovered(path, state, settings["map_sha256"], on_disk=digest)
         builder._file_sha256 = digest
         builder._check_header(path, header, tiles)
         i0, j0 = min(i for i, _ in tiles) - 1, min(j for _, j in tiles) - 1
@@ -512,14 +533,21 @@ class MapBuilder:
             builder._codes[tile] = TileCode(k, bytes(blobs.get(b"MASK", b"")), bytes(blobs.get(b"COEF", b"")),
                                             bytes(blobs.get(b"RESD", b"")), int(cells), float(squared),
                                             float(largest), float(weighted))
+        # The map the state lays out again (head, index, statistics from the state; sections from the
+        # file) must be the file: an edited state that passes its checksum cannot give another map.
+        if builder._write() != data:
+            raise InvalidInputError(f"{path}: its state file {state} does not give this map (an edited state, or "
+                                    f"one of another version of it); give the state written with this map")
         return builder
 
-    def _recovered(self, path: Path, state: Path, expected: str) -> "MapBuilder":
+    def _recovered(self, path: Path, state: Path, expected: str, *, on_disk: str) -> "MapBuilder":
         """A state one update ahead of its map (the map was not written after it): code the map again from it."""
         data = self.encode()
         if hashlib.sha256(data).hexdigest() != expected:
             raise CorruptFileError(f"{state}: the map state does not give the map it names (damaged state)")
-        self._file_sha256 = expected
+        # The next state names the map still on disk as the one it started from (as its delta does):
+        # were that update interrupted too, the map on disk is still the one the state knows.
+        self._file_sha256 = on_disk
         warnings.warn(f"{path} is older than its state {state} (an update was interrupted before the map was "
                       f"written); the map was coded again from the state", StateRecoveredWarning, stacklevel=3)
         return self
@@ -534,24 +562,42 @@ class MapBuilder:
                  and p.cutoff == self.params.cutoff and p.step == self.params.step
                  and math.isclose(g.x0, ox + j0 * self.span, abs_tol=1e-6) and
                  math.isclose(g.y0, oy + i0 * self.span, abs_tol=1e-6) and g.z0 == oz
-                 and g.angle == 0.0 and header.point_count == self.point_count)
+                 and g.angle == 0.0 and header.point_count == self.point_count
+                 and header.tiles.tiling.tile_rows == max(i for i, _ in tiles) - i0 + 2
+                 and header.tiles.tiling.tile_cols == max(j for _, j in tiles) - j0 + 2)
         if not agree:
             raise InvalidInputError(f"{path}: the map disagrees with its state file (settings or extent); give the "
                                     f"state written with this map")
+        cols = index.tiling.tile_cols
+        for n, (i, j) in enumerate(tiles):
+            if int(index.cells[(i - i0) * cols + (j - j0)]) != int(np.count_nonzero(self._tiles[(i, j)].count)):
+                raise InvalidInputError(f"{path}: the map's tile ({i}, {j}) has other occupied cells than its state "
+                                        f"file says; give the state written with this map")
+
+
+def _bytes_writer(content: bytes) -> Callable[[Path], None]:
+    return lambda tmp: Path(tmp).write_bytes(content)  # type: ignore[func-returns-value]
 
 
 class GrowingMap:
     """A growing map opened to add scans: ``dftpcc.open(path, "a")`` resumes one, ``"w"`` starts one.
 
     Like laspy's appender: :meth:`add` scans (in the map frame, or in the sensor frame with their
-    pose), and on :meth:`close` (or leaving ``with``) the map and its state are written, each
-    atomically, if anything was added. An exception inside ``with`` writes nothing. The
-    :class:`MapBuilder` it holds is :attr:`builder` (its tiles, :meth:`~MapBuilder.encode`).
+    pose), and on :meth:`close` (or leaving ``with``) the map and its state are written, in one
+    transaction, if anything was added. An exception inside ``with`` writes nothing. It holds the
+    map's lock (``MAP.lock``, as ``dftpcc update`` does) from opening to closing, so an update of
+    the same map waits for it. The :class:`MapBuilder` it holds is :attr:`builder`.
     """
 
-    def __init__(self, path: str | os.PathLike[str], builder: MapBuilder):
+    def __init__(self, path: str | os.PathLike[str], builder: MapBuilder, lock: Any = None):
         self.path, self.builder = Path(path), builder
         self._added = False
+        self._lock = lock  # an entered ExitStack holding the map's lock
+
+    def _release(self) -> None:
+        if self._lock is not None:
+            self._lock.close()
+            self._lock = None
 
     def add(self, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None = None) -> "GrowingMap":
         """Add a scan (see :meth:`MapBuilder.add`)."""
@@ -560,10 +606,13 @@ class GrowingMap:
         return self
 
     def close(self) -> None:
-        """Write the map and its state if a scan was added since opening (or since the last close)."""
-        if self._added:
-            self.builder.save(self.path)
-            self._added = False
+        """Write the map and its state if a scan was added since opening, and release the map's lock."""
+        try:
+            if self._added:
+                self.builder.save(self.path)
+                self._added = False
+        finally:
+            self._release()
 
     def __enter__(self) -> "GrowingMap":
         return self
@@ -571,6 +620,8 @@ class GrowingMap:
     def __exit__(self, kind: type | None, *_exc: Any) -> None:
         if kind is None:
             self.close()
+        else:
+            self._release()
 
     def __repr__(self) -> str:
         return f"GrowingMap({str(self.path)!r}, {len(self.builder.tiles)} tiles, {self.builder.point_count:,} points)"
@@ -593,12 +644,19 @@ def open_growing(path: str | os.PathLike[str], mode: str, **settings: Any) -> Gr
                                     f"{', '.join(sorted(settings))}")
         if not path.is_file():
             raise InvalidInputError(f"{path}: no such file (open it with mode 'w' to start a growing map)")
-        return GrowingMap(path, MapBuilder.from_file(path))
-    if "resolution" not in settings:
+    elif "resolution" not in settings:
         raise InvalidInputError("a new growing map needs its cell size: dftpcc.open(path, 'w', resolution=R)")
-    for target in (path, state_path(path)):
-        check_output(target, force=True)
-    return GrowingMap(path, MapBuilder(settings.pop("resolution"), **settings))
+    else:
+        for target in (path, state_path(path)):
+            check_output(target, force=True)
+    stack = ExitStack()
+    stack.enter_context(locked([path]))
+    try:
+        builder = MapBuilder.from_file(path) if mode == "a" else MapBuilder(settings.pop("resolution"), **settings)
+    except BaseException:
+        stack.close()
+        raise
+    return GrowingMap(path, builder, stack)
 
 
 def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
@@ -606,40 +664,6 @@ def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
     if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in values):
         raise InvalidInputError(f"origin must be three finite coordinates (x, y, z) in metres, got {origin!r}")
     return values  # type: ignore[return-value]
-
-
-def _write_npz(tmp: Path, arrays: dict[str, np.ndarray]) -> None:
-    with open(tmp, "wb") as fh:  # a file object: np.savez would add .npz to a name
-        np.savez(fh, **arrays)
-
-
-#: The arrays a state file holds, with their dtype kinds.
-_STATE_ARRAYS = {"tiles": "i", "sum": "i", "sumsq": "f", "count": "i", "figures": "f", "gridding": "f"}
-
-
-def _read_state(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """The arrays and settings of a state file, checked for shape and kind."""
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in ("settings", *_STATE_ARRAYS)}
-        settings = json.loads(str(arrays.pop("settings")))
-    except (OSError, ValueError, KeyError, EOFError) as exc:
-        raise CorruptFileError(f"{path}: not a readable map state ({' '.join(str(exc).split())})") from None
-    if not isinstance(settings, dict) or settings.get("state_version") != STATE_VERSION:
-        raise CorruptFileError(f"{path}: a map state of another version ({settings.get('state_version')!r}; "
-                               f"this dftpcc reads version {STATE_VERSION})" if isinstance(settings, dict)
-                               else f"{path}: not a map state")
-    size = settings.get("tile_size")
-    n = arrays["tiles"].shape[0] if arrays["tiles"].ndim == 2 else -1
-    shapes = {"tiles": (n, 2), "sum": (n, size, size), "sumsq": (n, size, size), "count": (n, size, size),
-              "figures": (n, _FIGURES), "gridding": (n,)}
-    for name, kind in _STATE_ARRAYS.items():
-        if arrays[name].shape != shapes[name] or arrays[name].dtype.kind != kind:
-            raise CorruptFileError(f"{path}: map state array {name} has shape {arrays[name].shape}, expected "
-                                   f"{shapes[name]}")
-    if n < 1 or len({tuple(t) for t in arrays["tiles"].tolist()}) != n or (arrays["count"] < 0).any():
-        raise CorruptFileError(f"{path}: map state holds no tile, a tile twice or negative counts")
-    return arrays, settings
 
 
 # -- the update of a map file: what `dftpcc update` runs ------------------------------------------------
@@ -677,6 +701,8 @@ class UpdateResult:
     recoded: int
     delta_size: int | None
     created: bool
+    repeated: bool = False
+    """The scans were the map's last update already (a rerun of an update): none was added again."""
 
 
 def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, pose_topic: str | None,
@@ -700,7 +726,8 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
                 output: str | os.PathLike[str] | None = None, delta: str | os.PathLike[str] | None = None,
                 points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
                 tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
-                force: bool = False, map_frame: str | None = None, new: bool = False) -> UpdateResult:
+                force: bool = False, map_frame: str | None = None, new: bool = False,
+                waiting: Callable[[Path], None] | None = None) -> UpdateResult:
     """Add scans to a growing map and write it with its state (``dftpcc update``).
 
     Without ``output`` the map is updated in place. The map and its state
@@ -708,6 +735,12 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     (a truncated bag) leaves everything as it was. A map that does not
     exist yet is started, with ``resolution`` (required) and the other
     settings.
+
+    Two updates of one map at once are serialised: each holds the map's
+    lock (``MAP.lock``, :func:`dftpcc.io.lock.locked`; and the output's
+    with ``output``) from before it reads the map until its files are
+    written, so the second waits, then reads the map the first wrote: both
+    runs' scans end up in the map.
 
     Parameters
     ----------
@@ -726,6 +759,8 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     new : bool
         Start a new map even where ``map_path`` exists (``dftpcc compress --growable``; replacing a
         file needs ``force``).
+    waiting : callable, optional
+        Called with the lock file's path when another update holds it, before waiting for it.
 
     Raises
     ------
@@ -733,12 +768,33 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         Settings or a CRS other than the map's, a map that is no growing map
         or has no state, an unreadable input; nothing is written.
     """
-    from .delta import make_delta
-
     map_path = Path(map_path)
     out = Path(output) if output is not None else map_path
+    read = {f"the map {map_path}": map_path, f"its state {state_path(map_path)}": state_path(map_path),
+            f"its lock {lock_path(map_path)}": lock_path(map_path),
+            **{f"the input {path}": path for path in inputs}}
+    written = {}
+    if output is not None:
+        read[f"the lock {lock_path(out)}"] = lock_path(out)
+        written.update({f"-o {out}": out, f"the new state {state_path(out)}": state_path(out)})
+    if delta is not None:
+        written[f"--delta {delta}"] = delta
+    check_distinct(written, read)
     for target in [out, state_path(out)] + ([Path(delta)] if delta is not None else []):
         check_output(target, force=force)
+    with locked([map_path, out], waiting=waiting):
+        return _update_locked(map_path, out, inputs, delta=delta, points_topic=points_topic, pose_topic=pose_topic,
+                              resolution=resolution, tile_size=tile_size, cutoff=cutoff, step=step,
+                              map_frame=map_frame, new=new)
+
+
+def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike[str]], *,
+                   delta: str | os.PathLike[str] | None, points_topic: str | None, pose_topic: str | None,
+                   resolution: float | None, tile_size: int | None, cutoff: float | None, step: float | None,
+                   map_frame: str | None, new: bool = False) -> UpdateResult:
+    """:func:`update_file` once the map is locked and the outputs checked."""
+    from .delta import make_delta
+
     created = new or not map_path.exists()
     if created:
         if resolution is None:
@@ -753,7 +809,9 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         base = map_path.read_bytes()
         builder = MapBuilder.from_file(map_path)
         _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
+    last_update = builder.update_sha256
     scans = points = 0
+    record = hashlib.sha256()
     for pts, pose, crs in _scans(inputs, points_topic, pose_topic, map_frame):
         if crs:
             if created and scans == 0:
@@ -762,18 +820,74 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
                 raise InvalidInputError(f"the scans' CRS is not the map's ({_crs_name(crs)} against "
                                         f"{_crs_name(builder.crs)}): reproject them to the map's CRS first")
         builder.add(pts, pose)
+        _record_scan(record, pts, pose)
         scans += 1
         points += int(pts.shape[0])
     if scans == 0:
         raise InvalidInputError("no scan to add")
+    if not created and out == map_path and record.hexdigest() == last_update:
+        with warnings.catch_warnings():  # the map was recovered from its state once already, and said so
+            warnings.simplefilter("ignore", StateRecoveredWarning)
+            again = MapBuilder.from_file(map_path)
+        return _finish_update(map_path, base, again, delta, scans, points)
+    builder.update_sha256 = record.hexdigest()
     recoded = len(builder.changed_tiles())
     data = builder.encode()
     patch = make_delta(base, data) if delta is not None else None
-    builder.save(out, data=data)
-    if patch is not None:
-        atomic_write(delta, lambda tmp: Path(tmp).write_bytes(patch))  # type: ignore[arg-type]
+    # One transaction, renamed delta first: a kill after it leaves the old map and state (a rerun
+    # writes the same delta again) or the new state (a rerun finishes the update: _finish_update).
+    builder.save(out, data=data, before=[] if patch is None or delta is None else [(Path(delta), patch)])
     return UpdateResult(out, len(data), scans, points, len(builder.tiles), recoded,
                         None if patch is None else len(patch), created)
+
+
+def _finish_update(map_path: Path, base: bytes, builder: MapBuilder, delta: str | os.PathLike[str] | None,
+                   scans: int, points: int) -> UpdateResult:
+    """The scans of an in-place update are the map's last update already: write what that update did not.
+
+    Its state was written; the map too unless it was killed before (then
+    ``builder`` recovered it from the state, and ``base`` is the older map).
+    The delta was renamed before the state, so it is on disk already unless
+    this run asks for it under another name.
+    """
+    from .delta import make_delta, read_delta
+
+    data = builder.encode()
+    digest = hashlib.sha256(data).hexdigest()
+    written = hashlib.sha256(base).hexdigest() == digest
+    files: list[tuple[Path, Callable[[Path], None]]] = []
+    patch = None
+    if delta is not None:
+        start = base if not written else None
+        try:
+            known = read_delta(Path(delta).read_bytes())
+            if known.result_sha256.hex() == digest and known.base_sha256.hex() == (
+                    hashlib.sha256(start).hexdigest() if start is not None else builder._previous_sha256):
+                patch = Path(delta).read_bytes()
+        except (OSError, DftpccError):
+            pass
+        if patch is None:
+            if start is None:
+                raise InvalidInputError(f"{map_path}: its last update added these very scans (nothing added again), "
+                                        f"and its delta can no longer be made: the map it started from is gone. "
+                                        f"Send the delta that update wrote")
+            patch = make_delta(start, data)
+            files.append((Path(delta), _bytes_writer(patch)))
+    if not written:
+        files.append((map_path, _bytes_writer(data)))
+    atomic_write_all(files)
+    return UpdateResult(map_path, len(data), scans, points, len(builder.tiles), 0,
+                        None if patch is None else len(patch), False, repeated=True)
+
+
+def _record_scan(record: Any, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """Add a scan to the SHA-256 of an update's scans (docs/growing-maps.md, *The update's record*)."""
+    record.update(np.ascontiguousarray(points, dtype="<f8").tobytes())
+    if pose is None:
+        record.update(b"none")
+    else:
+        record.update(np.ascontiguousarray(pose[0], dtype="<f8").tobytes()
+                      + np.ascontiguousarray(pose[1], dtype="<f8").tobytes())
 
 
 def _crs_name(crs: dict[str, Any]) -> str:

@@ -16,7 +16,7 @@ from typing import Any, Iterator
 
 from ..errors import InvalidInputError
 
-__all__ = ["atomic_write", "writer_errors", "check_output"]
+__all__ = ["atomic_write", "atomic_write_all", "writer_errors", "check_output", "check_distinct"]
 
 
 #: Temporary files of :func:`atomic_write`: ``.NAME.PID.TOKEN.tmpSUFFIX``.
@@ -42,23 +42,53 @@ def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
         The file system refused (permissions, disk full): the error of the
         same class and errno, naming ``path`` rather than the temporary file.
     """
-    path = Path(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise InvalidInputError(f"{path}: folder {folder} does not exist")
-    _remove_stale_temporaries(folder, path.name)
-    tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}{path.suffix}"
+    atomic_write_all([(path, write)])
+
+
+def atomic_write_all(files: list[tuple[str | os.PathLike[str], Any]]) -> None:
+    """Write several files as :func:`atomic_write` does, all of them before any is renamed into place.
+
+    Every ``write(tmp_path)`` runs and every temporary is flushed to disk
+    first; only then are they renamed over their paths, in the order given,
+    and their folders synced. A failing writer (or an interruption before the
+    renames) leaves every path as it was. A process killed during the renames
+    leaves the files renamed so far new and the others old: the caller
+    chooses the order from which it recovers (:func:`dftpcc.mapbuilder.update_file`).
+
+    Raises
+    ------
+    InvalidInputError, OSError
+        As :func:`atomic_write`, naming the file concerned.
+    """
+    plan = []
+    for path, write in files:
+        path = Path(path)
+        folder = path.parent if str(path.parent) else Path(".")
+        if not folder.is_dir():
+            raise InvalidInputError(f"{path}: folder {folder} does not exist")
+        plan.append((path, folder, write))
+    temporaries: list[tuple[Path, Path]] = []
     try:
-        write(tmp)
-        with tmp.open("rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        _sync_folder(folder)
-    except OSError as exc:
-        raise _naming(path, tmp, exc) from exc
+        for path, folder, write in plan:
+            _remove_stale_temporaries(folder, path.name)
+            tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}{path.suffix}"
+            temporaries.append((path, tmp))
+            try:
+                write(tmp)
+                with tmp.open("rb+") as fh:
+                    os.fsync(fh.fileno())
+            except OSError as exc:
+                raise _naming(path, tmp, exc) from exc
+        for (path, tmp), (_, folder, _) in zip(temporaries, plan):
+            try:
+                os.replace(tmp, path)
+            except OSError as exc:
+                raise _naming(path, tmp, exc) from exc
+            _sync_folder(folder)  # each rename on disk before the next: a power loss keeps their order
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        for _, tmp in temporaries:
+            if tmp.exists():
+                tmp.unlink()
 
 
 def check_output(path: str | os.PathLike[str], *, force: bool = False) -> Path:
@@ -95,6 +125,41 @@ def check_output(path: str | os.PathLike[str], *, force: bool = False) -> Path:
     except OSError as exc:
         raise _naming(path, probe, exc) from exc
     return path
+
+
+def check_distinct(outputs: dict[str, str | os.PathLike[str]], inputs: dict[str, str | os.PathLike[str]]) -> None:
+    """Refuse an output that is one of the inputs or another output, before anything is read or written.
+
+    Two names are one file when they resolve to the same path (through
+    symbolic links and ``..``) or, for files that exist, to the same device
+    and inode (hard links). Replacing an input by an output would destroy it
+    (``dftpcc update MAP SCAN --delta MAP`` wrote the delta over the new map).
+
+    Parameters
+    ----------
+    outputs, inputs : dict
+        What each file is (``"--delta FILE"``, ``"the map"``) by its path, as the message names it.
+
+    Raises
+    ------
+    InvalidInputError
+        Two of the files are one, named by what they are.
+    """
+    seen: list[tuple[str, Path, tuple[int, int] | None]] = []
+    for role, path in [*inputs.items(), *outputs.items()]:
+        seen.append((role, Path(path).resolve(), _identity(Path(path))))
+    for k, (role, resolved, ident) in enumerate(seen[len(inputs):], start=len(inputs)):
+        for other, other_resolved, other_ident in seen[:k]:
+            if resolved == other_resolved or (ident is not None and ident == other_ident):
+                raise InvalidInputError(f"{role} is {other} (the same file): give another name; nothing was written")
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
 
 
 def _naming(path: Path, tmp: Path, exc: OSError) -> OSError:
