@@ -320,3 +320,47 @@ def test_standard_input_and_output_as_dash(tmp_path, cloud_file, small_terrain):
     no_format = subprocess.run(dftpcc_cmd + ["compress", "-", str(tmp_path / "n.dftpc")], input=b"",
                                capture_output=True)
     assert no_format.returncode == 3 and b"name its format" in no_format.stderr
+
+
+# -- a user's first day (issue 42) ------------------------------------------------------------------
+
+
+def _two_storey_cloud(path):
+    """A flat plain with a 5 m step inside some cells: a MultiHeightWarning on compress."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 20, (4000, 2))
+    z = np.where(rng.random(4000) < 0.2, 5.0, 0.0) + rng.normal(0, 0.01, 4000)
+    np.save(path, np.column_stack([xy, z]))
+    return path
+
+
+def test_quiet_prints_no_warning(tmp_path):
+    cloud = _two_storey_cloud(tmp_path / "walls.npy")
+    loud = run("compress", str(cloud), str(tmp_path / "a.dftpc"), "-r", "1")
+    assert loud.returncode == 0 and "warning" in loud.stderr, loud.stderr
+    quiet = run("compress", str(cloud), str(tmp_path / "b.dftpc"), "-r", "1", "-q")
+    assert quiet.returncode == 0, quiet.stderr
+    assert quiet.stdout == "" and quiet.stderr == "", (quiet.stdout, quiet.stderr)
+
+
+def test_help_texts_read_as_written():
+    """No doubled percent sign, every --profile explained, .drc among compress's inputs."""
+    for cmd in ("recommend", "sweep", "compare", "compress"):
+        result = run(cmd, "--help")
+        assert result.returncode == 0, result.stderr
+        assert "%%" not in result.stdout, result.stdout
+        text = " ".join(result.stdout.split())
+        assert "--profile {paper,compact} compact (default)" in text, (cmd, text)
+    assert ".drc" in run("compress", "--help").stdout
+
+
+def test_an_unknown_output_extension_lists_only_what_is_written(tmp_path, cloud_file):
+    out = tmp_path / "t.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "1", "-q"]) == 0
+    result = run("decompress", str(out), str(tmp_path / "back.xyzw"))
+    assert result.returncode == 4, result.stderr
+    listed = result.stderr.split("use one of", 1)[1]
+    for ext in (".las", ".ply", ".tif", ".npy"):
+        assert ext in listed, result.stderr
+    for ext in (".bag", ".drc", ".mcap", ".db3"):
+        assert ext not in listed, result.stderr

@@ -143,6 +143,7 @@ def _progress(enabled: bool, stages: Sequence[str], *, verbose: bool = False) ->
         bar.close()
 
 
+PROFILE_HELP = "compact (default): detrended DCT, quantized, entropy-coded; paper: the published method"
 COMPRESS_STAGES = ("read", "grid", "spectrum", "encode", "container", "write")
 MAP_FRAME_HELP = ("ROS bag with --pose-topic /tf: the frame to build the map in (map, odom, ...); default: the root "
                   "of the scans' TF tree")
@@ -663,7 +664,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("compress", parents=[common], help="point cloud -> .dftpc", description=(
         "Grid a point cloud into a DEM, low-pass its spectrum and write a .dftpc file. "
-        "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .tif, and ROS bags (.bag, or a ROS 2 bag folder)"))
+        "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .drc .tif, and ROS bags (.bag, or a ROS 2 bag folder)"))
     p.add_argument("input", help="the point cloud or GeoTIFF DEM to compress ('-': standard input, with --format)")
     p.add_argument("output", help="the .dftpc file to write ('-': standard output)")
     p.add_argument("--force", "-f", action="store_true",
@@ -686,8 +687,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reloc-scans", type=_positive_int, default=20, metavar="N",
                    help="--target-reloc: scans to simulate (default 20)")
     p.add_argument("--reloc-seed", type=int, default=0, metavar="SEED", help="--target-reloc: seed of the scans")
-    p.add_argument("--profile", choices=tuple(PROFILES), default="compact",
-                   help="compact (default): detrended DCT, quantized, entropy-coded; paper: the published method")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact", help=PROFILE_HELP)
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classification codes, e.g. 2 for ground")
     p.add_argument("--aggregate", choices=CHOICES["aggregate"], help="cell height from its points (default mean)")
     p.add_argument("--frame", choices=CHOICES["frame"], help="axis-aligned or minimum-area rotated grid (default axis)")
@@ -757,12 +757,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("recommend", parents=[common], help="the cutoff that still lets a rover relocalize",
                        description="Simulate lidar scans on the map (fixed seed), register them with GICP against "
                                    "the map rebuilt at each cutoff, smallest file first, and report the first that "
-                                   "keeps 95 %% of scans within --target-reloc metres and 1 degree (dftpcc[slam]).")
+                                   "keeps 95 % of scans within --target-reloc metres and 1 degree (dftpcc[slam]).")
     p.add_argument("input", help="the point cloud or GeoTIFF DEM to be compressed")
     p.add_argument("--target-reloc", type=_positive, required=True, metavar="METRES",
                    help="largest translation error of a relocalized scan, metres")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto", help="DEM cell size in metres, or 'auto'")
-    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact", help=PROFILE_HELP)
     p.add_argument("--fill", choices=CHOICES["fill"], help="how empty cells are filled before the transform")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
     p.add_argument("--topic", help="ROS bag: the PointCloud2 topic to read")
@@ -803,7 +803,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 0,0.05,...,0.95)")
     p.add_argument("--resolution", "-r", type=_resolutions, default=["auto"],
                    help="DEM cell size in metres (or 'auto'): one for all inputs, or comma-separated, one per input")
-    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact", help=PROFILE_HELP)
     p.add_argument("--classes", type=_classes, help="LAS/LAZ inputs: keep only these classes, e.g. 2 for ground")
     p.add_argument("--out", "-o", required=True, help="folder for sweep.csv and sweep.png")
     p.set_defaults(func=cmd_sweep)
@@ -814,7 +814,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("original", help="a point cloud or GeoTIFF DEM")
     p.add_argument("--cutoffs", type=_cutoffs, default="0.8,0.95", help="cutoff ratios to show (default 0.8,0.95)")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto", help="DEM cell size in metres, or 'auto'")
-    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact", help=PROFILE_HELP)
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
     p.add_argument("--out", "-o", required=True, help="folder for the PNG")
     p.set_defaults(func=cmd_compare)
@@ -856,7 +856,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     importlib.import_module("dftpcc.files")
     with warnings.catch_warnings(), _stop_signals_raise():
         warnings.showwarning = _show_warning
-        if args.no_warnings:
+        if args.no_warnings or args.quiet:  # -q promises nothing but errors
             warnings.simplefilter("ignore")
         try:
             return args.func(args)

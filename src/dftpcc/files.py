@@ -239,7 +239,7 @@ def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *
     int
         Points (valid cells) written.
     """
-    fmt = format_of(dst, format)
+    fmt = format_of(dst, format, output=True)
     if fmt not in stream.STREAM_FORMATS:
         raise InvalidInputError(f"{dst}: band-by-band decoding writes GeoTIFF, LAS or LAZ, not {fmt}")
     if cog and fmt not in ("tif", "tiff"):
@@ -337,7 +337,7 @@ def decompress_file(src: Source, dst: Source, *,
     """
     if _is_stream(dst) and format is None:
         raise InvalidInputError("a stream has no extension: name the output format (--format xyz, npy, ply, ...)")
-    fmt = format_of("x" if _is_stream(dst) else dst, format)
+    fmt = format_of("x" if _is_stream(dst) else dst, format, output=True)
     if not _is_stream(dst):
         check_output(dst, force=force)
     check_executor(workers, scheduler)

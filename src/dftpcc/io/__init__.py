@@ -104,6 +104,9 @@ REGISTRY: dict[str, Format] = {f.name: f for f in (
 )}
 #: Extension -> format name.
 FORMATS: dict[str, str] = {ext: f.name for f in REGISTRY.values() for ext in f.extensions}
+#: Extensions dftpcc writes (points or a DEM), sorted.
+WRITTEN_EXTENSIONS: tuple[str, ...] = tuple(sorted(ext for f in REGISTRY.values() if f.writer or f.dem_writer
+                                                   for ext in f.extensions))
 #: Formats read chunk by chunk from disk (:func:`open_chunked`).
 CHUNKED_FORMATS: tuple[str, ...] = tuple(name for name, f in REGISTRY.items() if f.streams)
 
@@ -128,8 +131,11 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY) | _MODULES)
 
 
-def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
+def format_of(path: str | os.PathLike[str], fmt: str | None = None, *, output: bool = False) -> str:
     """The format name of ``path``: ``fmt`` when given, else from its extension (a folder: a ROS 2 bag).
+
+    ``output``: ``path`` is to be written, so an unknown extension is answered with the
+    extensions dftpcc writes (not those it only reads, such as ``.drc`` or ``.bag``).
 
     Raises
     ------
@@ -145,9 +151,11 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
         return "rosbag"  # a ROS 2 bag is a folder
     ext = Path(path).suffix.lower()
     if ext not in FORMATS:
+        known = WRITTEN_EXTENSIONS if output else tuple(sorted(FORMATS))
+        bag = ", or a folder name ending in / for a ROS 2 bag" if output else ""
         raise UnsupportedFormatError(
             f"{path}: cannot tell the format from the extension {ext or '(none)'}; "
-            f"use one of {', '.join(sorted(FORMATS))} or name the format")
+            f"use one of {', '.join(known)}{bag}, or name the format (--format)")
     return FORMATS[ext]
 
 
@@ -323,7 +331,7 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
     OSError
         The file system refused (permissions, disk full); the message names ``path``.
     """
-    fmt = format_of(path, format)
+    fmt = format_of(path, format, output=True)
     writer = REGISTRY[fmt].writer_function()
     points = np.asarray(points, dtype=np.float64)
     with writer_errors(path, fmt):
@@ -339,7 +347,7 @@ def write_dem(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | N
     UnsupportedFormatError
         A format that holds points, not a DEM.
     """
-    fmt = format_of(path, format)
+    fmt = format_of(path, format, output=True)
     entry = REGISTRY[fmt]
     if entry.dem_writer is None:
         raise UnsupportedFormatError(f"{path}: {fmt} files hold points, not a DEM: write points with write()")
