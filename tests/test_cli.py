@@ -364,3 +364,71 @@ def test_an_unknown_output_extension_lists_only_what_is_written(tmp_path, cloud_
         assert ext in listed, result.stderr
     for ext in (".bag", ".drc", ".mcap", ".db3"):
         assert ext not in listed, result.stderr
+
+
+def run_on_terminal(*args: str, stdin: bytes | None = None, timeout: float = 300) -> tuple[int, str]:
+    """Run the CLI with standard output and error on a pseudo-terminal, as a user at a shell sees it."""
+    import os
+    import pty
+    import select
+
+    main_fd, child_fd = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "dftpcc", *args], stdout=child_fd, stderr=child_fd,
+                            stdin=subprocess.PIPE if stdin is not None else subprocess.DEVNULL)
+    os.close(child_fd)
+    if stdin is not None:
+        proc.stdin.write(stdin)
+        proc.stdin.close()
+    out = bytearray()
+    while True:
+        ready, _, _ = select.select([main_fd], [], [], timeout)
+        if not ready:
+            proc.kill()
+            raise TimeoutError(f"dftpcc {' '.join(args)} wrote nothing for {timeout} s")
+        try:
+            chunk = os.read(main_fd, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        out += chunk
+    os.close(main_fd)
+    return proc.wait(timeout=timeout), out.decode("utf-8", "replace")
+
+
+def test_standard_streams_as_a_user_meets_them(tmp_path, cloud_file):
+    """``info -`` reads standard input; a PLY on standard input needs no --format (its magic bytes
+    say it); binary output to a terminal is refused as gzip refuses it, text output is not."""
+    out = tmp_path / "t.dftpc"
+    piped = subprocess.run([sys.executable, "-m", "dftpcc", "compress", "-", str(out), "-r", "1", "-q"],
+                           input=cloud_file.read_bytes(), capture_output=True, timeout=300)
+    assert piped.returncode == 0, piped.stderr
+    info = subprocess.run([sys.executable, "-m", "dftpcc", "info", "-"], input=out.read_bytes(),
+                          capture_output=True, timeout=300)
+    assert info.returncode == 0 and b"bits/point" in info.stdout, info.stderr
+    code, said = run_on_terminal("compress", str(cloud_file), "-", "-r", "1")
+    assert code == 3 and "terminal" in said and said.count("\n") == 1, said
+    code, said = run_on_terminal("decompress", str(out), "-", "--format", "npy")
+    assert code == 3 and "terminal" in said, said
+    code, said = run_on_terminal("decompress", str(out), "-", "--format", "xyz", "-q")
+    assert code == 0 and len(said.splitlines()) > 10, said
+
+
+def test_the_python_api_as_a_user_meets_it(tmp_path, cloud_file):
+    """A missing file is a FileNotFoundError (and still an InvalidInputError); a CRS reads as WKT or a
+    rasterio CRS; a map has a repr; dir(dftpcc) is the API, not this package's own imports."""
+    for call in (lambda: dftpcc.read(tmp_path / "nope.las"), lambda: dftpcc.open(tmp_path / "nope.dftpc")):
+        with pytest.raises(FileNotFoundError, match="no such file"):
+            call()
+        with pytest.raises(dftpcc.InvalidInputError):
+            call()
+    assert not {"Any", "TYPE_CHECKING", "importlib", "annotations"} & set(dir(dftpcc))
+    assert {"compress", "read", "open", "CompressedMap"} <= set(dir(dftpcc))
+    las = dftpcc.read(data_file("pointclouds/mountain_arid_alirt.las"), classes=[2])
+    assert "UTM zone 42N" in las.crs_wkt and las.parse_crs().to_epsg() == 32642
+    cmap = dftpcc.compress(las.points, resolution=2.0, crs=las.crs)
+    with dftpcc.open(cmap) as opened:
+        assert opened.parse_crs().to_epsg() == 32642
+        text = repr(opened)
+    assert text.startswith("<CompressedMap") and "EPSG:32642" in text and "cells" in text, text
+    assert f"{las.points.shape[0]:,} points" in repr(las)

@@ -156,11 +156,19 @@ def _say(args: argparse.Namespace, *lines: str) -> None:
             print(line, file=sys.stderr if getattr(args, "output", None) == "-" else sys.stdout)
 
 
-def _stream(name: str, mode: str) -> Any:
-    """``-`` as standard input (``mode='r'``) or output (``'w'``), as pdal and laszip take it; else the name."""
+def _stream(name: str, mode: str, *, binary: bool = True) -> Any:
+    """``-`` as standard input (``mode='r'``) or output (``'w'``), as pdal and laszip take it; else the name.
+
+    Binary output is refused on a terminal, as gzip refuses it: it would fill the screen with bytes.
+    """
     if name != "-":
         return name
-    return sys.stdin.buffer if mode == "r" else sys.stdout.buffer
+    if mode == "r":
+        return sys.stdin.buffer
+    if binary and sys.stdout.isatty():
+        raise InvalidInputError("refusing to write binary data to a terminal: redirect standard output "
+                                "(> out.dftpc) or name an output file")
+    return sys.stdout.buffer
 
 
 def _errors_text(stats: dict[str, Any], unit: str) -> str:
@@ -236,7 +244,8 @@ def cmd_decompress(args: argparse.Namespace) -> int:
     if args.topic or args.grid_map:
         raise InvalidInputError(f"{args.output}: --topic and --grid-map apply to a ROS 2 bag output, a folder: "
                                 f"end its name with / (out_bag/) or give --format rosbag")
-    points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
+    text = (args.format or "").lower() in ("xyz", "csv")
+    points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w", binary=not text), force=args.force,
                              format=args.format, max_bytes=args.max_bytes,
                              cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox,
                              workers=args.workers, scheduler=args.scheduler, densify=args.densify)
@@ -295,7 +304,7 @@ RESIDUAL_LAYOUTS = {"chunks": "chunks", "sparse": "sparse: the cells that need a
 def cmd_info(args: argparse.Namespace) -> int:
     from .mapfile import open as open_map
 
-    with open_map(args.input, max_cells=args.max_cells) as cmap:
+    with open_map(_stream(args.input, "r"), max_cells=args.max_cells) as cmap:
         info = cmap.info()
     if args.quiet:
         return 0  # the header was read and checked: the exit status says whether it is valid

@@ -20,7 +20,7 @@ from pathlib import Path
 import zstandard
 
 from .container import Source, leb128, read_leb128, unpack_source
-from .errors import CorruptFileError, InvalidInputError
+from .errors import CorruptFileError, InvalidInputError, MissingFileError
 from .io.atomic import atomic_write, check_output
 
 __all__ = ["MAGIC", "VERSION", "make_delta", "apply_delta", "read_delta", "Delta", "patch_file",
@@ -223,7 +223,7 @@ def patch_file(map_path: str | os.PathLike[str], delta_path: str | os.PathLike[s
     check_output(out, force=force)
     for path in (map_path, delta_path):
         if not Path(path).is_file():
-            raise InvalidInputError(f"{path}: no such file")
+            raise MissingFileError(path)
     result = apply_delta(Path(map_path).read_bytes(), Path(delta_path).read_bytes())
     atomic_write(out, lambda tmp: Path(tmp).write_bytes(result))
     return len(result)

@@ -14,6 +14,7 @@ __all__ = [
     "CorruptFileError",
     "ResourceLimitError",
     "UnsupportedFormatError",
+    "MissingFileError",
     "MissingDependencyError",
     "ClusterError",
     "DftpccWarning",
@@ -34,6 +35,21 @@ class InvalidInputError(DftpccError, ValueError):
 
 class UnsupportedFormatError(InvalidInputError):
     """A file extension, format name or ``.dftpc`` major version dftpcc cannot read or write."""
+
+
+class MissingFileError(InvalidInputError, FileNotFoundError):
+    """A file to read is not there.
+
+    Both an :class:`InvalidInputError` (the command line's exit status 3) and
+    the ``FileNotFoundError`` Python code catches for a missing file.
+    """
+
+    def __init__(self, path: object, message: str | None = None):
+        InvalidInputError.__init__(self, message or f"{path}: no such file")
+        self.filename = str(path)
+
+    def __str__(self) -> str:
+        return str(self.args[0])
 
 
 class CorruptFileError(DftpccError):

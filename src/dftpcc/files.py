@@ -68,6 +68,9 @@ def _chunk_size(reader: Reader) -> int | None:
     return None
 
 
+#: Bytes of a stream read to tell its format (a LAS header's point format id is byte 104).
+SNIFF_BYTES = 128
+
 #: A path, or a binary stream (standard input or output, an open file).
 Source = str | os.PathLike[str] | IO[bytes]
 
@@ -82,19 +85,23 @@ def _as_path(src: Source, format: str | None) -> Iterator[str | os.PathLike[str]
     if not _is_stream(src) and (Path(src).is_file() or Path(src).is_dir() or not Path(src).exists()):
         yield src  # a file, a ROS 2 bag folder, or a missing path the reader reports
         return
-    if format is None:
-        raise InvalidInputError(f"{getattr(src, 'name', src)}: a stream has no extension; name its format "
-                                f"(--format npy, xyz, las, ...)")
-    name = format_of(f"x.{format}", format)
-    ext = next(e for e, f in io.FORMATS.items() if f == name)
     with tempfile.TemporaryDirectory(prefix="dftpcc-") as tmp:
-        path = Path(tmp) / f"stream{ext}"
-        with path.open("wb") as out:
+        raw = Path(tmp) / "stream"
+        with raw.open("wb") as out:
             if _is_stream(src):
                 shutil.copyfileobj(src, out)
             else:
                 with open(src, "rb") as fh:
                     shutil.copyfileobj(fh, out)
+        if format is None:
+            with raw.open("rb") as fh:
+                format = io.sniff_format(fh.read(SNIFF_BYTES))  # noqa: A001
+        if format is None:
+            raise InvalidInputError(f"{getattr(src, 'name', src)}: a stream has no extension and its first bytes "
+                                    f"name no binary format; name its format (--format xyz, csv, ...)")
+        name = format_of(f"x.{format}", format)
+        ext = next(e for e, f in io.FORMATS.items() if f == name)
+        path = raw.rename(raw.with_suffix(ext))
         yield path
 
 

@@ -20,12 +20,13 @@ from .container import (MAGIC, VERSION, VERSION_TILED, Source, cells_allowed, ch
                         read_tile, unpack_source)
 from .decoder import decode_dem, decode_tiled
 from .dem import DEM, Grid
-from .errors import InvalidInputError, ResourceLimitError
+from .errors import InvalidInputError, ResourceLimitError, MissingFileError
 from .params import Params
 from .rebuild import dem_to_points
 from .residual import layout_of
 from .spectrum import radius_limit
 from .units import units_of
+from .io.reader import crs_wkt, parse_crs
 
 __all__ = ["CompressedMap", "open", "decompress", "is_dftpc", "check_bbox"]
 
@@ -74,7 +75,25 @@ class CompressedMap:
 
     @property
     def crs(self) -> dict[str, Any]:
+        """The CRS as the file stores it (``{"wkt": ..., "las_vlrs": [...]}``); see :attr:`crs_wkt`."""
         return self.header.crs
+
+    @property
+    def crs_wkt(self) -> str | None:
+        """The CRS as WKT (what GDAL, PDAL and pyproj take), or None."""
+        return crs_wkt(self.header.crs)
+
+    def parse_crs(self) -> Any:
+        """The CRS as a ``rasterio.crs.CRS`` (as rasterio's ``dataset.crs``), or None."""
+        return parse_crs(self.header.crs)
+
+    def __repr__(self) -> str:
+        g = self.grid
+        layout = "tiled" if self.tiled else "untiled"
+        crs = units_of(self.header.crs).crs or "no CRS"
+        return (f"<CompressedMap {self.name!r}: {self.size:,} bytes, {g.rows:,} x {g.cols:,} cells of "
+                f"{g.resolution:g}, {self.header.cell_count:,} rebuilt, {layout}, cutoff {self.params.cutoff:g}, "
+                f"{crs}>")
 
     @property
     def tiled(self) -> bool:
@@ -319,7 +338,7 @@ def open(source: str | os.PathLike[str] | BinaryIO | bytes, *, max_bytes: int | 
                              max_cells=max_cells)
     path = Path(source)
     if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
+        raise MissingFileError(path)
     fh = path.open("rb")
     try:
         size = os.fstat(fh.fileno()).st_size
@@ -339,7 +358,7 @@ def is_dftpc(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` is a ``.dftpc`` file (by its magic bytes, not its name)."""
     path = Path(path)
     if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
+        raise MissingFileError(path)
     with path.open("rb") as fh:
         return fh.read(len(MAGIC)) == MAGIC
 

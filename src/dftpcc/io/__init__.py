@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from .geotiff import dem_from_geotiff, read_raster_dem, write_geotiff
 
 __all__ = ["PointCloud", "Reader", "ChunkedCloud", "Format", "REGISTRY", "FORMATS", "CHUNKED_FORMATS",
-           "DEFAULT_CHUNK_POINTS", "format_of", "open_reader", "open_chunked", "check_chunkable", "read",
+           "DEFAULT_CHUNK_POINTS", "format_of", "sniff_format", "open_reader", "open_chunked", "check_chunkable", "read",
            "stored_point_count", "write", "write_dem", "write_geotiff", "read_raster_dem", "dem_from_geotiff", "atomic_write", "check_output"]
 
 #: A point writer: ``write(tmp_path, points (N, 3) float64, crs dict, format name)``.
@@ -157,6 +157,29 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None, *, output: b
             f"{path}: cannot tell the format from the extension {ext or '(none)'}; "
             f"use one of {', '.join(known)}{bag}, or name the format (--format)")
     return FORMATS[ext]
+
+
+#: Leading bytes that name a format, for a stream without an extension (standard input).
+MAGIC_BYTES: tuple[tuple[bytes, str], ...] = (
+    (b"ply\n", "ply"), (b"ply\r\n", "ply"), (b"\x93NUMPY", "npy"), (b"DRACO", "drc"),
+    (b"II*\x00", "tif"), (b"MM\x00*", "tif"), (b"II+\x00", "tif"), (b"MM\x00+", "tif"),
+    (b"#ROSBAG", "rosbag"), (b"# .PCD", "pcd"), (b"VERSION", "pcd"),
+)
+#: Byte of a LAS header holding the point format id; LAZ sets its top bits (laszip's convention).
+_LAS_POINT_FORMAT_BYTE = 104
+_LAZ_BITS = 0xC0
+
+
+def sniff_format(head: bytes) -> str | None:
+    """The format a file's first bytes (at least 105 for LAS/LAZ) announce, or None (text, or unknown).
+
+    As GDAL and PDAL identify a file by its signature, not its name.
+    """
+    if head.startswith(b"LASF"):
+        if len(head) > _LAS_POINT_FORMAT_BYTE and head[_LAS_POINT_FORMAT_BYTE] & _LAZ_BITS:
+            return "laz"
+        return "las"
+    return next((fmt for magic, fmt in MAGIC_BYTES if head.startswith(magic)), None)
 
 
 def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
