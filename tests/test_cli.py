@@ -432,3 +432,47 @@ def test_the_python_api_as_a_user_meets_it(tmp_path, cloud_file):
         text = repr(opened)
     assert text.startswith("<CompressedMap") and "EPSG:32642" in text and "cells" in text, text
     assert f"{las.points.shape[0]:,} points" in repr(las)
+
+
+def test_info_reads_well_on_every_kind_of_map(tmp_path, capsys):
+    """No step where no spectrum was kept; the values a tiled map stores counted; lengths in units that
+    read well (not '1,000 µm' for 1 mm, nor a fraction of a µm)."""
+    rng = np.random.default_rng(3)
+    z = np.cumsum(np.cumsum(rng.normal(0, 0.03, (40, 52)), 0), 1) + rng.normal(0, 0.02, (40, 52))
+    yy, xx = np.mgrid[:40, :52] + 0.5
+    cloud = tmp_path / "rough.npy"
+    np.save(cloud, np.column_stack([xx.ravel() + 4.5e5, yy.ravel() + 5.2e6, z.ravel() + 300.0]))
+    residual_only = tmp_path / "r.dftpc"
+    assert main(["compress", str(cloud), str(residual_only), "-r", "1", "--target-max-error", "0.005", "-q"]) == 0
+    assert main(["info", str(residual_only)]) == 0
+    said = capsys.readouterr().out
+    assert "no spectrum (residual layer only)" in said and " km" not in said, said
+    import re
+
+    assert not re.search(r"step \d", said) and "values, all 0)" in said, said
+
+    tiled = tmp_path / "tiled.dftpc"
+    assert main(["compress", str(data_file("dems/mars_gale_1m.tif")), str(tiled), "--tile-size", "128", "-q"]) == 0
+    assert main(["info", str(tiled), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["coefficients"] > info["stats"]["coef_count"] > 0
+    assert main(["info", str(tiled)]) == 0
+    said = capsys.readouterr().out
+    assert f"({info['coefficients']:,} values)" in said and "(0 values)" not in said, said
+    assert "µm" not in said, said
+
+
+def test_a_truncated_file_is_named_and_its_prefix_offered(tmp_path, cloud_file):
+    out = tmp_path / "t.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "-c", "0.5", "-q"]) == 0
+    cut = tmp_path / "cut.dftpc"
+    data = out.read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.7)])
+    result = run("decompress", str(cut), str(tmp_path / "back.ply"))
+    assert result.returncode == 5 and result.stderr.count("\n") == 1, result.stderr
+    assert str(cut) in result.stderr and f"--max-bytes {cut.stat().st_size}" in result.stderr, result.stderr
+    # info shows the intact header, then says what is wrong, and still fails.
+    result = run("info", str(cut))
+    assert result.returncode == 5 and "bits/point" in result.stdout and "truncated" in result.stderr, result
+    assert run("decompress", str(cut), str(tmp_path / "back.ply"), "--max-bytes",
+               str(cut.stat().st_size)).returncode == 0

@@ -226,7 +226,43 @@ def cmd_compress(args: argparse.Namespace) -> int:
     return 0
 
 
+def _prefix_decodes(path: str) -> int | None:
+    """The size of a damaged ``.dftpc`` at ``path`` when that prefix still decodes (a truncated untiled
+    map: its low frequencies come first); else None."""
+    from .mapfile import open as open_map
+
+    try:
+        size = os.path.getsize(path)
+        with open_map(path, max_bytes=size) as cmap:
+            cmap.read_dem()
+        return size
+    except (DftpccError, OSError, MemoryError):
+        return None
+
+
+@contextmanager
+def _naming(path: str) -> Iterator[None]:
+    """A corrupt or truncated ``.dftpc`` named in the error, with ``--max-bytes`` offered where its prefix decodes."""
+    try:
+        yield
+    except ResourceLimitError:
+        raise
+    except CorruptFileError as exc:
+        text = str(exc)
+        if path != "-" and not text.startswith(str(path)):
+            text = f"{path}: {text}"
+        size = _prefix_decodes(path) if path != "-" and "truncated" in text else None
+        if size is not None:
+            text += f"; its first {size:,} bytes decode to a coarser map: decompress --max-bytes {size}"
+        raise CorruptFileError(text) from None
+
+
 def cmd_decompress(args: argparse.Namespace) -> int:
+    with _naming(args.input):
+        return _decompress(args)
+
+
+def _decompress(args: argparse.Namespace) -> int:
     from .files import decompress_bands, decompress_file, wants_bands
     from .io.rosmap import is_bag_output
 
@@ -304,13 +340,27 @@ RESIDUAL_LAYOUTS = {"chunks": "chunks", "sparse": "sparse: the cells that need a
 def cmd_info(args: argparse.Namespace) -> int:
     from .mapfile import open as open_map
 
-    with open_map(_stream(args.input, "r"), max_cells=args.max_cells) as cmap:
-        info = cmap.info()
+    truncated = ""
+    try:
+        with _naming(args.input), open_map(_stream(args.input, "r"), max_cells=args.max_cells) as cmap:
+            info = cmap.info()
+    except CorruptFileError as exc:
+        # The header of a truncated file may still be whole: show it, and what is missing.
+        size = _prefix_decodes(args.input) if args.input != "-" and "truncated" in str(exc) else None
+        if size is None:
+            raise
+        with open_map(args.input, max_cells=args.max_cells, max_bytes=size) as cmap:
+            info = cmap.info()
+        truncated = str(exc)
+    # The header was read and checked: the exit status says whether the whole file is valid.
+    damaged = dict(EXIT_CODES)[CorruptFileError] if truncated else 0
+    if truncated:
+        print(f"dftpcc: error: {truncated}", file=sys.stderr)
     if args.quiet:
-        return 0  # the header was read and checked: the exit status says whether it is valid
+        return damaged
     if args.json:
-        print(json.dumps(info, indent=2, sort_keys=True))
-        return 0
+        print(json.dumps(dict(info, damaged=truncated) if truncated else info, indent=2, sort_keys=True))
+        return damaged
     g, p, s, u = info["grid"], info["params"], info["stats"], info["units"]
     h, v = u["horizontal"], u["vertical"]
     cells = f"{length(g['resolution_m'], h)}"
@@ -328,11 +378,12 @@ def cmd_info(args: argparse.Namespace) -> int:
                    f"heights about z0 {g['z0_m']:,.3f} {v}"),
         ("profile", f"{p['profile']} (transform {p['transform']}, storage {p['storage']}, "
                     f"detrend {p['detrend']}, fill {p['fill']})"),
-        ("cutoff", f"{p['cutoff']:g}" + (f", step {length(p['step'], v)}" if p["storage"] == "quantized" else "")),
+        ("cutoff", "no spectrum (residual layer only)" if not info["coefficients"] or info.get("spectrum_empty") else
+                   f"{p['cutoff']:g}" + (f", step {length(p['step'], v)}" if p["storage"] == "quantized" else "")),
         ("target", f"{target} (cutoff and step chosen by rate control)" if target else "none (cutoff and step as given)"),
         ("errors", _errors_text(s, v)),
         ("sections", f"mask {s.get('mask_bytes'):,} B, coefficients {s.get('coef_bytes'):,} B "
-                     f"({s.get('coef_count'):,} values)"
+                     f"({info['coefficients']:,} values{', all 0' if info.get('spectrum_empty') else ''})"
                      + (f", residual {s['residual_bytes']:,} B" if s.get("residual_bytes") else "")
                      + (f" ({RESIDUAL_LAYOUTS[info['residual_layout']]})" if "residual_layout" in info else "")),
         ("CRS", u["crs"] or "none"),
@@ -342,10 +393,12 @@ def cmd_info(args: argparse.Namespace) -> int:
         per = [x["bytes"] for x in t["tiles"]]
         rows.append(("tiles", f"{t['tile_rows']} x {t['tile_cols']} tiles of {t['size']} cells, {t['occupied']} "
                               f"occupied; {min(per):,} to {max(per):,} B a tile (--json lists each, with its errors)"))
+    if truncated:
+        rows.append(("damaged", truncated))
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")
-    return 0
+    return damaged
 
 
 def _reloc_params(args: argparse.Namespace, options: dict[str, Any]) -> Any:

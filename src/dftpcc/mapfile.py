@@ -215,6 +215,28 @@ class CompressedMap:
                 f"{self.size:,}-byte file; decode a region (bbox=) or, if you trust this file, open it with "
                 f"max_cells={cells} (command line: --max-cells {cells})")
 
+    def _spectrum_empty(self) -> bool:
+        """Whether an untiled map's coefficients are all 0 (a map coded as its residual layer alone)."""
+        from . import coding, spectrum
+
+        p = self.header.params
+        lay = spectrum.layout(p.transform, p.storage, self.grid.shape)
+        n = int(self.header.coef_count) * spectrum.values_per_coefficient(lay, p.storage)
+        _, radii, angles = spectrum.kept_order(lay, p.cutoff)
+        per = spectrum.values_per_coefficient(lay, p.storage)
+        radius, angle = (radii[:self.header.coef_count], angles[:self.header.coef_count]) if per == 1 else \
+            (np.repeat(radii[:self.header.coef_count], per), np.repeat(angles[:self.header.coef_count], per))
+        stream = coding.decode_coefficients(self._blobs[b"COEF"], n, radius=radius, angle=angle,
+                                            allow_partial=self._partial)
+        return not np.any(stream)
+
+    def _coefficients(self) -> int:
+        """Spectral coefficients the file stores: an untiled map's ``coef_count``; a tiled map's base
+        layer and every tile's own."""
+        if self.header.tiles is None:
+            return int(self.header.coef_count)
+        return int(self.header.coef_count) + _tile_coefficients(self.header)
+
     def info(self) -> dict[str, Any]:
         """Header, parameters and sizes as plain JSON-ready data."""
         h = self.header
@@ -236,6 +258,11 @@ class CompressedMap:
             "crs": (h.crs.get("wkt") or ("LAS GeoKeys" if h.crs.get("las_vlrs") else None)),
             "stats": h.stats,
         }
+        out["coefficients"] = self._coefficients()
+        if b"RESD" in self._blobs and h.tiles is None:
+            # Rate control may code the map as its residual layer alone, the coefficients all 0 at a
+            # huge step: say so rather than state that step (decoding the coefficients, not the map).
+            out["spectrum_empty"] = self._spectrum_empty()
         if b"RESD" in self._blobs:  # an untiled file's residual layer, or a tiled one's map residual
             out["residual_layout"] = layout_of(self._blobs[b"RESD"])
         if h.tiles is not None:
@@ -250,6 +277,21 @@ class CompressedMap:
                           for k in map(int, np.flatnonzero(index.cells))],
             }
         return out
+
+
+def _tile_coefficients(header: Any) -> int:
+    """Coefficients a tiled map's tiles store: each tile with a ``COEF`` section keeps every
+    coefficient of its coded window below the cutoff (docs/format.md, *Decoding a tile*)."""
+    from . import spectrum, tiles
+
+    index = header.tiles
+    total = 0
+    for k in map(int, np.flatnonzero(index.cells)):
+        if b"COEF" not in index.sections.get(k, {}):
+            continue
+        w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)
+        total += spectrum.kept_count(spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0)), header.params.cutoff)
+    return total
 
 
 def _base_extent(g: Grid, size: int, cutoff: float, cycles: int) -> int:
