@@ -29,11 +29,13 @@ Row = dict[str, Any]
 
 def compare_points(points: np.ndarray, *, cutoffs: Sequence[float] = COMPARE_CUTOFFS,
                    resolution: float | str = "auto", profile: str = "compact", dem: DEM | None = None,
+                   crs: dict[str, Any] | None = None,
                    **options: Any) -> tuple[DEM, dict[float, DEM], dict[float, Row]]:
     """The original DEM and the DEMs a decoder rebuilds at each cutoff.
 
     ``dem``: the map to code when the caller has it (:func:`dftpcc.files.read_dem`);
-    default ``points`` gridded at ``resolution``.
+    default ``points`` gridded at ``resolution``. ``crs``: the source's, which the file
+    carries (several hundred bytes of WKT): the sizes are those of the files ``compress`` writes.
 
     Returns
     -------
@@ -51,7 +53,7 @@ def compare_points(points: np.ndarray, *, cutoffs: Sequence[float] = COMPARE_CUT
     figures: dict[float, Row] = {}
     interpolator = None
     for cutoff in cutoffs:
-        data = encode_dem(dem, params.replace(cutoff=float(cutoff)), point_count=int(points.shape[0]))
+        data = encode_dem(dem, params.replace(cutoff=float(cutoff)), point_count=int(points.shape[0]), crs=crs)
         rebuilt[cutoff] = open_map(data).read_dem()
         cloud = dem_to_points(rebuilt[cutoff])
         interpolator = interpolator or metrics.xy_interpolator(cloud, points)
@@ -80,7 +82,7 @@ def compare_file(path: str | os.PathLike[str], *, out: str | os.PathLike[str],
     units = units_of(crs)
     cloud = read(path, classes=classes)
     original, rebuilt, figures = compare_points(cloud.points, cutoffs=cutoffs, resolution=resolution, dem=dem,
-                                                profile=profile, **options)
+                                                crs=crs, profile=profile, **options)
     return plot_compare(original, rebuilt, folder / f"{name}_compare_{profile}.png", figures=figures, units=units,
                         title=f"{name}: {cloud.points.shape[0]:,} points, "
                               f"{length(original.grid.resolution, units.horizontal)} cells, {profile} profile")
