@@ -208,8 +208,8 @@ def test_non_square_planetary_dems_keep_their_grid(tmp_path, name):
     with rasterio.open(src) as a, rasterio.open(tmp_path / "m.tif") as b:
         assert a.transform.almost_equals(b.transform, precision=1e-9)
         valid = a.read(1, masked=True)
-        back = b.read(1)
-        assert np.array_equal(~np.ma.getmaskarray(valid), np.isfinite(back))
+        back = b.read(1, masked=True)  # the source's nodata value, or NaN
+        assert np.array_equal(~np.ma.getmaskarray(valid), ~np.ma.getmaskarray(back))
     # points of the rebuilt map sit on the original pixel centres
     pts = dftpcc.read(tmp_path / "m.tif").points
     orig = dftpcc.read(src).points
@@ -372,7 +372,13 @@ def run_on_terminal(*args: str, stdin: bytes | None = None, timeout: float = 300
     import pty
     import select
 
+    import fcntl
+    import struct
+    import termios
+
     main_fd, child_fd = pty.openpty()
+    # 24 x 80 like a terminal window: a pty of 0 x 0 gets tqdm's bar drawn 0 columns wide.
+    fcntl.ioctl(child_fd, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
     proc = subprocess.Popen([sys.executable, "-m", "dftpcc", *args], stdout=child_fd, stderr=child_fd,
                             stdin=subprocess.PIPE if stdin is not None else subprocess.DEVNULL)
     os.close(child_fd)
@@ -476,3 +482,151 @@ def test_a_truncated_file_is_named_and_its_prefix_offered(tmp_path, cloud_file):
     assert result.returncode == 5 and "bits/point" in result.stdout and "truncated" in result.stderr, result
     assert run("decompress", str(cut), str(tmp_path / "back.ply"), "--max-bytes",
                str(cut.stat().st_size)).returncode == 0
+
+
+def test_an_integer_dem_comes_back_in_its_type_and_nodata(tmp_path):
+    """An int16 DEM coded within half a unit rounds back to its own values, in int16 with its nodata;
+    coded coarser it comes back float32 (keeping its nodata) with a warning that says why; --dtype and
+    --nodata choose; the file records the source (STAT source_dtype and source_nodata, read by the
+    document's decoder too)."""
+    import rasterio
+
+    from . import spec_decoder
+
+    rng = np.random.default_rng(5)
+    heights = np.cumsum(np.cumsum(rng.integers(-2, 3, (60, 70)), 0), 1).astype(np.int16) + 100
+    heights[:5, :9] = -32768
+    src = tmp_path / "srtm.tif"
+    with rasterio.open(src, "w", driver="GTiff", height=60, width=70, count=1, dtype="int16", nodata=-32768,
+                       transform=rasterio.Affine(30, 0, 4.5e5, 0, -30, 5.2e6), crs="EPSG:32611") as dst:
+        dst.write(heights, 1)
+    fine, coarse = tmp_path / "fine.dftpc", tmp_path / "coarse.dftpc"
+    assert main(["compress", str(src), str(fine), "--target-max-error", "0.45", "-q"]) == 0
+    assert main(["compress", str(src), str(coarse), "-c", "0.95", "-q"]) == 0
+    with dftpcc.open(coarse) as cmap:
+        assert cmap.header.stats["dem_max_error_m"] >= 0.5  # the coarse case is coarse
+    with dftpcc.open(fine) as cmap:
+        assert cmap.header.stats["source_dtype"] == 4 and cmap.header.stats["source_nodata"] == -32768
+    stats = spec_decoder._stat(spec_decoder._sections(fine.read_bytes())[b"STAT"])
+    assert stats["source_dtype"] == 4 and stats["source_nodata"] == -32768
+
+    result = run("decompress", str(fine), str(tmp_path / "fine.tif"))
+    assert result.returncode == 0 and result.stderr == "", result.stderr
+    assert "int16 raster" in result.stdout and "nodata -32768" in result.stdout, result.stdout
+    with rasterio.open(tmp_path / "fine.tif") as back:
+        assert back.dtypes[0] == "int16" and back.nodata == -32768
+        assert np.array_equal(back.read(1), heights)
+
+    result = run("decompress", str(coarse), str(tmp_path / "coarse.tif"))
+    assert result.returncode == 0 and "warning" in result.stderr and "not below half a unit" in result.stderr
+    with rasterio.open(tmp_path / "coarse.tif") as back:
+        assert back.dtypes[0] == "float32" and back.nodata == -32768
+
+    result = run("decompress", str(coarse), str(tmp_path / "asked.tif"), "--dtype", "int16", "--nodata", "-9999")
+    assert result.returncode == 0 and "warning" not in result.stderr, result.stderr
+    with rasterio.open(tmp_path / "asked.tif") as back:
+        assert back.dtypes[0] == "int16" and back.nodata == -9999
+        assert np.array_equal(back.read(1) == -9999, heights == -32768)
+    result = run("decompress", str(fine), str(tmp_path / "nan.tif"), "--dtype", "float32", "--nodata", "nan")
+    with rasterio.open(tmp_path / "nan.tif") as back:
+        assert back.dtypes[0] == "float32" and np.isnan(back.nodata)
+    bad = run("decompress", str(fine), str(tmp_path / "bad.tif"), "--dtype", "uint8")
+    assert bad.returncode == 3 and "nodata -32768 is not a value of uint8" in bad.stderr, bad.stderr
+    bad = run("decompress", str(fine), str(tmp_path / "bad.tif"), "--dtype", "uint8", "--nodata", "255")
+    assert bad.returncode == 3 and "do not fit in uint8" in bad.stderr, bad.stderr
+    assert not (tmp_path / "bad.tif").exists()
+    assert "int16 raster, nodata -32768" in run("info", str(fine)).stdout
+
+
+def test_a_box_cuts_every_output_alike(tmp_path):
+    """--bbox with every output format and option: the same cells, none outside the box (a COG of a
+    tiled map wrote the whole map, exit 0); a GeoTIFF's summary gives the raster written."""
+    import rasterio
+
+    from dftpcc.mapfile import open as open_map
+
+    tiled = tmp_path / "tiled.dftpc"
+    assert main(["compress", str(data_file("dems/mars_gale_1m.tif")), str(tiled), "--tile-size", "128", "-q"]) == 0
+    with open_map(tiled) as cmap:
+        x0, y0, x1, y1 = cmap.bounds()
+    box = (x0 + 40.2, y0 + 90.7, x0 + 151.3, y0 + 170.9)
+    text = ",".join(f"{v:.3f}" for v in box)
+    inside = dftpcc.decompress_file(tiled, tmp_path / "ref.npy", bbox=[float(v) for v in text.split(",")])
+    assert 0 < inside.shape[0] < 0.2 * 337 * 348
+    counts = {}
+    for name, extra in [("a.las", ()), ("a.laz", ()), ("a.ply", ()), ("a.pcd", ()), ("a.xyz", ()), ("a.csv", ()),
+                        ("a.npy", ()), ("dense.npy", ("--densify", "2")), ("a.tif", ()), ("cog.tif", ("--cog",)),
+                        ("workers.npy", ("--workers", "1"))]:
+        if extra == ("--workers", "1"):
+            pytest.importorskip("distributed")
+        out = tmp_path / name
+        result = run("decompress", str(tiled), str(out), "--bbox", text, *extra)
+        assert result.returncode == 0, (name, result.stderr)
+        if name.endswith(".tif"):
+            with rasterio.open(out) as r:
+                valid = ~np.isnan(r.read(1))
+                left, bottom, right, top = r.bounds
+                shape = (r.height, r.width)
+            assert f"a {shape[0]:,} x {shape[1]:,} float32 raster" in result.stdout, result.stdout
+            assert shape[0] * shape[1] < 0.2 * 337 * 348, (name, shape)
+            assert left >= box[0] - 1 and right <= box[2] + 1 and bottom >= box[1] - 1 and top <= box[3] + 1
+            counts[name] = int(valid.sum())
+            continue
+        points = dftpcc.read(out).points
+        assert points[:, 0].min() >= box[0] and points[:, 0].max() <= box[2], name
+        assert points[:, 1].min() >= box[1] - 0.5 and points[:, 1].max() <= box[3] + 0.5, name
+        counts[name] = points.shape[0] // (4 if name == "dense.npy" else 1)
+    assert set(counts.values()) == {inside.shape[0]}, counts
+    pytest.importorskip("rosbags")
+    result = run("decompress", str(tiled), str(tmp_path / "bag") + "/", "--bbox", text)
+    assert result.returncode == 0 and f"{inside.shape[0]:,} points" in result.stdout, result.stdout + result.stderr
+
+
+def test_long_commands_show_progress_on_a_terminal_only(tmp_path, cloud_file):
+    """A tqdm bar on a terminal (decompress, evaluate, compare, update showed nothing), none when
+    piped or with -q; -v prints each stage's time for every command."""
+    out = tmp_path / "t.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "-q"]) == 0
+    commands = {
+        "decompress": ["decompress", str(out), str(tmp_path / "back.ply")],
+        "evaluate": ["evaluate", str(cloud_file), str(out)],
+        "update": ["update", str(tmp_path / "grow.dftpc"), str(cloud_file), "-r", "1"],
+    }
+    for name, argv in commands.items():
+        code, said = run_on_terminal(*argv)
+        assert code == 0 and "%" in said and "\r" in said, (name, said)
+        if name == "update":
+            (tmp_path / "grow.dftpc").unlink()
+            (tmp_path / "grow.dftpc.state").unlink()
+        code, said = run_on_terminal(*argv, "-q")
+        assert code == 0 and said == "", (name, said)
+        if name == "update":
+            (tmp_path / "grow.dftpc").unlink()
+            (tmp_path / "grow.dftpc.state").unlink()
+        piped = run(*argv, "-v")
+        assert piped.returncode == 0 and "%" not in piped.stderr, (name, piped.stderr)
+        assert [line for line in piped.stderr.splitlines() if line.startswith("dftpcc: ") and line.endswith(" s")], \
+            (name, piped.stderr)
+        if name == "update":
+            (tmp_path / "grow.dftpc").unlink()
+            (tmp_path / "grow.dftpc.state").unlink()
+
+
+def test_messages_name_flags_on_the_command_line_and_arguments_in_python(tmp_path):
+    """'drop them first (dftpcc.grid.drop_nonfinite, or read(..., drop_nonfinite=True))' told a
+    command-line user to write Python; a Python caller still gets the argument."""
+    cloud = tmp_path / "nan.xyz"
+    cloud.write_text("0 0 1\n1 0 1\n0 1 nan\n1 1 1\n")
+    result = run("compress", str(cloud), str(tmp_path / "o.dftpc"), "-r", "1")
+    assert result.returncode == 3 and "--drop-nonfinite" in result.stderr, result.stderr
+    assert "drop_nonfinite=True" not in result.stderr and "dftpcc.grid" not in result.stderr, result.stderr
+    with pytest.raises(dftpcc.InvalidInputError, match="drop_nonfinite=True"):
+        dftpcc.compress_file(cloud, tmp_path / "o.dftpc", resolution=1.0)
+    protected = tmp_path / "p.dftpc"
+    protected.write_bytes(b"x")
+    protected.chmod(0o444)
+    result = run("compress", str(cloud), str(protected), "-r", "1", "--drop-nonfinite")
+    assert result.returncode == 3 and "use --force to replace it" in result.stderr, result.stderr
+    assert main(["info", str(tmp_path / "missing.dftpc"), "-q"]) == 3  # in-process: Python's wording comes back
+    with pytest.raises(dftpcc.InvalidInputError, match=r"use force=True to replace it"):
+        dftpcc.compress_file(cloud, protected, resolution=1.0, drop_nonfinite=True)

@@ -153,7 +153,7 @@ def test_bag_mistakes_fail_clearly(tmp_path, terrain, monkeypatch):
         npy = tmp_path / "t.npy"
         np.save(npy, terrain)
         dftpcc.read(npy, topic="/map")
-    with pytest.raises(UnsupportedFormatError, match="ROS bags are read, not written by write.*write_map_bag"):
+    with pytest.raises(UnsupportedFormatError, match="ROS bags are read, not written as files.*write_map_bag"):
         dftpcc.write(tmp_path / "out.bag", terrain)
     bag = write_bag(tmp_path / "ok", {"/map": lambda ts: [_message(ts, terrain[:10])]})
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # as if the extra were not installed

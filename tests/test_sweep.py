@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import subprocess
 import sys
 
 import numpy as np
@@ -228,3 +229,21 @@ def test_compare_states_the_size_of_the_file_compress_writes(tmp_path, monkeypat
     cmap = dftpcc.compress_file(las, tmp_path / "m.dftpc", classes=[2], cutoff=0.8)
     assert cmap.crs.get("wkt") and shown[0.8]["bytes"] == cmap.size
     assert shown[0.8]["bits_per_point"] == pytest.approx(cmap.info()["bits_per_point"])
+
+
+def test_evaluate_on_a_latitude_longitude_map_reports_heights_only(tmp_path):
+    """A PSNR peak of '3113.008 m' mixed degrees and metres; D1, Chamfer and Hausdorff meant nothing."""
+    korolev = data_file("dems/mars_korolev_mola.tif")
+    out = tmp_path / "k.dftpc"
+    dftpcc.compress_file(korolev, out)
+    result = subprocess.run([sys.executable, "-m", "dftpcc", "evaluate", str(korolev), str(out)],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    for absent in ("D1 PSNR", "PSNR peak", "D1 point-to-point", "Chamfer distance", "Hausdorff distance"):
+        assert absent not in result.stdout, result.stdout
+    assert "vertical error RMSE" in result.stdout and "degrees of longitude and latitude" in result.stdout
+    rows = evaluate.evaluate_files(korolev, out)
+    assert "d1_rmse_m" not in rows and rows["vertical_rmse_m"] > 0
+    dftpcc.compress_file(data_file("dems/mars_gale_1m.tif"), tmp_path / "g.dftpc")
+    projected = evaluate.evaluate_files(data_file("dems/mars_gale_1m.tif"), tmp_path / "g.dftpc")
+    assert "d1_rmse_m" in projected and "note" not in projected

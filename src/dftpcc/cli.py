@@ -31,6 +31,7 @@ from .errors import (
     MissingDependencyError,
     ResourceLimitError,
     UnsupportedFormatError,
+    speaking_to_the_command_line,
 )
 
 Row = dict[str, Any]
@@ -143,6 +144,12 @@ def _progress(enabled: bool, stages: Sequence[str], *, verbose: bool = False) ->
         bar.close()
 
 
+#: The stages each long command shows (a bar on a terminal; their times with -v).
+RELOC_STAGES = ("read", "simulate", "encode", "relocalize")
+DECODE_STAGES = ("decode", "write")
+EVALUATE_STAGES = ("read", "decode", "measure")
+COMPARE_STAGES = ("read", "code", "draw")
+UPDATE_STAGES = ("read", "code", "write")
 PROFILE_HELP = "compact (default): detrended DCT, quantized, entropy-coded; paper: the published method"
 COMPRESS_STAGES = ("read", "grid", "spectrum", "encode", "container", "write")
 MAP_FRAME_HELP = ("ROS bag with --pose-topic /tf: the frame to build the map in (map, odom, ...); default: the root "
@@ -270,6 +277,10 @@ def _decompress(args: argparse.Namespace) -> int:
         return _decompress_bag(args)
     if wants_bands(args.input, args.output, format=args.format, cog=args.cog, bbox=args.bbox,
                    cutoff=args.cutoff, max_bytes=args.max_bytes):
+        if args.dtype is not None or args.nodata is not None:
+            raise InvalidInputError(f"{args.output}: a map decoded band by band (--cog, or a large tiled map) is "
+                                    f"written as float32 with NaN nodata; --dtype and --nodata need a region "
+                                    f"(--bbox) or a map decoded whole")
         # A tiled map larger than memory, or a COG: one band of tile rows at a time.
         with _progress(not args.quiet, ("decode",), verbose=args.verbose) as on_stage:
             count = decompress_bands(args.input, args.output, format=args.format, cog=args.cog, force=args.force,
@@ -281,16 +292,20 @@ def _decompress(args: argparse.Namespace) -> int:
         raise InvalidInputError(f"{args.output}: --topic and --grid-map apply to a ROS 2 bag output, a folder: "
                                 f"end its name with / (out_bag/) or give --format rosbag")
     text = (args.format or "").lower() in ("xyz", "csv")
-    points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w", binary=not text), force=args.force,
-                             format=args.format, max_bytes=args.max_bytes,
-                             cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox,
-                             workers=args.workers, scheduler=args.scheduler, densify=args.densify)
-    if str(args.output).lower().endswith((".tif", ".tiff")) or args.format in ("tif", "tiff"):
-        from .mapfile import open as open_map
+    with _progress(not args.quiet, DECODE_STAGES, verbose=args.verbose) as on_stage:
+        points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w", binary=not text),
+                                 force=args.force, format=args.format, max_bytes=args.max_bytes,
+                                 cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox,
+                                 workers=args.workers, scheduler=args.scheduler, densify=args.densify,
+                                 dtype=args.dtype, nodata=args.nodata, cog=args.cog, on_stage=on_stage)
+    if args.output != "-" and (str(args.output).lower().endswith((".tif", ".tiff"))
+                               or args.format in ("tif", "tiff")):
+        import rasterio
 
-        with open_map(args.input, max_cells=args.max_cells, max_bytes=args.max_bytes) as cmap:
-            g = cmap.grid
-        _say(args, f"{args.output}: a {g.rows:,} x {g.cols:,} raster, {points.shape[0]:,} valid pixels")
+        with rasterio.open(args.output) as written:  # what the user gets, read back from the file
+            shape, dtype, nodata = (written.height, written.width), written.dtypes[0], written.nodata
+        _say(args, f"{args.output}: a {shape[0]:,} x {shape[1]:,} {dtype} raster, {points.shape[0]:,} valid "
+                   f"pixels, nodata {nodata:g}")
     else:
         _say(args, f"{args.output}: {points.shape[0]:,} points")
     return 0
@@ -301,9 +316,12 @@ def _decompress_bag(args: argparse.Namespace) -> int:
     from .io.rosmap import DEFAULT_TOPIC, check_bag_output, grid_map_topic, write_map_bag
     from .mapfile import open as open_map
 
+    if args.densify > 1 or args.dtype is not None or args.nodata is not None or args.cog:
+        raise InvalidInputError(f"{args.output}: a ROS 2 bag holds one point per cell (and the GridMap); "
+                                f"--densify, --dtype, --nodata and --cog apply to files")
     check_bag_output(args.output, force=args.force)  # before decoding
     with open_map(_stream(args.input, "r"), max_bytes=args.max_bytes, max_cells=args.max_cells) as cmap:
-        dem = cmap.read_dem(cutoff=args.cutoff)
+        dem = cmap.read_dem(cutoff=args.cutoff, bbox=args.bbox)
     topic = args.topic or DEFAULT_TOPIC
     points = write_map_bag(args.output, dem, topic=topic, grid_map=args.grid_map, force=args.force)
     grid = f", GridMap {dem.grid.rows:,} x {dem.grid.cols:,} on {grid_map_topic(topic)}" if args.grid_map else ""
@@ -388,6 +406,13 @@ def cmd_info(args: argparse.Namespace) -> int:
                      + (f" ({RESIDUAL_LAYOUTS[info['residual_layout']]})" if "residual_layout" in info else "")),
         ("CRS", u["crs"] or "none"),
     ]
+    if "source_dtype" in s:
+        from .dem import RasterSource
+
+        source = RasterSource.from_stats(s)
+        if source is not None:
+            rows.append(("source", f"{source.dtype} raster" + (f", nodata {source.nodata:g}" if source.nodata is not None
+                                                              else ", no nodata value")))
     if "tiles" in info:
         t = info["tiles"]
         per = [x["bytes"] for x in t["tiles"]]
@@ -429,9 +454,11 @@ def _compress_reloc(args: argparse.Namespace, options: dict[str, Any]) -> int:
         raise InvalidInputError("--target-reloc places a bag's scans in the root of their TF tree: it does not "
                                 "take --map-frame")
     t0 = time.perf_counter()
-    chosen = compress_file_reloc(args.input, args.output, args.target_reloc, _reloc_params(args, options),
-                                 force=args.force, format=args.format, classes=args.classes, topic=args.topic,
-                                 pose_topic=args.pose_topic, scans=args.reloc_scans, seed=args.reloc_seed)
+    with _progress(not args.quiet, RELOC_STAGES, verbose=args.verbose) as on_stage:
+        chosen = compress_file_reloc(args.input, args.output, args.target_reloc, _reloc_params(args, options),
+                                     force=args.force, format=args.format, classes=args.classes, topic=args.topic,
+                                     pose_topic=args.pose_topic, scans=args.reloc_scans, seed=args.reloc_seed,
+                                     on_stage=on_stage)
     _say(args, f"{args.output}: {len(chosen.data):,} bytes [{time.perf_counter() - t0:.2f} s]",
          *_reloc_lines(chosen, args.target_reloc))
     return 0
@@ -440,9 +467,11 @@ def _compress_reloc(args: argparse.Namespace, options: dict[str, Any]) -> int:
 def cmd_recommend(args: argparse.Namespace) -> int:
     from .experiments.relocalize import recommend_file
 
-    chosen = recommend_file(args.input, args.target_reloc, _reloc_params(args, {"fill": args.fill}),
-                            format=args.format, classes=args.classes, topic=args.topic, pose_topic=args.pose_topic,
-                            scans=args.reloc_scans, seed=args.reloc_seed)
+    with _progress(not args.quiet, RELOC_STAGES, verbose=args.verbose) as on_stage:
+        chosen = recommend_file(args.input, args.target_reloc, _reloc_params(args, {"fill": args.fill}),
+                                format=args.format, classes=args.classes, topic=args.topic,
+                                pose_topic=args.pose_topic, scans=args.reloc_scans, seed=args.reloc_seed,
+                                on_stage=on_stage)
     if args.json:
         print(json.dumps({"params": json.loads(chosen.params.to_json()), "bytes": len(chosen.data),
                           "bits_per_point": chosen.bits_per_point, "success": chosen.success,
@@ -469,9 +498,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_update(args: argparse.Namespace) -> int:
     from .mapbuilder import update_file
 
-    result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
-                         pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
-                         cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame)
+    with _progress(not args.quiet, UPDATE_STAGES, verbose=args.verbose) as on_stage:
+        result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
+                             pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
+                             cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame,
+                             on_stage=on_stage)
     delta = f"; delta {args.delta}: {result.delta_size:,} bytes" if result.delta_size is not None else ""
     _say(args, f"{result.path}: {result.size:,} bytes, {result.tiles} tiles ({result.recoded} coded again) "
                f"{'started' if result.created else 'updated'} with {result.scans} scan(s), "
@@ -546,6 +577,13 @@ def _bbox(text: str) -> tuple[float, float, float, float]:
     return values  # type: ignore[return-value]
 
 
+def _nodata(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+
+
 def _tile_size(text: str) -> int | str:
     if text == "auto":
         return text
@@ -572,7 +610,9 @@ def _resolutions(text: str) -> list[float | str]:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .experiments.evaluate import evaluate_files
 
-    result = evaluate_files(args.original, args.candidate, classes=args.classes, max_cells=args.max_cells)
+    with _progress(not args.quiet, EVALUATE_STAGES, verbose=args.verbose) as on_stage:
+        result = evaluate_files(args.original, args.candidate, classes=args.classes, max_cells=args.max_cells,
+                                on_stage=on_stage)
     _say(args, json.dumps(jsonable(result), indent=2, sort_keys=True) if args.json else format_metrics(result))
     return 0
 
@@ -592,8 +632,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     from .experiments.compare import compare_file
 
-    path = compare_file(args.original, out=args.out, cutoffs=args.cutoffs, resolution=args.resolution,
-                        profile=args.profile, classes=args.classes)
+    with _progress(not args.quiet, COMPARE_STAGES, verbose=args.verbose) as on_stage:
+        path = compare_file(args.original, out=args.out, cutoffs=args.cutoffs, resolution=args.resolution,
+                            profile=args.profile, classes=args.classes, on_stage=on_stage)
     _say(args, str(path))
     return 0
 
@@ -696,6 +737,8 @@ def format_metrics(result: Row) -> str:
         value = result[key]
         text = f"{value:,}" if fmt is None else format(value, fmt)
         lines.append(f"{label:<{width}}  {text:>14} {unit}".rstrip())
+    if "note" in result:
+        lines.append(f"note: {result['note']}")
     return "\n".join(lines)
 
 
@@ -795,6 +838,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "for scan registration (docs/relocalization.md)")
     p.add_argument("--cog", action="store_true",
                    help="write the DEM as a Cloud Optimized GeoTIFF (.tif), band by band")
+    p.add_argument("--dtype", choices=("int8", "uint8", "int16", "uint16", "int32", "uint32", "float32", "float64"),
+                   help="GeoTIFF output: sample type (default: the source raster's where the file's error bound "
+                        "rounds back to its values, else float32; an integer type rounds the heights)")
+    p.add_argument("--nodata", type=_nodata, metavar="VALUE",
+                   help="GeoTIFF output: value of empty cells (default: the source raster's, else NaN)")
     p.add_argument("--bbox", type=_bbox, metavar="XMIN,YMIN,XMAX,YMAX",
                    help="only this region, in the map's units and CRS (of a tiled map, only its tiles are read)")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",
@@ -916,6 +964,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     # command loads it here, before a stop signal can land inside an import (numpy's C extension
     # then fails to load and the run ends as an internal error instead of a clean stop).
     importlib.import_module("dftpcc.files")
+    # Remedies named as flags (--force), not as Python arguments (force=True), while the command runs.
+    previous = speaking_to_the_command_line(True)
+    try:
+        return _run(args)
+    finally:
+        speaking_to_the_command_line(previous)
+
+
+def _run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(), _stop_signals_raise():
         warnings.showwarning = _show_warning
         if args.no_warnings or args.quiet:  # -q promises nothing but errors

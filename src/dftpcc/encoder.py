@@ -536,6 +536,8 @@ def _tiled_stats(dem: DEM, codes: list[TileCode], occupied: int, base_blob: byte
     if dem.counts is not None and params.aggregate == "mean":
         weighted = sum(c.weighted_squared_error for c in codes) / max(int(dem.counts.sum()), 1)
         stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
+    if dem.source is not None:  # the raster it came from, to be written back alike (docs/format.md, STAT)
+        stats.update(dem.source.as_stats())
     return stats
 
 
@@ -572,4 +574,6 @@ def _stats(dem: DEM, heights: np.ndarray, occupied: np.ndarray, mask_bytes: int,
             weighted = float(np.sum(dem.counts[occupied] * err * err))
         weighted /= max(int(dem.counts.sum()), 1)
         stats["vertical_rmse_m"] = math.sqrt(floor * floor + weighted)
+    if dem.source is not None:  # the raster it came from, to be written back alike (docs/format.md, STAT)
+        stats.update(dem.source.as_stats())
     return stats

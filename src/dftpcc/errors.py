@@ -9,6 +9,8 @@ Warnings say that a result is valid but not what the user may think it is.
 from __future__ import annotations
 
 __all__ = [
+    "advice",
+    "speaking_to_the_command_line",
     "DftpccError",
     "InvalidInputError",
     "CorruptFileError",
@@ -22,6 +24,7 @@ __all__ = [
     "LargeGridWarning",
     "InputMismatchWarning",
     "CoarseMapWarning",
+    "RasterTypeWarning",
 ]
 
 
@@ -95,3 +98,26 @@ class InputMismatchWarning(DftpccWarning):
 
 class CoarseMapWarning(DftpccWarning):
     """An automatic quantizer step leaves errors beyond the map's own height spread."""
+
+
+class RasterTypeWarning(DftpccWarning):
+    """A rebuilt DEM is not written in the sample type of the raster it came from (its errors are too
+    large for an integer type to round back to the source's values); the message says which and why."""
+
+
+#: Whether messages give the command line's flags (set by ``dftpcc.cli.main``) or Python's arguments.
+_COMMAND_LINE = False
+
+
+def speaking_to_the_command_line(on: bool = True) -> bool:
+    """Make :func:`advice` name command-line flags (``dftpcc.cli.main`` does while it runs), or Python
+    arguments again; returns the previous setting, to restore."""
+    global _COMMAND_LINE
+    previous, _COMMAND_LINE = _COMMAND_LINE, on
+    return previous
+
+
+def advice(python: str, command_line: str) -> str:
+    """The remedy a message offers, as its reader can apply it: a flag for a user of the command line,
+    a function or an argument for a Python caller."""
+    return command_line if _COMMAND_LINE else python

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any, Callable, Iterable, Iterator, Sequence
@@ -23,7 +24,7 @@ from .container import unpack
 from .dem import DEM
 from .encoder import Stage, encode_dem, no_stage, params_of
 from .grid import CloudSummary, check_chunked_aggregate, rasterize, rasterize_chunks
-from .errors import InvalidInputError
+from .errors import InvalidInputError, RasterTypeWarning
 from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, check_output, format_of, open_reader, write
 from .limits import MAX_CELLS, holds_in_memory
 from .mapfile import CompressedMap
@@ -196,7 +197,8 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         dst.flush()
     else:
         atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
-    return open_map(data, max_cells=_trusted(data))
+    # Named for the file written, so that its repr and messages say where it is.
+    return CompressedMap(data, "<stream>" if _is_stream(dst) else str(dst), max_cells=_trusted(data))
 
 
 def streams_raster(src: str | os.PathLike[str], params: Params, format: str | None = None) -> bool:  # noqa: A002
@@ -217,8 +219,9 @@ def streams_raster(src: str | os.PathLike[str], params: Params, format: str | No
 def wants_bands(src: Any, dst: Any, *, format: str | None = None, cog: bool = False,  # noqa: A002
                 bbox: Any = None, cutoff: float | None = None, max_bytes: int | None = None) -> bool:
     """Whether a decode of ``src`` into ``dst`` goes band by band (:func:`decompress_bands`): a COG, or a
-    tiled map of more than :data:`~dftpcc.stream.STREAM_CELLS` cells written whole to GeoTIFF, LAS or LAZ."""
-    if cog:
+    tiled map of more than :data:`~dftpcc.stream.STREAM_CELLS` cells written whole to GeoTIFF, LAS or LAZ.
+    A region (``bbox``) is decoded as one piece, in every output format: the box cuts them all alike."""
+    if cog and bbox is None:
         return True
     if _is_stream(src) or _is_stream(dst) or bbox is not None or cutoff is not None or max_bytes is not None:
         return False
@@ -323,7 +326,8 @@ def decompress_file(src: Source, dst: Source, *,
                     format: str | None = None, max_bytes: int | None = None,  # noqa: A002
                     cutoff: float | None = None, max_cells: int | None = None, force: bool = False,
                     bbox: Sequence[float] | None = None, workers: int | None = None,
-                    scheduler: str | None = None, densify: int = 1) -> np.ndarray:
+                    scheduler: str | None = None, densify: int = 1, dtype: str | None = None,
+                    nodata: float | None = None, cog: bool = False, on_stage: Stage = no_stage) -> np.ndarray:
     """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
 
     ``bbox`` (xmin, ymin, xmax, ymax, the map's units and CRS) writes only that region; of a
@@ -336,6 +340,12 @@ def decompress_file(src: Source, dst: Source, *,
     The output format comes from ``dst``'s extension; ``.tif`` writes the
     rebuilt DEM as a GeoTIFF, any other the point cloud. The CRS read from
     the original file is written back where the format has room for it.
+
+    A GeoTIFF is written in the sample type and with the nodata value of the raster the map was
+    made from, where the file's bound lets an integer type round back to its values
+    (:func:`~dftpcc.io.geotiff.output_type`; a :class:`~dftpcc.errors.RasterTypeWarning` says
+    when it does not); ``dtype`` and ``nodata`` choose others; ``cog`` writes a Cloud Optimized
+    GeoTIFF. ``on_stage`` is called with each stage's name (``decode``, ``write``).
 
     Returns
     -------
@@ -350,20 +360,32 @@ def decompress_file(src: Source, dst: Source, *,
     check_executor(workers, scheduler)
     if isinstance(densify, bool) or not isinstance(densify, int) or densify < 1:
         raise InvalidInputError(f"densify must be a whole number >= 1, got {densify!r}")
-    if densify > 1 and io.REGISTRY[fmt].dem_writer:
+    raster = io.REGISTRY[fmt].dem_writer is not None
+    if densify > 1 and raster:
         raise InvalidInputError(f"{dst}: a {fmt} output holds the DEM's cells; densify applies to point outputs")
+    if not raster and (dtype is not None or nodata is not None or cog):
+        raise InvalidInputError(f"{dst}: --dtype, --nodata and --cog apply to a GeoTIFF (.tif) output, not {fmt}")
     if not _is_stream(src) and Path(src).exists() and not Path(src).is_file():
         with open(src, "rb") as fh:  # a pipe such as /dev/stdin
             src = _Buffer(fh.read(), str(src))
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
+        if raster:  # the sample type and nodata checked before decoding
+            from .io.geotiff import output_type
+
+            sample, empty, note = output_type(cmap.header.stats, dtype=dtype, nodata=nodata,
+                                              bound_holds=cutoff is None and max_bytes is None)
+        on_stage("decode")
         with executor(workers, scheduler) if cmap.tiled else _nothing() as map_tiles:
             dem = cmap.read_dem(cutoff=cutoff, bbox=bbox, map_tiles=map_tiles)
         crs = cmap.crs
+    on_stage("write")
     points = dem_to_points(dem) if densify == 1 else dem_to_dense_points(dem, densify)
     with tempfile.TemporaryDirectory(prefix="dftpcc-") if _is_stream(dst) else _nothing() as tmp:
         target = Path(tmp) / f"out.{fmt}" if _is_stream(dst) else dst
-        if io.REGISTRY[fmt].dem_writer:
-            io.write_dem(target, dem, crs=crs, format=fmt)
+        if raster:
+            if note:
+                warnings.warn(f"{getattr(dst, 'name', dst)}: {note}", RasterTypeWarning, stacklevel=2)
+            io.write_dem(target, dem, crs=crs, format=fmt, dtype=sample, nodata=empty, cog=cog)
         else:
             write(target, points, crs=crs, format=fmt)
         if _is_stream(dst):

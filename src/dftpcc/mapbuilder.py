@@ -40,7 +40,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -654,8 +654,12 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
                 output: str | os.PathLike[str] | None = None, delta: str | os.PathLike[str] | None = None,
                 points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
                 tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
-                force: bool = False, map_frame: str | None = None) -> UpdateResult:
+                force: bool = False, map_frame: str | None = None,
+                on_stage: Callable[..., None] | None = None) -> UpdateResult:
     """Add scans to a growing map and write it with its state (``dftpcc update``).
+
+    ``on_stage`` is called with each stage's name as it starts (``read``: the scans, then
+    ``code``, ``write``), as :func:`dftpcc.compress_file` calls it.
 
     Without ``output`` the map is updated in place. The map and its state
     are written only once every scan was read and added: a failing input
@@ -704,6 +708,8 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
         base = map_path.read_bytes()
         builder = MapBuilder.from_file(map_path)
         _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
+    stage = on_stage or (lambda *_: None)
+    stage("read")
     scans = points = 0
     for pts, pose, crs in _scans(inputs, points_topic, pose_topic, map_frame):
         if crs:
@@ -718,8 +724,10 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     if scans == 0:
         raise InvalidInputError("no scan to add")
     recoded = len(builder.changed_tiles())
+    stage("code")
     data = builder.encode()
     patch = make_delta(base, data) if delta is not None else None
+    stage("write")
     builder.save(out, data=data)
     if patch is not None:
         atomic_write(delta, lambda tmp: Path(tmp).write_bytes(patch))  # type: ignore[arg-type]

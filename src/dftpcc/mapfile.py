@@ -20,7 +20,7 @@ from .container import (MAGIC, VERSION, VERSION_TILED, Source, cells_allowed, ch
                         read_tile, unpack_source)
 from .decoder import decode_dem, decode_tiled
 from .dem import DEM, Grid
-from .errors import InvalidInputError, ResourceLimitError, MissingFileError
+from .errors import InvalidInputError, MissingFileError, ResourceLimitError, advice
 from .params import Params
 from .rebuild import dem_to_points
 from .residual import layout_of
@@ -212,8 +212,8 @@ class CompressedMap:
         if cells > allowed:
             raise ResourceLimitError(
                 f"refusing to decode {cells:,} cells of tiles at once, more than the {allowed:,} allowed for a "
-                f"{self.size:,}-byte file; decode a region (bbox=) or, if you trust this file, open it with "
-                f"max_cells={cells} (command line: --max-cells {cells})")
+                f"{self.size:,}-byte file; decode a region ({advice('bbox=', '--bbox')}) or, if you trust this "
+                f"file, {advice(f'open it with max_cells={cells}', f'give --max-cells {cells}')}")
 
     def _spectrum_empty(self) -> bool:
         """Whether an untiled map's coefficients are all 0 (a map coded as its residual layer alone)."""

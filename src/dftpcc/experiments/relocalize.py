@@ -309,7 +309,8 @@ def _bytes_of(size: int) -> str:
 def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, point_count: int | None = None,
               crs: dict[str, Any] | None = None, scans: int = 20, seed: int = 0, lidar: Lidar = RECOMMEND_LIDAR,
               gicp: Gicp = Gicp(), cutoffs: Iterable[float] = RECOMMEND_CUTOFFS,
-              on_candidate: Callable[[dict[str, Any]], None] | None = None) -> Recommendation:
+              on_candidate: Callable[[dict[str, Any]], None] | None = None,
+              on_stage: Callable[..., None] | None = None) -> Recommendation:
     """The smallest file whose rebuilt map still relocalizes scans cast on the map itself within ``target_reloc``.
 
     ``scans`` scans are cast (fixed ``seed``) on the bilinear surface of
@@ -342,13 +343,18 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
         raise InvalidInputError(f"target_reloc measures maps coded whole; a {dem.grid.rows:,} x {dem.grid.cols:,} "
                                 f"grid would be tiled (tile_size {params.tile_size!r}): give tile_size=0, or a "
                                 f"coarser resolution")
+    stage = on_stage or (lambda *_: None)
+    stage("simulate")
     surface, to_map = surface_dem(dem)
     cast = simulate_scans(surface, scans, lidar=lidar, seed=seed)
     # Scans live in the surface's local frame; rebuilt maps come in the DEM's
     # frame, so they are moved by the inverse of the DEM's origin.
     shift = -to_map[:3, 3]
     candidates = []
-    for cutoff in cutoffs:
+    cutoffs = tuple(cutoffs)
+    stage("encode")
+    for k, cutoff in enumerate(cutoffs):
+        stage("encode", k / max(len(cutoffs), 1))
         data = encode_dem(dem, params.replace(cutoff=cutoff, target_reloc=float(target_reloc)),
                           point_count=point_count, crs=crs)
         candidates.append((len(data), cutoff, data))
@@ -358,7 +364,9 @@ def recommend(dem: DEM, target_reloc: float, params: Params | None = None, *, po
     count = point_count or int(dem.mask.sum())
     best: dict[str, Any] | None = None
     tried: list[dict[str, Any]] = []
-    for size, cutoff, data in candidates:
+    stage("relocalize")
+    for k, (size, cutoff, data) in enumerate(candidates):
+        stage("relocalize", k / len(candidates))
         with open_map(data) as cmap:
             points = cmap.read_points() + shift
         outcome = relocalize_map(points, cast, gicp=gicp, seed=seed)
@@ -411,6 +419,8 @@ def recommend_file(src: str | os.PathLike[str], target_reloc: float, params: Par
     """:func:`recommend` for the map in a file (any input :func:`dftpcc.compress_file` reads, a ROS bag
     of scans with their ``pose_topic`` included), gridded as it would be."""
     params = check_target_reloc(target_reloc, params)
+    if options.get("on_stage") is not None:
+        options["on_stage"]("read")
     dem, count, crs = read_dem(src, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic)
     return recommend(dem, target_reloc, params, point_count=count, crs=crs, **options)
 

@@ -98,8 +98,8 @@ REGISTRY: dict[str, Format] = {f.name: f for f in (
     Format("tif", (".tif", ".tiff"), "geotiff", "GeoTiffReader", dem_writer="write_geotiff",
            not_written="a GeoTIFF holds a DEM, not points: use write_geotiff"),
     Format("rosbag", (".bag", ".db3", ".mcap"), "rosbag", "BagReader",
-           not_written="ROS bags are read, not written by write(): a ROS 2 bag folder of the map is "
-                       "written by dftpcc.io.rosmap.write_map_bag (dftpcc decompress MAP out_bag/); "
+           not_written="ROS bags are read, not written as files: a ROS 2 bag of the map is a folder "
+                       "(decompress MAP out_bag/, or dftpcc.io.rosmap.write_map_bag); "
                        "write .ply, .pcd, .las or .npy", streams=True),
 )}
 #: Extension -> format name.
@@ -362,8 +362,9 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
 
 
 def write_dem(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | None = None,
-              format: str | None = None) -> None:  # noqa: A002
-    """Write a DEM to ``path`` in a raster format (GeoTIFF: :func:`~dftpcc.io.geotiff.write_geotiff`).
+              format: str | None = None, **options: Any) -> None:  # noqa: A002
+    """Write a DEM to ``path`` in a raster format (GeoTIFF: :func:`~dftpcc.io.geotiff.write_geotiff`,
+    which takes ``**options``: ``dtype``, ``nodata``, ``cog``).
 
     Raises
     ------
@@ -374,4 +375,4 @@ def write_dem(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | N
     entry = REGISTRY[fmt]
     if entry.dem_writer is None:
         raise UnsupportedFormatError(f"{path}: {fmt} files hold points, not a DEM: write points with write()")
-    getattr(entry.load(), entry.dem_writer)(path, dem, crs=crs)
+    getattr(entry.load(), entry.dem_writer)(path, dem, crs=crs, **options)

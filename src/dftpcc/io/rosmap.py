@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from ..dem import DEM
-from ..errors import InvalidInputError, MissingDependencyError
+from ..errors import InvalidInputError, MissingDependencyError, advice
 from ..rebuild import dem_to_points
 from .atomic import writer_errors
 from .rosbag import INSTALL_HINT, NS_PER_S
@@ -119,7 +119,7 @@ def check_bag_output(path: str | os.PathLike[str], *, force: bool = False) -> Pa
             raise InvalidInputError(f"{path}: exists and is not a ROS 2 bag; dftpcc replaces only a bag folder "
                                     f"(with --force): choose a new name")
         if not force:
-            raise InvalidInputError(f"{path}: the bag exists; use --force (force=True) to replace it")
+            raise InvalidInputError(f"{path}: the bag exists; use {advice('force=True', '--force')} to replace it")
     probe = parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}"
     try:
         probe.mkdir()
