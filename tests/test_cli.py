@@ -630,3 +630,14 @@ def test_messages_name_flags_on_the_command_line_and_arguments_in_python(tmp_pat
     assert main(["info", str(tmp_path / "missing.dftpc"), "-q"]) == 3  # in-process: Python's wording comes back
     with pytest.raises(dftpcc.InvalidInputError, match=r"use force=True to replace it"):
         dftpcc.compress_file(cloud, protected, resolution=1.0, drop_nonfinite=True)
+
+
+def test_a_coarse_default_map_says_so_and_what_to_give(tmp_path):
+    """A rough all-returns cloud at the defaults: 5.85 m cells, max error 19.5 m, and only the
+    vegetation warning; the summary now says plainly the map is coarse and what to pass instead."""
+    rocks = data_file("pointclouds/redrocks_rough.ply")
+    result = run("compress", str(rocks), str(tmp_path / "r.dftpc"), "--no-warnings")
+    assert result.returncode == 0, result.stderr
+    assert "coarse: heights off by up to" in result.stdout and "--target-max-error" in result.stdout, result.stdout
+    finer = run("compress", str(rocks), str(tmp_path / "f.dftpc"), "--no-warnings", "--target-max-error", "5")
+    assert finer.returncode == 0 and "coarse:" not in finer.stdout, finer.stdout

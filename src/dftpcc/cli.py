@@ -229,8 +229,25 @@ def cmd_compress(args: argparse.Namespace) -> int:
          f"({info['points_original']:,} points -> {info['points_rebuilt']:,} cells of "
          f"{length(info['grid']['resolution_m'], unit)}) [{time.perf_counter() - t0:.2f} s]",
          f"  {_choice_text(params, info['units']['vertical'], info['stats'])}",
-         f"  promises {_errors_text(info['stats'], info['units']['vertical'])}")
+         f"  promises {_errors_text(info['stats'], info['units']['vertical'])}",
+         *_coarse_lines(info, args))
     return 0
+
+
+#: A map whose largest height error exceeds this many cell sizes is called coarse in compress's summary.
+COARSE_ERROR_CELLS = 2.0
+
+
+def _coarse_lines(info: dict[str, Any], args: argparse.Namespace) -> list[str]:
+    """A plain line when the defaults made a coarse map (errors of several cells), and what to give instead."""
+    cell, worst = info["grid"]["resolution_m"], info["stats"].get("dem_max_error_m") or 0.0
+    if info["units"]["geographic"] or worst <= COARSE_ERROR_CELLS * cell or _target_text(info["params"]):
+        return []
+    unit = info["units"]["vertical"]
+    ground = " keep ground points only (--classes 2)," if str(args.input).lower().endswith((".las", ".laz")) else ""
+    return [f"  coarse: heights off by up to {length(worst, unit)}, {worst / cell:.1f} cells of "
+            f"{length(cell, unit)}; for a finer map{ground} give --target-max-error {cell:.3g} (errors within a "
+            f"cell) or --target-rmse, or a finer --resolution"]
 
 
 def _prefix_decodes(path: str) -> int | None:
