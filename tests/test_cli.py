@@ -641,3 +641,10 @@ def test_a_coarse_default_map_says_so_and_what_to_give(tmp_path):
     assert "coarse: heights off by up to" in result.stdout and "--target-max-error" in result.stdout, result.stdout
     finer = run("compress", str(rocks), str(tmp_path / "f.dftpc"), "--no-warnings", "--target-max-error", "5")
     assert finer.returncode == 0 and "coarse:" not in finer.stdout, finer.stdout
+
+
+def test_one_overwrite_rule_stated_in_every_help():
+    for cmd in ("compress", "decompress", "update", "patch"):
+        text = " ".join(run(cmd, "--help").stdout.split())
+        assert "an existing output (a file, or a ROS 2 bag folder) is replaced; a write-protected one only with " \
+               "--force" in text, (cmd, text)

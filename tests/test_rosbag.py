@@ -471,9 +471,13 @@ def test_bag_outputs_are_checked_first_and_written_atomically(tmp_path, compress
     assert main(["decompress", str(path), f"{out}/", "-q"]) == 0
     assert "/map" in _bag_messages(out)
     before = sorted(p.name for p in out.iterdir())
-    assert main(["decompress", str(path), f"{out}/", "-q"]) == 3  # exists: refused
-    assert "the bag exists; use --force" in capsys.readouterr().err
-    assert main(["decompress", str(path), str(out), "--grid-map", "--force", "-q"]) == 0  # an existing bag folder
+    # One rule for files and bags: an existing bag is replaced, a write-protected one only with --force.
+    assert main(["decompress", str(path), str(out), "--grid-map", "-q"]) == 0  # an existing bag folder
+    assert sorted(p.name for p in out.iterdir()) == before and "/map/grid_map" in _bag_messages(out)
+    out.chmod(0o555)
+    assert main(["decompress", str(path), f"{out}/", "-q"]) == 3
+    assert "the bag is write-protected; use --force" in capsys.readouterr().err
+    assert main(["decompress", str(path), f"{out}/", "--grid-map", "--force", "-q"]) == 0
     assert sorted(p.name for p in out.iterdir()) == before and "/map/grid_map" in _bag_messages(out)
     other = tmp_path / "photos"
     other.mkdir()

@@ -150,6 +150,9 @@ DECODE_STAGES = ("decode", "write")
 EVALUATE_STAGES = ("read", "decode", "measure")
 COMPARE_STAGES = ("read", "code", "draw")
 UPDATE_STAGES = ("read", "code", "write")
+#: One rule for every output, files and ROS 2 bag folders alike (io.check_output, rosmap.check_bag_output).
+FORCE_HELP = ("an existing output (a file, or a ROS 2 bag folder) is replaced; a write-protected one only with "
+              "--force")
 PROFILE_HELP = "compact (default): detrended DCT, quantized, entropy-coded; paper: the published method"
 COMPRESS_STAGES = ("read", "grid", "spectrum", "encode", "container", "write")
 MAP_FRAME_HELP = ("ROS bag with --pose-topic /tf: the frame to build the map in (map, odom, ...); default: the root "
@@ -555,7 +558,7 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--tile-size", type=_positive_int, metavar="CELLS", help="tile side of a new map (default 256)")
     p.add_argument("--cutoff", "-c", type=_cutoff, help="cutoff ratio of a new map (default 0.8)")
     p.add_argument("--step", type=_positive, help="quantizer step of a new map in metres (default 0.01)")
-    p.add_argument("--force", "-f", action="store_true", help="replace write-protected outputs")
+    p.add_argument("--force", "-f", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=cmd_update)
 
     p = sub.add_parser("patch", parents=[common], help="apply a delta of 'dftpcc update' to the map it was made from",
@@ -564,7 +567,7 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("map", help="the map the delta was made from")
     p.add_argument("delta", help="the delta file (dftpcc update --delta)")
     p.add_argument("--output", "-o", help="write the new map here instead of in place")
-    p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output")
+    p.add_argument("--force", "-f", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=cmd_patch)
 
 
@@ -790,7 +793,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", help="the point cloud or GeoTIFF DEM to compress ('-': standard input, with --format)")
     p.add_argument("output", help="the .dftpc file to write ('-': standard output)")
     p.add_argument("--force", "-f", action="store_true",
-                   help="replace a write-protected output, or write under another format's extension")
+                   help=FORCE_HELP + "; also write under another format's extension")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto",
                    help="DEM cell size in metres, or 'auto' (default: about 4 points per cell; "
                         "a GeoTIFF keeps its own pixels)")
@@ -847,7 +850,7 @@ def build_parser() -> argparse.ArgumentParser:
         "or .tif for the rebuilt DEM; a name ending in / (out_bag/) writes a ROS 2 bag."))
     p.add_argument("input", help="the .dftpc file to decode ('-': standard input)")
     p.add_argument("output", help="the point cloud or GeoTIFF (.tif) file to write ('-': standard output, with --format)")
-    p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output file")
+    p.add_argument("--force", "-f", action="store_true", help=FORCE_HELP)
     p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
     p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
     p.add_argument("--densify", type=_positive_int, default=1, metavar="K",

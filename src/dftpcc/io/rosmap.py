@@ -9,7 +9,8 @@ stamped ``stamp_ns`` in the map frame ``frame_id`` and offered as latched
 
 A ROS 2 bag is a folder: it is written into a temporary folder beside the
 output and renamed into place, so the output appears complete or not at all;
-an existing output is replaced only with ``force`` and only if it is a ROS 2
+an existing output is replaced as an existing file is (:func:`dftpcc.io.check_output`):
+always, unless it is write-protected (then only with ``force``), and only if it is a ROS 2
 bag itself (a folder holding ``metadata.yaml``), never another folder.
 Writing needs the optional ``rosbags`` package (``pip install 'dftpcc[ros]'``).
 
@@ -99,8 +100,8 @@ def check_bag_output(path: str | os.PathLike[str], *, force: bool = False) -> Pa
     ------
     InvalidInputError
         A ``.bag`` name (dftpcc writes ROS 2 bags), a missing parent folder,
-        an existing path without ``force``, or an existing path that is not a
-        ROS 2 bag (never replaced, even with ``force``).
+        a write-protected bag without ``force`` (the rule for files), or an existing
+        path that is not a ROS 2 bag (never replaced, even with ``force``).
     OSError
         The parent folder refuses a new entry (naming ``path``).
     MissingDependencyError
@@ -118,8 +119,9 @@ def check_bag_output(path: str | os.PathLike[str], *, force: bool = False) -> Pa
         if not (path.is_dir() and (path / _METADATA).is_file()):
             raise InvalidInputError(f"{path}: exists and is not a ROS 2 bag; dftpcc replaces only a bag folder "
                                     f"(with --force): choose a new name")
-        if not force:
-            raise InvalidInputError(f"{path}: the bag exists; use {advice('force=True', '--force')} to replace it")
+        if not path.stat().st_mode & 0o222 and not force:  # the rule for files (io.check_output)
+            raise InvalidInputError(f"{path}: the bag is write-protected; use {advice('force=True', '--force')} "
+                                    f"to replace it")
     probe = parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}"
     try:
         probe.mkdir()
