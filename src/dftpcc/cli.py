@@ -308,9 +308,9 @@ def _decompress(args: argparse.Namespace) -> int:
                                      on_stage=on_stage)
         _say(args, f"{args.output}: {count:,} points, written band by band")
         return 0
-    if args.topic or args.grid_map:
-        raise InvalidInputError(f"{args.output}: --topic and --grid-map apply to a ROS 2 bag output, a folder: "
-                                f"end its name with / (out_bag/) or give --format rosbag")
+    if args.topic or args.grid_map or args.local_origin is not None or args.stamp is not None:
+        raise InvalidInputError(f"{args.output}: --topic, --grid-map, --local-origin and --stamp apply to a ROS 2 "
+                                f"bag output, a folder: end its name with / (out_bag/) or give --format rosbag")
     text = (args.format or "").lower() in ("xyz", "csv")
     with _progress(not args.quiet, DECODE_STAGES, verbose=args.verbose) as on_stage:
         points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w", binary=not text),
@@ -333,7 +333,10 @@ def _decompress(args: argparse.Namespace) -> int:
 
 def _decompress_bag(args: argparse.Namespace) -> int:
     """``decompress MAP out_bag/``: the rebuilt map as a ROS 2 bag (PointCloud2, and a GridMap with --grid-map)."""
-    from .io.rosmap import DEFAULT_TOPIC, check_bag_output, grid_map_topic, write_map_bag
+    import numpy as np
+
+    from .io.rosbag import NS_PER_S
+    from .io.rosmap import DEFAULT_TOPIC, FLOAT32_SAFE_M, check_bag_output, grid_map_topic, local_origin, write_map_bag
     from .mapfile import open as open_map
 
     if args.densify > 1 or args.dtype is not None or args.nodata is not None or args.cog:
@@ -343,9 +346,21 @@ def _decompress_bag(args: argparse.Namespace) -> int:
     with open_map(_stream(args.input, "r"), max_bytes=args.max_bytes, max_cells=args.max_cells) as cmap:
         dem = cmap.read_dem(cutoff=args.cutoff, bbox=args.bbox)
     topic = args.topic or DEFAULT_TOPIC
-    points = write_map_bag(args.output, dem, topic=topic, grid_map=args.grid_map, force=args.force)
+    origin = None if args.local_origin is None else (local_origin(dem) if args.local_origin == "auto"
+                                                     else args.local_origin)
+    # The map's time: when its file was written (the stamp ROS tools sort and expire messages by).
+    stamp_ns = (int(args.stamp * NS_PER_S) if args.stamp is not None else
+                time.time_ns() if args.input == "-" else os.stat(args.input).st_mtime_ns)
+    points = write_map_bag(args.output, dem, topic=topic, grid_map=args.grid_map, force=args.force,
+                           origin=origin, stamp_ns=stamp_ns)
     grid = f", GridMap {dem.grid.rows:,} x {dem.grid.cols:,} on {grid_map_topic(topic)}" if args.grid_map else ""
-    _say(args, f"{args.output}: ROS 2 bag, {points.shape[0]:,} points on {topic}{grid}")
+    wide = points.size and float(np.abs(points).max()) > FLOAT32_SAFE_M
+    fields = ("FLOAT64 fields (coordinates beyond 16 km of the frame's origin; --local-origin auto gives FLOAT32)"
+              if wide else "FLOAT32 fields")
+    frame = (f", frame map_local at ({origin[0]:g}, {origin[1]:g}, {origin[2]:g}) of map on /tf_static"
+             if origin is not None else "")
+    _say(args, f"{args.output}: ROS 2 bag, {points.shape[0]:,} points on {topic}{grid}; {fields}{frame}; stamp "
+               f"{stamp_ns / NS_PER_S:.3f} s")
     return 0
 
 
@@ -594,6 +609,18 @@ def _bbox(text: str) -> tuple[float, float, float, float]:
         values = ()
     if len(values) != 4 or not all(math.isfinite(v) for v in values):
         raise argparse.ArgumentTypeError(f"expected four numbers XMIN,YMIN,XMAX,YMAX, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def _origin(text: str) -> str | tuple[float, float, float]:
+    if text == "auto":
+        return text
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected 'auto' or three numbers X,Y,Z, got {text!r}")
     return values  # type: ignore[return-value]
 
 
@@ -869,6 +896,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="decode a trusted file whose grid is larger than a file of its size may ask for")
     p.add_argument("--topic", help="ROS 2 bag output (a folder: out_bag/, or --format rosbag): the "
                                    "sensor_msgs/PointCloud2 topic of the map (default /map)")
+    p.add_argument("--local-origin", type=_origin, metavar="auto|X,Y,Z",
+                   help="ROS 2 bag output: the map in a frame map_local about this point (auto: the map's middle, "
+                        "whole metres), placed by a /tf_static transform, so FLOAT32 fields (PCL's PointXYZ, RViz) "
+                        "keep a millimetre; default: the map's own frame, FLOAT64 beyond 16 km")
+    p.add_argument("--stamp", type=float, metavar="SECONDS",
+                   help="ROS 2 bag output: the messages' stamp, seconds since 1970 (default: when the .dftpc "
+                        "was written)")
     p.add_argument("--grid-map", action="store_true",
                    help="ROS 2 bag output: also the DEM as a grid_map_msgs/GridMap elevation layer on TOPIC/grid_map")
     p.add_argument("--format", help="output format if the extension does not tell")
