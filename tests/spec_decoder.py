@@ -45,8 +45,8 @@ V1_DEFAULTS = {
 
 STAT_FLOAT_IDS = {0: "dem_rmse_m", 1: "dem_max_error_m", 2: "gridding_rmse_m",
                   3: "vertical_rmse_m", 4: "unrepresented_fraction", 5: "unrepresented_rmse_m",
-                  6: "reloc_success_fraction", 7: "target_rmse_m"}
-STAT_INT_IDS = {128: "coef_count", 129: "cells_interpolated"}
+                  6: "reloc_success_fraction", 7: "target_rmse_m", 8: "source_nodata"}
+STAT_INT_IDS = {128: "coef_count", 129: "cells_interpolated", 130: "source_dtype"}
 
 BAND_LAYOUTS = [(4, 1), (8, 1), (8, 4), (8, 16)]  # (ring width, angular sectors)
 

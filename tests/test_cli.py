@@ -208,8 +208,8 @@ def test_non_square_planetary_dems_keep_their_grid(tmp_path, name):
     with rasterio.open(src) as a, rasterio.open(tmp_path / "m.tif") as b:
         assert a.transform.almost_equals(b.transform, precision=1e-9)
         valid = a.read(1, masked=True)
-        back = b.read(1)
-        assert np.array_equal(~np.ma.getmaskarray(valid), np.isfinite(back))
+        back = b.read(1, masked=True)  # the source's nodata value, or NaN
+        assert np.array_equal(~np.ma.getmaskarray(valid), ~np.ma.getmaskarray(back))
     # points of the rebuilt map sit on the original pixel centres
     pts = dftpcc.read(tmp_path / "m.tif").points
     orig = dftpcc.read(src).points
@@ -320,3 +320,331 @@ def test_standard_input_and_output_as_dash(tmp_path, cloud_file, small_terrain):
     no_format = subprocess.run(dftpcc_cmd + ["compress", "-", str(tmp_path / "n.dftpc")], input=b"",
                                capture_output=True)
     assert no_format.returncode == 3 and b"name its format" in no_format.stderr
+
+
+# -- a user's first day (issue 42) ------------------------------------------------------------------
+
+
+def _two_storey_cloud(path):
+    """A flat plain with a 5 m step inside some cells: a MultiHeightWarning on compress."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 20, (4000, 2))
+    z = np.where(rng.random(4000) < 0.2, 5.0, 0.0) + rng.normal(0, 0.01, 4000)
+    np.save(path, np.column_stack([xy, z]))
+    return path
+
+
+def test_quiet_prints_no_warning(tmp_path):
+    cloud = _two_storey_cloud(tmp_path / "walls.npy")
+    loud = run("compress", str(cloud), str(tmp_path / "a.dftpc"), "-r", "1")
+    assert loud.returncode == 0 and "warning" in loud.stderr, loud.stderr
+    quiet = run("compress", str(cloud), str(tmp_path / "b.dftpc"), "-r", "1", "-q")
+    assert quiet.returncode == 0, quiet.stderr
+    assert quiet.stdout == "" and quiet.stderr == "", (quiet.stdout, quiet.stderr)
+
+
+def test_help_texts_read_as_written():
+    """No doubled percent sign, every --profile explained, .drc among compress's inputs."""
+    for cmd in ("recommend", "sweep", "compare", "compress"):
+        result = run(cmd, "--help")
+        assert result.returncode == 0, result.stderr
+        assert "%%" not in result.stdout, result.stdout
+        text = " ".join(result.stdout.split())
+        assert "--profile {paper,compact} compact (default)" in text, (cmd, text)
+    assert ".drc" in run("compress", "--help").stdout
+
+
+def test_an_unknown_output_extension_lists_only_what_is_written(tmp_path, cloud_file):
+    out = tmp_path / "t.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "1", "-q"]) == 0
+    result = run("decompress", str(out), str(tmp_path / "back.xyzw"))
+    assert result.returncode == 4, result.stderr
+    listed = result.stderr.split("use one of", 1)[1]
+    for ext in (".las", ".ply", ".tif", ".npy"):
+        assert ext in listed, result.stderr
+    for ext in (".bag", ".drc", ".mcap", ".db3"):
+        assert ext not in listed, result.stderr
+
+
+def run_on_terminal(*args: str, stdin: bytes | None = None, timeout: float = 300) -> tuple[int, str]:
+    """Run the CLI with standard output and error on a pseudo-terminal, as a user at a shell sees it."""
+    import os
+    import pty
+    import select
+
+    import fcntl
+    import struct
+    import termios
+
+    main_fd, child_fd = pty.openpty()
+    # 24 x 80 like a terminal window: a pty of 0 x 0 gets tqdm's bar drawn 0 columns wide.
+    fcntl.ioctl(child_fd, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    proc = subprocess.Popen([sys.executable, "-m", "dftpcc", *args], stdout=child_fd, stderr=child_fd,
+                            stdin=subprocess.PIPE if stdin is not None else subprocess.DEVNULL)
+    os.close(child_fd)
+    if stdin is not None:
+        proc.stdin.write(stdin)
+        proc.stdin.close()
+    out = bytearray()
+    while True:
+        ready, _, _ = select.select([main_fd], [], [], timeout)
+        if not ready:
+            proc.kill()
+            raise TimeoutError(f"dftpcc {' '.join(args)} wrote nothing for {timeout} s")
+        try:
+            chunk = os.read(main_fd, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        out += chunk
+    os.close(main_fd)
+    return proc.wait(timeout=timeout), out.decode("utf-8", "replace")
+
+
+def test_standard_streams_as_a_user_meets_them(tmp_path, cloud_file):
+    """``info -`` reads standard input; a PLY on standard input needs no --format (its magic bytes
+    say it); binary output to a terminal is refused as gzip refuses it, text output is not."""
+    out = tmp_path / "t.dftpc"
+    piped = subprocess.run([sys.executable, "-m", "dftpcc", "compress", "-", str(out), "-r", "1", "-q"],
+                           input=cloud_file.read_bytes(), capture_output=True, timeout=300)
+    assert piped.returncode == 0, piped.stderr
+    info = subprocess.run([sys.executable, "-m", "dftpcc", "info", "-"], input=out.read_bytes(),
+                          capture_output=True, timeout=300)
+    assert info.returncode == 0 and b"bits/point" in info.stdout, info.stderr
+    code, said = run_on_terminal("compress", str(cloud_file), "-", "-r", "1")
+    assert code == 3 and "terminal" in said and said.count("\n") == 1, said
+    code, said = run_on_terminal("decompress", str(out), "-", "--format", "npy")
+    assert code == 3 and "terminal" in said, said
+    code, said = run_on_terminal("decompress", str(out), "-", "--format", "xyz", "-q")
+    assert code == 0 and len(said.splitlines()) > 10, said
+
+
+def test_the_python_api_as_a_user_meets_it(tmp_path, cloud_file):
+    """A missing file is a FileNotFoundError (and still an InvalidInputError); a CRS reads as WKT or a
+    rasterio CRS; a map has a repr; dir(dftpcc) is the API, not this package's own imports."""
+    for call in (lambda: dftpcc.read(tmp_path / "nope.las"), lambda: dftpcc.open(tmp_path / "nope.dftpc")):
+        with pytest.raises(FileNotFoundError, match="no such file"):
+            call()
+        with pytest.raises(dftpcc.InvalidInputError):
+            call()
+    assert not {"Any", "TYPE_CHECKING", "importlib", "annotations"} & set(dir(dftpcc))
+    assert {"compress", "read", "open", "CompressedMap"} <= set(dir(dftpcc))
+    las = dftpcc.read(data_file("pointclouds/mountain_arid_alirt.las"), classes=[2])
+    assert "UTM zone 42N" in las.crs_wkt and las.parse_crs().to_epsg() == 32642
+    cmap = dftpcc.compress(las.points, resolution=2.0, crs=las.crs)
+    with dftpcc.open(cmap) as opened:
+        assert opened.parse_crs().to_epsg() == 32642
+        text = repr(opened)
+    assert text.startswith("<CompressedMap") and "EPSG:32642" in text and "cells" in text, text
+    assert f"{las.points.shape[0]:,} points" in repr(las)
+
+
+def test_info_reads_well_on_every_kind_of_map(tmp_path, capsys):
+    """No step where no spectrum was kept; the values a tiled map stores counted; lengths in units that
+    read well (not '1,000 µm' for 1 mm, nor a fraction of a µm)."""
+    rng = np.random.default_rng(3)
+    z = np.cumsum(np.cumsum(rng.normal(0, 0.03, (40, 52)), 0), 1) + rng.normal(0, 0.02, (40, 52))
+    yy, xx = np.mgrid[:40, :52] + 0.5
+    cloud = tmp_path / "rough.npy"
+    np.save(cloud, np.column_stack([xx.ravel() + 4.5e5, yy.ravel() + 5.2e6, z.ravel() + 300.0]))
+    residual_only = tmp_path / "r.dftpc"
+    assert main(["compress", str(cloud), str(residual_only), "-r", "1", "--target-max-error", "0.005", "-q"]) == 0
+    assert main(["info", str(residual_only)]) == 0
+    said = capsys.readouterr().out
+    assert "no spectrum (residual layer only)" in said and " km" not in said, said
+    import re
+
+    assert not re.search(r"step \d", said) and "values, all 0)" in said, said
+
+    tiled = tmp_path / "tiled.dftpc"
+    assert main(["compress", str(data_file("dems/mars_gale_1m.tif")), str(tiled), "--tile-size", "128", "-q"]) == 0
+    assert main(["info", str(tiled), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["coefficients"] > info["stats"]["coef_count"] > 0
+    assert main(["info", str(tiled)]) == 0
+    said = capsys.readouterr().out
+    assert f"({info['coefficients']:,} values)" in said and "(0 values)" not in said, said
+    assert "µm" not in said, said
+
+
+def test_a_truncated_file_is_named_and_its_prefix_offered(tmp_path, cloud_file):
+    out = tmp_path / "t.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "-c", "0.5", "-q"]) == 0
+    cut = tmp_path / "cut.dftpc"
+    data = out.read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.7)])
+    result = run("decompress", str(cut), str(tmp_path / "back.ply"))
+    assert result.returncode == 5 and result.stderr.count("\n") == 1, result.stderr
+    assert str(cut) in result.stderr and f"--max-bytes {cut.stat().st_size}" in result.stderr, result.stderr
+    # info shows the intact header, then says what is wrong, and still fails.
+    result = run("info", str(cut))
+    assert result.returncode == 5 and "bits/point" in result.stdout and "truncated" in result.stderr, result
+    assert run("decompress", str(cut), str(tmp_path / "back.ply"), "--max-bytes",
+               str(cut.stat().st_size)).returncode == 0
+
+
+def test_an_integer_dem_comes_back_in_its_type_and_nodata(tmp_path):
+    """An int16 DEM coded within half a unit rounds back to its own values, in int16 with its nodata;
+    coded coarser it comes back float32 (keeping its nodata) with a warning that says why; --dtype and
+    --nodata choose; the file records the source (STAT source_dtype and source_nodata, read by the
+    document's decoder too)."""
+    import rasterio
+
+    from . import spec_decoder
+
+    rng = np.random.default_rng(5)
+    heights = np.cumsum(np.cumsum(rng.integers(-2, 3, (60, 70)), 0), 1).astype(np.int16) + 100
+    heights[:5, :9] = -32768
+    src = tmp_path / "srtm.tif"
+    with rasterio.open(src, "w", driver="GTiff", height=60, width=70, count=1, dtype="int16", nodata=-32768,
+                       transform=rasterio.Affine(30, 0, 4.5e5, 0, -30, 5.2e6), crs="EPSG:32611") as dst:
+        dst.write(heights, 1)
+    fine, coarse = tmp_path / "fine.dftpc", tmp_path / "coarse.dftpc"
+    assert main(["compress", str(src), str(fine), "--target-max-error", "0.45", "-q"]) == 0
+    assert main(["compress", str(src), str(coarse), "-c", "0.95", "-q"]) == 0
+    with dftpcc.open(coarse) as cmap:
+        assert cmap.header.stats["dem_max_error_m"] >= 0.5  # the coarse case is coarse
+    with dftpcc.open(fine) as cmap:
+        assert cmap.header.stats["source_dtype"] == 4 and cmap.header.stats["source_nodata"] == -32768
+    stats = spec_decoder._stat(spec_decoder._sections(fine.read_bytes())[b"STAT"])
+    assert stats["source_dtype"] == 4 and stats["source_nodata"] == -32768
+
+    result = run("decompress", str(fine), str(tmp_path / "fine.tif"))
+    assert result.returncode == 0 and result.stderr == "", result.stderr
+    assert "int16 raster" in result.stdout and "nodata -32768" in result.stdout, result.stdout
+    with rasterio.open(tmp_path / "fine.tif") as back:
+        assert back.dtypes[0] == "int16" and back.nodata == -32768
+        assert np.array_equal(back.read(1), heights)
+
+    result = run("decompress", str(coarse), str(tmp_path / "coarse.tif"))
+    assert result.returncode == 0 and "warning" in result.stderr and "not below half a unit" in result.stderr
+    with rasterio.open(tmp_path / "coarse.tif") as back:
+        assert back.dtypes[0] == "float32" and back.nodata == -32768
+
+    result = run("decompress", str(coarse), str(tmp_path / "asked.tif"), "--dtype", "int16", "--nodata", "-9999")
+    assert result.returncode == 0 and "warning" not in result.stderr, result.stderr
+    with rasterio.open(tmp_path / "asked.tif") as back:
+        assert back.dtypes[0] == "int16" and back.nodata == -9999
+        assert np.array_equal(back.read(1) == -9999, heights == -32768)
+    result = run("decompress", str(fine), str(tmp_path / "nan.tif"), "--dtype", "float32", "--nodata", "nan")
+    with rasterio.open(tmp_path / "nan.tif") as back:
+        assert back.dtypes[0] == "float32" and np.isnan(back.nodata)
+    bad = run("decompress", str(fine), str(tmp_path / "bad.tif"), "--dtype", "uint8")
+    assert bad.returncode == 3 and "nodata -32768 is not a value of uint8" in bad.stderr, bad.stderr
+    bad = run("decompress", str(fine), str(tmp_path / "bad.tif"), "--dtype", "uint8", "--nodata", "255")
+    assert bad.returncode == 3 and "do not fit in uint8" in bad.stderr, bad.stderr
+    assert not (tmp_path / "bad.tif").exists()
+    assert "int16 raster, nodata -32768" in run("info", str(fine)).stdout
+
+
+def test_a_box_cuts_every_output_alike(tmp_path):
+    """--bbox with every output format and option: the same cells, none outside the box (a COG of a
+    tiled map wrote the whole map, exit 0); a GeoTIFF's summary gives the raster written."""
+    import rasterio
+
+    from dftpcc.mapfile import open as open_map
+
+    tiled = tmp_path / "tiled.dftpc"
+    assert main(["compress", str(data_file("dems/mars_gale_1m.tif")), str(tiled), "--tile-size", "128", "-q"]) == 0
+    with open_map(tiled) as cmap:
+        x0, y0, x1, y1 = cmap.bounds()
+    box = (x0 + 40.2, y0 + 90.7, x0 + 151.3, y0 + 170.9)
+    text = ",".join(f"{v:.3f}" for v in box)
+    inside = dftpcc.decompress_file(tiled, tmp_path / "ref.npy", bbox=[float(v) for v in text.split(",")])
+    assert 0 < inside.shape[0] < 0.2 * 337 * 348
+    counts = {}
+    for name, extra in [("a.las", ()), ("a.laz", ()), ("a.ply", ()), ("a.pcd", ()), ("a.xyz", ()), ("a.csv", ()),
+                        ("a.npy", ()), ("dense.npy", ("--densify", "2")), ("a.tif", ()), ("cog.tif", ("--cog",)),
+                        ("workers.npy", ("--workers", "1"))]:
+        if extra == ("--workers", "1"):
+            pytest.importorskip("distributed")
+        out = tmp_path / name
+        result = run("decompress", str(tiled), str(out), "--bbox", text, *extra)
+        assert result.returncode == 0, (name, result.stderr)
+        if name.endswith(".tif"):
+            with rasterio.open(out) as r:
+                valid = ~np.isnan(r.read(1))
+                left, bottom, right, top = r.bounds
+                shape = (r.height, r.width)
+            assert f"a {shape[0]:,} x {shape[1]:,} float32 raster" in result.stdout, result.stdout
+            assert shape[0] * shape[1] < 0.2 * 337 * 348, (name, shape)
+            assert left >= box[0] - 1 and right <= box[2] + 1 and bottom >= box[1] - 1 and top <= box[3] + 1
+            counts[name] = int(valid.sum())
+            continue
+        points = dftpcc.read(out).points
+        assert points[:, 0].min() >= box[0] and points[:, 0].max() <= box[2], name
+        assert points[:, 1].min() >= box[1] - 0.5 and points[:, 1].max() <= box[3] + 0.5, name
+        counts[name] = points.shape[0] // (4 if name == "dense.npy" else 1)
+    assert set(counts.values()) == {inside.shape[0]}, counts
+    pytest.importorskip("rosbags")
+    result = run("decompress", str(tiled), str(tmp_path / "bag") + "/", "--bbox", text)
+    assert result.returncode == 0 and f"{inside.shape[0]:,} points" in result.stdout, result.stdout + result.stderr
+
+
+def test_long_commands_show_progress_on_a_terminal_only(tmp_path, cloud_file):
+    """A tqdm bar on a terminal (decompress, evaluate, compare, update showed nothing), none when
+    piped or with -q; -v prints each stage's time for every command."""
+    out = tmp_path / "t.dftpc"
+    assert main(["compress", str(cloud_file), str(out), "-r", "0.5", "-q"]) == 0
+    commands = {
+        "decompress": ["decompress", str(out), str(tmp_path / "back.ply")],
+        "evaluate": ["evaluate", str(cloud_file), str(out)],
+        "update": ["update", str(tmp_path / "grow.dftpc"), str(cloud_file), "-r", "1"],
+    }
+    for name, argv in commands.items():
+        code, said = run_on_terminal(*argv)
+        assert code == 0 and "%" in said and "\r" in said, (name, said)
+        if name == "update":
+            (tmp_path / "grow.dftpc").unlink()
+            (tmp_path / "grow.dftpc.state").unlink()
+        code, said = run_on_terminal(*argv, "-q")
+        assert code == 0 and said == "", (name, said)
+        if name == "update":
+            (tmp_path / "grow.dftpc").unlink()
+            (tmp_path / "grow.dftpc.state").unlink()
+        piped = run(*argv, "-v")
+        assert piped.returncode == 0 and "%" not in piped.stderr, (name, piped.stderr)
+        assert [line for line in piped.stderr.splitlines() if line.startswith("dftpcc: ") and line.endswith(" s")], \
+            (name, piped.stderr)
+        if name == "update":
+            (tmp_path / "grow.dftpc").unlink()
+            (tmp_path / "grow.dftpc.state").unlink()
+
+
+def test_messages_name_flags_on_the_command_line_and_arguments_in_python(tmp_path):
+    """'drop them first (dftpcc.grid.drop_nonfinite, or read(..., drop_nonfinite=True))' told a
+    command-line user to write Python; a Python caller still gets the argument."""
+    cloud = tmp_path / "nan.xyz"
+    cloud.write_text("0 0 1\n1 0 1\n0 1 nan\n1 1 1\n")
+    result = run("compress", str(cloud), str(tmp_path / "o.dftpc"), "-r", "1")
+    assert result.returncode == 3 and "--drop-nonfinite" in result.stderr, result.stderr
+    assert "drop_nonfinite=True" not in result.stderr and "dftpcc.grid" not in result.stderr, result.stderr
+    with pytest.raises(dftpcc.InvalidInputError, match="drop_nonfinite=True"):
+        dftpcc.compress_file(cloud, tmp_path / "o.dftpc", resolution=1.0)
+    protected = tmp_path / "p.dftpc"
+    protected.write_bytes(b"x")
+    protected.chmod(0o444)
+    result = run("compress", str(cloud), str(protected), "-r", "1", "--drop-nonfinite")
+    assert result.returncode == 3 and "use --force to replace it" in result.stderr, result.stderr
+    assert main(["info", str(tmp_path / "missing.dftpc"), "-q"]) == 3  # in-process: Python's wording comes back
+    with pytest.raises(dftpcc.InvalidInputError, match=r"use force=True to replace it"):
+        dftpcc.compress_file(cloud, protected, resolution=1.0, drop_nonfinite=True)
+
+
+def test_a_coarse_default_map_says_so_and_what_to_give(tmp_path):
+    """A rough all-returns cloud at the defaults: 5.85 m cells, max error 19.5 m, and only the
+    vegetation warning; the summary now says plainly the map is coarse and what to pass instead."""
+    rocks = data_file("pointclouds/redrocks_rough.ply")
+    result = run("compress", str(rocks), str(tmp_path / "r.dftpc"), "--no-warnings")
+    assert result.returncode == 0, result.stderr
+    assert "coarse: heights off by up to" in result.stdout and "--target-max-error" in result.stdout, result.stdout
+    finer = run("compress", str(rocks), str(tmp_path / "f.dftpc"), "--no-warnings", "--target-max-error", "5")
+    assert finer.returncode == 0 and "coarse:" not in finer.stdout, finer.stdout
+
+
+def test_one_overwrite_rule_stated_in_every_help():
+    for cmd in ("compress", "decompress", "update", "patch"):
+        text = " ".join(run(cmd, "--help").stdout.split())
+        assert "an existing output (a file, or a ROS 2 bag folder) is replaced; a write-protected one only with " \
+               "--force" in text, (cmd, text)

@@ -41,3 +41,18 @@ def test_present_data_is_returned_whatever_ci_says(monkeypatch, tmp_path):
     for ci in ("", "1"):
         monkeypatch.setenv("CI", ci)
         assert conftest.data_file("dems/a.tif") == tmp_path / "dems" / "a.tif"
+
+
+def test_pytest_q_output_is_only_dots_and_the_summary():
+    """A test that writes past pytest's capture (``capsys.disabled()``) breaks ``pytest -q``'s lines
+    of dots: the rover's ray-casting timings printed 'vlp16: 28800 rays ...' among them."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    test = Path(__file__).with_name("test_rover.py")
+    result = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                             f"{test}::test_raycaster_speed_is_reported"],
+                            capture_output=True, text=True, timeout=600, cwd=Path(__file__).parents[1])
+    assert result.returncode in (0, 5), result.stdout + result.stderr  # 5: skipped without the data
+    assert "rays" not in result.stdout, result.stdout

@@ -191,7 +191,8 @@ def test_gentle_terrain_does_not_warn():
 def test_the_command_line_prints_the_wall_warning_in_one_line(tmp_path):
     src, out = tmp_path / "wall.npy", tmp_path / "wall.dftpc"
     np.save(src, _ground_and_wall())
-    result = subprocess.run([sys.executable, "-m", "dftpcc", "compress", str(src), str(out), "-r", "1", "-q"],
+    # Not -q: it prints nothing but errors (tests/test_cli.py::test_quiet_prints_no_warning).
+    result = subprocess.run([sys.executable, "-m", "dftpcc", "compress", str(src), str(out), "-r", "1"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     lines = [ln for ln in result.stderr.splitlines() if ln.strip()]

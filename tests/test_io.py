@@ -309,3 +309,28 @@ def test_geotiff_outputs_are_tiled_and_compressed(tmp_path):
     assert (tmp_path / "k.tif").stat().st_size < 0.7 * 804 * 804 * 4  # measured 0.58 of the raw float32 raster
     rebuilt = dftpcc.open(tmp_path / "k.dftpc").read_dem()
     assert int(heights.count()) == int(rebuilt.mask.sum())
+
+
+def test_las_output_of_a_geographic_map_keeps_its_precision(tmp_path):
+    """A latitude/longitude map was written at 0.001 (degrees: up to 30 m on Mars, 1/16 of a cell):
+    the scale follows the CRS's units, and the extent, as PDAL's scale auto does."""
+    import laspy
+
+    from dftpcc.io.las import LAS_SCALE, LAS_SCALE_DEGREES, las_scales
+
+    korolev = data_file("dems/mars_korolev_mola.tif")
+    out = tmp_path / "k.dftpc"
+    cmap = dftpcc.compress_file(korolev, out)
+    points = dftpcc.decompress_file(out, tmp_path / "k.las")
+    with laspy.open(tmp_path / "k.las") as f:
+        assert list(f.header.scales) == [LAS_SCALE_DEGREES, LAS_SCALE_DEGREES, LAS_SCALE]
+    back = dftpcc.read(tmp_path / "k.las").points
+    cell = cmap.grid.resolution
+    assert np.abs(back[:, :2] - points[:, :2]).max() <= LAS_SCALE_DEGREES / 2 + 1e-12 < cell / 1000
+    # A projected map keeps millimetres; an extent past 2**31 mm takes centimetres.
+    utm = {"wkt": 'PROJCS["WGS 84 / UTM zone 42N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,'
+                  '298.257223563]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION['
+                  '"Transverse_Mercator"],PARAMETER["central_meridian",69],PARAMETER["scale_factor",0.9996],'
+                  'PARAMETER["false_easting",500000],UNIT["metre",1],AUTHORITY["EPSG","32642"]]'}
+    assert list(las_scales(utm, [0, 0, 0], [1e5, 1e5, 10])) == [LAS_SCALE] * 3
+    assert list(las_scales(utm, [0, 0, 0], [3e6, 1e5, 10])) == [10 * LAS_SCALE, LAS_SCALE, LAS_SCALE]

@@ -72,7 +72,7 @@ def test_a_prefix_window_is_refused_not_guessed():
             cmap.read_window((0, 10), (0, 10))
 
 
-def test_an_untiled_map_decodes_to_a_cog_band_by_band(tmp_path, monkeypatch):
+def test_an_untiled_map_decodes_to_a_cog(tmp_path, monkeypatch):
     rasterio = pytest.importorskip("rasterio")
     from dftpcc import cli, mapfile
 
@@ -87,3 +87,10 @@ def test_an_untiled_map_decodes_to_a_cog_band_by_band(tmp_path, monkeypatch):
         a, b = cog.read(1), whole.read(1)
     assert np.array_equal(np.isnan(a), np.isnan(b))
     assert np.nanmax(np.abs(a.astype(float) - b)) <= 1e-3  # float32 either way
+    # ... and band by band through the one window reader, as a tiled map is.
+    from dftpcc.files import decompress_bands
+
+    assert decompress_bands(src, tmp_path / "bands.tif", cog=True) == int(dem.mask.sum())
+    with rasterio.open(tmp_path / "bands.tif") as bands:
+        c = bands.read(1)
+    assert np.array_equal(np.isnan(a), np.isnan(c)) and np.nanmax(np.abs(c.astype(float) - a)) <= 1e-3

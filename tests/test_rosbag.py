@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import sys
 
 import numpy as np
@@ -11,6 +12,8 @@ import dftpcc
 from dftpcc import files
 from dftpcc.cli import main
 from dftpcc.errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
+
+from .conftest import data_file
 
 rosbags = pytest.importorskip("rosbags", reason="the 'ros' extra is not installed")
 
@@ -153,7 +156,7 @@ def test_bag_mistakes_fail_clearly(tmp_path, terrain, monkeypatch):
         npy = tmp_path / "t.npy"
         np.save(npy, terrain)
         dftpcc.read(npy, topic="/map")
-    with pytest.raises(UnsupportedFormatError, match="ROS bags are read, not written by write.*write_map_bag"):
+    with pytest.raises(UnsupportedFormatError, match="ROS bags are read, not written as files.*write_map_bag"):
         dftpcc.write(tmp_path / "out.bag", terrain)
     bag = write_bag(tmp_path / "ok", {"/map": lambda ts: [_message(ts, terrain[:10])]})
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # as if the extra were not installed
@@ -471,9 +474,13 @@ def test_bag_outputs_are_checked_first_and_written_atomically(tmp_path, compress
     assert main(["decompress", str(path), f"{out}/", "-q"]) == 0
     assert "/map" in _bag_messages(out)
     before = sorted(p.name for p in out.iterdir())
-    assert main(["decompress", str(path), f"{out}/", "-q"]) == 3  # exists: refused
-    assert "the bag exists; use --force" in capsys.readouterr().err
-    assert main(["decompress", str(path), str(out), "--grid-map", "--force", "-q"]) == 0  # an existing bag folder
+    # One rule for files and bags: an existing bag is replaced, a write-protected one only with --force.
+    assert main(["decompress", str(path), str(out), "--grid-map", "-q"]) == 0  # an existing bag folder
+    assert sorted(p.name for p in out.iterdir()) == before and "/map/grid_map" in _bag_messages(out)
+    out.chmod(0o555)
+    assert main(["decompress", str(path), f"{out}/", "-q"]) == 3
+    assert "the bag is write-protected; use --force" in capsys.readouterr().err
+    assert main(["decompress", str(path), f"{out}/", "--grid-map", "--force", "-q"]) == 0
     assert sorted(p.name for p in out.iterdir()) == before and "/map/grid_map" in _bag_messages(out)
     other = tmp_path / "photos"
     other.mkdir()
@@ -518,3 +525,38 @@ def test_writing_a_bag_without_rosbags_says_how_to_install(tmp_path, compressed,
     monkeypatch.setitem(sys.modules, "rosbags.rosbag2", None)
     with pytest.raises(MissingDependencyError, match=r"dftpcc\[ros\]"):
         rosmap.check_bag_output(tmp_path / "out_bag")
+
+
+def test_a_map_far_from_its_origin_in_a_local_frame_keeps_float32(tmp_path):
+    """Stamps were 0, and a UTM map's fields FLOAT64 (beyond 16,384 m), which PCL's PointXYZ and most
+    RViz users do not expect: the map's time is written, and --local-origin gives FLOAT32 fields in a
+    frame about a stated origin, published on /tf_static; ROS 1 .bag output says why it is refused."""
+    import os
+
+    from dftpcc.rebuild import dem_to_points
+
+    las = data_file("pointclouds/mountain_arid_alirt.las")
+    path = tmp_path / "m.dftpc"
+    cmap = files.compress_file(las, path, classes=[2])
+    expected = dem_to_points(cmap.read_dem())
+    far, near = tmp_path / "far_bag", tmp_path / "near_bag"
+    assert main(["decompress", str(path), f"{far}/", "-q"]) == 0
+    msgtype, cloud, _ = _bag_messages(far)["/map"]
+    assert cloud.fields[0].datatype == 8  # FLOAT64: UTM coordinates
+    assert cloud.header.stamp.sec == os.stat(path).st_mtime_ns // 10**9
+    result = subprocess.run([sys.executable, "-m", "dftpcc", "decompress", str(path), f"{near}/", "--local-origin",
+                             "auto", "--stamp", "1700000000.5"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "FLOAT32 fields" in result.stdout, result.stdout + result.stderr
+    messages = _bag_messages(near)
+    _, cloud, _ = messages["/map"]
+    assert cloud.fields[0].datatype == 7 and cloud.header.frame_id == "map_local"
+    assert (cloud.header.stamp.sec, cloud.header.stamp.nanosec) == (1700000000, 500000000)
+    _, tf, _ = messages["/tf_static"]
+    (t,) = tf.transforms
+    assert (t.header.frame_id, t.child_frame_id) == ("map", "map_local")
+    origin = np.array([t.transform.translation.x, t.transform.translation.y, t.transform.translation.z])
+    local = np.frombuffer(bytes(cloud.data), dtype="<f4").reshape(-1, 3).astype(np.float64)
+    assert np.abs(local + origin - expected).max() < 1e-3  # a millimetre kept
+    refused = subprocess.run([sys.executable, "-m", "dftpcc", "decompress", str(path), str(tmp_path / "m.bag"),
+                              "--format", "rosbag"], capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 3 and "end of life" in refused.stderr and "rosbags-convert" in refused.stderr

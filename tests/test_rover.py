@@ -91,16 +91,16 @@ def test_range_noise_has_the_stated_sigma():
     assert np.std(noisy - exact) == pytest.approx(0.03, rel=0.1)
 
 
-def test_raycaster_speed_is_reported(gale, capsys):
-    """Prints the per-scan times of the 16- and 64-beam sensors (no timing assert)."""
+def test_raycaster_speed_is_reported(gale):
+    """Prints the per-scan times of the 16- and 64-beam sensors (no timing assert; `pytest -rP` shows them)."""
     for name in ("vlp16", "hdl64"):
         lidar = rover.LIDARS[name]
         pose = rover.sensor_pose(gale, 170.0, 160.0, 0.0, mount_height=lidar.mount_height)
         t0 = time.perf_counter()
         pts = rover.cast_scan(gale, pose, lidar, rng=np.random.default_rng(0))
-        with capsys.disabled():
-            print(f"\n{name}: {lidar.directions().shape[0]} rays, {pts.shape[0]} returns, "
-                  f"{1000 * (time.perf_counter() - t0):.0f} ms")
+        # Captured like any test output: shown by `pytest -rP` or `-s`, not inside `pytest -q`'s dots.
+        print(f"{name}: {lidar.directions().shape[0]} rays, {pts.shape[0]} returns, "
+              f"{1000 * (time.perf_counter() - t0):.0f} ms")
         assert pts.shape[0] > 0.5 * lidar.directions().shape[0]
 
 

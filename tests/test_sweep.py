@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import subprocess
 import sys
 
 import numpy as np
@@ -213,3 +214,65 @@ def test_sweep_and_compare_make_the_map_compress_makes(tmp_path, capsys):
                     ["compress", str(rocks), str(tmp_path / "r.dftpc")]):
         assert main(command + ["--classes", "2"]) == 3
         assert "classes can only be selected in LAS/LAZ files" in capsys.readouterr().err
+
+
+def test_compare_states_the_size_of_the_file_compress_writes(tmp_path, monkeypatch):
+    """compare left out the CRS (about 520 bytes of WKT) that the file carries: 0.133 bits/point where
+    compress of the same cloud wrote 0.1395. Every figure printed is the file's."""
+    pytest.importorskip("matplotlib")
+    from dftpcc.experiments import compare
+
+    las = data_file("pointclouds/mountain_arid_alirt.las")
+    shown = {}
+    monkeypatch.setattr(compare, "plot_compare", lambda *a, figures, **k: shown.update(figures) or tmp_path)
+    compare.compare_file(las, out=tmp_path, cutoffs=(0.8,), classes=[2])
+    cmap = dftpcc.compress_file(las, tmp_path / "m.dftpc", classes=[2], cutoff=0.8)
+    assert cmap.crs.get("wkt") and shown[0.8]["bytes"] == cmap.size
+    assert shown[0.8]["bits_per_point"] == pytest.approx(cmap.info()["bits_per_point"])
+
+
+def test_evaluate_on_a_latitude_longitude_map_reports_heights_only(tmp_path):
+    """A PSNR peak of '3113.008 m' mixed degrees and metres; D1, Chamfer and Hausdorff meant nothing."""
+    korolev = data_file("dems/mars_korolev_mola.tif")
+    out = tmp_path / "k.dftpc"
+    dftpcc.compress_file(korolev, out)
+    result = subprocess.run([sys.executable, "-m", "dftpcc", "evaluate", str(korolev), str(out)],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    for absent in ("D1 PSNR", "PSNR peak", "D1 point-to-point", "Chamfer distance", "Hausdorff distance"):
+        assert absent not in result.stdout, result.stdout
+    assert "vertical error RMSE" in result.stdout and "degrees of longitude and latitude" in result.stdout
+    rows = evaluate.evaluate_files(korolev, out)
+    assert "d1_rmse_m" not in rows and rows["vertical_rmse_m"] > 0
+    dftpcc.compress_file(data_file("dems/mars_gale_1m.tif"), tmp_path / "g.dftpc")
+    projected = evaluate.evaluate_files(data_file("dems/mars_gale_1m.tif"), tmp_path / "g.dftpc")
+    assert "d1_rmse_m" in projected and "note" not in projected
+
+
+def test_figures_label_their_axes_and_scales(tmp_path, monkeypatch):
+    """sweep's y label was the column name 'paper_rmse (m)' with no gridding floor (the mountain's
+    0.45 m at f_c 0 read as codec error); compare's close-ups clipped rebuilt heights to black and
+    had no colour bar."""
+    pytest.importorskip("matplotlib")
+    from dftpcc.dem import DEM, Grid
+
+    kept = {}
+    monkeypatch.setattr(figures, "_save", lambda fig, path, **k: kept.setdefault("fig", fig) and path)
+    rows = [{"terrain": "hill", "cutoff": fc, "bits_per_point": 1 - fc, "paper_rmse_m": 0.5 + fc,
+             "resolution_m": 1.0, "gridding_rmse_m": 0.45} for fc in (0.0, 0.5, 0.9)]
+    figures.plot_sweep(rows, tmp_path / "s.png")
+    ax = kept.pop("fig").axes[1]
+    assert ax.get_ylabel() == "RMSE, own-cell pairing (m)"
+    assert any(list(line.get_ydata()) == [0.45, 0.45] for line in ax.get_lines()), "no gridding-floor line"
+
+    yy, xx = np.mgrid[:40, :40]
+    heights = np.sin(xx / 5.0) + yy / 20.0
+    grid = Grid(x0=0.0, y0=0.0, z0=100.0, resolution=1.0, rows=40, cols=40)
+    original = DEM(grid=grid, heights=heights, mask=np.ones((40, 40), bool))
+    rebuilt = DEM(grid=grid, heights=heights + 3.0, mask=original.mask)  # above every original height
+    figures.plot_compare(original, {0.9: rebuilt}, tmp_path / "c.png", window=(0, 0, 16))
+    fig = kept.pop("fig")
+    bars = [a for a in fig.axes if a.get_ylabel().startswith("height")]
+    assert len(bars) == 3, [a.get_ylabel() for a in fig.axes]  # whole maps, close-ups, errors
+    lows, highs = zip(*(b.get_ylim() for b in bars[:2]))
+    assert max(highs) >= 100.0 + heights[:16, :16].max() + 3.0 - 1e-9  # the rebuilt close-up is on the scale

@@ -16,7 +16,8 @@ Most users need only :func:`compress`, :func:`decompress`, :func:`compress_file`
 
 from __future__ import annotations
 
-import importlib
+import importlib as _importlib
+from types import ModuleType as _ModuleType
 from typing import TYPE_CHECKING, Any
 
 from .errors import (
@@ -28,6 +29,7 @@ from .errors import (
     InvalidInputError,
     LargeGridWarning,
     MissingDependencyError,
+    MissingFileError,
     MultiHeightWarning,
     ResourceLimitError,
     UnsupportedFormatError,
@@ -54,10 +56,10 @@ _LAZY = {
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
-        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        value = getattr(_importlib.import_module(f".{_LAZY[name]}", __name__), name)
     else:
         try:  # a submodule (dftpcc.coding, ...), as the eager imports used to make every one reachable
-            value = importlib.import_module(f".{name}", __name__)
+            value = _importlib.import_module(f".{name}", __name__)
         except ModuleNotFoundError as exc:
             if exc.name != f"{__name__}.{name}":
                 raise
@@ -67,7 +69,10 @@ def __getattr__(name: str) -> Any:
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+    # The public API and the submodules loaded so far; not the helpers this file imports for itself.
+    loaded = {name for name, value in globals().items()
+              if isinstance(value, _ModuleType) and value.__name__.startswith(f"{__name__}.")}
+    return sorted(set(__all__) | loaded)
 
 
 __version__ = "0.1.0"
@@ -90,6 +95,7 @@ __all__ = [
     "CorruptFileError",
     "UnsupportedFormatError",
     "MissingDependencyError",
+    "MissingFileError",
     "ResourceLimitError",
     "DftpccWarning",
     "MultiHeightWarning",

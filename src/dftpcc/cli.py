@@ -31,6 +31,7 @@ from .errors import (
     MissingDependencyError,
     ResourceLimitError,
     UnsupportedFormatError,
+    speaking_to_the_command_line,
 )
 
 Row = dict[str, Any]
@@ -143,6 +144,16 @@ def _progress(enabled: bool, stages: Sequence[str], *, verbose: bool = False) ->
         bar.close()
 
 
+#: The stages each long command shows (a bar on a terminal; their times with -v).
+RELOC_STAGES = ("read", "simulate", "encode", "relocalize")
+DECODE_STAGES = ("decode", "write")
+EVALUATE_STAGES = ("read", "decode", "measure")
+COMPARE_STAGES = ("read", "code", "draw")
+UPDATE_STAGES = ("read", "code", "write")
+#: One rule for every output, files and ROS 2 bag folders alike (io.check_output, rosmap.check_bag_output).
+FORCE_HELP = ("an existing output (a file, or a ROS 2 bag folder) is replaced; a write-protected one only with "
+              "--force")
+PROFILE_HELP = "compact (default): detrended DCT, quantized, entropy-coded; paper: the published method"
 COMPRESS_STAGES = ("read", "grid", "spectrum", "encode", "container", "write")
 MAP_FRAME_HELP = ("ROS bag with --pose-topic /tf: the frame to build the map in (map, odom, ...); default: the root "
                   "of the scans' TF tree")
@@ -155,11 +166,19 @@ def _say(args: argparse.Namespace, *lines: str) -> None:
             print(line, file=sys.stderr if getattr(args, "output", None) == "-" else sys.stdout)
 
 
-def _stream(name: str, mode: str) -> Any:
-    """``-`` as standard input (``mode='r'``) or output (``'w'``), as pdal and laszip take it; else the name."""
+def _stream(name: str, mode: str, *, binary: bool = True) -> Any:
+    """``-`` as standard input (``mode='r'``) or output (``'w'``), as pdal and laszip take it; else the name.
+
+    Binary output is refused on a terminal, as gzip refuses it: it would fill the screen with bytes.
+    """
     if name != "-":
         return name
-    return sys.stdin.buffer if mode == "r" else sys.stdout.buffer
+    if mode == "r":
+        return sys.stdin.buffer
+    if binary and sys.stdout.isatty():
+        raise InvalidInputError("refusing to write binary data to a terminal: redirect standard output "
+                                "(> out.dftpc) or name an output file")
+    return sys.stdout.buffer
 
 
 def _errors_text(stats: dict[str, Any], unit: str) -> str:
@@ -215,11 +234,64 @@ def cmd_compress(args: argparse.Namespace) -> int:
          f"({info['points_original']:,} points -> {info['points_rebuilt']:,} cells of "
          f"{length(info['grid']['resolution_m'], unit)}) [{time.perf_counter() - t0:.2f} s]",
          f"  {_choice_text(params, info['units']['vertical'], info['stats'])}",
-         f"  promises {_errors_text(info['stats'], info['units']['vertical'])}")
+         f"  promises {_errors_text(info['stats'], info['units']['vertical'])}",
+         *_coarse_lines(info, args))
     return 0
 
 
+#: A map whose largest height error exceeds this many cell sizes is called coarse in compress's summary.
+COARSE_ERROR_CELLS = 2.0
+
+
+def _coarse_lines(info: dict[str, Any], args: argparse.Namespace) -> list[str]:
+    """A plain line when the defaults made a coarse map (errors of several cells), and what to give instead."""
+    cell, worst = info["grid"]["resolution_m"], info["stats"].get("dem_max_error_m") or 0.0
+    if info["units"]["geographic"] or worst <= COARSE_ERROR_CELLS * cell or _target_text(info["params"]):
+        return []
+    unit = info["units"]["vertical"]
+    ground = " keep ground points only (--classes 2)," if str(args.input).lower().endswith((".las", ".laz")) else ""
+    return [f"  coarse: heights off by up to {length(worst, unit)}, {worst / cell:.1f} cells of "
+            f"{length(cell, unit)}; for a finer map{ground} give --target-max-error {cell:.3g} (errors within a "
+            f"cell) or --target-rmse, or a finer --resolution"]
+
+
+def _prefix_decodes(path: str) -> int | None:
+    """The size of a damaged ``.dftpc`` at ``path`` when that prefix still decodes (a truncated untiled
+    map: its low frequencies come first); else None."""
+    from .mapfile import open as open_map
+
+    try:
+        size = os.path.getsize(path)
+        with open_map(path, max_bytes=size) as cmap:
+            cmap.read_dem()
+        return size
+    except (DftpccError, OSError, MemoryError):
+        return None
+
+
+@contextmanager
+def _naming(path: str) -> Iterator[None]:
+    """A corrupt or truncated ``.dftpc`` named in the error, with ``--max-bytes`` offered where its prefix decodes."""
+    try:
+        yield
+    except ResourceLimitError:
+        raise
+    except CorruptFileError as exc:
+        text = str(exc)
+        if path != "-" and not text.startswith(str(path)):
+            text = f"{path}: {text}"
+        size = _prefix_decodes(path) if path != "-" and "truncated" in text else None
+        if size is not None:
+            text += f"; its first {size:,} bytes decode to a coarser map: decompress --max-bytes {size}"
+        raise CorruptFileError(text) from None
+
+
 def cmd_decompress(args: argparse.Namespace) -> int:
+    with _naming(args.input):
+        return _decompress(args)
+
+
+def _decompress(args: argparse.Namespace) -> int:
     from .files import decompress_bands, decompress_file, wants_bands
     from .io.rosmap import is_bag_output
 
@@ -227,6 +299,10 @@ def cmd_decompress(args: argparse.Namespace) -> int:
         return _decompress_bag(args)
     if wants_bands(args.input, args.output, format=args.format, cog=args.cog, bbox=args.bbox,
                    cutoff=args.cutoff, max_bytes=args.max_bytes):
+        if args.dtype is not None or args.nodata is not None:
+            raise InvalidInputError(f"{args.output}: a map decoded band by band (--cog, or a large tiled map) is "
+                                    f"written as float32 with NaN nodata; --dtype and --nodata need a region "
+                                    f"(--bbox) or a map decoded whole")
         # A tiled map larger than memory, or a COG: one band of tile rows at a time.
         with _progress(not args.quiet, ("decode",), verbose=args.verbose) as on_stage:
             count = decompress_bands(args.input, args.output, format=args.format, cog=args.cog, force=args.force,
@@ -234,19 +310,24 @@ def cmd_decompress(args: argparse.Namespace) -> int:
                                      on_stage=on_stage)
         _say(args, f"{args.output}: {count:,} points, written band by band")
         return 0
-    if args.topic or args.grid_map:
-        raise InvalidInputError(f"{args.output}: --topic and --grid-map apply to a ROS 2 bag output, a folder: "
-                                f"end its name with / (out_bag/) or give --format rosbag")
-    points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w"), force=args.force,
-                             format=args.format, max_bytes=args.max_bytes,
-                             cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox,
-                             workers=args.workers, scheduler=args.scheduler, densify=args.densify)
-    if str(args.output).lower().endswith((".tif", ".tiff")) or args.format in ("tif", "tiff"):
-        from .mapfile import open as open_map
+    if args.topic or args.grid_map or args.local_origin is not None or args.stamp is not None:
+        raise InvalidInputError(f"{args.output}: --topic, --grid-map, --local-origin and --stamp apply to a ROS 2 "
+                                f"bag output, a folder: end its name with / (out_bag/) or give --format rosbag")
+    text = (args.format or "").lower() in ("xyz", "csv")
+    with _progress(not args.quiet, DECODE_STAGES, verbose=args.verbose) as on_stage:
+        points = decompress_file(_stream(args.input, "r"), _stream(args.output, "w", binary=not text),
+                                 force=args.force, format=args.format, max_bytes=args.max_bytes,
+                                 cutoff=args.cutoff, max_cells=args.max_cells, bbox=args.bbox,
+                                 workers=args.workers, scheduler=args.scheduler, densify=args.densify,
+                                 dtype=args.dtype, nodata=args.nodata, cog=args.cog, on_stage=on_stage)
+    if args.output != "-" and (str(args.output).lower().endswith((".tif", ".tiff"))
+                               or args.format in ("tif", "tiff")):
+        import rasterio
 
-        with open_map(args.input, max_cells=args.max_cells, max_bytes=args.max_bytes) as cmap:
-            g = cmap.grid
-        _say(args, f"{args.output}: a {g.rows:,} x {g.cols:,} raster, {points.shape[0]:,} valid pixels")
+        with rasterio.open(args.output) as written:  # what the user gets, read back from the file
+            shape, dtype, nodata = (written.height, written.width), written.dtypes[0], written.nodata
+        _say(args, f"{args.output}: a {shape[0]:,} x {shape[1]:,} {dtype} raster, {points.shape[0]:,} valid "
+                   f"pixels, nodata {nodata:g}")
     else:
         _say(args, f"{args.output}: {points.shape[0]:,} points")
     return 0
@@ -254,16 +335,34 @@ def cmd_decompress(args: argparse.Namespace) -> int:
 
 def _decompress_bag(args: argparse.Namespace) -> int:
     """``decompress MAP out_bag/``: the rebuilt map as a ROS 2 bag (PointCloud2, and a GridMap with --grid-map)."""
-    from .io.rosmap import DEFAULT_TOPIC, check_bag_output, grid_map_topic, write_map_bag
+    import numpy as np
+
+    from .io.rosbag import NS_PER_S
+    from .io.rosmap import DEFAULT_TOPIC, FLOAT32_SAFE_M, check_bag_output, grid_map_topic, local_origin, write_map_bag
     from .mapfile import open as open_map
 
+    if args.densify > 1 or args.dtype is not None or args.nodata is not None or args.cog:
+        raise InvalidInputError(f"{args.output}: a ROS 2 bag holds one point per cell (and the GridMap); "
+                                f"--densify, --dtype, --nodata and --cog apply to files")
     check_bag_output(args.output, force=args.force)  # before decoding
     with open_map(_stream(args.input, "r"), max_bytes=args.max_bytes, max_cells=args.max_cells) as cmap:
-        dem = cmap.read_dem(cutoff=args.cutoff)
+        dem = cmap.read_dem(cutoff=args.cutoff, bbox=args.bbox)
     topic = args.topic or DEFAULT_TOPIC
-    points = write_map_bag(args.output, dem, topic=topic, grid_map=args.grid_map, force=args.force)
+    origin = None if args.local_origin is None else (local_origin(dem) if args.local_origin == "auto"
+                                                     else args.local_origin)
+    # The map's time: when its file was written (the stamp ROS tools sort and expire messages by).
+    stamp_ns = (int(args.stamp * NS_PER_S) if args.stamp is not None else
+                time.time_ns() if args.input == "-" else os.stat(args.input).st_mtime_ns)
+    points = write_map_bag(args.output, dem, topic=topic, grid_map=args.grid_map, force=args.force,
+                           origin=origin, stamp_ns=stamp_ns)
     grid = f", GridMap {dem.grid.rows:,} x {dem.grid.cols:,} on {grid_map_topic(topic)}" if args.grid_map else ""
-    _say(args, f"{args.output}: ROS 2 bag, {points.shape[0]:,} points on {topic}{grid}")
+    wide = points.size and float(np.abs(points).max()) > FLOAT32_SAFE_M
+    fields = ("FLOAT64 fields (coordinates beyond 16 km of the frame's origin; --local-origin auto gives FLOAT32)"
+              if wide else "FLOAT32 fields")
+    frame = (f", frame map_local at ({origin[0]:g}, {origin[1]:g}, {origin[2]:g}) of map on /tf_static"
+             if origin is not None else "")
+    _say(args, f"{args.output}: ROS 2 bag, {points.shape[0]:,} points on {topic}{grid}; {fields}{frame}; stamp "
+               f"{stamp_ns / NS_PER_S:.3f} s")
     return 0
 
 
@@ -296,13 +395,27 @@ RESIDUAL_LAYOUTS = {"chunks": "chunks", "sparse": "sparse: the cells that need a
 def cmd_info(args: argparse.Namespace) -> int:
     from .mapfile import open as open_map
 
-    with open_map(args.input, max_cells=args.max_cells) as cmap:
-        info = cmap.info()
+    truncated = ""
+    try:
+        with _naming(args.input), open_map(_stream(args.input, "r"), max_cells=args.max_cells) as cmap:
+            info = cmap.info()
+    except CorruptFileError as exc:
+        # The header of a truncated file may still be whole: show it, and what is missing.
+        size = _prefix_decodes(args.input) if args.input != "-" and "truncated" in str(exc) else None
+        if size is None:
+            raise
+        with open_map(args.input, max_cells=args.max_cells, max_bytes=size) as cmap:
+            info = cmap.info()
+        truncated = str(exc)
+    # The header was read and checked: the exit status says whether the whole file is valid.
+    damaged = dict(EXIT_CODES)[CorruptFileError] if truncated else 0
+    if truncated:
+        print(f"dftpcc: error: {truncated}", file=sys.stderr)
     if args.quiet:
-        return 0  # the header was read and checked: the exit status says whether it is valid
+        return damaged
     if args.json:
-        print(json.dumps(info, indent=2, sort_keys=True))
-        return 0
+        print(json.dumps(dict(info, damaged=truncated) if truncated else info, indent=2, sort_keys=True))
+        return damaged
     g, p, s, u = info["grid"], info["params"], info["stats"], info["units"]
     h, v = u["horizontal"], u["vertical"]
     cells = f"{length(g['resolution_m'], h)}"
@@ -320,24 +433,34 @@ def cmd_info(args: argparse.Namespace) -> int:
                    f"heights about z0 {g['z0_m']:,.3f} {v}"),
         ("profile", f"{p['profile']} (transform {p['transform']}, storage {p['storage']}, "
                     f"detrend {p['detrend']}, fill {p['fill']})"),
-        ("cutoff", f"{p['cutoff']:g}" + (f", step {length(p['step'], v)}" if p["storage"] == "quantized" else "")),
+        ("cutoff", "no spectrum (residual layer only)" if not info["coefficients"] or info.get("spectrum_empty") else
+                   f"{p['cutoff']:g}" + (f", step {length(p['step'], v)}" if p["storage"] == "quantized" else "")),
         ("target", f"{target} (cutoff and step chosen by rate control)" if target else "none (cutoff and step as given)"),
         ("errors", _errors_text(s, v)),
         ("sections", f"mask {s.get('mask_bytes'):,} B, coefficients {s.get('coef_bytes'):,} B "
-                     f"({s.get('coef_count'):,} values)"
+                     f"({info['coefficients']:,} values{', all 0' if info.get('spectrum_empty') else ''})"
                      + (f", residual {s['residual_bytes']:,} B" if s.get("residual_bytes") else "")
                      + (f" ({RESIDUAL_LAYOUTS[info['residual_layout']]})" if "residual_layout" in info else "")),
         ("CRS", u["crs"] or "none"),
     ]
+    if "source_dtype" in s:
+        from .dem import RasterSource
+
+        source = RasterSource.from_stats(s)
+        if source is not None:
+            rows.append(("source", f"{source.dtype} raster" + (f", nodata {source.nodata:g}" if source.nodata is not None
+                                                              else ", no nodata value")))
     if "tiles" in info:
         t = info["tiles"]
         per = [x["bytes"] for x in t["tiles"]]
         rows.append(("tiles", f"{t['tile_rows']} x {t['tile_cols']} tiles of {t['size']} cells, {t['occupied']} "
                               f"occupied; {min(per):,} to {max(per):,} B a tile (--json lists each, with its errors)"))
+    if truncated:
+        rows.append(("damaged", truncated))
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")
-    return 0
+    return damaged
 
 
 def _reloc_params(args: argparse.Namespace, options: dict[str, Any]) -> Any:
@@ -368,9 +491,11 @@ def _compress_reloc(args: argparse.Namespace, options: dict[str, Any]) -> int:
         raise InvalidInputError("--target-reloc places a bag's scans in the root of their TF tree: it does not "
                                 "take --map-frame")
     t0 = time.perf_counter()
-    chosen = compress_file_reloc(args.input, args.output, args.target_reloc, _reloc_params(args, options),
-                                 force=args.force, format=args.format, classes=args.classes, topic=args.topic,
-                                 pose_topic=args.pose_topic, scans=args.reloc_scans, seed=args.reloc_seed)
+    with _progress(not args.quiet, RELOC_STAGES, verbose=args.verbose) as on_stage:
+        chosen = compress_file_reloc(args.input, args.output, args.target_reloc, _reloc_params(args, options),
+                                     force=args.force, format=args.format, classes=args.classes, topic=args.topic,
+                                     pose_topic=args.pose_topic, scans=args.reloc_scans, seed=args.reloc_seed,
+                                     on_stage=on_stage)
     _say(args, f"{args.output}: {len(chosen.data):,} bytes [{time.perf_counter() - t0:.2f} s]",
          *_reloc_lines(chosen, args.target_reloc))
     return 0
@@ -379,9 +504,11 @@ def _compress_reloc(args: argparse.Namespace, options: dict[str, Any]) -> int:
 def cmd_recommend(args: argparse.Namespace) -> int:
     from .experiments.relocalize import recommend_file
 
-    chosen = recommend_file(args.input, args.target_reloc, _reloc_params(args, {"fill": args.fill}),
-                            format=args.format, classes=args.classes, topic=args.topic, pose_topic=args.pose_topic,
-                            scans=args.reloc_scans, seed=args.reloc_seed)
+    with _progress(not args.quiet, RELOC_STAGES, verbose=args.verbose) as on_stage:
+        chosen = recommend_file(args.input, args.target_reloc, _reloc_params(args, {"fill": args.fill}),
+                                format=args.format, classes=args.classes, topic=args.topic,
+                                pose_topic=args.pose_topic, scans=args.reloc_scans, seed=args.reloc_seed,
+                                on_stage=on_stage)
     if args.json:
         print(json.dumps({"params": json.loads(chosen.params.to_json()) | chosen.notes, "bytes": len(chosen.data),
                           "bits_per_point": chosen.bits_per_point, "success": chosen.success,
@@ -435,10 +562,12 @@ def _compress_growable(args: argparse.Namespace) -> int:
 def cmd_update(args: argparse.Namespace) -> int:
     from .mapbuilder import update_file
 
-    result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
-                         pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
-                         cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame,
-                         waiting=lambda lock: _say(args, f"{args.map}: another update holds {lock}; waiting for it"))
+    with _progress(not args.quiet, UPDATE_STAGES, verbose=args.verbose) as on_stage:
+        result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
+                             pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
+                             cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame,
+                             waiting=lambda lock: _say(args, f"{args.map}: another update holds {lock}; waiting for it"),
+                             on_stage=on_stage)
     delta = f"; delta {args.delta}: {result.delta_size:,} bytes" if result.delta_size is not None else ""
     if result.repeated:
         _say(args, f"{result.path}: {result.size:,} bytes, {result.tiles} tiles: its last update added these "
@@ -485,7 +614,7 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--tile-size", type=_positive_int, metavar="CELLS", help="tile side of a new map (default 256)")
     p.add_argument("--cutoff", "-c", type=_cutoff, help="cutoff ratio of a new map (default 0.8)")
     p.add_argument("--step", type=_positive, help="quantizer step of a new map in metres (default 0.01)")
-    p.add_argument("--force", "-f", action="store_true", help="replace write-protected outputs")
+    p.add_argument("--force", "-f", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=cmd_update)
 
     p = sub.add_parser("patch", parents=[common], help="apply a delta of 'dftpcc update' to the map it was made from",
@@ -494,7 +623,7 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("map", help="the map the delta was made from")
     p.add_argument("delta", help="the delta file (dftpcc update --delta)")
     p.add_argument("--output", "-o", help="write the new map here instead of in place")
-    p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output")
+    p.add_argument("--force", "-f", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=cmd_patch)
 
 
@@ -524,6 +653,25 @@ def _bbox(text: str) -> tuple[float, float, float, float]:
     return values  # type: ignore[return-value]
 
 
+def _origin(text: str) -> str | tuple[float, float, float]:
+    if text == "auto":
+        return text
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected 'auto' or three numbers X,Y,Z, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def _nodata(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+
+
 def _tile_size(text: str) -> int | str:
     if text == "auto":
         return text
@@ -550,7 +698,9 @@ def _resolutions(text: str) -> list[float | str]:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .experiments.evaluate import evaluate_files
 
-    result = evaluate_files(args.original, args.candidate, classes=args.classes, max_cells=args.max_cells)
+    with _progress(not args.quiet, EVALUATE_STAGES, verbose=args.verbose) as on_stage:
+        result = evaluate_files(args.original, args.candidate, classes=args.classes, max_cells=args.max_cells,
+                                on_stage=on_stage)
     _say(args, json.dumps(jsonable(result), indent=2, sort_keys=True) if args.json else format_metrics(result))
     return 0
 
@@ -570,8 +720,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     from .experiments.compare import compare_file
 
-    path = compare_file(args.original, out=args.out, cutoffs=args.cutoffs, resolution=args.resolution,
-                        profile=args.profile, classes=args.classes)
+    with _progress(not args.quiet, COMPARE_STAGES, verbose=args.verbose) as on_stage:
+        path = compare_file(args.original, out=args.out, cutoffs=args.cutoffs, resolution=args.resolution,
+                            profile=args.profile, classes=args.classes, on_stage=on_stage)
     _say(args, str(path))
     return 0
 
@@ -674,6 +825,8 @@ def format_metrics(result: Row) -> str:
         value = result[key]
         text = f"{value:,}" if fmt is None else format(value, fmt)
         lines.append(f"{label:<{width}}  {text:>14} {unit}".rstrip())
+    if "note" in result:
+        lines.append(f"note: {result['note']}")
     return "\n".join(lines)
 
 
@@ -704,11 +857,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("compress", parents=[common], help="point cloud -> .dftpc", description=(
         "Grid a point cloud into a DEM, low-pass its spectrum and write a .dftpc file. "
-        "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .tif, and ROS bags (.bag, or a ROS 2 bag folder)"))
+        "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .drc .tif, and ROS bags (.bag, or a ROS 2 bag folder)"))
     p.add_argument("input", help="the point cloud or GeoTIFF DEM to compress ('-': standard input, with --format)")
     p.add_argument("output", help="the .dftpc file to write ('-': standard output)")
     p.add_argument("--force", "-f", action="store_true",
-                   help="replace a write-protected output, or write under another format's extension")
+                   help=FORCE_HELP + "; also write under another format's extension")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto",
                    help="DEM cell size in metres, or 'auto' (default: about 4 points per cell; "
                         "a GeoTIFF keeps its own pixels)")
@@ -727,8 +880,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reloc-scans", type=_positive_int, default=20, metavar="N",
                    help="--target-reloc: scans to simulate (default 20)")
     p.add_argument("--reloc-seed", type=int, default=0, metavar="SEED", help="--target-reloc: seed of the scans")
-    p.add_argument("--profile", choices=tuple(PROFILES), default="compact",
-                   help="compact (default): detrended DCT, quantized, entropy-coded; paper: the published method")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact", help=PROFILE_HELP)
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classification codes, e.g. 2 for ground")
     p.add_argument("--aggregate", choices=CHOICES["aggregate"], help="cell height from its points (default mean)")
     p.add_argument("--frame", choices=CHOICES["frame"], help="axis-aligned or minimum-area rotated grid (default axis)")
@@ -770,7 +922,7 @@ def build_parser() -> argparse.ArgumentParser:
         "or .tif for the rebuilt DEM; a name ending in / (out_bag/) writes a ROS 2 bag."))
     p.add_argument("input", help="the .dftpc file to decode ('-': standard input)")
     p.add_argument("output", help="the point cloud or GeoTIFF (.tif) file to write ('-': standard output, with --format)")
-    p.add_argument("--force", "-f", action="store_true", help="replace a write-protected output file")
+    p.add_argument("--force", "-f", action="store_true", help=FORCE_HELP)
     p.add_argument("--max-bytes", type=_positive_int, help="decode only the first N bytes (a coarser map)")
     p.add_argument("--cutoff", type=_cutoff, help="decode at a larger cutoff than the file's")
     p.add_argument("--densify", type=_positive_int, default=1, metavar="K",
@@ -778,12 +930,24 @@ def build_parser() -> argparse.ArgumentParser:
                         "for scan registration (docs/relocalization.md)")
     p.add_argument("--cog", action="store_true",
                    help="write the DEM as a Cloud Optimized GeoTIFF (.tif), band by band")
+    p.add_argument("--dtype", choices=("int8", "uint8", "int16", "uint16", "int32", "uint32", "float32", "float64"),
+                   help="GeoTIFF output: sample type (default: the source raster's where the file's error bound "
+                        "rounds back to its values, else float32; an integer type rounds the heights)")
+    p.add_argument("--nodata", type=_nodata, metavar="VALUE",
+                   help="GeoTIFF output: value of empty cells (default: the source raster's, else NaN)")
     p.add_argument("--bbox", type=_bbox, metavar="XMIN,YMIN,XMAX,YMAX",
                    help="only this region, in the map's units and CRS (of a tiled map, only its tiles are read)")
     p.add_argument("--max-cells", type=_positive_int, metavar="N",
                    help="decode a trusted file whose grid is larger than a file of its size may ask for")
     p.add_argument("--topic", help="ROS 2 bag output (a folder: out_bag/, or --format rosbag): the "
                                    "sensor_msgs/PointCloud2 topic of the map (default /map)")
+    p.add_argument("--local-origin", type=_origin, metavar="auto|X,Y,Z",
+                   help="ROS 2 bag output: the map in a frame map_local about this point (auto: the map's middle, "
+                        "whole metres), placed by a /tf_static transform, so FLOAT32 fields (PCL's PointXYZ, RViz) "
+                        "keep a millimetre; default: the map's own frame, FLOAT64 beyond 16 km")
+    p.add_argument("--stamp", type=float, metavar="SECONDS",
+                   help="ROS 2 bag output: the messages' stamp, seconds since 1970 (default: when the .dftpc "
+                        "was written)")
     p.add_argument("--grid-map", action="store_true",
                    help="ROS 2 bag output: also the DEM as a grid_map_msgs/GridMap elevation layer on TOPIC/grid_map")
     p.add_argument("--format", help="output format if the extension does not tell")
@@ -802,12 +966,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("recommend", parents=[common], help="the cutoff that still lets a rover relocalize",
                        description="Simulate lidar scans on the map (fixed seed), register them with GICP against "
                                    "the map rebuilt at each cutoff, smallest file first, and report the first that "
-                                   "keeps 95 %% of scans within --target-reloc metres and 1 degree (dftpcc[slam]).")
+                                   "keeps 95 % of scans within --target-reloc metres and 1 degree (dftpcc[slam]).")
     p.add_argument("input", help="the point cloud or GeoTIFF DEM to be compressed")
     p.add_argument("--target-reloc", type=_positive, required=True, metavar="METRES",
                    help="largest translation error of a relocalized scan, metres")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto", help="DEM cell size in metres, or 'auto'")
-    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact", help=PROFILE_HELP)
     p.add_argument("--fill", choices=CHOICES["fill"], help="how empty cells are filled before the transform")
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
     p.add_argument("--topic", help="ROS bag: the PointCloud2 topic to read")
@@ -848,7 +1012,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 0,0.05,...,0.95)")
     p.add_argument("--resolution", "-r", type=_resolutions, default=["auto"],
                    help="DEM cell size in metres (or 'auto'): one for all inputs, or comma-separated, one per input")
-    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact", help=PROFILE_HELP)
     p.add_argument("--classes", type=_classes, help="LAS/LAZ inputs: keep only these classes, e.g. 2 for ground")
     p.add_argument("--out", "-o", required=True, help="folder for sweep.csv and sweep.png")
     p.set_defaults(func=cmd_sweep)
@@ -859,7 +1023,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("original", help="a point cloud or GeoTIFF DEM")
     p.add_argument("--cutoffs", type=_cutoffs, default="0.8,0.95", help="cutoff ratios to show (default 0.8,0.95)")
     p.add_argument("--resolution", "-r", type=_resolution, default="auto", help="DEM cell size in metres, or 'auto'")
-    p.add_argument("--profile", choices=tuple(PROFILES), default="compact")
+    p.add_argument("--profile", choices=tuple(PROFILES), default="compact", help=PROFILE_HELP)
     p.add_argument("--classes", type=_classes, help="LAS/LAZ: keep only these classes, e.g. 2 for ground")
     p.add_argument("--out", "-o", required=True, help="folder for the PNG")
     p.set_defaults(func=cmd_compare)
@@ -899,9 +1063,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     # command loads it here, before a stop signal can land inside an import (numpy's C extension
     # then fails to load and the run ends as an internal error instead of a clean stop).
     importlib.import_module("dftpcc.files")
+    # Remedies named as flags (--force), not as Python arguments (force=True), while the command runs.
+    previous = speaking_to_the_command_line(True)
+    try:
+        return _run(args)
+    finally:
+        speaking_to_the_command_line(previous)
+
+
+def _run(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(), _stop_signals_raise():
         warnings.showwarning = _show_warning
-        if args.no_warnings:
+        if args.no_warnings or args.quiet:  # -q promises nothing but errors
             warnings.simplefilter("ignore")
         try:
             return args.func(args)

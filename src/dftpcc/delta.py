@@ -21,7 +21,7 @@ from pathlib import Path
 import zstandard
 
 from .format import Header, Source, leb128, read_leb128, unpack_source
-from .errors import CorruptFileError, DftpccError, InvalidInputError
+from .errors import CorruptFileError, DftpccError, InvalidInputError, MissingFileError
 from .io.atomic import atomic_write, check_distinct, check_output
 from .io.lock import lock_path, locked
 
@@ -335,7 +335,7 @@ def patch_file(map_path: str | os.PathLike[str], delta_path: str | os.PathLike[s
     check_output(out, force=force)
     for path in (map_path, delta_path):
         if not Path(path).is_file():
-            raise InvalidInputError(f"{path}: no such file")
+            raise MissingFileError(path)
     # In place, the map is read, patched and written back: an update of it meanwhile would be lost.
     with locked([map_path, out]):
         result = apply_delta(Path(map_path).read_bytes(), Path(delta_path).read_bytes())

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from .errors import InvalidInputError
+from .errors import InvalidInputError, advice
 
-__all__ = ["Grid", "TileGrid", "DEM", "HeightSpread", "as_points", "drop_nonfinite", "nonfinite_error",
+__all__ = ["Grid", "TileGrid", "DEM", "RasterSource", "HeightSpread", "as_points", "drop_nonfinite", "nonfinite_error",
            "MULTI_HEIGHT_TOLERANCE_CELLS"]
 
 #: A point farther than this many cell sizes (vertically) from its cell's
@@ -223,6 +224,46 @@ class HeightSpread:
                 f"(keep ground points only, e.g. LAS class 2, or use finer cells)")
 
 
+@dataclass(frozen=True)
+class RasterSource:
+    """The sample type and nodata value of the raster a DEM was read from, kept so that a
+    decoder can write it back the same way (``STAT`` fields ``source_dtype``, ``source_nodata``).
+
+    Attributes
+    ----------
+    dtype : str
+        NumPy name of the raster's sample type (``int16``, ``float32``, ...).
+    nodata : float, optional
+        Its nodata value, in the raster's height unit; None when it declares none.
+    """
+
+    dtype: str
+    nodata: float | None = None
+
+    def as_stats(self) -> dict[str, Any]:
+        """The ``STAT`` records of this source (docs/format.md): none for float32 (a decoder's default),
+        the nodata value only when a float32 holds it exactly."""
+        code = RASTER_DTYPE_CODES.get(self.dtype)
+        if code is None or self.dtype == "float32":
+            return {}
+        stats: dict[str, Any] = {"source_dtype": code}
+        if self.nodata is not None and math.isfinite(self.nodata) and float(np.float32(self.nodata)) == self.nodata:
+            stats["source_nodata"] = float(self.nodata)
+        return stats
+
+    @classmethod
+    def from_stats(cls, stats: dict[str, Any]) -> "RasterSource | None":
+        """The source a file's ``STAT`` records, or None (a point cloud, a float32 raster, an unknown code)."""
+        dtype = RASTER_DTYPES.get(stats.get("source_dtype", 0))
+        return None if dtype is None else cls(dtype, stats.get("source_nodata"))
+
+
+#: ``STAT`` ``source_dtype`` codes (docs/format.md).
+RASTER_DTYPE_CODES = {"uint8": 1, "int8": 2, "uint16": 3, "int16": 4, "uint32": 5, "int32": 6, "float32": 7,
+                      "float64": 8}
+RASTER_DTYPES = {code: name for name, code in RASTER_DTYPE_CODES.items()}
+
+
 @dataclass
 class DEM:
     """A gridded map: heights relative to ``grid.z0`` plus which cells had points.
@@ -242,6 +283,8 @@ class DEM:
         with ``mean`` cells, the floor no codec storing this DEM goes below.
     spread : HeightSpread, optional
         Points the DEM cannot represent (known when gridded from points).
+    source : RasterSource, optional
+        The raster it is the own grid of (known when read from a GeoTIFF on its pixels).
     """
 
     grid: Grid
@@ -250,6 +293,7 @@ class DEM:
     counts: np.ndarray | None = None
     gridding_rmse: float | None = None
     spread: HeightSpread | None = None
+    source: RasterSource | None = None
 
 
 #: How many offending row numbers an error message lists.
@@ -287,7 +331,7 @@ def nonfinite_error(bad_rows: np.ndarray, total: int | str) -> InvalidInputError
     shown = ", ".join(str(int(i)) for i in bad_rows[:_ROWS_SHOWN]) + (", ..." if bad_rows.size > _ROWS_SHOWN else "")
     return InvalidInputError(
         f"{bad_rows.size} of {total} point(s) have NaN or infinite coordinates (rows {shown}); "
-        f"drop them first (dftpcc.grid.drop_nonfinite, or read(..., drop_nonfinite=True))")
+        f"drop them first ({advice('dftpcc.grid.drop_nonfinite, or read(..., drop_nonfinite=True)', '--drop-nonfinite')})")
 
 
 def drop_nonfinite(points: np.ndarray) -> tuple[np.ndarray, int]:

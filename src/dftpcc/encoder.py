@@ -518,9 +518,11 @@ def _map_figures(dem: DEM, params: Params) -> dict[str, Any]:
     one height per cell could not hold, and the points the vertical error is averaged over."""
     spread = dem.spread
     mean = dem.counts is not None and params.aggregate == "mean"
+    # The raster it came from, to be written back alike (docs/format.md, STAT: source_dtype, source_nodata).
+    source = dem.source.as_stats() if dem.source is not None else {}
     return {"gridding_rmse": dem.gridding_rmse or 0.0,
             "spread": spread.as_stats() if spread is not None and spread.unrepresented_points else None,
-            "vertical_points": max(int(dem.counts.sum()), 1) if mean else None}
+            "vertical_points": max(int(dem.counts.sum()), 1) if mean else None, **source}
 
 
 def _figures(dem: DEM, params: Params, heights: np.ndarray, occupied: np.ndarray, *, errors: np.ndarray | None = None,

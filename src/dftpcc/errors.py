@@ -9,11 +9,14 @@ Warnings say that a result is valid but not what the user may think it is.
 from __future__ import annotations
 
 __all__ = [
+    "advice",
+    "speaking_to_the_command_line",
     "DftpccError",
     "InvalidInputError",
     "CorruptFileError",
     "ResourceLimitError",
     "UnsupportedFormatError",
+    "MissingFileError",
     "MissingDependencyError",
     "ClusterError",
     "DftpccWarning",
@@ -21,6 +24,7 @@ __all__ = [
     "LargeGridWarning",
     "InputMismatchWarning",
     "CoarseMapWarning",
+    "RasterTypeWarning",
 ]
 
 
@@ -34,6 +38,21 @@ class InvalidInputError(DftpccError, ValueError):
 
 class UnsupportedFormatError(InvalidInputError):
     """A file extension, format name or ``.dftpc`` major version dftpcc cannot read or write."""
+
+
+class MissingFileError(InvalidInputError, FileNotFoundError):
+    """A file to read is not there.
+
+    Both an :class:`InvalidInputError` (the command line's exit status 3) and
+    the ``FileNotFoundError`` Python code catches for a missing file.
+    """
+
+    def __init__(self, path: object, message: str | None = None):
+        InvalidInputError.__init__(self, message or f"{path}: no such file")
+        self.filename = str(path)
+
+    def __str__(self) -> str:
+        return str(self.args[0])
 
 
 class CorruptFileError(DftpccError):
@@ -79,3 +98,26 @@ class InputMismatchWarning(DftpccWarning):
 
 class CoarseMapWarning(DftpccWarning):
     """An automatic quantizer step leaves errors beyond the map's own height spread."""
+
+
+class RasterTypeWarning(DftpccWarning):
+    """A rebuilt DEM is not written in the sample type of the raster it came from (its errors are too
+    large for an integer type to round back to the source's values); the message says which and why."""
+
+
+#: Whether messages give the command line's flags (set by ``dftpcc.cli.main``) or Python's arguments.
+_COMMAND_LINE = False
+
+
+def speaking_to_the_command_line(on: bool = True) -> bool:
+    """Make :func:`advice` name command-line flags (``dftpcc.cli.main`` does while it runs), or Python
+    arguments again; returns the previous setting, to restore."""
+    global _COMMAND_LINE
+    previous, _COMMAND_LINE = _COMMAND_LINE, on
+    return previous
+
+
+def advice(python: str, command_line: str) -> str:
+    """The remedy a message offers, as its reader can apply it: a flag for a user of the command line,
+    a function or an argument for a Python caller."""
+    return command_line if _COMMAND_LINE else python

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import warnings
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any, Callable, Iterable, Iterator, Sequence
@@ -23,7 +24,7 @@ from .format import unpack
 from .dem import DEM
 from .encoder import Stage, encode_dem, no_stage, params_of
 from .grid import CloudSummary, check_chunked_aggregate, rasterize, rasterize_chunks
-from .errors import InvalidInputError
+from .errors import InvalidInputError, RasterTypeWarning
 from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, check_output, format_of, open_reader, write
 from .limits import MAX_CELLS, holds_in_memory
 from .mapfile import CompressedMap
@@ -68,6 +69,9 @@ def _chunk_size(reader: Reader) -> int | None:
     return None
 
 
+#: Bytes of a stream read to tell its format (a LAS header's point format id is byte 104).
+SNIFF_BYTES = 128
+
 #: A path, or a binary stream (standard input or output, an open file).
 Source = str | os.PathLike[str] | IO[bytes]
 
@@ -82,19 +86,23 @@ def _as_path(src: Source, format: str | None) -> Iterator[str | os.PathLike[str]
     if not _is_stream(src) and (Path(src).is_file() or Path(src).is_dir() or not Path(src).exists()):
         yield src  # a file, a ROS 2 bag folder, or a missing path the reader reports
         return
-    if format is None:
-        raise InvalidInputError(f"{getattr(src, 'name', src)}: a stream has no extension; name its format "
-                                f"(--format npy, xyz, las, ...)")
-    name = format_of(f"x.{format}", format)
-    ext = next(e for e, f in io.FORMATS.items() if f == name)
     with tempfile.TemporaryDirectory(prefix="dftpcc-") as tmp:
-        path = Path(tmp) / f"stream{ext}"
-        with path.open("wb") as out:
+        raw = Path(tmp) / "stream"
+        with raw.open("wb") as out:
             if _is_stream(src):
                 shutil.copyfileobj(src, out)
             else:
                 with open(src, "rb") as fh:
                     shutil.copyfileobj(fh, out)
+        if format is None:
+            with raw.open("rb") as fh:
+                format = io.sniff_format(fh.read(SNIFF_BYTES))  # noqa: A001
+        if format is None:
+            raise InvalidInputError(f"{getattr(src, 'name', src)}: a stream has no extension and its first bytes "
+                                    f"name no binary format; name its format (--format xyz, csv, ...)")
+        name = format_of(f"x.{format}", format)
+        ext = next(e for e, f in io.FORMATS.items() if f == name)
+        path = raw.rename(raw.with_suffix(ext))
         yield path
 
 
@@ -189,7 +197,8 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         dst.flush()
     else:
         atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
-    return open_map(data, max_cells=_trusted(data))
+    # Named for the file written, so that its repr and messages say where it is.
+    return CompressedMap(data, "<stream>" if _is_stream(dst) else str(dst), max_cells=_trusted(data))
 
 
 def streams_raster(src: str | os.PathLike[str], params: Params, format: str | None = None) -> bool:  # noqa: A002
@@ -210,9 +219,11 @@ def streams_raster(src: str | os.PathLike[str], params: Params, format: str | No
 def wants_bands(src: Any, dst: Any, *, format: str | None = None, cog: bool = False,  # noqa: A002
                 bbox: Any = None, cutoff: float | None = None, max_bytes: int | None = None) -> bool:
     """Whether a decode of ``src`` into ``dst`` goes band by band (:func:`decompress_bands`): a COG, or a
-    tiled map of more than :data:`~dftpcc.stream.STREAM_CELLS` cells written whole to GeoTIFF, LAS or LAZ."""
-    if cog:
-        return True
+    tiled map of more than :data:`~dftpcc.stream.STREAM_CELLS` cells written whole to GeoTIFF, LAS or LAZ.
+    A region (``bbox``) is decoded as one piece, in every output format: the box cuts them all alike. An
+    untiled map's COG is written whole (it fits in memory: it was coded so), in its source's sample type."""
+    if cog and bbox is None:
+        return _is_stream(src) or not Path(src).is_file() or _tiled(src)
     if _is_stream(src) or _is_stream(dst) or bbox is not None or cutoff is not None or max_bytes is not None:
         return False
     try:
@@ -225,6 +236,15 @@ def wants_bands(src: Any, dst: Any, *, format: str | None = None, cog: bool = Fa
             return cmap.tiled and cmap.grid.size > stream.STREAM_CELLS
     except Exception:  # noqa: BLE001 - decompress_file reports what is wrong with the file
         return False
+
+
+def _tiled(src: Any) -> bool:
+    """Whether the map file ``src`` is tiled (True for one that does not open: the band path reports it)."""
+    try:
+        with open_map(src) as cmap:
+            return cmap.tiled
+    except Exception:  # noqa: BLE001 - decompress_bands reports what is wrong with the file
+        return True
 
 
 def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
@@ -240,7 +260,7 @@ def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *
     int
         Points (valid cells) written.
     """
-    fmt = format_of(dst, format)
+    fmt = format_of(dst, format, output=True)
     if fmt not in stream.STREAM_FORMATS:
         raise InvalidInputError(f"{dst}: band-by-band decoding writes GeoTIFF, LAS or LAZ, not {fmt}")
     if cog and fmt not in ("tif", "tiff"):
@@ -315,7 +335,8 @@ def decompress_file(src: Source, dst: Source, *,
                     format: str | None = None, max_bytes: int | None = None,  # noqa: A002
                     cutoff: float | None = None, max_cells: int | None = None, force: bool = False,
                     bbox: Sequence[float] | None = None, workers: int | None = None,
-                    scheduler: str | None = None, densify: int = 1) -> np.ndarray:
+                    scheduler: str | None = None, densify: int = 1, dtype: str | None = None,
+                    nodata: float | None = None, cog: bool = False, on_stage: Stage = no_stage) -> np.ndarray:
     """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
 
     ``bbox`` (xmin, ymin, xmax, ymax, the map's units and CRS) writes only that region; of a
@@ -329,6 +350,12 @@ def decompress_file(src: Source, dst: Source, *,
     rebuilt DEM as a GeoTIFF, any other the point cloud. The CRS read from
     the original file is written back where the format has room for it.
 
+    A GeoTIFF is written in the sample type and with the nodata value of the raster the map was
+    made from, where the file's bound lets an integer type round back to its values
+    (:func:`~dftpcc.io.geotiff.output_type`; a :class:`~dftpcc.errors.RasterTypeWarning` says
+    when it does not); ``dtype`` and ``nodata`` choose others; ``cog`` writes a Cloud Optimized
+    GeoTIFF. ``on_stage`` is called with each stage's name (``decode``, ``write``).
+
     Returns
     -------
     ndarray, shape (cells, 3)
@@ -336,26 +363,38 @@ def decompress_file(src: Source, dst: Source, *,
     """
     if _is_stream(dst) and format is None:
         raise InvalidInputError("a stream has no extension: name the output format (--format xyz, npy, ply, ...)")
-    fmt = format_of("x" if _is_stream(dst) else dst, format)
+    fmt = format_of("x" if _is_stream(dst) else dst, format, output=True)
     if not _is_stream(dst):
         check_output(dst, force=force)
     check_executor(workers, scheduler)
     if isinstance(densify, bool) or not isinstance(densify, int) or densify < 1:
         raise InvalidInputError(f"densify must be a whole number >= 1, got {densify!r}")
-    if densify > 1 and io.REGISTRY[fmt].dem_writer:
+    raster = io.REGISTRY[fmt].dem_writer is not None
+    if densify > 1 and raster:
         raise InvalidInputError(f"{dst}: a {fmt} output holds the DEM's cells; densify applies to point outputs")
+    if not raster and (dtype is not None or nodata is not None or cog):
+        raise InvalidInputError(f"{dst}: --dtype, --nodata and --cog apply to a GeoTIFF (.tif) output, not {fmt}")
     if not _is_stream(src) and Path(src).exists() and not Path(src).is_file():
         with open(src, "rb") as fh:  # a pipe such as /dev/stdin
             src = _Buffer(fh.read(), str(src))
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
+        if raster:  # the sample type and nodata checked before decoding
+            from .io.geotiff import output_type
+
+            sample, empty, note = output_type(cmap.header.stats, dtype=dtype, nodata=nodata,
+                                              bound_holds=cutoff is None and max_bytes is None)
+        on_stage("decode")
         with executor(workers, scheduler) if cmap.tiled else _nothing() as map_tiles:
             dem = cmap.read_dem(cutoff=cutoff, bbox=bbox, map_tiles=map_tiles)
         crs = cmap.crs
+    on_stage("write")
     points = dem_to_points(dem) if densify == 1 else dem_to_dense_points(dem, densify)
     with tempfile.TemporaryDirectory(prefix="dftpcc-") if _is_stream(dst) else _nothing() as tmp:
         target = Path(tmp) / f"out.{fmt}" if _is_stream(dst) else dst
-        if io.REGISTRY[fmt].dem_writer:
-            io.write_dem(target, dem, crs=crs, format=fmt)
+        if raster:
+            if note:
+                warnings.warn(f"{getattr(dst, 'name', dst)}: {note}", RasterTypeWarning, stacklevel=2)
+            io.write_dem(target, dem, crs=crs, format=fmt, dtype=sample, nodata=empty, cog=cog)
         else:
             write(target, points, crs=crs, format=fmt)
         if _is_stream(dst):

@@ -727,8 +727,12 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
                 points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
                 tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
                 force: bool = False, map_frame: str | None = None, new: bool = False,
-                waiting: Callable[[Path], None] | None = None) -> UpdateResult:
+                waiting: Callable[[Path], None] | None = None,
+                on_stage: Callable[..., None] | None = None) -> UpdateResult:
     """Add scans to a growing map and write it with its state (``dftpcc update``).
+
+    ``on_stage`` is called with each stage's name as it starts (``read``: the scans, then
+    ``code``, ``write``), as :func:`dftpcc.compress_file` calls it.
 
     Without ``output`` the map is updated in place. The map and its state
     are written only once every scan was read and added: a failing input
@@ -785,13 +789,14 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     with locked([map_path, out], waiting=waiting):
         return _update_locked(map_path, out, inputs, delta=delta, points_topic=points_topic, pose_topic=pose_topic,
                               resolution=resolution, tile_size=tile_size, cutoff=cutoff, step=step,
-                              map_frame=map_frame, new=new)
+                              map_frame=map_frame, new=new, stage=on_stage or (lambda *_: None))
 
 
 def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike[str]], *,
                    delta: str | os.PathLike[str] | None, points_topic: str | None, pose_topic: str | None,
                    resolution: float | None, tile_size: int | None, cutoff: float | None, step: float | None,
-                   map_frame: str | None, new: bool = False) -> UpdateResult:
+                   map_frame: str | None, new: bool = False,
+                   stage: Callable[..., None] = lambda *_: None) -> UpdateResult:
     """:func:`update_file` once the map is locked and the outputs checked."""
     from .delta import make_delta
 
@@ -810,6 +815,7 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
         builder = MapBuilder.from_file(map_path)
         _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
     last_update = builder.update_sha256
+    stage("read")
     scans = points = 0
     record = hashlib.sha256()
     for pts, pose, crs in _scans(inputs, points_topic, pose_topic, map_frame):
@@ -832,8 +838,10 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
         return _finish_update(map_path, base, again, delta, scans, points)
     builder.update_sha256 = record.hexdigest()
     recoded = len(builder.changed_tiles())
+    stage("code")
     data = builder.encode()
     patch = make_delta(base, data) if delta is not None else None
+    stage("write")
     # One transaction, renamed delta first: a kill after it leaves the old map and state (a rerun
     # writes the same delta again) or the new state (a rerun finishes the update: _finish_update).
     builder.save(out, data=data, before=[] if patch is None or delta is None else [(Path(delta), patch)])

@@ -20,12 +20,13 @@ from .format import (MAGIC, VERSION, VERSION_TILED, RemoteSource, Source, cells_
                      check_max_cells, is_url, read_tile, unpack_source)
 from .decoder import Whole, decode_dem, decode_window
 from .dem import DEM, Grid
-from .errors import InvalidInputError, ResourceLimitError
+from .errors import InvalidInputError, MissingFileError, ResourceLimitError, advice
 from .params import Params
 from .rebuild import dem_to_points
 from .residual import layout_of
 from .spectrum import radius_limit
 from .units import units_of
+from .io.reader import crs_wkt, parse_crs
 
 __all__ = ["CompressedMap", "open", "decompress", "is_dftpc", "check_bbox"]
 
@@ -78,7 +79,25 @@ class CompressedMap:
 
     @property
     def crs(self) -> dict[str, Any]:
+        """The CRS as the file stores it (``{"wkt": ..., "las_vlrs": [...]}``); see :attr:`crs_wkt`."""
         return self.header.crs
+
+    @property
+    def crs_wkt(self) -> str | None:
+        """The CRS as WKT (what GDAL, PDAL and pyproj take), or None."""
+        return crs_wkt(self.header.crs)
+
+    def parse_crs(self) -> Any:
+        """The CRS as a ``rasterio.crs.CRS`` (as rasterio's ``dataset.crs``), or None."""
+        return parse_crs(self.header.crs)
+
+    def __repr__(self) -> str:
+        g = self.grid
+        layout = "tiled" if self.tiled else "untiled"
+        crs = units_of(self.header.crs).crs or "no CRS"
+        return (f"<CompressedMap {self.name!r}: {self.size:,} bytes, {g.rows:,} x {g.cols:,} cells of "
+                f"{g.resolution:g}, {self.header.cell_count:,} rebuilt, {layout}, cutoff {self.params.cutoff:g}, "
+                f"{crs}>")
 
     @property
     def tiled(self) -> bool:
@@ -213,8 +232,30 @@ class CompressedMap:
         if cells > allowed:
             raise ResourceLimitError(
                 f"refusing to decode {cells:,} cells of tiles at once, more than the {allowed:,} allowed for a "
-                f"{self.size:,}-byte file; decode a region (bbox=) or, if you trust this file, open it with "
-                f"max_cells={cells} (command line: --max-cells {cells})")
+                f"{self.size:,}-byte file; decode a region ({advice('bbox=', '--bbox')}) or, if you trust this "
+                f"file, {advice(f'open it with max_cells={cells}', f'give --max-cells {cells}')}")
+
+    def _spectrum_empty(self) -> bool:
+        """Whether an untiled map's coefficients are all 0 (a map coded as its residual layer alone)."""
+        from . import coding, spectrum
+
+        p = self.header.params
+        lay = spectrum.layout(p.transform, p.storage, self.grid.shape)
+        n = int(self.header.coef_count) * spectrum.values_per_coefficient(lay, p.storage)
+        _, radii, angles = spectrum.kept_order(lay, p.cutoff)
+        per = spectrum.values_per_coefficient(lay, p.storage)
+        radius, angle = (radii[:self.header.coef_count], angles[:self.header.coef_count]) if per == 1 else \
+            (np.repeat(radii[:self.header.coef_count], per), np.repeat(angles[:self.header.coef_count], per))
+        stream = coding.decode_coefficients(self._blobs[b"COEF"], n, radius=radius, angle=angle,
+                                            allow_partial=self._partial)
+        return not np.any(stream)
+
+    def _coefficients(self) -> int:
+        """Spectral coefficients the file stores: an untiled map's ``coef_count``; a tiled map's base
+        layer and every tile's own."""
+        if self.header.tiles is None:
+            return int(self.header.coef_count)
+        return int(self.header.coef_count) + _tile_coefficients(self.header)
 
     def info(self) -> dict[str, Any]:
         """Header, parameters and sizes as plain JSON-ready data."""
@@ -237,6 +278,11 @@ class CompressedMap:
             "crs": (h.crs.get("wkt") or ("LAS GeoKeys" if h.crs.get("las_vlrs") else None)),
             "stats": h.stats,
         }
+        out["coefficients"] = self._coefficients()
+        if b"RESD" in self._blobs and h.tiles is None:
+            # Rate control may code the map as its residual layer alone, the coefficients all 0 at a
+            # huge step: say so rather than state that step (decoding the coefficients, not the map).
+            out["spectrum_empty"] = self._spectrum_empty()
         if b"RESD" in self._blobs:  # an untiled file's residual layer, or a tiled one's map residual
             out["residual_layout"] = layout_of(self._blobs[b"RESD"])
         if h.tiles is not None:
@@ -251,6 +297,21 @@ class CompressedMap:
                           for k in map(int, np.flatnonzero(index.cells))],
             }
         return out
+
+
+def _tile_coefficients(header: Any) -> int:
+    """Coefficients a tiled map's tiles store: each tile with a ``COEF`` section keeps every
+    coefficient of its coded window below the cutoff (docs/format.md, *Decoding a tile*)."""
+    from . import spectrum, tiles
+
+    index = header.tiles
+    total = 0
+    for k in map(int, np.flatnonzero(index.cells)):
+        if b"COEF" not in index.sections.get(k, {}):
+            continue
+        w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)
+        total += spectrum.kept_count(spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0)), header.params.cutoff)
+    return total
 
 
 def _base_extent(g: Grid, size: int, cutoff: float, cycles: int) -> int:
@@ -360,7 +421,7 @@ def open(source: str | os.PathLike[str] | BinaryIO | bytes, mode: str = "r", *, 
         return CompressedMap(remote, str(source), max_bytes=max_bytes, max_cells=max_cells)
     path = Path(source)
     if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
+        raise MissingFileError(path)
     fh = path.open("rb")
     try:
         size = os.fstat(fh.fileno()).st_size
@@ -380,7 +441,7 @@ def is_dftpc(path: str | os.PathLike[str]) -> bool:
     """Whether ``path`` is a ``.dftpc`` file (by its magic bytes, not its name)."""
     path = Path(path)
     if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
+        raise MissingFileError(path)
     with path.open("rb") as fh:
         return fh.read(len(MAGIC)) == MAGIC
 

@@ -387,7 +387,7 @@ def hausdorff_distance(a: Any, b: Any) -> float:
 
 def evaluate(original: Any, rebuilt: Any, *, compressed_bytes: int | None = None,
              peak: float | None = None, original_tree: cKDTree | None = None,
-             interpolator: XYInterpolator | None = None) -> dict[str, float]:
+             interpolator: XYInterpolator | None = None, vertical_only: bool = False) -> dict[str, float]:
     """Every metric of this module at once, each nearest-neighbour search done once.
 
     Parameters
@@ -404,6 +404,10 @@ def evaluate(original: Any, rebuilt: Any, *, compressed_bytes: int | None = None
         Tree on ``original``, reused across calls with the same original.
     interpolator : XYInterpolator, keyword-only, optional
         From :func:`xy_interpolator`, reused while the rebuilt x, y are the same.
+    vertical_only : bool, keyword-only
+        Only the metrics that compare heights at the same x, y (``paper_rmse_m`` and the
+        ``vertical_*``): where x and y are degrees of longitude and latitude and z metres, a
+        3D distance (D1, PSNR, Chamfer, Hausdorff) adds degrees to metres and means nothing.
 
     Returns
     -------
@@ -419,6 +423,15 @@ def evaluate(original: Any, rebuilt: Any, *, compressed_bytes: int | None = None
     rebuilt = _cloud(rebuilt, "rebuilt")
     if interpolator is None:
         interpolator = xy_interpolator(rebuilt, original)
+    if vertical_only:
+        vert = vertical_errors(original, rebuilt, interpolator=interpolator)
+        out = {"points_original": int(original.shape[0]), "points_rebuilt": int(rebuilt.shape[0]),
+               "paper_rmse_m": paper_rmse(original, rebuilt, interpolator=interpolator),
+               "vertical_rmse_m": vert.rmse, "vertical_max_m": vert.max, "vertical_p95_m": vert.p95}
+        if compressed_bytes is not None:
+            out["bytes"] = int(compressed_bytes)
+            out["bits_per_point"] = bits_per_point(compressed_bytes, original.shape[0])
+        return out
     if original_tree is None:
         original_tree = build_tree(original)
     forward = nearest_distances(original, rebuilt)

@@ -84,17 +84,23 @@ def _significant(value: float, digits: int = DIGITS) -> str:
 
 
 def length(value: float | None, unit: str = "m", *, digits: int = DIGITS) -> str:
-    """``value`` (in ``unit``) with a few significant digits, metres scaled to µm, mm, m or km.
+    """``value`` (in ``unit``) with a few significant digits, metres scaled to nm, µm, mm, m or km.
+
+    The unit is chosen after rounding, so 0.9999 mm reads 1.00 mm, not 1,000 µm.
 
     >>> length(0.0817469), length(18473.3), length(0.4259984472286371), length(0.0078, "°")
     ('81.7 mm', '18.5 km', '0.426 m', '0.00780°')
     """
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "n/a"
+    if unit == "m" and value == 0:
+        return "0 m"
     if unit == "m":
-        size = abs(value)
-        for scale, symbol in ((1e3, "km"), (1.0, "m"), (1e-3, "mm"), (1e-6, "µm")):
-            if size >= scale or symbol == "µm":
+        size = float(f"{abs(value):.{digits - 1}e}") if math.isfinite(value) else abs(value)
+        if size != abs(value) and any(abs(value) < edge <= size for edge in (1e-6, 1e-3, 1.0)):
+            value = math.copysign(size, value)  # rounded up to the next unit: print the rounded value
+        for scale, symbol in ((1e3, "km"), (1.0, "m"), (1e-3, "mm"), (1e-6, "µm"), (1e-9, "nm")):
+            if size >= scale or symbol == "nm":
                 if symbol == "km" and size < 1e4:
                     continue  # up to 10 km in metres: 1,234 m reads better than 1.23 km
                 if symbol == "mm" and size >= SMALLEST_IN_METRES:

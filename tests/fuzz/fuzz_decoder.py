@@ -403,12 +403,12 @@ class Mutator:
             key = rng.choice(sorted(fields))
             if choice == 1:
                 return craft.with_stat(data, **{key: None})
-            integer = key in ("coef_count", "cells_interpolated")
+            integer = key in ("coef_count", "cells_interpolated", "source_dtype")
             value = rng.choice(_INTS + ((1 << 64), (1 << 70))) if integer else rng.choice(_FLOATS)
             return craft.with_stat(data, **{key: value})
         if choice == 2:  # a later version's field, before or after the others
-            record = (bytes([rng.randrange(6, 128)]) + struct.pack("<f", rng.random())
-                      if rng.random() < 0.5 else bytes([rng.randrange(130, 256)]) + craft.leb128(rng.choice(_INTS)))
+            record = (bytes([rng.randrange(9, 128)]) + struct.pack("<f", rng.random())
+                      if rng.random() < 0.5 else bytes([rng.randrange(131, 256)]) + craft.leb128(rng.choice(_INTS)))
             stat = raw[:1] + record + raw[1:] if rng.random() < 0.5 else raw + record
         else:  # an integer record whose LEB128 is cut short or too wide
             tails = (b"", b"\xff", b"\xff" * 10, b"\x80" * 9 + b"\x02", b"\x80" * 9 + b"\x01")

@@ -117,6 +117,16 @@ def seed_files() -> dict[str, bytes]:
         out["with_crs"] = dftpcc.compress(
             points[::4], resolution=2.0, crs={"wkt": 'LOCAL_CS["rover frame"]', "las_vlrs": [
                 {"record_id": 34735, "description": "GeoKeyDirectoryTag", "data": "AQABAAAAAQA="}]})
+        # An int16 raster's own grid: STAT records its sample type and nodata value.
+        from dataclasses import replace
+
+        from dftpcc.dem import RasterSource
+        from dftpcc.encoder import encode_dem, grid_points
+        from dftpcc.params import make_params
+
+        params = make_params(resolution=2.0, cutoff=0.8)
+        dem = replace(grid_points(points[::4], params), source=RasterSource("int16", -32768.0))
+        out["int16_raster"] = encode_dem(dem, params)
     return out
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -29,11 +29,14 @@ Row = dict[str, Any]
 
 def compare_points(points: np.ndarray, *, cutoffs: Sequence[float] = COMPARE_CUTOFFS,
                    resolution: float | str = "auto", profile: str = "compact", dem: DEM | None = None,
+                   crs: dict[str, Any] | None = None, on_stage: Callable[..., None] | None = None,
                    **options: Any) -> tuple[DEM, dict[float, DEM], dict[float, Row]]:
     """The original DEM and the DEMs a decoder rebuilds at each cutoff.
 
     ``dem``: the map to code when the caller has it (:func:`dftpcc.files.read_dem`);
-    default ``points`` gridded at ``resolution``.
+    default ``points`` gridded at ``resolution``. ``crs``: the source's, which the file
+    carries (several hundred bytes of WKT): the sizes are those of the files ``compress`` writes.
+    ``on_stage("code", done)`` is called with the fraction of cutoffs done.
 
     Returns
     -------
@@ -50,8 +53,10 @@ def compare_points(points: np.ndarray, *, cutoffs: Sequence[float] = COMPARE_CUT
     rebuilt: dict[float, DEM] = {}
     figures: dict[float, Row] = {}
     interpolator = None
-    for cutoff in cutoffs:
-        data = encode_dem(dem, params.replace(cutoff=float(cutoff)), point_count=int(points.shape[0]))
+    for k, cutoff in enumerate(cutoffs):
+        if on_stage is not None:
+            on_stage("code", k / max(len(cutoffs), 1))
+        data = encode_dem(dem, params.replace(cutoff=float(cutoff)), point_count=int(points.shape[0]), crs=crs)
         rebuilt[cutoff] = open_map(data).read_dem()
         cloud = dem_to_points(rebuilt[cutoff])
         interpolator = interpolator or metrics.xy_interpolator(cloud, points)
@@ -64,23 +69,28 @@ def compare_points(points: np.ndarray, *, cutoffs: Sequence[float] = COMPARE_CUT
 def compare_file(path: str | os.PathLike[str], *, out: str | os.PathLike[str],
                  cutoffs: Sequence[float] = COMPARE_CUTOFFS, resolution: float | str = "auto",
                  profile: str = "compact", classes: Sequence[int] | None = None,
-                 label: str | None = None, **options: Any) -> Path:
+                 label: str | None = None, on_stage: Callable[..., None] | None = None, **options: Any) -> Path:
     """Fig. 6 of the paper for one file: ``<out>/<name>_compare_<profile>.png``.
 
     Original and rebuilt maps side by side (hillshaded height colour), a
     close-up window, and the error of each rebuilt DEM against the original
-    one (metres). Needs matplotlib.
+    one (metres). Needs matplotlib. ``on_stage`` is called with each stage's name as it starts
+    (``read``, ``code``, ``draw``).
     """
     require_matplotlib()
     name = label or Path(path).stem
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     params = make_params(resolution=resolution, profile=profile, **options)
+    stage = on_stage or (lambda *_: None)
+    stage("read")
     dem, _, crs = read_dem(path, params, classes=classes)  # what compress codes: a GeoTIFF on its own pixels
     units = units_of(crs)
     cloud = read(path, classes=classes)
+    stage("code")
     original, rebuilt, figures = compare_points(cloud.points, cutoffs=cutoffs, resolution=resolution, dem=dem,
-                                                profile=profile, **options)
+                                                crs=crs, profile=profile, on_stage=stage, **options)
+    stage("draw")
     return plot_compare(original, rebuilt, folder / f"{name}_compare_{profile}.png", figures=figures, units=units,
                         title=f"{name}: {cloud.points.shape[0]:,} points, "
                               f"{length(original.grid.resolution, units.horizontal)} cells, {profile} profile")

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import os
 import warnings
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from .. import metrics
 from ..errors import InputMismatchWarning, InvalidInputError
 from ..io import read
 from ..mapfile import is_dftpc
 from ..mapfile import open as open_map
+from ..units import units_of
 
 __all__ = ["evaluate_files"]
 
@@ -18,7 +19,8 @@ Row = dict[str, Any]
 
 
 def evaluate_files(original: str | os.PathLike[str], candidate: str | os.PathLike[str], *,
-                   classes: Sequence[int] | None = None, max_cells: int | None = None) -> Row:
+                   classes: Sequence[int] | None = None, max_cells: int | None = None,
+                   on_stage: Callable[..., None] | None = None) -> Row:
     """Every metric of :func:`dftpcc.metrics.evaluate` between two files.
 
     Parameters
@@ -32,6 +34,8 @@ def evaluate_files(original: str | os.PathLike[str], candidate: str | os.PathLik
         LAS/LAZ classes of the original to keep (use what was compressed).
     max_cells : int, optional
         Largest grid a ``.dftpc`` candidate may ask for (see :func:`dftpcc.open`).
+    on_stage : callable, optional
+        Called with each stage's name as it starts (``read``, ``decode``, ``measure``).
 
     Returns
     -------
@@ -45,9 +49,18 @@ def evaluate_files(original: str | os.PathLike[str], candidate: str | os.PathLik
                                 f"comes first (dftpcc evaluate ORIGINAL COMPRESSED_OR_REBUILT); swap them")
     if is_dftpc(original):
         raise InvalidInputError(f"{original}: the original must be a point cloud, not a .dftpc file")
-    ref = read(original, classes=classes).points
+    stage = on_stage or (lambda *_: None)
+    stage("read")
+    cloud = read(original, classes=classes)
+    ref = cloud.points
     extra: Row = {"original": str(original), "candidate": str(candidate)}
+    # x, y in degrees and z in metres: only heights compared at the same x, y mean something.
+    geographic = units_of(cloud.crs).geographic
+    if geographic:
+        extra["note"] = ("x and y are degrees of longitude and latitude, z metres: only vertical errors are "
+                         "reported (D1, PSNR, Chamfer and Hausdorff would add degrees to metres)")
     if is_dftpc(candidate):
+        stage("decode")
         with open_map(candidate, max_cells=max_cells) as cmap:
             rebuilt = cmap.read_points()
             size = cmap.size
@@ -58,7 +71,10 @@ def evaluate_files(original: str | os.PathLike[str], candidate: str | os.PathLik
                 + (" with these classes" if classes else "") + ": the errors are measured against other points "
                 "than were compressed (give the --classes the map was compressed with)", InputMismatchWarning,
                 stacklevel=2)
-        result = metrics.evaluate(ref, rebuilt, compressed_bytes=size)
+        stage("measure")
+        result = metrics.evaluate(ref, rebuilt, compressed_bytes=size, vertical_only=geographic)
     else:
-        result = metrics.evaluate(ref, read(candidate).points)
+        rebuilt = read(candidate).points
+        stage("measure")
+        result = metrics.evaluate(ref, rebuilt, vertical_only=geographic)
     return {**extra, **result}

@@ -67,6 +67,14 @@ def _save(fig: Any, path: str | os.PathLike[str], *, dpi: int = DPI) -> Path:
     return path
 
 
+#: Axis labels of the sweep's error columns (metres).
+ERROR_LABELS = {"paper_rmse_m": "RMSE, own-cell pairing (m)", "d1_rmse_m": "D1 point-to-point RMSE (m)",
+                "vertical_rmse_m": "vertical RMSE (m)", "dem_rmse_m": "DEM RMSE (m)", "chamfer_m": "Chamfer distance (m)",
+                "hausdorff_m": "Hausdorff distance (m)"}
+#: Errors of the original points, which gridding alone already makes (the floor line is drawn for them).
+FLOORED_ERRORS = ("paper_rmse_m", "vertical_rmse_m")
+
+
 def plot_sweep(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[str], *,
                rmse_key: str = SWEEP_RMSE_KEY, title: str | None = None) -> Path:
     """The paper's Fig. 5: bits per point and RMSE against the cutoff ratio, one line per terrain.
@@ -97,10 +105,15 @@ def plot_sweep(rows: Sequence[Mapping[str, Any]], path: str | os.PathLike[str], 
         res = float(mine[0]["resolution_m"])
         label = f"{name} ({res:g} m)"
         ax_bits.plot(fc, [float(r["bits_per_point"]) for r in mine], marker="o", ms=3, label=label)
-        ax_rmse.plot(fc, [float(r[rmse_key]) for r in mine], marker="o", ms=3, label=label)
+        (line,) = ax_rmse.plot(fc, [float(r[rmse_key]) for r in mine], marker="o", ms=3, label=label)
+        floor = float(mine[0].get("gridding_rmse_m") or 0.0)
+        if floor > 0 and rmse_key in FLOORED_ERRORS:
+            # What gridding alone costs, before any coding: an error at f_c 0 reaching it is not the codec's.
+            ax_rmse.axhline(floor, color=line.get_color(), ls="--", lw=1, label=f"{name}: gridding floor")
     ax_bits.set(xlabel="cutoff ratio $f_c$", ylabel="bits per point", yscale="log",
                 title="(a) size: compressed bits / original points")
-    ax_rmse.set(xlabel="cutoff ratio $f_c$", ylabel=f"{rmse_key.removesuffix('_m')} (m)", yscale="log",
+    ax_rmse.set(xlabel="cutoff ratio $f_c$", ylabel=ERROR_LABELS.get(rmse_key, rmse_key.replace("_", " ")),
+                yscale="log",
                 title="(b) error (paper's RMSE, own-cell pairing)" if rmse_key == SWEEP_RMSE_KEY else "(b) error")
     from matplotlib.ticker import FuncFormatter
 
@@ -222,9 +235,13 @@ def plot_compare(original: DEM, rebuilt: Mapping[float, DEM], path: str | os.Pat
     panels = [("original DEM", original.heights)] + [
         (_caption(fc, (figures or {}).get(fc)), rebuilt[fc].heights) for fc in cutoffs]
     inside = (slice(r0, r0 + size), slice(c0, c0 + size))
-    zw = original.heights[inside][mask[inside]]
-    # The close-up gets its own colour range (the original's, inside the box) to show detail.
+    # The close-up gets its own colour range to show detail: every panel's heights inside the box, so
+    # that no rebuilt height falls off the colour scale (clipped to black).
+    zw = np.concatenate([h[inside][mask[inside]] for _, h in panels])
     wmin, wmax = (float(zw.min()), float(zw.max())) if zw.size else (vmin, vmax)
+    # ... and the whole maps' range likewise.
+    zall = np.concatenate([h[mask] for _, h in panels])
+    vmin, vmax = float(zall.min()), float(zall.max())
     for col, (caption, heights) in enumerate(panels):
         ax = axes[0, col]
         ax.imshow(_shade(heights, mask, res, vmin, vmax), origin="lower", extent=extent, interpolation="nearest")
@@ -233,7 +250,14 @@ def plot_compare(original: DEM, rebuilt: Mapping[float, DEM], path: str | os.Pat
         close = axes[1, col]
         close.imshow(_shade(heights[inside], mask[inside], res, wmin, wmax), origin="lower", extent=zoom,
                      interpolation="nearest")
-        close.set_title(f"close-up (red box), height {wmin + grid.z0:.1f} .. {wmax + grid.z0:.1f} m", fontsize=9)
+        close.set_title("close-up (red box)", fontsize=9)
+    from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    for row, (lo, hi) in ((0, (vmin, vmax)), (1, (wmin, wmax))):
+        scale = ScalarMappable(Normalize(lo + grid.z0, hi + grid.z0), colormaps["gist_earth"])
+        fig.colorbar(scale, ax=list(axes[row, :]), shrink=0.8, label=f"height ({units.vertical})")
     info = axes[2, 0]
     info.axis("off")
     info.text(0.0, 1.0, _legend_text(original, cutoffs, figures, vmin, vmax, units), va="top", fontsize=8,

@@ -113,7 +113,7 @@ STAT_BINARY = 0x01
 STAT_FIELDS: dict[int, str] = {
     0: "dem_rmse_m", 1: "dem_max_error_m", 2: "gridding_rmse_m", 3: "vertical_rmse_m",
     4: "unrepresented_fraction", 5: "unrepresented_rmse_m", 6: "reloc_success_fraction",
-    7: "target_rmse_m", 128: "coef_count", 129: "cells_interpolated",
+    7: "target_rmse_m", 8: "source_nodata", 128: "coef_count", 129: "cells_interpolated", 130: "source_dtype",
 }
 _STAT_IDS = {name: i for i, name in STAT_FIELDS.items()}
 

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from .geotiff import dem_from_geotiff, read_raster_dem, write_geotiff
 
 __all__ = ["PointCloud", "Reader", "ChunkedCloud", "Format", "REGISTRY", "FORMATS", "CHUNKED_FORMATS",
-           "DEFAULT_CHUNK_POINTS", "format_of", "open_reader", "open_chunked", "check_chunkable", "read",
+           "DEFAULT_CHUNK_POINTS", "format_of", "sniff_format", "open_reader", "open_chunked", "check_chunkable", "read",
            "stored_point_count", "write", "write_dem", "write_geotiff", "read_raster_dem", "dem_from_geotiff", "atomic_write", "check_output"]
 
 #: A point writer: ``write(tmp_path, points (N, 3) float64, crs dict, format name)``.
@@ -98,12 +98,15 @@ REGISTRY: dict[str, Format] = {f.name: f for f in (
     Format("tif", (".tif", ".tiff"), "geotiff", "GeoTiffReader", dem_writer="write_geotiff",
            not_written="a GeoTIFF holds a DEM, not points: use write_geotiff"),
     Format("rosbag", (".bag", ".db3", ".mcap"), "rosbag", "BagReader",
-           not_written="ROS bags are read, not written by write(): a ROS 2 bag folder of the map is "
-                       "written by dftpcc.io.rosmap.write_map_bag (dftpcc decompress MAP out_bag/); "
+           not_written="ROS bags are read, not written as files: a ROS 2 bag of the map is a folder "
+                       "(decompress MAP out_bag/, or dftpcc.io.rosmap.write_map_bag); "
                        "write .ply, .pcd, .las or .npy", streams=True),
 )}
 #: Extension -> format name.
 FORMATS: dict[str, str] = {ext: f.name for f in REGISTRY.values() for ext in f.extensions}
+#: Extensions dftpcc writes (points or a DEM), sorted.
+WRITTEN_EXTENSIONS: tuple[str, ...] = tuple(sorted(ext for f in REGISTRY.values() if f.writer or f.dem_writer
+                                                   for ext in f.extensions))
 #: Formats read chunk by chunk from disk (:func:`open_chunked`).
 CHUNKED_FORMATS: tuple[str, ...] = tuple(name for name, f in REGISTRY.items() if f.streams)
 
@@ -128,8 +131,11 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_LAZY) | _MODULES)
 
 
-def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
+def format_of(path: str | os.PathLike[str], fmt: str | None = None, *, output: bool = False) -> str:
     """The format name of ``path``: ``fmt`` when given, else from its extension (a folder: a ROS 2 bag).
+
+    ``output``: ``path`` is to be written, so an unknown extension is answered with the
+    extensions dftpcc writes (not those it only reads, such as ``.drc`` or ``.bag``).
 
     Raises
     ------
@@ -145,10 +151,35 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None) -> str:
         return "rosbag"  # a ROS 2 bag is a folder
     ext = Path(path).suffix.lower()
     if ext not in FORMATS:
+        known = WRITTEN_EXTENSIONS if output else tuple(sorted(FORMATS))
+        bag = ", or a folder name ending in / for a ROS 2 bag" if output else ""
         raise UnsupportedFormatError(
             f"{path}: cannot tell the format from the extension {ext or '(none)'}; "
-            f"use one of {', '.join(sorted(FORMATS))} or name the format")
+            f"use one of {', '.join(known)}{bag}, or name the format (--format)")
     return FORMATS[ext]
+
+
+#: Leading bytes that name a format, for a stream without an extension (standard input).
+MAGIC_BYTES: tuple[tuple[bytes, str], ...] = (
+    (b"ply\n", "ply"), (b"ply\r\n", "ply"), (b"\x93NUMPY", "npy"), (b"DRACO", "drc"),
+    (b"II*\x00", "tif"), (b"MM\x00*", "tif"), (b"II+\x00", "tif"), (b"MM\x00+", "tif"),
+    (b"#ROSBAG", "rosbag"), (b"# .PCD", "pcd"), (b"VERSION", "pcd"),
+)
+#: Byte of a LAS header holding the point format id; LAZ sets its top bits (laszip's convention).
+_LAS_POINT_FORMAT_BYTE = 104
+_LAZ_BITS = 0xC0
+
+
+def sniff_format(head: bytes) -> str | None:
+    """The format a file's first bytes (at least 105 for LAS/LAZ) announce, or None (text, or unknown).
+
+    As GDAL and PDAL identify a file by its signature, not its name.
+    """
+    if head.startswith(b"LASF"):
+        if len(head) > _LAS_POINT_FORMAT_BYTE and head[_LAS_POINT_FORMAT_BYTE] & _LAZ_BITS:
+            return "laz"
+        return "las"
+    return next((fmt for magic, fmt in MAGIC_BYTES if head.startswith(magic)), None)
 
 
 def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
@@ -323,7 +354,7 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
     OSError
         The file system refused (permissions, disk full); the message names ``path``.
     """
-    fmt = format_of(path, format)
+    fmt = format_of(path, format, output=True)
     writer = REGISTRY[fmt].writer_function()
     points = np.asarray(points, dtype=np.float64)
     with writer_errors(path, fmt):
@@ -331,16 +362,17 @@ def write(path: str | os.PathLike[str], points: np.ndarray, *, crs: dict[str, An
 
 
 def write_dem(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | None = None,
-              format: str | None = None) -> None:  # noqa: A002
-    """Write a DEM to ``path`` in a raster format (GeoTIFF: :func:`~dftpcc.io.geotiff.write_geotiff`).
+              format: str | None = None, **options: Any) -> None:  # noqa: A002
+    """Write a DEM to ``path`` in a raster format (GeoTIFF: :func:`~dftpcc.io.geotiff.write_geotiff`,
+    which takes ``**options``: ``dtype``, ``nodata``, ``cog``).
 
     Raises
     ------
     UnsupportedFormatError
         A format that holds points, not a DEM.
     """
-    fmt = format_of(path, format)
+    fmt = format_of(path, format, output=True)
     entry = REGISTRY[fmt]
     if entry.dem_writer is None:
         raise UnsupportedFormatError(f"{path}: {fmt} files hold points, not a DEM: write points with write()")
-    getattr(entry.load(), entry.dem_writer)(path, dem, crs=crs)
+    getattr(entry.load(), entry.dem_writer)(path, dem, crs=crs, **options)

@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
-from ..errors import InvalidInputError
+from ..errors import InvalidInputError, advice
 
 __all__ = ["atomic_write", "atomic_write_all", "writer_errors", "check_output", "check_distinct"]
 
@@ -117,7 +117,8 @@ def check_output(path: str | os.PathLike[str], *, force: bool = False) -> Path:
         if not path.is_file():
             raise InvalidInputError(f"{path}: not a regular file; give the name of a file to write")
         if not path.stat().st_mode & 0o222 and not force:
-            raise InvalidInputError(f"{path}: the file is write-protected; use --force (force=True) to replace it")
+            raise InvalidInputError(f"{path}: the file is write-protected; use {advice('force=True', '--force')} "
+                                    f"to replace it")
     probe = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}"
     try:
         os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))

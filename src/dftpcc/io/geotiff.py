@@ -14,15 +14,17 @@ from typing import Any, ClassVar, Iterator
 
 import numpy as np
 import rasterio
+import rasterio.shutil
 from rasterio.io import MemoryFile
 from rasterio.transform import Affine
 
-from ..dem import DEM, Grid
-from ..errors import InvalidInputError
+from ..dem import DEM, Grid, RasterSource
+from ..errors import InvalidInputError, RasterTypeWarning
 from .atomic import atomic_write, writer_errors
 from .reader import Reader
 
-__all__ = ["GeoTiffReader", "read_raster_dem", "pixel_centres", "dem_from_geotiff", "write_geotiff", "SQUARE_TOLERANCE"]
+__all__ = ["GeoTiffReader", "read_raster_dem", "pixel_centres", "dem_from_geotiff", "write_geotiff", "SQUARE_TOLERANCE",
+           "raster_source", "output_type", "ROUNDS_BACK_BELOW"]
 
 #: Pixels whose sides differ by less than this fraction count as square.
 SQUARE_TOLERANCE = 1e-9
@@ -83,6 +85,7 @@ def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]
         resolution), or no valid pixel.
     """
     heights, valid, t, crs = read_raster_dem(path)
+    source = raster_source(path)
     if t.b != 0 or t.d != 0 or t.a <= 0:
         raise InvalidInputError(f"{path}: pixels are rotated or flipped; give a --resolution to grid its points")
     if not valid.any():
@@ -97,7 +100,86 @@ def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]
     # Planetary DEMs often have slightly (or very) non-square pixels: keep both spacings.
     res_y = abs(t.e) if abs(abs(t.e) - t.a) > SQUARE_TOLERANCE * t.a else None
     grid = Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=rows, cols=cols, resolution_y=res_y)
-    return DEM(grid=grid, heights=np.where(m, h - z0, 0.0), mask=m, gridding_rmse=0.0), crs
+    return DEM(grid=grid, heights=np.where(m, h - z0, 0.0), mask=m, gridding_rmse=0.0, source=source), crs
+
+
+def raster_source(path: str | os.PathLike[str]) -> RasterSource:
+    """The sample type and nodata value of a GeoTIFF's first band (its header only)."""
+    with _raster_errors(path), rasterio.open(path) as src:
+        nodata = src.nodata
+        return RasterSource(str(src.dtypes[0]), None if nodata is None else float(nodata))
+
+
+#: An integer raster coded within less than this many units of height rounds back to its values exactly.
+ROUNDS_BACK_BELOW = 0.5
+
+
+def output_type(stats: dict[str, Any], *, dtype: str | None = None, nodata: float | None = None,
+                bound_holds: bool = True) -> tuple[str, float, str | None]:
+    """The sample type and nodata value a rebuilt DEM is written with, and why not the source's.
+
+    By default the source raster's (``STAT`` ``source_dtype``, ``source_nodata``; float32 and NaN
+    for a point cloud or a float32 raster). An integer source is written as integers only where the
+    file's maximum error (``dem_max_error_m``) is below :data:`ROUNDS_BACK_BELOW`, so that rounding
+    gives back its values exactly, and ``bound_holds`` (the map is decoded whole at its own cutoff);
+    otherwise float32, keeping its nodata value.
+
+    Parameters
+    ----------
+    stats : dict
+        The file's ``STAT`` figures (``CompressedMap.header.stats``).
+    dtype, nodata : optional
+        What the user asked for instead (``--dtype``, ``--nodata``): an integer type rounds the heights.
+    bound_holds : bool
+        False when the map is decoded at another cutoff or from a prefix of the file.
+
+    Returns
+    -------
+    dtype : str
+    nodata : float
+        NaN for a float type without a nodata value of its own.
+    note : str or None
+        Why the source's type was not kept, to tell the user; None when it was (or nothing was asked).
+    """
+    source = RasterSource.from_stats(stats)
+    note = None
+    if dtype is not None:
+        try:
+            dtype = np.dtype(dtype).name
+        except TypeError:
+            raise InvalidInputError(f"unknown sample type {dtype!r}; use one of int8, uint8, int16, uint16, "
+                                    f"int32, uint32, float32, float64") from None
+        if dtype not in ("int8", "uint8", "int16", "uint16", "int32", "uint32", "float32", "float64"):
+            raise InvalidInputError(f"a GeoTIFF DEM is written as int8, uint8, int16, uint16, int32, uint32, "
+                                    f"float32 or float64, not {dtype}")
+    elif source is not None and np.dtype(source.dtype).kind in "iu":
+        error = stats.get("dem_max_error_m")
+        if not bound_holds:
+            dtype, note = "float32", (f"written as float32, not as the source's {source.dtype}: decoded at another "
+                                      f"cutoff or from part of the file, its errors are not the file's bound "
+                                      f"(--dtype {source.dtype} rounds anyway)")
+        elif error is None or error >= ROUNDS_BACK_BELOW:
+            dtype, note = "float32", (f"written as float32, not as the source's {source.dtype}: the map's max error "
+                                      f"{error:.3g} is not below half a unit, so rounding would not give back the "
+                                      f"source's values (--dtype {source.dtype} rounds anyway)")
+        else:
+            dtype = source.dtype
+    else:
+        dtype = source.dtype if source is not None else "float32"
+    if nodata is None:
+        if source is not None and source.nodata is not None:
+            nodata = source.nodata
+        elif np.dtype(dtype).kind in "iu":  # an integer type has no NaN: its most negative (or largest) value
+            info = np.iinfo(dtype)
+            nodata = float(info.min if np.dtype(dtype).kind == "i" else info.max)
+        else:
+            nodata = float("nan")
+    if np.dtype(dtype).kind in "iu":
+        info = np.iinfo(dtype)
+        if not (math.isfinite(nodata) and nodata == int(nodata) and info.min <= nodata <= info.max):
+            raise InvalidInputError(f"nodata {nodata:g} is not a value of {dtype}; give one (--nodata)")
+    return dtype, float(nodata), note
+
 
 
 class GeoTiffReader(Reader):
@@ -131,25 +213,53 @@ class GeoTiffReader(Reader):
 #: How a GeoTIFF output is laid out and compressed by default: tiled, DEFLATE with the
 #: floating-point predictor (GDAL's PREDICTOR=3), which GIS tools read everywhere.
 GEOTIFF_CREATION = {"tiled": True, "blockxsize": 256, "blockysize": 256, "compress": "deflate", "predictor": 3}
+#: GDAL's PREDICTOR values: horizontal differencing (integers) and floating point.
+INTEGER_PREDICTOR, FLOAT_PREDICTOR = 2, 3
+
+
+def _samples(dem: DEM, dtype: str, nodata: float) -> np.ndarray:
+    """The DEM's heights above its datum as ``dtype`` samples, empty cells ``nodata``."""
+    values = dem.heights + dem.grid.z0
+    kind = np.dtype(dtype).kind
+    if kind in "iu":
+        values = np.rint(values)
+        info = np.iinfo(dtype)
+        occupied = values[dem.mask]
+        if occupied.size and (occupied.min() < info.min or occupied.max() > info.max):
+            raise InvalidInputError(f"heights {occupied.min():g} to {occupied.max():g} do not fit in {dtype} "
+                                    f"({info.min} to {info.max}); choose another --dtype")
+    else:
+        occupied = values[dem.mask].astype(dtype)
+    if not math.isnan(nodata) and np.any(occupied == np.asarray(nodata, dtype=dtype)):
+        raise InvalidInputError(f"a rebuilt height equals the nodata value {nodata:g}, which would hide it; "
+                                f"choose another --nodata")
+    out = np.full(dem.heights.shape, nodata, dtype=dtype)
+    out[dem.mask] = values[dem.mask].astype(dtype)
+    return out
 
 
 def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any] | None = None,
-                  creation: dict[str, Any] | None = None) -> None:
-    """Write a DEM as a float32 GeoTIFF (north-up), empty cells as nodata (NaN).
+                  creation: dict[str, Any] | None = None, dtype: str = "float32", nodata: float = float("nan"),
+                  cog: bool = False) -> None:
+    """Write a DEM as a GeoTIFF (north-up), empty cells as nodata.
 
     Heights are written in metres above the DEM's datum (``grid.z0`` added back).
     ``creation``: GDAL creation options (default :data:`GEOTIFF_CREATION`; ``{}``
     for an uncompressed strip layout); tiles larger than the raster are left out.
+    ``dtype`` and ``nodata``: the sample type (an integer type rounds the heights to
+    the nearest unit) and the value of empty cells (see :func:`output_type`).
+    ``cog``: a Cloud Optimized GeoTIFF (GDAL's COG driver).
 
     Raises
     ------
     InvalidInputError
-        A CRS GDAL cannot parse, a missing output folder.
+        A CRS GDAL cannot parse, a missing output folder; heights ``dtype`` cannot hold, or a
+        rebuilt height equal to ``nodata``.
     OSError
         The file system refused (permissions, disk full), naming ``path``.
     """
     grid: Grid = dem.grid
-    heights = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
+    heights = _samples(dem, dtype, nodata)[::-1]
     c, s = math.cos(grid.angle), math.sin(grid.angle)
     r, dy = grid.resolution, grid.dy
     # Row 0 of the file is the last grid row (largest v): flip v.
@@ -160,14 +270,23 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
     options = dict(GEOTIFF_CREATION if creation is None else creation)
     if options.get("tiled") and min(grid.rows, grid.cols) < options.get("blockxsize", 256):
         options = {k: v for k, v in options.items() if k not in ("tiled", "blockxsize", "blockysize")}
+    if options.get("predictor") == FLOAT_PREDICTOR and np.dtype(dtype).kind in "iu":
+        options["predictor"] = INTEGER_PREDICTOR  # the floating-point predictor is for float samples only
 
     def _write(tmp: Path) -> None:
         # GDAL encodes in memory and Python writes the bytes: a full disk is then an OSError with its
         # errno, not lines of libtiff text on stderr and an exception that says "see previous".
         with MemoryFile() as mem:
-            with mem.open(driver="GTiff", height=grid.rows, width=grid.cols, count=1, dtype="float32",
-                          nodata=float("nan"), transform=transform, crs=wkt or None, **options) as dst:
+            with mem.open(driver="GTiff", height=grid.rows, width=grid.cols, count=1, dtype=dtype,
+                          nodata=nodata, transform=transform, crs=wkt or None, **options) as dst:
                 dst.write(heights, 1)
+            if cog:
+                with MemoryFile() as out, mem.open() as src:
+                    rasterio.shutil.copy(src, out.name, driver="COG", COMPRESS="DEFLATE",
+                                         PREDICTOR=str(options.get("predictor", INTEGER_PREDICTOR)))
+                    with open(tmp, "wb") as fh:
+                        fh.write(out.getbuffer())
+                return
             with open(tmp, "wb") as fh:
                 fh.write(mem.getbuffer())
 

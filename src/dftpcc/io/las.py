@@ -17,13 +17,17 @@ from laspy.vlrs.vlr import VLR
 
 from .reader import Reader
 
-__all__ = ["LasReader", "write_las", "LAS_SCALE"]
+__all__ = ["LasReader", "write_las", "las_scales", "LAS_SCALE", "LAS_SCALE_DEGREES"]
 
 #: LAS VLRs that carry georeferencing (LASF_Projection).
 _LAS_CRS_USER = "LASF_Projection"
 _WKT_RECORD = 2112
-#: LAS output stores coordinates as integers of this many metres.
+#: LAS output stores coordinates as integers of this many metres (or of the CRS's linear unit).
 LAS_SCALE = 0.001
+#: ... and longitude and latitude as integers of this many degrees (about 1.1 mm of latitude).
+LAS_SCALE_DEGREES = 1e-8
+#: The largest integer a LAS coordinate record holds (int32): scales grow tenfold until the extent fits.
+_LAS_INT_MAX = 2**31 - 1
 #: The classification code of what dftpcc writes: a terrain model is ground.
 GROUND = 2
 
@@ -66,9 +70,24 @@ def las_crs(records: Sequence[Any]) -> dict[str, Any]:
     return {"wkt": wkt, "las_vlrs": vlrs} if vlrs else {}
 
 
-def las_header(crs: dict[str, Any], offsets: np.ndarray) -> laspy.LasHeader:
+def las_scales(crs: dict[str, Any], low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """x, y, z scales for points from ``low`` to ``high``, chosen as PDAL's ``scale auto`` does:
+    the CRS's units (:data:`LAS_SCALE_DEGREES` for longitude and latitude, :data:`LAS_SCALE` of a
+    metre or the CRS's linear unit otherwise), ten times coarser as often as the extent from the
+    offset (``low``) needs to fit LAS's 32-bit integers."""
+    from ..units import units_of
+
+    scales = np.array([LAS_SCALE_DEGREES if units_of(crs).geographic else LAS_SCALE] * 2 + [LAS_SCALE])
+    extent = np.maximum(np.asarray(high, dtype=float) - np.asarray(low, dtype=float), 0.0)
+    while np.any(extent / scales > _LAS_INT_MAX):
+        scales = np.where(extent / scales > _LAS_INT_MAX, scales * 10, scales)
+    return scales
+
+
+def las_header(crs: dict[str, Any], offsets: np.ndarray, *, high: np.ndarray | None = None) -> laspy.LasHeader:
     """The header dftpcc writes: the CRS's LAS records as they came (a WKT alone makes LAS 1.4,
-    point format 6, which requires WKT; GeoTIFF keys LAS 1.2), :data:`LAS_SCALE` metres, ``offsets``."""
+    point format 6, which requires WKT; GeoTIFF keys LAS 1.2), ``offsets``, and the scales of
+    :func:`las_scales` for points up to ``high`` (default: the units' scales)."""
     vlrs = [VLR(user_id=_LAS_CRS_USER, record_id=v["record_id"], description=v.get("description", ""),
                 record_data=base64.b64decode(v["data"])) for v in crs.get("las_vlrs", [])]
     has_wkt = any(v.record_id == _WKT_RECORD for v in vlrs)
@@ -81,18 +100,20 @@ def las_header(crs: dict[str, Any], offsets: np.ndarray) -> laspy.LasHeader:
     if has_wkt:
         header.global_encoding.wkt = True
     header.vlrs.extend(vlrs)
-    header.scales = np.array([LAS_SCALE] * 3)
+    header.scales = las_scales(crs, offsets, offsets if high is None else high)
     header.offsets = np.asarray(offsets, dtype=float)
     return header
 
 
 def write_las(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> None:
-    """Write ``points`` (metres) as LAS, or LAZ when ``fmt`` is ``laz``, at :data:`LAS_SCALE` metres.
+    """Write ``points`` as LAS, or LAZ when ``fmt`` is ``laz``, at the scales of :func:`las_scales`
+    (millimetres of a projected map, 1e-8 degrees of a geographic one).
 
     The CRS's LAS records go back as they came; a WKT alone makes a LAS 1.4
     file (point format 6, which requires WKT); GeoTIFF keys a LAS 1.2 file.
     """
-    header = las_header(crs, np.floor(points.min(axis=0)) if points.size else np.zeros(3))
+    low = np.floor(points.min(axis=0)) if points.size else np.zeros(3)
+    header = las_header(crs, low, high=points.max(axis=0) if points.size else None)
     las = laspy.LasData(header)
     las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
     las.classification = np.full(points.shape[0], GROUND, dtype=np.uint8)

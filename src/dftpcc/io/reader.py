@@ -16,9 +16,9 @@ from typing import Any, ClassVar, Iterator, Sequence
 import numpy as np
 
 from ..dem import nonfinite_error
-from ..errors import InvalidInputError, MissingDependencyError
+from ..errors import InvalidInputError, MissingDependencyError, MissingFileError
 
-__all__ = ["PointCloud", "Reader", "DEFAULT_CHUNK_POINTS", "xyz_columns"]
+__all__ = ["PointCloud", "Reader", "DEFAULT_CHUNK_POINTS", "xyz_columns", "crs_wkt", "parse_crs"]
 
 #: Points per chunk unless told otherwise (about 24 MB of float64 x, y, z).
 DEFAULT_CHUNK_POINTS = 1_000_000
@@ -46,6 +46,41 @@ class PointCloud:
 
     points: np.ndarray
     crs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def crs_wkt(self) -> str | None:
+        """The CRS as WKT (what GDAL, PDAL and pyproj take), or None when the file had none."""
+        return crs_wkt(self.crs)
+
+    def parse_crs(self) -> Any:
+        """The CRS as a ``rasterio.crs.CRS`` (as laspy's ``header.parse_crs()``), or None."""
+        return parse_crs(self.crs)
+
+    def __repr__(self) -> str:
+        wkt = self.crs_wkt
+        crs = "no CRS" if not self.crs else f"CRS {wkt[:40]!r}..." if wkt else "LAS GeoKeys CRS"
+        return f"<PointCloud of {self.points.shape[0]:,} points, {crs}>"
+
+
+def crs_wkt(crs: dict[str, Any] | None) -> str | None:
+    """The WKT of a CRS dict ``{"wkt": ..., "las_vlrs": [...]}``, or None when it has none (no CRS, or
+    LAS GeoKeys only: those are written back to LAS byte for byte, not parsed)."""
+    return str(crs["wkt"]) if crs and crs.get("wkt") else None
+
+
+def parse_crs(crs: dict[str, Any] | None) -> Any:
+    """A CRS dict as a ``rasterio.crs.CRS`` (rasterio is a dependency; ``pyproj.CRS(result.to_wkt())``
+    converts it), or None when there is none or GDAL cannot read it."""
+    from rasterio.crs import CRS
+    from rasterio.errors import CRSError
+
+    wkt = crs_wkt(crs)
+    if wkt is None:
+        return None
+    try:
+        return CRS.from_wkt(wkt)
+    except CRSError:
+        return None
 
 
 def xyz_columns(columns: Sequence[np.ndarray], start: int = 0, stop: int | None = None) -> np.ndarray:
@@ -135,7 +170,7 @@ class Reader:
     def _locate(self) -> None:
         """Refuse a source that is not there (a ROS bag also accepts a folder)."""
         if not self.path.is_file():
-            raise InvalidInputError(f"{self.path}: no such file")
+            raise MissingFileError(self.path)
 
     def _open(self) -> None:
         """Read the header: set :attr:`stored_points` and :attr:`crs` where the format has them."""

@@ -49,7 +49,7 @@ from typing import Any, Callable, ClassVar, Iterator, NamedTuple
 
 import numpy as np
 
-from ..errors import DftpccWarning, InvalidInputError, MissingDependencyError
+from ..errors import DftpccWarning, InvalidInputError, MissingDependencyError, MissingFileError
 from .reader import Reader
 
 __all__ = ["POINTCLOUD2", "POSE_TYPES", "MAP_FRAME_WORDS", "QUATERNION_TOLERANCE", "BagReader", "PoseStream",
@@ -145,7 +145,7 @@ def bag_folder(path: str | Path) -> Path:
                                     f"which {path.parent} lacks")
         return path.parent
     if not path.is_file():
-        raise InvalidInputError(f"{path}: no such file")
+        raise MissingFileError(path)
     return path
 
 

@@ -9,7 +9,8 @@ stamped ``stamp_ns`` in the map frame ``frame_id`` and offered as latched
 
 A ROS 2 bag is a folder: it is written into a temporary folder beside the
 output and renamed into place, so the output appears complete or not at all;
-an existing output is replaced only with ``force`` and only if it is a ROS 2
+an existing output is replaced as an existing file is (:func:`dftpcc.io.check_output`):
+always, unless it is write-protected (then only with ``force``), and only if it is a ROS 2
 bag itself (a folder holding ``metadata.yaml``), never another folder.
 Writing needs the optional ``rosbags`` package (``pip install 'dftpcc[ros]'``).
 
@@ -25,21 +26,23 @@ read in C order. Empty cells are NaN, grid_map's "no data".
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
 import secrets
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
 from ..dem import DEM
-from ..errors import InvalidInputError, MissingDependencyError
+from ..errors import InvalidInputError, MissingDependencyError, advice
 from ..rebuild import dem_to_points
 from .atomic import writer_errors
 from .rosbag import INSTALL_HINT, NS_PER_S
 
-__all__ = ["GRID_MAP_MSGS", "DEFAULT_TOPIC", "ELEVATION_LAYER", "FLOAT32_SAFE_M", "is_bag_output",
+__all__ = ["local_origin", "static_transform_message", "GRID_MAP_MSGS", "DEFAULT_TOPIC", "ELEVATION_LAYER", "FLOAT32_SAFE_M", "is_bag_output",
            "check_bag_output", "grid_map_topic", "map_typestore", "pointcloud2_message", "grid_map_message",
            "write_map_bag"]
 
@@ -99,8 +102,8 @@ def check_bag_output(path: str | os.PathLike[str], *, force: bool = False) -> Pa
     ------
     InvalidInputError
         A ``.bag`` name (dftpcc writes ROS 2 bags), a missing parent folder,
-        an existing path without ``force``, or an existing path that is not a
-        ROS 2 bag (never replaced, even with ``force``).
+        a write-protected bag without ``force`` (the rule for files), or an existing
+        path that is not a ROS 2 bag (never replaced, even with ``force``).
     OSError
         The parent folder refuses a new entry (naming ``path``).
     MissingDependencyError
@@ -108,8 +111,10 @@ def check_bag_output(path: str | os.PathLike[str], *, force: bool = False) -> Pa
     """
     path = Path(path)
     if path.suffix.lower() == ".bag":
-        raise InvalidInputError(f"{path}: dftpcc writes ROS 2 bags, which are folders: name it without .bag, "
-                                f"e.g. {path.with_suffix('')}/")
+        raise InvalidInputError(f"{path}: dftpcc writes ROS 2 bags, which are folders (ROS 1 reached its end of "
+                                f"life with Noetic in May 2025): name it without .bag, e.g. {path.with_suffix('')}/; "
+                                f"for ROS 1, convert that bag with rosbags-convert --src {path.with_suffix('')} "
+                                f"--dst {path}")
     _rosbags()
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.is_dir():
@@ -118,8 +123,9 @@ def check_bag_output(path: str | os.PathLike[str], *, force: bool = False) -> Pa
         if not (path.is_dir() and (path / _METADATA).is_file()):
             raise InvalidInputError(f"{path}: exists and is not a ROS 2 bag; dftpcc replaces only a bag folder "
                                     f"(with --force): choose a new name")
-        if not force:
-            raise InvalidInputError(f"{path}: the bag exists; use --force (force=True) to replace it")
+        if not path.stat().st_mode & 0o222 and not force:  # the rule for files (io.check_output)
+            raise InvalidInputError(f"{path}: the bag is write-protected; use {advice('force=True', '--force')} "
+                                    f"to replace it")
     probe = parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}"
     try:
         probe.mkdir()
@@ -226,9 +232,31 @@ def _latched() -> list[Any]:
                 avoid_ros_namespace_conventions=False)]
 
 
+def local_origin(dem: DEM) -> tuple[float, float, float]:
+    """A round origin near the middle of a map (whole metres): in a frame about it, FLOAT32 fields
+    keep a millimetre over :data:`FLOAT32_SAFE_M` each way."""
+    g = dem.grid
+    xs = (g.x0, g.x0 + g.cols * g.resolution)
+    ys = (g.y0, g.y0 + g.rows * g.dy)
+    return float(round(sum(xs) / 2)), float(round(sum(ys) / 2)), float(round(g.z0))
+
+
+def static_transform_message(store: Any, parent: str, child: str, origin: Sequence[float], *,
+                             stamp_ns: int = 0) -> Any:
+    """A ``tf2_msgs/msg/TFMessage`` placing frame ``child`` at ``origin`` (metres) in ``parent``, unrotated."""
+    t = store.types
+    transform = t["geometry_msgs/msg/Transform"](
+        translation=t["geometry_msgs/msg/Vector3"](x=float(origin[0]), y=float(origin[1]), z=float(origin[2])),
+        rotation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+    stamped = t["geometry_msgs/msg/TransformStamped"](header=_header(store, parent, stamp_ns), child_frame_id=child,
+                                                      transform=transform)
+    return t["tf2_msgs/msg/TFMessage"](transforms=[stamped])
+
+
 def write_map_bag(path: str | os.PathLike[str], dem: DEM, *, topic: str = DEFAULT_TOPIC,
                   grid_map: str | bool = False, frame_id: str = "map", stamp_ns: int = 0,
-                  storage: str = "sqlite3", force: bool = False) -> np.ndarray:
+                  storage: str = "sqlite3", force: bool = False, origin: Sequence[float] | None = None,
+                  local_frame: str | None = None) -> np.ndarray:
     """Write the rebuilt map as a ROS 2 bag folder: a PointCloud2 on ``topic``, a GridMap if asked.
 
     Parameters
@@ -248,6 +276,13 @@ def write_map_bag(path: str | os.PathLike[str], dem: DEM, *, topic: str = DEFAUL
         Their stamp and bag time, nanoseconds (default 0: a map has no time).
     storage : str
         ``sqlite3`` (ROS 2's default) or ``mcap``.
+    origin : (x, y, z), optional
+        Write the map in a local frame about this point (metres of ``frame_id``; see
+        :func:`local_origin`): coordinates minus ``origin``, in frame ``local_frame``
+        (default ``<frame_id>_local``), which a ``/tf_static`` transform places at ``origin``.
+        Far from their frame's origin (beyond :data:`FLOAT32_SAFE_M`) points need FLOAT64
+        fields to keep a millimetre; in a local frame FLOAT32 keeps it, as PCL's PointXYZ
+        and RViz expect.
     force : bool
         Replace an existing bag at ``path``.
 
@@ -270,9 +305,20 @@ def write_map_bag(path: str | os.PathLike[str], dem: DEM, *, topic: str = DEFAUL
     if storage not in plugins:
         raise InvalidInputError(f"unknown bag storage {storage!r}; known: {', '.join(plugins)}")
     store = map_typestore()
+    messages = []
+    if origin is not None:
+        ox, oy, oz = (float(v) for v in origin)
+        if not all(math.isfinite(v) for v in (ox, oy, oz)):
+            raise InvalidInputError(f"a local origin is three finite numbers, got {origin!r}")
+        child = local_frame or f"{frame_id}_local"
+        messages.append(("/tf_static", "tf2_msgs/msg/TFMessage",
+                         static_transform_message(store, frame_id, child, (ox, oy, oz), stamp_ns=stamp_ns)))
+        g = dem.grid
+        dem = dataclasses.replace(dem, grid=dataclasses.replace(g, x0=g.x0 - ox, y0=g.y0 - oy, z0=g.z0 - oz))
+        frame_id = child
     points = dem_to_points(dem)
-    messages = [(topic, "sensor_msgs/msg/PointCloud2",
-                 pointcloud2_message(store, points, frame_id=frame_id, stamp_ns=stamp_ns))]
+    messages.append((topic, "sensor_msgs/msg/PointCloud2",
+                     pointcloud2_message(store, points, frame_id=frame_id, stamp_ns=stamp_ns)))
     if grid_map:
         messages.append((grid_map if isinstance(grid_map, str) else grid_map_topic(topic), "grid_map_msgs/msg/GridMap",
                          grid_map_message(store, dem, frame_id=frame_id, stamp_ns=stamp_ns)))
