@@ -72,9 +72,10 @@ bench-borders: $(STAMP)
 digests: $(STAMP)
 	$(BIN)/python scripts/digests.py
 
-# The decoder fuzz campaign (100,000 inputs, ~2 min); the test suite runs a short one.
+# The decoder and link-frame fuzz campaigns (100,000 inputs each, ~2 min each); the test suite runs short ones.
 fuzz: $(STAMP)
 	$(BIN)/python tests/fuzz/fuzz_decoder.py --iterations 100000 --seed 11
+	$(BIN)/python tests/fuzz/fuzz_link.py --iterations 100000 --seed 11
 
 # Can the rover still localize? Simulated lidar scans registered (GICP) against maps rebuilt at each cutoff
 # and target on Mars Gale, Moon Kepler, Davos and the IGN field: rewrites docs/relocalization.md and
