@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,compare,ros,dask,zarr,slam,fast]"
+	$(BIN)/python -m pip install --quiet -e ".[test,compare,ros,ros2,dask,zarr,slam,fast]"
 	touch $(STAMP)
 
 demo: $(STAMP)
