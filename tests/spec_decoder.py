@@ -984,7 +984,9 @@ def link_plan(plan: bytes, base_size: int) -> dict:
     declared = zstandard.get_frame_parameters(plan).content_size
     if declared == zstandard.CONTENTSIZE_UNKNOWN:
         raise ValueError("plan's content size not stated")
-    body = _zstd(plan, min(declared, LINK_MAX_MAP + 64))
+    if declared > LINK_MAX_MAP + 64 or declared > max(1 << 20, 1024 * len(plan)):
+        raise ValueError("plan declares more than it may")
+    body = _zstd(plan, declared)
     if len(body) != declared:
         raise ValueError("plan shorter than declared")
     size, pos = _uleb(body, 0, "plan")

@@ -379,3 +379,16 @@ def test_payload_size_is_the_frame_size_minus_the_head(versions):
     with pytest.raises(FrameError) as refused:
         read_frame(frames[0], max_bytes=len(frames[0]) - 1)
     assert refused.value.cause == "oversized"
+
+
+def test_a_plan_declaring_far_more_than_its_bytes_is_refused_unread():
+    import zstandard
+
+    from dftpcc.link import read_plan
+
+    bomb = zstandard.ZstdCompressor(write_content_size=True).compress(bytes(50_000_000))
+    assert len(bomb) < 10_000
+    with pytest.raises(FrameError, match="declaring 50,000,000"):
+        read_plan(bomb, base_size=0)
+    with pytest.raises(ValueError, match="declares more"):
+        spec_decoder.link_plan(bomb, 0)

@@ -56,6 +56,11 @@ MAX_PARTS = 0xFFFF
 MAX_MAP_BYTES = 1 << 30
 #: The base check of a frame: the first bytes of the base's SHA-256.
 CHECK_BYTES = 8
+#: A plan may declare at most this many times its own bytes, or the floor if more, and never more than the largest
+#: map and its head: a frame of a few bytes must not make a receiver allocate a gigabyte.
+PLAN_MAX_RATIO = 1024
+PLAN_FLOOR_BYTES = 1 << 20
+PLAN_HEAD_BYTES = 64  # target size, SHA-256 and piece count
 #: zstd level of a plan: the head's section table and tile index compress well, and a plan is small.
 PLAN_ZSTD_LEVEL = 19
 #: Seconds a part sent and not confirmed waits before it is sent again.
@@ -309,8 +314,10 @@ def read_plan(plan: bytes, *, base_size: int, max_map_bytes: int = MAX_MAP_BYTES
     """
     try:
         declared = zstandard.frame_content_size(plan)
-        if declared < 0 or declared > max_map_bytes + 64:  # -1: not stated
-            raise FrameError("plan", f"a plan declaring {declared} bytes (stated, at most {max_map_bytes:,})")
+        allowed = min(max_map_bytes + PLAN_HEAD_BYTES, max(PLAN_FLOOR_BYTES, PLAN_MAX_RATIO * len(plan)))
+        if declared < 0 or declared > allowed:  # -1: not stated
+            raise FrameError("plan", f"a plan of {len(plan):,} bytes declaring {declared:,} (stated, at most "
+                                     f"{allowed:,})")
         body = zstandard.ZstdDecompressor().decompress(plan, max_output_size=declared) if declared else b""
     except zstandard.ZstdError as exc:
         raise FrameError("plan", f"a plan that does not decompress: {exc}") from None
