@@ -205,7 +205,13 @@ def test_the_budget_is_never_exceeded_on_the_link(drive_scans):
 
 
 def test_a_sixty_second_outage_is_recovered_from_the_confirmed_version(drive_scans):
-    down = Channel(seed=4, loss=0.05, outages=[(6.0, 66.0)])
+    class Logged(Channel):
+        def send(self, frame, now):
+            log.append((now, len(frame)))
+            super().send(frame, now)
+
+    log: list[tuple[float, int]] = []
+    down = Logged(seed=4, loss=0.05, outages=[(6.0, 66.0)])
     up = Channel(seed=5, outages=[(6.0, 66.0)])
     ends, grow, result = run_drive(drive_scans, downlink=down, uplink=up)
     assert_same_at_every_version(ends, grow, result)
@@ -215,6 +221,9 @@ def test_a_sixty_second_outage_is_recovered_from_the_confirmed_version(drive_sca
     assert before and after and after[-1] == ends.sender.version
     # The versions of the outage were skipped: the ground went from what it had to the newest.
     assert len(after) <= 3
+    # Silent for 12 s, the sender only probes: one frame per retry time, not the budget's 2 kB/s.
+    quiet = [n for t, n in log if 6.0 + 12.0 + 3.0 < t < 66.0]
+    assert ends.sender.counts["probes"] > 0 and len(quiet) <= (66.0 - 21.0) / 3.0 + 1, quiet
 
 
 def test_a_map_growing_faster_than_the_budget_skips_versions_and_ends_equal(drive_scans):

@@ -15,6 +15,7 @@ import collections
 import hashlib
 import json
 import logging
+import math
 import os
 import secrets
 import struct
@@ -65,6 +66,9 @@ PLAN_HEAD_BYTES = 64  # target size, SHA-256 and piece count
 PLAN_ZSTD_LEVEL = 19
 #: Seconds a part sent and not confirmed waits before it is sent again.
 DEFAULT_RETRY_S = 3.0
+#: Seconds without an acknowledgement after which the sender takes the link as down and resends at most one
+#: part per retry time (a probe) instead of the budget's worth: an outage must not spend the budget into the void.
+DEFAULT_SILENCE_S = 12.0
 #: The receiver acknowledges at most this often (seconds), and at least every keep-alive when idle.
 DEFAULT_ACK_INTERVAL_S = 1.0
 DEFAULT_KEEPALIVE_S = 5.0
@@ -451,15 +455,20 @@ class Sender:
         restarted sender resumes from what the ground confirmed; nothing is written without it.
     retry_after : float
         Seconds before a part sent and not confirmed is sent again.
+    silence_after : float
+        Seconds without an acknowledgement after which resends slow to one part per ``retry_after``.
     """
 
     def __init__(self, *, max_frame_bytes: int, map_id: int | None = None, state: str | os.PathLike[str] | None = None,
-                 retry_after: float = DEFAULT_RETRY_S):
+                 retry_after: float = DEFAULT_RETRY_S, silence_after: float = DEFAULT_SILENCE_S):
         if not (isinstance(max_frame_bytes, int) and max_frame_bytes >= MIN_FRAME_BYTES):
             raise InvalidInputError(f"max_frame_bytes must be a whole number of bytes, at least {MIN_FRAME_BYTES}, "
                                     f"got {max_frame_bytes!r}")
         self.max_frame_bytes = max_frame_bytes
-        self.retry_after = float(retry_after)
+        self.retry_after, self.silence_after = float(retry_after), float(silence_after)
+        self._clock = 0.0  # the last poll's time: when an acknowledgement is taken
+        self._heard = 0.0  # when the last acknowledgement was taken
+        self._probed = -math.inf  # when the last resend during a silence went
         self.state = None if state is None else Path(state)
         self.map_id = map_id or (secrets.randbits(64) or 1)
         self.version = 0  # of the newest map
@@ -526,6 +535,7 @@ class Sender:
             return False
         self._epochs[ack.epoch] = ack.sequence
         self._epoch = ack.epoch
+        self._heard = self._clock
         held = next((v for v, sha in self._sha.items() if sha == ack.sha256 and (v in self._versions or v == 0)),
                     None)
         ground = 0 if held is None else held
@@ -576,10 +586,12 @@ class Sender:
     def poll(self, now: float, budget: Budget | None = None) -> list[bytes]:
         """The frames to send at ``now`` (seconds): new parts in order, then resends due; within ``budget``."""
         out: list[bytes] = []
+        self._clock = now
         if self.change is None:
             if not self.version or self.ground == self.version:
                 return out
             self._start()
+        silent = now - self._heard > self.silence_after
         change = self.change
         assert change is not None
         while True:
@@ -591,8 +603,11 @@ class Sender:
             else:
                 due = [(t, k) for k, t in change.sent_at.items()
                        if k not in change.held and t <= now - self.retry_after]
-                if due:
+                if due and (not silent or now - self._probed >= self.retry_after):
                     key = min(due)[1]
+                    if silent:
+                        self._probed = now
+                        self.counts["probes"] += 1
             if key is None:
                 return out
             frame = change.parts[key]
