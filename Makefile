@@ -50,6 +50,12 @@ bench-speed: $(STAMP)
 bench-slam: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_slam $(ARGS)
 
+# The rover-ground link (issue 44): rover latency per scan on maps of 1e5-1e7 cells, downlink bytes, scan-to-ground
+# time at 2 and 20 kB/s, recovery after 10 % loss and a 60 s outage, final files compared (~25 min; ARGS=--quick ~6 min).
+.PHONY: bench-link
+bench-link: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_link $(ARGS)
+
 # Tiled maps (issue 12): rate cost per tile size, seams on every map, one tile read from disk, speed; rewrites its section of docs/benchmarks.md and docs/figures/tiles_error_map.png (~15-20 min on the shared 2-core box; ARGS=--quick a few minutes).
 .PHONY: bench-tiles
 bench-tiles: $(STAMP)

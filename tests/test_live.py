@@ -122,3 +122,20 @@ def test_a_frame_larger_than_the_budget_window_is_refused(tmp_path):
     with pytest.raises(InvalidInputError, match="does not fit a budget"):
         RoverCore(tmp_path / "m.dftpc", resolution=RES, rate=10.0, max_frame_bytes=500, window=10.0)
     assert Budget(10.0).limit == 100
+
+
+def test_versions_come_at_their_cadence_and_flush_makes_the_last(tmp_path):
+    scans = drive(9)
+    rover = new_rover(tmp_path, version_every=0.35)
+    feed(rover, scans)  # stamps 0.1 s apart: versions at scans 0, 4 and 8
+    assert rover.scans == 9 and rover.sender.version == 3 and len(rover.version_seconds) == 3
+    assert not rover.flush()  # nothing added since scan 8
+    feed(rover, drive(2, start=(30.0, 0.0), seed=3), t0=5.0)  # scan at 5.0 s makes a version, 5.1 s waits
+    assert rover.sender.version == 4
+    assert rover.flush() and rover.sender.version == 5
+    expected = MapBuilder(RES, tile_size=TILE, step=STEP)
+    for p, pose in scans + drive(2, start=(30.0, 0.0), seed=3):
+        expected.add(p, pose)
+    assert (tmp_path / "map.dftpc").read_bytes() == expected.encode()
+    with pytest.raises(InvalidInputError, match="version_every"):
+        new_rover(tmp_path, "other.dftpc", version_every=-1.0)

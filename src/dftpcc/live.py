@@ -80,6 +80,10 @@ class RoverCore:
         Scans in this frame are taken as placed; others are placed by the odometry.
     in_map_frame : bool
         Every scan is taken as placed, whatever its frame (no odometry).
+    version_every : float
+        Seconds (of scan stamps) between two versions of the map (encoded, written, handed to the
+        link); 0: after every scan. Scans in between are added to the cells only; :meth:`flush`
+        makes a version of them (the node does when no scan came for that long).
     log : callable, optional
         ``log(cause, message)``, once per cause of refused input.
     """
@@ -87,7 +91,7 @@ class RoverCore:
     def __init__(self, map_path: str | os.PathLike[str], *, resolution: float, rate: float, max_frame_bytes: int,
                  cutoff: float = 0.8, step: float = DEFAULT_STEP_M, tile_size: int = DEFAULT_GROWING_TILE_SIZE,
                  window: float = DEFAULT_WINDOW_S, map_frame: str = "map", in_map_frame: bool = False,
-                 log: Callable[[str, str], None] | None = None):
+                 version_every: float = 0.0, log: Callable[[str, str], None] | None = None):
         self.map_path = Path(map_path)
         self.refused = Counter(log)
         self.map_frame, self.in_map_frame = map_frame, in_map_frame
@@ -109,7 +113,13 @@ class RoverCore:
         self._waiting: collections.deque[_Scan] = collections.deque()
         self._last_scan_ns: int | None = None
         self.scans = 0
-        self.latencies: list[float] = []  # seconds per scan added (add, encode, save)
+        if not (math.isfinite(version_every) and version_every >= 0):
+            raise InvalidInputError(f"version_every is a number of seconds, 0 or more, got {version_every!r}")
+        self.version_every = float(version_every)
+        self._versioned_ns: int | None = None  # stamp of the scan that made the last version
+        self._unsent = 0  # scans added since
+        self.add_seconds: list[float] = []  # per scan added: placing it into the cells
+        self.version_seconds: list[float] = []  # per version: encode, write, hand to the link
 
     # -- input
 
@@ -147,7 +157,7 @@ class RoverCore:
             return False
         self._last_scan_ns = int(stamp_ns)
         if self.in_map_frame or frame == self.map_frame:
-            return self._add(pts, None)
+            return self._add(pts, None, int(stamp_ns))
         self._waiting.append(_Scan(int(stamp_ns), pts))
         return self._place_waiting()
 
@@ -177,21 +187,35 @@ class RoverCore:
             stream = PoseStream("odometry", self.map_frame, None, np.array([p[0] for p in window], np.int64),
                                 np.array([p[1] for p in window]), np.array([p[2] for p in window]))
             rotation, translation = stream.at(np.array([scan.stamp_ns]))
-            added = self._add(scan.points, (rotation[0], translation[0])) or added
+            added = self._add(scan.points, (rotation[0], translation[0]), scan.stamp_ns) or added
         return added
 
-    def _add(self, points: np.ndarray, pose) -> bool:
+    def _add(self, points: np.ndarray, pose, stamp_ns: int) -> bool:
         t0 = time.perf_counter()
         try:
             self.builder.add(points, pose)
         except InvalidInputError as exc:
             self.refused("bad scan", f"a scan the map refuses: {exc}")
             return False
+        self.scans += 1
+        self._unsent += 1
+        self.add_seconds.append(time.perf_counter() - t0)
+        if self._versioned_ns is None or stamp_ns - self._versioned_ns >= self.version_every * NS:
+            self._versioned_ns = stamp_ns
+            self.flush()
+        return True
+
+    def flush(self) -> bool:
+        """Encode the map, write it (atomically, with its state) and hand it to the link, if scans were added
+        since the last time; returns whether it did."""
+        if not self._unsent:
+            return False
+        t0 = time.perf_counter()
         data = self.builder.encode()
         self.builder.save(self.map_path, data=data)
         self.sender.update(data)
-        self.scans += 1
-        self.latencies.append(time.perf_counter() - t0)
+        self._unsent = 0
+        self.version_seconds.append(time.perf_counter() - t0)
         return True
 
     # -- link

@@ -96,7 +96,7 @@ def _spin(ros: SimpleNamespace, node: Any, duration: float | None) -> None:
 
 def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_topic: str | None,
               resolution: float, rate: float, max_frame_bytes: int, cutoff: float, step: float,
-              map_frame: str = "map", in_map_frame: bool = False, loss: float = 0.0, seed: int = 0, duration: float | None = None,
+              map_frame: str = "map", in_map_frame: bool = False, version_every: float = 1.0, loss: float = 0.0, seed: int = 0, duration: float | None = None,
               say: Callable[[str], None] = print) -> int:
     """The rover node: scans and poses in, the map kept on disk, frames out on :data:`DOWNLINK_TOPIC`."""
     from .io.rosbag import pointcloud2_xyz
@@ -107,7 +107,7 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
     node = ros.rclpy.create_node("dftpcc_rover")
     log = node.get_logger()
     core = RoverCore(map_path, resolution=resolution, rate=rate, max_frame_bytes=max_frame_bytes, cutoff=cutoff,
-                     step=step, map_frame=map_frame, in_map_frame=in_map_frame,
+                     step=step, map_frame=map_frame, in_map_frame=in_map_frame, version_every=version_every,
                      log=lambda cause, message: log.warning(f"{message} ({cause}; counted, not logged again)"))
     _declare(node, {"map": str(map_path), "points_topic": points_topic, "odom_topic": odom_topic or "",
                     "pose_topic": pose_topic or "", "resolution": float(resolution), "budget": float(rate),
@@ -128,6 +128,7 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
         except InvalidInputError as exc:
             core.refused("bad cloud", f"a PointCloud2 refused: {exc}")
             return
+        last_scan[0] = time.monotonic()
         core.add_scan(_stamp_ns(msg.header.stamp), xyz, msg.header.frame_id)
 
     def on_pose(stamp: Any, position: Any, orientation: Any) -> None:
@@ -150,18 +151,21 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
 
     node.create_subscription(ros.UInt8MultiArray, ACK_TOPIC, on_ack, _qos(ros, LINK_DEPTH))
     start = time.monotonic()
-    last_report = [start]
+    last_report, last_scan = [start], [start]
 
     def tick() -> None:
         now = time.monotonic()
         for frame in core.frames(now - start):
             downlink.publish(ros.UInt8MultiArray(data=frame))
+        if now - last_scan[0] >= version_every:
+            core.flush()  # the scans of a pause in the drive reach the map and the link
         if now - last_report[0] >= REPORT_S:
             last_report[0] = now
-            lat = sorted(core.latencies[-100:])
+            add = sorted(core.add_seconds[-100:])
+            ver = sorted(core.version_seconds[-100:])
             log.info(f"{core.scans} scans, version {core.sender.version}, ground at {core.sender.ground}, "
-                     f"{core.sender.counts['bytes']:,} bytes sent; median scan {1e3 * lat[len(lat) // 2]:.0f} ms"
-                     if lat else "no scan yet")
+                     f"{core.sender.counts['bytes']:,} bytes sent; median scan {1e3 * add[len(add) // 2]:.0f} ms, "
+                     f"version {1e3 * ver[len(ver) // 2]:.0f} ms" if add and ver else "no scan yet")
 
     node.create_timer(TICK_S, tick)
     say(f"dftpcc rover: map {map_path}, scans on {points_topic}, frames on {DOWNLINK_TOPIC} within {rate:g} B/s")
