@@ -61,11 +61,11 @@ def _odom(stamp_ns: int, rotation: np.ndarray, translation: np.ndarray):
 
 
 @pytest.fixture()
-def nodes(tmp_path):
+def nodes(tmp_path, monkeypatch):
     domain = random.Random(os.getpid()).randrange(30, 100)
     env = _env(domain)
-    for key in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID"):
-        os.environ[key] = env[key]
+    for key in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID"):  # this process's node, the test drive, too
+        monkeypatch.setenv(key, env[key])
     common = [sys.executable, "-m", "dftpcc", "ros"]
     logs = {name: open(tmp_path / f"{name}.log", "w") for name in ("rover", "ground")}
     procs = {
