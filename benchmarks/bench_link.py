@@ -24,7 +24,6 @@ those add only the transport (tests/test_ros2.py runs them).
 
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 import statistics

@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import logging
 
-import numpy as np
 import pytest
 
 from dftpcc.errors import InvalidInputError
