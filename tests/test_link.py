@@ -356,6 +356,19 @@ def test_bad_frames_are_counted_logged_once_and_never_reach_the_map(versions, ca
     assert receiver.data == versions[4]
 
 
+def test_a_stray_item_before_the_plan_costs_itself_not_the_change(versions):
+    sender = Sender(max_frame_bytes=FRAME, map_id=3)
+    sender.update(versions[4])
+    good = frames_of(sender)
+    f = read_frame(good[0])
+    stray = pack_data(DataFrame(3, f.base_version, f.target_version, f.base_check, 4000, 0, 1, b"junk"))
+    receiver = Receiver(max_frame_bytes=FRAME)
+    receiver.receive(stray)
+    for frame in good:
+        receiver.receive(frame)
+    assert receiver.refused["item"] == 1 and receiver.data == versions[4]
+
+
 def test_a_frame_the_plan_does_not_name_is_refused(versions):
     sender = Sender(max_frame_bytes=FRAME, map_id=3)
     sender.update(versions[4])

@@ -781,11 +781,9 @@ class Receiver:
                 self._refuse(exc.cause, str(exc))
                 self.pending = None
                 return None
-            for item in pending.items:
-                if item and item not in pending.plan.tiles:
-                    self._refuse("item", f"a frame of item {item}, which the change's plan does not name")
-                    self.pending = None
-                    return None
+            for item in [k for k in pending.items if k and k not in pending.plan.tiles]:
+                self._refuse("item", f"a frame of item {item}, which the change's plan does not name")
+                del pending.items[item]  # a stray item costs itself, not the change
         elif pending.plan is not None and f.item and f.item not in pending.plan.tiles:
             self._refuse("item", f"a frame of item {f.item}, which the change's plan does not name")
             del pending.items[f.item]
