@@ -150,7 +150,7 @@ def latency(ground, scans, route, resolutions, map_cells, timed: int) -> str:
                 print(" | ".join(rows[-1]), flush=True)
                 for p in Path(tmp).iterdir():
                     p.unlink()
-    return markdown_table(["cells", "map (cells)", "tiles", "map kB", "add ms", "version ms (encode, write, link)",
+    return markdown_table(["cell size", "map (cells)", "tiles", "map kB", "add ms", "version ms (encode, write, link)",
                            "scan + version ms (median)", "range", "prefill s", f"under {TARGET_MS:g} ms"], rows)
 
 
@@ -239,7 +239,7 @@ def link_table(versions, draco: int, resolution: float) -> str:
                          f"{r['first_after_outage']:.1f}" if scenario == "60 s outage" else "",
                          f"{r['end'] - r['drive_end']:.1f}", "yes" if r["equal"] else "NO"])
             print(" | ".join(rows[-1]), flush=True)
-    return markdown_table(["cells", "budget kB/s", "link", "sent kB per minute of driving (whole run, kB)",
+    return markdown_table(["cell size", "budget kB/s", "link", "sent kB per minute of driving (whole run, kB)",
                            "whole map at each version, kB/min", f"raw scans, Draco {DRACO_BITS}-bit, kB/min ({SCAN_HZ:g} Hz)",
                            "scan to ground s, median / max (per version, from its first scan)", "versions the ground took", "frames resent",
                            "first version after the outage, s", "ground caught up, s after the drive",
