@@ -139,3 +139,26 @@ def test_versions_come_at_their_cadence_and_flush_makes_the_last(tmp_path):
     assert (tmp_path / "map.dftpc").read_bytes() == expected.encode()
     with pytest.raises(InvalidInputError, match="version_every"):
         new_rover(tmp_path, "other.dftpc", version_every=-1.0)
+
+
+def test_the_map_is_written_at_its_cadence_and_a_crash_resumes_from_the_last_write(tmp_path):
+    scans = drive(8)
+    rover = new_rover(tmp_path, save_every=0.35)  # versions after every scan, writes every 0.35 s of stamps
+    feed(rover, scans[:6])  # stamps 1.0 ... 1.5 s: written at scans 0 and 4
+    assert rover.sender.version == 6 and rover.saves == 2
+    written = (tmp_path / "map.dftpc").read_bytes()
+    on_disk = MapBuilder(RES, tile_size=TILE, step=STEP)
+    for p, pose in scans[:5]:
+        on_disk.add(p, pose)
+    assert written == on_disk.encode()  # the fifth scan's version, not the sixth
+    # A crash now: the restarted rover resumes the map written, with its link state.
+    again = new_rover(tmp_path)
+    assert again.sender.map_id == rover.sender.map_id and again.sender.version == 7
+    assert again.builder.encode() == written
+    feed(again, scans[6:], t0=2.0)
+    assert again.save() is False  # written at every version (save_every 0)
+    for p, pose in scans[6:]:
+        on_disk.add(p, pose)
+    assert (tmp_path / "map.dftpc").read_bytes() == on_disk.encode()
+    with pytest.raises(InvalidInputError, match="save_every"):
+        new_rover(tmp_path, "other.dftpc", save_every=float("nan"))

@@ -466,7 +466,7 @@ def cmd_ros_rover(args: argparse.Namespace) -> int:
     return run_rover(map_path=args.map, points_topic=args.points, odom_topic=args.odom, pose_topic=args.pose,
                      resolution=args.resolution, rate=args.budget, max_frame_bytes=args.max_frame_bytes,
                      cutoff=args.cutoff, step=args.step, map_frame=args.map_frame, in_map_frame=args.in_map_frame,
-                     version_every=args.version_every,
+                     version_every=args.version_every, save_every=args.save_every,
                      loss=args.loss, seed=args.seed,
                      duration=args.duration, say=(lambda _l: None) if args.quiet else print)
 
@@ -506,7 +506,10 @@ def _add_ros_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--cutoff", "-c", type=_cutoff, default=0.8, help="cutoff ratio of a new map (default 0.8)")
     p.add_argument("--step", type=_positive, default=0.01, help="quantizer step of a new map, metres (default 0.01)")
     p.add_argument("--version-every", type=float, default=1.0, metavar="SECONDS",
-                   help="seconds between two versions of the map (encoded, written, sent); 0: every scan (default 1)")
+                   help="seconds between two versions of the map (encoded and sent); 0: every scan (default 1)")
+    p.add_argument("--save-every", type=float, default=10.0, metavar="SECONDS",
+                   help="seconds between two writes of the map and its state, and when the node stops; 0: every "
+                        "version (default 10: the state holds 20 bytes a cell)")
     p.set_defaults(func=cmd_ros_rover)
     p = nodes.add_parser("ground", parents=[common, test_flags], help="rebuild the map from the rover's frames",
                          description="Apply the rover's frames to MAP (atomically; byte for byte the rover's at each "

@@ -96,7 +96,8 @@ def _spin(ros: SimpleNamespace, node: Any, duration: float | None) -> None:
 
 def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_topic: str | None,
               resolution: float, rate: float, max_frame_bytes: int, cutoff: float, step: float,
-              map_frame: str = "map", in_map_frame: bool = False, version_every: float = 1.0, loss: float = 0.0, seed: int = 0, duration: float | None = None,
+              map_frame: str = "map", in_map_frame: bool = False, version_every: float = 1.0,
+              save_every: float = 10.0, loss: float = 0.0, seed: int = 0, duration: float | None = None,
               say: Callable[[str], None] = print) -> int:
     """The rover node: scans and poses in, the map kept on disk, frames out on :data:`DOWNLINK_TOPIC`."""
     from .io.rosbag import pointcloud2_xyz
@@ -108,6 +109,7 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
     log = node.get_logger()
     core = RoverCore(map_path, resolution=resolution, rate=rate, max_frame_bytes=max_frame_bytes, cutoff=cutoff,
                      step=step, map_frame=map_frame, in_map_frame=in_map_frame, version_every=version_every,
+                     save_every=save_every,
                      log=lambda cause, message: log.warning(f"{message} ({cause}; counted, not logged again)"))
     _declare(node, {"map": str(map_path), "points_topic": points_topic, "odom_topic": odom_topic or "",
                     "pose_topic": pose_topic or "", "resolution": float(resolution), "budget": float(rate),
@@ -169,7 +171,11 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
 
     node.create_timer(TICK_S, tick)
     say(f"dftpcc rover: map {map_path}, scans on {points_topic}, frames on {DOWNLINK_TOPIC} within {rate:g} B/s")
-    _spin(ros, node, duration)
+    try:
+        _spin(ros, node, duration)
+    finally:  # stopped (a signal, the duration): the newest map reaches the disk
+        core.flush()
+        core.save()
     return 0
 
 
