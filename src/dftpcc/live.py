@@ -121,7 +121,7 @@ class RoverCore:
         if not (math.isfinite(version_every) and version_every >= 0):
             raise InvalidInputError(f"version_every is a number of seconds, 0 or more, got {version_every!r}")
         self.version_every = float(version_every)
-        if not (math.isfinite(save_every) and save_every >= 0):
+        if not save_every >= 0:  # infinity: only when asked (save)
             raise InvalidInputError(f"save_every is a number of seconds, 0 or more, got {save_every!r}")
         self.save_every = float(save_every)
         self._stamp_ns = 0  # of the last scan added
