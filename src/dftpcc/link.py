@@ -69,6 +69,11 @@ DEFAULT_RETRY_S = 3.0
 #: Seconds without an acknowledgement after which the sender takes the link as down and resends at most one
 #: part per retry time (a probe) instead of the budget's worth: an outage must not spend the budget into the void.
 DEFAULT_SILENCE_S = 12.0
+#: A part is taken as lost when an acknowledgement of its change, arriving this many of the shortest round
+#: trips seen after it went out, does not report it (the trips: from a part's sending to the first
+#: acknowledgement reporting it, the last TRIP_SAMPLES of them).
+LOST_AFTER_TRIPS = 1.5
+TRIP_SAMPLES = 256
 #: The receiver acknowledges at most this often (seconds), and at least every keep-alive when idle.
 DEFAULT_ACK_INTERVAL_S = 1.0
 DEFAULT_KEEPALIVE_S = 5.0
@@ -439,6 +444,8 @@ class _Change:
     held: set[tuple[int, int]] = field(default_factory=set)
     sent_at: dict[tuple[int, int], float] = field(default_factory=dict)
     next: int = 0  # index in order of the next part never sent
+    lost: set[tuple[int, int]] = field(default_factory=set)  # parts an acknowledgement sent after them lacks
+    resent: set[tuple[int, int]] = field(default_factory=set)
 
 
 class Sender:
@@ -469,6 +476,7 @@ class Sender:
         self._clock = 0.0  # the last poll's time: when an acknowledgement is taken
         self._heard = 0.0  # when the last acknowledgement was taken
         self._probed = -math.inf  # when the last resend during a silence went
+        self._trips: collections.deque[float] = collections.deque(maxlen=TRIP_SAMPLES)  # seconds, upper bounds
         self.state = None if state is None else Path(state)
         self.map_id = map_id or (secrets.randbits(64) or 1)
         self.version = 0  # of the newest map
@@ -551,8 +559,17 @@ class Sender:
             else:
                 # The ground's parts are those it reports now: a restarted ground lost the ones it had.
                 ours = (ack.base_version, ack.target_version) == (change.base_version, change.target_version)
-                change.held = {(item, part) for item, (_count, parts) in ack.reports.items() for part in parts
-                               if (item, part) in change.parts} if ours else set()
+                held = {(item, part) for item, (_count, parts) in ack.reports.items() for part in parts
+                        if (item, part) in change.parts} if ours else set()
+                for key in held - change.held:  # the round trip is at most the time since it was sent
+                    if key in change.sent_at and key not in change.resent:  # (which copy came is unknown)
+                        self._trips.append(self._clock - change.sent_at[key])
+                change.held = held
+                if ours and self._trips:
+                    # An acknowledgement arriving a round trip (the shortest seen, with a margin) after a
+                    # part went out has seen it arrive, unless it was lost: send it again at once.
+                    trip = LOST_AFTER_TRIPS * min(self._trips)
+                    change.lost = {k for k, t in change.sent_at.items() if k not in held and t <= self._clock - trip}
         if moved:
             self._prune()
             self._save()
@@ -602,7 +619,7 @@ class Sender:
                 key = change.order[change.next]
             else:
                 due = [(t, k) for k, t in change.sent_at.items()
-                       if k not in change.held and t <= now - self.retry_after]
+                       if k not in change.held and (k in change.lost or t <= now - self.retry_after)]
                 if due and (not silent or now - self._probed >= self.retry_after):
                     key = min(due)[1]
                     if silent:
@@ -619,7 +636,9 @@ class Sender:
                 change.next += 1
             else:
                 self.counts["resent"] += 1
+                change.resent.add(key)
             change.sent_at[key] = now
+            change.lost.discard(key)
             self.counts["frames"] += 1
             self.counts["bytes"] += len(frame)
             out.append(frame)
