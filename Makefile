@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,compare,ros,dask,zarr,slam,fast,remote]"
+	$(BIN)/python -m pip install --quiet -e ".[test,compare,ros,ros2,dask,zarr,slam,fast,remote]"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -50,6 +50,12 @@ bench-speed: $(STAMP)
 bench-slam: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_slam $(ARGS)
 
+# The rover-ground link (issue 44): rover latency per scan on maps of 1e5-1e7 cells, downlink bytes, scan-to-ground
+# time at 2 and 20 kB/s, recovery after 10 % loss and a 60 s outage, final files compared (~25 min; ARGS=--quick ~6 min).
+.PHONY: bench-link
+bench-link: $(STAMP)
+	$(BIN)/python -m benchmarks.bench_link $(ARGS)
+
 # Tiled maps (issue 12): rate cost per tile size, seams on every map, one tile read from disk, speed; rewrites its section of docs/benchmarks.md and docs/figures/tiles_error_map.png (~15-20 min on the shared 2-core box; ARGS=--quick a few minutes).
 .PHONY: bench-tiles
 bench-tiles: $(STAMP)
@@ -72,11 +78,12 @@ bench-borders: $(STAMP)
 digests: $(STAMP)
 	$(BIN)/python scripts/digests.py
 
-# The decoder fuzz campaign (100,000 inputs, ~2 min), the deltas' (100,000; 34 min at a load of 20 on the
-# shared 2-core box) and the growing map's state file (100,000 states, the peak memory of every 10th
-# measured; ~25 min on the shared box); the test suite runs short ones.
+# The decoder and link-frame fuzz campaigns (100,000 inputs, ~2 min each), the deltas' (100,000; 34 min
+# at a load of 20 on the shared 2-core box) and the growing map's state file (100,000 states, the peak
+# memory of every 10th measured; ~25 min on the shared box); the test suite runs short ones.
 fuzz: $(STAMP)
 	$(BIN)/python tests/fuzz/fuzz_decoder.py --iterations 100000 --seed 11
+	$(BIN)/python tests/fuzz/fuzz_link.py --iterations 100000 --seed 11
 	$(BIN)/python tests/fuzz/fuzz_delta.py --iterations 100000 --seed 11
 	$(BIN)/python tests/fuzz/fuzz_state.py --iterations 100000 --seed 11 --trace-every 10
 

@@ -13,6 +13,10 @@ COEF kind 3 for ANS (the drafts' JSON STAT and kind 2 refused). The rest is as t
 The tiled layout (version 1.1: ``_table``, ``_by_tile`` and the "tiles" part at the end) was added
 by another helper from docs/format.md's section "Tiles: version 1.1" alone, without reading the
 library's tiles, decoder or container modules.
+
+The link frames (``link_frame``, ``link_plan``, ``link_rebuild`` at the end) were written field by
+field from docs/format.md's section "Link frames", sharing no code with dftpcc/link.py; by the same
+helper who wrote that module, so a weaker check than a reader who never saw it.
 """
 
 from __future__ import annotations
@@ -913,3 +917,148 @@ def _tiled_grid(data: bytes, entries, sec: dict, g: dict, params: dict,
             heights[r, col] = h
             mask[r, col] = True
     return mask, heights
+
+
+# --------------------------------------------------------------------------- link frames
+# Written from docs/format.md's section "Link frames" alone (not from dftpcc/link.py): a data frame or
+# an acknowledgement parsed into a dict, a change's plan, and a change's target rebuilt from its frames.
+
+LINK_MAGIC = b"\x89DL"
+LINK_MAX_MAP = 1 << 30
+
+
+def link_frame(data: bytes) -> dict:
+    """A frame's fields; ValueError for anything the document refuses."""
+    if len(data) < 13 + 4:
+        raise ValueError("frame shorter than its head and CRC")
+    if zlib.crc32(data[:-4]) != struct.unpack("<I", data[-4:])[0]:
+        raise ValueError("frame CRC")
+    if data[:3] != LINK_MAGIC or data[3] != 1:
+        raise ValueError("frame magic or layout")
+    kind = data[4]
+    (map_id,) = struct.unpack_from("<Q", data, 5)
+    body = data[13:-4]
+    if kind == 1:
+        if len(body) < 24:
+            raise ValueError("data frame head cut")
+        base_v, target_v = struct.unpack_from("<II", body, 0)
+        check = body[8:16]
+        item, part, parts = struct.unpack_from("<IHH", body, 16)
+        if map_id == 0 or target_v < 1 or target_v <= base_v or parts < 1 or part >= parts:
+            raise ValueError("data frame fields")
+        return {"kind": "data", "map_id": map_id, "base_version": base_v, "target_version": target_v,
+                "base_check": check, "item": item, "part": part, "parts": parts, "payload": body[24:]}
+    if kind == 2:
+        if len(body) < 52 + 1:
+            raise ValueError("acknowledgement head cut")
+        epoch, seq, version = struct.unpack_from("<III", body, 0)
+        sha = body[12:44]
+        base_v, target_v = struct.unpack_from("<II", body, 44)
+        count, pos = _uleb(body, 52, "acknowledgement")
+        reports = {}
+        for _ in range(count):
+            item, pos = _uleb(body, pos, "acknowledgement")
+            n, pos = _uleb(body, pos, "acknowledgement")
+            if pos >= len(body):
+                raise ValueError("report cut")
+            mode = body[pos]
+            pos += 1
+            if mode == 0:
+                held = set(range(n))
+            elif mode == 1:
+                width = (n + 7) // 8
+                if pos + width > len(body):
+                    raise ValueError("bitmap cut")
+                held = {i for i in range(n) if body[pos + i // 8] >> (i % 8) & 1}
+                pos += width
+            else:
+                raise ValueError("report mode")
+            reports[item] = (n, held)
+        if pos != len(body):
+            raise ValueError("bytes after the reports")
+        return {"kind": "ack", "map_id": map_id, "epoch": epoch, "sequence": seq, "version": version,
+                "sha256": sha, "base_version": base_v, "target_version": target_v, "reports": reports}
+    raise ValueError(f"frame kind {kind}")
+
+
+def link_plan(plan: bytes, base_size: int) -> dict:
+    """A plan: target size and SHA-256, pieces [(kind, a, n)], the rest bytes."""
+    declared = zstandard.get_frame_parameters(plan).content_size
+    if declared == zstandard.CONTENTSIZE_UNKNOWN:
+        raise ValueError("plan's content size not stated")
+    if declared > LINK_MAX_MAP + 64 or declared > max(1 << 20, 1024 * len(plan)):
+        raise ValueError("plan declares more than it may")
+    body = _zstd(plan, declared)
+    if len(body) != declared:
+        raise ValueError("plan shorter than declared")
+    size, pos = _uleb(body, 0, "plan")
+    sha = body[pos:pos + 32]
+    count, pos = _uleb(body, pos + 32, "plan")
+    pieces, seen, rest_total = [], set(), 0
+    for _ in range(count):
+        kind = body[pos]
+        pos += 1
+        if kind == 1:
+            n, pos = _uleb(body, pos, "plan")
+            pieces.append((1, rest_total, n))
+            rest_total += n
+        elif kind in (0, 2):
+            a, pos = _uleb(body, pos, "plan")
+            n, pos = _uleb(body, pos, "plan")
+            if kind == 0 and a + n > base_size:
+                raise ValueError("copy past the base")
+            if kind == 2 and (a == 0 or a in seen):
+                raise ValueError("tile item 0 or twice")
+            seen.add(a)
+            pieces.append((kind, a, n))
+        else:
+            raise ValueError("piece kind")
+    rest = body[pos:]
+    if rest_total != len(rest) or sum(n for _, _, n in pieces) != size:
+        raise ValueError("pieces do not add up")
+    return {"size": size, "sha256": sha, "pieces": pieces, "rest": rest}
+
+
+def link_rebuild(base: bytes, frames: list[bytes]) -> bytes:
+    """The target of one change from its data frames (any order, repeats allowed), checked by its SHA-256."""
+    import hashlib
+
+    items: dict[int, dict[int, bytes]] = {}
+    counts: dict[int, int] = {}
+    change = None
+    for raw in frames:
+        f = link_frame(raw)
+        key = (f["map_id"], f["base_version"], f["target_version"], f["base_check"])
+        if change is None:
+            change = key
+            if f["base_version"] and hashlib.sha256(base).digest()[:8] != f["base_check"]:
+                raise ValueError("base check is not this base")
+        elif key != change:
+            raise ValueError("frames of two changes")
+        if counts.setdefault(f["item"], f["parts"]) != f["parts"]:
+            raise ValueError("part counts disagree")
+        items.setdefault(f["item"], {})[f["part"]] = f["payload"]
+    if change is None:
+        raise ValueError("no frame")
+    base = base if change[1] else b""
+
+    def joined(item: int) -> bytes:
+        if len(items.get(item, {})) != counts.get(item, -1):
+            raise ValueError(f"item {item} incomplete")
+        return b"".join(items[item][i] for i in range(counts[item]))
+
+    plan = link_plan(joined(0), len(base))
+    out = bytearray()
+    for kind, a, n in plan["pieces"]:
+        if kind == 0:
+            out += base[a:a + n]
+        elif kind == 1:
+            out += plan["rest"][a:a + n]
+        else:
+            tile = joined(a)
+            if len(tile) != n:
+                raise ValueError("tile item length")
+            out += tile
+    if hashlib.sha256(out).digest() != plan["sha256"]:
+        raise ValueError("result SHA-256")
+    return bytes(out)

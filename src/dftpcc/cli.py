@@ -627,6 +627,70 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.set_defaults(func=cmd_patch)
 
 
+def cmd_ros_rover(args: argparse.Namespace) -> int:
+    from .ros2 import run_rover
+
+    if (args.odom is None) == (args.pose is None) and not args.in_map_frame:
+        raise InvalidInputError("give the scans' poses: --odom TOPIC (nav_msgs/Odometry) or --pose TOPIC "
+                                "(geometry_msgs/PoseStamped), or --in-map-frame for scans placed already")
+    return run_rover(map_path=args.map, points_topic=args.points, odom_topic=args.odom, pose_topic=args.pose,
+                     resolution=args.resolution, rate=args.budget, max_frame_bytes=args.max_frame_bytes,
+                     cutoff=args.cutoff, step=args.step, map_frame=args.map_frame, in_map_frame=args.in_map_frame,
+                     version_every=args.version_every, save_every=args.save_every,
+                     loss=args.loss, seed=args.seed,
+                     duration=args.duration, say=(lambda _l: None) if args.quiet else print)
+
+
+def cmd_ros_ground(args: argparse.Namespace) -> int:
+    from .ros2 import run_ground
+
+    return run_ground(map_path=args.map, frame_id=args.frame_id, max_frame_bytes=args.max_frame_bytes,
+                      loss=args.loss, seed=args.seed, duration=args.duration,
+                      say=(lambda _l: None) if args.quiet else print)
+
+
+def _add_ros_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
+    """``ros rover`` and ``ros ground``: the link's two ends as ROS 2 nodes (the ros2 extra)."""
+    ros = sub.add_parser("ros", help="ROS 2 nodes: a rover that grows and sends the map, a ground that rebuilds it",
+                         description="The rover-ground link as ROS 2 nodes (pip install 'dftpcc[ros2]').")
+    nodes = ros.add_subparsers(dest="node", metavar="NODE")
+    nodes.required = True
+    test_flags = argparse.ArgumentParser(add_help=False)
+    test_flags.add_argument("--loss", type=float, default=0.0,
+                            help="drop this share of incoming link frames at random (a bad link, for tests)")
+    test_flags.add_argument("--seed", type=int, default=0, help="seed of --loss")
+    test_flags.add_argument("--duration", type=_positive, help="stop after this many seconds (default: run on)")
+    p = nodes.add_parser("rover", parents=[common, test_flags], help="grow the map from scans and send it within a budget",
+                         description="Subscribe to sensor_msgs/PointCloud2 scans and their poses, grow the map "
+                                     "(kept current in MAP), and publish link frames on /dftpcc/downlink within "
+                                     "--budget bytes per second (averaged over 10 s); acknowledgements on /dftpcc/ack.")
+    p.add_argument("--points", default="/points", help="the PointCloud2 topic (default /points)")
+    p.add_argument("--odom", metavar="TOPIC", help="nav_msgs/Odometry of the scans' frame in the map frame")
+    p.add_argument("--pose", metavar="TOPIC", help="geometry_msgs/PoseStamped of the scans' frame, instead of --odom")
+    p.add_argument("--in-map-frame", action="store_true", help="scans come in --map-frame already: no poses")
+    p.add_argument("--map-frame", default="map", help="frame id of scans placed already (default map)")
+    p.add_argument("--resolution", "-r", type=_positive, required=True, help="cell size of a new map, metres")
+    p.add_argument("--map", required=True, help="the growing map (.dftpc), resumed if it exists")
+    p.add_argument("--budget", type=_positive, required=True, help="downlink bytes per second")
+    p.add_argument("--max-frame-bytes", type=_positive_int, default=1000, help="longest frame, bytes (default 1000)")
+    p.add_argument("--cutoff", "-c", type=_cutoff, default=0.8, help="cutoff ratio of a new map (default 0.8)")
+    p.add_argument("--step", type=_positive, default=0.01, help="quantizer step of a new map, metres (default 0.01)")
+    p.add_argument("--version-every", type=float, default=1.0, metavar="SECONDS",
+                   help="seconds between two versions of the map (encoded and sent); 0: every scan (default 1)")
+    p.add_argument("--save-every", type=float, default=10.0, metavar="SECONDS",
+                   help="seconds between two writes of the map and its state, and when the node stops; 0: every "
+                        "version (default 10: the state holds 20 bytes a cell)")
+    p.set_defaults(func=cmd_ros_rover)
+    p = nodes.add_parser("ground", parents=[common, test_flags], help="rebuild the map from the rover's frames",
+                         description="Apply the rover's frames to MAP (atomically; byte for byte the rover's at each "
+                                     "version), publish its points on /dftpcc/map (transient local) and "
+                                     "acknowledgements on /dftpcc/ack.")
+    p.add_argument("--map", required=True, help="the ground's map (.dftpc), resumed if it exists")
+    p.add_argument("--frame-id", default="map", help="frame id of the published points (default map)")
+    p.add_argument("--max-frame-bytes", type=_positive_int, help="refuse longer frames (default: any)")
+    p.set_defaults(func=cmd_ros_ground)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse, but a usage mistake is one line like every other error."""
 
@@ -1028,6 +1092,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", "-o", required=True, help="folder for the PNG")
     p.set_defaults(func=cmd_compare)
     _add_growing_parsers(sub, common)
+    _add_ros_parsers(sub, common)
     return parser
 
 

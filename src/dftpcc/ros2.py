@@ -1,0 +1,236 @@
+"""ROS 2 nodes of the link: thin adapters over :mod:`dftpcc.live` (``dftpcc ros rover``, ``dftpcc ros ground``).
+
+Everything but the topics lives in the library (:mod:`dftpcc.link`,
+:mod:`dftpcc.live`); a mission on another transport reuses it as it is.
+
+Frames travel as ``std_msgs/UInt8MultiArray``: a standard message, so
+neither end needs a custom interface built (the PyPI wheels of rclpy ship no
+rosidl toolchain), 16 bytes of CDR around the frame, and the frame carries its
+own lengths and CRC, so the array's layout is left empty. Both link topics
+are best effort: the link resends what the ground reports missing, and a
+reliable topic would resend on its own, past the budget.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from types import SimpleNamespace
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import InvalidInputError, MissingDependencyError
+
+__all__ = ["INSTALL_HINT", "require", "run_rover", "run_ground", "DOWNLINK_TOPIC", "ACK_TOPIC", "MAP_TOPIC"]
+
+INSTALL_HINT = ("the ROS 2 nodes need rclpy and the message wheels: pip install 'dftpcc[ros2]' "
+                "(no ROS installation needed)")
+DOWNLINK_TOPIC = "/dftpcc/downlink"
+ACK_TOPIC = "/dftpcc/ack"
+MAP_TOPIC = "/dftpcc/map"
+#: Seconds between two looks at the link (frames to send, acknowledgements due).
+TICK_S = 0.05
+#: Seconds between two lines of figures in the node's log.
+REPORT_S = 10.0
+#: Queue depths: scans (best effort, the newest matter), odometry (many per scan), link frames.
+SCAN_DEPTH, POSE_DEPTH, LINK_DEPTH = 5, 100, 200
+_FLOAT32 = 7  # sensor_msgs/PointField FLOAT32
+
+
+def require() -> SimpleNamespace:
+    """rclpy and the message modules, or :class:`MissingDependencyError` with the install hint."""
+    try:
+        import rclpy
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                               qos_profile_sensor_data)
+        from sensor_msgs.msg import PointCloud2, PointField
+        from std_msgs.msg import UInt8MultiArray
+    except ImportError as exc:
+        raise MissingDependencyError(f"{INSTALL_HINT} ({exc})") from None
+    return SimpleNamespace(rclpy=rclpy, PoseStamped=PoseStamped, Odometry=Odometry, QoSProfile=QoSProfile,
+                           DurabilityPolicy=DurabilityPolicy, HistoryPolicy=HistoryPolicy,
+                           ReliabilityPolicy=ReliabilityPolicy, sensor=qos_profile_sensor_data,
+                           PointCloud2=PointCloud2, PointField=PointField, UInt8MultiArray=UInt8MultiArray)
+
+
+def _qos(ros: SimpleNamespace, depth: int, *, latched: bool = False) -> Any:
+    if latched:  # the map: a late subscriber (RViz) gets the last one
+        return ros.QoSProfile(depth=1, history=ros.HistoryPolicy.KEEP_LAST, reliability=ros.ReliabilityPolicy.RELIABLE,
+                              durability=ros.DurabilityPolicy.TRANSIENT_LOCAL)
+    return ros.QoSProfile(depth=depth, history=ros.HistoryPolicy.KEEP_LAST,
+                          reliability=ros.ReliabilityPolicy.BEST_EFFORT, durability=ros.DurabilityPolicy.VOLATILE)
+
+
+def _declare(node: Any, values: dict[str, Any], descriptions: dict[str, str]) -> None:
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    for name, value in values.items():
+        node.declare_parameter(name, value, ParameterDescriptor(description=descriptions.get(name, "")))
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _dropper(loss: float, seed: int) -> Callable[[], bool]:
+    """Whether to drop an incoming frame: a bad link for tests, seeded."""
+    if not 0.0 <= loss < 1.0:
+        raise InvalidInputError(f"--loss is a share of frames in [0, 1), got {loss!r}")
+    rng = random.Random(seed)
+    return lambda: loss > 0 and rng.random() < loss
+
+
+def _spin(ros: SimpleNamespace, node: Any, duration: float | None) -> None:
+    end = None if duration is None else time.monotonic() + duration
+    try:
+        while ros.rclpy.ok() and (end is None or time.monotonic() < end):
+            ros.rclpy.spin_once(node, timeout_sec=TICK_S)
+    finally:
+        node.destroy_node()
+        if ros.rclpy.ok():
+            ros.rclpy.shutdown()
+
+
+def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_topic: str | None,
+              resolution: float, rate: float, max_frame_bytes: int, cutoff: float, step: float,
+              map_frame: str = "map", in_map_frame: bool = False, version_every: float = 1.0,
+              save_every: float = 10.0, loss: float = 0.0, seed: int = 0, duration: float | None = None,
+              say: Callable[[str], None] = print) -> int:
+    """The rover node: scans and poses in, the map kept on disk, frames out on :data:`DOWNLINK_TOPIC`."""
+    from .io.rosbag import pointcloud2_xyz
+    from .live import RoverCore
+
+    ros = require()
+    ros.rclpy.init(args=None)
+    node = ros.rclpy.create_node("dftpcc_rover")
+    log = node.get_logger()
+    core = RoverCore(map_path, resolution=resolution, rate=rate, max_frame_bytes=max_frame_bytes, cutoff=cutoff,
+                     step=step, map_frame=map_frame, in_map_frame=in_map_frame, version_every=version_every,
+                     save_every=save_every,
+                     log=lambda cause, message: log.warning(f"{message} ({cause}; counted, not logged again)"))
+    _declare(node, {"map": str(map_path), "points_topic": points_topic, "odom_topic": odom_topic or "",
+                    "pose_topic": pose_topic or "", "resolution": float(resolution), "budget": float(rate),
+                    "max_frame_bytes": int(max_frame_bytes), "cutoff": float(cutoff), "step": float(step),
+                    "map_frame": map_frame},
+             {"map": "the growing map kept on disk (.dftpc, with .state and .link beside it)",
+              "budget": "downlink bytes per second, averaged over 10 s", "resolution": "cell size of a new map, m",
+              "max_frame_bytes": "no frame on the downlink is longer, bytes", "step": "quantizer step, m",
+              "cutoff": "cutoff ratio f_c of a new map", "map_frame": "scans in this frame need no pose"})
+    drop = _dropper(loss, seed)
+    downlink = node.create_publisher(ros.UInt8MultiArray, DOWNLINK_TOPIC, _qos(ros, LINK_DEPTH))
+
+    def on_scan(msg: Any) -> None:
+        fields = {name: getattr(msg, name) for name in ("fields", "is_bigendian", "point_step", "width", "height",
+                                                         "row_step", "data")}
+        try:  # dense on purpose: the NaN points are counted by the core, not dropped unseen
+            xyz = pointcloud2_xyz(SimpleNamespace(**fields, is_dense=True))
+        except InvalidInputError as exc:
+            core.refused("bad cloud", f"a PointCloud2 refused: {exc}")
+            return
+        last_scan[0] = time.monotonic()
+        core.add_scan(_stamp_ns(msg.header.stamp), xyz, msg.header.frame_id)
+
+    def on_pose(stamp: Any, position: Any, orientation: Any) -> None:
+        core.add_pose(_stamp_ns(stamp), (position.x, position.y, position.z),
+                      (orientation.x, orientation.y, orientation.z, orientation.w))
+
+    node.create_subscription(ros.PointCloud2, points_topic, on_scan, _qos(ros, SCAN_DEPTH))
+    if odom_topic:
+        node.create_subscription(ros.Odometry, odom_topic, lambda m: on_pose(m.header.stamp, m.pose.pose.position,
+                                                                            m.pose.pose.orientation),
+                                 _qos(ros, POSE_DEPTH))
+    if pose_topic:
+        node.create_subscription(ros.PoseStamped, pose_topic, lambda m: on_pose(m.header.stamp, m.pose.position,
+                                                                               m.pose.orientation),
+                                 _qos(ros, POSE_DEPTH))
+
+    def on_ack(msg: Any) -> None:
+        if not drop():
+            core.acknowledge(bytes(msg.data))
+
+    node.create_subscription(ros.UInt8MultiArray, ACK_TOPIC, on_ack, _qos(ros, LINK_DEPTH))
+    start = time.monotonic()
+    last_report, last_scan = [start], [start]
+
+    def tick() -> None:
+        now = time.monotonic()
+        for frame in core.frames(now - start):
+            downlink.publish(ros.UInt8MultiArray(data=frame))
+        if now - last_scan[0] >= version_every:
+            core.flush()  # the scans of a pause in the drive reach the map and the link
+        if now - last_report[0] >= REPORT_S:
+            last_report[0] = now
+            add = sorted(core.add_seconds[-100:])
+            ver = sorted(core.version_seconds[-100:])
+            log.info(f"{core.scans} scans, version {core.sender.version}, ground at {core.sender.ground}, "
+                     f"{core.sender.counts['bytes']:,} bytes sent; median scan {1e3 * add[len(add) // 2]:.0f} ms, "
+                     f"version {1e3 * ver[len(ver) // 2]:.0f} ms" if add and ver else "no scan yet")
+
+    node.create_timer(TICK_S, tick)
+    say(f"dftpcc rover: map {map_path}, scans on {points_topic}, frames on {DOWNLINK_TOPIC} within {rate:g} B/s")
+    try:
+        _spin(ros, node, duration)
+    finally:  # stopped (a signal, the duration): the newest map reaches the disk
+        core.flush()
+        core.save()
+    return 0
+
+
+def cloud_message(ros: SimpleNamespace, points: np.ndarray, frame_id: str, stamp: Any) -> Any:
+    """A ``sensor_msgs/PointCloud2`` of x, y, z as FLOAT32, dense, one row."""
+    msg = ros.PointCloud2()
+    msg.header.frame_id = frame_id
+    msg.header.stamp = stamp
+    msg.height, msg.width = 1, int(points.shape[0])
+    msg.fields = [ros.PointField(name=n, offset=4 * k, datatype=_FLOAT32, count=1) for k, n in enumerate("xyz")]
+    msg.is_bigendian, msg.point_step, msg.row_step, msg.is_dense = False, 12, 12 * int(points.shape[0]), True
+    msg.data = np.ascontiguousarray(points, dtype="<f4").tobytes()
+    return msg
+
+
+def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | None = None, loss: float = 0.0,
+               seed: int = 0, duration: float | None = None, say: Callable[[str], None] = print) -> int:
+    """The ground node: frames in, the map on disk and on :data:`MAP_TOPIC` (latched), acknowledgements out."""
+    from .live import GroundCore
+
+    ros = require()
+    ros.rclpy.init(args=None)
+    node = ros.rclpy.create_node("dftpcc_ground")
+    log = node.get_logger()
+    core = GroundCore(map_path, max_frame_bytes=max_frame_bytes,
+                      log=lambda cause, message: log.warning(f"{message} ({cause}; counted, not logged again)"))
+    _declare(node, {"map": str(map_path), "frame_id": frame_id},
+             {"map": "the ground's map (.dftpc), byte for byte the rover's at each version applied",
+              "frame_id": "frame of the published points: the frame the rover placed its scans in"})
+    drop = _dropper(loss, seed)
+    cloud = node.create_publisher(ros.PointCloud2, MAP_TOPIC, _qos(ros, 1, latched=True))
+    acks = node.create_publisher(ros.UInt8MultiArray, ACK_TOPIC, _qos(ros, LINK_DEPTH))
+    start = time.monotonic()
+
+    def publish_map() -> None:
+        cloud.publish(cloud_message(ros, core.points(), frame_id, node.get_clock().now().to_msg()))
+
+    def on_frame(msg: Any) -> None:
+        if drop():
+            return
+        version = core.frame(bytes(msg.data), time.monotonic() - start)
+        if version is not None:
+            log.info(f"version {version} applied: {len(core.receiver.data):,} bytes")
+            publish_map()
+
+    node.create_subscription(ros.UInt8MultiArray, DOWNLINK_TOPIC, on_frame, _qos(ros, LINK_DEPTH))
+
+    def tick() -> None:
+        for frame in core.acks(time.monotonic() - start):
+            acks.publish(ros.UInt8MultiArray(data=frame))
+
+    node.create_timer(TICK_S, tick)
+    if core.receiver.data:
+        publish_map()
+    say(f"dftpcc ground: map {map_path} (version {core.receiver.version}), frames on {DOWNLINK_TOPIC}, "
+        f"points on {MAP_TOPIC}")
+    _spin(ros, node, duration)
+    return 0
