@@ -18,6 +18,7 @@ import numpy as np
 
 from .container import (MAGIC, VERSION, VERSION_TILED, Source, cells_allowed, check_max_bytes, check_max_cells,
                         read_tile, unpack_source)
+from . import kernels
 from .decoder import decode_dem, decode_tiled
 from .dem import DEM, Grid
 from .errors import InvalidInputError, ResourceLimitError
@@ -117,6 +118,16 @@ class CompressedMap:
             tiled map, naming the damaged tile.
         """
         window = None if bbox is None else self._window(bbox)
+        with self._kernels():
+            return self._read_dem(cutoff, bbox, window, map_tiles)
+
+    def _kernels(self) -> Any:
+        """The kernels' backend for a read of this map: the caller's, or the default for its points."""
+        return kernels.use(work=self.header.point_count)
+
+    def _read_dem(self, cutoff: float | None, bbox: Sequence[float] | None,
+                  window: tuple[tuple[int, int], tuple[int, int]] | None,
+                  map_tiles: Callable[..., list] | None) -> DEM:
         if self.header.tiles is None:
             dem = decode_dem(self.header, self._blobs, cutoff=cutoff, allow_partial=self._partial)
             if window is not None:
@@ -145,12 +156,14 @@ class CompressedMap:
         if not (0 <= rows[0] < rows[1] <= g.rows and 0 <= cols[0] < cols[1] <= g.cols):
             raise InvalidInputError(f"window rows {rows}, cols {cols} is not inside the {g.rows} x {g.cols} grid")
         self._check_budget(rows, cols)
-        return decode_tiled(self.header, self._blobs, lambda k: read_tile(self._source, self.header, k),
-                            rows=rows, cols=cols, map_tiles=map_tiles)
+        with self._kernels():
+            return decode_tiled(self.header, self._blobs, lambda k: read_tile(self._source, self.header, k),
+                                rows=rows, cols=cols, map_tiles=map_tiles)
 
     def read_points(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None) -> np.ndarray:
         """The rebuilt cloud, shape (cells, 3), float64, original frame (metres); ``bbox`` as for :meth:`read_dem`."""
-        return dem_to_points(self.read_dem(cutoff=cutoff, bbox=bbox))
+        with self._kernels():
+            return dem_to_points(self.read_dem(cutoff=cutoff, bbox=bbox))
 
     def _window(self, bbox: Sequence[float]) -> tuple[tuple[int, int], tuple[int, int]]:
         """The rows and columns of the cells ``bbox`` touches, checked against the map's extent."""
@@ -344,7 +357,8 @@ def is_dftpc(path: str | os.PathLike[str]) -> bool:
         return fh.read(len(MAGIC)) == MAGIC
 
 
-def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | None = None) -> np.ndarray:
+def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | None = None,
+               backend: kernels.Backend | str | None = None) -> np.ndarray:
     """Decode ``.dftpc`` bytes into a point cloud (:func:`open` of the bytes, then its points).
 
     Parameters
@@ -355,6 +369,9 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
         prefix holds the low frequencies; untiled maps only).
     cutoff : float, optional
         Decode-time cutoff, at least the file's (untiled maps only).
+    backend : {'numpy', 'compiled'} or dftpcc.kernels.Backend, optional
+        Where the kernels run, the same points either way; by default as :func:`dftpcc.compress`
+        chooses, for the points the map was made from.
 
     Returns
     -------
@@ -362,7 +379,9 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
         One point per occupied cell, metres, original frame.
     """
     check_max_bytes(max_bytes)
+    if backend is not None:  # refused before the bytes are parsed, as every other argument
+        backend = kernels.Backend.of(backend)
     # The bytes' own size sets the decoding budget, as open() does for any file: a small crafted
     # file cannot make this allocate a grid of 2**36 cells.
-    with open(bytes(data), max_bytes=max_bytes) as cmap:
+    with open(bytes(data), max_bytes=max_bytes) as cmap, kernels.use(backend, work=cmap.header.point_count):
         return cmap.read_points(cutoff=cutoff)
