@@ -361,6 +361,7 @@ def test_the_default_is_compiled_where_the_work_pays_for_its_import(monkeypatch)
     monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
     assert Backend.detect_available() == (Backend.NUMPY, Backend.COMPILED)
     assert Backend.default() is Backend.default(kernels.COMPILED_MIN_POINTS - 1) is Backend.NUMPY
+    assert Backend.default(kernels.COMPILED_MIN_POINTS, min_work=kernels.COMPILED_MIN_POINTS + 1) is Backend.NUMPY
     assert kernels._state["module"] is None  # deciding on numpy imported nothing
     with kernels.use(work=kernels.COMPILED_MIN_POINTS) as chosen:
         assert chosen is kernels.current() is Backend.COMPILED
@@ -371,6 +372,26 @@ def test_the_default_is_compiled_where_the_work_pays_for_its_import(monkeypatch)
     monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
     monkeypatch.setenv("DFTPCC_JIT", "1")
     assert Backend.default(1) is Backend.COMPILED
+
+
+def test_a_one_shot_call_loads_the_kernels_only_when_it_is_large_enough(monkeypatch):
+    """compress and decompress choose from the points: numpy, importing nothing, below the thresholds;
+    compiled, loading the kernels in the call, from them on."""
+    import dftpcc
+
+    monkeypatch.delenv("DFTPCC_JIT", raising=False)
+    points = _patchy_points()
+    blob = dftpcc.compress(points, resolution=0.5, cutoff=0.7, backend="numpy")
+    assert Backend.default(kernels.COMPILED_MIN_MAP_POINTS - 1, min_work=kernels.COMPILED_MIN_MAP_POINTS) \
+        is Backend.default(kernels.COMPILED_MIN_POINTS - 1) is Backend.COMPILED  # loaded already: no cost left
+    for name, call in (("COMPILED_MIN_POINTS", lambda: dftpcc.compress(points, resolution=0.5, cutoff=0.7)),
+                       ("COMPILED_MIN_MAP_POINTS", lambda: dftpcc.decompress(blob))):
+        monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
+        call()
+        assert kernels._state["module"] is None, name  # below the threshold: numba not even imported
+        monkeypatch.setattr(kernels, name, len(points))
+        call()
+        assert kernels._state["module"] is not None, name
 
 
 def test_without_numba_every_call_runs_on_numpy_and_asking_for_compiled_names_the_extra(monkeypatch):

@@ -367,7 +367,7 @@ def decompress_file(src: Source, dst: Source, *,
         with open(src, "rb") as fh:  # a pipe such as /dev/stdin
             src = _Buffer(fh.read(), str(src))
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap, \
-            kernels.use(backend, work=cmap.header.point_count):
+            kernels.use(backend, work=cmap.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS):
         with executor(workers, scheduler) if cmap.tiled else _nothing() as map_tiles:
             dem = cmap.read_dem(cutoff=cutoff, bbox=bbox, map_tiles=map_tiles)
         crs = cmap.crs

@@ -15,12 +15,14 @@ scripts/digests.py``): the compiled kernels do numpy's float operations in numpy
 pairwise summation included, and code with constriction's ANS coder, its probabilities
 quantized as constriction quantizes them. So the choice is one of speed alone:
 
-- numba installed (the ``fast`` extra) and a call of at least :data:`COMPILED_MIN_POINTS` points,
-  or the compiled kernels already loaded in this process (a second call, a
-  :class:`~dftpcc.mapbuilder.MapBuilder`, :func:`load`): compiled. A fresh process pays for numba's
-  import and the first call of each kernel (about 0.2-0.3 s with numba's cache warm, seconds on a
+- numba installed (the ``fast`` extra) and a call large enough to pay for loading it (a compress of
+  at least :data:`COMPILED_MIN_POINTS` points, a decompress of a map made from at least
+  :data:`COMPILED_MIN_MAP_POINTS`), or the compiled kernels already loaded in this process (a second
+  call, a :class:`~dftpcc.mapbuilder.MapBuilder`, :func:`load`): compiled. A fresh process pays for
+  numba's import and the first call of each kernel (0.2-0.3 s with numba's cache warm, seconds on a
   machine's very first run, while numba compiles into its cache beside the package or in
-  ``NUMBA_CACHE_DIR``); smaller calls do not earn that back.
+  ``NUMBA_CACHE_DIR``), and a kernel saves some tens of nanoseconds a point: smaller calls do not earn
+  that back (``benchmarks/bench_backend.py``).
 - otherwise numpy.
 - ``DFTPCC_JIT=0`` or ``1`` overrides that choice (``1``: compiled wherever numba is installed);
   a caller's explicit ``backend=`` overrides both.
@@ -47,15 +49,20 @@ from ._optional import import_optional
 from .errors import InvalidInputError
 
 __all__ = ["Backend", "use", "current", "load", "rows_of", "kernel", "Kernel", "compiled_module", "Side", "CORES",
-           "SIDE_MIN_CELLS", "COMPILED_MIN_POINTS", "JIT_VARIABLE", "available_cores"]
+           "SIDE_MIN_CELLS", "COMPILED_MIN_POINTS", "COMPILED_MIN_MAP_POINTS", "JIT_VARIABLE",
+           "available_cores"]
 
 #: The environment variable that overrides the automatic choice: ``0`` numpy, ``1`` compiled.
 JIT_VARIABLE = "DFTPCC_JIT"
 
-#: Calls of at least this many points (compress: the input's points; decompress: the points the map
-#: was made from) take the compiled backend in a process that has not loaded it yet: below it, numba's
-#: import and the kernels' first calls cost more than they save (``benchmarks/bench_backend.py``).
-COMPILED_MIN_POINTS = 1_000_000
+#: A compress of at least this many points takes the compiled backend in a process that has not
+#: loaded it yet. Measured (``benchmarks/bench_backend.py``, crops of the 2.8 M-point forest, each call
+#: in a fresh process, CPU time): the compiled backend's import and first calls cost 0.65 s more on
+#: this busy machine and it saves 66 ns a point, even at 9.8 M points.
+COMPILED_MIN_POINTS = 10_000_000
+#: The same for a decompress, counting the points the map was made from (its header's): decoding
+#: saves less a point (31 ns, the same import: even at 20 M points).
+COMPILED_MIN_MAP_POINTS = 20_000_000
 
 #: :mod:`dftpcc._compiled` once loaded; whether a load was tried; whether numba can be found.
 _state: dict[str, Any] = {"module": None, "tried": False, "found": None}
@@ -84,13 +91,14 @@ class Backend(enum.Enum):
         return tuple(b for b in cls if b.is_available())
 
     @classmethod
-    def default(cls, work: int | None = None) -> Backend:
+    def default(cls, work: int | None = None, *, min_work: int | None = None) -> Backend:
         """The backend a call of ``work`` points takes when its caller names none (see the module's
-        docstring); ``work=None``: a call of unknown size, compiled only once loaded."""
+        docstring): compiled from ``min_work`` points on (:data:`COMPILED_MIN_POINTS` by default);
+        ``work=None``: a call of unknown size, compiled only once loaded."""
         jit = os.environ.get(JIT_VARIABLE, "").strip()
         if jit == "0" or not cls.COMPILED.is_available():
             return cls.NUMPY
-        if jit == "1" or _state["module"] is not None or (work is not None and work >= COMPILED_MIN_POINTS):
+        if jit == "1" or _state["module"] is not None or (work is not None and work >= (COMPILED_MIN_POINTS if min_work is None else min_work)):
             return cls.COMPILED if _load() else cls.NUMPY
         return cls.NUMPY
 
@@ -158,7 +166,8 @@ def current() -> Backend:
 
 
 @contextmanager
-def use(backend: Backend | str | None = None, *, work: int | None = None) -> Iterator[Backend]:
+def use(backend: Backend | str | None = None, *, work: int | None = None,
+        min_work: int | None = None) -> Iterator[Backend]:
     """Inside: every kernel runs on ``backend``, chosen once here.
 
     Parameters
@@ -166,7 +175,9 @@ def use(backend: Backend | str | None = None, *, work: int | None = None) -> Ite
     backend : Backend or {'numpy', 'compiled'}, optional
         The caller's choice; None: the enclosing call's backend, or :meth:`Backend.default` of ``work``.
     work : int, optional
-        Points the call handles, for the default.
+        Points the call handles, for the default: compiled from ``min_work`` on.
+    min_work : int, optional
+        :data:`COMPILED_MIN_POINTS` (compress, the default), or :data:`COMPILED_MIN_MAP_POINTS` (decompress).
 
     Raises
     ------
@@ -177,7 +188,7 @@ def use(backend: Backend | str | None = None, *, work: int | None = None) -> Ite
     """
     if backend is None:
         active = _active.get()
-        chosen = Backend.default(work) if active is None else active
+        chosen = Backend.default(work, min_work=min_work) if active is None else active
     else:
         chosen = Backend.of(backend)
         if chosen is Backend.COMPILED:

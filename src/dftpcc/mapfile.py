@@ -123,7 +123,7 @@ class CompressedMap:
 
     def _kernels(self) -> Any:
         """The kernels' backend for a read of this map: the caller's, or the default for its points."""
-        return kernels.use(work=self.header.point_count)
+        return kernels.use(work=self.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS)
 
     def _read_dem(self, cutoff: float | None, bbox: Sequence[float] | None,
                   window: tuple[tuple[int, int], tuple[int, int]] | None,
@@ -371,7 +371,7 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
         Decode-time cutoff, at least the file's (untiled maps only).
     backend : {'numpy', 'compiled'} or dftpcc.kernels.Backend, optional
         Where the kernels run, the same points either way; by default as :func:`dftpcc.compress`
-        chooses, for the points the map was made from.
+        chooses, from :data:`~dftpcc.kernels.COMPILED_MIN_MAP_POINTS` points the map was made from.
 
     Returns
     -------
@@ -383,5 +383,6 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
         backend = kernels.Backend.of(backend)
     # The bytes' own size sets the decoding budget, as open() does for any file: a small crafted
     # file cannot make this allocate a grid of 2**36 cells.
-    with open(bytes(data), max_bytes=max_bytes) as cmap, kernels.use(backend, work=cmap.header.point_count):
+    with open(bytes(data), max_bytes=max_bytes) as cmap, \
+            kernels.use(backend, work=cmap.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS):
         return cmap.read_points(cutoff=cutoff)
