@@ -98,7 +98,8 @@ class Backend(enum.Enum):
         jit = os.environ.get(JIT_VARIABLE, "").strip()
         if jit == "0" or not cls.COMPILED.is_available():
             return cls.NUMPY
-        if jit == "1" or _state["module"] is not None or (work is not None and work >= (COMPILED_MIN_POINTS if min_work is None else min_work)):
+        large = work is not None and work >= (COMPILED_MIN_POINTS if min_work is None else min_work)
+        if jit == "1" or _state["module"] is not None or large:  # loaded: its import is paid already
             return cls.COMPILED if _load() else cls.NUMPY
         return cls.NUMPY
 
