@@ -381,7 +381,7 @@ def test_a_one_shot_call_loads_the_kernels_only_when_it_is_large_enough(monkeypa
 
     monkeypatch.delenv("DFTPCC_JIT", raising=False)
     points = _patchy_points()
-    blob = dftpcc.compress(points, resolution=0.5, cutoff=0.7, backend="numpy")
+    blob = dftpcc.compress(points, resolution=0.5, cutoff=0.7, backend="compiled")
     assert Backend.default(kernels.COMPILED_MIN_MAP_POINTS - 1, min_work=kernels.COMPILED_MIN_MAP_POINTS) \
         is Backend.default(kernels.COMPILED_MIN_POINTS - 1) is Backend.COMPILED  # loaded already: no cost left
     for name, call in (("COMPILED_MIN_POINTS", lambda: dftpcc.compress(points, resolution=0.5, cutoff=0.7)),
