@@ -56,12 +56,14 @@ __all__ = ["Backend", "use", "current", "load", "rows_of", "kernel", "Kernel", "
 JIT_VARIABLE = "DFTPCC_JIT"
 
 #: A compress of at least this many points takes the compiled backend in a process that has not
-#: loaded it yet. Measured (``benchmarks/bench_backend.py``, crops of the 2.8 M-point forest, each call
-#: in a fresh process, CPU time): the compiled backend's import and first calls cost 0.65 s more on
-#: this busy machine and it saves 66 ns a point, even at 9.8 M points.
+#: loaded it yet. Measured (``benchmarks/bench_backend.py --quick``, each call in a fresh process, CPU
+#: time, a machine at load 21-27 on 2 cores): on crops of the 2.8 M-point forest the compiled backend's
+#: import and first calls cost 0.65 s more and it saves 66 ns a point: even at 9.8 M points. The
+#: field's crops (0.7 M points at most, so a longer extrapolation) put it at 3.8 M; the forest's line,
+#: which reaches closer, is the one taken.
 COMPILED_MIN_POINTS = 10_000_000
-#: The same for a decompress, counting the points the map was made from (its header's): decoding
-#: saves less a point (31 ns, the same import: even at 20 M points).
+#: The same for a decompress, counting the points the map was made from (its header's): decoding the
+#: forest saves less a point (31 ns, the same 0.62 s to load: even at 19.9 M points; the field: 3.1 M).
 COMPILED_MIN_MAP_POINTS = 20_000_000
 
 #: :mod:`dftpcc._compiled` once loaded; whether a load was tried; whether numba can be found.
