@@ -211,16 +211,11 @@ def median_times(fn: Callable[[], Any], repeats: int) -> tuple[float, float, Any
 
 @contextmanager
 def numpy_path():
-    """Inside: the codec on numpy alone (``DFTPCC_JIT=0``), the anchor of the compiled kernels."""
-    before = os.environ.get("DFTPCC_JIT")
-    os.environ["DFTPCC_JIT"] = "0"
-    try:
+    """Inside: the codec on the numpy backend (``kernels.use``), the anchor of the compiled kernels."""
+    from dftpcc import kernels
+
+    with kernels.use(kernels.Backend.NUMPY):
         yield
-    finally:
-        if before is None:
-            del os.environ["DFTPCC_JIT"]
-        else:
-            os.environ["DFTPCC_JIT"] = before
 
 
 def load_average() -> str:

@@ -5,7 +5,7 @@ on the recording machine). The speed-ups reorganise work (blocks of points, view
 instead of sorts, tables instead of per-value arithmetic, a corner instead of a
 zero-padded array) but must not change one bit of any result, signed zeros included.
 Each test runs the straightforward version, kept here as the reference, next to the
-library's on inputs built to hit the edges: block boundaries, odd grid sizes, one-cell
+library's, on each kernel backend (numpy, and compiled where numba is installed), on inputs built to hit the edges: block boundaries, odd grid sizes, one-cell
 wide pyramid levels, stripes of one line, points outside the grid, zero heights.
 """
 
@@ -18,11 +18,19 @@ import zstandard
 import pytest
 import constriction
 
-from dftpcc import coding, occupancy, spectrum
+from dftpcc import coding, kernels, occupancy, spectrum
 from dftpcc.dem import DEM, Grid
 from dftpcc.fill import fill_empty, fit_plane
 from dftpcc.grid import BLOCK_POINTS, _cells_of, _xy_extremes, fit_grid, rasterize
 from dftpcc.rebuild import dem_to_points
+
+
+@pytest.fixture(autouse=True, params=[b.value for b in kernels.Backend.detect_available()])
+def backend(request):
+    """Each test on every backend this machine has: the stages' numpy and compiled kernels alike
+    against the plain formulas."""
+    with kernels.use(request.param):
+        yield
 
 
 def same_bits(a: np.ndarray, b: np.ndarray) -> bool:

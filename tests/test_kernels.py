@@ -1,14 +1,16 @@
-"""The compiled kernels (numba) write the numpy path's bytes, bit for bit, and can be switched off."""
+"""The compiled backend (numba) writes the numpy backend's bytes, bit for bit, and can be switched off."""
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 
 import numpy as np
 import pytest
 
-from dftpcc import coding, fill, kernels, occupancy
+from dftpcc import analysis, coding, fill, grid, kernels, occupancy, sums
 from dftpcc.errors import CorruptFileError, InvalidInputError
+from dftpcc.kernels import Backend
 
 pytest.importorskip("numba")
 
@@ -18,19 +20,19 @@ with warnings.catch_warnings():
 
 
 @pytest.fixture
-def jit(monkeypatch):
-    """The kernels loaded; yields a switch: ``use(False)`` makes the codec take the numpy path."""
-    monkeypatch.delenv("DFTPCC_JIT", raising=False)
-    assert kernels.load()
+def jit():
+    """The compiled backend in use; yields a switch: ``use(False)`` runs the codec on numpy, ``use(True)``
+    compiled again (each a :func:`kernels.use` scope, left at the test's end)."""
+    kernels.compiled_module()
+    with contextlib.ExitStack() as scope:
 
-    def use(on: bool) -> None:
-        if on:
-            monkeypatch.delenv("DFTPCC_JIT", raising=False)
-        else:
-            monkeypatch.setenv("DFTPCC_JIT", "0")
-        assert kernels.enabled() is on
+        def use(on: bool) -> None:
+            scope.close()
+            wanted = Backend.COMPILED if on else Backend.NUMPY
+            assert scope.enter_context(kernels.use(wanted)) is kernels.current() is wanted
 
-    return use
+        use(True)
+        yield use
 
 
 def _masks(rng: np.random.Generator):
@@ -61,7 +63,8 @@ def test_mask_contexts_equal_numpys(jit):
     for mask, stripe in _masks(np.random.default_rng(4)):
         lines = mask.astype(np.uint8)
         for s in {stripe or lines.shape[0], 1, 2, 64}:
-            assert np.array_equal(kernels.mask_contexts(lines, s), occupancy._contexts(lines, s)), (mask.shape, s)
+            assert np.array_equal(occupancy._contexts.compiled(lines, s), occupancy._contexts.numpy(lines, s)), \
+                (mask.shape, s)
 
 
 def test_mask_coder_bytes_equal(jit):
@@ -238,8 +241,8 @@ def test_table_coder_words_equal_constriction(jit):
             coder.encode_reverse(symbols.astype(np.int32), coding._build_table_model(max_abs, code))
         tables = [coding._table_cumulative(max_abs, code) for code, _ in groups]
         bounds = np.cumsum([0] + [s.size for _, s in groups])
-        words = kernels.encode_table_words(np.concatenate([s for _, s in groups]), bounds, [lo for lo, _ in tables],
-                                           [c for _, c in tables], 2 * max_abs + 1)
+        words = kernels.compiled_module().encode_table_words(np.concatenate([s for _, s in groups]), bounds, tables,
+                                                             2 * max_abs + 1)
         assert np.array_equal(words, coder.get_compressed()), (t, max_abs)
 
 
@@ -345,7 +348,109 @@ def test_map_builder_loads_the_kernels_and_writes_the_same_map(jit, monkeypatch,
 def test_switched_off_by_the_environment(monkeypatch):
     monkeypatch.setenv("DFTPCC_JIT", "0")
     assert not kernels.load()
-    assert not kernels.enabled()
+    assert kernels.current() is Backend.default(10**12) is Backend.NUMPY  # however large the call
+    with kernels.use(work=10**12) as chosen:
+        assert chosen is Backend.NUMPY
+    with kernels.use("compiled") as chosen:  # the caller's own choice is not overridden
+        assert chosen is kernels.current() is Backend.COMPILED
+
+
+def test_the_default_is_compiled_where_the_work_pays_for_its_import(monkeypatch):
+    # A process that has not loaded the kernels: compiled from COMPILED_MIN_POINTS points on, numpy below.
+    monkeypatch.delenv("DFTPCC_JIT", raising=False)
+    monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
+    assert Backend.detect_available() == (Backend.NUMPY, Backend.COMPILED)
+    assert Backend.default() is Backend.default(kernels.COMPILED_MIN_POINTS - 1) is Backend.NUMPY
+    assert Backend.default(kernels.COMPILED_MIN_POINTS, min_work=kernels.COMPILED_MIN_POINTS + 1) is Backend.NUMPY
+    assert kernels._state["module"] is None  # deciding on numpy imported nothing
+    with kernels.use(work=kernels.COMPILED_MIN_POINTS) as chosen:
+        assert chosen is kernels.current() is Backend.COMPILED
+        with kernels.use(work=1) as inner:  # chosen once per call: a call inside it keeps it
+            assert inner is Backend.COMPILED
+    # Once loaded, the import is paid: every call takes the compiled kernels.
+    assert kernels.current() is Backend.default(1) is Backend.COMPILED
+    monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
+    monkeypatch.setenv("DFTPCC_JIT", "1")
+    assert Backend.default(1) is Backend.COMPILED
+
+
+def test_a_one_shot_call_loads_the_kernels_only_when_it_is_large_enough(monkeypatch):
+    """compress and decompress choose from the points: numpy, importing nothing, below the thresholds;
+    compiled, loading the kernels in the call, from them on."""
+    import dftpcc
+
+    monkeypatch.delenv("DFTPCC_JIT", raising=False)
+    points = _patchy_points()
+    blob = dftpcc.compress(points, resolution=0.5, cutoff=0.7, backend="compiled")
+    assert Backend.default(kernels.COMPILED_MIN_MAP_POINTS - 1, min_work=kernels.COMPILED_MIN_MAP_POINTS) \
+        is Backend.default(kernels.COMPILED_MIN_POINTS - 1) is Backend.COMPILED  # loaded already: no cost left
+    for name, call in (("COMPILED_MIN_POINTS", lambda: dftpcc.compress(points, resolution=0.5, cutoff=0.7)),
+                       ("COMPILED_MIN_MAP_POINTS", lambda: dftpcc.decompress(blob))):
+        monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
+        call()
+        assert kernels._state["module"] is None, name  # below the threshold: numba not even imported
+        monkeypatch.setattr(kernels, name, len(points))
+        call()
+        assert kernels._state["module"] is not None, name
+
+
+def test_without_numba_every_call_runs_on_numpy_and_asking_for_compiled_names_the_extra(monkeypatch):
+    import sys
+
+    import dftpcc
+    from dftpcc.errors import MissingDependencyError
+
+    monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
+    monkeypatch.setitem(sys.modules, "numba", None)  # as if the extra were not installed
+    monkeypatch.delitem(sys.modules, "dftpcc._compiled")
+    monkeypatch.delattr(dftpcc, "_compiled")
+    monkeypatch.setenv("DFTPCC_JIT", "1")
+    assert Backend.default(10**12) is Backend.NUMPY
+    assert Backend.detect_available() == (Backend.NUMPY,)
+    points = np.c_[np.random.default_rng(3).uniform(0, 20, (2, 500)).T, np.zeros(500)]
+    with pytest.raises(MissingDependencyError, match=r"compiled backend needs numba.*dftpcc\[fast\]"):
+        dftpcc.compress(points, resolution=1.0, backend="compiled")
+    assert dftpcc.decompress(dftpcc.compress(points, resolution=1.0), backend="numpy").shape[1] == 3
+
+
+def test_a_backend_is_a_value_of_the_call(jit):
+    """compress and decompress take ``backend=``: every stage of the call runs on it (a stage beside
+    the caller too), the same bytes and points on each; a name that is no backend is refused."""
+    import dftpcc
+
+    points = _patchy_points()
+    seen = []
+    out = {}
+    for backend in Backend.detect_available():
+        blob = dftpcc.compress(points, resolution=0.5, cutoff=0.7, backend=backend.value,
+                               on_stage=lambda _, done=None: seen.append((backend, kernels.current())))
+        out[backend] = blob, dftpcc.decompress(blob, backend=backend)
+    assert seen and all(asked is found for asked, found in seen)
+    assert out[Backend.NUMPY][0] == out[Backend.COMPILED][0]
+    assert np.array_equal(out[Backend.NUMPY][1], out[Backend.COMPILED][1])
+    for bad in ("numba", "", 1):
+        with pytest.raises(InvalidInputError, match="backend must be one of numpy, compiled"):
+            dftpcc.compress(points, resolution=0.5, backend=bad)
+        with pytest.raises(InvalidInputError, match="backend must be one of numpy, compiled"):
+            dftpcc.decompress(out[Backend.NUMPY][0], backend=bad)
+
+
+def test_no_stage_asks_which_backend_is_in_use():
+    """The stages hold no ``if compiled:``: only kernels.py reads the backend; the others name their
+    compiled twins (kernels.kernel) and take the call's backend from it."""
+    import ast
+    from pathlib import Path
+
+    root = Path(kernels.__file__).parent
+    for path in root.rglob("*.py"):
+        if path.name in ("kernels.py", "_compiled.py"):
+            continue
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "kernels":
+                assert node.attr not in ("enabled", "current", "_state", "_active"), (path.name, node.attr)
+            if isinstance(node, ast.Attribute) and node.attr in ("NUMPY", "COMPILED"):
+                assert False, (path.name, ast.unparse(node))
 
 
 def test_a_second_process_reads_the_compiled_code_from_the_cache(tmp_path):
@@ -422,7 +527,7 @@ def test_survey_equals_numpys(jit):
         assert fast == (points[:, 0].min(), points[:, 0].max(), points[:, 1].min(), points[:, 1].max(),
                         points[:, 2].min(), points[:, 2].max(), points[:, 2].mean())
         assert grid.extremes(points) == fast[:6]
-    assert kernels.survey(zeros) is None
+    assert grid._survey_values.compiled(zeros) is NotImplemented
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
@@ -510,10 +615,12 @@ def test_distance_sums_equal_numpys(jit):
             far = sq > tolerance_sq
             marked = np.zeros(cells, bool)
             marked[idx[far]] = True
-            found = np.zeros(cells, bool)
-            got = kernels.distance_sums(idx, z, heights, tolerance_sq, found)
-            assert got == (float(sq.sum()), float(sq.max()) if n else 0.0, int(far.sum()), float(sq[far].sum()))
+            *got, found = grid._distance_sums.compiled(idx, z, heights, tolerance_sq, np.zeros(cells, bool))
+            assert tuple(got) == (float(sq.sum()), float(sq.max()) if n else 0.0, int(far.sum()), float(sq[far].sum()))
             assert np.array_equal(found, marked)
+            *plain, plain_cells = grid._distance_sums.numpy(idx, z, heights, tolerance_sq, None)
+            assert plain == got  # numpy allocates far cells at the first far point only
+            assert np.array_equal(marked, plain_cells) if plain_cells is not None else not marked.any()
 
 
 def test_trial_figures_equal_numpys(jit):
@@ -524,26 +631,26 @@ def test_trial_figures_equal_numpys(jit):
         heights, ref = rng.normal(0, 5, (2, rows, cols))
         for mask in (rng.random((rows, cols)) < 0.6, np.ones((rows, cols), bool)):
             err = (heights - ref)[mask]
-            found = kernels.masked_errors(heights, ref, mask)
+            found = analysis._trial_errors.compiled(heights, ref, mask)
             if not err.size:
-                assert found is None
+                assert found is NotImplemented
                 continue
-            got, sq_sum, largest = found
+            got, rmse, largest = found
             assert np.array_equal(got, err)
-            assert (float(np.sqrt(sq_sum / err.size)), largest) == (float(np.sqrt(np.mean(err * err))),
-                                                                    float(np.abs(err).max()))
-        assert kernels.masked_errors(heights, ref, np.zeros((rows, cols), bool)) is None
+            assert (rmse, largest) == (float(np.sqrt(np.mean(err * err))), float(np.abs(err).max()))
+        assert analysis._trial_errors.compiled(heights, ref, np.zeros((rows, cols), bool)) is NotImplemented
     nan = np.ones((4, 4))
     nan[1, 1] = np.nan
-    assert kernels.masked_errors(nan, np.zeros((4, 4)), np.ones((4, 4), bool)) is None
+    assert analysis._trial_errors.compiled(nan, np.zeros((4, 4)), np.ones((4, 4), bool)) is NotImplemented
     for n in (0, 5, 129, 32_768):
         values = rng.laplace(0, 10.0 ** rng.uniform(-2, 2), n)
         for step in (1e-3, 0.05, 0.7, 40.0):
             for deadzone in (0.0, 0.2):
                 err = values - coding.dequantize(coding.quantize(values, step, deadzone), step)
-                assert kernels.quantization_sq_error(values, step, deadzone) == float(np.sum(err * err))
-    assert kernels.quantization_sq_error(np.array([1e300, 1.0]), 1e-300, 0.0) is None  # past 2**63: quantize refuses
-    assert kernels.quantization_sq_error(np.array([np.nan]), 1.0, 0.0) is None
+                assert coding._quantization_sq_error.compiled(values, step, deadzone) == float(np.sum(err * err))
+    # past 2**63: quantize refuses, and so does the numpy twin that runs instead
+    assert coding._quantization_sq_error.compiled(np.array([1e300, 1.0]), 1e-300, 0.0) is NotImplemented
+    assert coding._quantization_sq_error.compiled(np.array([np.nan]), 1.0, 0.0) is NotImplemented
 
 
 def test_weighted_error_sum_equals_numpys(jit):
@@ -553,9 +660,10 @@ def test_weighted_error_sum_equals_numpys(jit):
         counts = rng.integers(0, 9, (rows, cols))
         mask = counts > 0
         err = rng.normal(0, 0.3, int(mask.sum()))
-        assert kernels.weighted_sq_sum(counts, mask, err) == float(np.sum(counts[mask] * err * err))
+        assert sums.weighted_sq_sum.compiled(counts, mask, err) == float(np.sum(counts[mask] * err * err))
     with pytest.raises(ValueError):
-        kernels.weighted_sq_sum(counts, mask, err[:-1])
+        sums.weighted_sq_sum.compiled(counts, mask, err[:-1])
+    assert sums.weighted_sq_sum.compiled(counts.astype(np.int32), mask, err) is NotImplemented
 
 
 def test_plane_added_in_place_equals_numpys(jit):
@@ -564,8 +672,9 @@ def test_plane_added_in_place_equals_numpys(jit):
         heights = rng.normal(0, 3, (rows, cols))
         plane = tuple(float(v) for v in rng.normal(0, [100, 0.1, 0.1]))
         mine = heights.copy()
-        kernels.add_plane(mine, plane)
+        assert fill.add_plane.compiled(mine, plane) is None
         assert np.array_equal(mine, heights + fill.plane_values(plane, heights.shape))
+        assert fill.add_plane.compiled(mine.astype(np.float32), plane) is NotImplemented  # numpy's, then
 
 
 def test_predicted_residual_words_match_constriction(jit):
@@ -644,13 +753,16 @@ def _patchy_points():
     return np.c_[x, y, z][keep]
 
 
-def test_side_runs_on_a_thread_of_its_own_only_when_it_may(beside, monkeypatch):
+def test_side_runs_on_a_thread_of_its_own_only_when_it_may(beside, jit, monkeypatch):
     import threading
 
     where = []
 
+    backends = []
+
     def stage(value):
         where.append(threading.current_thread())
+        backends.append(kernels.current())
         return 2 * value
 
     for cores, elsewhere in ((2, True), (1, False)):
@@ -658,6 +770,7 @@ def test_side_runs_on_a_thread_of_its_own_only_when_it_may(beside, monkeypatch):
         side = kernels.Side(stage, 21, cells=10)
         assert side.result() == 42
         assert (where[-1] is not threading.current_thread()) is elsewhere
+        assert backends[-1] is Backend.COMPILED  # the caller's backend, on a thread of its own too
         assert side.cores_left() is None  # done: no limit left on the caller
     beside(2)
     release = threading.Event()
@@ -668,7 +781,7 @@ def test_side_runs_on_a_thread_of_its_own_only_when_it_may(beside, monkeypatch):
     monkeypatch.setattr(kernels, "SIDE_MIN_CELLS", 100)  # too small a grid: at once, here
     kernels.Side(stage, 1, cells=99)
     assert where[-1] is threading.current_thread()
-    monkeypatch.setenv("DFTPCC_JIT", "0")  # numpy's passes would wait for each other: at once, here
+    jit(False)  # numpy's passes would wait for each other: at once, here
     kernels.Side(stage, 1, cells=10**6)
     assert where[-1] is threading.current_thread()
 

@@ -1,11 +1,39 @@
-"""The compiled kernels themselves (numba): see :mod:`dftpcc.kernels`, which imports this module
-only when asked, so that numba's import (a few tenths of a second) is paid only then.
+"""The compiled backend's kernels (numba): the twins of the stages' numpy kernels, the same bits.
 
-Module-level functions, so that numba's cache (``cache=True``) finds them again in the next
-process: closures that call one another are compiled afresh in every process.
+:mod:`dftpcc.kernels` imports this module only when a call takes the compiled backend, so that
+numba's import (a few tenths of a second) is paid only then. Each kernel is two functions here: the
+compiled loop (``_name``, ``@njit``), and, at the end of the module, ``name`` with the signature of
+its numpy twin in the stage (the stage's :func:`dftpcc.kernels.kernel` names it), which allocates
+the loop's arrays and returns ``NotImplemented`` for an input whose bits the loop could not promise
+(the numpy twin then runs). The codec's constants (the mask coder's prior, the tables) come in as
+arguments, so imports run one way: the stages import nothing from here.
+
+The compiled loops are module-level functions, so that numba's cache (``cache=True``) finds them
+again in the next process: closures that call one another are compiled afresh in every process.
+
+The occupancy mask's context coder is one loop over the cells: the context counts of the steps
+before, the probability of each (step, context) exactly as the numpy path computes it, and
+constriction's ANS stack coder with its Bernoulli model (``perfect=False``: the probability of a 0
+quantized to ``1 + floor((1 - p) * (2**24 - 2) / ((1 - p) + p))`` of 2**24; the coder's 64-bit
+state, 32-bit words, a word written when the state would overflow, the state's words last). Its
+decoder is one loop too, over the cells in decoding order, with constriction's decoding (the state
+from the last two words, a word read whenever the state drops below 2**32, decoding on from the
+state alone once the words run out): the numpy path's mask from any words, damaged ones too. The
+coefficient coder's integer tables are coded the same way, without building constriction's models,
+and push-pull's levels are pulled and pushed in one pass each, with the same float operations in the
+same order (so the same bits, signs of zero too). Sums whose bits reach a file (the gridding's
+spread, the plane's normal equations) are added as ``np.sum`` adds them: its identity 0.0, then
+numpy's pairwise summation (blocks of up to 128 values in eight accumulators, halved at multiples of
+8 above that), made as the values are, without their arrays.
+
+Output arrays are allocated by numpy, outside the loops: numpy puts large arrays on huge pages
+(madvise), numba's own allocation faults every 4 kB page in (40 ms instead of 17 for the forest's
+2.8 M points' cells).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -48,7 +76,7 @@ def _push(words, count, state, bit, z):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def mask_contexts(lines, stripe, ctx):  # pragma: no cover - compiled
+def _mask_contexts(lines, stripe, ctx):  # pragma: no cover - compiled
     # occupancy._contexts into ctx (uint8, the shape of lines): bits 0-4 the cells at offsets
     # -2..+2 of the line before, bits 5-7 those at -1..+1 of the line before last (line 1 of a
     # stripe: line 0 again; line 0: nothing), each a window slid along the line.
@@ -80,7 +108,7 @@ def mask_contexts(lines, stripe, ctx):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first, words):  # pragma: no cover - compiled
+def _encode_mask_words(lines, ctx, stripe, prior_ones, prior_total, first, words):  # pragma: no cover - compiled
     # first: 1 for kind 3, whose line 0 of the first stripe is a seed too (not coded), else 0
     n, w = lines.shape
     n_stripes = (n + stripe - 1) // stripe
@@ -160,7 +188,7 @@ def _ans_start(words):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def decode_mask_lines(words, lines, n_lines, stripe, prior_ones, prior_total, first):  # pragma: no cover - compiled
+def _decode_mask_lines(words, lines, n_lines, stripe, prior_ones, prior_total, first):  # pragma: no cover - compiled
     # The inverse of encode_mask_words, as occupancy._decode_context decodes with constriction:
     # lines (n_stripes * stripe, width), zeros but line 0 of every stripe after the first (the
     # seeds; with first = 1, kind 3, line 0 of the first stripe too), gets the other lines in place. Decoding order as there: step t decodes line t of
@@ -279,7 +307,7 @@ def _pop_table(words, state, pos, lo, csum, at, size, n):  # pragma: no cover - 
 
 
 @njit(cache=True, nogil=True)
-def decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, alphabets, out):  # pragma: no cover - compiled
+def _decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, alphabets, out):  # pragma: no cover - compiled
     # coding._decode_ans's constriction loop in one pass: the values of each nonzero code c, codes
     # ascending and positions ascending within one (a stable counting sort), decoded with table
     # table_of[c] into out[position] as symbol - (n - 1) // 2; values of code 0 stay as they are.
@@ -329,7 +357,7 @@ def decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, alp
 
 
 @njit(cache=True, nogil=True)
-def encode_table_words(symbols, bounds, tables, lows, csum, near_bounds, alphabets):  # pragma: no cover - compiled
+def _encode_table_words(symbols, bounds, tables, lows, csum, near_bounds, alphabets):  # pragma: no cover - compiled
     words = np.empty(symbols.size + 4, dtype=np.uint32)
     count = 0
     state = np.uint64(0)
@@ -353,7 +381,7 @@ def encode_table_words(symbols, bounds, tables, lows, csum, near_bounds, alphabe
 
 
 @njit(cache=True, nogil=True)
-def pull(values, known, mean, any_known):  # pragma: no cover - compiled
+def _pull_level(values, known, mean, any_known):  # pragma: no cover - compiled
     # mean, any_known: the caller's zeros, (rows + 1) // 2 x (cols + 1) // 2 (see axis_cells)
     r, c = values.shape
     rc, cc = mean.shape
@@ -379,7 +407,7 @@ def pull(values, known, mean, any_known):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def push(values, known, coarse, out):  # pragma: no cover - compiled
+def _push_level(values, known, coarse, out):  # pragma: no cover - compiled
     # out: the caller's, the shape of values (see axis_cells)
     r, c = values.shape
     rc, cc = coarse.shape
@@ -403,7 +431,7 @@ def push(values, known, coarse, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def survey(points):  # pragma: no cover - compiled
+def _survey(points):  # pragma: no cover - compiled
     # extremes and np.sum(points[:, 2]) (numpy's pairwise sum of the column: its leaves, each summed
     # while its rows are in cache for the extremes), in one pass over the cloud; and whether a NaN
     # was seen (a NaN is never an extreme; an infinity is).
@@ -438,7 +466,7 @@ def survey(points):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def cell_points(mask, xs, ys, heights, z0, out):  # pragma: no cover - compiled
+def _cell_points(mask, xs, ys, heights, z0, out):  # pragma: no cover - compiled
     # rebuild.dem_to_points on an axis-aligned grid: (xs[col], ys[row], heights + z0) of every
     # occupied cell, row-major, in one pass, into out (one row per occupied cell).
     rows, cols = mask.shape
@@ -454,7 +482,7 @@ def cell_points(mask, xs, ys, heights, z0, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows, idx, z):  # pragma: no cover - compiled
+def _axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows, idx, z):  # pragma: no cover - compiled
     # grid._axis_cells in one pass: floor((x - x0) * inv_u), the same for y, row * cols + col
     # (each rounding as numpy does it, one operation at a time), and z - z0; ok False as soon
     # as a point falls outside the grid (or is NaN).
@@ -472,7 +500,7 @@ def axis_cells(points, x0, y0, z0, inv_u, inv_v, cols, rows, idx, z):  # pragma:
 
 
 @njit(cache=True, nogil=True)
-def cell_sums(idx, z, count, total):  # pragma: no cover - compiled
+def _cell_sums(idx, z, count, total):  # pragma: no cover - compiled
     # count += np.bincount(idx) and total += np.bincount(idx, weights=z) onto zeros, in one pass
     # and in place: each bin's sum in the points' order, from 0.0, as numpy's loop adds them.
     for i in range(idx.size):
@@ -617,7 +645,7 @@ def array_dot(a, b):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def plane_sums(heights, mask, x, y, z):  # pragma: no cover - compiled
+def _plane_sums(heights, mask, x, y, z):  # pragma: no cover - compiled
     # fill.fit_plane's sums: the column, row and height of every occupied cell (row-major, into
     # x, y, z: the caller's arrays of one value per occupied cell, and one more), their means, and
     # the five sums of products of the centred values, each as numpy's mean and np.sum add them.
@@ -653,7 +681,7 @@ def plane_sums(heights, mask, x, y, z):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq):  # pragma: no cover - compiled
+def _distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq):  # pragma: no cover - compiled
     # grid._SpreadCounter.add's figures in one pass: np.sum of sq = (z - heights[idx])**2, its
     # maximum (0 for no points), how many exceed tolerance_sq and np.sum of those (in order), their
     # cells marked in far_cells; far_sq: the caller's scratch of one value per point (the far
@@ -684,7 +712,7 @@ def distance_sums(idx, z, heights, tolerance_sq, far_cells, far_sq):  # pragma: 
 
 
 @njit(cache=True, nogil=True)
-def masked_errors(heights, ref, mask, out):  # pragma: no cover - compiled
+def _masked_errors(heights, ref, mask, out):  # pragma: no cover - compiled
     # (heights - ref)[mask] into out (row-major; the caller's array of one value per set cell, and
     # one more), np.sum of their squares (pairwise, as np.mean(err * err) adds them) and np.abs(err).max()
     rows, cols = mask.shape
@@ -701,7 +729,7 @@ def masked_errors(heights, ref, mask, out):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def quantization_sq_error(values, step, offset):  # pragma: no cover - compiled
+def _quantization_sq_error(values, step, offset):  # pragma: no cover - compiled
     # coding.choose_step's sq_error: np.sum of (v - q * step)**2 with q = sign(v) * floor(|v| / step +
     # offset) as an int64 (coding.quantize, offset = 0.5 - deadzone), pairwise as np.sum adds; and
     # whether every q stayed below 2**63 (else the caller refuses, as quantize does)
@@ -723,7 +751,7 @@ def quantization_sq_error(values, step, offset):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def weighted_sq_sum(counts, mask, errors, scratch):  # pragma: no cover - compiled
+def _weighted_sq_sum(counts, mask, errors, scratch):  # pragma: no cover - compiled
     # np.sum(counts[mask] * errors * errors) (counts: int64, one per cell; errors: one per set cell,
     # row-major), each product as numpy makes it ((count * e) * e), added pairwise as np.sum adds;
     # scratch: the caller's, one value per set cell and one more (the set cells' counts)
@@ -746,7 +774,7 @@ def weighted_sq_sum(counts, mask, errors, scratch):  # pragma: no cover - compil
 
 
 @njit(cache=True, nogil=True)
-def add_plane(heights, a, b, c):  # pragma: no cover - compiled
+def _add_plane(heights, a, b, c):  # pragma: no cover - compiled
     # heights += fill.plane_values((a, b, c), heights.shape), in place: each cell's (a + b * col) + c * row,
     # as numpy's broadcast evaluates it, then added
     rows, cols = heights.shape
@@ -772,7 +800,7 @@ def _neighbour_at(r, c, up, left, cols):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alphabets, table_of, values):  # pragma: no cover - compiled
+def _decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alphabets, table_of, values):  # pragma: no cover - compiled
     # RESD kind 5 (residual._decode_predicted): values (rows * cols, zeros) gets every cell's V in
     # wavefront order; the errors of the rebuilt cells are decoded a wavefront at a time, by class
     # (classes ascending, rows ascending within one), with table table_of[class] as
@@ -856,3 +884,248 @@ def decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alpha
                 return 1
             values[r * cols + c] = v
     return 0
+
+
+# --- The kernels, with their numpy twins' signatures ------------------------------------------------
+
+
+def survey(points: np.ndarray) -> tuple[float, ...]:
+    """``grid._survey_values``: x_lo, x_hi, y_lo, y_hi, z_lo, z_hi and the mean height of float64
+    points (N, 3+), N > 0, in one pass; declined when a coordinate is not finite (the numpy twin says
+    which) or where numpy's reductions could differ (a zero extreme: which of 0.0 and -0.0 is the minimum)."""
+    *found, nan = _survey(points)
+    extremes = tuple(float(v) for v in found[:6])
+    if nan or 0.0 in extremes or not all(math.isfinite(v) for v in extremes):
+        return NotImplemented
+    return (*extremes, float(found[6]) / points.shape[0])
+
+
+def axis_cells(points: np.ndarray, grid) -> tuple[np.ndarray, np.ndarray] | None:  # noqa: ANN001 - a dem.Grid
+    """``grid._axis_cells``: the flat cell index and the height above ``grid.z0`` of every point of an
+    axis-aligned grid, the same arithmetic; None when a point lies outside the grid."""
+    if points.dtype != np.float64:
+        return NotImplemented
+    n = points.shape[0]
+    idx, z = np.empty(n, dtype=np.int64), np.empty(n)
+    ok = _axis_cells(points, float(grid.x0), float(grid.y0), float(grid.z0), 1.0 / grid.resolution, 1.0 / grid.dy,
+                     int(grid.cols), int(grid.rows), idx, z)
+    return (idx, z) if ok else None
+
+
+def cell_sums(idx: np.ndarray, z: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``grid._cell_sums``: ``np.bincount(idx, minlength=size)`` and ``np.bincount(idx, weights=z,
+    minlength=size)`` in one pass, the same bits (each bin sums its points in order, from 0.0)."""
+    if idx.shape != z.shape or idx.ndim != 1:  # the loop indexes without checks
+        raise ValueError("idx and z must be 1-d arrays of one value per point")
+    count, total = np.zeros(size, dtype=np.int64), np.zeros(size)
+    _cell_sums(np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(z, dtype=np.float64), count, total)
+    return count, total
+
+
+def distance_sums(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance_sq: float,
+                  far_cells: np.ndarray | None) -> tuple[float, float, int, float, np.ndarray]:
+    """``grid._distance_sums``: with ``sq = (z - heights[idx])**2``, ``sq.sum()``, its maximum (0 for no
+    points), how many exceed ``tolerance_sq`` and their sum, each to numpy's bits; the far points'
+    cells set True in ``far_cells`` (allocated here when None), which is returned."""
+    if far_cells is None:
+        far_cells = np.zeros(heights.size, dtype=bool)
+    if far_cells.dtype != np.bool_ or not far_cells.flags.c_contiguous or far_cells.size != heights.size:
+        raise ValueError("far_cells must be a contiguous bool array of one value per cell, as heights")
+    if idx.shape != z.shape or idx.ndim != 1:
+        raise ValueError("idx and z must be 1-d arrays of one value per point")
+    far_sq = np.empty(idx.size)  # the far squares, in order
+    total, largest, far, far_total = _distance_sums(
+        np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(z, dtype=np.float64),
+        np.ascontiguousarray(heights, dtype=np.float64).reshape(-1), float(tolerance_sq), far_cells, far_sq)
+    return float(total), float(largest), int(far), float(far_total), far_cells
+
+
+def plane_sums(heights: np.ndarray, mask: np.ndarray) -> tuple[float, ...]:
+    """``fill._plane_sums``: the means of the column, row and height of the cells set in ``mask``
+    (at least one), and the sums of products xx, xy, yy, xz, yz of the centred values, to the bit."""
+    if heights.shape != mask.shape or heights.ndim != 2:
+        raise ValueError("heights and mask must be 2-d arrays of one shape")
+    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    occupied = int(np.count_nonzero(mask))
+    if occupied == 0:
+        raise ValueError("mask must have a set cell")
+    # One more value each than occupied cells: the loop writes every cell's, keeping the occupied ones.
+    x, y, z = np.empty(occupied + 1), np.empty(occupied + 1), np.empty(occupied + 1)
+    return tuple(float(v) for v in _plane_sums(np.ascontiguousarray(heights, dtype=np.float64), mask, x, y, z))
+
+
+def add_plane(heights: np.ndarray, plane: tuple[float, float, float]) -> None:
+    """``fill.add_plane`` in one pass, in place, to the bit; declined but for C-contiguous 2-d float64 heights."""
+    if heights.dtype != np.float64 or heights.ndim != 2 or not heights.flags.c_contiguous:
+        return NotImplemented
+    a, b, c = (float(v) for v in plane)
+    _add_plane(heights, a, b, c)
+    return None
+
+
+def pull(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``fill._pull``: the mean of the known values of each 2x2 block (summed as ``fill._pairs`` sums
+    the blocks of a large level, zeros past odd edges) and whether any of the four is known."""
+    r, c = values.shape
+    mean, any_known = np.zeros(((r + 1) // 2, (c + 1) // 2)), np.zeros(((r + 1) // 2, (c + 1) // 2), dtype=bool)
+    _pull_level(np.ascontiguousarray(values, dtype=np.float64), np.ascontiguousarray(known), mean, any_known)
+    return mean, any_known
+
+
+def push(values: np.ndarray, known: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+    """``fill._push``: the known cells keep their values, the others take the 2x bilinear upsampling
+    of the filled ``coarse`` level."""
+    out = np.empty(values.shape)
+    _push_level(np.ascontiguousarray(values, dtype=np.float64), np.ascontiguousarray(known),
+          np.ascontiguousarray(coarse, dtype=np.float64), out)
+    return out
+
+
+def cell_points(mask: np.ndarray, xs: np.ndarray, ys: np.ndarray, heights: np.ndarray, z0: float) -> np.ndarray:
+    """``rebuild._cell_points``: ``(xs[col], ys[row], heights + z0)`` of every cell set in ``mask``,
+    row-major; declined for heights other than float64."""
+    if heights.dtype != np.float64:
+        return NotImplemented
+    rows, cols = mask.shape
+    if xs.shape != (cols,) or ys.shape != (rows,) or heights.shape != mask.shape:
+        raise ValueError("xs, ys and heights must match the mask's columns, rows and shape")
+    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    out = np.empty((int(np.count_nonzero(mask)), 3))
+    _cell_points(mask, np.ascontiguousarray(xs, dtype=np.float64), np.ascontiguousarray(ys, dtype=np.float64),
+                 np.ascontiguousarray(heights), float(z0), out)
+    return out
+
+
+def mask_contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
+    """``occupancy._contexts`` of the line-major mask ``lines`` (uint8, 0/1), in one pass."""
+    lines = np.ascontiguousarray(lines, dtype=np.uint8)
+    if lines.ndim != 2 or stripe < 1:
+        raise ValueError("lines must be a 2-d mask and stripe at least 1")
+    ctx = np.empty_like(lines)
+    _mask_contexts(lines, int(stripe), ctx)
+    return ctx
+
+
+def encode_mask_words(lines: np.ndarray, ctx: np.ndarray, stripe: int, first_seed: bool, *,
+                      prior_ones: np.ndarray, prior_total: float) -> np.ndarray:
+    """``occupancy._context_words``: the context coder's ANS words of the line-major mask ``lines``
+    (uint8, 0/1) with the contexts ``ctx`` (``first_seed``: kind 3, line 0 of the first stripe not coded)."""
+    lines = np.ascontiguousarray(lines, dtype=np.uint8)
+    words = np.empty(lines.size + 4, dtype=np.uint32)
+    return _encode_mask_words(lines, np.ascontiguousarray(ctx), int(stripe), prior_ones, float(prior_total),
+                              int(first_seed), words)
+
+
+def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, first_seed: bool, *,
+                      prior_ones: np.ndarray, prior_total: float) -> np.ndarray:
+    """``occupancy._context_lines``: the mask ``lines`` (``(n_stripes, stripe, width)`` uint8, the seed
+    lines set) decoded from ``words`` in place, as ``(n_lines, width)`` booleans. Any words decode to
+    some mask, as they do with constriction (which decodes on from its state alone past the last
+    word); the caller refuses those constriction refuses (a last word of 0)."""
+    # The loop writes into lines without bounds checks: its shape must be what it assumes.
+    if lines.dtype != np.uint8 or lines.ndim != 3 or not lines.flags.c_contiguous:
+        raise ValueError("lines must be a C-contiguous 3-d uint8 array")
+    n_stripes, stripe, width = lines.shape
+    if stripe < 1 or n_lines < 0 or n_stripes * stripe < n_lines:
+        raise ValueError("lines must hold every line of the stripes")
+    flat = lines.reshape(-1, width)
+    _decode_mask_lines(np.ascontiguousarray(words, dtype=np.uint32), flat, int(n_lines), int(stripe),
+                       np.ascontiguousarray(prior_ones, dtype=np.float64), float(prior_total), int(first_seed))
+    return flat[:n_lines].view(bool)
+
+
+def _packed_tables(tables: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each table's lowest symbol, the tables' running sums end to end, and where each table's
+    frequencies start (and the end), as the table coders read them."""
+    lows = np.asarray([lo for lo, _ in tables], dtype=np.int64)
+    near_bounds = np.zeros(len(tables) + 1, dtype=np.int64)
+    np.cumsum([cumulative.size - 1 for _, cumulative in tables], out=near_bounds[1:])
+    csum = np.concatenate([cumulative for _, cumulative in tables]) if tables else np.zeros(0, np.int64)
+    return lows, csum, near_bounds
+
+
+def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, tables: list[tuple[int, np.ndarray]],
+                       n: int | np.ndarray, table_of: np.ndarray | None = None) -> np.ndarray:
+    """The ANS words of groups of symbols 0..n-1 (group g: ``symbols[bounds[g]:bounds[g + 1]]``), each
+    with its table (``coding._table_cumulative``: ``(lo, cumulative)``, a floor of 1 of 2**24 but the
+    frequencies whose running sums ``cumulative`` holds, from symbol ``lo``; table ``table_of[g]``, else
+    g), pushed as constriction's coder pushes them: the last group first, each group last symbol first.
+    ``n``: one alphabet size for all the tables, or one for each."""
+    lows, csum, near_bounds = _packed_tables(tables)
+    if table_of is None:
+        table_of = np.arange(len(tables), dtype=np.int64)
+    alphabets = np.broadcast_to(np.asarray(n, dtype=np.int64), (len(tables),))
+    return _encode_table_words(np.ascontiguousarray(symbols, dtype=np.int64), np.asarray(bounds, np.int64),
+                               np.asarray(table_of, dtype=np.int64), lows, csum, near_bounds,
+                               np.ascontiguousarray(alphabets))
+
+
+def decode_coded_values(words: np.ndarray, per_value: np.ndarray, present: np.ndarray,
+                        tables: list[tuple[int, np.ndarray]], n: int) -> np.ndarray:
+    """The values of an ANS chunk: each value's scale code ``per_value`` (uint8; 0: the value is 0),
+    the nonzero codes ``present`` among them, ascending, with their tables (as
+    :func:`encode_table_words` takes them) of one alphabet of ``n`` symbols. The values of one code are
+    decoded in turn, codes ascending, as :func:`encode_table_words` pushes them."""
+    lows, csum, near_bounds = _packed_tables(tables)
+    table_of = np.zeros(256, dtype=np.int64)
+    table_of[np.asarray(present, dtype=np.int64)] = np.arange(len(present))
+    out = np.zeros(per_value.size, dtype=np.int64)
+    _decode_coded_values(np.ascontiguousarray(words, dtype=np.uint32), np.ascontiguousarray(per_value, dtype=np.uint8),
+                         table_of, lows, csum, near_bounds, np.full(len(tables), n, dtype=np.int64), out)
+    return out
+
+
+def decode_predicted(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, codes: np.ndarray,
+                     tables: list[tuple[int, np.ndarray]], alphabets: np.ndarray) -> np.ndarray | None:
+    """``RESD`` kind 5's values V on the whole grid, in one pass; None when one reaches 2**31.
+    ``tables``, ``alphabets``: those of the classes of nonzero ``codes``, in class order."""
+    lows, csum, near_bounds = _packed_tables(tables)
+    table_of = np.full(len(codes), -1, dtype=np.int64)
+    table_of[np.flatnonzero(codes)] = np.arange(np.count_nonzero(codes))
+    values = np.zeros(kept.size, dtype=np.int64)
+    status = _decode_predicted(
+        np.ascontiguousarray(words, dtype=np.uint32), np.ascontiguousarray(kept, dtype=np.bool_),
+        np.ascontiguousarray(weights, dtype=np.int64), np.ascontiguousarray(codes, dtype=np.uint8),
+        lows, csum, near_bounds, np.ascontiguousarray(alphabets, dtype=np.int64), table_of, values)
+    return None if status else values
+
+
+def masked_errors(heights: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """``analysis._trial_errors``: ``err = (heights - ref)[mask]``, its RMS and largest magnitude, to
+    numpy's bits, in two passes; declined where numpy's figures could differ (no set cell, a NaN)."""
+    if not (heights.shape == ref.shape == mask.shape and heights.ndim == 2):
+        raise ValueError("heights, ref and mask must be 2-d arrays of one shape")
+    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    n = int(np.count_nonzero(mask))
+    # Every cell's error is written at the count of set cells before it: one more than the set cells.
+    out = np.empty(n + 1)
+    sq_sum, largest = _masked_errors(np.ascontiguousarray(heights, dtype=np.float64),
+                                     np.ascontiguousarray(ref, dtype=np.float64), mask, out)
+    if n == 0 or not np.isfinite(sq_sum):
+        return NotImplemented
+    return out[:n], float(np.sqrt(sq_sum / n)), float(largest)
+
+
+def quantization_sq_error(values: np.ndarray, step: float, deadzone: float) -> float:
+    """``coding._quantization_sq_error``: the sum of squares of ``values - dequantize(quantize(values,
+    step, deadzone), step)`` to numpy's bits; declined where ``quantize`` would refuse (an integer
+    past 2**63), so the numpy twin raises as it does."""
+    total, ok = _quantization_sq_error(np.ascontiguousarray(values, dtype=np.float64), float(step),
+                                       0.5 - float(deadzone))
+    return float(total) if ok else NotImplemented
+
+
+def weighted_sq_sum(counts: np.ndarray, mask: np.ndarray, errors: np.ndarray) -> float:
+    """``sums.weighted_sq_sum``: ``np.sum(counts[mask] * errors * errors)`` to numpy's bits, without the
+    products' arrays; declined for counts other than int64."""
+    if counts.dtype != np.int64:
+        return NotImplemented
+    mask = np.ascontiguousarray(mask, dtype=np.bool_)
+    if counts.shape != mask.shape or counts.ndim != 2 or errors.ndim != 1:
+        raise ValueError("counts and mask must be 2-d arrays of one shape, errors 1-d")
+    if errors.size != int(np.count_nonzero(mask)):  # the loop walks the set cells without bounds checks
+        raise ValueError("errors must hold one value per set cell of mask")
+    scratch = np.empty(errors.size + 1)  # the set cells' counts
+    return float(_weighted_sq_sum(np.ascontiguousarray(counts), mask, np.ascontiguousarray(errors, dtype=np.float64),
+                                  scratch))
+

@@ -45,6 +45,13 @@ class Trial:
     errors: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
 
+@kernels.kernel("masked_errors")
+def _trial_errors(heights: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """``err = (heights - ref)[mask]`` (metres, row-major), its RMS and its largest magnitude."""
+    err = (heights - ref)[mask]
+    return err, float(np.sqrt(np.mean(err * err))), float(np.abs(err).max())
+
+
 class Analysis:
     """What does not change between trials: detrended, filled DEM and its sorted transform.
 
@@ -205,13 +212,7 @@ class Analysis:
         (``keep_errors``: with :attr:`Trial.errors`)."""
         step = coding.short_step(step)
         stream, heights = self.rebuilt(cutoff, step)
-        found = kernels.masked_errors(heights, self.dem.heights, self.mask) if kernels.enabled() else None
-        if found is not None:  # the same figures in two compiled passes
-            err, sq_sum, largest = found
-            rmse = float(np.sqrt(sq_sum / err.size))
-        else:
-            err = (heights - self.dem.heights)[self.mask]
-            rmse, largest = float(np.sqrt(np.mean(err * err))), float(np.abs(err).max())
+        err, rmse, largest = _trial_errors(heights, self.dem.heights, self.mask)
         out = Trial(cutoff, step, stream, heights, rmse, largest)
         if keep_errors:
             out.errors = err

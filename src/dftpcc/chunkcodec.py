@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from . import mapfile
+from ._optional import install_hint
 from .dem import DEM, Grid
 from .encoder import encode_dem
 from .errors import CorruptFileError, DftpccError, InvalidInputError, ResourceLimitError
@@ -58,7 +59,7 @@ from .residual import GUARANTEE_MARGIN
 __all__ = ["NO_DATA_MAGIC", "INSTALL_HINT", "MAX_CHUNK_CELLS", "check_chunk_shape", "chunk_params", "coding_bound", "encode_chunk", "decode_chunk",
            "no_data_value", "check_dtype"]
 
-INSTALL_HINT = "pip install 'dftpcc[zarr]' (zarr, numcodecs, xarray and dask)"
+INSTALL_HINT = install_hint("zarr")
 #: First bytes of the record of a chunk without a single valid cell (a ``.dftpc``
 #: stream needs one); distinct from the ``.dftpc`` magic ``\\x89DFTPC\\r\\n``.
 NO_DATA_MAGIC = b"\x89DFTPC\x00\x00"

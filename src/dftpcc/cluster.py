@@ -16,12 +16,13 @@ import time
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator, Sequence
 
-from .errors import ClusterError, InvalidInputError, MissingDependencyError
+from ._optional import import_optional, install_hint
+from .errors import ClusterError, InvalidInputError
 from .kernels import available_cores
 
 __all__ = ["Map", "executor", "serial", "CONNECT_TIMEOUT_S", "NO_WORKER_TIMEOUT_S", "MAX_WORKERS_PER_CORE"]
 
-INSTALL_HINT = "pip install 'dftpcc[dask]' (dask.distributed)"
+INSTALL_HINT = install_hint("dask")
 #: Seconds to wait for a scheduler to answer before giving up.
 CONNECT_TIMEOUT_S = 10
 #: Seconds a computation may wait with no worker at all before it is abandoned.
@@ -80,11 +81,8 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
     if workers is None and scheduler is None:
         yield serial
         return
-    try:
-        import dask
-        import distributed
-    except ImportError:
-        raise MissingDependencyError(f"parallel coding needs dask.distributed: {INSTALL_HINT}") from None
+    distributed = import_optional("distributed", "dask", needed_for="parallel coding", name="dask.distributed")
+    import dask  # distributed's own dependency
     # dask starts its workers with MALLOC_TRIM_THRESHOLD_ set, which turns off glibc's adaptive mmap
     # threshold: every large numpy temporary is then a fresh mapping, page-faulted in, and a tile
     # cost 1.6-2.4x the CPU time it costs here (measured on 4-tile blocks of a 4,824² GeoTIFF).

@@ -188,14 +188,8 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
     budget = target_rmse * target_rmse * n_cells / stride
     values = values[::stride]
 
-    compiled = kernels.enabled()
-
     def sq_error(step: float) -> float:
-        found = kernels.quantization_sq_error(values, step, deadzone) if compiled else None
-        if found is not None:  # the same sum in one compiled pass
-            return found
-        err = values - dequantize(quantize(values, step, deadzone), step)
-        return dot(err, err)
+        return _quantization_sq_error(values, step, deadzone)
 
     lo = max(target_rmse * 1e-3, finest)
     hi = max(target_rmse * math.sqrt(12.0 * n_cells), 1e-12, lo)
@@ -210,6 +204,13 @@ def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzon
         if hi / lo < STEP_TOLERANCE:
             break
     return lo
+
+
+@kernels.kernel("quantization_sq_error")
+def _quantization_sq_error(values: np.ndarray, step: float, deadzone: float) -> float:
+    """The sum of squares (m²) of ``values - dequantize(quantize(values, step, deadzone), step)``."""
+    err = values - dequantize(quantize(values, step, deadzone), step)
+    return dot(err, err)
 
 
 def _chunk_bounds(count: int) -> list[tuple[int, int]]:
@@ -472,18 +473,26 @@ class _Bands(NamedTuple):
 def _encode_ans_with(q: np.ndarray, b: _Bands, max_abs: int) -> bytes:
     # Zero codes compress well: most high-frequency bands are empty at low rates.
     side = _side_info(b.codes)
-    if kernels.enabled():  # the same words, without building constriction's tables
-        order, present, bounds = _grouped(b.per_value)
-        tables = [_table_cumulative(max_abs, code) for code in present.tolist()]
-        words = kernels.encode_table_words(q[order] + max_abs, bounds, [lo for lo, _ in tables],
-                                           [cumulative for _, cumulative in tables], 2 * max_abs + 1)
-    else:
-        coder = constriction.stream.stack.AnsCoder()
-        # A stack coder decodes last-in first-out: push the groups in reverse.
-        for code, where in reversed(_groups(b.per_value)):
-            coder.encode_reverse((q[where] + max_abs).astype(np.int32), _table_model(max_abs, code))
-        words = coder.get_compressed()
+    words = _table_words(q, b.per_value, max_abs)
     return _ANS_HEAD.pack(b.layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
+
+
+def _table_words_compiled(q: np.ndarray, per_value: np.ndarray, max_abs: int) -> np.ndarray:
+    # The same words, without building constriction's tables.
+    order, present, bounds = _grouped(per_value)
+    tables = [_table_cumulative(max_abs, code) for code in present.tolist()]
+    return kernels.compiled_module().encode_table_words(q[order] + max_abs, bounds, tables, 2 * max_abs + 1)
+
+
+@kernels.kernel(_table_words_compiled)
+def _table_words(q: np.ndarray, per_value: np.ndarray, max_abs: int) -> np.ndarray:
+    """The ANS words (uint32) of the values ``q`` (|q| <= ``max_abs``) grouped by their scale codes
+    ``per_value`` (0: not coded), each group with its code's table, codes ascending."""
+    coder = constriction.stream.stack.AnsCoder()
+    # A stack coder decodes last-in first-out: push the groups in reverse.
+    for code, where in reversed(_groups(per_value)):
+        coder.encode_reverse((q[where] + max_abs).astype(np.int32), _table_model(max_abs, code))
+    return coder.get_compressed()
 
 
 def _estimated_bits(q: np.ndarray, b: _Bands, magnitudes: np.ndarray | None = None) -> float:
@@ -573,19 +582,27 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     if codes.size != ncodes:
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
     words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
-    per_value = codes[bands - lo]
-    if kernels.enabled():  # the same values, the groups sorted and decoded in one compiled pass
-        present = np.flatnonzero(np.bincount(per_value, minlength=256)[1:]) + 1
-        if present.size * (2 * max_abs + 1) > table_budget(bands.size):
-            raise CorruptFileError(f"{what} asks for larger probability tables than its {bands.size} values allow")
-        check_ans_words(words, what)
-        tables = [_table_cumulative(max_abs, code) for code in present.tolist()]
-        return kernels.decode_coded_values(words, per_value, present, [lo for lo, _ in tables],
-                                           [cumulative for _, cumulative in tables], 2 * max_abs + 1)
-    out = np.zeros(bands.size, dtype=np.int64)
+    return _coded_values(words, codes[bands - lo], max_abs, what)
+
+
+def _coded_values_compiled(words: np.ndarray, per_value: np.ndarray, max_abs: int, what: str) -> np.ndarray:
+    # The same values, the groups sorted and decoded in one compiled pass.
+    present = np.flatnonzero(np.bincount(per_value, minlength=256)[1:]) + 1
+    if present.size * (2 * max_abs + 1) > table_budget(per_value.size):
+        raise CorruptFileError(f"{what} asks for larger probability tables than its {per_value.size} values allow")
+    check_ans_words(words, what)
+    tables = [_table_cumulative(max_abs, code) for code in present.tolist()]
+    return kernels.compiled_module().decode_coded_values(words, per_value, present, tables, 2 * max_abs + 1)
+
+
+@kernels.kernel(_coded_values_compiled)
+def _coded_values(words: np.ndarray, per_value: np.ndarray, max_abs: int, what: str) -> np.ndarray:
+    """The inverse of :func:`_table_words`: the values (int64) whose scale codes are ``per_value``,
+    from ``words``; ``what`` names the chunk in errors."""
+    out = np.zeros(per_value.size, dtype=np.int64)
     groups = _groups(per_value)
-    if len(groups) * (2 * max_abs + 1) > table_budget(bands.size):
-        raise CorruptFileError(f"{what} asks for larger probability tables than its {bands.size} values allow")
+    if len(groups) * (2 * max_abs + 1) > table_budget(per_value.size):
+        raise CorruptFileError(f"{what} asks for larger probability tables than its {per_value.size} values allow")
     try:
         coder = constriction.stream.stack.AnsCoder(words)
         for code, where in groups:

@@ -17,7 +17,7 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-from .sums import dot
+from .sums import dot, weighted_sq_sum
 from . import coding, kernels, occupancy, ratecontrol, spectrum
 from .cluster import serial
 from .analysis import Analysis, Trial
@@ -77,7 +77,7 @@ def params_of(params: Params | None, shortcuts: dict[str, Any]) -> Params:
 
 
 def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str, Any] | None = None,
-             on_stage: Stage = no_stage, **shortcuts: Any) -> bytes:
+             on_stage: Stage = no_stage, backend: kernels.Backend | str | None = None, **shortcuts: Any) -> bytes:
     """Compress a terrain point cloud into ``.dftpc`` bytes.
 
     Parameters
@@ -90,6 +90,12 @@ def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str,
         Coordinate reference system to carry along (see :mod:`dftpcc.io`).
     on_stage : callable, optional
         Called with the name of each stage as it starts (progress display).
+    backend : {'numpy', 'compiled'} or dftpcc.kernels.Backend, optional
+        Where the kernels run; the bytes are the same either way. By default compiled when numba
+        is installed (``pip install 'dftpcc[fast]'``) and the cloud has at least
+        :data:`~dftpcc.kernels.COMPILED_MIN_POINTS` points or this process loaded the kernels
+        already, else numpy; the environment variable ``DFTPCC_JIT`` (``0``, ``1``) overrides that
+        default (:mod:`dftpcc.kernels`).
     **shortcuts
         :class:`~dftpcc.params.Params` fields (and ``profile`` when no
         ``params`` is given): ``resolution`` (metres or ``'auto'``),
@@ -107,14 +113,17 @@ def compress(points: np.ndarray, params: Params | None = None, *, crs: dict[str,
     ------
     InvalidInputError
         Empty or non-finite cloud, bad parameter, grid too large, target
-        out of reach.
+        out of reach, unknown backend.
+    MissingDependencyError
+        ``backend='compiled'`` without numba.
     """
-    on_stage("grid")
     params = params_of(params, shortcuts)
-    points, known = survey(points)
-    check_heights(known.z_lo, known.z_hi)  # before gridding overflows on them
-    return encode_dem(_grid_points(points, params, known), params,
-                      point_count=int(points.shape[0]), crs=crs, on_stage=on_stage)
+    with kernels.use(backend, work=kernels.rows_of(points)):
+        on_stage("grid")
+        points, known = survey(points)
+        check_heights(known.z_lo, known.z_hi)  # before gridding overflows on them
+        return encode_dem(_grid_points(points, params, known), params,
+                          point_count=int(points.shape[0]), crs=crs, on_stage=on_stage)
 
 
 def grid_points(points: np.ndarray, params: Params) -> DEM:
@@ -536,8 +545,5 @@ def _figures(dem: DEM, params: Params, heights: np.ndarray, occupied: np.ndarray
     weighted = 0.0
     if dem.counts is not None and params.aggregate == "mean":
         # Per cell, points scatter about their mean, so the errors add in quadrature.
-        if kernels.enabled() and dem.counts.dtype == np.int64:  # the same sum in one compiled pass
-            weighted = kernels.weighted_sq_sum(dem.counts, occupied, err)
-        else:
-            weighted = float(np.sum(dem.counts[occupied] * err * err))
+        weighted = weighted_sq_sum(dem.counts, occupied, err)
     return rmse, largest, weighted

@@ -17,7 +17,7 @@ from typing import IO, Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from . import io
+from . import io, kernels
 from . import stream
 from .cluster import check_executor, executor
 from .format import unpack
@@ -126,7 +126,7 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
                   drop_nonfinite: bool = False, chunk_points: int | None = None, topic: str | None = None,
                   force: bool = False, on_stage: Stage = no_stage, pose_topic: str | None = None,
                   map_frame: str | None = None, workers: int | None = None, scheduler: str | None = None,
-                  **shortcuts: Any) -> CompressedMap:
+                  backend: kernels.Backend | str | None = None, **shortcuts: Any) -> CompressedMap:
     """Compress the point cloud in ``src`` into the ``.dftpc`` file ``dst``.
 
     Parameters
@@ -154,6 +154,10 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         Code a tiled map's tiles on a local dask cluster of ``workers``
         processes, or on the running scheduler at ``scheduler``
         (:func:`dftpcc.cluster.executor`); the file is byte-identical.
+    backend : {'numpy', 'compiled'} or dftpcc.kernels.Backend, optional
+        As :func:`dftpcc.compress`; the default counts the points the file's header states
+        (LAS, LAZ, PLY, NPY), and takes numpy for the other formats unless this process loaded
+        the compiled kernels already or ``DFTPCC_JIT=1``.
 
     A GeoTIFF source with ``resolution='auto'`` is coded on its own pixel
     grid; with a resolution, its pixel centres are gridded as points.
@@ -174,6 +178,16 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
     params = params_of(params, shortcuts)
     check_compressed_output(dst, force=force)
     check_executor(workers, scheduler)
+    with kernels.use(backend, work=None if _is_stream(src) else stored_point_count(src, format)):
+        return _compress_file(src, dst, params, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
+                              chunk_points=chunk_points, topic=topic, on_stage=on_stage, pose_topic=pose_topic,
+                              map_frame=map_frame, workers=workers, scheduler=scheduler)
+
+
+def _compress_file(src: Source, dst: Source, params: Params, *, format: str | None,  # noqa: A002
+                   classes: Sequence[int] | None, drop_nonfinite: bool, chunk_points: int | None, topic: str | None,
+                   on_stage: Stage, pose_topic: str | None, map_frame: str | None, workers: int | None,
+                   scheduler: str | None) -> CompressedMap:
     on_stage("read")
     if not _is_stream(src) and streams_raster(src, params, format):
         # Larger than memory: coded band of tile rows by band, straight into the file.
@@ -336,7 +350,8 @@ def decompress_file(src: Source, dst: Source, *,
                     cutoff: float | None = None, max_cells: int | None = None, force: bool = False,
                     bbox: Sequence[float] | None = None, workers: int | None = None,
                     scheduler: str | None = None, densify: int = 1, dtype: str | None = None,
-                    nodata: float | None = None, cog: bool = False, on_stage: Stage = no_stage) -> np.ndarray:
+                    nodata: float | None = None, cog: bool = False, on_stage: Stage = no_stage,
+                    backend: kernels.Backend | str | None = None) -> np.ndarray:
     """Decode the ``.dftpc`` file ``src`` and write the rebuilt map to ``dst``.
 
     ``bbox`` (xmin, ymin, xmax, ymax, the map's units and CRS) writes only that region; of a
@@ -348,7 +363,8 @@ def decompress_file(src: Source, dst: Source, *,
 
     The output format comes from ``dst``'s extension; ``.tif`` writes the
     rebuilt DEM as a GeoTIFF, any other the point cloud. The CRS read from
-    the original file is written back where the format has room for it.
+    the original file is written back where the format has room for it. ``backend``: as for
+    :func:`dftpcc.decompress`.
 
     A GeoTIFF is written in the sample type and with the nodata value of the raster the map was
     made from, where the file's bound lets an integer type round back to its values
@@ -374,10 +390,13 @@ def decompress_file(src: Source, dst: Source, *,
         raise InvalidInputError(f"{dst}: a {fmt} output holds the DEM's cells; densify applies to point outputs")
     if not raster and (dtype is not None or nodata is not None or cog):
         raise InvalidInputError(f"{dst}: --dtype, --nodata and --cog apply to a GeoTIFF (.tif) output, not {fmt}")
+    if backend is not None:
+        backend = kernels.Backend.of(backend)
     if not _is_stream(src) and Path(src).exists() and not Path(src).is_file():
         with open(src, "rb") as fh:  # a pipe such as /dev/stdin
             src = _Buffer(fh.read(), str(src))
-    with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap:
+    with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap, \
+            kernels.use(backend, work=cmap.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS):
         if raster:  # the sample type and nodata checked before decoding
             from .io.geotiff import output_type
 
@@ -387,8 +406,8 @@ def decompress_file(src: Source, dst: Source, *,
         with executor(workers, scheduler) if cmap.tiled else _nothing() as map_tiles:
             dem = cmap.read_dem(cutoff=cutoff, bbox=bbox, map_tiles=map_tiles)
         crs = cmap.crs
-    on_stage("write")
-    points = dem_to_points(dem) if densify == 1 else dem_to_dense_points(dem, densify)
+        on_stage("write")
+        points = dem_to_points(dem) if densify == 1 else dem_to_dense_points(dem, densify)
     with tempfile.TemporaryDirectory(prefix="dftpcc-") if _is_stream(dst) else _nothing() as tmp:
         target = Path(tmp) / f"out.{fmt}" if _is_stream(dst) else dst
         if raster:

@@ -8,6 +8,8 @@ so it meets no artificial cliff; :func:`footprint` says which empty cells a
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from . import kernels
@@ -26,27 +28,7 @@ def fit_plane(dem: DEM) -> tuple[float, float, float]:
         return (float(z.mean()) if z.size else 0.0, 0.0, 0.0)
     # Normal equations on centred coordinates: 3 x 3, well conditioned, and
     # a few passes over the cells instead of a least-squares solve on them.
-    # Column and row of each occupied cell, row-major (np.nonzero's order),
-    # made as floats directly: cheaper than two index arrays and a 2-D gather.
-    if kernels.enabled():  # the same sums in two compiled passes
-        mx, my, mz, xx, xy, yy, xz, yz = kernels.plane_sums(dem.heights, mask)
-    else:
-        z = dem.heights[mask]
-        n_rows, n_cols = mask.shape
-        x = np.broadcast_to(np.arange(n_cols, dtype=float), mask.shape)[mask]
-        y = np.repeat(np.arange(n_rows, dtype=float), np.count_nonzero(mask, axis=1))
-        mx, my, mz = x.mean(), y.mean(), z.mean()
-        x -= mx
-        y -= my
-        z -= mz
-        # The five sums of products (dftpcc.sums.dot's arithmetic), written into one
-        # scratch array: fresh products for each would cost more than the sums.
-        scratch = np.empty_like(z)
-
-        def dot_(a: np.ndarray, b: np.ndarray) -> float:
-            return float(np.sum(np.multiply(a, b, out=scratch)))
-
-        xx, xy, yy, xz, yz = dot_(x, x), dot_(x, y), dot_(y, y), dot_(x, z), dot_(y, z)
+    mx, my, mz, xx, xy, yy, xz, yz = _plane_sums(dem.heights, mask)
     normal = np.array([[xx, xy], [xy, yy]])
     rhs = np.array([xz, yz])
     try:
@@ -54,6 +36,30 @@ def fit_plane(dem: DEM) -> tuple[float, float, float]:
     except np.linalg.LinAlgError:  # all cells on one line: fit along it only
         b, c = np.linalg.lstsq(normal, rhs, rcond=None)[0]
     return float(mz - b * mx - c * my), float(b), float(c)
+
+
+@kernels.kernel("plane_sums")
+def _plane_sums(heights: np.ndarray, mask: np.ndarray) -> tuple[float, float, float, float, float, float, float, float]:
+    """The means of the column, row and height (metres) of the cells set in ``mask`` (at least one),
+    and the sums of products xx, xy, yy, xz, yz of the centred values."""
+    # Column and row of each occupied cell, row-major (np.nonzero's order),
+    # made as floats directly: cheaper than two index arrays and a 2-D gather.
+    z = heights[mask]
+    n_rows, n_cols = mask.shape
+    x = np.broadcast_to(np.arange(n_cols, dtype=float), mask.shape)[mask]
+    y = np.repeat(np.arange(n_rows, dtype=float), np.count_nonzero(mask, axis=1))
+    mx, my, mz = x.mean(), y.mean(), z.mean()
+    x -= mx
+    y -= my
+    z -= mz
+    # The five sums of products (dftpcc.sums.dot's arithmetic), written into one
+    # scratch array: fresh products for each would cost more than the sums.
+    scratch = np.empty_like(z)
+
+    def dot_(a: np.ndarray, b: np.ndarray) -> float:
+        return float(np.sum(np.multiply(a, b, out=scratch)))
+
+    return mx, my, mz, dot_(x, x), dot_(x, y), dot_(y, y), dot_(x, z), dot_(y, z)
 
 
 def plane_values(plane: tuple[float, float, float], shape: tuple[int, int]) -> np.ndarray:
@@ -64,12 +70,11 @@ def plane_values(plane: tuple[float, float, float], shape: tuple[int, int]) -> n
     return a + b * cols + c * rows
 
 
+@kernels.kernel("add_plane")
 def add_plane(heights: np.ndarray, plane: tuple[float, float, float]) -> None:
-    """``heights += plane_values(plane, heights.shape)``, in place (float64 heights)."""
-    if kernels.enabled() and heights.dtype == np.float64 and heights.flags.c_contiguous:
-        kernels.add_plane(heights, plane)  # the same sums, without the plane's grid
-    else:
-        heights += plane_values(plane, heights.shape)
+    """``heights += plane_values(plane, heights.shape)``, in place (float64 heights; compiled: without
+    the plane's grid)."""
+    heights += plane_values(plane, heights.shape)
 
 
 def fill_empty(heights: np.ndarray, mask: np.ndarray, *, method: str = "smooth") -> np.ndarray:
@@ -209,20 +214,31 @@ def _push_pull(values: np.ndarray, known: np.ndarray) -> np.ndarray:
         total = weights.sum()
         mean = (values * weights).sum() / total if total else 0.0
         return np.where(known, values, mean)
-    compiled = kernels.enabled()
-    if compiled and values.shape[1] > 2 and values.size >= SMALL_LEVEL_CELLS:
-        # The same pull in one compiled pass (on the levels whose sums _pairs adds by hand).
-        coarse = _push_pull(*kernels.pull(values, known))
-    else:
-        # Pull: average the known values over 2x2 blocks (odd sizes padded with
-        # zeros). The weights are 0 or 1 and the unknown values 0, so values *
-        # weights is values itself; the counts are whole, the same in any dtype.
-        counts, vsum = _pairs(known.view(np.uint8)), _pairs(values)
-        coarse_known = counts > 0
-        coarse_v = np.divide(vsum, counts, out=np.zeros_like(vsum), where=coarse_known)
-        coarse = _push_pull(coarse_v, coarse_known)
-    if compiled:  # the same blend, one compiled pass
-        return kernels.push(values, known, coarse)
+    return _push(values, known, _push_pull(*_pull(values, known)))
+
+
+def _pull_compiled(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray] | Any:
+    # The compiled pull adds each block as _pairs adds a large level's; a small one's sums are numpy's.
+    if values.shape[1] <= 2 or values.size < SMALL_LEVEL_CELLS:
+        return NotImplemented
+    return kernels.compiled_module().pull(values, known)
+
+
+@kernels.kernel(_pull_compiled)
+def _pull(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Push-pull's coarser level: the mean of the known values of each 2x2 block (zeros past odd
+    edges), and whether any of the four is known."""
+    # The weights are 0 or 1 and the unknown values 0, so values * weights is values itself; the
+    # counts are whole, the same in any dtype.
+    counts, vsum = _pairs(known.view(np.uint8)), _pairs(values)
+    coarse_known = counts > 0
+    return np.divide(vsum, counts, out=np.zeros_like(vsum), where=coarse_known), coarse_known
+
+
+@kernels.kernel("push")
+def _push(values: np.ndarray, known: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+    """Push-pull's blend of a level with the 2x bilinear upsampling of the filled ``coarse`` level:
+    the known cells keep their values, the others take the upsampling."""
     # Push: the blend w * values + (1 - w) * up with the bilinear upsampling
     # ``up`` of the filled coarse level. With 0/1 weights it is ``values`` at
     # known cells; ``up`` is needed only at the unknown ones, and at known

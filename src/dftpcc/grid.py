@@ -74,19 +74,21 @@ class Survey(NamedTuple):
 def survey(points: np.ndarray) -> tuple[np.ndarray, Survey]:
     """:func:`~dftpcc.dem.as_points` of ``points``, and their :class:`Survey`.
 
-    With the compiled kernels loaded, the check for NaN and infinities, the extremes and the sum
-    of the heights are one pass over the cloud instead of four, to the same bits as numpy's
-    reductions (``points[:, 2].mean()``); a cloud that fails the check is refused by
+    On the compiled backend, the check for NaN and infinities, the extremes and the sum of the
+    heights are one pass over the cloud instead of four, to the same bits as numpy's reductions
+    (``points[:, 2].mean()``); a cloud that fails the check is refused by
     :func:`~dftpcc.dem.as_points`, with its message.
     """
     xyz = as_points(points, finite=False)
-    if kernels.enabled():
-        found = kernels.survey(xyz)
-        if found is not None:
-            return xyz, Survey(*found[:6], found[6] / xyz.shape[0])
-    xyz = as_points(xyz)
-    z = xyz[:, 2]
-    return xyz, Survey(*_xy_extremes(xyz), float(z.min()), float(z.max()), float(z.mean()))
+    return xyz, Survey(*_survey_values(xyz))
+
+
+@kernels.kernel("survey")
+def _survey_values(xyz: np.ndarray) -> tuple[float, float, float, float, float, float, float]:
+    """x_lo, x_hi, y_lo, y_hi, z_lo, z_hi and the mean height of (N, 3) float64 points, N > 0, or the
+    error of :func:`~dftpcc.dem.as_points` for a coordinate that is not finite."""
+    z = as_points(xyz)[:, 2]
+    return (*_xy_extremes(xyz), float(z.min()), float(z.max()), float(z.mean()))
 
 
 def extremes(points: np.ndarray) -> tuple[float, float, float, float, float, float]:
@@ -295,13 +297,12 @@ def _cells_of(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     return idx, points[:, 2] - grid.z0
 
 
+@kernels.kernel("axis_cells")
 def _axis_cells(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray] | None:
     """:meth:`Grid.flat_index` and the heights above ``grid.z0`` for an axis-aligned grid, block by
     block (the same arithmetic, so the same cells); None when a point lies outside the grid."""
     n = points.shape[0]
     inv_u, inv_v, cols, rows = 1.0 / grid.resolution, 1.0 / grid.dy, grid.cols, grid.rows
-    if kernels.enabled() and points.dtype == np.float64:  # the same, in one compiled pass
-        return kernels.axis_cells(points, grid.x0, grid.y0, grid.z0, inv_u, inv_v, cols, rows)
     idx, z = np.empty(n, dtype=np.int64), np.empty(n)
     u, v = np.empty(min(n, BLOCK_POINTS)), np.empty(min(n, BLOCK_POINTS))
     for start in range(0, n, BLOCK_POINTS):
@@ -337,28 +338,29 @@ class _CellHeights:
         self.empty = True  # no point added yet: count and acc hold their starting values
 
     def add(self, idx: np.ndarray, z: np.ndarray) -> None:
-        if self.aggregate == "mean" and kernels.enabled():  # both bincounts in one compiled pass
-            if self.empty:  # onto the zeros themselves: the same sums, no arrays to allocate and add
-                kernels.cell_sums(idx, z, self.count, self.acc)
+        if self.aggregate == "mean":
+            count, total = _cell_sums(idx, z, self.size)
+            if self.empty:  # the sums themselves (0 + x is x: a bin's sum is never -0.0), nothing to add
+                self.count, self.acc = count, total
             else:
-                count, total = np.zeros(self.size, dtype=np.int64), np.zeros(self.size)
-                kernels.cell_sums(idx, z, count, total)
                 self.count += count
                 self.acc += total
-            self.empty = False
-            return
-        self.empty = False
-        self.count += np.bincount(idx, minlength=self.size)
-        if self.aggregate == "mean":
-            self.acc += np.bincount(idx, weights=z, minlength=self.size)
         else:
+            self.count += np.bincount(idx, minlength=self.size)
             (np.minimum if self.aggregate == "min" else np.maximum).at(self.acc, idx, z)
+        self.empty = False
 
     def heights(self) -> np.ndarray:
         mask = self.count > 0
         if self.aggregate == "mean":
             return np.divide(self.acc, self.count, out=np.zeros(self.size), where=mask)
         return np.where(mask, self.acc, 0.0)
+
+
+@kernels.kernel("cell_sums")
+def _cell_sums(idx: np.ndarray, z: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points (int64) and the sum of their heights (float64, metres) in each of ``size`` cells."""
+    return np.bincount(idx, minlength=size), np.bincount(idx, weights=z, minlength=size)
 
 
 class _SpreadCounter:
@@ -373,29 +375,8 @@ class _SpreadCounter:
         self.far_cells: np.ndarray | None = None  # allocated at the first far point (or kernel call)
 
     def add(self, idx: np.ndarray, z: np.ndarray, heights: np.ndarray) -> None:
-        # numpy's pairwise sums on both paths (of the far squares in the points' order): their bits
-        # reach the file.
-        tolerance_sq = self.tolerance * self.tolerance
-        if kernels.enabled():  # the sums, the maximum, the far points and their cells in one compiled pass
-            if self.far_cells is None:
-                self.far_cells = np.zeros(self.grid.size, dtype=bool)
-            sq_sum, largest, far, far_sum = kernels.distance_sums(idx, z, heights, tolerance_sq, self.far_cells)
-        else:
-            # Squared distances block by block, so the gathered heights and the differences stay
-            # in cache; the sums run over the whole arrays, adding in the same order as one pass would.
-            sq = np.empty(idx.size)
-            for start in range(0, idx.size, BLOCK_POINTS):
-                dz = sq[start:start + BLOCK_POINTS]
-                np.subtract(z[start:start + BLOCK_POINTS], heights[idx[start:start + BLOCK_POINTS]], out=dz)
-                np.multiply(dz, dz, out=dz)
-            largest = float(sq.max()) if sq.size else 0.0
-            is_far = sq > tolerance_sq
-            far_sq = sq[is_far]
-            if far_sq.size:
-                if self.far_cells is None:
-                    self.far_cells = np.zeros(self.grid.size, dtype=bool)
-                self.far_cells[idx[is_far]] = True
-            sq_sum, far, far_sum = float(sq.sum()), far_sq.size, float(far_sq.sum())
+        sq_sum, largest, far, far_sum, self.far_cells = _distance_sums(
+            idx, z, heights, self.tolerance * self.tolerance, self.far_cells)
         self.points += idx.size
         self.sq_sum += sq_sum
         self.max_sq = max(self.max_sq, largest)
@@ -418,6 +399,30 @@ class _SpreadCounter:
         return DEM(grid=self.grid, heights=heights.reshape(shape), mask=mask.reshape(shape),
                    counts=count.reshape(shape), gridding_rmse=math.sqrt(self.sq_sum / self.points) if self.points
                    else 0.0, spread=spread)
+
+
+@kernels.kernel("distance_sums")
+def _distance_sums(idx: np.ndarray, z: np.ndarray, heights: np.ndarray, tolerance_sq: float,
+                   far_cells: np.ndarray | None) -> tuple[float, float, int, float, np.ndarray | None]:
+    """With ``sq = (z - heights[idx])**2`` (m²): ``sq.sum()``, its maximum (0 for no points), how many
+    exceed ``tolerance_sq`` and their sum; and ``far_cells`` (bool per cell, allocated at the first far
+    point) with the far points' cells set. numpy's pairwise sums (of the far squares in the points'
+    order): their bits reach the file."""
+    # Squared distances block by block, so the gathered heights and the differences stay
+    # in cache; the sums run over the whole arrays, adding in the same order as one pass would.
+    sq = np.empty(idx.size)
+    for start in range(0, idx.size, BLOCK_POINTS):
+        dz = sq[start:start + BLOCK_POINTS]
+        np.subtract(z[start:start + BLOCK_POINTS], heights[idx[start:start + BLOCK_POINTS]], out=dz)
+        np.multiply(dz, dz, out=dz)
+    largest = float(sq.max()) if sq.size else 0.0
+    is_far = sq > tolerance_sq
+    far_sq = sq[is_far]
+    if far_sq.size:
+        if far_cells is None:
+            far_cells = np.zeros(heights.size, dtype=bool)
+        far_cells[idx[is_far]] = True
+    return float(sq.sum()), largest, far_sq.size, float(far_sq.sum()), far_cells
 
 
 def auto_resolution(points: np.ndarray) -> float:

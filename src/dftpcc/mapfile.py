@@ -18,6 +18,7 @@ import numpy as np
 
 from .format import (MAGIC, VERSION, VERSION_TILED, RemoteSource, Source, cells_allowed, check_max_bytes,
                      check_max_cells, is_url, read_tile, unpack_source)
+from . import kernels
 from .decoder import Whole, decode_dem, decode_window
 from .dem import DEM, Grid
 from .errors import InvalidInputError, MissingFileError, ResourceLimitError, advice
@@ -146,6 +147,16 @@ class CompressedMap:
             tiled map, naming the damaged tile.
         """
         window = None if bbox is None else self._window(bbox)
+        with self._kernels():
+            return self._read_dem(cutoff, bbox, window, map_tiles)
+
+    def _kernels(self) -> Any:
+        """The kernels' backend for a read of this map: the caller's, or the default for its points."""
+        return kernels.use(work=self.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS)
+
+    def _read_dem(self, cutoff: float | None, bbox: Sequence[float] | None,
+                  window: tuple[tuple[int, int], tuple[int, int]] | None,
+                  map_tiles: Callable[..., list] | None) -> DEM:
         if cutoff is not None or self._partial or (window is None and self.header.tiles is None):
             # An untiled map whole (its mask decoded beside its spectrum), or its own features: a
             # coarser cutoff, a prefix of the file (decoded whole).
@@ -174,16 +185,18 @@ class CompressedMap:
             raise InvalidInputError(f"window rows {rows}, cols {cols} is not inside the {g.rows} x {g.cols} grid")
         if self.header.tiles is not None:
             self._check_budget(rows, cols)
-        elif self._whole is None:
-            if self._partial:
-                raise InvalidInputError("a prefix of a map (max_bytes) decodes whole: use read_dem")
-            self._whole = Whole(self.header, self._blobs)
-        return decode_window(self.header, self._blobs, lambda k: read_tile(self._source, self.header, k),
-                             rows=rows, cols=cols, map_tiles=map_tiles, whole=self._whole)
+        with self._kernels():
+            if self.header.tiles is None and self._whole is None:
+                if self._partial:
+                    raise InvalidInputError("a prefix of a map (max_bytes) decodes whole: use read_dem")
+                self._whole = Whole(self.header, self._blobs)
+            return decode_window(self.header, self._blobs, lambda k: read_tile(self._source, self.header, k),
+                                 rows=rows, cols=cols, map_tiles=map_tiles, whole=self._whole)
 
     def read_points(self, *, cutoff: float | None = None, bbox: Sequence[float] | None = None) -> np.ndarray:
         """The rebuilt cloud, shape (cells, 3), float64, original frame (metres); ``bbox`` as for :meth:`read_dem`."""
-        return dem_to_points(self.read_dem(cutoff=cutoff, bbox=bbox))
+        with self._kernels():
+            return dem_to_points(self.read_dem(cutoff=cutoff, bbox=bbox))
 
     def _window(self, bbox: Sequence[float]) -> tuple[tuple[int, int], tuple[int, int]]:
         """The rows and columns of the cells ``bbox`` touches, checked against the map's extent."""
@@ -446,7 +459,8 @@ def is_dftpc(path: str | os.PathLike[str]) -> bool:
         return fh.read(len(MAGIC)) == MAGIC
 
 
-def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | None = None) -> np.ndarray:
+def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | None = None,
+               backend: kernels.Backend | str | None = None) -> np.ndarray:
     """Decode ``.dftpc`` bytes into a point cloud (:func:`open` of the bytes, then its points).
 
     Parameters
@@ -457,6 +471,9 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
         prefix holds the low frequencies; untiled maps only).
     cutoff : float, optional
         Decode-time cutoff, at least the file's (untiled maps only).
+    backend : {'numpy', 'compiled'} or dftpcc.kernels.Backend, optional
+        Where the kernels run, the same points either way; by default as :func:`dftpcc.compress`
+        chooses, from :data:`~dftpcc.kernels.COMPILED_MIN_MAP_POINTS` points the map was made from.
 
     Returns
     -------
@@ -464,7 +481,10 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
         One point per occupied cell, metres, original frame.
     """
     check_max_bytes(max_bytes)
+    if backend is not None:  # refused before the bytes are parsed, as every other argument
+        backend = kernels.Backend.of(backend)
     # The bytes' own size sets the decoding budget, as open() does for any file: a small crafted
     # file cannot make this allocate a grid of 2**36 cells.
-    with open(bytes(data), max_bytes=max_bytes) as cmap:
+    with open(bytes(data), max_bytes=max_bytes) as cmap, \
+            kernels.use(backend, work=cmap.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS):
         return cmap.read_points(cutoff=cutoff)

@@ -15,15 +15,15 @@ from typing import Any
 
 import numpy as np
 
-from .chunkcodec import INSTALL_HINT, check_dtype, chunk_params, decode_chunk, encode_chunk
-from .errors import InvalidInputError, MissingDependencyError
+from ._optional import import_optional
+from .chunkcodec import check_dtype, chunk_params, decode_chunk, encode_chunk
+from .errors import InvalidInputError
 
-try:
-    from numcodecs.abc import Codec
-    from numcodecs.compat import ndarray_copy
-    from numcodecs.registry import register_codec
-except ImportError:
-    raise MissingDependencyError(f"the numcodecs codec needs numcodecs, which is not installed: {INSTALL_HINT}") from None
+import_optional("numcodecs.abc", "zarr", needed_for="the numcodecs codec")
+
+from numcodecs.abc import Codec  # noqa: E402
+from numcodecs.compat import ndarray_copy  # noqa: E402
+from numcodecs.registry import register_codec  # noqa: E402
 
 __all__ = ["Dftpcc"]
 

@@ -149,6 +149,7 @@ _KIND[OUTSIDE], _KIND[INSIDE] = 0, 1
 _KIND8 = _KIND.astype(np.uint8)
 
 
+@kernels.kernel("mask_contexts")
 def _contexts(lines: np.ndarray, stripe: int) -> np.ndarray:
     """Context of every cell of the line-major mask ``lines`` (n, w).
 
@@ -181,14 +182,18 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
                     first_seed: bool = False) -> bytes:
     """The context-coded mask (kind 2, or 3 with ``first_seed``); ``seed_frame``:
     :func:`_encode_seeds` of its seed lines, if known."""
-    n_lines, width = lines.shape
-    ctx = kernels.mask_contexts(lines, stripe) if kernels.enabled() else _contexts(lines, stripe)
+    ctx = _contexts(lines, stripe)
     if seed_frame is None:
         seed_frame = _encode_seeds(_seed_lines(lines, stripe, first_seed))
     head = _STRIPES.pack(stripe, len(seed_frame)) + seed_frame
-    if kernels.enabled():  # the same words in one compiled pass
-        return head + kernels.encode_mask_words(lines, ctx, stripe, PRIOR_ONES, PRIOR_TOTAL,
-                                                first_seed).astype("<u4").tobytes()
+    return head + _context_words(lines, ctx, stripe, first_seed).astype("<u4").tobytes()
+
+
+@kernels.kernel("encode_mask_words", prior_ones=PRIOR_ONES, prior_total=PRIOR_TOTAL)
+def _context_words(lines: np.ndarray, ctx: np.ndarray, stripe: int, first_seed: bool) -> np.ndarray:
+    """The ANS words (uint32) of the line-major mask ``lines`` (uint8, 0/1) with its contexts ``ctx``
+    (:func:`_contexts`), coded in decoding order (``first_seed``: kind 3, line 0 of the first stripe not coded)."""
+    n_lines, width = lines.shape
     # Step s decodes line s of every stripe (line 0 of the first stripe only, the
     # others' are seeds; none with first_seed): by stripe, then column. The lines in that order:
     line = np.arange(n_lines)
@@ -294,7 +299,7 @@ def _encode_context(lines: np.ndarray, stripe: int, seed_frame: bytes | None = N
         end = a
     if end:
         coder.encode_reverse(adaptive_bits[:end], model, adaptive_prob[:end])
-    return head + coder.get_compressed().astype("<u4").tobytes()
+    return coder.get_compressed()
 
 
 def _decode_context(payload: bytes, shape: tuple[int, int], first_seed: bool = False) -> np.ndarray:
@@ -311,18 +316,23 @@ def _decode_context(payload: bytes, shape: tuple[int, int], first_seed: bool = F
     # Stripe s, line t is row s of lines[:, t]; rows past the map stay empty.
     lines = np.zeros((n_stripes, stripe, width), dtype=np.uint8)
     lines[1 - first:, 0] = _decode_seeds(payload[_STRIPES.size:words_at], n_stripes - 1 + first, width)
-    if kernels.enabled():  # the same mask in one compiled pass
-        words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
-        check_ans_words(words, "occupancy mask")  # constriction's own message, as below
-        flat = lines.reshape(-1, width)
-        kernels.decode_mask_lines(words, flat, n_lines, stripe, PRIOR_ONES, PRIOR_TOTAL, first_seed)
-        return flat[:n_lines].view(bool)
+    words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
+    check_ans_words(words, "occupancy mask")  # constriction's own message, for both backends
+    return _context_lines(words, lines, n_lines, first_seed)
+
+
+@kernels.kernel("decode_mask_lines", prior_ones=PRIOR_ONES, prior_total=PRIOR_TOTAL)
+def _context_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, first_seed: bool) -> np.ndarray:
+    """The inverse of :func:`_context_words`: ``lines`` (``(n_stripes, stripe, width)`` uint8, zeros but
+    the seed lines: line 0 of every stripe after the first, of the first too with ``first_seed``)
+    decoded in place from ``words``, returned as the ``(n_lines, width)`` boolean mask."""
+    n_stripes, stripe, width = lines.shape
+    first = int(first_seed)
     padded = np.zeros((n_stripes, width + 4), dtype=np.uint8)  # lines with two empty cells each side
     ones, total = np.zeros(CONTEXTS), np.zeros(CONTEXTS)
     above = older = np.zeros((1, width), dtype=np.uint8)
     try:
-        coder = constriction.stream.stack.AnsCoder(np.frombuffer(payload, dtype="<u4", offset=words_at)
-                                                   .astype(np.uint32))
+        coder = constriction.stream.stack.AnsCoder(words)
         model = _bernoulli()
         for t in range(stripe):
             if t >= first:  # kind 3: line 0 of every stripe is a seed

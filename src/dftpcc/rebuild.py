@@ -32,20 +32,27 @@ def dem_to_points(dem: DEM) -> np.ndarray:
         # indices to divide, no gathers.
         xs, _ = grid.centres(np.zeros(grid.cols), np.arange(grid.cols))
         _, ys = grid.centres(np.arange(grid.rows), np.zeros(grid.rows))
-        if kernels.enabled() and dem.heights.dtype == np.float64:  # the same points in one compiled pass
-            return kernels.cell_points(mask, xs, ys, dem.heights, grid.z0)
-        x = np.broadcast_to(xs, mask.shape)[mask]
-        out = np.empty((x.size, 3))
-        out[:, 0] = x
-        out[:, 1] = np.repeat(ys, np.count_nonzero(mask, axis=1))
-        z = dem.heights[mask]
-    else:
-        flat = np.flatnonzero(mask)
-        out = np.empty((flat.size, 3))
-        rows, cols = np.divmod(flat, grid.cols)
-        out[:, 0], out[:, 1] = grid.centres(rows, cols)
-        z = dem.heights.ravel().take(flat)
+        return _cell_points(mask, xs, ys, dem.heights, grid.z0)
+    flat = np.flatnonzero(mask)
+    out = np.empty((flat.size, 3))
+    rows, cols = np.divmod(flat, grid.cols)
+    out[:, 0], out[:, 1] = grid.centres(rows, cols)
+    z = dem.heights.ravel().take(flat)
     z += grid.z0
+    out[:, 2] = z
+    return out
+
+
+@kernels.kernel("cell_points")
+def _cell_points(mask: np.ndarray, xs: np.ndarray, ys: np.ndarray, heights: np.ndarray, z0: float) -> np.ndarray:
+    """``(xs[col], ys[row], heights + z0)`` of every cell set in ``mask`` (rows, cols), row-major, metres;
+    ``xs`` one x per column, ``ys`` one y per row."""
+    x = np.broadcast_to(xs, mask.shape)[mask]
+    out = np.empty((x.size, 3))
+    out[:, 0] = x
+    out[:, 1] = np.repeat(ys, np.count_nonzero(mask, axis=1))
+    z = heights[mask]
+    z += z0
     out[:, 2] = z
     return out
 

@@ -335,20 +335,33 @@ def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
     group_classes = classes[order[starts]]
     symbols = e[order] + max_abs[classes[order]]
     present = np.flatnonzero(codes)
-    if kernels.enabled():  # the same words, without building constriction's tables
-        tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
-        words = kernels.encode_table_words(symbols, bounds, [lo for lo, _ in tables], [cum for _, cum in tables],
-                                           2 * max_abs[present] + 1, np.searchsorted(present, group_classes))
-    else:
-        coder = constriction.stream.stack.AnsCoder()
-        symbols32 = symbols.astype(np.int32)
-        for g in range(starts.size - 1, -1, -1):  # a stack: the last group first
-            k = int(group_classes[g])
-            coder.encode_reverse(symbols32[bounds[g]:bounds[g + 1]], coding._table_model(int(max_abs[k]), int(codes[k])))
-        words = coder.get_compressed()
+    words = _class_words(symbols, bounds, group_classes, codes, max_abs)
     listed = int(present[-1]) + 1 if present.size else 1
     return (_WEIGHTS.pack(*weights.tolist(), listed) + codes[:listed].tobytes()
             + max_abs[present].astype("<u2").tobytes() + words.astype("<u4").tobytes())
+
+
+def _class_words_compiled(symbols: np.ndarray, bounds: np.ndarray, group_classes: np.ndarray, codes: np.ndarray,
+                          max_abs: np.ndarray) -> np.ndarray:
+    # The same words, without building constriction's tables.
+    present = np.flatnonzero(codes)
+    tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
+    return kernels.compiled_module().encode_table_words(symbols, bounds, tables, 2 * max_abs[present] + 1,
+                                                        np.searchsorted(present, group_classes))
+
+
+@kernels.kernel(_class_words_compiled)
+def _class_words(symbols: np.ndarray, bounds: np.ndarray, group_classes: np.ndarray, codes: np.ndarray,
+                 max_abs: np.ndarray) -> np.ndarray:
+    """The ANS words (uint32) of groups of symbols (group g: ``symbols[bounds[g]:bounds[g + 1]]``, of
+    class ``group_classes[g]``), each with its class's table (scale ``codes``, ``max_abs``), the last
+    group pushed first."""
+    coder = constriction.stream.stack.AnsCoder()
+    symbols32 = symbols.astype(np.int32)
+    for g in range(bounds.size - 2, -1, -1):  # a stack: the last group first
+        k = int(group_classes[g])
+        coder.encode_reverse(symbols32[bounds[g]:bounds[g + 1]], coding._table_model(int(max_abs[k]), int(codes[k])))
+    return coder.get_compressed()
 
 
 def _table_entries(codes: np.ndarray, max_abs: np.ndarray) -> int:
@@ -381,15 +394,27 @@ def _decode_predicted(payload: bytes, kept: np.ndarray) -> np.ndarray:
     if _table_entries(codes, max_abs) > coding.table_budget(count):
         raise CorruptFileError(f"{what} asks for larger probability tables than its {count} values allow")
     words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
-    if kernels.enabled():  # the same values in one compiled pass
-        coding.check_ans_words(words, what)
-        present = np.flatnonzero(codes)
-        tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
-        found = kernels.decode_predicted(words, kept, weights, codes, [lo for lo, _ in tables],
-                                         [cum for _, cum in tables], 2 * max_abs[present] + 1)
-        if found is None:
-            raise CorruptFileError(f"{what} decodes to values beyond 2**31")
-        return found[kept.ravel()]
+    return _predicted_values(words, kept, weights, codes, max_abs, what)
+
+
+def _predicted_values_compiled(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, codes: np.ndarray,
+                               max_abs: np.ndarray, what: str) -> np.ndarray:
+    # The same values in one compiled pass.
+    coding.check_ans_words(words, what)
+    present = np.flatnonzero(codes)
+    tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
+    found = kernels.compiled_module().decode_predicted(words, kept, weights, codes, tables, 2 * max_abs[present] + 1)
+    if found is None:
+        raise CorruptFileError(f"{what} decodes to values beyond 2**31")
+    return found[kept.ravel()]
+
+
+@kernels.kernel(_predicted_values_compiled)
+def _predicted_values(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, codes: np.ndarray,
+                      max_abs: np.ndarray, what: str) -> np.ndarray:
+    """The inverse of :func:`_class_words` over the grid: the values V (int64) of the ``kept`` cells,
+    row-major, from ``words``, predicted with ``weights``; ``what`` names the layer in errors."""
+    rows, cols = kept.shape
     flat_kept = np.append(kept.ravel(), False)
     values = np.zeros(rows * cols + 1, dtype=np.int64)  # the last: the zero of the edge rules
     errors = np.zeros(rows * cols + 1, dtype=np.int64)

@@ -20,36 +20,24 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .errors import InvalidInputError, MissingDependencyError
+from ._optional import import_optional
+from .errors import InvalidInputError
 
-__all__ = ["INSTALL_HINT", "require", "run_rover", "run_ground", "DOWNLINK_TOPIC", "ACK_TOPIC", "MAP_TOPIC"]
-
-INSTALL_HINT = ("the ROS 2 nodes need rclpy and the message wheels: pip install 'dftpcc[ros2]' "
-                "(no ROS installation needed)")
-DOWNLINK_TOPIC = "/dftpcc/downlink"
-ACK_TOPIC = "/dftpcc/ack"
-MAP_TOPIC = "/dftpcc/map"
-#: Seconds between two looks at the link (frames to send, acknowledgements due).
-TICK_S = 0.05
-#: Seconds between two lines of figures in the node's log.
-REPORT_S = 10.0
-#: Queue depths: scans (best effort, the newest matter), odometry (many per scan), link frames.
-SCAN_DEPTH, POSE_DEPTH, LINK_DEPTH = 5, 100, 200
-_FLOAT32 = 7  # sensor_msgs/PointField FLOAT32
+__all__ = ["require", "run_rover", "run_ground", "DOWNLINK_TOPIC", "ACK_TOPIC", "MAP_TOPIC"]
 
 
 def require() -> SimpleNamespace:
     """rclpy and the message modules, or :class:`MissingDependencyError` with the install hint."""
-    try:
-        import rclpy
-        from geometry_msgs.msg import PoseStamped
-        from nav_msgs.msg import Odometry
-        from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                               qos_profile_sensor_data)
-        from sensor_msgs.msg import PointCloud2, PointField
-        from std_msgs.msg import UInt8MultiArray
-    except ImportError as exc:
-        raise MissingDependencyError(f"{INSTALL_HINT} ({exc})") from None
+    hint = dict(extra="ros2", needed_for="the ROS 2 nodes")
+    rclpy = import_optional("rclpy", **hint)
+    qos = import_optional("rclpy.qos", **hint)
+    DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data = (
+        qos.DurabilityPolicy, qos.HistoryPolicy, qos.QoSProfile, qos.ReliabilityPolicy, qos.qos_profile_sensor_data)
+    PoseStamped = import_optional("geometry_msgs.msg", **hint).PoseStamped
+    Odometry = import_optional("nav_msgs.msg", **hint).Odometry
+    sensor = import_optional("sensor_msgs.msg", **hint)
+    PointCloud2, PointField = sensor.PointCloud2, sensor.PointField
+    UInt8MultiArray = import_optional("std_msgs.msg", **hint).UInt8MultiArray
     return SimpleNamespace(rclpy=rclpy, PoseStamped=PoseStamped, Odometry=Odometry, QoSProfile=QoSProfile,
                            DurabilityPolicy=DurabilityPolicy, HistoryPolicy=HistoryPolicy,
                            ReliabilityPolicy=ReliabilityPolicy, sensor=qos_profile_sensor_data,

@@ -19,16 +19,16 @@ import asyncio
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from .chunkcodec import INSTALL_HINT, check_chunk_shape, check_dtype, chunk_params, decode_chunk, encode_chunk
-from .errors import InvalidInputError, MissingDependencyError
+from ._optional import import_optional
+from .chunkcodec import check_chunk_shape, check_dtype, chunk_params, decode_chunk, encode_chunk
+from .errors import InvalidInputError
 from .params import Params
 
-try:
-    from zarr.abc.codec import ArrayBytesCodec
-    from zarr.core.common import parse_named_configuration
-    from zarr.registry import register_codec
-except ImportError:
-    raise MissingDependencyError(f"the Zarr codec needs zarr 3, which is not installed: {INSTALL_HINT}") from None
+import_optional("zarr.abc.codec", "zarr", needed_for="the Zarr codec", name="zarr 3")  # zarr 2 has no zarr.abc
+
+from zarr.abc.codec import ArrayBytesCodec  # noqa: E402
+from zarr.core.common import parse_named_configuration  # noqa: E402
+from zarr.registry import register_codec  # noqa: E402
 
 if TYPE_CHECKING:
     from zarr.core.array_spec import ArraySpec

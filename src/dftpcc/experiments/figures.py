@@ -15,13 +15,14 @@ import numpy as np
 from scipy import ndimage
 
 from ..dem import DEM
-from ..errors import InvalidInputError, MissingDependencyError
+from .._optional import import_optional, install_hint
+from ..errors import InvalidInputError
 from ..fill import fill_empty
 from ..units import Units
 
 __all__ = ["require_matplotlib", "plot_sweep", "plot_compare", "choose_window"]
 
-INSTALL_HINT = "pip install 'dftpcc[plot]' (or: pip install matplotlib)"
+INSTALL_HINT = install_hint("plot")
 #: Resolution of the PNG files, dots per inch (the map pictures are large: fewer dots).
 DPI = 120
 COMPARE_DPI = 100
@@ -43,12 +44,8 @@ SWEEP_RMSE_KEY = "paper_rmse_m"
 
 def require_matplotlib() -> Any:
     """Import matplotlib or raise :class:`MissingDependencyError` with an install hint."""
-    try:
-        import matplotlib
-        from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
-    except ImportError:
-        raise MissingDependencyError(f"pictures need matplotlib, which is not installed: {INSTALL_HINT}") from None
-    return matplotlib
+    import_optional("matplotlib.backends.backend_agg", "plot", needed_for="drawing pictures")  # the canvas _figure draws on
+    return import_optional("matplotlib", "plot", needed_for="drawing pictures")
 
 
 def _figure(width: float, height: float) -> Any:

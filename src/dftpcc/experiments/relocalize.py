@@ -30,7 +30,8 @@ import numpy as np
 from ..format import restate
 from ..dem import DEM
 from ..encoder import encode_dem
-from ..errors import InvalidInputError, MissingDependencyError
+from .._optional import import_optional, install_hint
+from ..errors import InvalidInputError
 from ..files import check_compressed_output, read_dem
 from ..io import atomic_write
 from ..mapfile import open as open_map
@@ -43,7 +44,7 @@ __all__ = ["Gicp", "MapTarget", "Scan", "Outcome", "Recommendation", "simulate_s
            "OFFSET_M", "OFFSET_DEG", "SUCCESS_M", "SUCCESS_DEG", "COARSE_M", "COARSE_DEG", "RECOMMEND_CUTOFFS",
            "RECOMMEND_FRACTION", "RECOMMEND_LIDAR"]
 
-SLAM_INSTALL_HINT = "pip install 'dftpcc[slam]' (the small_gicp package)"
+SLAM_INSTALL_HINT = install_hint("slam")
 #: Initial guesses are this far off the true pose: translation (metres, random
 #: direction in 3-D) and rotation (degrees, about a random axis).
 OFFSET_M = 0.5
@@ -69,12 +70,7 @@ RECOMMEND_LIDAR = Lidar(16, -15.0, 15.0, 0.4, 50.0, 0.5, 0.03)
 
 def require_small_gicp() -> Any:
     """small_gicp, or :class:`~dftpcc.errors.MissingDependencyError` with the install hint."""
-    try:
-        import small_gicp
-    except ImportError:
-        raise MissingDependencyError(f"relocalization needs small_gicp, which is not installed: "
-                                     f"{SLAM_INSTALL_HINT}") from None
-    return small_gicp
+    return import_optional("small_gicp", "slam", needed_for="relocalization")
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..dem import DEM
+from .._optional import import_optional, install_hint
 from ..errors import InvalidInputError, MissingDependencyError
 
 __all__ = ["Surface", "Lidar", "LIDARS", "Drive", "drive", "loop_waypoints", "sensor_pose", "cast_scan",
@@ -67,7 +68,7 @@ ODOM_HEADING_NOISE = math.radians(0.5)
 #: Cells whose sides differ by less than this fraction are taken as square
 #: (Kepler's are 47.679 x 47.682 m: 0.05 cells of drift across its 804 rows).
 SQUARE_CELL_TOLERANCE = 1e-3
-ROS_INSTALL_HINT = "pip install 'dftpcc[ros]' (the rosbags package)"
+ROS_INSTALL_HINT = install_hint("ros")
 #: Nanoseconds per second (ROS stamps).
 NS = 1_000_000_000
 
@@ -552,13 +553,9 @@ def _quaternion(rot: np.ndarray) -> tuple[float, float, float, float]:
 
 
 def _rosbags() -> tuple[type, object]:
-    try:
-        from rosbags.rosbag2 import Writer
-        from rosbags.typesys import Stores, get_typestore
-    except ImportError:
-        raise MissingDependencyError(f"writing ROS bags needs rosbags, which is not installed: "
-                                     f"{ROS_INSTALL_HINT}") from None
-    return Writer, get_typestore(Stores.ROS2_HUMBLE)
+    rosbag2 = import_optional("rosbags.rosbag2", "ros", needed_for="writing ROS bags")
+    typesys = import_optional("rosbags.typesys", "ros", needed_for="writing ROS bags")
+    return rosbag2.Writer, typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
 
 
 def write_bag(path: str | os.PathLike[str], surface: Surface, route: Drive, lidar: Lidar, *,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import BinaryIO
 
+from .._optional import import_optional
 from ..errors import CorruptFileError, InvalidInputError
 
 
@@ -59,19 +60,12 @@ class RemoteSource(Source):
 
     def __init__(self, url: str, *, fs: object | None = None):
         if fs is None:
-            try:
-                import fsspec
-            except ImportError:
-                from ..errors import MissingDependencyError
-
-                raise MissingDependencyError("reading a map by URL needs fsspec, which is not installed: "
-                                             "pip install 'dftpcc[remote]' (fsspec and aiohttp)") from None
+            fsspec = import_optional("fsspec", "remote", needed_for="reading a map by URL")
             try:
                 fs, path = fsspec.core.url_to_fs(url)
-            except (ImportError, ValueError) as exc:  # a scheme without its backend
-                from ..errors import MissingDependencyError
-
-                raise MissingDependencyError(f"{url}: no fsspec backend for this URL ({exc})") from None
+            except (ImportError, ValueError) as exc:  # a scheme without its backend (s3fs, gcsfs...)
+                raise InvalidInputError(f"{url}: no fsspec backend reads this URL ({exc}); install the one "
+                                        f"for its scheme") from None
         else:
             path = url
         self.url, self._fs, self._path = url, fs, path

@@ -11,12 +11,13 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import InvalidInputError, MissingDependencyError
+from .._optional import import_optional, install_hint
+from ..errors import InvalidInputError
 from .reader import Reader
 
 __all__ = ["DracoReader", "INSTALL_HINT"]
 
-INSTALL_HINT = "pip install 'dftpcc[draco]' (the DracoPy package)"
+INSTALL_HINT = install_hint("draco")
 
 
 class DracoReader(Reader):
@@ -37,9 +38,4 @@ class DracoReader(Reader):
 
 
 def _dracopy():  # type: ignore[no-untyped-def]
-    try:
-        import DracoPy
-    except ImportError:
-        raise MissingDependencyError(
-            f"reading Draco files needs DracoPy, which is not installed: {INSTALL_HINT}") from None
-    return DracoPy
+    return import_optional("DracoPy", "draco", needed_for="reading Draco files")

@@ -49,7 +49,8 @@ from typing import Any, Callable, ClassVar, Iterator, NamedTuple
 
 import numpy as np
 
-from ..errors import DftpccWarning, InvalidInputError, MissingDependencyError, MissingFileError
+from .._optional import import_optional, install_hint
+from ..errors import DftpccWarning, InvalidInputError, MissingFileError
 from .reader import Reader
 
 __all__ = ["POINTCLOUD2", "POSE_TYPES", "MAP_FRAME_WORDS", "QUATERNION_TOLERANCE", "BagReader", "PoseStream",
@@ -79,7 +80,7 @@ QUATERNION_TOLERANCE = 1e-3
 NS_PER_S = 1_000_000_000
 #: PointField datatype codes -> numpy types.
 _FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
-INSTALL_HINT = "pip install 'dftpcc[ros]' (the rosbags package)"
+INSTALL_HINT = install_hint("ros")
 #: Bytes of the smallest point a PointCloud2 holds (float32 x, y, z): a bag's size over it bounds its points.
 SMALLEST_POINT_BYTES = 12
 
@@ -157,12 +158,7 @@ def size_bound(path: str | Path) -> int:
 
 def _any_reader() -> Any:
     """rosbags' reader of every bag version, or the error saying how to install it."""
-    try:
-        from rosbags.highlevel import AnyReader
-    except ImportError:
-        raise MissingDependencyError(
-            f"reading ROS bags needs rosbags, which is not installed: {INSTALL_HINT}") from None
-    return AnyReader
+    return import_optional("rosbags.highlevel", "ros", needed_for="reading ROS bags").AnyReader
 
 
 def _default_typestore() -> Any:

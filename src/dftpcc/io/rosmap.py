@@ -31,16 +31,18 @@ import math
 import os
 import secrets
 import shutil
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from ..dem import DEM
-from ..errors import InvalidInputError, MissingDependencyError, advice
+from .._optional import import_optional
+from ..errors import InvalidInputError, advice
 from ..rebuild import dem_to_points
 from .atomic import writer_errors
-from .rosbag import INSTALL_HINT, NS_PER_S
+from .rosbag import NS_PER_S
 
 __all__ = ["local_origin", "static_transform_message", "GRID_MAP_MSGS", "DEFAULT_TOPIC", "ELEVATION_LAYER", "FLOAT32_SAFE_M", "is_bag_output",
            "check_bag_output", "grid_map_topic", "map_typestore", "pointcloud2_message", "grid_map_message",
@@ -136,13 +138,9 @@ def check_bag_output(path: str | os.PathLike[str], *, force: bool = False) -> Pa
 
 
 def _rosbags() -> Any:
-    try:
-        import rosbags.rosbag2  # noqa: F401
-        import rosbags.typesys  # noqa: F401
-    except ImportError:
-        raise MissingDependencyError(
-            f"writing ROS bags needs rosbags, which is not installed: {INSTALL_HINT}") from None
-    return rosbags
+    import_optional("rosbags.rosbag2", "ros", needed_for="writing ROS bags")
+    import_optional("rosbags.typesys", "ros", needed_for="writing ROS bags")
+    return sys.modules["rosbags"]
 
 
 def map_typestore() -> Any:
