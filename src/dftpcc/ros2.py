@@ -25,6 +25,17 @@ from .errors import InvalidInputError
 
 __all__ = ["require", "run_rover", "run_ground", "DOWNLINK_TOPIC", "ACK_TOPIC", "MAP_TOPIC"]
 
+DOWNLINK_TOPIC = "/dftpcc/downlink"
+ACK_TOPIC = "/dftpcc/ack"
+MAP_TOPIC = "/dftpcc/map"
+#: Seconds between two looks at the link (frames to send, acknowledgements due).
+TICK_S = 0.05
+#: Seconds between two lines of figures in the node's log.
+REPORT_S = 10.0
+#: Queue depths: scans (best effort, the newest matter), odometry (many per scan), link frames.
+SCAN_DEPTH, POSE_DEPTH, LINK_DEPTH = 5, 100, 200
+_FLOAT32 = 7  # sensor_msgs/PointField FLOAT32
+
 
 def require() -> SimpleNamespace:
     """rclpy and the message modules, or :class:`MissingDependencyError` with the install hint."""
