@@ -37,7 +37,9 @@ FRAME = 160  # bytes: small frames, many parts
 def seed_changes() -> list[tuple[bytes, bytes, list[bytes], int]]:
     """(base, target, frames, map id) of the delta fuzzer's seed maps, and an acknowledgement's bytes."""
     out = []
-    for n, (base, target) in enumerate(seed_maps()):
+    # Each pair of consecutive versions of the delta fuzzer's growing maps (the first from nothing).
+    pairs = [(versions[i], versions[i + 1]) for versions in seed_maps() for i in range(len(versions) - 1)]
+    for n, (base, target) in enumerate(pairs):
         sender = Sender(max_frame_bytes=FRAME, map_id=1000 + n)
         if base:
             sender.update(base)
