@@ -145,3 +145,21 @@ def tile_masks(monkeypatch):
     from dftpcc import encoder
 
     monkeypatch.setattr(encoder, "MAP_MASK_CELLS", 0)
+
+
+#: Tests measured at over SLOW_S seconds in a full run on the shared 2-core box (``tests/slow.txt``, one
+#: node id a line, written by ``python scripts/slow_tests.py DURATIONS``): marked ``slow``, so
+#: ``pytest -m "not slow"`` is the inner loop's fast set. CI runs every test.
+SLOW_LIST = Path(__file__).parent / "slow.txt"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "slow: over a second or two on the shared box; left out by -m 'not slow'")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    slow = set(SLOW_LIST.read_text().split()) if SLOW_LIST.is_file() else set()
+    for item in items:
+        # A parametrized test is listed by its function: its cases share their cost.
+        if item.nodeid in slow or item.nodeid.split("[")[0] in slow:
+            item.add_marker(pytest.mark.slow)
