@@ -11,9 +11,11 @@ chosen cutoff again with the empty cells refilled and keeps the better file.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -22,7 +24,8 @@ from .errors import InvalidInputError
 from .params import Params
 from .residual import encode_residual, predicted_residual, residual, residual_step
 
-__all__ = ["Choice", "choose", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES"]
+__all__ = ["Choice", "choose", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES", "METHODS",
+           "method", "Tally", "tally"]
 
 #: Cutoff ratios rate control tries.
 CUTOFF_CANDIDATES = (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97)
@@ -56,6 +59,49 @@ RMSE_BOUND_MARGIN = 1e-9
 #: Steps (times the RMSE target) of the low-passed maps a residual layer may correct for an RMSE
 #: target: the first at every cutoff, the others at the best (:func:`corrected_for_rmse`).
 CORRECTED_STEP_FACTORS = (8.0, 4.0, 16.0)
+
+
+#: How rate control finds its choice: ``'model'`` predicts it from the spectrum and verifies it
+#: (:mod:`dftpcc.ratemodel`), falling back to ``'search'``, the trials of every candidate, where
+#: the prediction misses; ``'search'`` alone is kept to compare the two (benchmarks/bench_ratecontrol.py).
+METHODS = ("model", "search")
+_METHOD: contextvars.ContextVar[str] = contextvars.ContextVar("dftpcc_rate_control", default="model")
+
+
+@dataclass
+class Tally:
+    """What rate control did in a :func:`tally` block: choices it made, how many the model made
+    (verified), and how many fell back to the search."""
+
+    choices: int = 0
+    modelled: int = 0
+    fallbacks: int = 0
+
+
+_TALLY: contextvars.ContextVar[Tally | None] = contextvars.ContextVar("dftpcc_rate_tally", default=None)
+
+
+@contextlib.contextmanager
+def method(name: str) -> Iterator[None]:
+    """Rate control by ``name`` (one of :data:`METHODS`) inside the block, in this thread or task."""
+    if name not in METHODS:
+        raise InvalidInputError(f"rate control method must be one of {', '.join(METHODS)}, got {name!r}")
+    token = _METHOD.set(name)
+    try:
+        yield
+    finally:
+        _METHOD.reset(token)
+
+
+@contextlib.contextmanager
+def tally() -> Iterator[Tally]:
+    """Count rate control's choices inside the block (for benchmarks and tests)."""
+    found = Tally()
+    token = _TALLY.set(found)
+    try:
+        yield found
+    finally:
+        _TALLY.reset(token)
 
 
 #: Told the fraction of a search done, in [0, 1] (progress display).
@@ -416,6 +462,26 @@ def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
     progress : callable, optional
         Told the fraction done: the first search is 80 % of the work, the refill the rest.
     """
+    counts = _TALLY.get()
+    if counts is not None:
+        counts.choices += 1
+    if _METHOD.get() == "model":
+        from . import ratemodel  # the model builds on this module's search
+
+        found = ratemodel.choose(an, params, point_count, fixed_bytes)
+        if found is not None:
+            if counts is not None:
+                counts.modelled += 1
+            return found
+        if counts is not None:
+            counts.fallbacks += 1
+    return search(an, params, point_count, fixed_bytes, progress)
+
+
+def search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
+           progress: Progress = _no_progress) -> Choice:
+    """:func:`choose` by trying every candidate: the cutoffs of :func:`cutoffs`, the steps at each
+    (the fallback of the model, :mod:`dftpcc.ratemodel`)."""
     first = _search(an, params, point_count, fixed_bytes, lambda f: progress(FIRST_SEARCH_SHARE * f))
     progress(FIRST_SEARCH_SHARE)
     best = _refined(an, params, first, point_count, fixed_bytes) if an.refillable else first

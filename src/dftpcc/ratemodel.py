@@ -1,0 +1,433 @@
+"""Rate control from a model: the choice predicted from one transform, then verified by a trial.
+
+The search (:func:`dftpcc.ratecontrol.search`) rebuilds and entropy-codes every
+candidate (cutoff, step). The spectrum already tells most of that: by Parseval
+the whole grid's squared error at (cutoff, step) is the energy of the values
+the cutoff drops plus the quantizer's error on the kept ones (:class:`Energy`),
+and a candidate's bytes follow from its integers' probabilities under the
+coder's own model (:func:`dftpcc.coding.estimated_size`). The model ranks the
+candidates by those figures, rebuilds only the one it keeps to measure its
+error on the occupied cells (the search's guarantee, unchanged), corrects its
+step once where the measure misses, and codes it once. Where the correction
+misses too, :func:`choose` returns None and rate control runs the search.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import coding
+from .analysis import Analysis, Trial
+from .params import Params
+from .ratecontrol import (CLOSE_ENOUGH, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT, MAX_ERROR_STEP_FACTORS,
+                          REFILL_STEP_RANGE, Choice, _spectrum_free, cutoffs)
+from .residual import encode_residual, estimated_size, predicted_residual, residual
+from .sums import dot
+
+__all__ = ["choose", "Energy"]
+
+#: The first values of a cutoff's stream (the largest, lowest frequencies) enter the quantizer's
+#: error exactly; the rest through an evenly strided sample of about :data:`ENERGY_SAMPLE` values,
+#: whose error is scaled up: the file's error is measured on the rebuilt map anyway.
+ENERGY_HEAD = 4096
+ENERGY_SAMPLE = 32768
+#: Bisections (geometric) of a step between brackets :data:`STEP_BRACKET` apart: 1 % apart at the end.
+STEP_BRACKET = 4.0
+STEP_BISECTIONS = 8
+#: An RMSE a rebuilt map measures is aimed this far inside the target when the step is corrected
+#: (the correction is a prediction too: a hair inside keeps it from landing a bit above).
+AIM_INSIDE = 0.995
+#: A size target's budget is aimed this far inside by the estimate (estimates are within 0.1 %
+#: of the coded size on real maps; the coded file is checked, and coded again coarser on a miss).
+BUDGET_INSIDE = 0.998
+#: Secant iterations (log size against log step) that find a size target's step at a cutoff, and
+#: how close (relative) to the budget they stop.
+SIZE_ITERATIONS = 8
+SIZE_TOLERANCE = 0.003
+
+
+class Energy:
+    """The whole grid's RMSE (metres) at one cutoff as a function of the quantizer step, from the
+    coefficients alone (Parseval): the energy the cutoff drops plus the quantizer's error on the
+    kept values, the first :data:`ENERGY_HEAD` exactly, the rest from a strided sample."""
+
+    def __init__(self, an: Analysis, cutoff: float):
+        kept, self.lost = an.energy_at(cutoff)
+        self.count = kept.size
+        self.head = kept[:ENERGY_HEAD]
+        tail = kept[ENERGY_HEAD:]
+        stride = max(1, tail.size // ENERGY_SAMPLE)
+        self.tail = tail[::stride]
+        self.weight = tail.size / self.tail.size if self.tail.size else 0.0
+        self.parseval = an.parseval
+        self.deadzone = an.params.deadzone
+
+    def _quantizer_error(self, values: np.ndarray, step: float) -> float:
+        err = values - coding.dequantize(coding.quantize(values, step, self.deadzone), step)
+        return dot(err, err)
+
+    def rmse(self, step: float) -> float:
+        """Predicted RMSE over every cell of the grid at ``step`` (metres)."""
+        total = self.lost + self._quantizer_error(self.head, step)
+        if self.tail.size:
+            total += self.weight * self._quantizer_error(self.tail, step)
+        return math.sqrt(max(total, 0.0) * self.parseval)
+
+    @property
+    def floor(self) -> float:
+        """The RMSE of the cutoff alone (every kept value exact)."""
+        return math.sqrt(self.lost * self.parseval)
+
+    def step_for(self, goal: float) -> float | None:
+        """The coarsest step (to 1 %) whose predicted RMSE is at most ``goal``; None when the
+        cutoff alone passes it."""
+        if self.floor >= goal:
+            return None
+        # A uniform quantizer's error is about step**2 / 12 a value: the bracket starts there.
+        budget = goal * goal / self.parseval - self.lost
+        guess = math.sqrt(12.0 * budget / max(self.count, 1))
+        lo, hi = guess / STEP_BRACKET, guess * STEP_BRACKET
+        for _ in range(40):
+            if self.rmse(lo) <= goal:
+                break
+            lo, hi = lo / STEP_BRACKET, lo
+        else:
+            return None
+        for _ in range(40):
+            if self.rmse(hi) > goal:
+                break
+            lo, hi = hi, hi * STEP_BRACKET
+        for _ in range(STEP_BISECTIONS):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if self.rmse(mid) <= goal else (lo, mid)
+        return lo
+
+
+@dataclass
+class Candidate:
+    """A (cutoff, step) the model ranks: its predicted whole-grid RMSE and estimated bytes."""
+
+    cutoff: float
+    step: float
+    proxy: float
+    size: float
+
+
+def _estimate(an: Analysis, cutoff: float, step: float) -> float:
+    return an.estimate_stream(an.quantized(cutoff, step))
+
+
+def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice | None:
+    """Rate control's choice for the target in ``params`` from the model, verified; None where the
+    model does not apply or misses (the caller then searches)."""
+    if params.storage != "quantized":
+        return None  # no step to predict: the search tries the cutoffs alone
+    if params.target_rmse > 0:
+        choice = _for_rmse(an, params)
+    elif params.target_max_error > 0:
+        choice = _for_max_error(an, params)
+    else:
+        budget = int(params.target_bpp * point_count / 8) - fixed_bytes
+        choice = _for_bpp(an, params, budget) if budget > 0 else None
+    if choice is not None and not choice.coefs:
+        # Ranked by estimates of one band layout; the file gets the best per chunk.
+        choice.coefs = choice.analysis.encode(choice.trial)
+    return choice
+
+
+# --- an RMSE target --------------------------------------------------------------------------------
+
+def _ranked_for_rmse(an: Analysis, params: Params, goal: float) -> list[Candidate]:
+    """Every cutoff that can meet the (whole-grid) ``goal``, with its step and estimated bytes,
+    smallest first; from the highest cutoff down, stopping as the search does once the files
+    only grow (:data:`GIVE_UP_FACTOR`)."""
+    found: list[Candidate] = []
+    for cutoff in sorted(cutoffs(params), reverse=True):
+        energy = Energy(an, cutoff)
+        step = energy.step_for(goal)
+        if step is None:
+            continue
+        size = _estimate(an, cutoff, step)
+        found.append(Candidate(cutoff, step, energy.rmse(step), size))
+        if size > GIVE_UP_FACTOR * min(c.size for c in found):
+            break
+    return sorted(found, key=lambda c: c.size)
+
+
+def _verified_rmse(an: Analysis, cutoff: float, target: float, ratio: float) -> tuple[Trial | None, float]:
+    """The trial at ``cutoff`` whose step the model predicts meets ``target`` on the occupied cells
+    (the whole grid's predicted RMSE times ``ratio``), rebuilt and measured, corrected once where it
+    misses or falls short of :data:`CLOSE_ENOUGH`; None where neither meets the target. Also the
+    ratio measured (occupied cells' RMSE over the whole grid's prediction)."""
+    energy = Energy(an, cutoff)
+    best: Trial | None = None
+    goal = target / ratio
+    for _ in range(2):
+        step = energy.step_for(goal)
+        if step is None:
+            break
+        trial = an.trial(cutoff, step)
+        predicted = energy.rmse(trial.step)
+        ratio = trial.rmse / predicted if predicted > 0 else ratio
+        if trial.rmse <= target:
+            if best is None or trial.step > best.step:
+                best = trial
+            if trial.rmse > CLOSE_ENOUGH * target:
+                break
+        goal = AIM_INSIDE * target / max(ratio, 1e-12)
+    return best, ratio
+
+
+def _for_rmse(an: Analysis, params: Params) -> Choice | None:
+    target = params.target_rmse
+    ranked = _ranked_for_rmse(an, params, target)
+    if not ranked:
+        return None
+    first, ratio = _verified_rmse(an, ranked[0].cutoff, target, 1.0)
+    if abs(ratio - 1.0) > 1.0 - CLOSE_ENOUGH:
+        # The occupied cells hold another share of the error than the whole grid: rank again
+        # with the measured share, and verify the new best where it moved.
+        ranked = _ranked_for_rmse(an, params, target / ratio)
+        if ranked and (first is None or ranked[0].cutoff != first.cutoff):
+            other, _ = _verified_rmse(an, ranked[0].cutoff, target, ratio)
+            if other is not None and (first is None or an.estimate(other) < an.estimate(first)):
+                first = other
+    if first is None:
+        return None
+    best = Choice(an, first, b"")
+    size = an.estimate(first)
+    if an.refillable:
+        refilled = _refilled_for_rmse(an, first, target)
+        if refilled is not None:
+            other, trial = refilled
+            other_size = other.estimate(trial)
+            if other_size < size:
+                best, size = Choice(other, trial, b""), other_size
+    return best
+
+
+def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analysis, Trial] | None:
+    """``first``'s cutoff with the empty cells refilled from ``first``'s rebuilt map (a consistent
+    fill), at the coarsest step up to :data:`REFILL_STEP_RANGE` times ``first``'s that the model
+    predicts meets ``target``, verified; None where no trial of it does."""
+    other = an.refilled(first)
+    energy = Energy(other, first.cutoff)
+    at_first = other.trial(first.cutoff, first.step)
+    if at_first.rmse > target:
+        return None
+    ratio = at_first.rmse / max(energy.rmse(at_first.step), 1e-300)
+    step = energy.step_for(AIM_INSIDE * target / max(ratio, 1e-12))
+    if step is None or step <= first.step:
+        return other, at_first
+    trial = other.trial(first.cutoff, min(step, REFILL_STEP_RANGE * first.step))
+    return (other, trial) if trial.rmse <= target else (other, at_first)
+
+
+# --- a size target ---------------------------------------------------------------------------------
+
+def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy) -> tuple[float, float] | None:
+    """The finest step (and its estimated bytes) at ``cutoff`` whose estimated COEF section fits
+    ``budget`` bytes, by secant steps on log size against log step; None where even the coarsest
+    step tried does not fit."""
+    guess = energy.step_for(max(energy.floor * 1.5, 1e-9)) or an.tiny_step() * 1e6
+    fits: tuple[float, float] | None = None  # (step, size) that fit: the finest one
+    over: tuple[float, float] | None = None  # (step, size) that do not: the coarsest one
+    step = guess
+    for _ in range(SIZE_ITERATIONS):
+        size = _estimate(an, cutoff, step)
+        if size <= budget:
+            if fits is None or step < fits[0]:
+                fits = (step, size)
+            if size >= budget * (1.0 - SIZE_TOLERANCE):
+                break
+        elif over is None or step > over[0]:
+            over = (step, size)
+        if fits is not None and over is not None:
+            (s0, z0), (s1, z1) = fits, over
+            slope = (math.log(z1) - math.log(z0)) / (math.log(s1) - math.log(s0))
+            step = math.exp(math.log(s0) + (math.log(budget) - math.log(z0)) / slope) if slope < 0 else \
+                math.sqrt(s0 * s1)
+            step = min(max(step, min(s0, s1) * 1.0001), max(s0, s1) / 1.0001)
+        else:
+            step = step * 4.0 if fits is None else step / 2.0
+    return fits
+
+
+def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
+    aim = BUDGET_INSIDE * budget
+    ranked = []
+    for cutoff in cutoffs(params):
+        energy = Energy(an, cutoff)
+        found = _step_for_size(an, cutoff, aim, energy)
+        if found is not None:
+            ranked.append((energy.rmse(found[0]), cutoff, found[0]))
+    if not ranked:
+        return None
+    ranked.sort()
+    # The ranking is of the whole grid's error; the occupied cells decide: the two best rebuilt.
+    trials = [an.trial(cutoff, step) for _, cutoff, step in ranked[:2]]
+    first = min(trials, key=lambda t: t.rmse)
+    best = Choice(an, first, b"")
+    if an.refillable:
+        other = an.refilled(first)
+        found = _step_for_size(other, first.cutoff, aim, Energy(other, first.cutoff))
+        if found is not None:
+            trial = other.trial(first.cutoff, found[0])
+            if trial.rmse < first.rmse:
+                best = Choice(other, trial, b"")
+    coefs = best.analysis.encode(best.trial)
+    if len(coefs) > budget:
+        return None  # the estimate missed: the search sizes every step by coding it
+    best.coefs = coefs
+    return best
+
+
+# --- a maximum-error target ------------------------------------------------------------------------
+
+#: Trials that teach the model a map's residual layer: (cutoff, step as a multiple of the bound).
+#: Each gives the layer's bytes a cell at one ratio of the predicted RMSE to the bound; the layer's
+#: cost at any other candidate is interpolated (log-log) between them.
+PILOTS = ((0.8, 2.0), (0.8, 8.0), (0.95, 4.0), (0.6, 4.0))
+#: Candidates the model ranks best that are rebuilt and sized (with the pilots' best).
+VERIFIED = 3
+#: A cutoff's smallest predicted file this many times in a row larger than the one before ends the
+#: walk down the cutoffs (the files only grow from there).
+RISES = 2
+
+
+@dataclass
+class _Layer:
+    """A rebuilt candidate for a maximum-error target: its trial, estimated COEF and RESD bytes."""
+
+    analysis: Analysis
+    trial: Trial
+    coefs: float
+    resd: float
+    q: np.ndarray
+
+    @property
+    def size(self) -> float:
+        return self.coefs + self.resd
+
+
+def _layer(an: Analysis, cutoff: float, step: float, bound: float, coder: str) -> _Layer:
+    trial = an.trial(cutoff, step)
+    q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
+    return _Layer(an, trial, an.estimate(trial), estimated_size(q, coder, an.kept_cells, predicted=False), q)
+
+
+class _ResidualCurve:
+    """The residual layer's bytes as a function of the predicted RMSE over the bound, learned from
+    rebuilt candidates (log-log interpolation, flat beyond them)."""
+
+    def __init__(self) -> None:
+        self.points: list[tuple[float, float]] = []
+
+    def add(self, ratio: float, size: float) -> None:
+        self.points.append((math.log(max(ratio, 1e-12)), math.log(max(size, 1.0))))
+
+    def __call__(self, ratio: float) -> float:
+        xs, ys = zip(*sorted(self.points))
+        return math.exp(float(np.interp(math.log(max(ratio, 1e-12)), xs, ys)))
+
+
+def _factors(quantized: bool) -> list[float]:
+    """The steps a maximum-error target tries, as multiples of the bound (the search's and the
+    doublings after them)."""
+    out = list(MAX_ERROR_STEP_FACTORS)
+    while out[-1] * 2.0 <= MAX_ERROR_STEP_FACTOR_LIMIT:
+        out.append(out[-1] * 2.0)
+    return out
+
+
+def _for_max_error(an: Analysis, params: Params) -> Choice | None:
+    bound, coder = params.target_max_error, params.coder
+    tried = cutoffs(params)
+    pilots = [(c, f) for c, f in PILOTS] if params.cutoff is None else [(params.cutoff, f) for f in (2.0, 8.0)]
+    pilots = [(min(tried, key=lambda t: abs(t - c)), f) for c, f in pilots]
+    curve = _ResidualCurve()
+    rebuilt: dict[tuple[float, float], _Layer] = {}
+    energies = {c: Energy(an, c) for c in tried}
+    for cutoff, factor in dict.fromkeys(pilots):
+        layer = _layer(an, cutoff, bound * factor, bound, coder)
+        rebuilt[(cutoff, factor)] = layer
+        curve.add(energies[cutoff].rmse(layer.trial.step) / bound, layer.resd)
+    # Rank every (cutoff, factor) by its estimated COEF bytes and the curve's RESD bytes.
+    ranked: list[tuple[float, float, float]] = []
+    best_at: list[float] = []
+    for cutoff in sorted(tried, reverse=True):
+        smallest = math.inf
+        for factor in _factors(True):
+            energy = energies[cutoff]
+            size = _estimate(an, cutoff, bound * factor) + curve(energy.rmse(bound * factor) / bound)
+            ranked.append((size, cutoff, factor))
+            if size > smallest * GIVE_UP_FACTOR:
+                break  # coarser steps only grow the layer faster than they shrink the spectrum
+            smallest = min(smallest, size)
+        best_at.append(smallest)
+        if len(best_at) > RISES and all(best_at[-k - 1] > best_at[-k - 2] for k in range(RISES)):
+            break
+    ranked.sort()
+    for _, cutoff, factor in ranked[:VERIFIED]:
+        if (cutoff, factor) not in rebuilt:
+            rebuilt[(cutoff, factor)] = _layer(an, cutoff, bound * factor, bound, coder)
+    best = _climb(an, rebuilt, min(rebuilt.values(), key=lambda layer: layer.size), sorted(tried), bound, coder)
+    if an.refillable:
+        other = an.refilled(best.trial)
+        factor = best.trial.step / bound
+        for f in (factor / 2.0, factor, factor * 2.0):
+            layer = _layer(other, best.trial.cutoff, bound * f, bound, coder)
+            if layer.size < best.size:
+                best = layer
+    choice = Choice(best.analysis, best.trial, b"", best.q, b"", bound)
+    size = best.size
+    # The predicted layout, the slowest to code, is sized on the winner and on the map with no spectrum.
+    predicted = _predicted_size(best.q, coder, best.analysis.kept_cells)
+    if predicted < best.resd:
+        size = best.coefs + predicted
+    free = _spectrum_free(an, params)
+    if free is not None:
+        on, trial = free
+        q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        free_size = on.estimate(trial) + estimated_size(q, coder, on.kept_cells)
+        if free_size < size:
+            choice = Choice(on, trial, b"", q, b"", bound)
+    choice.coefs = choice.analysis.encode(choice.trial)
+    choice.residual_blob = encode_residual(choice.residual, coder, choice.analysis.kept_cells)
+    return choice
+
+
+#: Moves of the hill climb from the model's choice over rebuilt neighbours (:func:`_climb`).
+CLIMB_MOVES = 4
+
+
+def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer], best: _Layer, tried: list[float],
+           bound: float, coder: str) -> _Layer:
+    """The model's choice corrected by rebuilt candidates: from ``best``, move to the smallest of
+    its four neighbours (the next cutoff either way, the step doubled or halved) while that is
+    smaller, at most :data:`CLIMB_MOVES` times: the model ranks well, but the curve it learned
+    from a few trials is coarse next to files a few % apart."""
+    factors = _factors(True)
+    for _ in range(CLIMB_MOVES):
+        cutoff, factor = best.trial.cutoff, best.trial.step / bound
+        i = min(range(len(tried)), key=lambda k: abs(tried[k] - cutoff))
+        j = min(range(len(factors)), key=lambda k: abs(math.log(factors[k] / factor)))
+        around = [(tried[i + di], factors[j + dj]) for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1))
+                  if 0 <= i + di < len(tried) and 0 <= j + dj < len(factors)]
+        for key in around:
+            if key not in rebuilt:
+                rebuilt[key] = _layer(an, key[0], bound * key[1], bound, coder)
+        nearest = min((rebuilt[key] for key in around), key=lambda layer: layer.size)
+        if nearest.size >= best.size:
+            break
+        best = nearest
+    return best
+
+
+def _predicted_size(q: np.ndarray, coder: str, kept: np.ndarray) -> float:
+    from .residual import _estimated_predicted
+
+    return _estimated_predicted(q, kept) if coder == "ans" and q.size else math.inf
