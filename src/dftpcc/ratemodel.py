@@ -22,8 +22,8 @@ import numpy as np
 from . import coding
 from .analysis import Analysis, Trial
 from .params import Params
-from .ratecontrol import (CLOSE_ENOUGH, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT, MAX_ERROR_STEP_FACTORS,
-                          REFILL_STEP_RANGE, Choice, _spectrum_free, cutoffs)
+from .ratecontrol import (CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
+                          MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free, cutoffs)
 from .residual import encode_residual, estimated_size, predicted_residual, residual
 from .sums import dot
 
@@ -40,6 +40,13 @@ STEP_BISECTIONS = 8
 #: An RMSE a rebuilt map measures is aimed this far inside the target when the step is corrected
 #: (the correction is a prediction too: a hair inside keeps it from landing a bit above).
 AIM_INSIDE = 0.995
+#: A trial whose RMSE is within this fraction of the target (below it) ends the correction ...
+LANDING = 0.998
+#: ... aimed at this fraction of it ...
+AIM = 0.999
+#: ... else at most this many trials (rebuilt maps) at a cutoff, and refills of a consistent fill.
+VERIFY_TRIALS = 5
+REFILL_TRIALS = 3
 #: A size target's budget is aimed this far inside by the estimate (estimates are within 0.1 %
 #: of the coded size on real maps; the coded file is checked, and coded again coarser on a miss).
 BUDGET_INSIDE = 0.998
@@ -157,27 +164,47 @@ def _ranked_for_rmse(an: Analysis, params: Params, goal: float) -> list[Candidat
     return sorted(found, key=lambda c: c.size)
 
 
+def _secant(tried: list[tuple[float, float]], goal: float) -> float | None:
+    """The step where the measured RMSE crosses ``goal``, interpolated (log-log) between the coarsest
+    trial below it and the finest above; None without such a pair. ``tried``: (step, rmse)."""
+    below = [t for t in tried if t[1] <= goal]
+    above = [t for t in tried if t[1] > goal]
+    if not below or not above:
+        return None
+    (s0, r0), (s1, r1) = max(below), min(above)
+    if not s0 < s1 or not r1 > r0 > 0:
+        return math.sqrt(s0 * s1) if s0 < s1 else None
+    at = (math.log(goal) - math.log(r0)) / (math.log(r1) - math.log(r0))
+    return math.exp(math.log(s0) + at * (math.log(s1) - math.log(s0)))
+
+
 def _verified_rmse(an: Analysis, cutoff: float, target: float, ratio: float) -> tuple[Trial | None, float]:
     """The trial at ``cutoff`` whose step the model predicts meets ``target`` on the occupied cells
-    (the whole grid's predicted RMSE times ``ratio``), rebuilt and measured, corrected once where it
-    misses or falls short of :data:`CLOSE_ENOUGH`; None where neither meets the target. Also the
-    ratio measured (occupied cells' RMSE over the whole grid's prediction)."""
+    (the whole grid's predicted RMSE times ``ratio``), rebuilt and measured; then corrected, by the
+    ratio measured or, once trials lie either side of the target, by interpolating them, until one
+    lands within :data:`LANDING` of the target (at most :data:`VERIFY_TRIALS` trials: where the
+    low-pass holds most of the error, the file's size moves much faster than its error). None
+    where no trial meets the target. Also the last ratio measured (occupied cells' RMSE over the
+    whole grid's prediction)."""
     energy = Energy(an, cutoff)
     best: Trial | None = None
-    goal = target / ratio
-    for _ in range(2):
-        step = energy.step_for(goal)
-        if step is None:
+    tried: list[tuple[float, float]] = []
+    step = energy.step_for(AIM_INSIDE * target / ratio)
+    for _ in range(VERIFY_TRIALS):
+        if step is None or any(abs(step / s - 1.0) < 1e-6 for s, _ in tried):
             break
         trial = an.trial(cutoff, step)
+        tried.append((trial.step, trial.rmse))
         predicted = energy.rmse(trial.step)
         ratio = trial.rmse / predicted if predicted > 0 else ratio
         if trial.rmse <= target:
             if best is None or trial.step > best.step:
                 best = trial
-            if trial.rmse > CLOSE_ENOUGH * target:
+            if trial.rmse >= LANDING * target:
                 break
-        goal = AIM_INSIDE * target / max(ratio, 1e-12)
+        step = _secant(tried, AIM * target)
+        if step is None:
+            step = energy.step_for(AIM * target / max(ratio, 1e-12))
     return best, ratio
 
 
@@ -206,24 +233,96 @@ def _for_rmse(an: Analysis, params: Params) -> Choice | None:
             other_size = other.estimate(trial)
             if other_size < size:
                 best, size = Choice(other, trial, b""), other_size
+    corrected = _corrected_for_rmse(an, params, first, size)
+    if corrected is not None:
+        best = corrected
     return best
 
 
+def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: float) -> Choice | None:
+    """:func:`dftpcc.ratecontrol.corrected_for_rmse` with each candidate's bytes estimated, not
+    coded: the smallest low-passed map with a residual layer that meets the RMSE target, or the map
+    with no spectrum with one, where smaller than ``to_beat`` bytes; coded (None where none is)."""
+    if an.params.tile_size or params.storage != "quantized":
+        return None
+    target, coder = params.target_rmse, params.coder
+    best: tuple[float, Analysis, Trial, float, np.ndarray] | None = None  # size, analysis, trial, bound, q
+
+    def attempt(on: Analysis, cutoff: float, step: float, *, predicted: bool = False) -> float | None:
+        nonlocal best
+        coefs = on.estimate_stream(on.quantized(cutoff, step))
+        if coefs >= min(to_beat, best[0] if best else math.inf):
+            return None  # not smaller even with an empty residual layer: no need to rebuild it
+        trial = on.trial(cutoff, step)
+        bound = _coarsest_bound(on, trial, target)
+        if bound is None:
+            return None
+        q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        size = coefs + estimated_size(q, coder, on.kept_cells, predicted=predicted)
+        if best is None or size < best[0]:
+            best = (size, on, trial, bound, q)
+        return size
+
+    first_factor, *others = CORRECTED_STEP_FACTORS
+    last, rises = None, 0
+    for cutoff in (c for c in cutoffs(params) if c >= first.cutoff):
+        size = attempt(an, cutoff, first_factor * target)
+        if size is None:
+            continue
+        rises = rises + 1 if last is not None and size > last else 0
+        last = size
+        if rises == 2 or size > GIVE_UP_FACTOR * min(best[0], to_beat):
+            break
+    if best is not None:
+        cutoff = best[2].cutoff
+        for factor in others:
+            attempt(an, cutoff, factor * target)
+        size, on, trial, bound, q = best
+        layout = _predicted_size(q, coder, on.kept_cells)
+        if layout < size - on.estimate(trial):
+            best = (on.estimate(trial) + layout, on, trial, bound, q)
+    free = _spectrum_free(an, params)
+    if free is not None:
+        attempt(free[0], free[1].cutoff, free[1].step, predicted=True)
+    if best is None or best[0] >= to_beat:
+        return None
+    size, on, trial, bound, q = best
+    choice = Choice(on, trial, on.encode(trial), q, encode_residual(q, coder, on.kept_cells), bound)
+    return choice
+
+
 def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analysis, Trial] | None:
-    """``first``'s cutoff with the empty cells refilled from ``first``'s rebuilt map (a consistent
-    fill), at the coarsest step up to :data:`REFILL_STEP_RANGE` times ``first``'s that the model
-    predicts meets ``target``, verified; None where no trial of it does."""
-    other = an.refilled(first)
-    energy = Energy(other, first.cutoff)
+    """``first``'s cutoff with the empty cells refilled (a consistent fill) from a trial at the step
+    it is coded with, as the search does: the coarsest such step up to :data:`REFILL_STEP_RANGE`
+    times ``first``'s that meets ``target``, predicted from the map refilled at ``first`` and then
+    found by interpolating the refills tried (at most :data:`REFILL_TRIALS`); None where even
+    ``first``'s step refilled misses the target."""
+
+    def attempt(step: float) -> tuple[Analysis, Trial]:
+        other = an.refilled(an.trial(first.cutoff, step))
+        return other, other.trial(first.cutoff, step)
+
+    other, at_first = an.refilled(first), None
     at_first = other.trial(first.cutoff, first.step)
     if at_first.rmse > target:
         return None
+    best = (other, at_first)
+    tried = [(at_first.step, at_first.rmse)]
+    energy = Energy(other, first.cutoff)
     ratio = at_first.rmse / max(energy.rmse(at_first.step), 1e-300)
-    step = energy.step_for(AIM_INSIDE * target / max(ratio, 1e-12))
-    if step is None or step <= first.step:
-        return other, at_first
-    trial = other.trial(first.cutoff, min(step, REFILL_STEP_RANGE * first.step))
-    return (other, trial) if trial.rmse <= target else (other, at_first)
+    step = energy.step_for(AIM * target / max(ratio, 1e-12))
+    top = REFILL_STEP_RANGE * first.step
+    for _ in range(REFILL_TRIALS):
+        if step is None or step <= best[1].step:
+            break
+        found = attempt(min(step, top))
+        tried.append((found[1].step, found[1].rmse))
+        if found[1].rmse <= target:
+            best = found
+            if found[1].rmse >= LANDING * target or found[1].step >= coding.short_step(top):
+                break
+        step = _secant(tried, AIM * target)
+    return best
 
 
 # --- a size target ---------------------------------------------------------------------------------
