@@ -70,8 +70,8 @@ _METHOD: contextvars.ContextVar[str] = contextvars.ContextVar("dftpcc_rate_contr
 
 @dataclass
 class Tally:
-    """What rate control did in a :func:`tally` block: choices it made, how many the model made
-    (verified), and how many fell back to the search."""
+    """What rate control did in a :func:`tally` block: choices it made (not those refused as out
+    of reach), how many the model made (verified), and how many times it fell back to the search."""
 
     choices: int = 0
     modelled: int = 0
@@ -413,13 +413,29 @@ def for_bpp(an: Analysis, params: Params, budget: int, progress: Progress = _no_
         if best is None or trial.rmse < best.trial.rmse:
             best = Choice(an, trial, blob)
     if best is None:
-        where = f"at cutoff {params.cutoff:g}" if params.cutoff is not None else "at any cutoff"
-        hint = ("raise the target, or leave the cutoff out so rate control may choose a higher one"
-                if params.cutoff is not None else "raise the target")
-        raise InvalidInputError(f"target {params.target_bpp:g} bits/point cannot be reached {where}: the "
-                                f"coefficients need more than the {budget:,} bytes left after the mask and "
-                                f"header, even at the coarsest step; {hint}")
+        raise bpp_out_of_reach(params, budget)
     return best
+
+
+def coef_budget(params: Params, point_count: int, fixed_bytes: int) -> int:
+    """Bytes a size target leaves the COEF section: the file's bits less ``fixed_bytes`` (the
+    mask and header); :class:`InvalidInputError` where those alone pass the target."""
+    budget = int(params.target_bpp * point_count / 8) - fixed_bytes
+    if budget <= 0:
+        raise InvalidInputError(
+            f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header (CRS "
+            f"included) alone need {8 * fixed_bytes / point_count:.4f} bits/point")
+    return budget
+
+
+def bpp_out_of_reach(params: Params, budget: int) -> InvalidInputError:
+    """The error of a size target no cutoff tried reaches."""
+    where = f"at cutoff {params.cutoff:g}" if params.cutoff is not None else "at any cutoff"
+    hint = ("raise the target, or leave the cutoff out so rate control may choose a higher one"
+            if params.cutoff is not None else "raise the target")
+    return InvalidInputError(f"target {params.target_bpp:g} bits/point cannot be reached {where}: the "
+                             f"coefficients need more than the {budget:,} bytes left after the mask and "
+                             f"header, even at the coarsest step; {hint}")
 
 
 def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
@@ -430,12 +446,7 @@ def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
     elif params.target_max_error > 0:
         choice = for_max_error(an, params, progress)
     else:
-        budget = int(params.target_bpp * point_count / 8) - fixed_bytes
-        if budget <= 0:
-            raise InvalidInputError(
-                f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header (CRS "
-                f"included) alone need {8 * fixed_bytes / point_count:.4f} bits/point")
-        choice = for_bpp(an, params, budget, progress)
+        choice = for_bpp(an, params, coef_budget(params, point_count, fixed_bytes), progress)
     # The search sized candidates with one band layout; the file gets the best per chunk.
     choice.coefs = choice.analysis.encode(choice.trial)
     return choice
@@ -463,19 +474,21 @@ def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
         Told the fraction done: the first search is 80 % of the work, the refill the rest.
     """
     counts = _TALLY.get()
-    if counts is not None:
-        counts.choices += 1
     if _METHOD.get() == "model":
         from . import ratemodel  # the model builds on this module's search
 
         found = ratemodel.choose(an, params, point_count, fixed_bytes)
         if found is not None:
             if counts is not None:
+                counts.choices += 1
                 counts.modelled += 1
             return found
         if counts is not None:
             counts.fallbacks += 1
-    return search(an, params, point_count, fixed_bytes, progress)
+    found = search(an, params, point_count, fixed_bytes, progress)
+    if counts is not None:
+        counts.choices += 1
+    return found
 
 
 def search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,

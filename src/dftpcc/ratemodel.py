@@ -23,7 +23,8 @@ from . import coding
 from .analysis import Analysis, Trial
 from .params import Params
 from .ratecontrol import (CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
-                          MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free, cutoffs)
+                          MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
+                          bpp_out_of_reach, coef_budget, cutoffs)
 from .residual import encode_residual, estimated_size, predicted_residual, residual
 from .sums import dot
 
@@ -50,6 +51,13 @@ REFILL_TRIALS = 3
 #: A size target's budget is aimed this far inside by the estimate (estimates are within 0.1 %
 #: of the coded size on real maps; the coded file is checked, and coded again coarser on a miss).
 BUDGET_INSIDE = 0.998
+#: Where the coded file still passes the budget, the step is raised this much and the file coded
+#: again, at most this many times, before the search takes over.
+BUDGET_STEP_UP = 1.05
+BUDGET_RETRIES = 6
+#: Cutoffs a size target rebuilds, best predicted first: a gappy map's empty cells hold another
+#: share of each cutoff's error than its occupied ones.
+VERIFIED_SIZE = 4
 #: Secant iterations (log size against log step) that find a size target's step at a cutoff, and
 #: how close (relative) to the budget they stop.
 SIZE_ITERATIONS = 8
@@ -137,8 +145,7 @@ def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> 
     elif params.target_max_error > 0:
         choice = _for_max_error(an, params)
     else:
-        budget = int(params.target_bpp * point_count / 8) - fixed_bytes
-        choice = _for_bpp(an, params, budget) if budget > 0 else None
+        choice = _for_bpp(an, params, coef_budget(params, point_count, fixed_bytes))
     if choice is not None and not choice.coefs:
         # Ranked by estimates of one band layout; the file gets the best per chunk.
         choice.coefs = choice.analysis.encode(choice.trial)
@@ -364,10 +371,11 @@ def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
         if found is not None:
             ranked.append((energy.rmse(found[0]), cutoff, found[0]))
     if not ranked:
-        return None
+        # Estimates are within 0.1 % of the coded bytes, aimed BUDGET_INSIDE inside: as the search would.
+        raise bpp_out_of_reach(params, budget)
     ranked.sort()
-    # The ranking is of the whole grid's error; the occupied cells decide: the two best rebuilt.
-    trials = [an.trial(cutoff, step) for _, cutoff, step in ranked[:2]]
+    # The ranking is of the whole grid's error; the occupied cells decide: the best few rebuilt.
+    trials = [an.trial(cutoff, step) for _, cutoff, step in ranked[:VERIFIED_SIZE]]
     first = min(trials, key=lambda t: t.rmse)
     best = Choice(an, first, b"")
     if an.refillable:
@@ -378,10 +386,14 @@ def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
             if trial.rmse < first.rmse:
                 best = Choice(other, trial, b"")
     coefs = best.analysis.encode(best.trial)
-    if len(coefs) > budget:
-        return None  # the estimate missed: the search sizes every step by coding it
-    best.coefs = coefs
-    return best
+    for _ in range(BUDGET_RETRIES):
+        if len(coefs) <= budget:
+            best.coefs = coefs
+            return best
+        # A short stream's estimate may miss by a few bytes: a little coarser, coded again.
+        trial = best.analysis.trial(best.trial.cutoff, best.trial.step * BUDGET_STEP_UP)
+        best, coefs = Choice(best.analysis, trial, b""), best.analysis.encode(trial)
+    return None  # the estimate missed: the search sizes every step by coding it
 
 
 # --- a maximum-error target ------------------------------------------------------------------------
