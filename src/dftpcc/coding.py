@@ -499,7 +499,14 @@ def _estimated_bits(q: np.ndarray, b: _Bands, magnitudes: np.ndarray | None = No
     # on the scale code alone, so they come from a table of the 255 codes.
     at_zero, per_step = _log_geometric()
     log_p = at_zero[codes] + a * per_step[codes]
-    return 8.0 * len(_side_info(b.codes)) - float(np.maximum(log_p, -TABLE_BITS).sum())
+    return 8.0 * _side_info_size(b.codes.tobytes()) - float(np.maximum(log_p, -TABLE_BITS).sum())
+
+
+@functools.lru_cache(maxsize=4096)
+def _side_info_size(raw: bytes) -> int:
+    """Bytes of :func:`_side_info` of the band scale codes ``raw``: estimates ask for the same few
+    codes again and again (rate control sizes many steps of one stream)."""
+    return len(_side_info(np.frombuffer(raw, dtype=np.uint8)))
 
 
 @functools.lru_cache(maxsize=1)

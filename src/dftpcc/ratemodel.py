@@ -55,6 +55,10 @@ BUDGET_INSIDE = 0.998
 #: again, at most this many times, before the search takes over.
 BUDGET_STEP_UP = 1.05
 BUDGET_RETRIES = 6
+#: A size target skips the cutoffs whose low-pass alone leaves this many times the (whole-grid)
+#: error of the best file found at a lower one: their occupied cells would have to hold far less
+#: of the error than the lower cutoff's do.
+FLOOR_SKIP = 1.5
 #: Cutoffs a size target rebuilds, best predicted first: a gappy map's empty cells hold another
 #: share of each cutoff's error than its occupied ones.
 VERIFIED_SIZE = 4
@@ -315,9 +319,12 @@ def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analy
         return None
     best = (other, at_first)
     tried = [(at_first.step, at_first.rmse)]
-    energy = Energy(other, first.cutoff)
-    ratio = at_first.rmse / max(energy.rmse(at_first.step), 1e-300)
-    step = energy.step_for(AIM * target / max(ratio, 1e-12))
+    # A map refilled from a trial holds coefficients near that trial's steps, so its own
+    # quantizer error at that step says little of another: the first guess follows the
+    # slope of the map before the refill (log RMSE against log step), then the refills tried.
+    energy = Energy(an, first.cutoff)
+    slope = math.log(energy.rmse(first.step * 1.1) / max(energy.rmse(first.step), 1e-300)) / math.log(1.1)
+    step = first.step * (AIM * target / at_first.rmse) ** (1.0 / slope) if slope > 0 else None
     top = REFILL_STEP_RANGE * first.step
     for _ in range(REFILL_TRIALS):
         if step is None or step <= best[1].step:
@@ -334,11 +341,12 @@ def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analy
 
 # --- a size target ---------------------------------------------------------------------------------
 
-def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy) -> tuple[float, float] | None:
+def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy,
+                   guess: float | None = None) -> tuple[float, float] | None:
     """The finest step (and its estimated bytes) at ``cutoff`` whose estimated COEF section fits
-    ``budget`` bytes, by secant steps on log size against log step; None where even the coarsest
-    step tried does not fit."""
-    guess = energy.step_for(max(energy.floor * 1.5, 1e-9)) or an.tiny_step() * 1e6
+    ``budget`` bytes, by secant steps on log size against log step from ``guess`` (default: a
+    step near the cutoff's own error); None where even the coarsest step tried does not fit."""
+    guess = guess or energy.step_for(max(energy.floor * 1.5, 1e-9)) or an.tiny_step() * 1e6
     fits: tuple[float, float] | None = None  # (step, size) that fit: the finest one
     over: tuple[float, float] | None = None  # (step, size) that do not: the coarsest one
     step = guess
@@ -365,11 +373,16 @@ def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy) -
 def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
     aim = BUDGET_INSIDE * budget
     ranked = []
-    for cutoff in cutoffs(params):
+    guess = None
+    for cutoff in sorted(cutoffs(params)):
         energy = Energy(an, cutoff)
-        found = _step_for_size(an, cutoff, aim, energy)
+        if ranked and energy.floor > FLOOR_SKIP * min(ranked)[0]:
+            break  # the low-pass alone loses to a file found: so do the higher cutoffs
+        # The step that fills the budget moves little from one cutoff to the next: the last one's first.
+        found = _step_for_size(an, cutoff, aim, energy, guess)
         if found is not None:
             ranked.append((energy.rmse(found[0]), cutoff, found[0]))
+            guess = found[0]
     if not ranked:
         # Estimates are within 0.1 % of the coded bytes, aimed BUDGET_INSIDE inside: as the search would.
         raise bpp_out_of_reach(params, budget)
