@@ -21,6 +21,7 @@ import numpy as np
 
 from . import coding
 from .analysis import Analysis, Trial
+from .errors import InvalidInputError
 from .params import Params
 from .ratecontrol import (CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
                           MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
@@ -139,17 +140,27 @@ def _estimate(an: Analysis, cutoff: float, step: float) -> float:
     return an.estimate_stream(an.quantized(cutoff, step))
 
 
+class _OutOfReach(InvalidInputError):
+    """A size target no cutoff reaches by the estimates: the search's error, not a miss of the model."""
+
+
 def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice | None:
     """Rate control's choice for the target in ``params`` from the model, verified; None where the
     model does not apply or misses (the caller then searches)."""
     if params.storage != "quantized":
         return None  # no step to predict: the search tries the cutoffs alone
-    if params.target_rmse > 0:
-        choice = _for_rmse(an, params)
-    elif params.target_max_error > 0:
-        choice = _for_max_error(an, params)
-    else:
-        choice = _for_bpp(an, params, coef_budget(params, point_count, fixed_bytes))
+    budget = coef_budget(params, point_count, fixed_bytes) if params.target_bpp > 0 else 0
+    try:
+        if params.target_rmse > 0:
+            choice = _for_rmse(an, params)
+        elif params.target_max_error > 0:
+            choice = _for_max_error(an, params)
+        else:
+            choice = _for_bpp(an, params, budget)
+    except _OutOfReach as exc:
+        raise InvalidInputError(str(exc)) from None
+    except InvalidInputError:
+        return None  # a step the model tried was refused (too fine for the map): the search decides
     if choice is not None and not choice.coefs:
         # Ranked by estimates of one band layout; the file gets the best per chunk.
         choice.coefs = choice.analysis.encode(choice.trial)
@@ -385,7 +396,7 @@ def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
             guess = found[0]
     if not ranked:
         # Estimates are within 0.1 % of the coded bytes, aimed BUDGET_INSIDE inside: as the search would.
-        raise bpp_out_of_reach(params, budget)
+        raise _OutOfReach(str(bpp_out_of_reach(params, budget)))
     ranked.sort()
     # The ranking is of the whole grid's error; the occupied cells decide: the best few rebuilt.
     trials = [an.trial(cutoff, step) for _, cutoff, step in ranked[:VERIFIED_SIZE]]
