@@ -137,7 +137,14 @@ class Candidate:
 
 
 def _estimate(an: Analysis, cutoff: float, step: float) -> float:
+    """Estimated bytes of (cutoff, step) in the first band layout: to rank many candidates."""
     return an.estimate_stream(an.quantized(cutoff, step))
+
+
+def _coded(an: Analysis, trial: Trial) -> float:
+    """Estimated bytes of ``trial`` as the file codes it (each chunk's best band layout: on
+    directional terrain a few % below the first layout's), to compare the few candidates left."""
+    return an.estimate(trial, exhaustive=True)
 
 
 class _OutOfReach(InvalidInputError):
@@ -242,17 +249,17 @@ def _for_rmse(an: Analysis, params: Params) -> Choice | None:
         ranked = _ranked_for_rmse(an, params, target / ratio)
         if ranked and (first is None or ranked[0].cutoff != first.cutoff):
             other, _ = _verified_rmse(an, ranked[0].cutoff, target, ratio)
-            if other is not None and (first is None or an.estimate(other) < an.estimate(first)):
+            if other is not None and (first is None or _coded(an, other) < _coded(an, first)):
                 first = other
     if first is None:
         return None
     best = Choice(an, first, b"")
-    size = an.estimate(first)
+    size = _coded(an, first)
     if an.refillable:
         refilled = _refilled_for_rmse(an, first, target)
         if refilled is not None:
             other, trial = refilled
-            other_size = other.estimate(trial)
+            other_size = _coded(other, trial)
             if other_size < size:
                 best, size = Choice(other, trial, b""), other_size
     corrected = _corrected_for_rmse(an, params, first, size)
@@ -272,7 +279,7 @@ def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: flo
 
     def attempt(on: Analysis, cutoff: float, step: float, *, predicted: bool = False) -> float | None:
         nonlocal best
-        coefs = on.estimate_stream(on.quantized(cutoff, step))
+        coefs = on.estimate_stream(on.quantized(cutoff, step), exhaustive=True)
         if coefs >= min(to_beat, best[0] if best else math.inf):
             return None  # not smaller even with an empty residual layer: no need to rebuild it
         trial = on.trial(cutoff, step)
@@ -280,7 +287,10 @@ def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: flo
         if bound is None:
             return None
         q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
-        size = coefs + estimated_size(q, coder, on.kept_cells, predicted=predicted)
+        size = coefs + estimated_size(q, coder, on.kept_cells, predicted=False)
+        if predicted:
+            size = min(size, coefs + _predicted_size(q, coder, on.kept_cells,
+                                                     min(to_beat, best[0] if best else math.inf) - coefs))
         if best is None or size < best[0]:
             best = (size, on, trial, bound, q)
         return size
@@ -300,9 +310,9 @@ def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: flo
         for factor in others:
             attempt(an, cutoff, factor * target)
         size, on, trial, bound, q = best
-        layout = _predicted_size(q, coder, on.kept_cells)
-        if layout < size - on.estimate(trial):
-            best = (on.estimate(trial) + layout, on, trial, bound, q)
+        layout = _predicted_size(q, coder, on.kept_cells, size - _coded(on, trial))
+        if layout < size - _coded(on, trial):
+            best = (_coded(on, trial) + layout, on, trial, bound, q)
     free = _spectrum_free(an, params)
     if free is not None:
         attempt(free[0], free[1].cutoff, free[1].step, predicted=True)
@@ -451,7 +461,7 @@ class _Layer:
 def _layer(an: Analysis, cutoff: float, step: float, bound: float, coder: str) -> _Layer:
     trial = an.trial(cutoff, step)
     q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
-    return _Layer(an, trial, an.estimate(trial), estimated_size(q, coder, an.kept_cells, predicted=False), q)
+    return _Layer(an, trial, _coded(an, trial), estimated_size(q, coder, an.kept_cells, predicted=False), q)
 
 
 class _ResidualCurve:
@@ -520,14 +530,16 @@ def _for_max_error(an: Analysis, params: Params) -> Choice | None:
     choice = Choice(best.analysis, best.trial, b"", best.q, b"", bound)
     size = best.size
     # The predicted layout, the slowest to code, is sized on the winner and on the map with no spectrum.
-    predicted = _predicted_size(best.q, coder, best.analysis.kept_cells)
+    predicted = _predicted_size(best.q, coder, best.analysis.kept_cells, best.resd)
     if predicted < best.resd:
         size = best.coefs + predicted
     free = _spectrum_free(an, params)
     if free is not None:
         on, trial = free
         q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
-        free_size = on.estimate(trial) + estimated_size(q, coder, on.kept_cells)
+        coefs = _coded(on, trial)
+        free_size = coefs + min(estimated_size(q, coder, on.kept_cells, predicted=False),
+                                _predicted_size(q, coder, on.kept_cells, size - coefs))
         if free_size < size:
             choice = Choice(on, trial, b"", q, b"", bound)
     choice.coefs = choice.analysis.encode(choice.trial)
@@ -562,7 +574,19 @@ def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer], best: _Laye
     return best
 
 
-def _predicted_size(q: np.ndarray, coder: str, kept: np.ndarray) -> float:
-    from .residual import _estimated_predicted
+#: The predicted layout codes real maps in at least about this share of the median predictor's
+#: bytes (:func:`dftpcc.residual.median_predicted_size`; 0.56 the least measured): where that share
+#: of them cannot beat the file to beat, the layout's fit is not worth its time.
+PREDICTED_SHARE = 0.45
 
-    return _estimated_predicted(q, kept) if coder == "ans" and q.size else math.inf
+
+def _predicted_size(q: np.ndarray, coder: str, kept: np.ndarray, to_beat: float = math.inf) -> float:
+    """Estimated bytes of ``q`` in the predicted layout; inf where it does not apply or cannot
+    come below ``to_beat`` bytes."""
+    from .residual import _estimated_predicted, median_predicted_size
+
+    if coder != "ans" or not q.size:
+        return math.inf
+    if math.isfinite(to_beat) and PREDICTED_SHARE * median_predicted_size(q, kept) >= to_beat:
+        return math.inf
+    return _estimated_predicted(q, kept)
