@@ -273,11 +273,13 @@ def table_row(row: dict[str, Any]) -> list[Any]:
     if "unreached" in row:
         return head + ["unreached: " + row["unreached"][:60]] + [""] * 8
     s, m = row["search"], row["model"]
+    searched = f"{s['encodes']}/{s['trials']}" if s.get("encodes") is not None else "—"
+    held = m["held"] if s.get("held") is None else s["held"] and m["held"]
     return head + [f"{s['seconds']:.3f}", f"{m['seconds']:.3f}", f"{s['seconds'] / row['fixed']:.1f}",
                    f"{m['seconds'] / row['fixed']:.2f}", s["bytes"], m["bytes"],
                    f"{m['bytes'] / s['bytes'] - 1:+.2%}",
-                   f"{s['encodes']}/{s['trials']}", f"{m['encodes']}/{m['trials']}" + (" fallback" if m["fallbacks"] else ""),
-                   verdict(s["held"] and m["held"])]
+                   searched, f"{m['encodes']}/{m['trials']}" + (" fallback" if m["fallbacks"] else ""),
+                   verdict(held)]
 
 
 HEADER = ["map", "tiles", "target", "fixed s", "search s", "model s", "search / fixed", "model / fixed",
@@ -293,7 +295,7 @@ def summary(rows: list[dict[str, Any]]) -> str:
     size = [r["model"]["bytes"] / r["search"]["bytes"] - 1 for r in done]
     fall = sum(r["model"]["fallbacks"] for r in done)
     choices = sum(r["model"]["choices"] for r in done)
-    held = all(r["model"]["held"] and r["search"]["held"] for r in done)
+    held = all(r["model"]["held"] and r["search"].get("held") is not False for r in done)
     worst = max(done, key=lambda r: r["model"]["seconds"] / r["fixed"])
     big = max(done, key=lambda r: r["model"]["bytes"] / r["search"]["bytes"])
     return (f"{len(done)} cases ({len(rows) - len(done)} unreached). Model / fixed encode: median "
