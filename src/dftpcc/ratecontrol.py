@@ -7,6 +7,11 @@ and :func:`for_bpp` (the most accurate file within a size). Each tries the
 cutoffs of :func:`cutoffs` and searches the step at each; :func:`choose` runs
 the one the parameters ask for, then, with ``fill='consistent'``, tries the
 chosen cutoff again with the empty cells refilled and keeps the better file.
+
+That search codes and rebuilds every candidate. :func:`choose` asks the model first
+(:mod:`dftpcc.ratemodel`: the same candidates ranked by Parseval and by the coder's own
+probabilities, only the kept one coded) and runs :func:`search` where the model misses;
+:func:`method` picks either for a block of code (to compare them), :func:`tally` counts.
 """
 
 from __future__ import annotations
