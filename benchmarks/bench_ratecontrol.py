@@ -240,7 +240,7 @@ def compare_map(case: Case, data: Path, repeats: int, search_repeats: int, tiles
                         if how == "search" and cached is not None:
                             row["search"] = cached.get((case.stem, tile, name, round(value, 9)))
                             if row["search"] is None:
-                                raise KeyError(f"no search row for {case.stem} {tile} {name} {value}")
+                                raise dftpcc.InvalidInputError("no search row in the earlier run")
                             continue
                         got = run_method(dem, params, n, how, reps)
                         got["held"] = check(got.pop("blob"), dem, name, value, n)
