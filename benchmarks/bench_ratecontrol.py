@@ -1,6 +1,15 @@
-"""Rate control: what each target gets, how long it takes, and what the consistent fill saves.
+"""Rate control: the model against the search, and what the consistent fill saves.
 
-For each map and target (``--target-rmse``, ``--target-max-error``,
+By default, for every DEM and cloud of the data folder, untiled and in tiles of
+:data:`TILE` cells (where that tiles the map), and each target level below:
+the time of a fixed-parameter encode of the same gridded map, of the target
+by today's search (``dftpcc.ratecontrol.method('search')``) and by the model
+(the default), their ratios, both files' sizes, how many coefficient streams
+and residual layers each entropy-coded and how many maps it rebuilt, and
+whether the model fell back to the search. Every file is decoded and checked
+against its target. On one core: run it under ``taskset -c 1``.
+
+With ``--fills``, the older table: for each map and target (``--target-rmse``, ``--target-max-error``,
 ``--target-bpp``), compresses with the compact profile twice, once with the
 push-pull fill alone (``fill='smooth'``) and once with the default
 ``fill='consistent'`` (the chosen cutoff tried again with the empty cells
@@ -8,7 +17,8 @@ refilled from the coded map). Reports the cutoff and step chosen, the file
 size, the error the file states, whether the promise holds, and the median
 wall time; every figure is measured in this run.
 
-    .venv/bin/python -m benchmarks.bench_ratecontrol [--quick] [--files NAME ...] [--docs | --no-docs]
+    taskset -c 1 .venv/bin/python -m benchmarks.bench_ratecontrol [--quick] [--files NAME ...] [--fills]
+        [--json PATH] [--docs | --no-docs]
 
 Targets are set from each map's gridding floor (the RMS distance of its
 points to their cell's mean): DEM RMSE 0.75x and 2x the floor (points at
@@ -19,13 +29,24 @@ floor; there the unit is 0.1 % of the RMS relief.
 
 from __future__ import annotations
 
+import json
+import math
+import statistics
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any, Iterator
 
 import numpy as np
 
 import dftpcc
+from dftpcc import ratecontrol, ratemodel
+from dftpcc.analysis import Analysis
+from dftpcc.encoder import encode_dem
+from dftpcc.params import Params
+from dftpcc.tiles import TiledAnalysis
 
+from benchmarks.bench_tiles import all_maps, with_auto
 from benchmarks.common import (GROUND, Case, finish_run, load, load_average, library_label,
                                markdown_table, median_time, pick_cases, run_arguments, shared_grid, verdict,
                                warnings_as_notes)
@@ -39,6 +60,13 @@ CASES = (
 FILLS = ("smooth", "consistent")
 REPEATS = 3
 QUICK_REPEATS = 1
+#: Tile side of the tiled runs (cells); a map no side of which exceeds it is coded untiled only.
+TILE = 256
+#: Issue 43's goals: a target at most this many times a fixed encode (median), never more than ...
+GOAL_MEDIAN_RATIO = 3.0
+GOAL_MAX_RATIO = 10.0
+#: ... and a file within this fraction of the search's size.
+GOAL_SIZE = 0.02
 
 
 def unit_of(loaded, dem) -> tuple[float, str]:
@@ -108,10 +136,221 @@ def with_ratios(rows: list[list]) -> list[list]:
     return rows
 
 
+# --- the model against the search -----------------------------------------------------------------
+
+class Counts:
+    """Entropy codings (coefficient streams and residual layers) and rebuilt maps, counted by
+    wrapping the methods that do them; a call inside another counted one (a tile's trial inside
+    the map's) is not counted again."""
+
+    def __init__(self) -> None:
+        self.encodes = self.trials = 0
+        self._depth = 0
+
+    def wrap(self, owner: Any, name: str, kind: str) -> tuple[Any, str, Any]:
+        original = getattr(owner, name)
+
+        def counted(*args: Any, **kwargs: Any) -> Any:
+            if not self._depth:
+                setattr(self, kind, getattr(self, kind) + 1)
+            self._depth += 1
+            try:
+                return original(*args, **kwargs)
+            finally:
+                self._depth -= 1
+
+        setattr(owner, name, counted)
+        return owner, name, original
+
+
+@contextmanager
+def counting() -> Iterator[Counts]:
+    counts = Counts()
+    saved = [counts.wrap(Analysis, "encode_stream", "encodes"), counts.wrap(TiledAnalysis, "encode_stream", "encodes"),
+             counts.wrap(ratecontrol, "encode_residual", "encodes"),
+             counts.wrap(ratecontrol, "predicted_residual", "encodes"),
+             counts.wrap(ratemodel, "encode_residual", "encodes"),
+             counts.wrap(Analysis, "trial", "trials"), counts.wrap(TiledAnalysis, "trial", "trials")]
+    try:
+        yield counts
+    finally:
+        for owner, name, original in reversed(saved):
+            setattr(owner, name, original)
+
+
+def timed(fn: Any, repeats: int) -> tuple[float, Any]:
+    """Median wall time (s) of ``repeats`` calls and the last result."""
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def check(blob: bytes, dem: Any, name: str, value: float, n: int) -> bool:
+    """Whether the decoded file meets its target on the gridded map's occupied cells."""
+    if name == "target_bpp":
+        return 8 * len(blob) <= value * n
+    decoded = dftpcc.open(blob).read_dem()
+    err = (decoded.heights - dem.heights)[dem.mask]
+    if name == "target_rmse":
+        return float(np.sqrt(np.mean(err * err))) <= value
+    return float(np.abs(err).max()) <= value
+
+
+def run_method(dem: Any, params: Params, n: int, how: str, repeats: int) -> dict[str, Any]:
+    """One target by one rate-control method: time, bytes, counts, fallbacks."""
+    with ratecontrol.method(how):
+        seconds, _ = timed(lambda: encode_dem(dem, params, point_count=n), repeats)
+        with counting() as counts, ratecontrol.tally() as tally:
+            blob = encode_dem(dem, params, point_count=n)
+    return dict(seconds=seconds, bytes=len(blob), encodes=counts.encodes, trials=counts.trials,
+                choices=tally.choices, fallbacks=tally.fallbacks, blob=blob)
+
+
+def compare_map(case: Case, data: Path, repeats: int, search_repeats: int, tiles: tuple[int, ...],
+                cached: dict | None = None) -> list[dict[str, Any]]:
+    """Every target level of ``case`` at each of ``tiles`` (0: untiled; a side no side of the map
+    exceeds is left out), by the search (or its row in ``cached``) and by the model."""
+    notes: list[str] = []
+    out = []
+    with warnings_as_notes(notes):
+        loaded = load(case, data)
+        _, dem = shared_grid(loaded.points, loaded.resolution)
+        unit, _ = unit_of(loaded, dem)
+        n = loaded.points.shape[0]
+        for tile in (t for t in tiles if not t or max(dem.grid.shape) > t):
+            base = Params(tile_size=tile)
+            fixed, _ = timed(lambda: encode_dem(dem, base, point_count=n), repeats)
+            rmse_targets = [0.75 * unit, 2.0 * unit]
+            targets: list[tuple[str, float]] = [("target_rmse", t) for t in rmse_targets]
+            targets.append(("target_max_error", 4.0 * unit))
+            sizes = {}
+            for i in range(4):
+                if i == 3:  # between the two RMSE targets' files (geometric mean), as the --fills table
+                    targets.append(("target_bpp", 8 * math.sqrt(sizes[0] * sizes[1]) / n))
+                name, value = targets[i]
+                params = base.replace(**{name: value})
+                row: dict[str, Any] = dict(map=case.stem, tile=tile, cells=int(dem.grid.size), target=name,
+                                           value=value, unit=unit, fixed=fixed)
+                try:
+                    # The model first: the search would warm the coder's table caches for it.
+                    for how, reps in (("model", repeats), ("search", search_repeats)):
+                        if how == "search" and cached is not None:
+                            row["search"] = cached.get((case.stem, tile, name, round(value, 9)))
+                            if row["search"] is None:
+                                raise dftpcc.InvalidInputError("no search row in the earlier run")
+                            continue
+                        got = run_method(dem, params, n, how, reps)
+                        got["held"] = check(got.pop("blob"), dem, name, value, n)
+                        row[how] = got
+                except dftpcc.InvalidInputError as exc:
+                    row["unreached"] = str(exc)
+                sizes[i] = row["search"]["bytes"] if row.get("search") else 0
+                out.append(row)
+                print(line_of(row), flush=True)
+    for note in notes + loaded.notes:
+        print(f"  note ({case.stem}): {note}")
+    return out
+
+
+def label_of(name: str, value: float, unit: float) -> str:
+    if name == "target_bpp":
+        return f"{value:.3f} bits/pt"
+    short = {"target_rmse": "RMSE", "target_max_error": "max"}[name]
+    return f"{short} {value / unit:g}u"
+
+
+def line_of(row: dict[str, Any]) -> str:
+    cells = table_row(row)
+    return " | ".join(str(c) for c in cells)
+
+
+def table_row(row: dict[str, Any]) -> list[Any]:
+    head = [row["map"], row["tile"] or "whole", label_of(row["target"], row["value"], row["unit"]),
+            f"{row['fixed']:.3f}"]
+    if "unreached" in row:
+        return head + ["unreached: " + row["unreached"][:60]] + [""] * 8
+    s, m = row["search"], row["model"]
+    searched = f"{s['encodes']}/{s['trials']}" if s.get("encodes") is not None else "—"
+    held = m["held"] if s.get("held") is None else s["held"] and m["held"]
+    return head + [f"{s['seconds']:.3f}", f"{m['seconds']:.3f}", f"{s['seconds'] / row['fixed']:.1f}",
+                   f"{m['seconds'] / row['fixed']:.2f}", s["bytes"], m["bytes"],
+                   f"{m['bytes'] / s['bytes'] - 1:+.2%}",
+                   searched, f"{m['encodes']}/{m['trials']}" + (" fallback" if m["fallbacks"] else ""),
+                   verdict(held)]
+
+
+HEADER = ["map", "tiles", "target", "fixed s", "search s", "model s", "search / fixed", "model / fixed",
+          "search bytes", "model bytes", "model vs search", "search enc/rebuilt", "model enc/rebuilt", "held"]
+
+
+def summary(rows: list[dict[str, Any]]) -> str:
+    done = [r for r in rows if "unreached" not in r]
+    if not done:
+        return "No target was reached."
+    ratio = [r["model"]["seconds"] / r["fixed"] for r in done]
+    before = [r["search"]["seconds"] / r["fixed"] for r in done]
+    size = [r["model"]["bytes"] / r["search"]["bytes"] - 1 for r in done]
+    fall = sum(r["model"]["fallbacks"] for r in done)
+    choices = sum(r["model"]["choices"] for r in done)
+    held = all(r["model"]["held"] and r["search"].get("held") is not False for r in done)
+    worst = max(done, key=lambda r: r["model"]["seconds"] / r["fixed"])
+    big = max(done, key=lambda r: r["model"]["bytes"] / r["search"]["bytes"])
+    return (f"{len(done)} cases ({len(rows) - len(done)} unreached). Model / fixed encode: median "
+            f"{statistics.median(ratio):.2f}x (goal {GOAL_MEDIAN_RATIO:g}x), max {max(ratio):.2f}x (goal "
+            f"{GOAL_MAX_RATIO:g}x; {worst['map']} {worst['tile'] or 'whole'} {worst['target']}); search / fixed: "
+            f"median {statistics.median(before):.1f}x, max {max(before):.1f}x. Model size vs search: median "
+            f"{statistics.median(size):+.2%}, min {min(size):+.2%}, max {max(size):+.2%} (goal within "
+            f"{GOAL_SIZE:.0%}; {big['map']} {big['tile'] or 'whole'} {big['target']}); over {GOAL_SIZE:.0%} larger: "
+            f"{sum(v > GOAL_SIZE for v in size)}. Fallback to the search: {fall} of {choices} rate-control "
+            f"choices. Every file meets its target (decoded and checked): {verdict(held)}.")
+
+
+def model_main(args: Any, repeats: int) -> int:
+    t0 = time.perf_counter()
+    print(f"Measuring {library_label()}; {load_average()}.", flush=True)
+    cases = [with_auto(c, args.data) for c in all_maps(args.data)]
+    if args.files:
+        cases = pick_cases(cases, args.files)
+    search_repeats = 1 if args.quick else args.search_repeats
+    cached = None
+    if args.search_from:  # the search's rows of an earlier run (it takes an hour on every map, tiled)
+        cached = {(r["map"], r["tile"], r["target"], round(r["value"], 9)): r["search"]
+                  for r in json.loads(Path(args.search_from).read_text()) if r.get("search")}
+    tiles = tuple(args.tiles)
+    rows: list[dict[str, Any]] = []
+    print(" | ".join(HEADER), flush=True)
+    for case in cases:
+        rows += compare_map(case, args.data, repeats, search_repeats, tiles, cached)
+    where = ", ".join("untiled" if t == 0 else f"in {t}-cell tiles" for t in tiles)
+    source = (f"the search's figures are those of an earlier run ({args.search_from})" if cached else
+              f"the search's of {search_repeats}")
+    intro = (f"Rate control by the model against today's search (issue 43), encode_dem of each gridded map, default "
+             f"profile, {where}; times are medians of {repeats} runs ({source}), one core. Targets in units u of the gridding floor (0.1 % of the RMS relief for a "
+             f"GeoTIFF): RMSE 0.75u and 2u, a maximum error of 4u, and a size between the two RMSE files. "
+             f"enc/rebuilt: coefficient streams and residual layers entropy-coded / maps rebuilt by the choice.")
+    parts = [intro, summary(rows), markdown_table(HEADER, [table_row(r) for r in rows])]
+    print("\n" + parts[1], flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    finish_run(parts, args, "bench_ratecontrol_model", "Rate control: the model against the search (issue 43)",
+               f"Run time {time.perf_counter() - t0:.0f} s; {load_average()} at the end.")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = run_arguments(__doc__.split("\n\n")[0], "one run per measurement instead of a median of 3")
+    ap.add_argument("--fills", action="store_true", help="the consistent against the smooth fill, four maps")
+    ap.add_argument("--json", metavar="PATH", help="also write the model-against-search rows here")
+    ap.add_argument("--search-repeats", type=int, default=1, help="runs of today's (slow) search per target")
+    ap.add_argument("--tiles", type=int, nargs="+", default=[0, TILE], help="tile sides (0: untiled)")
+    ap.add_argument("--search-from", metavar="JSON", help="take the search's rows from an earlier --json output")
     args = ap.parse_args(argv)
     repeats = QUICK_REPEATS if args.quick else REPEATS
+    if not args.fills:
+        return model_main(args, repeats)
     t0 = time.perf_counter()
     print(f"Measuring {library_label()}; {load_average()}.", flush=True)
     parts = [f"Compact profile, rate control from parsed points to bytes; times are medians of {repeats} runs. "

@@ -325,3 +325,58 @@ def test_open_by_mode_reads_appends_and_writes(tmp_path, scans):
                             ((m, "r"), {"resolution": 1.0}, "settings")):
         with pytest.raises(InvalidInputError, match=words):
             dftpcc.open(*args, **kw)
+
+
+def _largest_error(data: bytes, pts: np.ndarray) -> float:
+    """Largest distance (metres) of the decoded map from the cells' mean heights of ``pts``."""
+    with dftpcc.open(data) as cmap:
+        dem = cmap.read_dem()
+    g = dem.grid
+    rows, cols = g.cell_of(pts[:, :2])
+    flat = rows * g.cols + cols
+    count = np.bincount(flat, minlength=g.size)
+    mean = np.bincount(flat, weights=pts[:, 2] - g.z0, minlength=g.size)[count > 0] / count[count > 0]
+    return float(np.abs(dem.heights.ravel()[count > 0] - mean).max())
+
+
+def test_a_target_per_update_keeps_every_cell_within_it_and_recodes_only_the_changed_tiles(scans):
+    builder = new_builder()
+    for points, pose in scans[:6]:
+        builder.add(points, pose)
+    free = builder.encode()
+    bound = 0.002
+    assert _largest_error(free, in_map_frame(scans[:6])) > bound  # the step alone leaves more
+    held = set(builder.tiles)
+    before = builder.encode(target_max_error=bound)  # a new bound: every tile coded again
+    assert _largest_error(before, in_map_frame(scans[:6])) <= bound + HEIGHT_QUANTUM_M
+    assert all(new != old for new, old in zip(tile_payloads(before).values(), tile_payloads(free).values()))
+    points, pose = scans[7]
+    builder.add(points, pose)
+    changed = set(builder.changed_tiles())
+    after = builder.encode(target_max_error=bound)  # the same bound: only the tiles the scan changed
+    assert _largest_error(after, in_map_frame(scans[:6] + scans[7:8])) <= bound + HEIGHT_QUANTUM_M
+    old, new = tile_payloads(before), tile_payloads(after)
+    size = TILE * RES
+    ox, oy, _ = builder.origin
+    kept = {(round(ox + j * size, 6), round(oy + i * size, 6)) for i, j in held - changed}
+    assert kept and all(new[c] == old[c] for c in kept)
+    with dftpcc.open(builder.encode()) as cmap:  # None keeps the map's bound
+        assert cmap.params.target_max_error == bound and cmap.params.step == STEP
+    with dftpcc.open(builder.encode(target_max_error=0)) as cmap:  # 0: none, every tile again
+        assert cmap.params.target_max_error == 0 and cmap.info()["stats"]["residual_bytes"] == 0
+    with pytest.raises(InvalidInputError, match="target_max_error"):
+        builder.encode(target_max_error=-1.0)
+
+
+def test_a_resumed_map_keeps_the_bound_its_tiles_were_coded_with(tmp_path, scans):
+    builder = new_builder()
+    for points, pose in scans[:5]:
+        builder.add(points, pose)
+    path = tmp_path / "grown.dftpc"
+    builder.save(path, data=builder.encode(target_max_error=0.003))
+    resumed = MapBuilder.from_file(path)
+    points, pose = scans[5]
+    data = resumed.add(points, pose).encode()
+    with dftpcc.open(data) as cmap:
+        assert cmap.params.target_max_error == 0.003
+    assert _largest_error(data, in_map_frame(scans[:6])) <= 0.003 + HEIGHT_QUANTUM_M

@@ -162,6 +162,15 @@ def test_footprint_mask_costs_less_and_keeps_the_error(field_ground):
     assert dem.mask.ravel()[idx].all()
 
 
+def _no_residual_for_rmse(monkeypatch):
+    """Rate control without the residual-layer files for an RMSE target: the search's and the
+    model's (dftpcc.ratemodel) alternatives both left out."""
+    from dftpcc import ratecontrol, ratemodel
+
+    monkeypatch.setattr(ratecontrol, "corrected_for_rmse", lambda an, params, first: None)
+    monkeypatch.setattr(ratemodel, "_corrected_for_rmse", lambda *args: None)
+
+
 def test_consistent_fill_makes_rate_controlled_files_smaller(field_ground, monkeypatch):
     # A third of the field's cells are empty (buildings and trees left out of
     # the ground class): refilling them from the coded map needs fewer bits
@@ -170,7 +179,7 @@ def test_consistent_fill_makes_rate_controlled_files_smaller(field_ground, monke
     # residual layer is smaller still, and its base is not refilled.
     from dftpcc import ratecontrol
 
-    monkeypatch.setattr(ratecontrol, "corrected_for_rmse", lambda an, params, first: None)
+    _no_residual_for_rmse(monkeypatch)
     sizes = {}
     for fill in ("smooth", "consistent"):
         data = dftpcc.compress(field_ground, resolution=0.5, target_rmse=0.02, fill=fill)
@@ -214,9 +223,10 @@ def test_a_max_error_search_goes_coarser_while_the_file_shrinks(monkeypatch):
     dem, _, encode = _load("dems/earth_davos_10m.tif", None, None)
     bound = 0.01
     monkeypatch.setattr(residual, "_encode_predicted", lambda q, kept: None)  # the search alone
-    found = encode(target_max_error=bound)
-    monkeypatch.setattr(ratecontrol, "MAX_ERROR_STEP_FACTOR_LIMIT", ratecontrol.MAX_ERROR_STEP_FACTORS[-1])
-    ladder = encode(target_max_error=bound)
+    with ratecontrol.method("search"):  # the search's own ladder (the model's steps go as far)
+        found = encode(target_max_error=bound)
+        monkeypatch.setattr(ratecontrol, "MAX_ERROR_STEP_FACTOR_LIMIT", ratecontrol.MAX_ERROR_STEP_FACTORS[-1])
+        ladder = encode(target_max_error=bound)
     with dftpcc.open(found) as cmap, dftpcc.open(ladder) as fixed:
         assert cmap.params.step > ratecontrol.MAX_ERROR_STEP_FACTORS[-1] * bound
         assert fixed.params.step <= ratecontrol.MAX_ERROR_STEP_FACTORS[-1] * bound
@@ -284,7 +294,7 @@ def test_a_scattered_map_at_an_rmse_target_is_predicted_rather_than_low_passed(m
     assert cmap.info().get("residual_layout") == "predicted" and cmap.params.target_max_error <= 2 * 0.0275
     cmap = decoded_within(loose, 0.0933)
     assert cmap.params.cutoff < max(ratecontrol.CUTOFF_CANDIDATES) and cmap.params.target_max_error > 2 * 0.0933
-    monkeypatch.setattr(ratecontrol, "corrected_for_rmse", lambda an, params, first: None)
+    _no_residual_for_rmse(monkeypatch)
     assert len(found) < 0.8 * len(encode(target_rmse=0.0275))
     assert len(loose) < 0.93 * len(encode(target_rmse=0.0933))
 
@@ -391,7 +401,7 @@ def test_a_few_far_off_cells_are_corrected_rather_than_low_passed(monkeypatch, m
         err = (cmap.read_dem().heights - dem.heights)[dem.mask]
     assert np.abs(err).max() <= bound and np.sqrt(np.mean(err ** 2)) <= target
     np.testing.assert_allclose(spec_decoder.decode(data), dftpcc.decompress(data), rtol=0, atol=1e-9)
-    monkeypatch.setattr(ratecontrol, "corrected_for_rmse", lambda an, params, first: None)
+    _no_residual_for_rmse(monkeypatch)
     low_passed = dftpcc.compress(pts, resolution=1.0, target_rmse=target, mask=mask)
     assert len(data) < 0.9 * len(low_passed), (len(data), len(low_passed))
 

@@ -129,6 +129,7 @@ class Analysis:
         coefficients at the same step than the smooth interpolation.
         """
         out = copy.copy(self)
+        out._tail_energy = None
         data = self.dem.heights - self.trend
         for round_ in range(REFILL_ROUNDS):
             if round_:
@@ -218,6 +219,21 @@ class Analysis:
             out.errors = err
         return out
 
+    def energy_at(self, cutoff: float) -> tuple[np.ndarray, float]:
+        """The values kept at ``cutoff`` and the energy (squared metres, summed over the
+        transform) of every value the low-pass drops, sorted or not: by Parseval, what the
+        cutoff alone costs the whole grid's squared error (rate control's model)."""
+        kept = self.reals(self.count(cutoff))
+        if self.outside_energy is None:
+            raise ValueError("energy_at needs an Analysis that measures its outside energy")
+        tail = getattr(self, "_tail_energy", None)
+        if tail is None:  # energy from each sorted value on: every cutoff's in one pass
+            values = self.reals(self.coefs.size)
+            tail = np.zeros(values.size + 1)
+            tail[:-1] = np.cumsum((values * values)[::-1])[::-1]
+            self._tail_energy = tail
+        return kept, float(tail[kept.size]) + self.outside_energy
+
     def proxy_rmse(self, cutoff: float, step: float) -> float:
         """Whole-grid RMSE predicted in the coefficient domain, without an inverse transform.
 
@@ -236,6 +252,16 @@ class Analysis:
     def encode(self, trial: Trial, *, exhaustive: bool = True, progressive: bool = True) -> bytes:
         """The COEF section of ``trial`` (``progressive=False``: one chunk, a tile's)."""
         return self.encode_stream(trial.stream, exhaustive=exhaustive, progressive=progressive)
+
+    def estimate(self, trial: Trial, *, exhaustive: bool = False, progressive: bool = True) -> float:
+        """Bytes of :meth:`encode`'s COEF section of ``trial``, estimated without coding it
+        (:func:`~dftpcc.coding.estimated_size`)."""
+        return self.estimate_stream(trial.stream, exhaustive=exhaustive, progressive=progressive)
+
+    def estimate_stream(self, stream: np.ndarray, *, exhaustive: bool = False, progressive: bool = True) -> float:
+        n = stream.size
+        return coding.estimated_size(stream, radius=self.radius[:n], angle=self.angle[:n], coder=self.params.coder,
+                                     exhaustive=exhaustive, progressive=progressive)
 
     def encode_stream(self, stream: np.ndarray, *, exhaustive: bool = True, progressive: bool = True) -> bytes:
         n = stream.size

@@ -42,6 +42,7 @@ __all__ = [
     "dequantize",
     "choose_step",
     "encode_coefficients",
+    "estimated_size",
     "decode_coefficients",
 ]
 
@@ -507,7 +508,14 @@ def _estimated_bits(q: np.ndarray, b: _Bands, magnitudes: np.ndarray | None = No
     # on the scale code alone, so they come from a table of the 255 codes.
     at_zero, per_step = _log_geometric()
     log_p = at_zero[codes] + a * per_step[codes]
-    return 8.0 * len(_side_info(b.codes)) - float(np.maximum(log_p, -TABLE_BITS).sum())
+    return 8.0 * _side_info_size(b.codes.tobytes()) - float(np.maximum(log_p, -TABLE_BITS).sum())
+
+
+@functools.lru_cache(maxsize=4096)
+def _side_info_size(raw: bytes) -> int:
+    """Bytes of :func:`_side_info` of the band scale codes ``raw``: estimates ask for the same few
+    codes again and again (rate control sizes many steps of one stream)."""
+    return len(_side_info(np.frombuffer(raw, dtype=np.uint8)))
 
 
 @functools.lru_cache(maxsize=1)
@@ -648,6 +656,69 @@ def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
     return _chunks([(stop - start, _code_chunk(values[start:stop], None if radius is None else radius[start:stop],
                                                None if angle is None else angle[start:stop], coder, exhaustive,
                                                cctx)) for start, stop in bounds])
+
+
+#: :func:`estimated_size` codes a zstd chunk of up to this many values at :data:`ZSTD_LEVEL`, a
+#: longer one (a step so fine that its integers pass the ANS coder's range: a candidate that
+#: loses anyway) at this faster level, a few % larger.
+ESTIMATE_ZSTD_VALUES = 4096
+ESTIMATE_ZSTD_LEVEL = 3
+#: Bytes an ANS chunk's words may hold beyond its symbols' information: the coder's final state.
+ANS_FLUSH_BYTES = 4
+
+
+def estimated_size(values: np.ndarray, *, radius: np.ndarray | None = None, angle: np.ndarray | None = None,
+                   coder: str = "ans", exhaustive: bool = True, progressive: bool = True) -> float:
+    """Bytes :func:`encode_coefficients` would code ``values`` in, without coding them.
+
+    An ANS chunk is sized from its model's probabilities (:func:`_estimated_bits`; with
+    ``exhaustive``, the smallest band layout's, else the first's: within a few bytes of the coded
+    chunk, 0.1 % on real maps), plus its header, band scales and final state;
+    a chunk the ANS coder does not take (zstd, complex64) is coded, as the encoder would: those are
+    a zstd file's or a first chunk's few large values. Rate control ranks its candidates by this
+    size and codes only the one it keeps (:mod:`dftpcc.ratecontrol`).
+    """
+    if progressive or coder != "ans" or radius is None or np.iscomplexobj(values):
+        bounds = _chunk_bounds(values.size) if progressive else [(0, values.size)] if values.size else []
+    else:
+        bounds = _free_bounds(values, radius, angle, False)
+    total = 4.0 + _CHUNK.size * len(bounds)
+    for start, stop in bounds:
+        part = values[start:stop]
+        if np.iscomplexobj(part):
+            total += 8.0 * part.size
+            continue
+        bits = None
+        if coder == "ans" and radius is not None:
+            bits = _estimated_ans_bits(part, radius[start:stop], angle[start:stop], exhaustive)
+        if bits is None:  # zstd: a first chunk's few values at the encoder's level, a long one faster
+            level = ZSTD_LEVEL if part.size <= ESTIMATE_ZSTD_VALUES else ESTIMATE_ZSTD_LEVEL
+            total += len(zstandard.ZstdCompressor(level=level).compress(_pack_ints(part)))
+        else:
+            total += _ANS_HEAD.size + ANS_FLUSH_BYTES + bits / 8.0
+    return total
+
+
+def _estimated_ans_bits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: bool) -> float | None:
+    """:func:`_estimated_bits` of the chunk's smallest band layout within the table budget (as
+    :func:`_encode_ans`), or None where the chunk falls back to zstd."""
+    max_abs = int(np.abs(q).max()) if q.size else 0
+    if max_abs > MAX_ANS_SYMBOL:
+        return None
+    magnitudes = np.abs(q).astype(np.float64)
+    layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
+    rings: dict[float, np.ndarray] = {}
+    best = None
+    for k in layouts:
+        width = BAND_LAYOUTS[k][0]
+        if width not in rings:
+            rings[width] = (radius / width).astype(np.int64)
+        b = _Bands.of(q, radius, angle, k, magnitudes=magnitudes, rings=rings[width])
+        if b.table_work(max_abs) > table_budget(q.size):
+            continue
+        bits = _estimated_bits(q, b, magnitudes)
+        best = bits if best is None else min(best, bits)
+    return best
 
 
 def _free_bounds(values: np.ndarray, radius: np.ndarray, angle: np.ndarray | None,

@@ -149,8 +149,9 @@ class MapBuilder:
     cutoff : float
         f_c in [0, 1), fixed for every tile and update.
     step : float
-        Quantizer step, metres, fixed (no rate control: a target would choose
-        another step as the map grows, and every tile would be coded again).
+        Quantizer step, metres, fixed (no rate control of the step: a target would choose
+        another step as the map grows, and every tile would be coded again). A maximum
+        error is kept by residual layers instead (:meth:`encode`).
     crs : dict, optional
         The map frame's CRS (``{"wkt": ..., "las_vlrs": [...]}``).
     origin : (x, y, z), optional
@@ -372,16 +373,32 @@ class MapBuilder:
         spread = sumsq - mean_sum * mean_sum / total
         self._gridding[tile] = float(np.maximum(spread, 0.0).sum())
 
-    def encode(self) -> bytes:
+    def encode(self, *, target_max_error: float | None = None) -> bytes:
         """The map as a tiled (1.1) ``.dftpc`` file, re-coding only :meth:`changed_tiles`.
+
+        Parameters
+        ----------
+        target_max_error : float, optional
+            Largest error (metres) of any occupied cell, from this update on: every tile coded
+            gets a residual layer that keeps its cells within it (0: none). The file states one
+            bound for all its tiles, so a bound other than the map's last one codes every tile
+            again; None keeps the map's (the cutoff and step stay fixed, as without a target).
 
         Raises
         ------
         InvalidInputError
-            Nothing was added yet.
+            Nothing was added yet, or a bound that is not a number of metres.
         """
         if not self._tiles:
             raise InvalidInputError("the map is empty: add a scan first")
+        if target_max_error is not None:
+            if isinstance(target_max_error, bool) or not (isinstance(target_max_error, (int, float)) and
+                                                          0.0 <= target_max_error <= MAX_COORDINATE_M):
+                raise InvalidInputError(f"target_max_error must be a number of metres from 0 (none) to "
+                                        f"{MAX_COORDINATE_M:g}, got {target_max_error!r}")
+            if float(target_max_error) != self.params.target_max_error:
+                self.params = self.params.replace(target_max_error=float(target_max_error))
+                self._dirty.update(self._tiles)  # every tile's residual is in steps of the one bound
         changed = self.changed_tiles()
         recount = sorted(self._recount.difference(changed))
         # The tiles coded now, with their cells' heights once computed (a tile's window takes
@@ -507,6 +524,8 @@ class MapBuilder:
                           step=settings["step"], crs=settings["crs"], origin=settings["origin"])
         except InvalidInputError as exc:
             raise CorruptFileError(f"{state}: the map state's settings are refused: {exc}") from None
+        # The residual layers the tiles keep are in steps of the bound the file states.
+        builder.params = builder.params.replace(target_max_error=header.params.target_max_error)
         builder.point_count = int(settings["point_count"])
         builder.update_sha256 = settings.get("update_sha256")
         builder._previous_sha256 = settings["previous_sha256"]

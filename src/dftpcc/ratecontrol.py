@@ -7,13 +7,20 @@ and :func:`for_bpp` (the most accurate file within a size). Each tries the
 cutoffs of :func:`cutoffs` and searches the step at each; :func:`choose` runs
 the one the parameters ask for, then, with ``fill='consistent'``, tries the
 chosen cutoff again with the empty cells refilled and keeps the better file.
+
+That search codes and rebuilds every candidate. :func:`choose` asks the model first
+(:mod:`dftpcc.ratemodel`: the same candidates ranked by Parseval and by the coder's own
+probabilities, only the kept one coded) and runs :func:`search` where the model misses;
+:func:`method` picks either for a block of code (to compare them), :func:`tally` counts.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -22,7 +29,8 @@ from .errors import InvalidInputError
 from .params import Params
 from .residual import encode_residual, predicted_residual, residual, residual_step
 
-__all__ = ["Choice", "choose", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES"]
+__all__ = ["Choice", "choose", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES", "METHODS",
+           "method", "Tally", "tally"]
 
 #: Cutoff ratios rate control tries.
 CUTOFF_CANDIDATES = (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97)
@@ -56,6 +64,49 @@ RMSE_BOUND_MARGIN = 1e-9
 #: Steps (times the RMSE target) of the low-passed maps a residual layer may correct for an RMSE
 #: target: the first at every cutoff, the others at the best (:func:`corrected_for_rmse`).
 CORRECTED_STEP_FACTORS = (8.0, 4.0, 16.0)
+
+
+#: How rate control finds its choice: ``'model'`` predicts it from the spectrum and verifies it
+#: (:mod:`dftpcc.ratemodel`), falling back to ``'search'``, the trials of every candidate, where
+#: the prediction misses; ``'search'`` alone is kept to compare the two (benchmarks/bench_ratecontrol.py).
+METHODS = ("model", "search")
+_METHOD: contextvars.ContextVar[str] = contextvars.ContextVar("dftpcc_rate_control", default="model")
+
+
+@dataclass
+class Tally:
+    """What rate control did in a :func:`tally` block: choices it made (not those refused as out
+    of reach), how many the model made (verified), and how many times it fell back to the search."""
+
+    choices: int = 0
+    modelled: int = 0
+    fallbacks: int = 0
+
+
+_TALLY: contextvars.ContextVar[Tally | None] = contextvars.ContextVar("dftpcc_rate_tally", default=None)
+
+
+@contextlib.contextmanager
+def method(name: str) -> Iterator[None]:
+    """Rate control by ``name`` (one of :data:`METHODS`) inside the block, in this thread or task."""
+    if name not in METHODS:
+        raise InvalidInputError(f"rate control method must be one of {', '.join(METHODS)}, got {name!r}")
+    token = _METHOD.set(name)
+    try:
+        yield
+    finally:
+        _METHOD.reset(token)
+
+
+@contextlib.contextmanager
+def tally() -> Iterator[Tally]:
+    """Count rate control's choices inside the block (for benchmarks and tests)."""
+    found = Tally()
+    token = _TALLY.set(found)
+    try:
+        yield found
+    finally:
+        _TALLY.reset(token)
 
 
 #: Told the fraction of a search done, in [0, 1] (progress display).
@@ -367,13 +418,29 @@ def for_bpp(an: Analysis, params: Params, budget: int, progress: Progress = _no_
         if best is None or trial.rmse < best.trial.rmse:
             best = Choice(an, trial, blob)
     if best is None:
-        where = f"at cutoff {params.cutoff:g}" if params.cutoff is not None else "at any cutoff"
-        hint = ("raise the target, or leave the cutoff out so rate control may choose a higher one"
-                if params.cutoff is not None else "raise the target")
-        raise InvalidInputError(f"target {params.target_bpp:g} bits/point cannot be reached {where}: the "
-                                f"coefficients need more than the {budget:,} bytes left after the mask and "
-                                f"header, even at the coarsest step; {hint}")
+        raise bpp_out_of_reach(params, budget)
     return best
+
+
+def coef_budget(params: Params, point_count: int, fixed_bytes: int) -> int:
+    """Bytes a size target leaves the COEF section: the file's bits less ``fixed_bytes`` (the
+    mask and header); :class:`InvalidInputError` where those alone pass the target."""
+    budget = int(params.target_bpp * point_count / 8) - fixed_bytes
+    if budget <= 0:
+        raise InvalidInputError(
+            f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header (CRS "
+            f"included) alone need {8 * fixed_bytes / point_count:.4f} bits/point")
+    return budget
+
+
+def bpp_out_of_reach(params: Params, budget: int) -> InvalidInputError:
+    """The error of a size target no cutoff tried reaches."""
+    where = f"at cutoff {params.cutoff:g}" if params.cutoff is not None else "at any cutoff"
+    hint = ("raise the target, or leave the cutoff out so rate control may choose a higher one"
+            if params.cutoff is not None else "raise the target")
+    return InvalidInputError(f"target {params.target_bpp:g} bits/point cannot be reached {where}: the "
+                             f"coefficients need more than the {budget:,} bytes left after the mask and "
+                             f"header, even at the coarsest step; {hint}")
 
 
 def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
@@ -384,12 +451,7 @@ def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
     elif params.target_max_error > 0:
         choice = for_max_error(an, params, progress)
     else:
-        budget = int(params.target_bpp * point_count / 8) - fixed_bytes
-        if budget <= 0:
-            raise InvalidInputError(
-                f"target {params.target_bpp} bits/point cannot be reached: the occupancy mask and header (CRS "
-                f"included) alone need {8 * fixed_bytes / point_count:.4f} bits/point")
-        choice = for_bpp(an, params, budget, progress)
+        choice = for_bpp(an, params, coef_budget(params, point_count, fixed_bytes), progress)
     # The search sized candidates with one band layout; the file gets the best per chunk.
     choice.coefs = choice.analysis.encode(choice.trial)
     return choice
@@ -416,6 +478,28 @@ def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
     progress : callable, optional
         Told the fraction done: the first search is 80 % of the work, the refill the rest.
     """
+    counts = _TALLY.get()
+    if _METHOD.get() == "model":
+        from . import ratemodel  # the model builds on this module's search
+
+        found = ratemodel.choose(an, params, point_count, fixed_bytes)
+        if found is not None:
+            if counts is not None:
+                counts.choices += 1
+                counts.modelled += 1
+            return found
+        if counts is not None:
+            counts.fallbacks += 1
+    found = search(an, params, point_count, fixed_bytes, progress)
+    if counts is not None:
+        counts.choices += 1
+    return found
+
+
+def search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
+           progress: Progress = _no_progress) -> Choice:
+    """:func:`choose` by trying every candidate: the cutoffs of :func:`cutoffs`, the steps at each
+    (the fallback of the model, :mod:`dftpcc.ratemodel`)."""
     first = _search(an, params, point_count, fixed_bytes, lambda f: progress(FIRST_SEARCH_SHARE * f))
     progress(FIRST_SEARCH_SHARE)
     best = _refined(an, params, first, point_count, fixed_bytes) if an.refillable else first

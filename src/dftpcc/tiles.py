@@ -419,6 +419,10 @@ class TiledAnalysis:
         err = kept - coding.dequantize(coding.quantize(kept, step, self.params.deadzone), step)
         return math.sqrt((dot(err, err) + lost) * self.parseval)
 
+    def energy_at(self, cutoff: float) -> tuple[np.ndarray, float]:
+        """As :meth:`Analysis.energy_at`, over the base layer and every tile."""
+        return self._proxy_parts(cutoff)
+
     def _proxy_parts(self, cutoff: float) -> tuple[np.ndarray, float]:
         """Every value kept at ``cutoff`` in one array, and the energy the low-pass drops (cached:
         rate control asks for the same cutoff at many steps)."""
@@ -467,6 +471,22 @@ class TiledAnalysis:
     def encode_stream(self, stream: np.ndarray, *, exhaustive: bool = True) -> bytes:
         """All parts' COEF sections joined (rate control only needs their size; :meth:`parts` splits them)."""
         return b"".join(self.parts(stream, exhaustive=exhaustive))
+
+    def estimate(self, trial: Trial, *, exhaustive: bool = False) -> float:
+        return self.estimate_stream(trial.stream, exhaustive=exhaustive)
+
+    def estimate_stream(self, stream: np.ndarray, *, exhaustive: bool = False) -> float:
+        """Bytes of :meth:`encode_stream`, estimated without coding (rate control's model)."""
+        overlap, sizes = self._splits[stream.size]
+        bounds = np.cumsum([0] + sizes)
+        pieces = [stream[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+        base = pieces[0]
+        total = coding.estimated_size(base, radius=self.base_radius[: base.size], angle=self.base_angle[: base.size],
+                                      coder=self.params.coder, exhaustive=exhaustive, progressive=False)
+        for (_, an), piece in zip(self.tiles_with(overlap), pieces[1:]):
+            if piece.any():  # an all-zero tile codes no COEF (tile_coef_code)
+                total += an.estimate_stream(piece, exhaustive=exhaustive, progressive=False)
+        return total
 
     def parts(self, stream: np.ndarray, *, exhaustive: bool = True) -> list[bytes]:
         """The BASE section and each occupied tile's COEF section of ``stream``."""

@@ -1,0 +1,609 @@
+"""Rate control from a model: the choice predicted from one transform, verified by trials, coded once.
+
+The search (:func:`dftpcc.ratecontrol.search`) rebuilds and entropy-codes every
+candidate (cutoff, step). The spectrum already tells most of that: by Parseval
+the whole grid's squared error at (cutoff, step) is the energy of the values
+the cutoff drops plus the quantizer's error on the kept ones (:class:`Energy`),
+and a candidate's bytes follow from its integers' probabilities under the
+coder's own model (:func:`dftpcc.coding.estimated_size`, and for a residual
+layer :func:`dftpcc.residual.estimated_size`), within 0.1 % (a few % for a
+layer's map of nonzero cells) of the coded bytes. So no candidate is coded but
+the one kept.
+
+* An RMSE target: every cutoff's step from Parseval, ranked by estimated bytes;
+  the best rebuilt and its step corrected from what the rebuilt map measures on
+  the occupied cells (a ratio, then interpolation between trials) until it lands
+  just inside the target; the consistent fill refilled from a trial at the step
+  it is coded with; the files with a residual layer (a coarse low-pass with a
+  sparse layer, the map with no spectrum) rebuilt and sized by estimates.
+* A maximum-error target: a few pilot trials teach the model the residual
+  layer's bytes as a function of the predicted RMSE over the bound; every
+  (cutoff, step) is ranked by that and its estimated coefficients; the best
+  are rebuilt, then a hill climb over rebuilt neighbours corrects the choice.
+* A size target: each cutoff's step that fills the budget by estimates, ranked
+  by Parseval's error, the best few rebuilt to compare their occupied cells.
+
+Every file keeps the search's guarantee: its error is measured on the map the
+decoder rebuilds (a residual layer holds its bound by construction), its size
+on the coded bytes. Where the model cannot verify a choice, :func:`choose`
+returns None and rate control runs the search.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import coding
+from .analysis import Analysis, Trial
+from .errors import InvalidInputError
+from .params import Params
+from .ratecontrol import (CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
+                          MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
+                          bpp_out_of_reach, coef_budget, cutoffs)
+from .residual import encode_residual, estimated_size, predicted_residual, residual
+from .sums import dot
+
+__all__ = ["choose", "Energy"]
+
+#: The first values of a cutoff's stream (the largest, lowest frequencies) enter the quantizer's
+#: error exactly; the rest through an evenly strided sample of about :data:`ENERGY_SAMPLE` values,
+#: whose error is scaled up: the file's error is measured on the rebuilt map anyway.
+ENERGY_HEAD = 4096
+ENERGY_SAMPLE = 32768
+#: Bisections (geometric) of a step between brackets :data:`STEP_BRACKET` apart: 1 % apart at the end.
+STEP_BRACKET = 4.0
+STEP_BISECTIONS = 8
+#: An RMSE a rebuilt map measures is aimed this far inside the target when the step is corrected
+#: (the correction is a prediction too: a hair inside keeps it from landing a bit above).
+AIM_INSIDE = 0.995
+#: A trial whose RMSE is within this fraction of the target (below it) ends the correction ...
+LANDING = 0.998
+#: ... aimed at this fraction of it ...
+AIM = 0.999
+#: ... else at most this many trials (rebuilt maps) at a cutoff, and refills of a consistent fill.
+VERIFY_TRIALS = 5
+REFILL_TRIALS = 3
+#: A size target's budget is aimed this far inside by the estimate (estimates are within 0.1 %
+#: of the coded size on real maps; the coded file is checked, and coded again coarser on a miss).
+BUDGET_INSIDE = 0.998
+#: Where the coded file still passes the budget, the step is raised this much and the file coded
+#: again, at most this many times, before the search takes over.
+BUDGET_STEP_UP = 1.05
+BUDGET_RETRIES = 6
+#: A size target skips the cutoffs whose low-pass alone leaves this many times the (whole-grid)
+#: error of the best file found at a lower one: their occupied cells would have to hold far less
+#: of the error than the lower cutoff's do.
+FLOOR_SKIP = 1.5
+#: Cutoffs a size target rebuilds, best predicted first: a gappy map's empty cells hold another
+#: share of each cutoff's error than its occupied ones.
+VERIFIED_SIZE = 4
+#: Secant iterations (log size against log step) that find a size target's step at a cutoff, and
+#: how close (relative) to the budget they stop.
+SIZE_ITERATIONS = 8
+SIZE_TOLERANCE = 0.003
+
+
+class Energy:
+    """The whole grid's RMSE (metres) at one cutoff as a function of the quantizer step, from the
+    coefficients alone (Parseval): the energy the cutoff drops plus the quantizer's error on the
+    kept values, the first :data:`ENERGY_HEAD` exactly, the rest from a strided sample."""
+
+    def __init__(self, an: Analysis, cutoff: float):
+        kept, self.lost = an.energy_at(cutoff)
+        self.count = kept.size
+        self.head = kept[:ENERGY_HEAD]
+        tail = kept[ENERGY_HEAD:]
+        stride = max(1, tail.size // ENERGY_SAMPLE)
+        self.tail = tail[::stride]
+        self.weight = tail.size / self.tail.size if self.tail.size else 0.0
+        self.parseval = an.parseval
+        self.deadzone = an.params.deadzone
+
+    def _quantizer_error(self, values: np.ndarray, step: float) -> float:
+        err = values - coding.dequantize(coding.quantize(values, step, self.deadzone), step)
+        return dot(err, err)
+
+    def rmse(self, step: float) -> float:
+        """Predicted RMSE over every cell of the grid at ``step`` (metres)."""
+        total = self.lost + self._quantizer_error(self.head, step)
+        if self.tail.size:
+            total += self.weight * self._quantizer_error(self.tail, step)
+        return math.sqrt(max(total, 0.0) * self.parseval)
+
+    @property
+    def floor(self) -> float:
+        """The RMSE of the cutoff alone (every kept value exact)."""
+        return math.sqrt(self.lost * self.parseval)
+
+    def step_for(self, goal: float) -> float | None:
+        """The coarsest step (to 1 %) whose predicted RMSE is at most ``goal``; None when the
+        cutoff alone passes it."""
+        if self.floor >= goal:
+            return None
+        # A uniform quantizer's error is about step**2 / 12 a value: the bracket starts there.
+        budget = goal * goal / self.parseval - self.lost
+        guess = math.sqrt(12.0 * budget / max(self.count, 1))
+        lo, hi = guess / STEP_BRACKET, guess * STEP_BRACKET
+        for _ in range(40):
+            if self.rmse(lo) <= goal:
+                break
+            lo, hi = lo / STEP_BRACKET, lo
+        else:
+            return None
+        for _ in range(40):
+            if self.rmse(hi) > goal:
+                break
+            lo, hi = hi, hi * STEP_BRACKET
+        for _ in range(STEP_BISECTIONS):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if self.rmse(mid) <= goal else (lo, mid)
+        return lo
+
+
+@dataclass
+class Candidate:
+    """A (cutoff, step) the model ranks: its predicted whole-grid RMSE and estimated bytes."""
+
+    cutoff: float
+    step: float
+    proxy: float
+    size: float
+
+
+def _estimate(an: Analysis, cutoff: float, step: float) -> float:
+    """Estimated bytes of (cutoff, step) in the first band layout: to rank many candidates."""
+    return an.estimate_stream(an.quantized(cutoff, step))
+
+
+def _coded(an: Analysis, trial: Trial) -> float:
+    """Estimated bytes of ``trial`` as the file codes it (each chunk's best band layout: on
+    directional terrain a few % below the first layout's), to compare the few candidates left."""
+    return an.estimate(trial, exhaustive=True)
+
+
+class _OutOfReach(InvalidInputError):
+    """A size target no cutoff reaches by the estimates: the search's error, not a miss of the model."""
+
+
+def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice | None:
+    """Rate control's choice for the target in ``params`` from the model, verified; None where the
+    model does not apply or misses (the caller then searches)."""
+    if params.storage != "quantized":
+        return None  # no step to predict: the search tries the cutoffs alone
+    budget = coef_budget(params, point_count, fixed_bytes) if params.target_bpp > 0 else 0
+    try:
+        if params.target_rmse > 0:
+            choice = _for_rmse(an, params)
+        elif params.target_max_error > 0:
+            choice = _for_max_error(an, params)
+        else:
+            choice = _for_bpp(an, params, budget)
+    except _OutOfReach as exc:
+        raise InvalidInputError(str(exc)) from None
+    except InvalidInputError:
+        return None  # a step the model tried was refused (too fine for the map): the search decides
+    if choice is not None and not choice.coefs:
+        # Ranked by estimates of one band layout; the file gets the best per chunk.
+        choice.coefs = choice.analysis.encode(choice.trial)
+    return choice
+
+
+# --- an RMSE target --------------------------------------------------------------------------------
+
+def _ranked_for_rmse(an: Analysis, params: Params, goal: float) -> list[Candidate]:
+    """Every cutoff that can meet the (whole-grid) ``goal``, with its step and estimated bytes,
+    smallest first; from the highest cutoff down, stopping as the search does once the files
+    only grow (:data:`GIVE_UP_FACTOR`)."""
+    found: list[Candidate] = []
+    for cutoff in sorted(cutoffs(params), reverse=True):
+        energy = Energy(an, cutoff)
+        step = energy.step_for(goal)
+        if step is None:
+            continue
+        size = _estimate(an, cutoff, step)
+        found.append(Candidate(cutoff, step, energy.rmse(step), size))
+        if size > GIVE_UP_FACTOR * min(c.size for c in found):
+            break
+    return sorted(found, key=lambda c: c.size)
+
+
+def _secant(tried: list[tuple[float, float]], goal: float) -> float | None:
+    """The step where the measured RMSE crosses ``goal``, interpolated (log-log) between the coarsest
+    trial below it and the finest above; None without such a pair. ``tried``: (step, rmse)."""
+    below = [t for t in tried if t[1] <= goal]
+    above = [t for t in tried if t[1] > goal]
+    if not below or not above:
+        return None
+    (s0, r0), (s1, r1) = max(below), min(above)
+    if not s0 < s1 or not r1 > r0 > 0:
+        return math.sqrt(s0 * s1) if s0 < s1 else None
+    at = (math.log(goal) - math.log(r0)) / (math.log(r1) - math.log(r0))
+    return math.exp(math.log(s0) + at * (math.log(s1) - math.log(s0)))
+
+
+def _verified_rmse(an: Analysis, cutoff: float, target: float, ratio: float) -> tuple[Trial | None, float]:
+    """The trial at ``cutoff`` whose step the model predicts meets ``target`` on the occupied cells
+    (the whole grid's predicted RMSE times ``ratio``), rebuilt and measured; then corrected, by the
+    ratio measured or, once trials lie either side of the target, by interpolating them, until one
+    lands within :data:`LANDING` of the target (at most :data:`VERIFY_TRIALS` trials: where the
+    low-pass holds most of the error, the file's size moves much faster than its error). None
+    where no trial meets the target. Also the last ratio measured (occupied cells' RMSE over the
+    whole grid's prediction)."""
+    energy = Energy(an, cutoff)
+    best: Trial | None = None
+    tried: list[tuple[float, float]] = []
+    step = energy.step_for(AIM_INSIDE * target / ratio)
+    for _ in range(VERIFY_TRIALS):
+        if step is None or any(abs(step / s - 1.0) < 1e-6 for s, _ in tried):
+            break
+        trial = an.trial(cutoff, step)
+        tried.append((trial.step, trial.rmse))
+        predicted = energy.rmse(trial.step)
+        ratio = trial.rmse / predicted if predicted > 0 else ratio
+        if trial.rmse <= target:
+            if best is None or trial.step > best.step:
+                best = trial
+            if trial.rmse >= LANDING * target:
+                break
+        step = _secant(tried, AIM * target)
+        if step is None:
+            step = energy.step_for(AIM * target / max(ratio, 1e-12))
+    return best, ratio
+
+
+def _for_rmse(an: Analysis, params: Params) -> Choice | None:
+    target = params.target_rmse
+    ranked = _ranked_for_rmse(an, params, target)
+    if not ranked:
+        return None
+    first, ratio = _verified_rmse(an, ranked[0].cutoff, target, 1.0)
+    if abs(ratio - 1.0) > 1.0 - CLOSE_ENOUGH:
+        # The occupied cells hold another share of the error than the whole grid: rank again
+        # with the measured share, and verify the new best where it moved.
+        ranked = _ranked_for_rmse(an, params, target / ratio)
+        if ranked and (first is None or ranked[0].cutoff != first.cutoff):
+            other, _ = _verified_rmse(an, ranked[0].cutoff, target, ratio)
+            if other is not None and (first is None or _coded(an, other) < _coded(an, first)):
+                first = other
+    if first is None:
+        return None
+    best = Choice(an, first, b"")
+    size = _coded(an, first)
+    if an.refillable:
+        refilled = _refilled_for_rmse(an, first, target)
+        if refilled is not None:
+            other, trial = refilled
+            other_size = _coded(other, trial)
+            if other_size < size:
+                best, size = Choice(other, trial, b""), other_size
+    corrected = _corrected_for_rmse(an, params, first, size)
+    if corrected is not None:
+        best = corrected
+    return best
+
+
+def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: float) -> Choice | None:
+    """:func:`dftpcc.ratecontrol.corrected_for_rmse` with each candidate's bytes estimated, not
+    coded: the smallest low-passed map with a residual layer that meets the RMSE target, or the map
+    with no spectrum with one, where smaller than ``to_beat`` bytes; coded (None where none is)."""
+    if an.params.tile_size or params.storage != "quantized":
+        return None
+    target, coder = params.target_rmse, params.coder
+    best: tuple[float, Analysis, Trial, float, np.ndarray] | None = None  # size, analysis, trial, bound, q
+
+    def attempt(on: Analysis, cutoff: float, step: float, *, predicted: bool = False) -> float | None:
+        nonlocal best
+        coefs = on.estimate_stream(on.quantized(cutoff, step), exhaustive=True)
+        if coefs >= min(to_beat, best[0] if best else math.inf):
+            return None  # not smaller even with an empty residual layer: no need to rebuild it
+        trial = on.trial(cutoff, step)
+        bound = _coarsest_bound(on, trial, target)
+        if bound is None:
+            return None
+        q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        size = coefs + estimated_size(q, coder, on.kept_cells, predicted=False)
+        if predicted:
+            size = min(size, coefs + _predicted_size(q, coder, on.kept_cells,
+                                                     min(to_beat, best[0] if best else math.inf) - coefs))
+        if best is None or size < best[0]:
+            best = (size, on, trial, bound, q)
+        return size
+
+    first_factor, *others = CORRECTED_STEP_FACTORS
+    last, rises = None, 0
+    for cutoff in (c for c in cutoffs(params) if c >= first.cutoff):
+        size = attempt(an, cutoff, first_factor * target)
+        if size is None:
+            continue
+        rises = rises + 1 if last is not None and size > last else 0
+        last = size
+        if rises == 2 or size > GIVE_UP_FACTOR * min(best[0], to_beat):
+            break
+    if best is not None:
+        cutoff = best[2].cutoff
+        for factor in others:
+            attempt(an, cutoff, factor * target)
+        size, on, trial, bound, q = best
+        layout = _predicted_size(q, coder, on.kept_cells, size - _coded(on, trial))
+        if layout < size - _coded(on, trial):
+            best = (_coded(on, trial) + layout, on, trial, bound, q)
+    free = _spectrum_free(an, params)
+    if free is not None:
+        attempt(free[0], free[1].cutoff, free[1].step, predicted=True)
+    if best is None or best[0] >= to_beat:
+        return None
+    size, on, trial, bound, q = best
+    choice = Choice(on, trial, on.encode(trial), q, encode_residual(q, coder, on.kept_cells), bound)
+    return choice
+
+
+def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analysis, Trial] | None:
+    """``first``'s cutoff with the empty cells refilled (a consistent fill) from a trial at the step
+    it is coded with, as the search does: the coarsest such step up to :data:`REFILL_STEP_RANGE`
+    times ``first``'s that meets ``target``, predicted from the map refilled at ``first`` and then
+    found by interpolating the refills tried (at most :data:`REFILL_TRIALS`); None where even
+    ``first``'s step refilled misses the target."""
+
+    def attempt(step: float) -> tuple[Analysis, Trial]:
+        other = an.refilled(an.trial(first.cutoff, step))
+        return other, other.trial(first.cutoff, step)
+
+    other, at_first = an.refilled(first), None
+    at_first = other.trial(first.cutoff, first.step)
+    if at_first.rmse > target:
+        return None
+    best = (other, at_first)
+    tried = [(at_first.step, at_first.rmse)]
+    # A map refilled from a trial holds coefficients near that trial's steps, so its own
+    # quantizer error at that step says little of another: the first guess follows the
+    # slope of the map before the refill (log RMSE against log step), then the refills tried.
+    energy = Energy(an, first.cutoff)
+    slope = math.log(energy.rmse(first.step * 1.1) / max(energy.rmse(first.step), 1e-300)) / math.log(1.1)
+    step = first.step * (AIM * target / at_first.rmse) ** (1.0 / slope) if slope > 0 else None
+    top = REFILL_STEP_RANGE * first.step
+    for _ in range(REFILL_TRIALS):
+        if step is None or step <= best[1].step:
+            break
+        found = attempt(min(step, top))
+        tried.append((found[1].step, found[1].rmse))
+        if found[1].rmse <= target:
+            best = found
+            if found[1].rmse >= LANDING * target or found[1].step >= coding.short_step(top):
+                break
+        step = _secant(tried, AIM * target)
+    return best
+
+
+# --- a size target ---------------------------------------------------------------------------------
+
+def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy,
+                   guess: float | None = None) -> tuple[float, float] | None:
+    """The finest step (and its estimated bytes) at ``cutoff`` whose estimated COEF section fits
+    ``budget`` bytes, by secant steps on log size against log step from ``guess`` (default: a
+    step near the cutoff's own error); None where even the coarsest step tried does not fit."""
+    guess = guess or energy.step_for(max(energy.floor * 1.5, 1e-9)) or an.tiny_step() * 1e6
+    fits: tuple[float, float] | None = None  # (step, size) that fit: the finest one
+    over: tuple[float, float] | None = None  # (step, size) that do not: the coarsest one
+    step = guess
+    for _ in range(SIZE_ITERATIONS):
+        size = _estimate(an, cutoff, step)
+        if size <= budget:
+            if fits is None or step < fits[0]:
+                fits = (step, size)
+            if size >= budget * (1.0 - SIZE_TOLERANCE):
+                break
+        elif over is None or step > over[0]:
+            over = (step, size)
+        if fits is not None and over is not None:
+            (s0, z0), (s1, z1) = fits, over
+            slope = (math.log(z1) - math.log(z0)) / (math.log(s1) - math.log(s0))
+            step = math.exp(math.log(s0) + (math.log(budget) - math.log(z0)) / slope) if slope < 0 else \
+                math.sqrt(s0 * s1)
+            step = min(max(step, min(s0, s1) * 1.0001), max(s0, s1) / 1.0001)
+        else:
+            step = step * 4.0 if fits is None else step / 2.0
+    return fits
+
+
+def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
+    aim = BUDGET_INSIDE * budget
+    ranked = []
+    guess = None
+    for cutoff in sorted(cutoffs(params)):
+        energy = Energy(an, cutoff)
+        if ranked and energy.floor > FLOOR_SKIP * min(ranked)[0]:
+            break  # the low-pass alone loses to a file found: so do the higher cutoffs
+        # The step that fills the budget moves little from one cutoff to the next: the last one's first.
+        found = _step_for_size(an, cutoff, aim, energy, guess)
+        if found is not None:
+            ranked.append((energy.rmse(found[0]), cutoff, found[0]))
+            guess = found[0]
+    if not ranked:
+        # Estimates are within 0.1 % of the coded bytes, aimed BUDGET_INSIDE inside: as the search would.
+        raise _OutOfReach(str(bpp_out_of_reach(params, budget)))
+    ranked.sort()
+    # The ranking is of the whole grid's error; the occupied cells decide: the best few rebuilt.
+    trials = [an.trial(cutoff, step) for _, cutoff, step in ranked[:VERIFIED_SIZE]]
+    first = min(trials, key=lambda t: t.rmse)
+    best = Choice(an, first, b"")
+    if an.refillable:
+        other = an.refilled(first)
+        found = _step_for_size(other, first.cutoff, aim, Energy(other, first.cutoff))
+        if found is not None:
+            trial = other.trial(first.cutoff, found[0])
+            if trial.rmse < first.rmse:
+                best = Choice(other, trial, b"")
+    coefs = best.analysis.encode(best.trial)
+    for _ in range(BUDGET_RETRIES):
+        if len(coefs) <= budget:
+            best.coefs = coefs
+            return best
+        # A short stream's estimate may miss by a few bytes: a little coarser, coded again.
+        trial = best.analysis.trial(best.trial.cutoff, best.trial.step * BUDGET_STEP_UP)
+        best, coefs = Choice(best.analysis, trial, b""), best.analysis.encode(trial)
+    return None  # the estimate missed: the search sizes every step by coding it
+
+
+# --- a maximum-error target ------------------------------------------------------------------------
+
+#: Trials that teach the model a map's residual layer: (cutoff, step as a multiple of the bound).
+#: Each gives the layer's bytes a cell at one ratio of the predicted RMSE to the bound; the layer's
+#: cost at any other candidate is interpolated (log-log) between them.
+PILOTS = ((0.8, 2.0), (0.8, 8.0), (0.95, 4.0), (0.6, 4.0))
+#: Candidates the model ranks best that are rebuilt and sized (with the pilots' best).
+VERIFIED = 3
+#: A cutoff's smallest predicted file this many times in a row larger than the one before ends the
+#: walk down the cutoffs (the files only grow from there).
+RISES = 2
+
+
+@dataclass
+class _Layer:
+    """A rebuilt candidate for a maximum-error target: its trial, estimated COEF and RESD bytes."""
+
+    analysis: Analysis
+    trial: Trial
+    coefs: float
+    resd: float
+    q: np.ndarray
+
+    @property
+    def size(self) -> float:
+        return self.coefs + self.resd
+
+
+def _layer(an: Analysis, cutoff: float, step: float, bound: float, coder: str) -> _Layer:
+    trial = an.trial(cutoff, step)
+    q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
+    return _Layer(an, trial, _coded(an, trial), estimated_size(q, coder, an.kept_cells, predicted=False), q)
+
+
+class _ResidualCurve:
+    """The residual layer's bytes as a function of the predicted RMSE over the bound, learned from
+    rebuilt candidates (log-log interpolation, flat beyond them)."""
+
+    def __init__(self) -> None:
+        self.points: list[tuple[float, float]] = []
+
+    def add(self, ratio: float, size: float) -> None:
+        self.points.append((math.log(max(ratio, 1e-12)), math.log(max(size, 1.0))))
+
+    def __call__(self, ratio: float) -> float:
+        xs, ys = zip(*sorted(self.points))
+        return math.exp(float(np.interp(math.log(max(ratio, 1e-12)), xs, ys)))
+
+
+def _factors(quantized: bool) -> list[float]:
+    """The steps a maximum-error target tries, as multiples of the bound (the search's and the
+    doublings after them)."""
+    out = list(MAX_ERROR_STEP_FACTORS)
+    while out[-1] * 2.0 <= MAX_ERROR_STEP_FACTOR_LIMIT:
+        out.append(out[-1] * 2.0)
+    return out
+
+
+def _for_max_error(an: Analysis, params: Params) -> Choice | None:
+    bound, coder = params.target_max_error, params.coder
+    tried = cutoffs(params)
+    pilots = [(c, f) for c, f in PILOTS] if params.cutoff is None else [(params.cutoff, f) for f in (2.0, 8.0)]
+    pilots = [(min(tried, key=lambda t: abs(t - c)), f) for c, f in pilots]
+    curve = _ResidualCurve()
+    rebuilt: dict[tuple[float, float], _Layer] = {}
+    energies = {c: Energy(an, c) for c in tried}
+    for cutoff, factor in dict.fromkeys(pilots):
+        layer = _layer(an, cutoff, bound * factor, bound, coder)
+        rebuilt[(cutoff, factor)] = layer
+        curve.add(energies[cutoff].rmse(layer.trial.step) / bound, layer.resd)
+    # Rank every (cutoff, factor) by its estimated COEF bytes and the curve's RESD bytes.
+    ranked: list[tuple[float, float, float]] = []
+    best_at: list[float] = []
+    for cutoff in sorted(tried, reverse=True):
+        smallest = math.inf
+        for factor in _factors(True):
+            energy = energies[cutoff]
+            size = _estimate(an, cutoff, bound * factor) + curve(energy.rmse(bound * factor) / bound)
+            ranked.append((size, cutoff, factor))
+            if size > smallest * GIVE_UP_FACTOR:
+                break  # coarser steps only grow the layer faster than they shrink the spectrum
+            smallest = min(smallest, size)
+        best_at.append(smallest)
+        if len(best_at) > RISES and all(best_at[-k - 1] > best_at[-k - 2] for k in range(RISES)):
+            break
+    ranked.sort()
+    for _, cutoff, factor in ranked[:VERIFIED]:
+        if (cutoff, factor) not in rebuilt:
+            rebuilt[(cutoff, factor)] = _layer(an, cutoff, bound * factor, bound, coder)
+    best = _climb(an, rebuilt, min(rebuilt.values(), key=lambda layer: layer.size), sorted(tried), bound, coder)
+    if an.refillable:
+        other = an.refilled(best.trial)
+        factor = best.trial.step / bound
+        for f in (factor / 2.0, factor, factor * 2.0):
+            layer = _layer(other, best.trial.cutoff, bound * f, bound, coder)
+            if layer.size < best.size:
+                best = layer
+    choice = Choice(best.analysis, best.trial, b"", best.q, b"", bound)
+    size = best.size
+    # The predicted layout, the slowest to code, is sized on the winner and on the map with no spectrum.
+    predicted = _predicted_size(best.q, coder, best.analysis.kept_cells, best.resd)
+    if predicted < best.resd:
+        size = best.coefs + predicted
+    free = _spectrum_free(an, params)
+    if free is not None:
+        on, trial = free
+        q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        coefs = _coded(on, trial)
+        free_size = coefs + min(estimated_size(q, coder, on.kept_cells, predicted=False),
+                                _predicted_size(q, coder, on.kept_cells, size - coefs))
+        if free_size < size:
+            choice = Choice(on, trial, b"", q, b"", bound)
+    choice.coefs = choice.analysis.encode(choice.trial)
+    choice.residual_blob = encode_residual(choice.residual, coder, choice.analysis.kept_cells)
+    return choice
+
+
+#: Moves of the hill climb from the model's choice over rebuilt neighbours (:func:`_climb`).
+CLIMB_MOVES = 4
+
+
+def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer], best: _Layer, tried: list[float],
+           bound: float, coder: str) -> _Layer:
+    """The model's choice corrected by rebuilt candidates: from ``best``, move to the smallest of
+    its four neighbours (the next cutoff either way, the step doubled or halved) while that is
+    smaller, at most :data:`CLIMB_MOVES` times: the model ranks well, but the curve it learned
+    from a few trials is coarse next to files a few % apart."""
+    factors = _factors(True)
+    for _ in range(CLIMB_MOVES):
+        cutoff, factor = best.trial.cutoff, best.trial.step / bound
+        i = min(range(len(tried)), key=lambda k: abs(tried[k] - cutoff))
+        j = min(range(len(factors)), key=lambda k: abs(math.log(factors[k] / factor)))
+        around = [(tried[i + di], factors[j + dj]) for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1))
+                  if 0 <= i + di < len(tried) and 0 <= j + dj < len(factors)]
+        for key in around:
+            if key not in rebuilt:
+                rebuilt[key] = _layer(an, key[0], bound * key[1], bound, coder)
+        nearest = min((rebuilt[key] for key in around), key=lambda layer: layer.size)
+        if nearest.size >= best.size:
+            break
+        best = nearest
+    return best
+
+
+#: The predicted layout codes real maps in at least about this share of the median predictor's
+#: bytes (:func:`dftpcc.residual.median_predicted_size`; 0.56 the least measured): where that share
+#: of them cannot beat the file to beat, the layout's fit is not worth its time.
+PREDICTED_SHARE = 0.45
+
+
+def _predicted_size(q: np.ndarray, coder: str, kept: np.ndarray, to_beat: float = math.inf) -> float:
+    """Estimated bytes of ``q`` in the predicted layout; inf where it does not apply or cannot
+    come below ``to_beat`` bytes."""
+    from .residual import _estimated_predicted, median_predicted_size
+
+    if coder != "ans" or not q.size:
+        return math.inf
+    if math.isfinite(to_beat) and PREDICTED_SHARE * median_predicted_size(q, kept) >= to_beat:
+        return math.inf
+    return _estimated_predicted(q, kept)
