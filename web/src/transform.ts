@@ -1,0 +1,175 @@
+// Inverse transforms of a low-passed spectrum (format.md, "Decoding" step 3): scipy's
+// idctn(type=2, norm="ortho"), numpy's irfft2(norm="ortho") and ifft2(ifftshift(F)).real, evaluated
+// as separable sums over the kept coefficients only and on the cells asked for only (a tile of its
+// coded window). The kept corner of the spectrum is small, so the sums cost rows x cols x (kept
+// columns) rather than a full transform's log factor over every frequency.
+
+/** cos(2 pi m / period) for m = 0 .. period-1: bases at exact integer phase. */
+function cosTable(_n: number, period: number): Float64Array {
+  const t = new Float64Array(period);
+  for (let m = 0; m < period; m++) t[m] = Math.cos((2 * Math.PI * m) / period);
+  return t;
+}
+
+/** phi_N(k, n) for k < K and n in cells [c0, c0 + w): a K x w matrix, row-major. */
+function dctBasis(N: number, K: number, c0: number, w: number): Float64Array {
+  const table = cosTable(N, 4 * N);
+  const out = new Float64Array(K * w);
+  const a0 = 1 / Math.sqrt(N);
+  const ak = Math.sqrt(2 / N);
+  for (let k = 0; k < K; k++) {
+    for (let c = 0; c < w; c++) {
+      out[k * w + c] = k === 0 ? a0 : ak * table[(k * (2 * (c0 + c) + 1)) % (4 * N)];
+    }
+  }
+  return out;
+}
+
+/** out (h x w) += the inverse orthonormal DCT-II of the coefficients g (a dense K x L corner of the
+ * N x M spectrum, row-major), at rows [r0, r0 + h) and columns [c0, c0 + w) of the N x M grid. */
+export function addIdct(out: Float64Array, g: Float64Array, K: number, L: number, N: number, M: number,
+  r0: number, h: number, c0: number, w: number): void {
+  if (K === 0 || L === 0) return;
+  const pr = dctBasis(N, K, r0, h); // K x h
+  const pc = dctBasis(M, L, c0, w); // L x w
+  // Order the two passes for the smaller cost: rows first (h K L + h w L) or columns (K L w + h w K).
+  if (h * K * L + h * w * L <= K * L * w + h * w * K) {
+    const t = new Float64Array(h * L); // t = pr^T g
+    for (let k = 0; k < K; k++) {
+      for (let r = 0; r < h; r++) {
+        const p = pr[k * h + r];
+        if (p === 0) continue;
+        for (let l = 0; l < L; l++) t[r * L + l] += p * g[k * L + l];
+      }
+    }
+    for (let r = 0; r < h; r++) {
+      for (let l = 0; l < L; l++) {
+        const v = t[r * L + l];
+        if (v === 0) continue;
+        const o = r * w;
+        const b = l * w;
+        for (let c = 0; c < w; c++) out[o + c] += v * pc[b + c];
+      }
+    }
+  } else {
+    const u = new Float64Array(K * w); // u = g pc
+    for (let k = 0; k < K; k++) {
+      for (let l = 0; l < L; l++) {
+        const v = g[k * L + l];
+        if (v === 0) continue;
+        for (let c = 0; c < w; c++) u[k * w + c] += v * pc[l * w + c];
+      }
+    }
+    for (let k = 0; k < K; k++) {
+      for (let r = 0; r < h; r++) {
+        const p = pr[k * h + r];
+        const o = r * w;
+        const b = k * w;
+        for (let c = 0; c < w; c++) out[o + c] += p * u[b + c];
+      }
+    }
+  }
+}
+
+/** out (rows x cols) = irfft2(F, s=(rows, cols), norm="ortho") for F of shape rows x (cols//2 + 1)
+ * given by its kept entries (flat positions, values real and imaginary interleaved). */
+export function irfft2(pos: Int32Array, values: Float64Array, rows: number, cols: number, out: Float64Array): void {
+  const C = Math.floor(cols / 2) + 1;
+  let J = 0;
+  for (let k = 0; k < pos.length; k++) J = Math.max(J, (pos[k] % C) + 1);
+  const cr = cosTable(rows, rows);
+  const sr = sinTable(rows);
+  // Pass 1: inverse complex DFT along the rows axis, column by column: T (rows x J) complex.
+  const tre = new Float64Array(rows * J);
+  const tim = new Float64Array(rows * J);
+  for (let k = 0; k < pos.length; k++) {
+    const i = Math.floor(pos[k] / C);
+    const j = pos[k] - i * C;
+    const re = values[2 * k];
+    const im = values[2 * k + 1];
+    if (re === 0 && im === 0) continue;
+    for (let r = 0; r < rows; r++) {
+      const m = (i * r) % rows;
+      const c = cr[m];
+      const s = sr[m];
+      tre[r * J + j] += re * c - im * s;
+      tim[r * J + j] += re * s + im * c;
+    }
+  }
+  // Pass 2: the real inverse along the columns axis (Hermitian half: DC and Nyquist taken as real).
+  const cc = cosTable(cols, cols);
+  const sc = sinTable(cols);
+  const norm = 1 / Math.sqrt(rows * cols);
+  for (let r = 0; r < rows; r++) {
+    for (let j = 0; j < J; j++) {
+      let re = tre[r * J + j];
+      let im = tim[r * J + j];
+      const twice = j === 0 || (cols % 2 === 0 && j === cols / 2) ? 1 : 2;
+      if (twice === 1) im = 0;
+      re *= twice * norm;
+      im *= twice * norm;
+      if (re === 0 && im === 0) continue;
+      const o = r * cols;
+      for (let c = 0; c < cols; c++) {
+        const m = (j * c) % cols;
+        out[o + c] += re * cc[m] - im * sc[m];
+      }
+    }
+  }
+}
+
+/** out (rows x cols) = ifft2(ifftshift(F)).real for the fftshifted F given by its kept entries. */
+export function ifft2Shifted(pos: Int32Array, values: Float64Array, rows: number, cols: number, out: Float64Array): void {
+  const cr = cosTable(rows, rows);
+  const cc = cosTable(cols, cols);
+  const sr = sinTable(rows);
+  const sc = sinTable(cols);
+  const hr = Math.floor(rows / 2);
+  const hc = Math.floor(cols / 2);
+  const js: number[] = [];
+  const slot = new Map<number, number>();
+  for (let k = 0; k < pos.length; k++) {
+    const j = pos[k] % cols;
+    if (!slot.has(j)) {
+      slot.set(j, js.length);
+      js.push(j);
+    }
+  }
+  const J = js.length;
+  const tre = new Float64Array(rows * J);
+  const tim = new Float64Array(rows * J);
+  for (let k = 0; k < pos.length; k++) {
+    const i = Math.floor(pos[k] / cols);
+    const s = slot.get(pos[k] - i * cols)!;
+    const du = i - hr;
+    const re = values[2 * k];
+    const im = values[2 * k + 1];
+    for (let r = 0; r < rows; r++) {
+      const m = (((du * r) % rows) + rows) % rows;
+      const c = cr[m];
+      const sn = sr[m];
+      tre[r * J + s] += re * c - im * sn;
+      tim[r * J + s] += re * sn + im * c;
+    }
+  }
+  const norm = 1 / (rows * cols);
+  for (let r = 0; r < rows; r++) {
+    for (let s = 0; s < J; s++) {
+      const re = tre[r * J + s] * norm;
+      const im = tim[r * J + s] * norm;
+      const dv = js[s] - hc;
+      const o = r * cols;
+      for (let c = 0; c < cols; c++) {
+        const m = (((dv * c) % cols) + cols) % cols;
+        out[o + c] += re * cc[m] - im * sc[m];
+      }
+    }
+  }
+}
+
+/** sin(2 pi m / N) for m = 0 .. N-1. */
+function sinTable(n: number): Float64Array {
+  const t = new Float64Array(n);
+  for (let m = 0; m < n; m++) t[m] = Math.sin((2 * Math.PI * m) / n);
+  return t;
+}
