@@ -116,6 +116,11 @@ function decay(code: number): number {
 }
 
 const DECAY: number[] = Array.from({ length: 256 }, (_, c) => (c === 0 ? 0 : decay(c)));
+
+/** R of scale code `code` (1-255). */
+export function decayOf(code: number): number {
+  return DECAY[code];
+}
 const tables = new Map<number, Int32Array>();
 
 /** The cumulative table (2 max_abs + 2 entries) of the categorical model of scale code `code` over

@@ -59,6 +59,20 @@ export function uleb(d: Uint8Array, pos: number, truncated: string, wide: string
   throw new CorruptFileError(wide);
 }
 
+/** The exact decimal value of the LEB128 at `pos` (for messages: a double rounds above 2**53). */
+export function ulebText(d: Uint8Array, pos: number): string {
+  let value = 0n;
+  for (let k = 0; k < 10 && pos + k < d.length; k++) {
+    value |= BigInt(d[pos + k] & 0x7f) << BigInt(7 * k);
+    if (!(d[pos + k] & 0x80)) break;
+  }
+  return value.toString();
+}
+
+export function count(n: number): string {
+  return n.toLocaleString("en-US");
+}
+
 export interface FrameHeader {
   /** Declared content size in bytes, or null when the frame does not state it. */
   contentSize: number | null;

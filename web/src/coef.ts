@@ -90,7 +90,7 @@ export function decodeStream(p: Uint8Array, total: number, radius: Float64Array 
     }
     kinds |= 1 << kind;
   }
-  if (!partial && stop !== total) throw new CorruptFileError(`${name} chunks hold ${stop} values, not ${total}`);
+  if (!partial && stop !== total) throw new CorruptFileError(`${name} chunks hold ${stop} values, expected ${total}`);
   if (!partial && pos !== p.length && !free) {
     // Bytes after the last chunk are no part of the stream; the reader of a section checks its end.
   }

@@ -1,7 +1,7 @@
 // The container (format.md, "Layout" and "Sections"): preamble, section table, CRCs, and the header
 // sections GEOM, PARM, STAT and CRS, each checked before anything is allocated from it
 // (docs/format-validation.md, sections 1-3).
-import { crc32, f32, f64, inflate, u32, u64, uleb, ZSTD_MAGIC } from "./bytes.js";
+import { count as fmt, crc32, f32, f64, inflate, u32, u64, uleb, ulebText, zstdHeader, ZSTD_MAGIC } from "./bytes.js";
 import { CorruptFileError, ResourceLimitError, UnsupportedFormatError } from "./errors.js";
 
 export const MAGIC = [0x89, 0x44, 0x46, 0x54, 0x50, 0x43, 0x0d, 0x0a];
@@ -21,6 +21,8 @@ const MAX_JSON_DEPTH = 512;
 export interface Entry {
   tag: string;
   tile: number;
+  /** The tile number's exact decimal text (a double rounds those above 2**53). */
+  tileText: string;
   offset: number;
   length: number;
   crc: number;
@@ -40,8 +42,8 @@ export function cellBudget(size: number, maxCells?: number): number {
 
 export function budgetMessage(what: string, cells: number, budget: number, size: number): string {
   const gb = ((cells * DECODE_BYTES_PER_CELL) / 1e9).toFixed(1);
-  return `refusing to decode: ${what} (${cells} cells, about ${gb} GB to decode), more than the ${budget} cells allowed `
-    + `for a ${size}-byte file; if you trust this file, decode it with maxCells: ${cells}`;
+  return `refusing to decode: ${what} (${fmt(cells)} cells, about ${gb} GB to decode), more than the ${fmt(budget)} cells allowed `
+    + `for a ${fmt(size)}-byte file; if you trust this file, decode it with maxCells: ${cells} (Python: max_cells=${cells})`;
 }
 
 function tagOf(d: Uint8Array, at: number): string {
@@ -61,7 +63,7 @@ export function parseTable(data: Uint8Array): Table {
   if (count > most) throw new CorruptFileError(`section table claims ${count} sections, more than the ${most} allowed`);
   const truncated = "file is truncated inside its section table";
   if (16 + 10 * count + 4 > data.length) throw new CorruptFileError(truncated);
-  const raw: Array<[string, number, number, number]> = [];
+  const raw: Array<[string, number, number, number, string]> = [];
   let pos = 16;
   for (let i = 0; i < count; i++) {
     if (pos + 4 > data.length) throw new CorruptFileError(truncated);
@@ -70,15 +72,15 @@ export function parseTable(data: Uint8Array): Table {
     const [tile, p1] = uleb(data, pos + 4, truncated, wide);
     const [length, p2] = uleb(data, p1, truncated, wide);
     if (p2 + 4 > data.length) throw new CorruptFileError(truncated);
-    raw.push([tag, tile, length, u32(data, p2)]);
+    raw.push([tag, tile, length, u32(data, p2), tile > Number.MAX_SAFE_INTEGER ? ulebText(data, pos + 4) : String(tile)]);
     pos = p2 + 4;
   }
   if (pos + 4 > data.length) throw new CorruptFileError(truncated);
   if (crc32(data.subarray(0, pos)) !== u32(data, pos)) throw new CorruptFileError("section table fails its checksum");
   let offset = pos + 4;
   const entries: Entry[] = [];
-  for (const [tag, tile, length, crc] of raw) {
-    entries.push({ tag, tile, offset, length, crc });
+  for (const [tag, tile, length, crc, tileText] of raw) {
+    entries.push({ tag, tile, tileText, offset, length, crc });
     offset += length; // beyond 2**53 only ever compared with the file's far smaller length
   }
   if (data.length > offset) {
@@ -150,7 +152,7 @@ export function parseGeom(p: Uint8Array, tiled: boolean, size: number, maxCells?
   const cells = rows * cols;
   const most = tiled ? MAX_TILED_CELLS : MAX_CELLS;
   if (cells > most) {
-    throw new ResourceLimitError(`the header asks for a ${rows} x ${cols} grid (${cells} cells), more than the ${most}-cell limit of the format`);
+    throw new ResourceLimitError(`the header asks for a ${rows} x ${cols} grid (${fmt(cells)} cells), more than the ${fmt(most)}-cell limit of the format`);
   }
   if (!tiled) {
     const budget = cellBudget(size, maxCells);
@@ -213,6 +215,10 @@ function depth(text: string): number {
 export function parseJson(p: Uint8Array, name: string): Record<string, unknown> {
   let bytes = p;
   if (p.length >= 4 && ZSTD_MAGIC.every((b, k) => p[k] === b)) {
+    const declared = zstdHeader(p, `section ${name}`).contentSize;
+    if (declared !== null && declared > MAX_JSON_BYTES) {
+      throw new CorruptFileError(`section ${name} declares more than ${MAX_JSON_BYTES} bytes of JSON (${declared})`);
+    }
     bytes = inflate(p, MAX_JSON_BYTES, `section ${name}`);
   }
   let text: string;
@@ -235,7 +241,13 @@ export function parseJson(p: Uint8Array, name: string): Record<string, unknown> 
 }
 
 export function parseParams(p: Uint8Array, g: Geometry): Params {
-  const raw = parseJson(p, "PARM");
+  let raw: Record<string, unknown>;
+  try {
+    raw = parseJson(p, "PARM");
+  } catch (exc) {
+    if (!(exc instanceof CorruptFileError) || /declares more than|too deeply/.test(exc.message)) throw exc;
+    throw new CorruptFileError(`parameter section is invalid: ${exc.message}`);
+  }
   const params: Record<string, unknown> = { ...V1_DEFAULTS, tile_size: 0, ...raw };
   const bad = (why: string) => new CorruptFileError(`parameter section is invalid: ${why}`);
   const num = (k: string) => {
@@ -251,7 +263,7 @@ export function parseParams(p: Uint8Array, g: Geometry): Params {
   }
   for (const k of ["step", "target_rmse", "target_max_error", "target_reloc"]) {
     const v = num(k);
-    if (v < 0 || v > MAX_COORDINATE_M) throw bad(`${k} must be in [0, 1e+12]`);
+    if (v < 0 || v > MAX_COORDINATE_M) throw bad(`${k === "step" ? "quantizer step" : k} must be in [0, 1e+12]`);
   }
   const deadzone = num("deadzone");
   if (!(deadzone >= 0 && deadzone < 0.5)) throw bad("deadzone must be in [0, 0.5)");

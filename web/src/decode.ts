@@ -1,7 +1,7 @@
 // decode(bytes, options): a .dftpc file (version 1.0 or the tiled 1.1) to its DEM, as LERC's
 // JavaScript decoder returns pixels and mask. format.md "Decoding", "Progressive decoding" and
 // "Tiles: version 1.1".
-import { u16, u32, inflate, f32 } from "./bytes.js";
+import { count as fmt, f32, inflate, u16, u32 } from "./bytes.js";
 import { decodeStream } from "./coef.js";
 import {
   budgetMessage, byTile, cellBudget, Entry, Geometry, MAX_CELLS, Params, parseCrs, parseGeom, parseParams, parseStat,
@@ -343,7 +343,9 @@ function tileIndex(sections: Map<string, Uint8Array | null>, header: Header, fil
     if (!sections.has("MASK")) throw new CorruptFileError("a map residual (RESD at tile 0) needs the map mask");
     if (!(params.target_max_error > 0)) throw new CorruptFileError("a map residual (RESD at tile 0) in a file without a maximum-error target");
   }
-  for (const k of tiles.keys()) if (k > n) throw new CorruptFileError(`section table names tile ${k}, but the map has ${n} tiles`);
+  for (const [k, secs] of tiles) {
+    if (k > n) throw new CorruptFileError(`section table names tile ${[...secs.values()][0].tileText}, but the map has ${n} tiles`);
+  }
   const mapMask = sections.has("MASK");
   const mapResid = sections.has("RESD");
   for (let k = 1; k <= n; k++) {
@@ -365,7 +367,7 @@ function tileIndex(sections: Map<string, Uint8Array | null>, header: Header, fil
       if (has !== want(tag)) ok = false;
     }
     if (!ok) {
-      const got = ["MASK", "COEF", "RESD"].filter((t) => have.has(t)).join(", ") || "none";
+      const got = ["COEF", "MASK", "RESD"].filter((t) => have.has(t)).join(", ") || "none";
       const need = ["COEF", "MASK", "RESD"].filter(want).join(", ") || "none";
       throw new CorruptFileError(`tile ${k} has sections ${got} where its index entry needs ${need}`);
     }
@@ -418,7 +420,7 @@ function decodeTiled(o: Opened, options: DecodeOptions): DecodedMap {
   if (o.sections.has("RESD")) need += rows * cols;
   const budget = cellBudget(o.size, options.maxCells);
   if (need > budget) {
-    throw new ResourceLimitError(`refusing to decode ${need} cells of tiles at once, more than the ${budget} allowed for a ${o.size}-byte file; `
+    throw new ResourceLimitError(`refusing to decode ${fmt(need)} cells of tiles at once, more than the ${fmt(budget)} allowed for a ${fmt(o.size)}-byte file; `
       + `decode a window or, if you trust this file, decode it with maxCells: ${Math.min(need, MAX_CELLS)}`);
   }
   void budgetMessage;

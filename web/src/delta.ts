@@ -2,7 +2,7 @@
 // new bytes carried zstd-compressed; applied after every check, nothing allocated before them.
 import { sha256 } from "@noble/hashes/sha2.js";
 import { crc32, inflate, u16, u32, uleb, zstdHeader } from "./bytes.js";
-import { CorruptFileError, guard, InvalidInputError, UnsupportedFormatError } from "./errors.js";
+import { CorruptFileError, guard, InvalidInputError } from "./errors.js";
 
 export const DELTA_MAGIC = [0x89, 0x44, 0x46, 0x54, 0x50, 0x44, 0x0d, 0x0a];
 const HEAD = 76;
@@ -26,7 +26,8 @@ function apply(base: Uint8Array, delta: Uint8Array): Uint8Array {
     throw new CorruptFileError("not a .dftpc delta (bad magic bytes or too short)");
   }
   if (delta[8] !== 1 || delta[9] !== 0 || u16(delta, 10) !== 0) {
-    throw new UnsupportedFormatError(`.dftpc delta version ${delta[8]}.${delta[9]} (flags ${u16(delta, 10)}) is not supported`);
+    // Python's reader refuses another version as a corrupt delta, so does this one.
+    throw new CorruptFileError(`.dftpc delta version ${delta[8]}.${delta[9]} (flags ${u16(delta, 10)}) is not supported`);
   }
   const end = delta.length - 4;
   if (crc32(delta.subarray(0, end)) !== u32(delta, end)) throw new CorruptFileError("delta fails its checksum (damaged or cut)");

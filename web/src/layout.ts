@@ -92,42 +92,74 @@ export function prefix(rows: number, cols: number, kind: Transform, limit: numbe
     j0 = Math.max(0, c0 - lim);
     j1 = Math.min(cols, c0 + lim + 1);
   }
-  const pos: number[] = [];
-  const rad: number[] = [];
-  const ang: number[] = [];
+  // Candidates inside the circle, in row-major order, with the exact integer square of their radius
+  // (in half-steps for the DCT): the sort is by that integer (stable, so row-major on ties), then,
+  // within a tie, by the writer's hypot value (its last bit can split a tie, format.md).
   const half = Math.floor((rows + 1) / 2);
+  const nCand = ri.length * (j1 - j0);
+  const cPos = new Int32Array(nCand);
+  const cRad = new Float64Array(nCand);
+  const cSq = new Float64Array(nCand);
+  const cI = new Int32Array(nCand);
+  const cJ = new Int32Array(nCand);
+  let m = 0;
+  let sqMax = 0;
   for (const i of ri) {
+    const di = kind === "dct" ? i : kind === "dft-half" ? (i < half ? i : i - rows) : i - Math.floor(rows / 2);
     for (let j = j0; j < j1; j++) {
-      let r: number;
-      let a: number;
-      if (kind === "dct") {
-        r = hypot(i / 2, j / 2);
-        a = Math.atan2(i / 2, j / 2) / (Math.PI / 2);
-      } else if (kind === "dft-half") {
-        const di = i < half ? i : i - rows;
-        r = hypot(di, j);
-        a = (Math.atan2(di, j) + Math.PI / 2) / Math.PI;
-      } else {
-        const du = i - Math.floor(rows / 2);
-        const dv = j - Math.floor(cols / 2);
-        r = hypot(du, dv);
-        a = (Math.atan2(du, dv) + Math.PI) / (2 * Math.PI);
-      }
+      const dj = kind === "dft-full" ? j - Math.floor(cols / 2) : j;
+      const r = kind === "dct" ? hypot(i / 2, j / 2) : hypot(di, dj);
       if (r <= limit) {
-        pos.push(i * C + j);
-        rad.push(r);
-        ang.push(a);
+        cPos[m] = i * C + j;
+        cRad[m] = r;
+        cI[m] = di;
+        cJ[m] = dj;
+        const sq = di * di + dj * dj;
+        cSq[m] = sq;
+        if (sq > sqMax) sqMax = sq;
+        m++;
       }
     }
   }
-  const order = Array.from({ length: pos.length }, (_, k) => k);
-  order.sort((a, b) => rad[a] - rad[b] || a - b); // candidates are in row-major order: ties keep it
+  let order: Int32Array;
+  if (sqMax <= 8 * m + 1024) {
+    // Counting sort by the integer square: O(m), stable.
+    const start = new Int32Array(sqMax + 2);
+    for (let k = 0; k < m; k++) start[cSq[k] + 1]++;
+    for (let q = 1; q < start.length; q++) start[q] += start[q - 1];
+    order = new Int32Array(m);
+    for (let k = 0; k < m; k++) order[start[cSq[k]]++] = k;
+  } else {
+    order = Int32Array.from({ length: m }, (_, k) => k);
+    order.sort((a, b) => cSq[a] - cSq[b] || a - b);
+  }
+  // Within a run of equal squares the writer's radii may differ in their last bit: order by them.
+  for (let a = 0; a < m;) {
+    let b = a + 1;
+    while (b < m && cSq[order[b]] === cSq[order[a]]) b++;
+    if (b - a > 1) {
+      const run = Array.from(order.subarray(a, b));
+      run.sort((x, y) => cRad[x] - cRad[y] || x - y);
+      order.set(run, a);
+    }
+    a = b;
+  }
   const out: Prefix = {
     shape: [rows, C],
-    pos: Int32Array.from(order, (k) => pos[k]),
-    radius: Float64Array.from(order, (k) => rad[k]),
-    angle: Float64Array.from(order, (k) => Math.min(1, Math.max(0, ang[k]))),
+    pos: new Int32Array(m),
+    radius: new Float64Array(m),
+    angle: new Float64Array(m),
   };
+  for (let q = 0; q < m; q++) {
+    const k = order[q];
+    out.pos[q] = cPos[k];
+    out.radius[q] = cRad[k];
+    let a: number;
+    if (kind === "dct") a = Math.atan2(cI[k] / 2, cJ[k] / 2) / (Math.PI / 2);
+    else if (kind === "dft-half") a = (Math.atan2(cI[k], cJ[k]) + Math.PI / 2) / Math.PI;
+    else a = (Math.atan2(cI[k], cJ[k]) + Math.PI) / (2 * Math.PI);
+    out.angle[q] = Math.min(1, Math.max(0, a));
+  }
   if (cache.size > 16) cache.clear();
   cache.set(key, out);
   return out;

@@ -31,7 +31,7 @@ export function decodeResidual(p: Uint8Array, mask: Uint8Array, rows: number, co
 function sparse(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, total: number): Float64Array {
   if (body.length < 4) throw new CorruptFileError("sparse residual is truncated");
   const L = u32(body, 0);
-  if (4 + L > body.length) throw new CorruptFileError("sparse residual's nonzero map runs past its chunk");
+  if (4 + L > body.length) throw new CorruptFileError("sparse residual's nonzero map runs past the chunk");
   const picture = decodeMask(body.subarray(4, 4 + L), rows, cols);
   const nonzero = new Uint8Array(total); // per rebuilt cell
   let n = 0;

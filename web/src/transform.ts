@@ -1,3 +1,5 @@
+import { Dct3 } from "./dct.js";
+
 // Inverse transforms of a low-passed spectrum (format.md, "Decoding" step 3): scipy's
 // idctn(type=2, norm="ortho"), numpy's irfft2(norm="ortho") and ifft2(ifftshift(F)).real, evaluated
 // as separable sums over the kept coefficients only and on the cells asked for only (a tile of its
@@ -25,50 +27,73 @@ function dctBasis(N: number, K: number, c0: number, w: number): Float64Array {
   return out;
 }
 
+export type IdctMode = "auto" | "sums" | "fft";
+
+/** The inverse DCT along one axis of `nvec` vectors of `klen` coefficients (row-major nvec x klen)
+ * of length-n transforms, at cells [c0, c0 + w): nvec x w. By plain sums or by FFT, whichever
+ * costs less (or as `mode` says). */
+function idctAxis(inp: Float64Array, nvec: number, klen: number, n: number, c0: number, w: number, mode: IdctMode): Float64Array {
+  const out = new Float64Array(nvec * w);
+  const useFft = mode === "fft" || (mode === "auto" && fftCost(nvec, n, w) < sumsCost(nvec, klen, w));
+  if (!useFft) {
+    const basis = dctBasis(n, klen, c0, w);
+    for (let v = 0; v < nvec; v++) {
+      const o = v * w;
+      for (let k = 0; k < klen; k++) {
+        const x = inp[v * klen + k];
+        if (x === 0) continue;
+        const b = k * w;
+        for (let c = 0; c < w; c++) out[o + c] += x * basis[b + c];
+      }
+    }
+    return out;
+  }
+  const dct = new Dct3(n);
+  const y1 = new Float64Array(n);
+  const y2 = new Float64Array(n);
+  for (let v = 0; v < nvec; v += 2) {
+    const two = v + 1 < nvec;
+    dct.run(inp.subarray(v * klen, (v + 1) * klen), klen, two ? inp.subarray((v + 1) * klen, (v + 2) * klen) : null, klen, y1, two ? y2 : null);
+    out.set(y1.subarray(c0, c0 + w), v * w);
+    if (two) out.set(y2.subarray(c0, c0 + w), (v + 1) * w);
+  }
+  return out;
+}
+
+function sumsCost(nvec: number, klen: number, w: number): number {
+  return nvec * klen * w;
+}
+
+function fftCost(nvec: number, n: number, w: number): number {
+  return Math.ceil(nvec / 2) * Dct3.cost(n) + nvec * w;
+}
+
+function axisCost(nvec: number, klen: number, n: number, w: number): number {
+  return Math.min(sumsCost(nvec, klen, w), fftCost(nvec, n, w));
+}
+
+function transpose(a: Float64Array, rows: number, cols: number): Float64Array {
+  const t = new Float64Array(a.length);
+  for (let r = 0; r < rows; r++) for (let c = 0; c < cols; c++) t[c * rows + r] = a[r * cols + c];
+  return t;
+}
+
 /** out (h x w) += the inverse orthonormal DCT-II of the coefficients g (a dense K x L corner of the
  * N x M spectrum, row-major), at rows [r0, r0 + h) and columns [c0, c0 + w) of the N x M grid. */
 export function addIdct(out: Float64Array, g: Float64Array, K: number, L: number, N: number, M: number,
-  r0: number, h: number, c0: number, w: number): void {
+  r0: number, h: number, c0: number, w: number, mode: IdctMode = "auto"): void {
   if (K === 0 || L === 0) return;
-  const pr = dctBasis(N, K, r0, h); // K x h
-  const pc = dctBasis(M, L, c0, w); // L x w
-  // Order the two passes for the smaller cost: rows first (h K L + h w L) or columns (K L w + h w K).
-  if (h * K * L + h * w * L <= K * L * w + h * w * K) {
-    const t = new Float64Array(h * L); // t = pr^T g
-    for (let k = 0; k < K; k++) {
-      for (let r = 0; r < h; r++) {
-        const p = pr[k * h + r];
-        if (p === 0) continue;
-        for (let l = 0; l < L; l++) t[r * L + l] += p * g[k * L + l];
-      }
-    }
-    for (let r = 0; r < h; r++) {
-      for (let l = 0; l < L; l++) {
-        const v = t[r * L + l];
-        if (v === 0) continue;
-        const o = r * w;
-        const b = l * w;
-        for (let c = 0; c < w; c++) out[o + c] += v * pc[b + c];
-      }
-    }
+  // Columns first (L vectors along the N rows, then h vectors along the M columns) or rows first.
+  const columnsFirst = axisCost(L, K, N, h) + axisCost(h, L, M, w) <= axisCost(K, L, M, w) + axisCost(w, K, N, h);
+  let result: Float64Array;
+  if (columnsFirst) {
+    const t = idctAxis(transpose(g, K, L), L, K, N, r0, h, mode); // L x h
+    result = idctAxis(transpose(t, L, h), h, L, M, c0, w, mode); // h x w
   } else {
-    const u = new Float64Array(K * w); // u = g pc
-    for (let k = 0; k < K; k++) {
-      for (let l = 0; l < L; l++) {
-        const v = g[k * L + l];
-        if (v === 0) continue;
-        for (let c = 0; c < w; c++) u[k * w + c] += v * pc[l * w + c];
-      }
-    }
-    for (let k = 0; k < K; k++) {
-      for (let r = 0; r < h; r++) {
-        const p = pr[k * h + r];
-        const o = r * w;
-        const b = k * w;
-        for (let c = 0; c < w; c++) out[o + c] += p * u[b + c];
-      }
-    }
+    const u = idctAxis(g, K, L, M, c0, w, mode); // K x w
+    result = transpose(idctAxis(transpose(u, K, w), w, K, N, r0, h, mode), w, h); // h x w
   }
+  for (let k = 0; k < out.length; k++) out[k] += result[k];
 }
 
 /** out (rows x cols) = irfft2(F, s=(rows, cols), norm="ortho") for F of shape rows x (cols//2 + 1)
