@@ -80,7 +80,8 @@ function contextMask(p: Uint8Array, rows: number, cols: number, firstSeed: boole
   const nn = new Float64Array(256);
   const left1 = new Float64Array(256);
   const ctx = new Uint8Array(nStripes * w);
-  const others: number[] = [];
+  const padA = new Uint8Array(w + 4);
+  const padB = new Uint8Array(w + 4);
   for (let t = first; t < L; t++) {
     // The lines of this step, stripe by stripe: line t of stripe s is line s*L + t.
     let m = 0; // cells this step
@@ -91,13 +92,12 @@ function contextMask(p: Uint8Array, rows: number, cols: number, firstSeed: boole
       if (t === 0) {
         ctx.fill(0, base, base + w);
       } else {
-        const a = (i - 1) * w;
-        const b = (t >= 2 ? i - 2 : i - 1) * w;
+        // Lines A (t-1) and B (t-2, or t-1 again for t = 1), padded with two zeros each side.
+        padA.set(lines.subarray((i - 1) * w, i * w), 2);
+        padB.set(lines.subarray((t >= 2 ? i - 2 : i - 1) * w, (t >= 2 ? i - 1 : i) * w), 2);
         for (let j = 0; j < w; j++) {
-          const A = (k: number) => (k >= 0 && k < w ? lines[a + k] : 0);
-          const B = (k: number) => (k >= 0 && k < w ? lines[b + k] : 0);
-          ctx[base + j] = A(j - 2) + 2 * A(j - 1) + 4 * A(j) + 8 * A(j + 1) + 16 * A(j + 2)
-            + 32 * B(j - 1) + 64 * B(j) + 128 * B(j + 1);
+          ctx[base + j] = padA[j] + 2 * padA[j + 1] + 4 * padA[j + 2] + 8 * padA[j + 3] + 16 * padA[j + 4]
+            + 32 * padB[j + 1] + 64 * padB[j + 2] + 128 * padB[j + 3];
         }
       }
       m += w;
@@ -109,7 +109,6 @@ function contextMask(p: Uint8Array, rows: number, cols: number, firstSeed: boole
       const l = left1[c];
       for (let k = 0; k < m; k++) if (ctx[k] === c) bits[k] = coder.decodeBit(l);
     }
-    others.length = 0;
     for (let k = 0; k < m; k++) if (ctx[k] !== 0 && ctx[k] !== 255) bits[k] = coder.decodeBit(left1[ctx[k]]);
     for (let q = 0; q < idx.length; q++) lines.set(bits.subarray(q * w, (q + 1) * w), idx[q] * w);
     for (let k = 0; k < m; k++) {

@@ -60,8 +60,12 @@ function idctAxis(inp: Float64Array, nvec: number, klen: number, n: number, c0: 
   return out;
 }
 
+/** Plain sums cost about four times an FFT's estimated flop each (measured in Node 20: a
+ * 337 x 348 grid of 97 x 97 coefficients decodes 2.4x faster by FFT, 804 x 804 of 300 x 300 13x). */
+const SUMS_WEIGHT = 4;
+
 function sumsCost(nvec: number, klen: number, w: number): number {
-  return nvec * klen * w;
+  return SUMS_WEIGHT * nvec * klen * w;
 }
 
 function fftCost(nvec: number, n: number, w: number): number {
@@ -113,8 +117,7 @@ export function irfft2(pos: Int32Array, values: Float64Array, rows: number, cols
     const re = values[2 * k];
     const im = values[2 * k + 1];
     if (re === 0 && im === 0) continue;
-    for (let r = 0; r < rows; r++) {
-      const m = (i * r) % rows;
+    for (let r = 0, m = 0; r < rows; r++, m = m + i >= rows ? m + i - rows : m + i) {
       const c = cr[m];
       const s = sr[m];
       tre[r * J + j] += re * c - im * s;
@@ -135,8 +138,7 @@ export function irfft2(pos: Int32Array, values: Float64Array, rows: number, cols
       im *= twice * norm;
       if (re === 0 && im === 0) continue;
       const o = r * cols;
-      for (let c = 0; c < cols; c++) {
-        const m = (j * c) % cols;
+      for (let c = 0, m = 0; c < cols; c++, m = m + j >= cols ? m + j - cols : m + j) {
         out[o + c] += re * cc[m] - im * sc[m];
       }
     }
@@ -169,8 +171,8 @@ export function ifft2Shifted(pos: Int32Array, values: Float64Array, rows: number
     const du = i - hr;
     const re = values[2 * k];
     const im = values[2 * k + 1];
-    for (let r = 0; r < rows; r++) {
-      const m = (((du * r) % rows) + rows) % rows;
+    const step = ((du % rows) + rows) % rows;
+    for (let r = 0, m = 0; r < rows; r++, m = m + step >= rows ? m + step - rows : m + step) {
       const c = cr[m];
       const sn = sr[m];
       tre[r * J + s] += re * c - im * sn;
@@ -184,8 +186,8 @@ export function ifft2Shifted(pos: Int32Array, values: Float64Array, rows: number
       const im = tim[r * J + s] * norm;
       const dv = js[s] - hc;
       const o = r * cols;
-      for (let c = 0; c < cols; c++) {
-        const m = (((dv * c) % cols) + cols) % cols;
+      const step = ((dv % cols) + cols) % cols;
+      for (let c = 0, m = 0; c < cols; c++, m = m + step >= cols ? m + step - cols : m + step) {
         out[o + c] += re * cc[m] - im * sc[m];
       }
     }
