@@ -1,10 +1,9 @@
-import { Dct3 } from "./dct.js";
-
 // Inverse transforms of a low-passed spectrum (format.md, "Decoding" step 3): scipy's
-// idctn(type=2, norm="ortho"), numpy's irfft2(norm="ortho") and ifft2(ifftshift(F)).real, evaluated
-// as separable sums over the kept coefficients only and on the cells asked for only (a tile of its
-// coded window). The kept corner of the spectrum is small, so the sums cost rows x cols x (kept
-// columns) rather than a full transform's log factor over every frequency.
+// idctn(type=2, norm="ortho"), numpy's irfft2(norm="ortho") and ifft2(ifftshift(F)).real, separable,
+// over the kept corner of the spectrum only. The DCT runs each axis as plain sums or by FFT
+// (dct.ts), whichever costs less for the corner's size, and evaluates only the cells asked for (a
+// tile of its coded window); the DFTs, used by the paper profile and --transform dft only, are sums.
+import { Dct3 } from "./dct.js";
 
 /** cos(2 pi m / period) for m = 0 .. period-1: bases at exact integer phase. */
 function cosTable(_n: number, period: number): Float64Array {

@@ -94,3 +94,19 @@ test("a tiled map refuses progressive decoding and a decode-time cutoff", () => 
   assert.throws(() => decode(data, { maxBytes: 1000 }), { name: "InvalidInputError" });
   assert.throws(() => decode(data, { cutoff: 0.9 }), { name: "InvalidInputError" });
 });
+
+test("a prefix handed over with the file's size decodes as maxBytes does (a page receiving a map)", () => {
+  const data = bytes(join(DIR, "gale_default.dftpc"));
+  const n = Math.floor(data.length / 2);
+  const a = decode(data.subarray(0, n), { fileSize: data.length });
+  const b = decode(data, { maxBytes: n });
+  assert.ok(a.partial && b.partial);
+  assert.deepEqual(a.heights, b.heights);
+});
+
+test("maxCells bounds the grid a file may ask for, before anything is decoded", () => {
+  const data = bytes(join(DIR, "gale_default.dftpc"));
+  assert.throws(() => decode(data, { maxCells: 1000 }), { name: "ResourceLimitError", message: /maxCells/ });
+  assert.throws(() => decode(data, { maxCells: -1 }), { name: "InvalidInputError" });
+  assert.throws(() => decode(data, { cutoff: 0.5 }), { name: "InvalidInputError" });
+});
