@@ -122,6 +122,8 @@ export function decayOf(code: number): number {
   return DECAY[code];
 }
 const tables = new Map<number, Int32Array>();
+const MAX_CACHED_ENTRIES = 1 << 21;
+let cached = 0;
 
 /** The cumulative table (2 max_abs + 2 entries) of the categorical model of scale code `code` over
  * the symbols q + max_abs, q = -max_abs..max_abs: format.md's integer weights f, then constriction's
@@ -158,7 +160,12 @@ export function tableModel(maxAbs: number, code: number, what: string): Int32Arr
     K += f[s];
   }
   cdf[n] = ONE;
-  if (tables.size > 4096) tables.clear();
+  // Bounded by entries, not by tables: a crafted stream of many large alphabets must not pin memory.
+  cached += cdf.length;
+  if (cached > MAX_CACHED_ENTRIES) {
+    tables.clear();
+    cached = cdf.length;
+  }
   tables.set(key, cdf);
   return cdf;
 }

@@ -59,6 +59,8 @@ export function radiusLimit(rows: number, cols: number, cutoff: number): number 
 }
 
 const cache = new Map<string, Prefix>();
+const MAX_CACHED_COEFS = 1 << 22;
+let cachedCoefs = 0;
 
 /** The kept coefficients of a rows x cols grid within `limit` (radiusLimit, or the base layer's). */
 export function prefix(rows: number, cols: number, kind: Transform, limit: number): Prefix {
@@ -160,7 +162,12 @@ export function prefix(rows: number, cols: number, kind: Transform, limit: numbe
     else a = (Math.atan2(cI[k], cJ[k]) + Math.PI) / (2 * Math.PI);
     out.angle[q] = Math.min(1, Math.max(0, a));
   }
-  if (cache.size > 16) cache.clear();
+  // Bounded by coefficients held, not by entries: a crafted file's grids must not pin memory.
+  cachedCoefs += m;
+  if (cache.size >= 16 || cachedCoefs > MAX_CACHED_COEFS) {
+    cache.clear();
+    cachedCoefs = m;
+  }
   cache.set(key, out);
   return out;
 }
