@@ -3,3 +3,4 @@
 export { hypot, prefix, radiusLimit } from "./layout.js";
 export { decayOf, tableModel, bernoulliLeft1 } from "./ans.js";
 export { addIdct } from "./transform.js";
+export { inflate } from "./bytes.js";
