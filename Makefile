@@ -17,6 +17,30 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+	$(MAKE) test-web
+
+# The JavaScript decoder (web/, Node >= 20 and npm): npm ci when node_modules is missing or older than
+# the lockfile, a build (tsc checks, esbuild bundles), then node:test against the Python decoder on
+# files written from ../shared/data into a temporary folder by the venv's python (a few minutes the
+# first time, reused while the codec and web/test/fixtures.py are unchanged).
+WEB_STAMP := web/node_modules/.package-lock.json
+
+$(WEB_STAMP): web/package.json web/package-lock.json
+	@command -v npm >/dev/null || { echo "make test-web needs Node >= 20 and npm"; exit 1; }
+	cd web && npm ci --no-audit --no-fund
+	touch $(WEB_STAMP)
+
+.PHONY: test-web
+test-web: $(STAMP) $(WEB_STAMP)
+	cd web && npm run build
+	cd web && PYTHON=$(abspath $(BIN))/python node test/prepare.mjs
+	cd web && PYTHON=$(abspath $(BIN))/python node --test --test-concurrency=1 test/*.test.mjs
+
+# JS decode speed (M cells/s) in Node against the Python decoder, same run, one core each, on the shared DEMs (~2 min).
+.PHONY: bench-web
+bench-web: $(STAMP) $(WEB_STAMP)
+	cd web && npm run build
+	cd web && PYTHON=$(abspath $(BIN))/python node bench/bench.mjs $(ARGS)
 
 # Bits, error and speed per profile and cutoff (ARGS=--quick for fewer cutoffs and repeats).
 bench: $(STAMP)
@@ -95,4 +119,4 @@ relocalize: $(STAMP)
 	$(BIN)/python scripts/relocalize.py $(ARGS)
 
 clean:
-	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache .hypothesis
+	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache .hypothesis web/node_modules web/dist

@@ -1,0 +1,123 @@
+// MASK payloads (format.md, "MASK"): which cells are rebuilt, kind 0 (zstd bitmap) and kinds 2 and 3
+// (context-coded lines with ANS), also the nonzero map of a sparse residual.
+import { AnsDecoder, bernoulliLeft1 } from "./ans.js";
+import { inflate, u32 } from "./bytes.js";
+import { CorruptFileError } from "./errors.js";
+
+const POPCOUNT = Uint8Array.from({ length: 256 }, (_, c) => {
+  let n = 0;
+  for (let b = c; b; b >>= 1) n += b & 1;
+  return n;
+});
+
+/** The rows x cols occupancy, row-major, 1 = rebuilt. */
+export function decodeMask(p: Uint8Array, rows: number, cols: number): Uint8Array {
+  if (p.length < 2) throw new CorruptFileError("occupancy mask is truncated");
+  const kind = p[0];
+  if (kind === 0) {
+    const nbytes = Math.ceil((rows * cols) / 8);
+    const raw = inflate(p.subarray(2), nbytes, "occupancy mask");
+    if (raw.length !== nbytes) throw new CorruptFileError("occupancy mask has the wrong size for the grid");
+    const out = new Uint8Array(rows * cols);
+    for (let k = 0; k < out.length; k++) out[k] = (raw[k >> 3] >> (7 - (k & 7))) & 1;
+    return out;
+  }
+  if (kind === 2 || kind === 3) return contextMask(p, rows, cols, kind === 3);
+  throw new CorruptFileError(`occupancy mask has unknown coding ${kind}`);
+}
+
+function seedLines(frame: Uint8Array, count: number, w: number): Uint8Array[] {
+  if (count === 0) {
+    if (frame.length) throw new CorruptFileError("occupancy mask has seed lines it does not need");
+    return [];
+  }
+  const raw = inflate(frame, 4 * (w + 2) * count, "occupancy mask's seed lines");
+  if (raw.length % 4) throw new CorruptFileError("occupancy mask's seed lines have a wrong length");
+  const m = raw.length / 4;
+  const value = (i: number) => (raw[i] | (raw[m + i] << 8) | (raw[2 * m + i] << 16) | (raw[3 * m + i] << 24)) >>> 0;
+  const lines: Uint8Array[] = [];
+  let i = 0;
+  for (let s = 0; s < count; s++) {
+    if (i >= m) throw new CorruptFileError("occupancy mask's seed lines are truncated");
+    const k = value(i);
+    if (k < 1 || i + 1 + k > m) throw new CorruptFileError(`occupancy mask's seed line ${s} does not add up to ${w} cells`);
+    let total = 0;
+    for (let r = 0; r < k; r++) total += value(i + 1 + r);
+    if (total !== w) throw new CorruptFileError(`occupancy mask's seed line ${s} does not add up to ${w} cells`);
+    const line = new Uint8Array(w);
+    let at = 0;
+    for (let r = 0; r < k; r++) {
+      const len = value(i + 1 + r);
+      if (r & 1) line.fill(1, at, at + len);
+      at += len;
+    }
+    lines.push(line);
+    i += 1 + k;
+  }
+  if (i !== m) throw new CorruptFileError("occupancy mask's seed lines have trailing data");
+  return lines;
+}
+
+function contextMask(p: Uint8Array, rows: number, cols: number, firstSeed: boolean): Uint8Array {
+  const transposed = p[1];
+  if (transposed !== (rows > cols ? 1 : 0)) throw new CorruptFileError("occupancy mask runs along the wrong axis");
+  const n = transposed ? cols : rows; // lines
+  const w = transposed ? rows : cols; // their length
+  if (p.length < 10) throw new CorruptFileError("occupancy mask is truncated");
+  const stripe = u32(p, 2);
+  const seedBytes = u32(p, 6);
+  if (stripe < 1 || 10 + seedBytes > p.length) throw new CorruptFileError("occupancy mask has a wrong length");
+  const L = Math.min(stripe, n);
+  const nStripes = Math.ceil(n / L);
+  const first = firstSeed ? 1 : 0;
+  const lines = new Uint8Array(n * w);
+  const seeds = seedLines(p.subarray(10, 10 + seedBytes), nStripes - 1 + first, w);
+  for (let k = 0; k < seeds.length; k++) lines.set(seeds[k], (k + 1 - first) * L * w);
+  const coder = new AnsDecoder(p.subarray(10 + seedBytes), "occupancy mask");
+  const pc = new Float64Array(256);
+  for (let c = 0; c < 256; c++) pc[c] = (POPCOUNT[c] + 0.5) / 9;
+  const n1 = new Float64Array(256);
+  const nn = new Float64Array(256);
+  const left1 = new Float64Array(256);
+  const ctx = new Uint8Array(nStripes * w);
+  const padA = new Uint8Array(w + 4);
+  const padB = new Uint8Array(w + 4);
+  for (let t = first; t < L; t++) {
+    // The lines of this step, stripe by stripe: line t of stripe s is line s*L + t.
+    let m = 0; // cells this step
+    const idx: number[] = [];
+    for (let s = 0; s < (t ? nStripes : 1); s++) if (s * L + t < n) idx.push(s * L + t);
+    for (const i of idx) {
+      const base = m;
+      if (t === 0) {
+        ctx.fill(0, base, base + w);
+      } else {
+        // Lines A (t-1) and B (t-2, or t-1 again for t = 1), padded with two zeros each side.
+        padA.set(lines.subarray((i - 1) * w, i * w), 2);
+        padB.set(lines.subarray((t >= 2 ? i - 2 : i - 1) * w, (t >= 2 ? i - 1 : i) * w), 2);
+        for (let j = 0; j < w; j++) {
+          ctx[base + j] = padA[j] + 2 * padA[j + 1] + 4 * padA[j + 2] + 8 * padA[j + 3] + 16 * padA[j + 4]
+            + 32 * padB[j + 1] + 64 * padB[j + 2] + 128 * padB[j + 3];
+        }
+      }
+      m += w;
+    }
+    for (let c = 0; c < 256; c++) left1[c] = bernoulliLeft1((n1[c] + pc[c]) / (nn[c] + 1));
+    const bits = new Uint8Array(m);
+    // Context 0, then 255 (one model each), then every other cell with its own context's model.
+    for (const c of [0, 255]) {
+      const l = left1[c];
+      for (let k = 0; k < m; k++) if (ctx[k] === c) bits[k] = coder.decodeBit(l);
+    }
+    for (let k = 0; k < m; k++) if (ctx[k] !== 0 && ctx[k] !== 255) bits[k] = coder.decodeBit(left1[ctx[k]]);
+    for (let q = 0; q < idx.length; q++) lines.set(bits.subarray(q * w, (q + 1) * w), idx[q] * w);
+    for (let k = 0; k < m; k++) {
+      nn[ctx[k]] += 1;
+      n1[ctx[k]] += bits[k];
+    }
+  }
+  if (!transposed) return lines;
+  const out = new Uint8Array(rows * cols);
+  for (let i = 0; i < n; i++) for (let j = 0; j < w; j++) out[j * cols + i] = lines[i * w + j];
+  return out;
+}

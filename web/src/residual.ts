@@ -1,0 +1,160 @@
+// RESD payloads (format.md, "RESD"): one integer per rebuilt cell, in COEF's chunks, as one sparse
+// chunk (kind 4) or one predicted chunk (kind 5).
+import { AnsDecoder, tableModel } from "./ans.js";
+import { crc32, i32, u16, u32 } from "./bytes.js";
+import { decodeStream, streamEnd } from "./coef.js";
+import { CorruptFileError } from "./errors.js";
+import { decodeMask } from "./mask.js";
+
+/** The residual integers of the rebuilt cells of `mask` (rows x cols), in row-major order. */
+export function decodeResidual(p: Uint8Array, mask: Uint8Array, rows: number, cols: number): Float64Array {
+  let total = 0;
+  for (let k = 0; k < mask.length; k++) total += mask[k];
+  const kind = p.length >= 20 ? u32(p, 16) : -1;
+  if (kind === 4 || kind === 5) {
+    const nchunks = u32(p, 0);
+    const count = u32(p, 4);
+    const nbytes = u32(p, 8);
+    const body = p.subarray(20, 20 + nbytes);
+    if (nchunks !== 1 || count !== total) {
+      throw new CorruptFileError(`coefficient chunk 0 of kind ${kind} must be the stream's only chunk, with all ${total} values`);
+    }
+    if (20 + nbytes !== p.length) throw new CorruptFileError(`residual chunk 0 of kind ${kind} has a wrong length`);
+    if (crc32(body) !== u32(p, 12)) throw new CorruptFileError("residual chunk 0 fails its checksum");
+    return kind === 4 ? sparse(body, mask, rows, cols, total) : predicted(body, mask, rows, cols, total);
+  }
+  const s = decodeStream(p, total, null, null, { name: "residual" });
+  if (!s.ints) throw new CorruptFileError("residual layer holds float values");
+  return s.ints;
+}
+
+function sparse(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, total: number): Float64Array {
+  if (body.length < 4) throw new CorruptFileError("sparse residual is truncated");
+  const L = u32(body, 0);
+  if (4 + L > body.length) throw new CorruptFileError("sparse residual's nonzero map runs past the chunk");
+  const picture = decodeMask(body.subarray(4, 4 + L), rows, cols);
+  const nonzero = new Uint8Array(total); // per rebuilt cell
+  let n = 0;
+  for (let k = 0, c = 0; k < mask.length; k++) {
+    if (picture[k] && !mask[k]) throw new CorruptFileError("sparse residual sets a cell that is not rebuilt");
+    if (mask[k]) {
+      nonzero[c++] = picture[k];
+      n += picture[k];
+    }
+  }
+  const signsAt = body.length - Math.ceil(n / 8);
+  if (signsAt < 4 + L) throw new CorruptFileError("sparse residual has no room for its signs");
+  const region = body.subarray(4 + L, signsAt);
+  const sizes = decodeStream(region, n, null, null, { free: true, name: "sparse residual's magnitude" });
+  if (streamEnd(region) !== region.length) {
+    throw new CorruptFileError("sparse residual's magnitudes do not end where its signs start");
+  }
+  if (!sizes.ints) throw new CorruptFileError("sparse residual's magnitudes are not integers");
+  const out = new Float64Array(total);
+  for (let v = 0, c = 0; c < total; c++) {
+    if (!nonzero[c]) continue;
+    const size = sizes.ints[v];
+    if (size < 0 || size > 2 ** 62) throw new CorruptFileError("sparse residual's magnitudes are out of range");
+    const negative = (body[signsAt + (v >> 3)] >> (7 - (v & 7))) & 1;
+    out[c] = negative ? -(size + 1) : size + 1;
+    v++;
+  }
+  if (n % 8 && body[body.length - 1] & ((1 << (8 - (n % 8))) - 1)) {
+    throw new CorruptFileError("sparse residual has a stray sign bit");
+  }
+  return out;
+}
+
+// Neighbours W, N, NW, NE, WW, NN, NNE as (rows up, columns left).
+const UP = [0, 1, 1, 1, 0, 2, 2];
+const LEFT = [1, 0, 1, -1, 2, 0, -1];
+const ACTIVITY = [2, 2, 1, 1, 1, 1, 0];
+
+function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, total: number): Float64Array {
+  const what = "predicted residual layer";
+  if (body.length < 29) throw new CorruptFileError(`${what} has a wrong length`);
+  const a = Array.from({ length: 7 }, (_, k) => i32(body, 4 * k));
+  const listed = body[28];
+  if (a.some((x) => Math.abs(x) >= 2 ** 24) || listed < 1 || listed > 64 || body.length < 29 + listed) {
+    throw new CorruptFileError(`${what} has an implausible header`);
+  }
+  const codes = new Uint8Array(64);
+  codes.set(body.subarray(29, 29 + listed));
+  const coded: number[] = [];
+  for (let k = 0; k < 64; k++) if (codes[k]) coded.push(k);
+  const at = 29 + listed + 2 * coded.length;
+  if (body.length < at || (body.length - at) % 4) throw new CorruptFileError(`${what} has a wrong length`);
+  const widths = new Int32Array(64);
+  coded.forEach((k, q) => { widths[k] = u16(body, 29 + listed + 2 * q); });
+  if (coded.some((k) => widths[k] > 2 ** 15)) throw new CorruptFileError(`${what} has an implausible header`);
+  let entries = 0;
+  for (const k of coded) entries += 2 * widths[k] + 1;
+  if (entries > 16 * total + 2 ** 19) {
+    throw new CorruptFileError(`${what} asks for larger probability tables than its ${total} values allow`);
+  }
+  const models = coded.map((k) => tableModel(widths[k], codes[k], what));
+  const modelOf: Array<Int32Array | null> = new Array(64).fill(null);
+  coded.forEach((k, q) => { modelOf[k] = models[q]; });
+  const coder = new AnsDecoder(body.subarray(at), what);
+  const V = new Float64Array(rows * cols);
+  const E = new Float64Array(rows * cols);
+  const nb = (g: Float64Array, r: number, c: number, up: number, left: number): number => {
+    if (r === 0 && c === 0) return 0;
+    if (up && r === 0) return g[c - 1];
+    if (!up && c === 0) return g[(r - 1) * cols];
+    const rr = Math.max(r - up, 0);
+    const cc = Math.min(Math.max(c - left, 0), cols - 1);
+    return g[rr * cols + cc];
+  };
+  const buckets: number[][] = Array.from({ length: 64 }, () => []);
+  const cells: number[] = [];
+  for (let k = 0; k < 2 * (rows - 1) + cols; k++) {
+    cells.length = 0;
+    for (const b of buckets) b.length = 0;
+    for (let r = Math.max(0, Math.ceil((k - cols + 1) / 2)); r < rows && 2 * r <= k; r++) {
+      const c = k - 2 * r;
+      const cell = r * cols + c;
+      cells.push(cell);
+      if (!mask[cell]) continue;
+      let act = 0;
+      for (let q = 0; q < 7; q++) if (ACTIVITY[q]) act += ACTIVITY[q] * Math.abs(nb(E, r, c, UP[q], LEFT[q]));
+      let cls = 0;
+      if (act > 0) {
+        const bits = 32 - Math.clz32(act);
+        const s = bits >= 2 ? (act >>> (bits - 2)) & 1 : 0;
+        cls = Math.min(63, 2 * bits - 1 + s);
+      }
+      buckets[cls].push(cell);
+    }
+    for (let cls = 0; cls < 64; cls++) {
+      const model = modelOf[cls];
+      if (!model) continue;
+      const n = 2 * widths[cls] + 1;
+      for (const cell of buckets[cls]) E[cell] = coder.decode(model, n) - widths[cls];
+    }
+    for (const cell of cells) {
+      const r = Math.floor(cell / cols);
+      const c = cell - r * cols;
+      let v: number;
+      if (mask[cell]) {
+        // P = (sum a_k x_k + 2**15) >> 16 exactly: x = 65536 xh + xl splits each product below 2**53.
+        let sh = 0;
+        let sl = 0;
+        for (let q = 0; q < 7; q++) {
+          const x = nb(V, r, c, UP[q], LEFT[q]);
+          const xh = Math.floor(x / 65536);
+          sh += a[q] * xh;
+          sl += a[q] * (x - xh * 65536);
+        }
+        v = sh + Math.floor((sl + 32768) / 65536) + E[cell];
+      } else {
+        v = nb(V, r, c, 0, 1);
+      }
+      if (Math.abs(v) >= 2 ** 31) throw new CorruptFileError(`${what} decodes to values beyond 2**31`);
+      V[cell] = v;
+    }
+  }
+  const out = new Float64Array(total);
+  for (let k = 0, c = 0; k < mask.length; k++) if (mask[k]) out[c++] = V[k];
+  return out;
+}

@@ -1,0 +1,201 @@
+// Inverse transforms of a low-passed spectrum (format.md, "Decoding" step 3): scipy's
+// idctn(type=2, norm="ortho"), numpy's irfft2(norm="ortho") and ifft2(ifftshift(F)).real, separable,
+// over the kept corner of the spectrum only. The DCT runs each axis as plain sums or by FFT
+// (dct.ts), whichever costs less for the corner's size, and evaluates only the cells asked for (a
+// tile of its coded window); the DFTs, used by the paper profile and --transform dft only, are sums.
+import { Dct3 } from "./dct.js";
+
+/** cos(2 pi m / period) for m = 0 .. period-1: bases at exact integer phase. */
+function cosTable(_n: number, period: number): Float64Array {
+  const t = new Float64Array(period);
+  for (let m = 0; m < period; m++) t[m] = Math.cos((2 * Math.PI * m) / period);
+  return t;
+}
+
+/** phi_N(k, n) for k < K and n in cells [c0, c0 + w): a K x w matrix, row-major. */
+function dctBasis(N: number, K: number, c0: number, w: number): Float64Array {
+  const table = cosTable(N, 4 * N);
+  const out = new Float64Array(K * w);
+  const a0 = 1 / Math.sqrt(N);
+  const ak = Math.sqrt(2 / N);
+  for (let k = 0; k < K; k++) {
+    for (let c = 0; c < w; c++) {
+      out[k * w + c] = k === 0 ? a0 : ak * table[(k * (2 * (c0 + c) + 1)) % (4 * N)];
+    }
+  }
+  return out;
+}
+
+export type IdctMode = "auto" | "sums" | "fft";
+
+/** The inverse DCT along one axis of `nvec` vectors of `klen` coefficients (row-major nvec x klen)
+ * of length-n transforms, at cells [c0, c0 + w): nvec x w. By plain sums or by FFT, whichever
+ * costs less (or as `mode` says). */
+function idctAxis(inp: Float64Array, nvec: number, klen: number, n: number, c0: number, w: number, mode: IdctMode): Float64Array {
+  const out = new Float64Array(nvec * w);
+  const useFft = mode === "fft" || (mode === "auto" && fftCost(nvec, n, w) < sumsCost(nvec, klen, w));
+  if (!useFft) {
+    const basis = dctBasis(n, klen, c0, w);
+    for (let v = 0; v < nvec; v++) {
+      const o = v * w;
+      for (let k = 0; k < klen; k++) {
+        const x = inp[v * klen + k];
+        if (x === 0) continue;
+        const b = k * w;
+        for (let c = 0; c < w; c++) out[o + c] += x * basis[b + c];
+      }
+    }
+    return out;
+  }
+  const dct = new Dct3(n);
+  const y1 = new Float64Array(n);
+  const y2 = new Float64Array(n);
+  for (let v = 0; v < nvec; v += 2) {
+    const two = v + 1 < nvec;
+    dct.run(inp.subarray(v * klen, (v + 1) * klen), klen, two ? inp.subarray((v + 1) * klen, (v + 2) * klen) : null, klen, y1, two ? y2 : null);
+    out.set(y1.subarray(c0, c0 + w), v * w);
+    if (two) out.set(y2.subarray(c0, c0 + w), (v + 1) * w);
+  }
+  return out;
+}
+
+/** Plain sums cost about four times an FFT's estimated flop each (measured in Node 20: a
+ * 337 x 348 grid of 97 x 97 coefficients decodes 2.4x faster by FFT, 804 x 804 of 300 x 300 13x). */
+const SUMS_WEIGHT = 4;
+
+function sumsCost(nvec: number, klen: number, w: number): number {
+  return SUMS_WEIGHT * nvec * klen * w;
+}
+
+function fftCost(nvec: number, n: number, w: number): number {
+  return Math.ceil(nvec / 2) * Dct3.cost(n) + nvec * w;
+}
+
+function axisCost(nvec: number, klen: number, n: number, w: number): number {
+  return Math.min(sumsCost(nvec, klen, w), fftCost(nvec, n, w));
+}
+
+function transpose(a: Float64Array, rows: number, cols: number): Float64Array {
+  const t = new Float64Array(a.length);
+  for (let r = 0; r < rows; r++) for (let c = 0; c < cols; c++) t[c * rows + r] = a[r * cols + c];
+  return t;
+}
+
+/** out (h x w) += the inverse orthonormal DCT-II of the coefficients g (a dense K x L corner of the
+ * N x M spectrum, row-major), at rows [r0, r0 + h) and columns [c0, c0 + w) of the N x M grid. */
+export function addIdct(out: Float64Array, g: Float64Array, K: number, L: number, N: number, M: number,
+  r0: number, h: number, c0: number, w: number, mode: IdctMode = "auto"): void {
+  if (K === 0 || L === 0) return;
+  // Columns first (L vectors along the N rows, then h vectors along the M columns) or rows first.
+  const columnsFirst = axisCost(L, K, N, h) + axisCost(h, L, M, w) <= axisCost(K, L, M, w) + axisCost(w, K, N, h);
+  let result: Float64Array;
+  if (columnsFirst) {
+    const t = idctAxis(transpose(g, K, L), L, K, N, r0, h, mode); // L x h
+    result = idctAxis(transpose(t, L, h), h, L, M, c0, w, mode); // h x w
+  } else {
+    const u = idctAxis(g, K, L, M, c0, w, mode); // K x w
+    result = transpose(idctAxis(transpose(u, K, w), w, K, N, r0, h, mode), w, h); // h x w
+  }
+  for (let k = 0; k < out.length; k++) out[k] += result[k];
+}
+
+/** out (rows x cols) = irfft2(F, s=(rows, cols), norm="ortho") for F of shape rows x (cols//2 + 1)
+ * given by its kept entries (flat positions, values real and imaginary interleaved). */
+export function irfft2(pos: Int32Array, values: Float64Array, rows: number, cols: number, out: Float64Array): void {
+  const C = Math.floor(cols / 2) + 1;
+  let J = 0;
+  for (let k = 0; k < pos.length; k++) J = Math.max(J, (pos[k] % C) + 1);
+  const cr = cosTable(rows, rows);
+  const sr = sinTable(rows);
+  // Pass 1: inverse complex DFT along the rows axis, column by column: T (rows x J) complex.
+  const tre = new Float64Array(rows * J);
+  const tim = new Float64Array(rows * J);
+  for (let k = 0; k < pos.length; k++) {
+    const i = Math.floor(pos[k] / C);
+    const j = pos[k] - i * C;
+    const re = values[2 * k];
+    const im = values[2 * k + 1];
+    if (re === 0 && im === 0) continue;
+    for (let r = 0, m = 0; r < rows; r++, m = m + i >= rows ? m + i - rows : m + i) {
+      const c = cr[m];
+      const s = sr[m];
+      tre[r * J + j] += re * c - im * s;
+      tim[r * J + j] += re * s + im * c;
+    }
+  }
+  // Pass 2: the real inverse along the columns axis (Hermitian half: DC and Nyquist taken as real).
+  const cc = cosTable(cols, cols);
+  const sc = sinTable(cols);
+  const norm = 1 / Math.sqrt(rows * cols);
+  for (let r = 0; r < rows; r++) {
+    for (let j = 0; j < J; j++) {
+      let re = tre[r * J + j];
+      let im = tim[r * J + j];
+      const twice = j === 0 || (cols % 2 === 0 && j === cols / 2) ? 1 : 2;
+      if (twice === 1) im = 0;
+      re *= twice * norm;
+      im *= twice * norm;
+      if (re === 0 && im === 0) continue;
+      const o = r * cols;
+      for (let c = 0, m = 0; c < cols; c++, m = m + j >= cols ? m + j - cols : m + j) {
+        out[o + c] += re * cc[m] - im * sc[m];
+      }
+    }
+  }
+}
+
+/** out (rows x cols) = ifft2(ifftshift(F)).real for the fftshifted F given by its kept entries. */
+export function ifft2Shifted(pos: Int32Array, values: Float64Array, rows: number, cols: number, out: Float64Array): void {
+  const cr = cosTable(rows, rows);
+  const cc = cosTable(cols, cols);
+  const sr = sinTable(rows);
+  const sc = sinTable(cols);
+  const hr = Math.floor(rows / 2);
+  const hc = Math.floor(cols / 2);
+  const js: number[] = [];
+  const slot = new Map<number, number>();
+  for (let k = 0; k < pos.length; k++) {
+    const j = pos[k] % cols;
+    if (!slot.has(j)) {
+      slot.set(j, js.length);
+      js.push(j);
+    }
+  }
+  const J = js.length;
+  const tre = new Float64Array(rows * J);
+  const tim = new Float64Array(rows * J);
+  for (let k = 0; k < pos.length; k++) {
+    const i = Math.floor(pos[k] / cols);
+    const s = slot.get(pos[k] - i * cols)!;
+    const du = i - hr;
+    const re = values[2 * k];
+    const im = values[2 * k + 1];
+    const step = ((du % rows) + rows) % rows;
+    for (let r = 0, m = 0; r < rows; r++, m = m + step >= rows ? m + step - rows : m + step) {
+      const c = cr[m];
+      const sn = sr[m];
+      tre[r * J + s] += re * c - im * sn;
+      tim[r * J + s] += re * sn + im * c;
+    }
+  }
+  const norm = 1 / (rows * cols);
+  for (let r = 0; r < rows; r++) {
+    for (let s = 0; s < J; s++) {
+      const re = tre[r * J + s] * norm;
+      const im = tim[r * J + s] * norm;
+      const dv = js[s] - hc;
+      const o = r * cols;
+      const step = ((dv % cols) + cols) % cols;
+      for (let c = 0, m = 0; c < cols; c++, m = m + step >= cols ? m + step - cols : m + step) {
+        out[o + c] += re * cc[m] - im * sc[m];
+      }
+    }
+  }
+}
+
+/** sin(2 pi m / N) for m = 0 .. N-1. */
+function sinTable(n: number): Float64Array {
+  const t = new Float64Array(n);
+  for (let m = 0; m < n; m++) t[m] = Math.sin((2 * Math.PI * m) / n);
+  return t;
+}

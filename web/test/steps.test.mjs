@@ -1,0 +1,43 @@
+// The format's steps where two languages could disagree, against the Python codec: the coefficient
+// order (ties decided by hypot's last bits), the angles' bands, the table models' decays, the
+// inverse DCT (scipy's idctn).
+import assert from "node:assert/strict";
+import { readFileSync } from "node:fs";
+import { join } from "node:path";
+import { test } from "node:test";
+import { addIdct, decayOf, prefix, radiusLimit } from "../dist/internals.mjs";
+import { fixtures } from "./helpers.mjs";
+
+const M = JSON.parse(readFileSync(join(fixtures(), "manifest.json"), "utf8"));
+
+for (const c of M.orders) {
+  test(`coefficient order of a ${c.rows} x ${c.cols} ${c.transform}/${c.storage} grid at cutoff ${c.cutoff} is the writer's`, () => {
+    const kind = c.transform === "dct" ? "dct" : c.storage === "complex64" ? "dft-full" : "dft-half";
+    const p = prefix(c.rows, c.cols, kind, radiusLimit(c.rows, c.cols, c.cutoff));
+    assert.equal(p.pos.length, c.order.length);
+    let moved = 0;
+    for (let k = 0; k < c.order.length; k++) if (p.pos[k] !== c.order[k]) moved++;
+    assert.equal(moved, 0, `${moved} coefficients out of place`);
+    for (const sectors of [1, 4, 16]) {
+      let differ = 0;
+      for (let k = 0; k < c.angle.length; k++) {
+        const band = (a) => Math.min(Math.floor(a * sectors), sectors - 1);
+        if (band(p.angle[k]) !== band(c.angle[k])) differ++;
+      }
+      assert.equal(differ, 0, `${differ} angles in another of ${sectors} sectors`);
+    }
+  });
+}
+
+test("the table models' decays are the writer's (50-digit decimal)", () => {
+  for (let code = 1; code < 256; code++) assert.equal(decayOf(code), M.decays[code], `code ${code}`);
+});
+
+test("the inverse DCT is scipy's idctn(type=2, norm='ortho') within 1e-12", () => {
+  const { rows, cols, coefs, heights } = M.idct;
+  const out = new Float64Array(rows * cols);
+  addIdct(out, Float64Array.from(coefs), rows, cols, rows, cols, 0, rows, 0, cols);
+  let worst = 0;
+  for (let k = 0; k < out.length; k++) worst = Math.max(worst, Math.abs(out[k] - heights[k]));
+  assert.ok(worst < 1e-12, `differs by ${worst}`);
+});
