@@ -65,7 +65,8 @@ let view = null; // the grid now shown: {rows, cols, res, dy, heights, stride, e
 function render() {
   renderer.render(scene, camera);
   state.frames++;
-  if (mesh && state.firstFrameMs === null) state.firstFrameMs = performance.now() - state.started;
+  // Since the page's navigation began (performance's time origin): what a user waits for.
+  if (mesh && state.firstFrameMs === null) state.firstFrameMs = performance.now();
 }
 window.addEventListener("resize", () => {
   camera.aspect = window.innerWidth / window.innerHeight;
@@ -175,7 +176,7 @@ function paint() {
   const { nx, ny, stride, cols, rows, res, dy, heights, exag, valid } = view;
   const colours = mesh.geometry.getAttribute("color").array;
   const diff = state.colour === "error" && state.diff ? state.diff : null;
-  const lim = diff ? Math.max(state.diffMax, 1e-12) : 0;
+  const lim = diff ? Math.max(state.diffScale, 1e-12) : 0;
   const at = (i, j) => (i >= 0 && j >= 0 && i < ny && j < nx && valid[i * nx + j] ? heights[i * stride * cols + j * stride] : NaN);
   for (let i = 0; i < ny; i++) {
     for (let j = 0; j < nx; j++) {
@@ -213,8 +214,8 @@ function legend(diff) {
   }
   ctx.putImageData(img, 0, 0);
   $("legend-title").textContent = diff ? "decoded − original" : "height";
-  $("legend-max").textContent = diff ? `+${metres(state.diffMax)}` : metres(view.zmax);
-  $("legend-min").textContent = diff ? `−${metres(state.diffMax)}` : metres(view.zmin);
+  $("legend-max").textContent = diff ? `+${metres(state.diffScale)}` : metres(view.zmax);
+  $("legend-min").textContent = diff ? `−${metres(state.diffScale)}` : metres(view.zmin);
   $("legend").hidden = false;
 }
 
@@ -472,6 +473,7 @@ async function load() {
     }
   }
   state.final = view.heights;
+  state.doneMs ??= performance.now();
   state.status = "done";
   const ms = header.tiled ? state.stages.reduce((sum, s) => sum + s.ms, 0) : state.stages.at(-1).ms;
   status(`${got.toLocaleString("en")} bytes decoded in ${ms.toFixed(0)} ms (${state.stages.length} stage${state.stages.length > 1 ? "s" : ""})`);
@@ -492,7 +494,10 @@ async function compare(header) {
   }
   state.diff = diff;
   state.diffMax = most;
-  addRow("error_vs_original", "vs original", `max |decoded − original| ${metres(most)}`, most);
+  // The colour bar spans the 99th percentile of |error|: a few worst cells would leave the rest white.
+  const sizes = Float32Array.from(diff.filter((v) => !Number.isNaN(v)), Math.abs).sort();
+  state.diffScale = sizes.length ? sizes[Math.floor(0.99 * (sizes.length - 1))] : 0;
+  addRow("error_vs_original", "vs original", `max |decoded − original| ${metres(most)}; colours to ±${metres(state.diffScale)} (99 %)`, most);
   $("colourby").hidden = false;
 }
 
