@@ -212,7 +212,9 @@ describe("viewer page", () => {
     const size = readFileSync(map).length;
     const { url } = await view(map);
     // About 12 slices of the file, a tenth of a second apart.
-    const { page, problems } = await open(`${url}?rate=${Math.ceil(size / 1.2)}`);
+    const { page, problems } = await open(`${url}?rate=${Math.ceil(size / 1.2)}`, { until: "partial" });
+    await shot(page, "gale-coarse");
+    await page.waitForFunction(() => window.viewer.status === "done", { timeout: 60_000, polling: 100 });
     const got = await page.evaluate(() => ({ stages: window.viewer.stages, coarse: Array.from(window.viewer.coarse ?? []), final: Array.from(window.viewer.final) }));
     const { rows, cols } = JSON.parse(readFileSync(join(fx, "manifest.json"), "utf8")).gale;
     assert.ok(got.stages.length >= 3, `${got.stages.length} stages`);
