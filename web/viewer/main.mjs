@@ -10,6 +10,8 @@ import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 // a vertex per pixel of a laptop's window, and the software renderer of a headless test draws 4 M-cell
 // maps in under a second with it.
 const MAX_VERTICES = 600_000;
+// A tiled map redraws as its tiles decode, at most once in this many milliseconds.
+const TILE_SHOW_MS = 250;
 const HEIGHT_STOPS = [[0, [0.17, 0.31, 0.56]], [0.22, [0.16, 0.56, 0.52]], [0.45, [0.47, 0.72, 0.33]],
   [0.7, [0.83, 0.68, 0.36]], [0.88, [0.62, 0.45, 0.33]], [1, [0.96, 0.95, 0.93]]];
 const ERROR_STOPS = [[0, [0.15, 0.3, 0.75]], [0.5, [0.95, 0.95, 0.95]], [1, [0.8, 0.15, 0.12]]];
@@ -491,6 +493,7 @@ async function load() {
     const heights = fullGrid(g);
     const occupied = [...t.cells.keys()].filter((k) => t.cells[k] > 0);
     let shown = 0;
+    let lastShown = -Infinity;
     for (const k of occupied) {
       const i = Math.floor(k / t.tx);
       const j = k % t.tx;
@@ -502,8 +505,12 @@ async function load() {
       }
       shown++;
       status(`tile ${shown} of ${occupied.length}`);
-      show(g.rows, g.cols, heights, g);
-      await new Promise((resolve) => setTimeout(resolve, 0));
+      // A mesh of the whole grid per tile would cost more than the tiles of a large map: a few a second.
+      if (shown === occupied.length || performance.now() - lastShown > TILE_SHOW_MS) {
+        show(g.rows, g.cols, heights, g);
+        lastShown = performance.now();
+        await new Promise((resolve) => setTimeout(resolve, 0));
+      }
     }
   }
   state.final = view.heights;
