@@ -55,7 +55,7 @@ build_raster(Path(${JSON.stringify(join(ROOT, "..", "shared", "data"))}), Path(s
   server.kill("SIGINT");
   const size = spawnSync(python(), ["-c", "import os,sys; print(os.path.getsize(sys.argv[1]))", map], { env }).stdout.toString().trim();
   console.log(`viewer, ${SIDE} x ${SIDE} mosaic (${size} bytes), ${RUNS} cold loads: first frame ${median(runs.map((r) => r.first)).toFixed(0)} ms, `
-    + `whole map ${median(runs.map((r) => r.done)).toFixed(0)} ms (medians since navigation; stages [bytes, decode ms] of the first: ${JSON.stringify(runs[0].stages)})`);
+    + `whole map ${median(runs.map((r) => r.done)).toFixed(0)} ms (medians since navigation; each: ${runs.map((r) => Math.round(r.first)).join(", ")} ms; stages [bytes, decode ms] of the first: ${JSON.stringify(runs[0].stages)})`);
   console.log(`page timings of the first load (ms since navigation): ${JSON.stringify(runs[0].timings)}`);
   console.log(`screenshot of the first load: ${join(tmpdir(), "dftpcc-first-frame.png")}`);
 } finally {
