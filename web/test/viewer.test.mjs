@@ -245,6 +245,24 @@ describe("viewer page", () => {
     await page.close();
   });
 
+  test("a geographic map with empty cells: cells hidden, degrees shown as degrees", async () => {
+    const { url } = await view(join(fx, "korolev.dftpc"));
+    const { page, problems } = await open(url);
+    const final = await page.evaluate(() => Array.from(window.viewer.final));
+    const ref = f32(join(fx, "korolev.ref.f32"));
+    assert.ok(ref.filter(Number.isNaN).length > 0.1 * ref.length, "the fixture has empty cells");
+    assertSameMap(final.map((v) => (v === null ? NaN : v)), ref, "korolev");
+    assert.match(await page.$eval('#header tr[data-key="resolution_m"]', (e) => e.textContent), /0\.00781\d*° × 0\.00780\d*° of longitude × latitude/);
+    // Drawn in metres on Mars's sphere (3,396 km): 6.7 degrees of longitude at 73 N, 2.7 of latitude.
+    const [w, h] = await page.evaluate(() => window.viewer.sceneSize);
+    assert.ok(w > 110e3 && w < 125e3 && h > 155e3 && h < 168e3, `scene of ${w} x ${h} m`);
+    const px = await pixels(page);
+    assert.ok(px.covered > 0.15 && px.centre > 0.95, JSON.stringify(px));
+    await shot(page, "korolev");
+    assert.deepEqual(problems, []);
+    await page.close();
+  });
+
   test("the error view colours decoded minus original within the stated maximum error", async () => {
     const m = JSON.parse(readFileSync(join(fx, "manifest.json"), "utf8")).gale;
     const info = JSON.parse(readFileSync(join(fx, "gale.info.json"), "utf8"));

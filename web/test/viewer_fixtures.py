@@ -1,7 +1,8 @@
 """Maps and the Python decoder's answers for the viewer's browser tests (web/test/viewer.test.mjs).
 
 ``python web/test/viewer_fixtures.py OUTDIR`` writes, from ../shared/data: ``gale.dftpc`` (untiled),
-``davos_tiled.dftpc`` (tiles of 128 cells), ``damaged.dftpc`` (gale with bytes flipped in its
+``davos_tiled.dftpc`` (tiles of 128 cells), ``korolev.dftpc`` (degrees of
+longitude and latitude, 22 % of the grid empty), ``damaged.dftpc`` (gale with bytes flipped in its
 coefficients), ``notamap.dftpc`` (text), per map ``NAME.ref.f32`` (the Python decoder's heights,
 metres, NaN where empty) and ``NAME.info.json`` (``dftpcc info --json``), and ``manifest.json``.
 """
@@ -19,7 +20,8 @@ import dftpcc
 
 DEMS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "dems"
 MAPS = {"gale": (DEMS / "mars_gale_1m.tif", []),
-        "davos_tiled": (DEMS / "earth_davos_10m.tif", ["--tile-size", "128"])}
+        "davos_tiled": (DEMS / "earth_davos_10m.tif", ["--tile-size", "128"]),
+        "korolev": (DEMS / "mars_korolev_mola.tif", [])}
 
 
 def main(out: Path) -> None:

@@ -109,8 +109,10 @@ function finiteRange(values) {
 
 /** The terrain of a whole grid of heights (NaN where empty), in metres about its centre. */
 function show(rows, cols, heights, geometry) {
-  const res = geometry.resolution;
-  const dy = geometry.dy || res;
+  // The scene is in metres: a geographic grid's degrees become metres on its body's sphere.
+  const [sx, sy] = metresPerUnit(geometry, state.header?.crs);
+  const res = geometry.resolution * sx;
+  const dy = (geometry.dy || geometry.resolution) * sy;
   mark("show");
   const [zmin, zmax] = finiteRange(heights);
   if (!Number.isFinite(zmin)) return;
@@ -119,6 +121,7 @@ function show(rows, cols, heights, geometry) {
   const exag = first ? exaggeration(rows * dy, cols * res, zmax - zmin) : view.exag;
   const zc = first ? (zmin + zmax) / 2 : view.zc;
   view = { rows, cols, res, dy, heights, stride, exag, zc, zmin, zmax, geometry };
+  state.sceneSize = [cols * res, rows * dy];
   const nx = Math.ceil(cols / stride);
   const ny = Math.ceil(rows / stride);
   const pos = new Float32Array(nx * ny * 3);
@@ -259,6 +262,23 @@ function metres(v) {
   return `${v.toLocaleString("en", { maximumFractionDigits: a < 100 ? 3 : 1 })} m`;
 }
 
+/** The semi-major axis (metres) of a geographic CRS, or null for a projected or local one. */
+function geographicRadius(crs) {
+  const wkt = typeof crs?.wkt === "string" ? crs.wkt.trim() : "";
+  if (!/^(GEOGCS|GEOGCRS|GEODCRS)\[/.test(wkt)) return null;
+  const m = /(?:SPHEROID|ELLIPSOID)\["[^"]*",\s*([0-9.eE+]+)/.exec(wkt);
+  return m ? Number(m[1]) : 6378137;
+}
+
+/** Metres per horizontal unit along x and y (1, 1 unless the grid is in degrees). */
+function metresPerUnit(g, crs) {
+  const radius = geographicRadius(crs);
+  if (!radius) return [1, 1];
+  const perDegree = (radius * Math.PI) / 180;
+  const latitude = g.y0 + (g.rows * (g.dy || g.resolution)) / 2;
+  return [perDegree * Math.cos((latitude * Math.PI) / 180), perDegree];
+}
+
 function extentOf(g) {
   const dy = g.dy || g.resolution;
   const us = [0, g.cols * g.resolution];
@@ -280,6 +300,12 @@ function crsText(crs) {
   return keys.length ? { label: JSON.stringify(crs), value: JSON.stringify(crs) } : { label: "none", value: "" };
 }
 
+function cellText(g, crs) {
+  const unit = geographicRadius(crs) ? (v) => `${Number(v.toPrecision(4))}°` : metres;
+  const text = g.dy && g.dy !== g.resolution ? `${unit(g.resolution)} × ${unit(g.dy)}` : unit(g.resolution);
+  return geographicRadius(crs) ? `${text} of longitude × latitude` : text;
+}
+
 function showHeader(header, bytes) {
   const g = header.geometry;
   const p = header.params;
@@ -290,7 +316,7 @@ function showHeader(header, bytes) {
     ["bytes", "file", `${bytes.toLocaleString("en")} bytes, format ${header.version}${header.tiled ? `, ${header.tiles.ty} × ${header.tiles.tx} tiles` : ""}`, bytes],
     ["rows", "grid", `${g.rows.toLocaleString("en")} × ${g.cols.toLocaleString("en")} cells`, g.rows],
     ["cols", null, null, g.cols],
-    ["resolution_m", "cell size", g.dy && g.dy !== g.resolution ? `${metres(g.resolution)} × ${metres(g.dy)}` : metres(g.resolution), g.resolution],
+    ["resolution_m", "cell size", cellText(g, header.crs), g.resolution],
     ["origin", "origin", `${g.x0}, ${g.y0}; angle ${g.angle.toPrecision(4)} rad`, `${g.x0} ${g.y0}`],
     ["extent", "extent", `x ${ext[0].toFixed(2)} … ${ext[2].toFixed(2)}, y ${ext[1].toFixed(2)} … ${ext[3].toFixed(2)}`, ext.join(" ")],
     ["crs", "CRS", crs.label, crs.value],
@@ -362,8 +388,8 @@ function cellAt(x, y) {
   if (row < 0 || col < 0 || row >= rows || col >= cols) return null;
   const height = heights[row * cols + col];
   if (Number.isNaN(height)) return null;
-  const u = (col + 0.5) * res;
-  const v = (row + 0.5) * dy;
+  const u = (col + 0.5) * g.resolution;
+  const v = (row + 0.5) * (g.dy || g.resolution);
   const [c, s] = [Math.cos(g.angle), Math.sin(g.angle)];
   const error = state.diff ? state.diff[row * cols + col] : NaN;
   return { row, col, height, x: g.x0 + c * u - s * v, y: g.y0 + s * u + c * v, error };
