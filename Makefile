@@ -36,11 +36,23 @@ test-web: $(STAMP) $(WEB_STAMP)
 	cd web && PYTHON=$(abspath $(BIN))/python node test/prepare.mjs
 	cd web && PYTHON=$(abspath $(BIN))/python node --test --test-concurrency=1 test/*.test.mjs
 
-# JS decode speed (M cells/s) in Node against the Python decoder, same run, one core each, on the shared DEMs (~2 min).
+# JS decode speed (M cells/s) in Node against the Python decoder, same run, one core each, on the shared DEMs (~2 min);
+# then the viewer's time to first rendered frame of a 4 M-cell mosaic in headless chromium (~2 min).
 .PHONY: bench-web
 bench-web: $(STAMP) $(WEB_STAMP)
 	cd web && npm run build
 	cd web && PYTHON=$(abspath $(BIN))/python node bench/bench.mjs $(ARGS)
+	cd web && PYTHON=$(abspath $(BIN))/python node bench/first_frame.mjs
+
+# The viewer page of `dftpcc view` (web/viewer/) into src/dftpcc/viewer_assets/, which is committed so that
+# pip users need no Node; web/test/viewer.test.mjs fails while the committed copy differs from a fresh build.
+.PHONY: viewer test-viewer
+viewer: $(WEB_STAMP)
+	cd web && node viewer/build.mjs
+
+# Only the viewer's browser tests (make test-web runs them with the rest; needs /usr/bin/chromium).
+test-viewer: $(STAMP) $(WEB_STAMP)
+	cd web && PYTHON=$(abspath $(BIN))/python node --test test/viewer.test.mjs
 
 # Bits, error and speed per profile and cutoff (ARGS=--quick for fewer cutoffs and repeats).
 bench: $(STAMP)

@@ -501,6 +501,13 @@ def _compress_reloc(args: argparse.Namespace, options: dict[str, Any]) -> int:
     return 0
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from .viewer import serve
+
+    return serve(args.input, port=args.port, original=args.original, follow=args.follow, max_cells=args.max_cells,
+                 on_ready=lambda url: print(f"dftpcc view: {url} (Ctrl-C stops)", flush=True))
+
+
 def cmd_recommend(args: argparse.Namespace) -> int:
     from .experiments.relocalize import recommend_file
 
@@ -1093,6 +1100,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_compare)
     _add_growing_parsers(sub, common)
     _add_ros_parsers(sub, common)
+
+    p = sub.add_parser("view", parents=[common], help="see the map in a browser (3D terrain, served on 127.0.0.1)",
+                       description="Serve a page that decodes the map in the browser and shows it as 3D terrain, "
+                                   "with its header and the height under the cursor; add ?rate=BYTES_PER_S to the "
+                                   "address to watch it refine as over a thin link.")
+    p.add_argument("input", help="the .dftpc file")
+    p.add_argument("--port", type=int, default=8765, help="TCP port on 127.0.0.1 (default 8765; 0: any free one)")
+    p.add_argument("--original", help="the cloud the map was made from: the page can colour by decoded minus original")
+    p.add_argument("--follow", action="store_true", help="reload the map in the page whenever its file changes")
+    p.add_argument("--max-cells", type=_positive_int, metavar="N",
+                   help="grid the original for a trusted map whose grid is larger than a file of its size may ask for")
+    p.set_defaults(func=cmd_view)
     return parser
 
 
