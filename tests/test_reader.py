@@ -94,3 +94,25 @@ def test_an_untiled_map_decodes_to_a_cog(tmp_path, monkeypatch):
     with rasterio.open(tmp_path / "bands.tif") as bands:
         c = bands.read(1)
     assert np.array_equal(np.isnan(a), np.isnan(c)) and np.nanmax(np.abs(c.astype(float) - a)) <= 1e-3
+
+
+def test_a_tiled_integer_dem_comes_back_in_its_type_band_by_band(tmp_path):
+    """The band-by-band GeoTIFF writer keeps the source's sample type and nodata as a whole decode does."""
+    rasterio = pytest.importorskip("rasterio")
+    from dftpcc import cli
+
+    from .conftest import data_file
+
+    src = str(data_file("dems/moon_kepler_lola_48m.tif"))
+    m = tmp_path / "k.dftpc"
+    assert cli.main(["compress", src, str(m), "--target-max-error", "0.49", "--tile-size", "128", "-q"]) == 0
+    assert dftpcc.open(m).tiled
+    out = tmp_path / "k.tif"
+    assert cli.main(["decompress", str(m), str(out), "--cog", "-q"]) == 0
+    with rasterio.open(src) as a, rasterio.open(out) as b:
+        assert b.dtypes[0] == a.dtypes[0] == "int16" and b.nodata == a.nodata
+        assert np.array_equal(a.read(1), b.read(1))  # within half a unit: every height rounds back
+    out32 = tmp_path / "k32.tif"
+    assert cli.main(["decompress", str(m), str(out32), "--cog", "--dtype", "float32", "-q"]) == 0
+    with rasterio.open(out32) as c:
+        assert c.dtypes[0] == "float32"

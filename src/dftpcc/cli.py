@@ -299,15 +299,11 @@ def _decompress(args: argparse.Namespace) -> int:
         return _decompress_bag(args)
     if wants_bands(args.input, args.output, format=args.format, cog=args.cog, bbox=args.bbox,
                    cutoff=args.cutoff, max_bytes=args.max_bytes):
-        if args.dtype is not None or args.nodata is not None:
-            raise InvalidInputError(f"{args.output}: a map decoded band by band (--cog, or a large tiled map) is "
-                                    f"written as float32 with NaN nodata; --dtype and --nodata need a region "
-                                    f"(--bbox) or a map decoded whole")
         # A tiled map larger than memory, or a COG: one band of tile rows at a time.
         with _progress(not args.quiet, ("decode",), verbose=args.verbose) as on_stage:
             count = decompress_bands(args.input, args.output, format=args.format, cog=args.cog, force=args.force,
                                      max_cells=args.max_cells, workers=args.workers, scheduler=args.scheduler,
-                                     on_stage=on_stage)
+                                     on_stage=on_stage, dtype=args.dtype, nodata=args.nodata)
         _say(args, f"{args.output}: {count:,} points, written band by band")
         return 0
     if args.topic or args.grid_map or args.local_origin is not None or args.stamp is not None:

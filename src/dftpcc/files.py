@@ -264,7 +264,7 @@ def _tiled(src: Any) -> bool:
 def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
                      cog: bool = False, force: bool = False, max_cells: int | None = None,
                      workers: int | None = None, scheduler: str | None = None,
-                     on_stage: Stage = no_stage) -> int:
+                     on_stage: Stage = no_stage, dtype: str | None = None, nodata: float | None = None) -> int:
     """Decode the map ``src`` one band of rows at a time into ``dst``: a GeoTIFF (a Cloud Optimized
     GeoTIFF with ``cog``), LAS or LAZ. Of a tiled map memory holds one band of tiles, never the map;
     an untiled map keeps its decoded mask and spectrum and rebuilds each band from them.
@@ -277,14 +277,14 @@ def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *
     fmt = format_of(dst, format, output=True)
     if fmt not in stream.STREAM_FORMATS:
         raise InvalidInputError(f"{dst}: band-by-band decoding writes GeoTIFF, LAS or LAZ, not {fmt}")
-    if cog and fmt not in ("tif", "tiff"):
-        raise InvalidInputError(f"{dst}: a Cloud Optimized GeoTIFF is a .tif")
+    if (cog or dtype is not None or nodata is not None) and fmt not in ("tif", "tiff"):
+        raise InvalidInputError(f"{dst}: --cog, --dtype and --nodata apply to a GeoTIFF (.tif) output, not {fmt}")
     check_output(dst, force=force)
     check_executor(workers, scheduler)
     with open_map(src, max_cells=max_cells) as cmap:
         with executor(workers, scheduler) as map_tiles:
             return stream.decompress_bands(cmap, dst, fmt, cog=cog, map_tiles=map_tiles, on_stage=on_stage,
-                                           write=atomic_write)
+                                           write=atomic_write, dtype=dtype, nodata=nodata)
 
 
 def read_dem(src: str | os.PathLike[str], params: Params, *, format: str | None = None,  # noqa: A002

@@ -14,6 +14,7 @@ reads its own blocks from the file (:func:`_code_block`), and only the coded byt
 from __future__ import annotations
 
 import math
+import warnings
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +28,7 @@ from .cluster import serial
 from .format import MapWriter
 from .dem import DEM, Grid, TileGrid
 from .encoder import Stage, check_heights, choose_for_tiles, no_stage
-from .errors import InvalidInputError
+from .errors import InvalidInputError, RasterTypeWarning
 from .fill import fill_empty
 from .params import Params, tile_size_for
 from .rebuild import dem_to_points
@@ -463,19 +464,28 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
 
 def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: bool = False,
                      map_tiles: Map | None = None, on_stage: Stage = no_stage,
-                     write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> int:
+                     write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None],
+                     dtype: str | None = None, nodata: float | None = None) -> int:
     """Decode the map ``cmap`` band by band (of :attr:`~dftpcc.mapfile.CompressedMap.block` rows) into ``dst``
     (GeoTIFF, COG, LAS or LAZ).
 
     A GeoTIFF is decoded and written a block of :data:`BLOCK_TILES` tiles at a time; LAS and LAZ
     a band of tile rows at a time, so that the points keep their row order. Returns the points
-    (valid cells) written.
+    (valid cells) written. A GeoTIFF takes the sample type and nodata value of
+    :func:`~dftpcc.io.geotiff.output_type` (the source raster's where the file's bound allows it, or
+    ``dtype`` and ``nodata``), as a whole decode does.
     """
     if fmt not in STREAM_FORMATS:
         raise InvalidInputError(f"band-by-band decoding writes {', '.join(STREAM_FORMATS)}, not {fmt}")
     size = cmap.block
     grid = cmap.grid
     written = 0
+    if fmt in ("tif", "tiff"):  # checked before the first band is decoded
+        from .io.geotiff import output_type
+
+        sample, empty, note = output_type(cmap.header.stats, dtype=dtype, nodata=nodata)
+        if note:
+            warnings.warn(f"{dst}: {note}", RasterTypeWarning, stacklevel=2)
 
     def bands() -> Iterator[tuple[int, DEM]]:
         for r0, r1 in _bands(grid.rows, size):
@@ -498,7 +508,7 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
     def fill(tmp: Path) -> None:
         nonlocal written
         if fmt in ("tif", "tiff"):
-            written = _write_raster_bands(tmp, grid, cmap.crs, blocks(), cog=cog)
+            written = _write_raster_bands(tmp, grid, cmap.crs, blocks(), cog=cog, sample=sample, empty=empty)
         else:
             written = _write_las_bands(tmp, grid, cmap.crs, bands(), fmt)
 
@@ -507,33 +517,35 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
 
 
 def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], blocks: Iterator[tuple[int, int, DEM]], *,
-                        cog: bool) -> int:
-    """Write decoded windows ``(row, column, DEM)`` into a float32 GeoTIFF (or a COG) through windowed writes."""
+                        cog: bool, sample: str = "float32", empty: float = float("nan")) -> int:
+    """Write decoded windows ``(row, column, DEM)`` into a GeoTIFF (or a COG) of ``sample`` values, empty
+    cells ``empty``, through windowed writes."""
     import rasterio
     import rasterio.shutil
     from rasterio.transform import Affine
     from rasterio.windows import Window
 
-    from .io.geotiff import GEOTIFF_CREATION
+    from .io.geotiff import FLOAT_PREDICTOR, GEOTIFF_CREATION, INTEGER_PREDICTOR, samples
 
     if grid.angle != 0.0:
         raise InvalidInputError("a rotated grid (frame 'oriented') is written as points, not as a GeoTIFF")
     r, dy = grid.resolution, grid.dy
     transform = Affine(r, 0.0, grid.x0, 0.0, -dy, grid.y0 + grid.rows * dy)
     target = path.with_suffix(".strips.tif") if cog else path
+    predictor = INTEGER_PREDICTOR if np.dtype(sample).kind in "iu" else FLOAT_PREDICTOR
     count = 0
     with _gdal_env():
         with rasterio.open(target, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1,
-                           dtype="float32", nodata=float("nan"), transform=transform, crs=crs.get("wkt") or None,
-                           BIGTIFF="IF_SAFER", **GEOTIFF_CREATION) as out:
+                           dtype=sample, nodata=empty, transform=transform, crs=crs.get("wkt") or None,
+                           BIGTIFF="IF_SAFER", **(GEOTIFF_CREATION | {"predictor": predictor})) as out:
             for r0, c0, dem in blocks:
-                values = np.where(dem.mask, dem.heights + grid.z0, np.nan).astype(np.float32)[::-1]
+                values = samples(dem, sample, empty)[::-1]
                 count += int(dem.mask.sum())
                 h, w = values.shape
                 out.write(values, 1, window=Window(c0, grid.rows - r0 - h, w, h))
         if cog:
             try:
-                rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR="3",
+                rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR=str(predictor),
                                      BIGTIFF="IF_SAFER")
             finally:
                 target.unlink(missing_ok=True)

@@ -217,7 +217,7 @@ GEOTIFF_CREATION = {"tiled": True, "blockxsize": 256, "blockysize": 256, "compre
 INTEGER_PREDICTOR, FLOAT_PREDICTOR = 2, 3
 
 
-def _samples(dem: DEM, dtype: str, nodata: float) -> np.ndarray:
+def samples(dem: DEM, dtype: str, nodata: float) -> np.ndarray:
     """The DEM's heights above its datum as ``dtype`` samples, empty cells ``nodata``."""
     values = dem.heights + dem.grid.z0
     kind = np.dtype(dtype).kind
@@ -259,7 +259,7 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
         The file system refused (permissions, disk full), naming ``path``.
     """
     grid: Grid = dem.grid
-    heights = _samples(dem, dtype, nodata)[::-1]
+    heights = samples(dem, dtype, nodata)[::-1]
     c, s = math.cos(grid.angle), math.sin(grid.angle)
     r, dy = grid.resolution, grid.dy
     # Row 0 of the file is the last grid row (largest v): flip v.
