@@ -163,3 +163,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         # A parametrized test is listed by its function: its cases share their cost.
         if item.nodeid in slow or item.nodeid.split("[")[0] in slow:
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture(autouse=True)
+def _kernel_state_kept():
+    """Each test starts with the process's kernel state as the one before left it: a test that makes
+    numba's import fail (or sets DFTPCC_JIT) must not leave later tests without the compiled backend."""
+    from dftpcc import kernels
+
+    state, jit = dict(kernels._state), os.environ.get("DFTPCC_JIT")
+    yield
+    kernels._state.clear()
+    kernels._state.update(state)
+    if jit is None:
+        os.environ.pop("DFTPCC_JIT", None)
+    else:
+        os.environ["DFTPCC_JIT"] = jit

@@ -382,14 +382,16 @@ def test_a_one_shot_call_loads_the_kernels_only_when_it_is_large_enough(monkeypa
     monkeypatch.delenv("DFTPCC_JIT", raising=False)
     points = _patchy_points()
     blob = dftpcc.compress(points, resolution=0.5, cutoff=0.7, backend="compiled")
-    assert Backend.default(kernels.COMPILED_MIN_MAP_POINTS - 1, min_work=kernels.COMPILED_MIN_MAP_POINTS) \
+    assert Backend.default(kernels.COMPILED_MIN_MAP_CELLS - 1, min_work=kernels.COMPILED_MIN_MAP_CELLS) \
         is Backend.default(kernels.COMPILED_MIN_POINTS - 1) is Backend.COMPILED  # loaded already: no cost left
-    for name, call in (("COMPILED_MIN_POINTS", lambda: dftpcc.compress(points, resolution=0.5, cutoff=0.7)),
-                       ("COMPILED_MIN_MAP_POINTS", lambda: dftpcc.decompress(blob))):
+    cells = dftpcc.open(blob).header.cell_count
+    for name, call, work in (("COMPILED_MIN_POINTS", lambda: dftpcc.compress(points, resolution=0.5, cutoff=0.7),
+                              len(points)),
+                             ("COMPILED_MIN_MAP_CELLS", lambda: dftpcc.decompress(blob), cells)):
         monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
         call()
         assert kernels._state["module"] is None, name  # below the threshold: numba not even imported
-        monkeypatch.setattr(kernels, name, len(points))
+        monkeypatch.setattr(kernels, name, work)
         call()
         assert kernels._state["module"] is not None, name
 

@@ -396,7 +396,11 @@ def test_a_huge_finite_bbox_is_clipped_not_overflowed(tile_size, bbox):
     inside = ((whole[:, 0] >= bbox[0]) & (whole[:, 0] <= bbox[2]) & (whole[:, 1] >= bbox[1])
               & (whole[:, 1] <= bbox[3]))
     assert inside.any()
-    np.testing.assert_array_equal(part, whole[inside])
+    if tile_size:  # a tile decodes the same whatever the window
+        np.testing.assert_array_equal(part, whole[inside])
+    else:  # an untiled map's window is rebuilt from its basis vectors alone: the last bits may differ
+        assert part.shape == whole[inside].shape
+        np.testing.assert_allclose(part, whole[inside], rtol=0, atol=1e-9)
 
 
 @pytest.mark.parametrize("resolution", [5e-324, 1e-300, 1e-12])

@@ -396,7 +396,7 @@ def decompress_file(src: Source, dst: Source, *,
         with open(src, "rb") as fh:  # a pipe such as /dev/stdin
             src = _Buffer(fh.read(), str(src))
     with open_map(src, max_bytes=max_bytes, max_cells=max_cells) as cmap, \
-            kernels.use(backend, work=cmap.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS):
+            kernels.use(backend, work=cmap.header.cell_count, min_work=kernels.COMPILED_MIN_MAP_CELLS):
         if raster:  # the sample type and nodata checked before decoding
             from .io.geotiff import output_type
 

@@ -16,8 +16,8 @@ pairwise summation included, and code with constriction's ANS coder, its probabi
 quantized as constriction quantizes them. So the choice is one of speed alone:
 
 - numba installed (the ``fast`` extra) and a call large enough to pay for loading it (a compress of
-  at least :data:`COMPILED_MIN_POINTS` points, a decompress of a map made from at least
-  :data:`COMPILED_MIN_MAP_POINTS`), or the compiled kernels already loaded in this process (a second
+  at least :data:`COMPILED_MIN_POINTS` points, a decompress of a map of at least
+  :data:`COMPILED_MIN_MAP_CELLS` rebuilt cells), or the compiled kernels already loaded in this process (a second
   call, a :class:`~dftpcc.mapbuilder.MapBuilder`, :func:`load`): compiled. A fresh process pays for
   numba's import and the first call of each kernel (0.2-0.3 s with numba's cache warm, seconds on a
   machine's very first run, while numba compiles into its cache beside the package or in
@@ -49,7 +49,7 @@ from ._optional import import_optional
 from .errors import InvalidInputError
 
 __all__ = ["Backend", "use", "current", "load", "rows_of", "kernel", "Kernel", "compiled_module", "Side", "CORES",
-           "SIDE_MIN_CELLS", "COMPILED_MIN_POINTS", "COMPILED_MIN_MAP_POINTS", "JIT_VARIABLE",
+           "SIDE_MIN_CELLS", "COMPILED_MIN_POINTS", "COMPILED_MIN_MAP_CELLS", "JIT_VARIABLE",
            "available_cores"]
 
 #: The environment variable that overrides the automatic choice: ``0`` numpy, ``1`` compiled.
@@ -62,9 +62,11 @@ JIT_VARIABLE = "DFTPCC_JIT"
 #: field's crops (0.7 M points at most, so a longer extrapolation) put it at 3.8 M; the forest's line,
 #: which reaches closer, is the one taken.
 COMPILED_MIN_POINTS = 10_000_000
-#: The same for a decompress, counting the points the map was made from (its header's): decoding the
-#: forest saves less a point (31 ns, the same 0.62 s to load: even at 19.9 M points; the field: 3.1 M).
-COMPILED_MIN_MAP_POINTS = 20_000_000
+#: The same for a decompress, counting the cells it rebuilds (a header's cell count, which the reader
+#: bounds by the file's size; not its point count, which a crafted header may set to anything): decoding
+#: the forest saved 31 ns an original point, 3.6 of them a rebuilt cell (the same run's 58.9 against
+#: 16.3 M points/s), so about 110 ns a cell against the same 0.62 s to load: even at 5.5 M cells.
+COMPILED_MIN_MAP_CELLS = 5_500_000
 
 #: :mod:`dftpcc._compiled` once loaded; whether a load was tried; whether numba can be found.
 _state: dict[str, Any] = {"module": None, "tried": False, "found": None}
@@ -98,11 +100,12 @@ class Backend(enum.Enum):
         docstring): compiled from ``min_work`` points on (:data:`COMPILED_MIN_POINTS` by default);
         ``work=None``: a call of unknown size, compiled only once loaded."""
         jit = os.environ.get(JIT_VARIABLE, "").strip()
-        if jit == "0" or not cls.COMPILED.is_available():
+        if jit == "0":
             return cls.NUMPY
         large = work is not None and work >= (COMPILED_MIN_POINTS if min_work is None else min_work)
-        if jit == "1" or _state["module"] is not None or large:  # loaded: its import is paid already
-            return cls.COMPILED if _load() else cls.NUMPY
+        # A small call looks nothing up (finding numba costs a call more than it decodes in a small map).
+        if (jit == "1" or _state["module"] is not None or large) and cls.COMPILED.is_available():
+            return cls.COMPILED if _load() else cls.NUMPY  # loaded: its import is paid already
         return cls.NUMPY
 
     @classmethod
@@ -180,7 +183,7 @@ def use(backend: Backend | str | None = None, *, work: int | None = None,
     work : int, optional
         Points the call handles, for the default: compiled from ``min_work`` on.
     min_work : int, optional
-        :data:`COMPILED_MIN_POINTS` (compress, the default), or :data:`COMPILED_MIN_MAP_POINTS` (decompress).
+        :data:`COMPILED_MIN_POINTS` (compress, the default), or :data:`COMPILED_MIN_MAP_CELLS` (decompress).
 
     Raises
     ------

@@ -152,12 +152,15 @@ class CompressedMap:
 
     def _kernels(self) -> Any:
         """The kernels' backend for a read of this map: the caller's, or the default for its points."""
-        return kernels.use(work=self.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS)
+        # By the cells it rebuilds, which the reader bounded by the file's size, not by the points a
+        # header says the map was made from: a crafted header must not make a small read load numba.
+        return kernels.use(work=self.header.cell_count, min_work=kernels.COMPILED_MIN_MAP_CELLS)
 
     def _read_dem(self, cutoff: float | None, bbox: Sequence[float] | None,
                   window: tuple[tuple[int, int], tuple[int, int]] | None,
                   map_tiles: Callable[..., list] | None) -> DEM:
-        if cutoff is not None or self._partial or (window is None and self.header.tiles is None):
+        whole = window is None or window == ((0, self.grid.rows), (0, self.grid.cols))
+        if cutoff is not None or self._partial or (whole and self.header.tiles is None):
             # An untiled map whole (its mask decoded beside its spectrum), or its own features: a
             # coarser cutoff, a prefix of the file (decoded whole).
             if self.header.tiles is not None:
@@ -473,7 +476,7 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
         Decode-time cutoff, at least the file's (untiled maps only).
     backend : {'numpy', 'compiled'} or dftpcc.kernels.Backend, optional
         Where the kernels run, the same points either way; by default as :func:`dftpcc.compress`
-        chooses, from :data:`~dftpcc.kernels.COMPILED_MIN_MAP_POINTS` points the map was made from.
+        chooses, from :data:`~dftpcc.kernels.COMPILED_MIN_MAP_CELLS` points the map was made from.
 
     Returns
     -------
@@ -486,5 +489,5 @@ def decompress(data: bytes, *, max_bytes: int | None = None, cutoff: float | Non
     # The bytes' own size sets the decoding budget, as open() does for any file: a small crafted
     # file cannot make this allocate a grid of 2**36 cells.
     with open(bytes(data), max_bytes=max_bytes) as cmap, \
-            kernels.use(backend, work=cmap.header.point_count, min_work=kernels.COMPILED_MIN_MAP_POINTS):
+            kernels.use(backend, work=cmap.header.cell_count, min_work=kernels.COMPILED_MIN_MAP_CELLS):
         return cmap.read_points(cutoff=cutoff)

@@ -43,7 +43,7 @@ from .params import Params
 from .ratecontrol import (CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
                           MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
                           bpp_out_of_reach, coef_budget, cutoffs)
-from .residual import encode_residual, estimated_size, predicted_residual, residual
+from .residual import encode_residual, estimated_size, residual
 from .sums import dot
 
 __all__ = ["choose", "Energy"]
@@ -270,19 +270,22 @@ def _for_rmse(an: Analysis, params: Params) -> Choice | None:
                 first = other
     if first is None:
         return None
-    best = Choice(an, first, b"")
+    # The finalists are ranked by estimates, then coded: the file is the smallest as coded, so the
+    # consistent fill and a residual layer are kept only where they are smaller, as the search keeps them.
+    finalists = [Choice(an, first, b"")]
     size = _coded(an, first)
     if an.refillable:
         refilled = _refilled_for_rmse(an, first, target)
         if refilled is not None:
             other, trial = refilled
-            other_size = _coded(other, trial)
-            if other_size < size:
-                best, size = Choice(other, trial, b""), other_size
+            finalists.append(Choice(other, trial, b""))
+            size = min(size, _coded(other, trial))
+    for choice in finalists:
+        choice.coefs = choice.analysis.encode(choice.trial)
     corrected = _corrected_for_rmse(an, params, first, size)
     if corrected is not None:
-        best = corrected
-    return best
+        finalists.append(corrected)
+    return min(finalists, key=lambda c: c.size)
 
 
 def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: float) -> Choice | None:
