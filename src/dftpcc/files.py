@@ -277,8 +277,10 @@ def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *
     fmt = format_of(dst, format, output=True)
     if fmt not in stream.STREAM_FORMATS:
         raise InvalidInputError(f"{dst}: band-by-band decoding writes GeoTIFF, LAS or LAZ, not {fmt}")
-    if (cog or dtype is not None or nodata is not None) and fmt not in ("tif", "tiff"):
-        raise InvalidInputError(f"{dst}: --cog, --dtype and --nodata apply to a GeoTIFF (.tif) output, not {fmt}")
+    if cog and fmt not in ("tif", "tiff"):
+        raise InvalidInputError(f"{dst}: a Cloud Optimized GeoTIFF is a .tif")
+    if (dtype is not None or nodata is not None) and fmt not in ("tif", "tiff"):
+        raise InvalidInputError(f"{dst}: --dtype and --nodata apply to a GeoTIFF (.tif) output, not {fmt}")
     check_output(dst, force=force)
     check_executor(workers, scheduler)
     with open_map(src, max_cells=max_cells) as cmap:
