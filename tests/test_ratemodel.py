@@ -141,7 +141,7 @@ def test_where_the_model_gives_up_the_search_chooses(gale, monkeypatch):
     params = make_params(resolution=gale.grid.resolution, target_rmse=0.01)
     with ratecontrol.method("search"):
         searched = encode_dem(gale, params)
-    monkeypatch.setattr(ratemodel, "choose", lambda *args: None)
+    monkeypatch.setattr(ratemodel, "predict", lambda *args: None)
     with ratecontrol.tally() as tally:
         fallen = encode_dem(gale, params)
     assert (tally.choices, tally.modelled, tally.fallbacks) == (1, 0, 1)

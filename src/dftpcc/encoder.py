@@ -18,7 +18,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from .sums import dot, weighted_sq_sum
-from . import coding, kernels, occupancy, ratecontrol, spectrum
+from . import coding, kernels, occupancy, ratecontrol, ratemodel, spectrum
 from .cluster import serial
 from .analysis import Analysis, Trial
 from .format import MapWriter, check_grid, entry_bytes
@@ -268,7 +268,7 @@ def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs:
     overhead = _length(mask_blob) + HEADER_ESTIMATE
     for round_ in range(BUDGET_ROUNDS):
         try:
-            choice = ratecontrol.choose(an, params, point_count, overhead,
+            choice = ratemodel.choose(an, params, point_count, overhead,
                                         progress=lambda done: on_stage("encode", done))
         except InvalidInputError:
             # The estimate can exceed a small map's whole header: measure it before giving up.
@@ -312,7 +312,7 @@ def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | 
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
     count = int(dem.mask.sum()) if point_count is None else point_count
-    choice = ratecontrol.choose(an, params, count, HEADER_ESTIMATE)
+    choice = ratemodel.choose(an, params, count, HEADER_ESTIMATE)
     return params.replace(cutoff=choice.trial.cutoff, step=choice.trial.step), choice.analysis.refill_step
 
 

@@ -29,7 +29,7 @@ from .errors import InvalidInputError
 from .params import Params
 from .residual import encode_residual, predicted_residual, residual, residual_step
 
-__all__ = ["Choice", "choose", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES", "METHODS",
+__all__ = ["Choice", "search", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES", "METHODS",
            "method", "Tally", "tally"]
 
 #: Cutoff ratios rate control tries.
@@ -455,45 +455,6 @@ def _search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
     # The search sized candidates with one band layout; the file gets the best per chunk.
     choice.coefs = choice.analysis.encode(choice.trial)
     return choice
-
-
-def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
-           progress: Progress = _no_progress) -> Choice:
-    """Rate control, then (``fill='consistent'``) a second choice at the same cutoff, empty cells
-    refilled; for an RMSE target, then the maps with a residual layer (:func:`corrected_for_rmse`).
-
-    For an RMSE target the step is searched again upwards, refilling at each
-    step tried: a fill consistent with the coded map lowers the error on the
-    occupied cells, so a coarser step meets the target. For the other
-    targets the search is repeated on the analysis refilled at the first
-    choice. The better of the two is kept: the smaller file for an error
-    target, the more accurate one for a size target.
-
-    Parameters
-    ----------
-    point_count : int
-        Points of the original cloud (for a bits-per-point target).
-    fixed_bytes : int
-        Bytes of the file besides its COEF section (for a bits-per-point target).
-    progress : callable, optional
-        Told the fraction done: the first search is 80 % of the work, the refill the rest.
-    """
-    counts = _TALLY.get()
-    if _METHOD.get() == "model":
-        from . import ratemodel  # the model builds on this module's search
-
-        found = ratemodel.choose(an, params, point_count, fixed_bytes)
-        if found is not None:
-            if counts is not None:
-                counts.choices += 1
-                counts.modelled += 1
-            return found
-        if counts is not None:
-            counts.fallbacks += 1
-    found = search(an, params, point_count, fixed_bytes, progress)
-    if counts is not None:
-        counts.choices += 1
-    return found
 
 
 def search(an: Analysis, params: Params, point_count: int, fixed_bytes: int,

@@ -40,13 +40,13 @@ from . import coding
 from .analysis import Analysis, Trial
 from .errors import InvalidInputError
 from .params import Params
-from .ratecontrol import (CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
+from .ratecontrol import (_METHOD, _TALLY, Progress, _no_progress, search, CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
                           MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
                           bpp_out_of_reach, coef_budget, cutoffs)
 from .residual import encode_residual, estimated_size, residual
 from .sums import dot
 
-__all__ = ["choose", "Energy"]
+__all__ = ["choose", "predict", "Energy"]
 
 #: The first values of a cutoff's stream (the largest, lowest frequencies) enter the quantizer's
 #: error exactly; the rest through an evenly strided sample of about :data:`ENERGY_SAMPLE` values,
@@ -168,9 +168,9 @@ class _OutOfReach(InvalidInputError):
     """A size target no cutoff reaches by the estimates: the search's error, not a miss of the model."""
 
 
-def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice | None:
+def predict(an: Analysis, params: Params, point_count: int, fixed_bytes: int) -> Choice | None:
     """Rate control's choice for the target in ``params`` from the model, verified; None where the
-    model does not apply or misses (the caller then searches)."""
+    model does not apply or misses (:func:`choose` then searches)."""
     if params.storage != "quantized":
         return None  # no step to predict: the search tries the cutoffs alone
     budget = coef_budget(params, point_count, fixed_bytes) if params.target_bpp > 0 else 0
@@ -610,3 +610,41 @@ def _predicted_size(q: np.ndarray, coder: str, kept: np.ndarray, to_beat: float 
     if math.isfinite(to_beat) and PREDICTED_SHARE * median_predicted_size(q, kept) >= to_beat:
         return math.inf
     return _estimated_predicted(q, kept)
+
+
+def choose(an: Analysis, params: Params, point_count: int, fixed_bytes: int,
+           progress: Progress = _no_progress) -> Choice:
+    """Rate control (the model first, :func:`predict`; the search where it does not apply or misses,
+    :func:`dftpcc.ratecontrol.search`, or always under ``ratecontrol.method("search")``), then (``fill='consistent'``) a second choice at the same cutoff, empty cells
+    refilled; for an RMSE target, then the maps with a residual layer (:func:`corrected_for_rmse`).
+
+    For an RMSE target the step is searched again upwards, refilling at each
+    step tried: a fill consistent with the coded map lowers the error on the
+    occupied cells, so a coarser step meets the target. For the other
+    targets the search is repeated on the analysis refilled at the first
+    choice. The better of the two is kept: the smaller file for an error
+    target, the more accurate one for a size target.
+
+    Parameters
+    ----------
+    point_count : int
+        Points of the original cloud (for a bits-per-point target).
+    fixed_bytes : int
+        Bytes of the file besides its COEF section (for a bits-per-point target).
+    progress : callable, optional
+        Told the fraction done: the first search is 80 % of the work, the refill the rest.
+    """
+    counts = _TALLY.get()
+    if _METHOD.get() == "model":
+        found = predict(an, params, point_count, fixed_bytes)
+        if found is not None:
+            if counts is not None:
+                counts.choices += 1
+                counts.modelled += 1
+            return found
+        if counts is not None:
+            counts.fallbacks += 1
+    found = search(an, params, point_count, fixed_bytes, progress)
+    if counts is not None:
+        counts.choices += 1
+    return found
