@@ -163,3 +163,12 @@ def test_an_unknown_method_is_refused():
     with pytest.raises(InvalidInputError, match="model, search"):
         with ratecontrol.method("guess"):
             pass
+
+
+def test_a_flat_map_at_a_fine_rmse_target_is_coded_not_a_math_error():
+    """Hypothesis found it: three points at one height (no quantizer error at any step), an RMSE target
+    of 30 micrometres and the consistent fill: the refill's slope was the log of 0."""
+    points = np.array([[0.63696169, 0.26978671, 0.0], [0.04097352, 0.01652764, 0.0], [0.81327024, 0.91275558, 0.0]])
+    sizes = {fill: len(dftpcc.compress(points, resolution=0.44815878227168376, fill=fill, target_rmse=3e-5))
+             for fill in ("smooth", "consistent")}
+    assert sizes["consistent"] <= sizes["smooth"]

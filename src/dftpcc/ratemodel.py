@@ -364,8 +364,10 @@ def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analy
     # quantizer error at that step says little of another: the first guess follows the
     # slope of the map before the refill (log RMSE against log step), then the refills tried.
     energy = Energy(an, first.cutoff)
-    slope = math.log(energy.rmse(first.step * 1.1) / max(energy.rmse(first.step), 1e-300)) / math.log(1.1)
-    step = first.step * (AIM * target / at_first.rmse) ** (1.0 / slope) if slope > 0 else None
+    coarser, here = energy.rmse(first.step * 1.1), energy.rmse(first.step)
+    # A map the step does not change (flat, or every coefficient far above it) has no slope to follow.
+    slope = math.log(coarser / here) / math.log(1.1) if coarser > 0 and here > 0 else 0.0
+    step = first.step * (AIM * target / at_first.rmse) ** (1.0 / slope) if slope > 0 and at_first.rmse > 0 else None
     top = REFILL_STEP_RANGE * first.step
     for _ in range(REFILL_TRIALS):
         if step is None or step <= best[1].step:
