@@ -150,7 +150,13 @@ def test_two_node_processes_over_loopback_with_loss_end_byte_identical(nodes):
         for junk in (b"\x89DL\x01\x01" + bytes(40), b"garbage", bytes(5000)) * 3:
             time.sleep(0.1)
             down_pub.publish(UInt8MultiArray(data=junk))
-        time.sleep(2.0)
+        # A version the rover made from scans still queued when the files first agreed may be on its
+        # way: wait for the ground again. A junk frame applied would leave them apart for good
+        # (every change is checked against the rover's SHA-256).
+        end = time.monotonic() + WAIT_S
+        while time.monotonic() < end and rover_map.read_bytes() != ground_map.read_bytes():
+            assert all(p.poll() is None for p in procs.values()), "a node stopped"
+            time.sleep(0.5)
         assert rover_map.read_bytes() == ground_map.read_bytes()  # nothing of it reached either map
         # A late subscriber gets the map (transient local), the ground's points as float32 x, y, z.
         got = []
