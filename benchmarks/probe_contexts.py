@@ -29,7 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 import dftpcc
-from dftpcc import coding, occupancy, spectrum
+from dftpcc import coding, occupancy, quantizer, spectrum
 from dftpcc.fill import fill_empty
 from dftpcc.grid import fit_grid, rasterize
 from dftpcc.io import read_raster_dem
@@ -58,7 +58,7 @@ def coefficient_bits(heights: np.ndarray, mask: np.ndarray, step: float) -> tupl
     detrended = heights - (plane[0] + plane[1] * cc + plane[2] * rr)
     lay = spectrum.layout("dct", "quantized", heights.shape)
     order, radii, angles = spectrum.kept_order(lay, 0.0)
-    grid_q = coding.quantize(spectrum.forward(fill_empty(detrended, mask, method="smooth"), lay).ravel(),
+    grid_q = quantizer.quantize(spectrum.forward(fill_empty(detrended, mask, method="smooth"), lay).ravel(),
                              step, 0.1).reshape(lay.coef_shape)
     q = grid_q.ravel()[order]
     actual = len(coding.encode_coefficients(q, radius=radii, angle=angles))

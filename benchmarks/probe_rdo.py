@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import dftpcc
-from dftpcc import coding
+from dftpcc import coding, quantizer
 from dftpcc.analysis import Analysis
 from dftpcc.encoder import grid_points
 
@@ -59,11 +59,11 @@ def steps_of(step: float, rule: str, value: float, radius: np.ndarray) -> np.nda
 def quantize(x: np.ndarray, step: float, rule: str, value: float, bands: np.ndarray,
              radius: np.ndarray) -> np.ndarray:
     if rule == "dead zone":
-        return coding.quantize(x, step, value)
+        return quantizer.quantize(x, step, value)
     if rule == "band step":
         per = steps_of(step, rule, value, radius)
         return (np.sign(x) * np.floor(np.abs(x) / per + 0.4)).astype(np.int64)
-    q = coding.quantize(x, step, 0.0)
+    q = quantizer.quantize(x, step, 0.0)
     a = np.abs(x) / step
     for _ in range(2):
         bits = _laplace_bits(q, bands)
@@ -96,7 +96,7 @@ def main() -> int:
         err = (spec.synthesise(q * step) - dem.heights)[dem.mask]
         return math.sqrt(float(np.mean(err * err)))
 
-    if dem_rmse(coding.quantize(x, 1e-9, 0.0), 1e-9) > target:
+    if dem_rmse(quantizer.quantize(x, 1e-9, 0.0), 1e-9) > target:
         print(f"f_c {args.cutoff} alone exceeds the target {1e3 * target:.1f} mm: choose a lower cutoff")
         return 1
     print(f"{args.file}, f_c {args.cutoff}, {n:,} coefficients; target DEM RMSE {1e3 * target:.2f} mm "

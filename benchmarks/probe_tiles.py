@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import dftpcc
-from dftpcc import coding, spectrum
+from dftpcc import coding, quantizer, spectrum
 from dftpcc.fill import fill_empty
 from dftpcc.grid import fit_grid, rasterize
 from dftpcc.io import read_raster_dem
@@ -49,10 +49,10 @@ def code_tile(h: np.ndarray, m: np.ndarray, step: float) -> tuple[int, np.ndarra
     trend = plane[0] + plane[1] * cc + plane[2] * rr
     lay = spectrum.layout("dct", "quantized", (rows, cols))
     order, radii, angles = spectrum.kept_order(lay, 0.0)
-    q = coding.quantize(spectrum.forward(fill_empty(h - trend, m, method="smooth"), lay).ravel()[order], step, 0.1)
+    q = quantizer.quantize(spectrum.forward(fill_empty(h - trend, m, method="smooth"), lay).ravel()[order], step, 0.1)
     size = len(coding.encode_coefficients(q, radius=radii, angle=angles)) + PLANE_BYTES
     coefs = np.zeros(lay.coef_shape)
-    coefs.ravel()[order] = coding.dequantize(q, step)
+    coefs.ravel()[order] = quantizer.dequantize(q, step)
     return size, spectrum.inverse(coefs, lay) + trend
 
 

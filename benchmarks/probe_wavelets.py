@@ -27,7 +27,7 @@ import sys
 import numpy as np
 
 import dftpcc
-from dftpcc import coding
+from dftpcc import quantizer
 from dftpcc.encoder import encode_dem
 from dftpcc.files import dem_from_geotiff
 from dftpcc.fill import fill_empty
@@ -73,18 +73,18 @@ def classes(q: np.ndarray) -> np.ndarray:
 def wavelet_point(pywt, heights: np.ndarray, mask: np.ndarray, step: float) -> tuple[float, float, float]:
     """(RMSE on occupied cells, bits with one model per subband, bits per subband and class)."""
     parts = pywt.wavedec2(heights, WAVELET, mode="periodization", level=LEVELS_OF_WAVELET)
-    q0 = coding.quantize(parts[0], step, DEADZONE)
+    q0 = quantizer.quantize(parts[0], step, DEADZONE)
     low = geometric_bits(np.diff(q0, axis=1, prepend=0))
     plain = contexts = low
-    rebuilt = [coding.dequantize(q0, step)]
+    rebuilt = [quantizer.dequantize(q0, step)]
     for details in parts[1:]:
         level = []
         for band in details:
-            q = coding.quantize(band, step, DEADZONE)
+            q = quantizer.quantize(band, step, DEADZONE)
             plain += geometric_bits(q)
             cls = classes(q)
             contexts += sum(geometric_bits(q[cls == c]) for c in np.unique(cls))
-            level.append(coding.dequantize(q, step))
+            level.append(quantizer.dequantize(q, step))
         rebuilt.append(tuple(level))
     out = pywt.waverec2(rebuilt, WAVELET, mode="periodization")[: heights.shape[0], : heights.shape[1]]
     err = (out - heights)[mask]

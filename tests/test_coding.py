@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import dftpcc
-from dftpcc import coding
+from dftpcc import coding, geometric, quantizer
 from dftpcc.errors import CorruptFileError, InvalidInputError
 
 
@@ -23,8 +23,8 @@ from dftpcc.errors import CorruptFileError, InvalidInputError
        st.floats(1e-3, 10.0), st.floats(0.0, 0.45))
 @settings(max_examples=60, deadline=None)
 def test_quantizer_error_is_bounded(values, step, deadzone):
-    q = coding.quantize(values, step, deadzone)
-    err = np.abs(values - coding.dequantize(q, step))
+    q = quantizer.quantize(values, step, deadzone)
+    err = np.abs(values - quantizer.dequantize(q, step))
     assert (err <= (0.5 + deadzone) * step * (1 + 1e-9) + 1e-9).all()
 
 
@@ -61,11 +61,11 @@ def test_flipped_bit_is_caught():
 
 def test_step_choice_meets_its_target():
     values = np.random.default_rng(0).laplace(scale=0.5, size=4000)
-    step = coding.choose_step(values, target_rmse=0.01, n_cells=10000, deadzone=0.2)
-    err = values - coding.dequantize(coding.quantize(values, step, 0.2), step)
+    step = quantizer.choose_step(values, target_rmse=0.01, n_cells=10000, deadzone=0.2)
+    err = values - quantizer.dequantize(quantizer.quantize(values, step, 0.2), step)
     assert np.sqrt(np.sum(err**2) / 10000) <= 0.01
     # and it is not needlessly fine: twice the step breaks the target
-    err2 = values - coding.dequantize(coding.quantize(values, 2 * step, 0.2), 2 * step)
+    err2 = values - quantizer.dequantize(quantizer.quantize(values, 2 * step, 0.2), 2 * step)
     assert np.sqrt(np.sum(err2**2) / 10000) > 0.01
 
 
@@ -80,9 +80,9 @@ def test_kind_2_chunks_of_the_drafts_are_refused():
     radius, angle = np.linspace(0, 30, values.size), np.zeros(values.size)
     max_abs = int(np.abs(values).max())
     bands = coding.band_ids(radius, angle, 0)
-    lo, codes = coding._band_scales(values, bands)
+    lo, codes = geometric.band_scales(values, bands)
     coder = constriction.stream.stack.AnsCoder()
-    for code, where in reversed(coding._groups(codes[bands - lo])):
+    for code, where in reversed(geometric.code_groups(codes[bands - lo])):
         scale = max(2.0 ** ((code - 128) / 8), 0.05)
         model = constriction.stream.model.QuantizedLaplace(-max_abs - 1, max_abs + 1, 0.0, scale)
         coder.encode_reverse(values[where].astype(np.int32), model)
@@ -97,10 +97,10 @@ def test_kind_2_chunks_of_the_drafts_are_refused():
 def test_table_models_are_fixed_integers():
     # The decay of each scale code is an exact integer: pin a few, so a change
     # in how they are computed cannot slip through.
-    assert coding._decay(128) == 27145  # b = 1: (sqrt(2) - 1) * 65536, floored
-    assert coding._decay(1) == 1637  # b = 0.05 (the floor of the scale)
-    assert coding._decay(255) == 65534
-    w = coding._magnitudes(128)
+    assert geometric.decay(128) == 27145  # b = 1: (sqrt(2) - 1) * 65536, floored
+    assert geometric.decay(1) == 1637  # b = 0.05 (the floor of the scale)
+    assert geometric.decay(255) == 65534
+    w = geometric.magnitude_weights(128)
     assert w[0] == 1 << 32 and w[1] == ((1 << 32) * 27145) >> 16
 
 
@@ -109,7 +109,7 @@ def test_a_chunk_may_not_ask_for_huge_probability_tables():
     # 255 tables of 65,537 symbols would take a third of a second to build.
     values = np.zeros(256, dtype=np.int64)
     values[::2] = np.round(2.0 ** (np.arange(128) / 8.5))  # ~120 distinct band scales
-    assert values.max() <= coding.MAX_ANS_SYMBOL  # so only the table budget rules ANS out
+    assert values.max() <= geometric.MAX_ANS_SYMBOL  # so only the table budget rules ANS out
     radius, angle = np.arange(256) * 8.0, np.zeros(256)  # one band per value with layouts 0 and 1
     blob = coding.encode_coefficients(values, radius=radius, angle=angle)
     # The encoder falls back to zstd for such a chunk ...
@@ -117,9 +117,9 @@ def test_a_chunk_may_not_ask_for_huge_probability_tables():
     np.testing.assert_array_equal(coding.decode_coefficients(blob, 256, radius=radius, angle=angle), values)
     # ... and a crafted ANS chunk asking for them is refused before any is built.
     bands = coding.band_ids(radius, angle, 1)
-    lo, codes = coding._band_scales(values, bands)
+    lo, codes = geometric.band_scales(values, bands)
     side = zstandard.compress(np.maximum(codes, 1).tobytes())
-    payload = struct.pack("<BII", 1, coding.MAX_ANS_SYMBOL, len(side)) + side + b"\0" * 8
+    payload = struct.pack("<BII", 1, geometric.MAX_ANS_SYMBOL, len(side)) + side + b"\0" * 8
     chunk = struct.pack("<IIII", 256, len(payload), zlib.crc32(payload), coding.KIND_ANS_TABLE) + payload
     with pytest.raises(CorruptFileError, match="larger probability tables"):
         coding.decode_coefficients(struct.pack("<I", 1) + chunk, 256, radius=radius, angle=angle)
@@ -144,25 +144,25 @@ def test_few_band_scales_are_stored_raw_and_a_longer_side_is_refused():
 
 def test_the_quantizer_refuses_a_step_whose_integers_would_wrap():
     values = np.array([1.0, -3.0, 250.0, 0.0])
-    finest = coding.finest_step(values)
-    q = coding.quantize(values, finest, 0.1)
+    finest = quantizer.finest_step(values)
+    q = quantizer.quantize(values, finest, 0.1)
     assert q.dtype == np.int64 and 2**61 < np.abs(q).max() < 2**63 and np.sign(q[2]) == 1
-    np.testing.assert_allclose(coding.dequantize(q, finest), values, rtol=1e-12)
+    np.testing.assert_allclose(quantizer.dequantize(q, finest), values, rtol=1e-12)
     for step in (finest / 1.01, 1e-20, 1e-300, 5e-324):
         with pytest.raises(InvalidInputError, match="too fine .* smallest workable step is"):
-            coding.quantize(values, step, 0.1)
+            quantizer.quantize(values, step, 0.1)
 
 
 @given(hnp.arrays(np.float64, st.integers(1, 50), elements=st.floats(-1e15, 1e15)), st.floats(0.0, 0.45))
 @settings(max_examples=60, deadline=None)
 def test_at_the_finest_step_every_integer_fits_and_keeps_its_sign(values, deadzone):
-    step = coding.finest_step(values)
+    step = quantizer.finest_step(values)
     if not step:
         return  # all zeros: any step
-    q = coding.quantize(values, step, deadzone)
+    q = quantizer.quantize(values, step, deadzone)
     assert (np.sign(q) * np.sign(values) >= 0).all()
     # Within a step, up to float64's own rounding of integers this large (a few ulp of the value).
-    assert (np.abs(values - coding.dequantize(q, step)) <= step + 4 * np.spacing(np.abs(values))).all()
+    assert (np.abs(values - quantizer.dequantize(q, step)) <= step + 4 * np.spacing(np.abs(values))).all()
 
 
 @pytest.fixture(scope="module")
@@ -532,7 +532,7 @@ def test_the_residual_layout_is_named_from_its_first_chunk():
 
 @pytest.mark.parametrize("bound", [1e-14, 1e-300])
 def test_residual_integers_that_would_wrap_are_refused(bound):
-    """Issue 41, item 12: residual.residual cast to int64 without the limit coding.quantize has (a cell 1e6 m
+    """Issue 41, item 12: residual.residual cast to int64 without the limit quantizer.quantize has (a cell 1e6 m
     off at a bound of 1e-14 m is 5e19 steps: the cast wrapped to another integer without a word)."""
     from dftpcc.residual import residual
 

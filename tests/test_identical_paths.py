@@ -18,7 +18,7 @@ import zstandard
 import pytest
 import constriction
 
-from dftpcc import coding, kernels, occupancy, spectrum
+from dftpcc import coding, geometric, kernels, occupancy, spectrum
 from dftpcc.dem import DEM, Grid
 from dftpcc.fill import fill_empty, fit_plane
 from dftpcc.grid import BLOCK_POINTS, _cells_of, _xy_extremes, fit_grid, rasterize
@@ -189,11 +189,11 @@ def test_size_estimate_and_groups_match_the_per_value_formulas():
     for layout in range(len(coding.BAND_LAYOUTS)):
         b = coding._Bands.of(q, radius, angle, layout)
         coded = b.per_value > 0
-        scale = coding._scale_of(b.per_value[coded])
+        scale = geometric.scale_of(b.per_value[coded])
         a = np.abs(q[coded]).astype(np.float64)
         t = (np.sqrt(1 + scale * scale) - 1) / scale
         log_p = np.log2((1 - t) / (1 + t)) + a * np.log2(np.maximum(t, 1e-300))
-        expected = 8.0 * len(coding._side_info(b.codes)) - float(np.maximum(log_p, -coding.TABLE_BITS).sum())
+        expected = 8.0 * len(coding._side_info(b.codes)) - float(np.maximum(log_p, -geometric.TABLE_BITS).sum())
         assert coding._estimated_bits(q, b) == expected
         assert b.table_work(7) == int(np.count_nonzero(np.unique(b.per_value))) * 15
         order = np.argsort(b.per_value, kind="stable")
@@ -201,7 +201,7 @@ def test_size_estimate_and_groups_match_the_per_value_formulas():
         present = np.unique(sorted_codes)
         bounds = np.searchsorted(sorted_codes, present).tolist() + [n]
         expected_groups = [(int(c), order[bounds[k]:bounds[k + 1]]) for k, c in enumerate(present) if c > 0]
-        groups = coding._groups(b.per_value)
+        groups = geometric.code_groups(b.per_value)
         assert [c for c, _ in groups] == [c for c, _ in expected_groups]
         assert all(same_bits(g, e) for (_, g), (_, e) in zip(groups, expected_groups))
 

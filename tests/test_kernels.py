@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
-from dftpcc import analysis, coding, fill, grid, kernels, occupancy, sums
+from dftpcc import analysis, coding, fill, geometric, grid, kernels, occupancy, quantizer, sums
 from dftpcc.errors import CorruptFileError, InvalidInputError
 from dftpcc.kernels import Backend
 
@@ -231,15 +231,15 @@ def test_table_coder_words_equal_constriction(jit):
         max_abs = int(rng.choice([1, 2, 3, 20, 255, 300, 9000, 12000, 30000, 200000]))
         groups = []
         for code in sorted(rng.choice(np.arange(1, 256), int(rng.integers(1, 5)), replace=False)):
-            scale = max(1, int(rng.exponential(coding._scale_of(np.array([code], np.uint8))[0] + 0.5)))
+            scale = max(1, int(rng.exponential(geometric.scale_of(np.array([code], np.uint8))[0] + 0.5)))
             q = np.clip(np.round(rng.laplace(0, scale, int(rng.integers(1, 300)))), -max_abs, max_abs)
             q = q.astype(np.int64)
             q[:2] = [max_abs, -max_abs][:q.size]  # both ends of the table
             groups.append((int(code), q + max_abs))
         coder = constriction.stream.stack.AnsCoder()
         for code, symbols in reversed(groups):
-            coder.encode_reverse(symbols.astype(np.int32), coding._build_table_model(max_abs, code))
-        tables = [coding._table_cumulative(max_abs, code) for code, _ in groups]
+            coder.encode_reverse(symbols.astype(np.int32), geometric.build_table_model(max_abs, code))
+        tables = [geometric.table_cumulative(max_abs, code) for code, _ in groups]
         bounds = np.cumsum([0] + [s.size for _, s in groups])
         words = kernels.compiled_module().encode_table_words(np.concatenate([s for _, s in groups]), bounds, tables,
                                                              2 * max_abs + 1)
@@ -273,7 +273,7 @@ def test_coefficient_decoder_gives_constrictions_values(jit):
             continue
         layouts_seen.add(payload[0])
         for b in (coding._Bands.of(q, radius, angle, k) for k in range(len(coding.BAND_LAYOUTS))):
-            if b.table_work(int(np.abs(q).max())) > coding.table_budget(q.size):
+            if b.table_work(int(np.abs(q).max())) > geometric.table_budget(q.size):
                 continue
             forced = coding._encode_ans_with(q, b, int(np.abs(q).max()))
             for on in (True, False):
@@ -648,11 +648,11 @@ def test_trial_figures_equal_numpys(jit):
         values = rng.laplace(0, 10.0 ** rng.uniform(-2, 2), n)
         for step in (1e-3, 0.05, 0.7, 40.0):
             for deadzone in (0.0, 0.2):
-                err = values - coding.dequantize(coding.quantize(values, step, deadzone), step)
-                assert coding._quantization_sq_error.compiled(values, step, deadzone) == float(np.sum(err * err))
+                err = values - quantizer.dequantize(quantizer.quantize(values, step, deadzone), step)
+                assert quantizer.quantization_sq_error.compiled(values, step, deadzone) == float(np.sum(err * err))
     # past 2**63: quantize refuses, and so does the numpy twin that runs instead
-    assert coding._quantization_sq_error.compiled(np.array([1e300, 1.0]), 1e-300, 0.0) is NotImplemented
-    assert coding._quantization_sq_error.compiled(np.array([np.nan]), 1.0, 0.0) is NotImplemented
+    assert quantizer.quantization_sq_error.compiled(np.array([1e300, 1.0]), 1e-300, 0.0) is NotImplemented
+    assert quantizer.quantization_sq_error.compiled(np.array([np.nan]), 1.0, 0.0) is NotImplemented
 
 
 def test_weighted_error_sum_equals_numpys(jit):

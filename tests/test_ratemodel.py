@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import dftpcc
-from dftpcc import coding, occupancy, ratecontrol, ratemodel, residual
+from dftpcc import occupancy, quantizer, ratecontrol, ratemodel, residual
 from dftpcc.analysis import Analysis
 from dftpcc.encoder import encode_dem
 from dftpcc.errors import InvalidInputError
@@ -50,7 +50,7 @@ def test_energy_is_the_rebuilt_error_of_a_full_map(gale, cutoff, factor):
     energy = ratemodel.Energy(an, cutoff)
     step = factor * 0.01
     measured = an.trial(cutoff, step).rmse
-    assert energy.rmse(coding.short_step(step)) == pytest.approx(measured, rel=0.01)
+    assert energy.rmse(quantizer.short_step(step)) == pytest.approx(measured, rel=0.01)
     assert energy.floor <= measured
     found = energy.step_for(1.5 * energy.floor)
     assert found is not None and energy.rmse(found) <= 1.5 * energy.floor < energy.rmse(found * 1.05)

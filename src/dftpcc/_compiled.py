@@ -730,8 +730,8 @@ def _masked_errors(heights, ref, mask, out):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _quantization_sq_error(values, step, offset):  # pragma: no cover - compiled
-    # coding.choose_step's sq_error: np.sum of (v - q * step)**2 with q = sign(v) * floor(|v| / step +
-    # offset) as an int64 (coding.quantize, offset = 0.5 - deadzone), pairwise as np.sum adds; and
+    # quantizer.choose_step's sq_error: np.sum of (v - q * step)**2 with q = sign(v) * floor(|v| / step +
+    # offset) as an int64 (quantizer.quantize, offset = 0.5 - deadzone), pairwise as np.sum adds; and
     # whether every q stayed below 2**63 (else the caller refuses, as quantize does)
     ops = _pairwise_plan(values.size)
     leaves = _leaves(ops)
@@ -1047,7 +1047,7 @@ def _packed_tables(tables: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, np
 def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, tables: list[tuple[int, np.ndarray]],
                        n: int | np.ndarray, table_of: np.ndarray | None = None) -> np.ndarray:
     """The ANS words of groups of symbols 0..n-1 (group g: ``symbols[bounds[g]:bounds[g + 1]]``), each
-    with its table (``coding._table_cumulative``: ``(lo, cumulative)``, a floor of 1 of 2**24 but the
+    with its table (``geometric.table_cumulative``: ``(lo, cumulative)``, a floor of 1 of 2**24 but the
     frequencies whose running sums ``cumulative`` holds, from symbol ``lo``; table ``table_of[g]``, else
     g), pushed as constriction's coder pushes them: the last group first, each group last symbol first.
     ``n``: one alphabet size for all the tables, or one for each."""
@@ -1107,7 +1107,7 @@ def masked_errors(heights: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> tup
 
 
 def quantization_sq_error(values: np.ndarray, step: float, deadzone: float) -> float:
-    """``coding._quantization_sq_error``: the sum of squares of ``values - dequantize(quantize(values,
+    """``quantizer.quantization_sq_error``: the sum of squares of ``values - dequantize(quantize(values,
     step, deadzone), step)`` to numpy's bits; declined where ``quantize`` would refuse (an integer
     past 2**63), so the numpy twin raises as it does."""
     total, ok = _quantization_sq_error(np.ascontiguousarray(values, dtype=np.float64), float(step),

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 
 from .sums import dot
-from . import coding, kernels, spectrum
+from . import coding, kernels, quantizer, spectrum
 from .dem import DEM
 from .fill import fill_empty, fit_plane, footprint, plane_values
 from .params import Params
@@ -191,19 +191,19 @@ class Analysis:
 
     def quantized(self, cutoff: float, step: float) -> np.ndarray:
         """The integers a quantized trial at (cutoff, step) codes, without rebuilding the DEM."""
-        return coding.quantize(self.reals(self.count(cutoff)), coding.short_step(step), self.params.deadzone)
+        return quantizer.quantize(self.reals(self.count(cutoff)), quantizer.short_step(step), self.params.deadzone)
 
     def rebuilt(self, cutoff: float, step: float) -> tuple[np.ndarray, np.ndarray]:
         """The stream a trial at (cutoff, step) codes and the heights the decoder rebuilds from it
         (relative to z0), without measuring them: :meth:`trial` with no errors."""
         n = self.count(cutoff)
-        step = coding.short_step(step)
+        step = quantizer.short_step(step)
         if self.params.storage == "complex64":
             stream = self.coefs[:n].astype(np.complex64)
             decoded = stream.astype(np.complex128)
         else:
             stream = self.quantized(cutoff, step)
-            decoded = coding.dequantize(stream, step)
+            decoded = quantizer.dequantize(stream, step)
             if np.iscomplexobj(self.coefs):
                 decoded = decoded.view(np.complex128)
         return stream, self.synthesise(decoded)
@@ -211,7 +211,7 @@ class Analysis:
     def trial(self, cutoff: float, step: float, *, keep_errors: bool = False) -> Trial:
         """Quantize the coefficients inside ``cutoff`` with ``step`` and rebuild the DEM from them
         (``keep_errors``: with :attr:`Trial.errors`)."""
-        step = coding.short_step(step)
+        step = quantizer.short_step(step)
         stream, heights = self.rebuilt(cutoff, step)
         err, rmse, largest = _trial_errors(heights, self.dem.heights, self.mask)
         out = Trial(cutoff, step, stream, heights, rmse, largest)
@@ -245,7 +245,7 @@ class Analysis:
         dropped = self.reals(self.coefs.size)[reals.size:]
         if self.outside_energy is None:
             raise ValueError("proxy_rmse needs an Analysis that measures its outside energy")
-        err = reals - coding.dequantize(coding.quantize(reals, step, self.params.deadzone), step)
+        err = reals - quantizer.dequantize(quantizer.quantize(reals, step, self.params.deadzone), step)
         total = dot(err, err) + dot(dropped, dropped) + self.outside_energy
         return math.sqrt(total * self.parseval)
 

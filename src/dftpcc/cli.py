@@ -537,7 +537,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def _compress_growable(args: argparse.Namespace) -> int:
     """``compress --growable``: the map written as a growing map with its state, so ``update`` can grow it."""
-    from .mapbuilder import update_file
+    from .growing import update_file
 
     fixed = {"--target-rmse": args.target_rmse, "--target-max-error": args.target_max_error,
              "--target-bpp": args.target_bpp, "--profile": None if args.profile == "compact" else args.profile,
@@ -563,7 +563,7 @@ def _compress_growable(args: argparse.Namespace) -> int:
 
 
 def cmd_update(args: argparse.Namespace) -> int:
-    from .mapbuilder import update_file
+    from .growing import update_file
 
     with _progress(not args.quiet, UPDATE_STAGES, verbose=args.verbose) as on_stage:
         result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,

@@ -1,4 +1,4 @@
-"""Encode stage: quantize the coefficients and entropy-code them.
+"""Encode stage: entropy-code the quantized coefficients (:mod:`dftpcc.quantizer` quantizes them).
 
 Coefficients arrive ordered from low to high frequency. They are cut into
 chunks of geometrically growing length, each coded on its own, so any prefix
@@ -15,32 +15,18 @@ The occupancy mask has its own coder, :mod:`dftpcc.occupancy`.
 
 from __future__ import annotations
 
-import decimal
 import functools
-import math
 import struct
 import zlib
 from typing import Callable, NamedTuple
 
-import warnings
-
 import numpy as np
 import zstandard
 
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore")
-    import constriction
-
-from . import kernels
-from .sums import dot
+from . import geometric
 from .errors import CorruptFileError, InvalidInputError
-from .params import MAX_COORDINATE_M
 
 __all__ = [
-    "quantize",
-    "finest_step",
-    "dequantize",
-    "choose_step",
     "encode_coefficients",
     "estimated_size",
     "decode_coefficients",
@@ -52,7 +38,7 @@ ZSTD_LEVEL = 19
 FIRST_CHUNK = 256
 CHUNK_GROWTH = 2
 #: Chunk header: coefficient count, payload bytes, CRC-32 of the payload.
-_CHUNK = struct.Struct("<IIII")  # count, nbytes, crc32, element kind
+CHUNK_HEAD = struct.Struct("<IIII")  # count, nbytes, crc32, element kind
 #: Element kinds inside a chunk.
 KIND_INT = 0  # zigzag byte planes, zstd
 KIND_COMPLEX64 = 1  # raw little-endian complex64 (the paper)
@@ -66,152 +52,15 @@ KIND_PREDICTED_RESIDUAL = 5  # RESD only, its one chunk: prediction errors by co
 #: per chunk, the one that codes it smallest (side information included):
 #: terrain spectra are often directional (ridges, furrows, slopes).
 BAND_LAYOUTS = ((4.0, 1), (8.0, 1), (8.0, 4), (8.0, 16))
-#: Band scales are sent as 8-bit codes on a log2 grid of 1/SCALE_STEPS octave.
-SCALE_STEPS = 8
-SCALE_BIAS = 128
-#: Smallest band scale used (in quantizer steps); keeps probabilities nonzero.
-MIN_SCALE = 0.05
 #: Band scales are few and small: a fast zstd level codes them as well as a slow one.
 #: zstd level of the side information (a compressor per call: zstandard's are not thread-safe).
 _SIDE_ZSTD_LEVEL = 3
-#: Largest integer the ANS coder takes; a chunk with larger ones falls back
-#: to zstd. The coder gives every integer of the support a nonzero
-#: probability out of 2**24, so a wide support wastes rate on every symbol.
-MAX_ANS_SYMBOL = 1 << 15
 _ANS_HEAD = struct.Struct("<BII")  # band layout, largest |q| in the chunk, number of band codes
 #: Chunks of at most this many values try every band layout and keep the
 #: smallest; longer ones code only the layout whose estimated size is smallest.
 EXACT_LAYOUT_CHOICE = 4096
-#: See :func:`table_budget`: building a table of n symbols costs about 6 ns a symbol.
-TABLE_ENTRIES_PER_VALUE = 16
-TABLE_ENTRIES_PER_CHUNK = 1 << 19
 #: A chunk never holds more coefficients than this (guards allocation on decode).
 MAX_CHUNK_COEFS = 1 << 28
-
-
-#: choose_step stops when the step is known to within this factor.
-STEP_TOLERANCE = 1.02
-#: choose_step evaluates at most about this many coefficients per try.
-STEP_SAMPLE = 32768
-
-
-#: Quantized coefficients are int64: zstd chunks (kind 0) hold any of them,
-#: zigzag-mapped in up to 8 byte planes, and an ANS chunk whose values exceed
-#: MAX_ANS_SYMBOL falls back to kind 0. So the real limit is the quantizer's
-#: own cast: ``|c| / step`` must stay below 2**63, or the integers wrap.
-QUANT_LIMIT = 2.0**63
-#: Significant digits of a smallest workable step or target, as a message states it (rounded up).
-SUGGESTED_DIGITS = 3
-
-
-def quantize(values: np.ndarray, step: float, deadzone: float) -> np.ndarray:
-    """Dead-zone uniform quantizer: integers ``sign(c) * floor(|c|/step + 0.5 - deadzone)``.
-
-    Parameters
-    ----------
-    values : ndarray of float
-        Real coefficients, metres (orthonormal transform).
-    step : float
-        Quantizer step in metres.
-    deadzone : float
-        Rounding offset in steps, in [0, 0.5).
-
-    Raises
-    ------
-    InvalidInputError
-        ``step`` is so fine that an integer would pass :data:`QUANT_LIMIT`
-        (see :func:`finest_step`): the quantizer refuses rather than wrap.
-    """
-    with np.errstate(over="ignore"):
-        q = np.floor(np.abs(values) / step + (0.5 - deadzone))
-    if q.size and not q.max() < QUANT_LIMIT:  # also inf and NaN
-        raise InvalidInputError(
-            f"quantizer step {step:g} m is too fine for coefficients up to {float(np.abs(values).max()):g} m: "
-            f"their integers would pass 2**63 and wrap; the smallest workable step is {finest_step(values):g} m")
-    return (np.sign(values) * q).astype(np.int64)
-
-
-def finest_step(values: np.ndarray) -> float:
-    """The smallest quantizer step (metres, :data:`SUGGESTED_DIGITS` significant digits)
-    at which :func:`quantize` takes ``values`` (metres) without passing :data:`QUANT_LIMIT`,
-    whatever the dead zone; 0 when every value is 0."""
-    peak = float(np.abs(values).max(initial=0.0))
-    if peak == 0.0:
-        return 0.0
-    # A hair above peak / 2**63, so that |c| / step + 0.5 rounds below 2**63.
-    return round_up(max(peak / QUANT_LIMIT * (1 + 1e-9), math.ulp(0.0)))
-
-
-def round_up(value: float, digits: int = SUGGESTED_DIGITS) -> float:
-    """``value`` (> 0) rounded up to ``digits`` significant digits, to state in a message."""
-    short = float(f"{value:.{digits - 1}e}")
-    if short < value:
-        short = float(f"{short + 10.0 ** (math.floor(math.log10(short)) - digits + 1):.{digits - 1}e}")
-    return max(short, value)
-
-
-#: Significant digits of a quantizer step as the file states it.
-STEP_DIGITS = 6
-
-
-def short_step(step: float) -> float:
-    """The largest step a file can state that is not above ``step``: at most
-    :data:`~dftpcc.params.MAX_COORDINATE_M`, in :data:`STEP_DIGITS` significant
-    digits. The file states it in a few characters, and a finer step only
-    lowers the error (rate control may search steps beyond the limit for a
-    huge target; they are held at it)."""
-    if not (math.isfinite(step) and step > 0.0):
-        return step
-    step = min(step, MAX_COORDINATE_M)
-    short = float(f"{step:.{STEP_DIGITS}g}")
-    while short > step:
-        short = float(f"{short - 10.0 ** (math.floor(math.log10(short)) - STEP_DIGITS + 1):.{STEP_DIGITS}g}")
-    return short
-
-
-def dequantize(q: np.ndarray, step: float) -> np.ndarray:
-    """Reconstruction of :func:`quantize`: ``q * step`` (metres)."""
-    return q.astype(np.float64) * step
-
-
-def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzone: float) -> float:
-    """Largest step whose quantization error is at most ``target_rmse`` metres.
-
-    The error is measured exactly in the coefficient domain (Parseval holds
-    for the orthonormal transform) as the RMS over all ``n_cells`` cells of
-    the grid. Found by bisection on a log scale.
-    """
-    values = np.asarray(values, dtype=np.float64)
-    finest = finest_step(values)  # of every value, not only the sample's
-    # On long streams an evenly strided sample predicts the error well and
-    # costs a fraction of the time (the file states the true error anyway).
-    stride = max(1, values.size // STEP_SAMPLE)
-    budget = target_rmse * target_rmse * n_cells / stride
-    values = values[::stride]
-
-    def sq_error(step: float) -> float:
-        return _quantization_sq_error(values, step, deadzone)
-
-    lo = max(target_rmse * 1e-3, finest)
-    hi = max(target_rmse * math.sqrt(12.0 * n_cells), 1e-12, lo)
-    if sq_error(hi) <= budget:
-        return hi
-    for _ in range(40):
-        mid = math.sqrt(lo * hi)
-        if sq_error(mid) <= budget:
-            lo = mid
-        else:
-            hi = mid
-        if hi / lo < STEP_TOLERANCE:
-            break
-    return lo
-
-
-@kernels.kernel("quantization_sq_error")
-def _quantization_sq_error(values: np.ndarray, step: float, deadzone: float) -> float:
-    """The sum of squares (m²) of ``values - dequantize(quantize(values, step, deadzone), step)``."""
-    err = values - dequantize(quantize(values, step, deadzone), step)
-    return dot(err, err)
 
 
 def _chunk_bounds(count: int) -> list[tuple[int, int]]:
@@ -285,157 +134,6 @@ def band_ids(radius: np.ndarray, angle: np.ndarray, layout: int, *, rings: np.nd
     return rings * sectors + sector
 
 
-def _band_scales(q: np.ndarray, bands: np.ndarray) -> tuple[int, np.ndarray]:
-    """First band and 8-bit log-scale codes of the bands in ``bands`` (0 = all zero)."""
-    lo, codes, _ = _band_statistics(q, bands)
-    return lo, codes
-
-
-def _band_statistics(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | None = None
-                     ) -> tuple[int, np.ndarray, np.ndarray]:
-    """:func:`_band_scales` and the number of values in each band; ``magnitudes``:
-    ``np.abs(q).astype(np.float64)``, if known (every layout of a chunk needs them)."""
-    lo = int(bands.min())
-    local = bands - lo
-    n = int(local.max()) + 1
-    if magnitudes is None:
-        magnitudes = np.abs(q).astype(np.float64)
-    mean_abs = np.bincount(local, weights=magnitudes, minlength=n)
-    count = np.bincount(local, minlength=n)
-    # A band's scale is its mean |q| (the maximum-likelihood Laplace scale; the
-    # table models take the geometric distribution of that mean).
-    b = np.divide(mean_abs, count, out=np.zeros(n), where=count > 0)
-    codes = np.where(b > 0, np.clip(np.round(np.log2(np.maximum(b, 1e-12)) * SCALE_STEPS) + SCALE_BIAS, 1, 255), 0)
-    return lo, codes.astype(np.uint8), count
-
-
-def _scale_of(codes: np.ndarray) -> np.ndarray:
-    return np.where(codes > 0, np.maximum(2.0 ** ((codes.astype(np.float64) - SCALE_BIAS) / SCALE_STEPS), MIN_SCALE), 0.0)
-
-
-#: Probabilities of the table models are integers out of 2**TABLE_BITS.
-TABLE_BITS = 24
-
-
-@functools.lru_cache(maxsize=None)
-def _decay(code: int) -> int:
-    """Ratio between successive magnitudes of band scale ``code``, in 1/65536.
-
-    The two-sided geometric ``P(q) ~ t**|q|`` whose mean ``|q|`` is the band's
-    scale b has ``t = (sqrt(1 + b*b) - 1) / b``. Computed in decimal at 50
-    digits (correctly rounded square root and power), then floored: the same
-    integer on every machine, unlike a float ``exp`` or ``pow``.
-    """
-    with decimal.localcontext() as ctx:
-        ctx.prec = 50
-        b = max(decimal.Decimal(2) ** (decimal.Decimal(code - SCALE_BIAS) / SCALE_STEPS),
-                decimal.Decimal(str(MIN_SCALE)))
-        return int(((1 + b * b).sqrt() - 1) / b * (1 << 16))
-
-
-@functools.lru_cache(maxsize=None)
-def _magnitudes(code: int) -> np.ndarray:
-    """Integer weights of |q| = 0, 1, ...: ``w0 = 2**32``, ``w(k) = w(k-1) * decay >> 16``,
-    up to MAX_ANS_SYMBOL or the first zero."""
-    r, w = _decay(code), [1 << 32]
-    while w[-1] and len(w) <= MAX_ANS_SYMBOL:
-        w.append((w[-1] * r) >> 16)
-    return np.array(w, dtype=np.int64)
-
-
-#: Table models of at most this magnitude bound are cached (at most ~70 kB
-#: each, so the cache stays under ~20 MB); wider ones (up to 0.3 MB) are rare,
-#: first chunks only, and built each time.
-CACHED_TABLE_MAX_ABS = 8192
-#: Narrow tables (at most ~8 kB each, mostly constriction's fixed overhead) have a cache of
-#: their own, so the many a map's later chunks use (every band scale at every small bound)
-#: are not pushed out by the wide ones: 2048 of them stay under ~16 MB.
-NARROW_TABLE_MAX_ABS = 255
-NARROW_TABLES_CACHED = 2048
-
-
-def _table_model(max_abs: int, code: int):
-    """constriction model of the values -max_abs..max_abs (symbols 0..2*max_abs) of a band."""
-    if max_abs <= NARROW_TABLE_MAX_ABS:
-        return _narrow_table_model(max_abs, code)
-    if max_abs <= CACHED_TABLE_MAX_ABS:
-        return _cached_table_model(max_abs, code)
-    return _build_table_model(max_abs, code)
-
-
-@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
-def _narrow_table_model(max_abs: int, code: int):
-    return _build_table_model(max_abs, code)
-
-
-@functools.lru_cache(maxsize=256)
-def _cached_table_model(max_abs: int, code: int):
-    return _build_table_model(max_abs, code)
-
-
-@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
-def _table_frequencies(max_abs: int, code: int) -> tuple[int, np.ndarray]:
-    """Frequencies out of 2**24 of the symbols 0..2*max_abs of :func:`_table_model`: 1 + w(|q|) *
-    (2**24 - n) // total for each of the n = 2*max_abs+1 values (total: the sum of their weights),
-    the remainder to q = 0. Returned as the first symbol above the floor of 1 and the frequencies
-    from there: only the |q| with a nonzero weight (a few dozen: the weights decay geometrically)
-    take more than that floor, so only those are computed. Cached (a few dozen integers each): the
-    compiled coder asks for a tile's tables at every scan."""
-    known = _magnitudes(code)[: max_abs + 1]
-    both = np.concatenate([known[:0:-1], known])  # |q| < known.size, around q = 0
-    n = 2 * max_abs + 1
-    free = (1 << TABLE_BITS) - n
-    near = 1 + both * free // int(both.sum())
-    near[known.size - 1] += (1 << TABLE_BITS) - int(near.sum()) - (n - both.size)
-    near.flags.writeable = False  # cached: shared by every caller
-    return max_abs - known.size + 1, near
-
-
-def _build_table_model(max_abs: int, code: int):
-    """See :func:`_table_model` and :func:`_table_frequencies`. The probabilities handed to
-    constriction are those integers over 2**24, exact in float64, so its table is the same
-    everywhere."""
-    lo, near = _table_frequencies(max_abs, code)
-    probabilities = np.full(2 * max_abs + 1, 1.0 / (1 << TABLE_BITS))
-    probabilities[lo: lo + near.size] = near / float(1 << TABLE_BITS)
-    return constriction.stream.model.Categorical(probabilities, perfect=False)
-
-
-def _groups(codes: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """Positions of the values sharing each nonzero scale code, codes ascending.
-
-    Values with one code share one concrete model, so the coder builds each
-    model once instead of once per value (ten times faster on large maps).
-    """
-    order, present, bounds = _grouped(codes)
-    return [(int(code), order[bounds[k]:bounds[k + 1]]) for k, code in enumerate(present.tolist())]
-
-
-def _grouped(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_groups` as arrays: the positions of the values of nonzero code, by code (stable),
-    the codes present, and where each one's positions start (and the end)."""
-    order = np.argsort(codes, kind="stable")
-    # Codes are bytes: a histogram gives the codes present and where each one's run starts.
-    counts = np.bincount(codes, minlength=256)
-    counts[0] = 0
-    present = np.flatnonzero(counts)
-    skip = codes.size - int(counts.sum())  # the zero codes sort first
-    bounds = np.zeros(present.size + 1, dtype=np.int64)
-    np.cumsum(counts[present], out=bounds[1:])
-    return order[skip:], present, bounds
-
-
-@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
-def _table_cumulative(max_abs: int, code: int) -> tuple[int, np.ndarray]:
-    """:func:`_table_frequencies` as its first symbol above the floor and the running sums of the
-    frequencies from there, from 0 (what the compiled coder reads)."""
-    lo, near = _table_frequencies(max_abs, code)
-    cumulative = np.zeros(near.size + 1, dtype=np.int64)
-    np.cumsum(near, out=cumulative[1:])
-    cumulative.flags.writeable = False
-    return lo, cumulative
-
-
 def _side_info(codes: np.ndarray) -> bytes:
     """The band scale codes as a zstd frame, or raw when the frame would not be shorter
     (a few bands: the frame's own header outweighs them). A reader tells them apart by
@@ -456,10 +154,10 @@ class _Bands(NamedTuple):
     @classmethod
     def of(cls, q: np.ndarray, radius: np.ndarray, angle: np.ndarray, layout: int, *,
            magnitudes: np.ndarray | None = None, rings: np.ndarray | None = None) -> _Bands:
-        """The layout's bands of a chunk (``magnitudes``, ``rings``: see :func:`_band_statistics`
+        """The layout's bands of a chunk (``magnitudes``, ``rings``: see :func:`~dftpcc.geometric.band_statistics`
         and :func:`band_ids`, when the caller has them)."""
         bands = band_ids(radius, angle, layout, rings=rings)
-        lo, codes, count = _band_statistics(q, bands, magnitudes)
+        lo, codes, count = geometric.band_statistics(q, bands, magnitudes)
         # The codes the values take are those of the bands holding values: counted per band.
         models = int(np.count_nonzero(np.bincount(codes[count > 0], minlength=256)[1:]))
         return cls(layout, codes, codes[bands - lo], models)
@@ -474,26 +172,8 @@ class _Bands(NamedTuple):
 def _encode_ans_with(q: np.ndarray, b: _Bands, max_abs: int) -> bytes:
     # Zero codes compress well: most high-frequency bands are empty at low rates.
     side = _side_info(b.codes)
-    words = _table_words(q, b.per_value, max_abs)
+    words = geometric.table_words(q, b.per_value, max_abs)
     return _ANS_HEAD.pack(b.layout, max_abs, len(side)) + side + words.astype("<u4").tobytes()
-
-
-def _table_words_compiled(q: np.ndarray, per_value: np.ndarray, max_abs: int) -> np.ndarray:
-    # The same words, without building constriction's tables.
-    order, present, bounds = _grouped(per_value)
-    tables = [_table_cumulative(max_abs, code) for code in present.tolist()]
-    return kernels.compiled_module().encode_table_words(q[order] + max_abs, bounds, tables, 2 * max_abs + 1)
-
-
-@kernels.kernel(_table_words_compiled)
-def _table_words(q: np.ndarray, per_value: np.ndarray, max_abs: int) -> np.ndarray:
-    """The ANS words (uint32) of the values ``q`` (|q| <= ``max_abs``) grouped by their scale codes
-    ``per_value`` (0: not coded), each group with its code's table, codes ascending."""
-    coder = constriction.stream.stack.AnsCoder()
-    # A stack coder decodes last-in first-out: push the groups in reverse.
-    for code, where in reversed(_groups(per_value)):
-        coder.encode_reverse((q[where] + max_abs).astype(np.int32), _table_model(max_abs, code))
-    return coder.get_compressed()
 
 
 def _estimated_bits(q: np.ndarray, b: _Bands, magnitudes: np.ndarray | None = None) -> float:
@@ -503,12 +183,12 @@ def _estimated_bits(q: np.ndarray, b: _Bands, magnitudes: np.ndarray | None = No
     coded = b.per_value > 0
     codes = b.per_value[coded]
     a = np.abs(q[coded]).astype(np.float64) if magnitudes is None else magnitudes[coded]
-    # Probability of q under the two-sided geometric of mean |q| scale (see _decay),
+    # Probability of q under the two-sided geometric of mean |q| scale (see geometric.decay),
     # log2 P(q) = log2((1 - t) / (1 + t)) + |q| log2(t): the two logarithms depend
     # on the scale code alone, so they come from a table of the 255 codes.
-    at_zero, per_step = _log_geometric()
+    at_zero, per_step = geometric.log_geometric()
     log_p = at_zero[codes] + a * per_step[codes]
-    return 8.0 * _side_info_size(b.codes.tobytes()) - float(np.maximum(log_p, -TABLE_BITS).sum())
+    return 8.0 * _side_info_size(b.codes.tobytes()) - float(np.maximum(log_p, -geometric.TABLE_BITS).sum())
 
 
 @functools.lru_cache(maxsize=4096)
@@ -518,37 +198,9 @@ def _side_info_size(raw: bytes) -> int:
     return len(_side_info(np.frombuffer(raw, dtype=np.uint8)))
 
 
-@functools.lru_cache(maxsize=1)
-def _log_geometric() -> tuple[np.ndarray, np.ndarray]:
-    """Per scale code (index 0 unused): ``log2((1 - t) / (1 + t))`` and ``log2(t)`` of
-    :func:`_estimated_bits`, each the same numpy arithmetic it would do value by value."""
-    scale = _scale_of(np.arange(256, dtype=np.uint8))
-    scale[0] = 1.0  # code 0 (an empty band) is never coded; any finite scale keeps the table finite
-    t = (np.sqrt(1 + scale * scale) - 1) / scale
-    return np.log2((1 - t) / (1 + t)), np.log2(np.maximum(t, 1e-300))
-
-
-def check_ans_words(words: np.ndarray, what: str) -> None:
-    """Refuse, with constriction's own message, ANS words that constriction would not take: a last
-    word of 0. The compiled decoders read words as they are, so they ask here first."""
-    if words.size and words[-1] == 0:
-        try:
-            constriction.stream.stack.AnsCoder(words)
-        except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
-            raise CorruptFileError(f"{what} does not decode: {exc}") from None
-        raise CorruptFileError(f"{what} does not decode: its words end in a zero word")
-
-
-def table_budget(count: int) -> int:
-    """Most table entries (models x symbols) an ANS chunk of ``count`` values may ask
-    the decoder to build: models cost time to build, so a crafted chunk must not
-    make a few bytes cost seconds."""
-    return TABLE_ENTRIES_PER_VALUE * count + TABLE_ENTRIES_PER_CHUNK
-
-
 def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: bool) -> bytes | None:
     """The chunk ANS-coded with the best band layout, or None when every layout
-    would need more tables than :func:`table_budget` allows (the caller then uses zstd)."""
+    would need more tables than :func:`~dftpcc.geometric.table_budget` allows (the caller then uses zstd)."""
     max_abs = int(np.abs(q).max()) if q.size else 0
     magnitudes = np.abs(q).astype(np.float64)  # every layout's scales and estimate use them
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
@@ -559,7 +211,7 @@ def _encode_ans(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive
             rings[width] = (radius / width).astype(np.int64)
     candidates = [b for b in (_Bands.of(q, radius, angle, k, magnitudes=magnitudes, rings=rings[BAND_LAYOUTS[k][0]])
                               for k in layouts)
-                  if b.table_work(max_abs) <= table_budget(q.size)]
+                  if b.table_work(max_abs) <= geometric.table_budget(q.size)]
     if not candidates:
         return None
     if len(candidates) > 1 and q.size > EXACT_LAYOUT_CHOICE:
@@ -572,7 +224,7 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     if len(payload) < _ANS_HEAD.size:
         raise CorruptFileError(f"{what} is too short")
     layout, max_abs, side_len = _ANS_HEAD.unpack_from(payload, 0)
-    if layout >= len(BAND_LAYOUTS) or max_abs > MAX_ANS_SYMBOL:
+    if layout >= len(BAND_LAYOUTS) or max_abs > geometric.MAX_ANS_SYMBOL:
         raise CorruptFileError(f"{what} has an implausible header")
     bands = band_ids(radius, angle, layout)
     lo = int(bands.min())
@@ -590,36 +242,7 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     if codes.size != ncodes:
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
     words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
-    return _coded_values(words, codes[bands - lo], max_abs, what)
-
-
-def _coded_values_compiled(words: np.ndarray, per_value: np.ndarray, max_abs: int, what: str) -> np.ndarray:
-    # The same values, the groups sorted and decoded in one compiled pass.
-    present = np.flatnonzero(np.bincount(per_value, minlength=256)[1:]) + 1
-    if present.size * (2 * max_abs + 1) > table_budget(per_value.size):
-        raise CorruptFileError(f"{what} asks for larger probability tables than its {per_value.size} values allow")
-    check_ans_words(words, what)
-    tables = [_table_cumulative(max_abs, code) for code in present.tolist()]
-    return kernels.compiled_module().decode_coded_values(words, per_value, present, tables, 2 * max_abs + 1)
-
-
-@kernels.kernel(_coded_values_compiled)
-def _coded_values(words: np.ndarray, per_value: np.ndarray, max_abs: int, what: str) -> np.ndarray:
-    """The inverse of :func:`_table_words`: the values (int64) whose scale codes are ``per_value``,
-    from ``words``; ``what`` names the chunk in errors."""
-    out = np.zeros(per_value.size, dtype=np.int64)
-    groups = _groups(per_value)
-    if len(groups) * (2 * max_abs + 1) > table_budget(per_value.size):
-        raise CorruptFileError(f"{what} asks for larger probability tables than its {per_value.size} values allow")
-    try:
-        coder = constriction.stream.stack.AnsCoder(words)
-        for code, where in groups:
-            out[where] = coder.decode(_table_model(max_abs, code), where.size) - max_abs
-    except Exception as exc:  # noqa: BLE001 - the coder reports damaged input its own way
-        raise CorruptFileError(f"{what} does not decode: {exc}") from None
-    if np.abs(out).max(initial=0) > max_abs:
-        raise CorruptFileError(f"{what} decodes outside its stated range")
-    return out
+    return geometric.coded_values(words, codes[bands - lo], max_abs, what)
 
 
 def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
@@ -637,7 +260,7 @@ def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
         to [0, 1]); needed by ``coder='ans'``, which models by band.
     coder : {'ans', 'zstd'}
         Entropy coder for integer chunks. ``ans`` falls back to zstd for a
-        chunk whose values exceed :data:`MAX_ANS_SYMBOL`.
+        chunk whose values exceed :data:`~dftpcc.geometric.MAX_ANS_SYMBOL`.
     exhaustive : bool
         Try every band layout per chunk (``False``: the first only; faster,
         for rate-control searches that only need a size estimate).
@@ -682,7 +305,7 @@ def estimated_size(values: np.ndarray, *, radius: np.ndarray | None = None, angl
         bounds = _chunk_bounds(values.size) if progressive else [(0, values.size)] if values.size else []
     else:
         bounds = _free_bounds(values, radius, angle, False)
-    total = 4.0 + _CHUNK.size * len(bounds)
+    total = 4.0 + CHUNK_HEAD.size * len(bounds)
     for start, stop in bounds:
         part = values[start:stop]
         if np.iscomplexobj(part):
@@ -703,7 +326,7 @@ def _estimated_ans_bits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, ex
     """:func:`_estimated_bits` of the chunk's smallest band layout within the table budget (as
     :func:`_encode_ans`), or None where the chunk falls back to zstd."""
     max_abs = int(np.abs(q).max()) if q.size else 0
-    if max_abs > MAX_ANS_SYMBOL:
+    if max_abs > geometric.MAX_ANS_SYMBOL:
         return None
     magnitudes = np.abs(q).astype(np.float64)
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
@@ -714,7 +337,7 @@ def _estimated_ans_bits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, ex
         if width not in rings:
             rings[width] = (radius / width).astype(np.int64)
         b = _Bands.of(q, radius, angle, k, magnitudes=magnitudes, rings=rings[width])
-        if b.table_work(max_abs) > table_budget(q.size):
+        if b.table_work(max_abs) > geometric.table_budget(q.size):
             continue
         bits = _estimated_bits(q, b, magnitudes)
         best = bits if best is None else min(best, bits)
@@ -726,13 +349,13 @@ def _free_bounds(values: np.ndarray, radius: np.ndarray, angle: np.ndarray | Non
     """Chunks of a 1.1 stream: 1.0's growing chunks until the rest fits one ANS chunk, then that one.
 
     Every chunk costs a header, band scales and an ANS flush, so one chunk is smallest, unless the
-    low frequencies' large integers widen its alphabet past :func:`table_budget` (it would fall
+    low frequencies' large integers widen its alphabet past :func:`~dftpcc.geometric.table_budget` (it would fall
     back to zstd): short first chunks keep them apart.
     """
     bounds, start, size = [], 0, FIRST_CHUNK
     while start < values.size:
         rest = values[start:]
-        if int(np.abs(rest).max()) <= MAX_ANS_SYMBOL and _ans_fits(rest, radius[start:], angle[start:], exhaustive):
+        if int(np.abs(rest).max()) <= geometric.MAX_ANS_SYMBOL and _ans_fits(rest, radius[start:], angle[start:], exhaustive):
             bounds.append((start, values.size))
             break
         stop = min(values.size, start + size)
@@ -745,7 +368,7 @@ def _ans_fits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, exhaustive: 
     """Whether :func:`_encode_ans` finds a band layout within the table budget for ``q``."""
     max_abs = int(np.abs(q).max()) if q.size else 0
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
-    return any(_Bands.of(q, radius, angle, k).table_work(max_abs) <= table_budget(q.size) for k in layouts)
+    return any(_Bands.of(q, radius, angle, k).table_work(max_abs) <= geometric.table_budget(q.size) for k in layouts)
 
 
 def _code_chunk(part: np.ndarray, radius: np.ndarray | None, angle: np.ndarray | None, coder: str,
@@ -753,7 +376,7 @@ def _code_chunk(part: np.ndarray, radius: np.ndarray | None, angle: np.ndarray |
     """One chunk's payload and kind: complex64 as is, else ANS where it applies, else zstd."""
     if np.iscomplexobj(part):
         return part.astype("<c8").tobytes(), KIND_COMPLEX64
-    if coder == "ans" and radius is not None and int(np.abs(part).max()) <= MAX_ANS_SYMBOL and (
+    if coder == "ans" and radius is not None and int(np.abs(part).max()) <= geometric.MAX_ANS_SYMBOL and (
             ans := _encode_ans(part, radius, angle, exhaustive)) is not None:
         return ans, KIND_ANS_TABLE
     return cctx.compress(_pack_ints(part)), KIND_INT
@@ -769,7 +392,7 @@ def _chunks(coded: list[tuple[int, tuple[bytes, int]]]) -> bytes:
     """The COEF structure: the chunk count, then each chunk's header and payload."""
     out = [struct.pack("<I", len(coded))]
     for count, (payload, kind) in coded:
-        out.append(_CHUNK.pack(count, len(payload), zlib.crc32(payload), kind))
+        out.append(CHUNK_HEAD.pack(count, len(payload), zlib.crc32(payload), kind))
         out.append(payload)
     return b"".join(out)
 
@@ -814,7 +437,7 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
         raise CorruptFileError("coefficient section is truncated")
     (nchunks,) = struct.unpack_from("<I", blob, 0)
     bounds = _chunk_bounds(expected) if progressive else None
-    if whole and nchunks == 1 and len(blob) >= 4 + _CHUNK.size and _CHUNK.unpack_from(blob, 4)[3] in whole:
+    if whole and nchunks == 1 and len(blob) >= 4 + CHUNK_HEAD.size and CHUNK_HEAD.unpack_from(blob, 4)[3] in whole:
         bounds = None  # one chunk of a kind that holds the whole stream, whatever the lengths
     if bounds is not None and nchunks != len(bounds):
         raise CorruptFileError(f"coefficient section has {nchunks} chunks, header implies {len(bounds)}")
@@ -823,12 +446,12 @@ def decode_coefficients(blob: bytes | memoryview, expected: int, *, radius: np.n
     pos, parts, stop = 4, [], 0
     dctx = zstandard.ZstdDecompressor()
     for index in range(nchunks):
-        if pos + _CHUNK.size > len(blob):
+        if pos + CHUNK_HEAD.size > len(blob):
             if allow_partial:
                 break
             raise CorruptFileError(f"coefficient chunk {index} is truncated")
-        count, nbytes, crc, kind = _CHUNK.unpack_from(blob, pos)
-        pos += _CHUNK.size
+        count, nbytes, crc, kind = CHUNK_HEAD.unpack_from(blob, pos)
+        pos += CHUNK_HEAD.size
         # 1.1 streams: chunk lengths of the writer's choosing, together the stream's.
         start, stop = bounds[index] if bounds is not None else (stop, stop + count)
         if count != stop - start or count > MAX_CHUNK_COEFS or count < 1 or stop > expected:

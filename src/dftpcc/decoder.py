@@ -13,7 +13,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import coding, kernels, occupancy, spectrum, tiles
+from . import coding, kernels, occupancy, quantizer, spectrum, tiles
 from .cluster import serial
 from .format import Header
 from .dem import DEM
@@ -98,7 +98,7 @@ def _spectrum_heights(header: Header, blobs: dict[bytes, Any], cutoff: float | N
     elif params.storage == "quantized":
         if stream.dtype.kind != "i":
             raise CorruptFileError("quantized file holds float coefficients")
-        values = coding.dequantize(stream[: stream.size - stream.size % per_coef], params.step)
+        values = quantizer.dequantize(stream[: stream.size - stream.size % per_coef], params.step)
         if per_coef == 2:
             values = values.view(np.complex128)
     else:
@@ -182,7 +182,7 @@ def _dct_corner(header: Header, blob: Any) -> np.ndarray:
                                "coefficient section holds fewer values than the header states")
     shape, where = spectrum.kept_corner(lay, params.cutoff)
     corner = np.zeros(shape)
-    corner.ravel()[where] = coding.dequantize(stream, params.step)
+    corner.ravel()[where] = quantizer.dequantize(stream, params.step)
     return corner
 
 
@@ -220,7 +220,7 @@ class _Base:
         q = coding.decode_coefficients(blob, self.i.size, radius=radius, angle=angle, progressive=False)
         if q.dtype.kind != "i" or q.size != self.i.size:
             raise CorruptFileError("the base layer is not one integer per coefficient")
-        self.values = coding.dequantize(q, params.step)
+        self.values = quantizer.dequantize(q, params.step)
 
 
 def decode_tiled(header: Header, shared: dict[bytes, Any], read: Callable[[int], dict[bytes, Any]], *,
@@ -329,7 +329,7 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any],
             raise CorruptFileError("tile coefficients are not one integer per kept coefficient")
         corner_shape, where = spectrum.kept_corner(lay, params.cutoff)
         coefs = np.zeros(corner_shape)
-        coefs.ravel()[where] = coding.dequantize(stream, params.step)
+        coefs.ravel()[where] = quantizer.dequantize(stream, params.step)
         heights = spectrum.inverse(coefs, lay)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
     else:  # every coefficient 0 (format.md, TIDX)
         heights = np.zeros(shape)

@@ -339,5 +339,5 @@ def patch_file(map_path: str | os.PathLike[str], delta_path: str | os.PathLike[s
     # In place, the map is read, patched and written back: an update of it meanwhile would be lost.
     with locked([map_path, out]):
         result = apply_delta(Path(map_path).read_bytes(), Path(delta_path).read_bytes())
-        atomic_write(out, lambda tmp: Path(tmp).write_bytes(result))
+        atomic_write(out, result)
     return len(result)

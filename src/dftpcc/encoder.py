@@ -18,7 +18,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from .sums import dot, weighted_sq_sum
-from . import coding, kernels, occupancy, ratecontrol, ratemodel, spectrum
+from . import kernels, occupancy, quantizer, ratecontrol, ratemodel, spectrum
 from .cluster import serial
 from .analysis import Analysis, Trial
 from .format import MapWriter, check_grid, entry_bytes
@@ -246,7 +246,7 @@ def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs:
         with spectrum.fft_workers(None if side is None else side.cores_left):
             if params.storage == "quantized" and step == 0.0:
                 target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
-                step = coding.choose_step(an.largest(cutoff), target_rmse=target,
+                step = quantizer.choose_step(an.largest(cutoff), target_rmse=target,
                                           n_cells=dem.grid.size, deadzone=params.deadzone)
             if params.storage == "quantized":
                 _check_step(an, cutoff, step)
@@ -306,9 +306,9 @@ def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | 
         cutoff, step = params.cutoff_or_default, params.step
         if step == 0.0:
             target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
-            step = coding.choose_step(an.largest(cutoff), target_rmse=target, n_cells=dem.grid.size,
+            step = quantizer.choose_step(an.largest(cutoff), target_rmse=target, n_cells=dem.grid.size,
                                       deadzone=params.deadzone)
-        return params.replace(cutoff=cutoff, step=coding.short_step(step)), None
+        return params.replace(cutoff=cutoff, step=quantizer.short_step(step)), None
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
     count = int(dem.mask.sum()) if point_count is None else point_count
@@ -394,9 +394,9 @@ def _height_range(an: Analysis) -> str:
 
 
 def _check_step(an: Analysis, cutoff: float, step: float) -> None:
-    """Refuse, before quantizing, a step so fine that the integers would wrap (see :func:`coding.finest_step`)."""
-    finest = coding.finest_step(an.largest(cutoff))
-    if coding.short_step(step) < finest:
+    """Refuse, before quantizing, a step so fine that the integers would wrap (see :func:`quantizer.finest_step`)."""
+    finest = quantizer.finest_step(an.largest(cutoff))
+    if quantizer.short_step(step) < finest:
         raise InvalidInputError(
             f"quantizer step {step:g} m is too fine for this map's height range ({_height_range(an)}): its "
             f"coefficients would quantize to integers beyond the 64-bit range; the smallest workable step is "
@@ -409,21 +409,21 @@ def _check_max_error(an: Analysis, bound: float) -> None:
     coefs = an.reals(an.coefs.size)
     need = 0.0
     if an.params.storage == "quantized":  # the finest step rate control tries is a fraction of the bound
-        need = coding.finest_step(coefs) / min(ratecontrol.MAX_ERROR_STEP_FACTORS)
+        need = quantizer.finest_step(coefs) / min(ratecontrol.MAX_ERROR_STEP_FACTORS)
     # A residual is at most the height's distance from the plane plus the rebuilt map's,
     # and no rebuilt height lies farther from the plane than the root of the energy of
     # the coefficients (Parseval); twice that for the quantization on top.
     spread = float(np.abs((an.dem.heights - an.trend)[an.mask]).max())
     energy = an.dem.grid.size * spectrum.mse_per_squared_error(an.lay) * dot(coefs, coefs)
     residuals = spread + 2.0 * math.sqrt(energy)
-    need = max(need, coding.finest_step(np.array([residuals])) / (2.0 * (1.0 - GUARANTEE_MARGIN)))
+    need = max(need, quantizer.finest_step(np.array([residuals])) / (2.0 * (1.0 - GUARANTEE_MARGIN)))
     top = abs(an.dem.grid.z0) + float(np.abs(an.dem.heights[an.mask]).max())
     need = max(need, FLOAT_SPACINGS * float(np.spacing(top)))
     if bound < need:
         raise InvalidInputError(
             f"target maximum error {bound:g} m is too fine for this map's height range ({_height_range(an)}): "
             f"its coefficients or residuals would quantize to integers beyond the 64-bit range, or float64 "
-            f"heights round by as much; the smallest workable target is {coding.round_up(need):g} m")
+            f"heights round by as much; the smallest workable target is {quantizer.round_up(need):g} m")
 
 
 def _overhead(an: Analysis, params: Params, mask_blob: bytes | TiledMasks, point_count: int, crs: dict[str, Any] | None) -> int:

@@ -210,7 +210,7 @@ def _compress_file(src: Source, dst: Source, params: Params, *, format: str | No
         dst.write(data)
         dst.flush()
     else:
-        atomic_write(dst, lambda tmp: Path(tmp).write_bytes(data))
+        atomic_write(dst, data)
     # Named for the file written, so that its repr and messages say where it is.
     return CompressedMap(data, "<stream>" if _is_stream(dst) else str(dst), max_cells=_trusted(data))
 

@@ -1,5 +1,9 @@
 """Grid stage: a point cloud becomes a Digital Elevation Model (DEM).
 
+One per-cell accumulator for every way a cloud arrives: whole (:func:`rasterize`), in chunks
+(:func:`rasterize_chunks`, :class:`CloudSummary` for the grid), and scan by scan into the tiles
+of a growing map (:class:`CellSums`, exact integer sums, so the order of the scans does not matter).
+
 As in the paper, points are projected on a horizontal plane at the height of
 their centroid, inside the minimum bounding rectangle (axis-aligned, or
 optionally rotated to minimum area); each cell of ``resolution`` metres holds
@@ -11,6 +15,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 from typing import Callable, Iterable, NamedTuple
 
 import numpy as np
@@ -30,6 +35,9 @@ __all__ = [
     "check_chunked_aggregate",
     "auto_resolution",
     "CloudSummary",
+    "CellSums",
+    "lattice_cells",
+    "HEIGHT_QUANTUM_M",
 ]
 
 #: Float64 resolves a coordinate ``x`` to about ``x * 2**-52``; a grid needs
@@ -544,3 +552,108 @@ def _hull_vertices(xy: np.ndarray) -> np.ndarray:
         order = np.lexsort((xy[:, 1], xy[:, 0]))
         return xy[[order[0], order[-1]]]
 
+
+
+# -- exact sums: the cells of a map that grows -----------------------------------------------------
+
+#: Heights are summed as whole multiples of this (metres) by :class:`CellSums`: exact integer sums,
+#: whatever the order of the adds.
+HEIGHT_QUANTUM_M = 1e-6
+#: Points a cell of :class:`CellSums` may collect: counts are int32.
+MAX_CELL_POINTS = 2**31 - 1
+#: :meth:`CellSums.add` sorts a scan's points into cells (np.unique) when fewer than the block's cells
+#: over this, else counts them in a histogram of the cells: the same cells and order, whichever is cheaper.
+HISTOGRAM_SHARE = 8
+
+
+def lattice_cells(points: np.ndarray, origin: tuple[float, float, float], resolution: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row and column (int64) of each point's cell of a lattice anchored at ``origin`` (x, y: the corner
+    of cell (0, 0)), and its height above ``origin[2]`` in whole :data:`HEIGHT_QUANTUM_M` (float64,
+    exact: a whole number below 2**53), what :class:`CellSums` adds."""
+    ox, oy, oz = origin
+    col = np.floor((points[:, 0] - ox) * (1.0 / resolution)).astype(np.int64)
+    row = np.floor((points[:, 1] - oy) * (1.0 / resolution)).astype(np.int64)
+    quanta = np.rint((points[:, 2] - oz) * (1.0 / HEIGHT_QUANTUM_M))
+    return row, col, quanta
+
+
+@dataclass
+class CellSums:
+    """Exact per-cell sums over a block of cells, added to scan by scan: the gridder of a growing map.
+
+    :func:`rasterize` sums float heights in the cloud's order; a map grown by scans must not
+    depend on their order (a map grown by updates equals the map of all its points added at
+    once), so here a cell's heights are summed as int64 multiples of :data:`HEIGHT_QUANTUM_M`,
+    exact whatever the order. The sum of squares (float64, m²) only feeds the stated gridding
+    error, where float64 rounding is far below the float32 it is written as.
+    """
+
+    sum: np.ndarray  # int64, quanta above the lattice's z
+    sumsq: np.ndarray  # float64, m²
+    count: np.ndarray  # int32, points
+
+    @classmethod
+    def empty(cls, shape: tuple[int, int]) -> "CellSums":
+        return cls(np.zeros(shape, np.int64), np.zeros(shape), np.zeros(shape, np.int32))
+
+    def part(self, rows: slice, cols: slice) -> "CellSums":
+        """A view of some of the cells."""
+        return CellSums(self.sum[rows, cols], self.sumsq[rows, cols], self.count[rows, cols])
+
+    def add(self, cells: np.ndarray, quanta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Add points at flat cell indices ``cells`` with heights ``quanta`` (see :func:`lattice_cells`).
+
+        Returns
+        -------
+        seen : ndarray of int
+            The flat cells the points fell in, ascending.
+        new : ndarray of bool
+            Which of them were empty before.
+        moved : ndarray of bool
+            Which of them changed their mean height (the new ones included).
+        """
+        size = self.count.size
+        # A scan sees a few percent of a block's cells: sum per cell seen, and update only those.
+        if cells.size >= size // HISTOGRAM_SHARE:
+            # The cells seen, ascending, and each point's index among them (np.unique's, without
+            # its sort): a histogram of the block's cells, cheaper than sorting many points.
+            seen = np.flatnonzero(np.bincount(cells, minlength=size))
+            rank = np.empty(size, dtype=np.intp)
+            rank[seen] = np.arange(seen.size)
+            where = rank[cells]
+        else:
+            seen, where = np.unique(cells, return_inverse=True)
+        added = np.bincount(where, minlength=seen.size)
+        total, sums, sumsq = self.count.reshape(-1), self.sum.reshape(-1), self.sumsq.reshape(-1)
+        before, before_sum = total[seen], sums[seen]
+        if int(before.max(initial=0)) + int(added.max()) > MAX_CELL_POINTS:
+            raise InvalidInputError(f"a cell would hold more than {MAX_CELL_POINTS:,} points")
+        # A float64 sum of whole numbers is exact below 2**53 quanta (9,000 km) per scan and cell.
+        after_sum = before_sum + np.bincount(where, weights=quanta, minlength=seen.size).astype(np.int64)
+        after = before + added.astype(np.int32)
+        sums[seen], total[seen] = after_sum, after
+        metres = quanta * HEIGHT_QUANTUM_M  # the heights summed, so squares and sums agree
+        sumsq[seen] += np.bincount(where, weights=metres * metres, minlength=seen.size)
+        new = before == 0
+        moved = new | (np.divide(before_sum, before, out=np.zeros(seen.size), where=~new)
+                       != np.divide(after_sum, after))
+        return seen, new, moved
+
+    def heights(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each cell's mean height (metres above the lattice's z; 0 where empty) and whether it is occupied."""
+        occupied = self.count > 0
+        # An empty cell's sum is 0: 0 / 1 gives its 0, and the others the same quotient as a
+        # division masked to them, without the mask's cost.
+        mean = self.sum / np.maximum(self.count, 1)
+        return mean * HEIGHT_QUANTUM_M, occupied
+
+    def squared_spread(self) -> float:
+        """Sum over the points of the squared distance to their cell's mean height, m²."""
+        occupied = self.count > 0
+        if occupied.all():  # the occupied cells in row-major order are every cell: no copies
+            total, sums, sumsq = self.count.ravel(), self.sum.ravel(), self.sumsq.ravel()
+        else:
+            total, sums, sumsq = self.count[occupied], self.sum[occupied], self.sumsq[occupied]
+        mean_sum = sums * HEIGHT_QUANTUM_M
+        return float(np.maximum(sumsq - mean_sum * mean_sum / total, 0.0).sum())

@@ -653,7 +653,7 @@ class Sender:
         if ground:
             data = self._versions[ground]
             if not base.is_file() or hashlib.sha256(base.read_bytes()).digest() != self._sha[ground]:
-                atomic_write(base, lambda tmp: Path(tmp).write_bytes(data))
+                atomic_write(base, data)
         doc = {"map_id": self.map_id, "version": self.version,
                "sha256": self._sha[self.version].hex() if self.version else None,
                "ground": ground, "ground_sha256": self._sha[ground].hex() if ground else None}
@@ -840,7 +840,7 @@ class Receiver:
         if self.path is not None:
             state = {"map_id": map_id, "version": version, "sha256": hashlib.sha256(data).hexdigest()}
             # The map first, then the state naming it: a state naming another map is ignored on start.
-            atomic_write(self.path, lambda tmp: Path(tmp).write_bytes(data))
+            atomic_write(self.path, data)
             atomic_write(Path(f"{self.path}{LINK_SUFFIX}"), lambda tmp: Path(tmp).write_text(json.dumps(state)))
         self.data, self.version, self.map_id = data, version, map_id
         self.sha256 = hashlib.sha256(data).digest()

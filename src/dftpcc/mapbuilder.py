@@ -42,30 +42,26 @@ import json
 import math
 import os
 import warnings
-from contextlib import ExitStack
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
-from . import coding, kernels
+from . import coding, kernels, quantizer
 from .format import Header, MapWriter, Source, read_tile, unpack_source
 from .dem import Grid, TileGrid, as_points
+from .grid import HEIGHT_QUANTUM_M, CellSums, lattice_cells
 from .encoder import check_heights
-from .errors import CorruptFileError, DftpccError, DftpccWarning, InvalidInputError
-from .io.atomic import atomic_write_all, check_distinct, check_output
-from .io.lock import lock_path, locked
+from .errors import CorruptFileError, DftpccWarning, InvalidInputError
+from .io.atomic import atomic_write_all
 from .mapstate import FIGURES as _FIGURES, STATE_VERSION, read_state, write_state
 from .params import DEFAULT_CUTOFF, MAX_COORDINATE_M, TILE_SIZES, Params, check_cutoff, make_params
 from .tiles import TILE_OVERLAP, TileCode, TileJob, code_tile
 
-__all__ = ["MapBuilder", "UpdateResult", "update_file", "state_path", "is_growing", "same_crs",
+__all__ = ["MapBuilder", "state_path", "is_growing", "same_crs",
            "HEIGHT_QUANTUM_M", "Z0_QUANTUM_M", "DEFAULT_STEP_M", "DEFAULT_GROWING_TILE_SIZE", "STATE_SUFFIX",
            "STATE_VERSION", "StateRecoveredWarning"]
 
-#: Heights are summed as whole multiples of this (metres): exact integer sums, whatever the order of the adds.
-HEIGHT_QUANTUM_M = 1e-6
 #: The map's projection height z0 is the first scan's mean height rounded to this (metres).
 Z0_QUANTUM_M = 1.0
 #: Quantizer step of a growing map unless given (metres): fixed, since rate control would
@@ -75,28 +71,10 @@ DEFAULT_STEP_M = 0.01
 DEFAULT_GROWING_TILE_SIZE = 256
 #: The state file of ``MAP`` is ``MAP`` + this.
 STATE_SUFFIX = ".state"
-#: Points a cell may collect: counts are int32.
-MAX_CELL_POINTS = 2**31 - 1
-#: A scan's points in a tile are sorted into cells (np.unique) when fewer than the tile's cells over
-#: this, else counted in a histogram of them: the same cells and order, whichever is cheaper.
-HISTOGRAM_SHARE = 8
 
 
 class StateRecoveredWarning(DftpccWarning):
     """The map was older than its state (an update interrupted between the two writes); rebuilt from the state."""
-
-
-@dataclass
-class _Cells:
-    """One held tile's accumulators, T x T each."""
-
-    sum: np.ndarray  # int64, micrometres above z0
-    sumsq: np.ndarray  # float64, m²
-    count: np.ndarray  # int32, points
-
-    @classmethod
-    def empty(cls, size: int) -> "_Cells":
-        return cls(np.zeros((size, size), np.int64), np.zeros((size, size)), np.zeros((size, size), np.int32))
 
 
 def state_path(map_path: str | os.PathLike[str]) -> Path:
@@ -174,7 +152,7 @@ class MapBuilder:
         if not (isinstance(step, (int, float)) and 0 < step <= MAX_COORDINATE_M):
             raise InvalidInputError(f"step must be a positive number of metres, got {step!r}")
         self.params: Params = make_params(resolution=resolution, cutoff=check_cutoff(cutoff),
-                                          step=coding.short_step(float(step)), tile_size=int(tile_size))
+                                          step=quantizer.short_step(float(step)), tile_size=int(tile_size))
         self.resolution = float(self.params.resolution)
         self.tile_size = int(tile_size)
         self.crs: dict[str, Any] = dict(crs or {})
@@ -182,7 +160,7 @@ class MapBuilder:
         if origin is not None:
             self.origin = _check_origin(origin)
         self.point_count = 0
-        self._tiles: dict[tuple[int, int], _Cells] = {}
+        self._tiles: dict[tuple[int, int], CellSums] = {}
         self._codes: dict[tuple[int, int], TileCode] = {}
         self._gridding: dict[tuple[int, int], float] = {}  # squared distance of points to their cell's mean, m²
         self._dirty: set[tuple[int, int]] = set()  # tiles whose coded window holds a cell whose mean changed
@@ -240,12 +218,8 @@ class MapBuilder:
             mean = pts.mean(axis=0)
             self.origin = (math.floor(mean[0] / self.span) * self.span, math.floor(mean[1] / self.span) * self.span,
                            round(mean[2] / Z0_QUANTUM_M) * Z0_QUANTUM_M)
-        ox, oy, oz = self.origin
         size = self.tile_size
-        col = np.floor((pts[:, 0] - ox) * (1.0 / self.resolution)).astype(np.int64)
-        row = np.floor((pts[:, 1] - oy) * (1.0 / self.resolution)).astype(np.int64)
-        micro = np.rint((pts[:, 2] - oz) * (1.0 / HEIGHT_QUANTUM_M))  # whole micrometres, exact in float64
-        rel = micro * HEIGHT_QUANTUM_M  # the heights summed, so squares and sums agree
+        row, col, quanta = lattice_cells(pts, self.origin, self.resolution)
         ti, tj = row // size, col // size
         local = (row - ti * size) * size + (col - tj * size)
         keys = (ti - ti.min()) * (int(tj.max() - tj.min()) + 1) + (tj - tj.min())
@@ -253,40 +227,18 @@ class MapBuilder:
         bounds = np.flatnonzero(np.diff(keys[order])) + 1
         for group in np.split(order, bounds):
             tile = (int(ti[group[0]]), int(tj[group[0]]))
-            self._add_to(tile, local[group], micro[group], rel[group])
+            self._add_to(tile, local[group], quanta[group])
         self.point_count += int(pts.shape[0])
         return self
 
-    def _add_to(self, tile: tuple[int, int], local: np.ndarray, micro: np.ndarray, rel: np.ndarray) -> None:
+    def _add_to(self, tile: tuple[int, int], local: np.ndarray, quanta: np.ndarray) -> None:
         size = self.tile_size
         cells = self._tiles.get(tile)
         if cells is None:
-            cells = self._tiles[tile] = _Cells.empty(size)
-        # A scan sees a few percent of a tile's cells: sum per cell seen, and update only those.
-        if local.size >= size * size // HISTOGRAM_SHARE:
-            # The cells seen, ascending, and each point's index among them (np.unique's, without
-            # its sort): a histogram of the tile's cells, cheaper than sorting many points.
-            seen = np.flatnonzero(np.bincount(local, minlength=size * size))
-            rank = np.empty(size * size, dtype=np.intp)
-            rank[seen] = np.arange(seen.size)
-            where = rank[local]
-        else:
-            seen, where = np.unique(local, return_inverse=True)
-        added = np.bincount(where, minlength=seen.size)
-        total, sums, sumsq = cells.count.reshape(-1), cells.sum.reshape(-1), cells.sumsq.reshape(-1)
-        before, before_sum = total[seen], sums[seen]
-        if int(before.max(initial=0)) + int(added.max()) > MAX_CELL_POINTS:
-            raise InvalidInputError(f"a cell would hold more than {MAX_CELL_POINTS:,} points")
-        # A float64 sum of whole numbers is exact below 2**53 micrometres (9,000 km) per scan and cell.
-        after_sum = before_sum + np.bincount(where, weights=micro, minlength=seen.size).astype(np.int64)
-        after = before + added.astype(np.int32)
-        sums[seen], total[seen] = after_sum, after
-        sumsq[seen] += np.bincount(where, weights=rel * rel, minlength=seen.size)
-        # A cell's height in every window is its mean (see _heights): a cell seen again whose mean
-        # came out the same leaves every section as it was, only the tile's point-weighted error moves.
-        new = before == 0
-        moved = new | (np.divide(before_sum, before, out=np.zeros(seen.size), where=~new)
-                       != np.divide(after_sum, after))
+            cells = self._tiles[tile] = CellSums.empty((size, size))
+        seen, new, moved = cells.add(local, quanta)
+        # A cell's height in every window is its mean: a cell seen again whose mean came out the
+        # same leaves every section as it was, only the tile's point-weighted error moves.
         if new.any():
             self._mask_dirty.add(tile)
         if moved.any():
@@ -321,13 +273,6 @@ class MapBuilder:
 
     # -- coding --------------------------------------------------------------------------------
 
-    def _heights(self, cells: _Cells) -> tuple[np.ndarray, np.ndarray]:
-        occupied = cells.count > 0
-        # An empty cell's sum is 0: 0 / 1 gives its 0, and the others the same quotient as a
-        # division masked to them, without the mask's cost.
-        mean = cells.sum / np.maximum(cells.count, 1)
-        return mean * HEIGHT_QUANTUM_M, occupied
-
     def _job(self, tile: tuple[int, int]) -> TileJob:
         """The tile's coded window: its cells and :data:`TILE_OVERLAP` of its neighbours' on each side."""
         size, m = self.tile_size, TILE_OVERLAP
@@ -345,12 +290,11 @@ class MapBuilder:
                 (sr, wr), (sc, wc) = take[di], take[dj]
                 whole = self._coding.get(near)
                 if whole is None and near in self._coding:  # coded in this encode too: its heights once
-                    whole = self._coding[near] = self._heights(cells)
+                    whole = self._coding[near] = cells.heights()
                 if whole is not None:
                     rest[wr, wc], mask[wr, wc] = whole[0][sr, sc], whole[1][sr, sc]
                 else:
-                    part = _Cells(cells.sum[sr, sc], cells.sumsq[sr, sc], cells.count[sr, sc])
-                    rest[wr, wc], mask[wr, wc] = self._heights(part)
+                    rest[wr, wc], mask[wr, wc] = cells.part(sr, sc).heights()
         own = self._tiles[tile]
         return TileJob(0, rest, mask, (m, m + size, m, m + size), np.zeros((size, size)), own.count)
 
@@ -363,15 +307,7 @@ class MapBuilder:
         if known is not None and sections_kept:
             job.coef_code = known.coef
         self._codes[tile] = code_tile(job, self.params)
-        cells = self._tiles[tile]
-        occupied = cells.count > 0
-        if occupied.all():  # the occupied cells in row-major order are every cell: no copies
-            total, sums, sumsq = cells.count.ravel(), cells.sum.ravel(), cells.sumsq.ravel()
-        else:
-            total, sums, sumsq = cells.count[occupied], cells.sum[occupied], cells.sumsq[occupied]
-        mean_sum = sums * HEIGHT_QUANTUM_M
-        spread = sumsq - mean_sum * mean_sum / total
-        self._gridding[tile] = float(np.maximum(spread, 0.0).sum())
+        self._gridding[tile] = self._tiles[tile].squared_spread()
 
     def encode(self, *, target_max_error: float | None = None) -> bytes:
         """The map as a tiled (1.1) ``.dftpc`` file, re-coding only :meth:`changed_tiles`.
@@ -463,10 +399,10 @@ class MapBuilder:
         data = self.encode() if data is None else data
         digest = hashlib.sha256(data).hexdigest()
         settings, arrays = self._state(digest, self._file_sha256)
-        atomic_write_all([*((target, _bytes_writer(content)) for target, content in before),
+        atomic_write_all([*((target, content) for target, content in before),
                           (state_path(path) if state is None else Path(state),
                            lambda tmp: write_state(tmp, settings, arrays)),
-                          (Path(path), _bytes_writer(data))])
+                          (Path(path), data)])
         self._file_sha256 = digest
         return data
 
@@ -531,7 +467,7 @@ class MapBuilder:
         builder._previous_sha256 = settings["previous_sha256"]
         tiles = [tuple(int(v) for v in t) for t in arrays["tiles"]]
         for n, tile in enumerate(tiles):
-            builder._tiles[tile] = _Cells(arrays["sum"][n].astype(np.int64), arrays["sumsq"][n].astype(np.float64),
+            builder._tiles[tile] = CellSums(arrays["sum"][n].astype(np.int64), arrays["sumsq"][n].astype(np.float64),
                                           arrays["count"][n].astype(np.int32))
             builder._gridding[tile] = float(arrays["gridding"][n])
         digest = hashlib.sha256(data).hexdigest()
@@ -594,88 +530,6 @@ class MapBuilder:
                                         f"file says; give the state written with this map")
 
 
-def _bytes_writer(content: bytes) -> Callable[[Path], None]:
-    return lambda tmp: Path(tmp).write_bytes(content)  # type: ignore[func-returns-value]
-
-
-class GrowingMap:
-    """A growing map opened to add scans: ``dftpcc.open(path, "a")`` resumes one, ``"w"`` starts one.
-
-    Like laspy's appender: :meth:`add` scans (in the map frame, or in the sensor frame with their
-    pose), and on :meth:`close` (or leaving ``with``) the map and its state are written, in one
-    transaction, if anything was added. An exception inside ``with`` writes nothing. It holds the
-    map's lock (``MAP.lock``, as ``dftpcc update`` does) from opening to closing, so an update of
-    the same map waits for it. The :class:`MapBuilder` it holds is :attr:`builder`.
-    """
-
-    def __init__(self, path: str | os.PathLike[str], builder: MapBuilder, lock: Any = None):
-        self.path, self.builder = Path(path), builder
-        self._added = False
-        self._lock = lock  # an entered ExitStack holding the map's lock
-
-    def _release(self) -> None:
-        if self._lock is not None:
-            self._lock.close()
-            self._lock = None
-
-    def add(self, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None = None) -> "GrowingMap":
-        """Add a scan (see :meth:`MapBuilder.add`)."""
-        self.builder.add(points, pose)
-        self._added = True
-        return self
-
-    def close(self) -> None:
-        """Write the map and its state if a scan was added since opening, and release the map's lock."""
-        try:
-            if self._added:
-                self.builder.save(self.path)
-                self._added = False
-        finally:
-            self._release()
-
-    def __enter__(self) -> "GrowingMap":
-        return self
-
-    def __exit__(self, kind: type | None, *_exc: Any) -> None:
-        if kind is None:
-            self.close()
-        else:
-            self._release()
-
-    def __repr__(self) -> str:
-        return f"GrowingMap({str(self.path)!r}, {len(self.builder.tiles)} tiles, {self.builder.point_count:,} points)"
-
-
-def open_growing(path: str | os.PathLike[str], mode: str, **settings: Any) -> GrowingMap:
-    """``dftpcc.open(path, "a")``: resume the growing map ``path`` (and its state); ``"w"``: start one there,
-    with ``settings`` (``resolution`` required; ``tile_size``, ``cutoff``, ``step``, ``crs``, ``origin``).
-
-    Raises
-    ------
-    InvalidInputError
-        ``"a"`` of a file that is no growing map or has no state, or with settings (they are the
-        map's); ``"w"`` without a resolution, or over a write-protected file.
-    """
-    path = Path(path)
-    if mode == "a":
-        if settings:
-            raise InvalidInputError(f"opening {path} to append takes no settings (they are the map's): "
-                                    f"{', '.join(sorted(settings))}")
-        if not path.is_file():
-            raise InvalidInputError(f"{path}: no such file (open it with mode 'w' to start a growing map)")
-    elif "resolution" not in settings:
-        raise InvalidInputError("a new growing map needs its cell size: dftpcc.open(path, 'w', resolution=R)")
-    else:
-        for target in (path, state_path(path)):
-            check_output(target, force=True)
-    stack = ExitStack()
-    stack.enter_context(locked([path]))
-    try:
-        builder = MapBuilder.from_file(path) if mode == "a" else MapBuilder(settings.pop("resolution"), **settings)
-    except BaseException:
-        stack.close()
-        raise
-    return GrowingMap(path, builder, stack)
 
 
 def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
@@ -683,253 +537,3 @@ def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
     if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in values):
         raise InvalidInputError(f"origin must be three finite coordinates (x, y, z) in metres, got {origin!r}")
     return values  # type: ignore[return-value]
-
-
-# -- the update of a map file: what `dftpcc update` runs ------------------------------------------------
-
-
-@dataclass
-class UpdateResult:
-    """What :func:`update_file` did.
-
-    Attributes
-    ----------
-    path : Path
-        The map written.
-    size : int
-        Its bytes.
-    scans : int
-        Scans (or point files) added.
-    points : int
-        Points added.
-    tiles : int
-        Tiles the map holds.
-    recoded : int
-        Tiles coded again.
-    delta_size : int or None
-        Bytes of the delta written, if one was asked for.
-    created : bool
-        Whether the map was started by this update.
-    """
-
-    path: Path
-    size: int
-    scans: int
-    points: int
-    tiles: int
-    recoded: int
-    delta_size: int | None
-    created: bool
-    repeated: bool = False
-    """The scans were the map's last update already (a rerun of an update): none was added again."""
-
-
-def _scans(inputs: Iterable[str | os.PathLike[str]], points_topic: str | None, pose_topic: str | None,
-           map_frame: str | None = None
-           ) -> Iterable[tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None, dict[str, Any]]]:
-    """(points, pose, CRS) of every scan: a bag's scans through their poses, a point file whole, in the map frame."""
-    from .io import format_of, read
-
-    for path in inputs:
-        if format_of(path) == "rosbag":
-            from .io.rosbag import posed_scans
-
-            for scan in posed_scans(path, points_topic, pose_topic or "/odom", map_frame=map_frame):
-                yield scan.points, (scan.rotation, scan.translation), {}
-        else:
-            cloud = read(path)
-            yield cloud.points, None, cloud.crs or {}
-
-
-def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.PathLike[str]], *,
-                output: str | os.PathLike[str] | None = None, delta: str | os.PathLike[str] | None = None,
-                points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
-                tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
-                force: bool = False, map_frame: str | None = None, new: bool = False,
-                waiting: Callable[[Path], None] | None = None,
-                on_stage: Callable[..., None] | None = None) -> UpdateResult:
-    """Add scans to a growing map and write it with its state (``dftpcc update``).
-
-    ``on_stage`` is called with each stage's name as it starts (``read``: the scans, then
-    ``code``, ``write``), as :func:`dftpcc.compress_file` calls it.
-
-    Without ``output`` the map is updated in place. The map and its state
-    are written only once every scan was read and added: a failing input
-    (a truncated bag) leaves everything as it was. A map that does not
-    exist yet is started, with ``resolution`` (required) and the other
-    settings.
-
-    Two updates of one map at once are serialised: each holds the map's
-    lock (``MAP.lock``, :func:`dftpcc.io.lock.locked`; and the output's
-    with ``output``) from before it reads the map until its files are
-    written, so the second waits, then reads the map the first wrote: both
-    runs' scans end up in the map.
-
-    Parameters
-    ----------
-    map_path : path
-        The growing map (and ``MAP.state`` beside it).
-    inputs : sequence of path
-        ROS bags (scans placed by the poses of ``pose_topic``, default
-        ``/odom``; ``/tf``: the TF tree, up to ``map_frame`` or its root) or
-        point files (LAS, LAZ, PLY, ...) in the map frame.
-    output : path, optional
-        Write the new map (and its state) here instead.
-    delta : path, optional
-        Also write the delta from the old map to the new one (:mod:`dftpcc.delta`).
-    resolution, tile_size, cutoff, step : optional
-        Settings of a new map; for an existing one they must be its own.
-    new : bool
-        Start a new map even where ``map_path`` exists (``dftpcc compress --growable``; replacing a
-        file needs ``force``).
-    waiting : callable, optional
-        Called with the lock file's path when another update holds it, before waiting for it.
-
-    Raises
-    ------
-    InvalidInputError
-        Settings or a CRS other than the map's, a map that is no growing map
-        or has no state, an unreadable input; nothing is written.
-    """
-    map_path = Path(map_path)
-    out = Path(output) if output is not None else map_path
-    read = {f"the map {map_path}": map_path, f"its state {state_path(map_path)}": state_path(map_path),
-            f"its lock {lock_path(map_path)}": lock_path(map_path),
-            **{f"the input {path}": path for path in inputs}}
-    written = {}
-    if output is not None:
-        read[f"the lock {lock_path(out)}"] = lock_path(out)
-        written.update({f"-o {out}": out, f"the new state {state_path(out)}": state_path(out)})
-    if delta is not None:
-        written[f"--delta {delta}"] = delta
-    check_distinct(written, read)
-    for target in [out, state_path(out)] + ([Path(delta)] if delta is not None else []):
-        check_output(target, force=force)
-    with locked([map_path, out], waiting=waiting):
-        return _update_locked(map_path, out, inputs, delta=delta, points_topic=points_topic, pose_topic=pose_topic,
-                              resolution=resolution, tile_size=tile_size, cutoff=cutoff, step=step,
-                              map_frame=map_frame, new=new, stage=on_stage or (lambda *_: None))
-
-
-def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike[str]], *,
-                   delta: str | os.PathLike[str] | None, points_topic: str | None, pose_topic: str | None,
-                   resolution: float | None, tile_size: int | None, cutoff: float | None, step: float | None,
-                   map_frame: str | None, new: bool = False,
-                   stage: Callable[..., None] = lambda *_: None) -> UpdateResult:
-    """:func:`update_file` once the map is locked and the outputs checked."""
-    from .delta import make_delta
-
-    created = new or not map_path.exists()
-    if created:
-        if resolution is None:
-            raise InvalidInputError(f"{map_path} does not exist: give --resolution (and --step, --cutoff, "
-                                    f"--tile-size if not the defaults) to start a growing map")
-        if delta is not None:
-            raise InvalidInputError("a delta needs a map to start from: the first update of a map writes none")
-        base = b""
-        builder = MapBuilder(resolution, tile_size=DEFAULT_GROWING_TILE_SIZE if tile_size is None else tile_size,
-                             cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff, step=DEFAULT_STEP_M if step is None else step)
-    else:
-        base = map_path.read_bytes()
-        builder = MapBuilder.from_file(map_path)
-        _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
-    last_update = builder.update_sha256
-    stage("read")
-    scans = points = 0
-    record = hashlib.sha256()
-    for pts, pose, crs in _scans(inputs, points_topic, pose_topic, map_frame):
-        if crs:
-            if created and scans == 0:
-                builder.crs = dict(crs)
-            elif not same_crs(crs, builder.crs):
-                raise InvalidInputError(f"the scans' CRS is not the map's ({_crs_name(crs)} against "
-                                        f"{_crs_name(builder.crs)}): reproject them to the map's CRS first")
-        builder.add(pts, pose)
-        _record_scan(record, pts, pose)
-        scans += 1
-        points += int(pts.shape[0])
-    if scans == 0:
-        raise InvalidInputError("no scan to add")
-    if not created and out == map_path and record.hexdigest() == last_update:
-        with warnings.catch_warnings():  # the map was recovered from its state once already, and said so
-            warnings.simplefilter("ignore", StateRecoveredWarning)
-            again = MapBuilder.from_file(map_path)
-        return _finish_update(map_path, base, again, delta, scans, points)
-    builder.update_sha256 = record.hexdigest()
-    recoded = len(builder.changed_tiles())
-    stage("code")
-    data = builder.encode()
-    patch = make_delta(base, data) if delta is not None else None
-    stage("write")
-    # One transaction, renamed delta first: a kill after it leaves the old map and state (a rerun
-    # writes the same delta again) or the new state (a rerun finishes the update: _finish_update).
-    builder.save(out, data=data, before=[] if patch is None or delta is None else [(Path(delta), patch)])
-    return UpdateResult(out, len(data), scans, points, len(builder.tiles), recoded,
-                        None if patch is None else len(patch), created)
-
-
-def _finish_update(map_path: Path, base: bytes, builder: MapBuilder, delta: str | os.PathLike[str] | None,
-                   scans: int, points: int) -> UpdateResult:
-    """The scans of an in-place update are the map's last update already: write what that update did not.
-
-    Its state was written; the map too unless it was killed before (then
-    ``builder`` recovered it from the state, and ``base`` is the older map).
-    The delta was renamed before the state, so it is on disk already unless
-    this run asks for it under another name.
-    """
-    from .delta import make_delta, read_delta
-
-    data = builder.encode()
-    digest = hashlib.sha256(data).hexdigest()
-    written = hashlib.sha256(base).hexdigest() == digest
-    files: list[tuple[Path, Callable[[Path], None]]] = []
-    patch = None
-    if delta is not None:
-        start = base if not written else None
-        try:
-            known = read_delta(Path(delta).read_bytes())
-            if known.result_sha256.hex() == digest and known.base_sha256.hex() == (
-                    hashlib.sha256(start).hexdigest() if start is not None else builder._previous_sha256):
-                patch = Path(delta).read_bytes()
-        except (OSError, DftpccError):
-            pass
-        if patch is None:
-            if start is None:
-                raise InvalidInputError(f"{map_path}: its last update added these very scans (nothing added again), "
-                                        f"and its delta can no longer be made: the map it started from is gone. "
-                                        f"Send the delta that update wrote")
-            patch = make_delta(start, data)
-            files.append((Path(delta), _bytes_writer(patch)))
-    if not written:
-        files.append((map_path, _bytes_writer(data)))
-    atomic_write_all(files)
-    return UpdateResult(map_path, len(data), scans, points, len(builder.tiles), 0,
-                        None if patch is None else len(patch), False, repeated=True)
-
-
-def _record_scan(record: Any, points: np.ndarray, pose: tuple[np.ndarray, np.ndarray] | None) -> None:
-    """Add a scan to the SHA-256 of an update's scans (docs/growing-maps.md, *The update's record*)."""
-    record.update(np.ascontiguousarray(points, dtype="<f8").tobytes())
-    if pose is None:
-        record.update(b"none")
-    else:
-        record.update(np.ascontiguousarray(pose[0], dtype="<f8").tobytes()
-                      + np.ascontiguousarray(pose[1], dtype="<f8").tobytes())
-
-
-def _crs_name(crs: dict[str, Any]) -> str:
-    if not crs:
-        return "none"
-    wkt = crs.get("wkt") or ""
-    return (wkt.split('"')[1] if wkt.count('"') >= 2 else "a LAS CRS record") if wkt or crs.get("las_vlrs") else "none"
-
-
-def _check_settings(path: Path, builder: MapBuilder, resolution: float | None, tile_size: int | None,
-                    cutoff: float | None, step: float | None) -> None:
-    """Refuse an update asking for other settings than the map's: a growing map keeps its own."""
-    asked = {"resolution": (resolution, builder.resolution), "tile size": (tile_size, builder.tile_size),
-             "cutoff": (cutoff, builder.params.cutoff), "step": (step, builder.params.step)}
-    for name, (want, have) in asked.items():
-        if want is not None and not math.isclose(float(want), float(have), rel_tol=1e-9):
-            raise InvalidInputError(f"{path}: the map's {name} is {have:g}, not {want:g}: a growing map keeps the "
-                                    f"settings it was started with (start another map for another {name})")

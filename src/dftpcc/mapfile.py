@@ -383,7 +383,7 @@ def _centres_inside(g: Grid, bbox: Sequence[float]) -> np.ndarray:
 def open(source: str | os.PathLike[str] | BinaryIO | bytes, mode: str = "r", *,  # noqa: A001
          max_bytes: int | None = None, max_cells: int | None = None, **settings: Any) -> Any:
     """Open a compressed map: ``"r"`` to read it (a :class:`CompressedMap`), ``"a"`` to add scans to a
-    growing map and ``"w"`` to start one (a :class:`~dftpcc.mapbuilder.GrowingMap`, which writes the
+    growing map and ``"w"`` to start one (a :class:`~dftpcc.growing.GrowingMap`, which writes the
     map and its state on closing), as laspy's ``open_las`` gives a reader, an appender or a writer.
 
     Parameters
@@ -420,7 +420,7 @@ def open(source: str | os.PathLike[str] | BinaryIO | bytes, mode: str = "r", *, 
     if mode != "r":
         if max_bytes is not None or max_cells is not None or not isinstance(source, (str, os.PathLike)):
             raise InvalidInputError(f"mode {mode!r} opens a growing map by its path, without max_bytes or max_cells")
-        from .mapbuilder import open_growing  # the writer side, loaded only for it
+        from .growing import open_growing  # the writer side, loaded only for it
 
         return open_growing(source, mode, **settings)
     if settings:

@@ -41,7 +41,7 @@ _KEYS_V1 = ("state_version", "resolution", "tile_size", "cutoff", "step", "origi
             "map_sha256", "previous_sha256")
 _KEYS = {1: _KEYS_V1, 2: (*_KEYS_V1, "update_sha256")}
 _HEX64 = re.compile(r"[0-9a-f]{64}")
-#: Micrometres per metre: the unit of the sums (mapbuilder.HEIGHT_QUANTUM_M).
+#: Micrometres per metre: the unit of the sums (grid.HEIGHT_QUANTUM_M).
 _MICRO = 1e6
 
 

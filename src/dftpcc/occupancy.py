@@ -35,7 +35,8 @@ with warnings.catch_warnings():
     import constriction
 
 from . import kernels
-from .coding import check_ans_words, unzstd
+from .coding import unzstd
+from .geometric import check_ans_words
 from .errors import CorruptFileError
 
 __all__ = ["encode_mask", "decode_mask", "STRIPE_LINES"]

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import coding
+from . import quantizer
 from .analysis import Analysis, Trial
 from .errors import InvalidInputError
 from .params import Params
@@ -103,7 +103,7 @@ class Energy:
         self.deadzone = an.params.deadzone
 
     def _quantizer_error(self, values: np.ndarray, step: float) -> float:
-        err = values - coding.dequantize(coding.quantize(values, step, self.deadzone), step)
+        err = values - quantizer.dequantize(quantizer.quantize(values, step, self.deadzone), step)
         return dot(err, err)
 
     def rmse(self, step: float) -> float:
@@ -376,7 +376,7 @@ def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analy
         tried.append((found[1].step, found[1].rmse))
         if found[1].rmse <= target:
             best = found
-            if found[1].rmse >= LANDING * target or found[1].step >= coding.short_step(top):
+            if found[1].rmse >= LANDING * target or found[1].step >= quantizer.short_step(top):
                 break
         step = _secant(tried, AIM * target)
     return best

@@ -25,7 +25,7 @@ from typing import Any
 import constriction
 import numpy as np
 
-from . import coding, kernels, occupancy
+from . import coding, geometric, kernels, occupancy, quantizer
 from .errors import CorruptFileError, InvalidInputError
 
 __all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual", "layout_of",
@@ -65,13 +65,13 @@ def residual(target: np.ndarray, rebuilt: np.ndarray, measured: np.ndarray, kept
     err = np.where(measured, target - rebuilt, 0.0)[kept]
     with np.errstate(over="ignore", invalid="ignore"):
         r = np.round(err / step)
-    # As coding.quantize: refuse rather than let the cast wrap (the encoder's checks make this a last guard).
-    if r.size and not np.abs(r).max() < coding.QUANT_LIMIT:  # also inf and NaN
+    # As quantizer.quantize: refuse rather than let the cast wrap (the encoder's checks make this a last guard).
+    if r.size and not np.abs(r).max() < quantizer.QUANT_LIMIT:  # also inf and NaN
         worst = float(np.abs(err).max())
         raise InvalidInputError(
             f"target maximum error {bound:g} m is too fine for residuals up to {worst:g} m: their integers would "
             f"pass 2**63 and wrap; the smallest workable target is "
-            f"{coding.round_up(coding.finest_step(err) / (2.0 * (1.0 - GUARANTEE_MARGIN))):g} m")
+            f"{quantizer.round_up(quantizer.finest_step(err) / (2.0 * (1.0 - GUARANTEE_MARGIN))):g} m")
     q = r.astype(np.int64)
     heights = rebuilt.copy()
     heights[kept] += q * step
@@ -120,7 +120,7 @@ def estimated_size(q: np.ndarray, coder: str, kept: np.ndarray, *, predicted: bo
         picture[kept] = q != 0
         values = q[q != 0]
         zero = np.zeros(values.size)
-        sparse = (4.0 + coding._CHUNK.size + _LENGTH.size + occupancy.estimated_size(picture)
+        sparse = (4.0 + coding.CHUNK_HEAD.size + _LENGTH.size + occupancy.estimated_size(picture)
                   + coding.estimated_size(np.abs(values) - 1, radius=zero, angle=zero, coder=coder,
                                           exhaustive=False, progressive=False) + (values.size + 7) // 8)
         best = min(best, sparse)
@@ -150,12 +150,12 @@ def _estimated_predicted(q: np.ndarray, kept: np.ndarray) -> float:
     _, e, classes, codes, _ = model
     per_cell = codes[classes]
     coded = per_cell > 0
-    at_zero, per_step = coding._log_geometric()
+    at_zero, per_step = geometric.log_geometric()
     log_p = at_zero[per_cell[coded]] + np.abs(e[coded]) * per_step[per_cell[coded]]
-    bits = -float(np.maximum(log_p, -coding.TABLE_BITS).sum())
+    bits = -float(np.maximum(log_p, -geometric.TABLE_BITS).sum())
     present = int(np.count_nonzero(codes))
     listed = int(np.flatnonzero(codes)[-1]) + 1 if present else 1
-    return 4.0 + coding._CHUNK.size + _WEIGHTS.size + listed + 2 * present + coding.ANS_FLUSH_BYTES + bits / 8.0
+    return 4.0 + coding.CHUNK_HEAD.size + _WEIGHTS.size + listed + 2 * present + coding.ANS_FLUSH_BYTES + bits / 8.0
 
 
 _LENGTH = struct.Struct("<I")
@@ -356,7 +356,7 @@ def _predicted_model(q: np.ndarray, kept: np.ndarray
     values = [_shifted(grid, up, left)[kept] for up, left in NEIGHBOURS]
     weights = _fit_weights(values, q)
     e = q - _prediction(weights, values)
-    if np.abs(e).max() > coding.MAX_ANS_SYMBOL:
+    if np.abs(e).max() > geometric.MAX_ANS_SYMBOL:
         return None
     errors = np.zeros(kept.shape, dtype=np.int64)
     errors[kept] = np.abs(e)
@@ -365,13 +365,13 @@ def _predicted_model(q: np.ndarray, kept: np.ndarray
         if k:
             activity += k * _shifted(errors, up, left)[kept]
     classes = _classes(activity)
-    lo, band_codes, _ = coding._band_statistics(e, classes)
+    lo, band_codes, _ = geometric.band_statistics(e, classes)
     codes = np.zeros(CLASSES, dtype=np.uint8)
     codes[lo:lo + band_codes.size] = band_codes
     max_abs = np.zeros(CLASSES, dtype=np.int64)
     np.maximum.at(max_abs, classes, np.abs(e))
     max_abs[codes == 0] = 0
-    if _table_entries(codes, max_abs) > coding.table_budget(q.size):
+    if _table_entries(codes, max_abs) > geometric.table_budget(q.size):
         return None
     return weights, e, classes, codes, max_abs
 
@@ -408,7 +408,7 @@ def _class_words_compiled(symbols: np.ndarray, bounds: np.ndarray, group_classes
                           max_abs: np.ndarray) -> np.ndarray:
     # The same words, without building constriction's tables.
     present = np.flatnonzero(codes)
-    tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
+    tables = [geometric.table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
     return kernels.compiled_module().encode_table_words(symbols, bounds, tables, 2 * max_abs[present] + 1,
                                                         np.searchsorted(present, group_classes))
 
@@ -423,7 +423,7 @@ def _class_words(symbols: np.ndarray, bounds: np.ndarray, group_classes: np.ndar
     symbols32 = symbols.astype(np.int32)
     for g in range(bounds.size - 2, -1, -1):  # a stack: the last group first
         k = int(group_classes[g])
-        coder.encode_reverse(symbols32[bounds[g]:bounds[g + 1]], coding._table_model(int(max_abs[k]), int(codes[k])))
+        coder.encode_reverse(symbols32[bounds[g]:bounds[g + 1]], geometric.table_model(int(max_abs[k]), int(codes[k])))
     return coder.get_compressed()
 
 
@@ -450,11 +450,11 @@ def _decode_predicted(payload: bytes, kept: np.ndarray) -> np.ndarray:
     max_abs = np.zeros(CLASSES, dtype=np.int64)
     max_abs[codes > 0] = np.frombuffer(payload, dtype="<u2", count=int(np.count_nonzero(codes)),
                                        offset=_WEIGHTS.size + listed)
-    if max_abs.max() > coding.MAX_ANS_SYMBOL:
+    if max_abs.max() > geometric.MAX_ANS_SYMBOL:
         raise CorruptFileError(f"{what} has an implausible header")
     rows, cols = kept.shape
     count = int(np.count_nonzero(kept))
-    if _table_entries(codes, max_abs) > coding.table_budget(count):
+    if _table_entries(codes, max_abs) > geometric.table_budget(count):
         raise CorruptFileError(f"{what} asks for larger probability tables than its {count} values allow")
     words = np.frombuffer(payload, dtype="<u4", offset=words_at).astype(np.uint32)
     return _predicted_values(words, kept, weights, codes, max_abs, what)
@@ -463,9 +463,9 @@ def _decode_predicted(payload: bytes, kept: np.ndarray) -> np.ndarray:
 def _predicted_values_compiled(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, codes: np.ndarray,
                                max_abs: np.ndarray, what: str) -> np.ndarray:
     # The same values in one compiled pass.
-    coding.check_ans_words(words, what)
+    geometric.check_ans_words(words, what)
     present = np.flatnonzero(codes)
-    tables = [coding._table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
+    tables = [geometric.table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
     found = kernels.compiled_module().decode_predicted(words, kept, weights, codes, tables, 2 * max_abs[present] + 1)
     if found is None:
         raise CorruptFileError(f"{what} decodes to values beyond 2**31")
@@ -497,7 +497,7 @@ def _predicted_values(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, 
                     for cls in np.unique(coded[codes[coded] > 0]).tolist():
                         where = at[classes == cls]
                         width = int(max_abs[cls])
-                        errors[where] = coder.decode(coding._table_model(width, int(codes[cls])), where.size) - width
+                        errors[where] = coder.decode(geometric.table_model(width, int(codes[cls])), where.size) - width
                 neighbours = [values[nbs[n, k0:k1]] for n in range(len(NEIGHBOURS))]
                 out = np.where(rebuilt, _prediction(weights, neighbours) + errors[at], neighbours[0])
                 if out.size and np.abs(out).max() >= VALUE_LIMIT:  # (a grid of one column has empty wavefronts)
@@ -518,9 +518,9 @@ def layout_of(blob: Any) -> str:
     """The layout of a RESD section, from its first chunk's header: ``"predicted"`` (kind 5),
     ``"sparse"`` (kind 4) or ``"chunks"`` (kinds 0 and 3, and a section too short to say)."""
     view = memoryview(blob)
-    if len(view) < 4 + coding._CHUNK.size or struct.unpack_from("<I", view, 0)[0] == 0:
+    if len(view) < 4 + coding.CHUNK_HEAD.size or struct.unpack_from("<I", view, 0)[0] == 0:
         return "chunks"
-    return LAYOUT_NAMES.get(coding._CHUNK.unpack_from(view, 4)[3], "chunks")
+    return LAYOUT_NAMES.get(coding.CHUNK_HEAD.unpack_from(view, 4)[3], "chunks")
 
 
 def decode_residual(blob: Any, kept: np.ndarray) -> np.ndarray:

@@ -23,7 +23,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from .sums import dot
-from . import coding
+from . import coding, quantizer
 from .cluster import serial
 from .format import MapWriter
 from .dem import DEM, Grid, TileGrid
@@ -324,7 +324,7 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
             # Part of the error is the low-pass's, which the step does not change: shrink the step
             # by the square of the miss, a little inside.
             ratio = SAMPLE_RMSE_MARGIN * (params.target_rmse / stats["dem_rmse_m"]) ** 2
-            chosen = chosen.replace(step=coding.short_step(chosen.step * ratio))
+            chosen = chosen.replace(step=quantizer.short_step(chosen.step * ratio))
         with writer:
             start = writer.head(stats, coef_count=nb, base=base_blob)  # every check, before the file is created
 
@@ -437,10 +437,10 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
     bi, bj, bradius, bangle, bcoefs = base
     nb = int(np.searchsorted(bradius, base_limit(grid.shape, tile, params.cutoff, BASE_CYCLES_PER_TILE),
                              side="right")) if bi.size else 0
-    q = coding.quantize(bcoefs[:nb], params.step, params.deadzone)
+    q = quantizer.quantize(bcoefs[:nb], params.step, params.deadzone)
     base_blob = coding.encode_coefficients(q, radius=bradius[:nb], angle=bangle[:nb], coder=params.coder,
                                            progressive=False)
-    base_error = coding.dequantize(q, params.step) - bcoefs[:nb]
+    base_error = quantizer.dequantize(q, params.step) - bcoefs[:nb]
     tiling = TileGrid(grid.rows, grid.cols, tile)
     job = _Pass(None if raster.in_memory else raster, grid.shape, grid.z0, survey["plane"], tiling,
                 (bcoefs[:nb], bi[:nb], bj[:nb]), base_error, params, refill)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .sums import dot
-from . import coding, occupancy, spectrum
+from . import coding, occupancy, quantizer, spectrum
 from .analysis import Analysis, Trial
 from .dem import DEM, Grid, TileGrid
 from .fill import fill_empty, fit_plane, plane_values
@@ -311,7 +311,7 @@ class TiledAnalysis:
 
     def base_at(self, cutoff: float, step: float) -> np.ndarray:
         """The base layer's integers at (cutoff, step)."""
-        return coding.quantize(self.base_coefs[: self.base_count(cutoff)], coding.short_step(step),
+        return quantizer.quantize(self.base_coefs[: self.base_count(cutoff)], quantizer.short_step(step),
                                self.params.deadzone)
 
     def base_blob(self, q: np.ndarray) -> bytes:
@@ -322,7 +322,7 @@ class TiledAnalysis:
     def jobs(self, q: np.ndarray, cutoff: float, step: float) -> list[TileJob]:
         """One :class:`TileJob` per occupied tile at ``cutoff``, against the base layer ``q`` decoded at ``step``."""
         grid = self.dem.grid
-        decoded = base_heights(coding.dequantize(q, coding.short_step(step)), self.base_i[: q.size],
+        decoded = base_heights(quantizer.dequantize(q, quantizer.short_step(step)), self.base_i[: q.size],
                                self.base_j[: q.size], grid.shape, (0, grid.rows), (0, grid.cols))
         overlap = tile_overlap(cutoff, self.tile)
         out = []
@@ -373,23 +373,23 @@ class TiledAnalysis:
         return max(scale, 1.0) * 1e-9
 
     def quantized(self, cutoff: float, step: float) -> np.ndarray:
-        step = coding.short_step(step)
-        base = coding.quantize(self.base_coefs[: self.base_count(cutoff)], step, self.params.deadzone)
+        step = quantizer.short_step(step)
+        base = quantizer.quantize(self.base_coefs[: self.base_count(cutoff)], step, self.params.deadzone)
         parts = [base] + [an.quantized(cutoff, step) for _, an in self.tiles_at(cutoff)]
         stream = np.concatenate(parts)
         self._splits[stream.size] = (tile_overlap(cutoff, self.tile), [p.size for p in parts])
         return stream
 
     def trial(self, cutoff: float, step: float) -> TiledTrial:
-        step = coding.short_step(step)
+        step = quantizer.short_step(step)
         grid = self.dem.grid
         nb = self.base_count(cutoff)
-        base = coding.quantize(self.base_coefs[:nb], step, self.params.deadzone)
+        base = quantizer.quantize(self.base_coefs[:nb], step, self.params.deadzone)
         # A trial measures the whole map's errors for rate control: the inverse DCT of the base
         # layer's corner gives them some five times faster than base_heights' exact sums on a large
         # base layer, with bits that depend on the grid's shape only (as every transform's here,
         # and unlike BLAS's). The tiles are coded against the exact base layer (jobs).
-        heights = self.trend + self._base_map(coding.dequantize(base, step), nb)
+        heights = self.trend + self._base_map(quantizer.dequantize(base, step), nb)
         trials = []
         overlap = tile_overlap(cutoff, self.tile)
         for k, an in self.tiles_with(overlap):
@@ -416,7 +416,7 @@ class TiledAnalysis:
     def proxy_rmse(self, cutoff: float, step: float) -> float:
         """As :meth:`Analysis.proxy_rmse`, over the base layer and every tile (each orthonormal)."""
         kept, lost = self._proxy_parts(cutoff)
-        err = kept - coding.dequantize(coding.quantize(kept, step, self.params.deadzone), step)
+        err = kept - quantizer.dequantize(quantizer.quantize(kept, step, self.params.deadzone), step)
         return math.sqrt((dot(err, err) + lost) * self.parseval)
 
     def energy_at(self, cutoff: float) -> tuple[np.ndarray, float]:

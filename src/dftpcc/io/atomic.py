@@ -26,7 +26,7 @@ _TMP_MARK = ".tmp"
 def atomic_write(path: str | os.PathLike[str], write: Any) -> None:
     """Create ``path`` through a temporary file in the same folder, renamed into place.
 
-    ``write(tmp_path)`` receives the temporary path. The file is flushed to
+    ``write(tmp_path)`` receives the temporary path (or ``write`` is the file's bytes). The file is flushed to
     disk, renamed over ``path`` in one step (``os.replace``) and the folder
     entry synced, so ``path`` holds either its previous content or the whole
     new one, never a partial file. If ``write`` raises or the process is
@@ -53,7 +53,7 @@ def atomic_write_all(files: list[tuple[str | os.PathLike[str], Any]]) -> None:
     and their folders synced. A failing writer (or an interruption before the
     renames) leaves every path as it was. A process killed during the renames
     leaves the files renamed so far new and the others old: the caller
-    chooses the order from which it recovers (:func:`dftpcc.mapbuilder.update_file`).
+    chooses the order from which it recovers (:func:`dftpcc.growing.update_file`).
 
     Raises
     ------
@@ -74,7 +74,10 @@ def atomic_write_all(files: list[tuple[str | os.PathLike[str], Any]]) -> None:
             tmp = folder / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}{_TMP_MARK}{path.suffix}"
             temporaries.append((path, tmp))
             try:
-                write(tmp)
+                if isinstance(write, (bytes, bytearray, memoryview)):
+                    tmp.write_bytes(write)
+                else:
+                    write(tmp)
                 with tmp.open("rb+") as fh:
                     os.fsync(fh.fileno())
             except OSError as exc:
