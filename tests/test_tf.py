@@ -16,6 +16,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from dftpcc.io import rosbag as rb  # noqa: E402
+from dftpcc.io.tf import read_tf_tree  # noqa: E402
 
 from .test_rosbag import _message, _stamp, _std_header  # noqa: E402
 
@@ -175,7 +176,7 @@ def test_the_map_frame_can_be_any_frame_above_the_scans(tmp_path, terrain):
     np.testing.assert_allclose(dftpcc.read(bag, pose_topic="/tf", map_frame="odom").points, expected,
                                rtol=0, atol=1e-9)
     # The scans' own frame: nothing to compose, the points as recorded.
-    assert not list(rb.read_tf_tree(bag).chain("velodyne", "velodyne").edges)
+    assert not list(read_tf_tree(bag).chain("velodyne", "velodyne").edges)
     raw = dftpcc.read(bag, pose_topic="/tf", map_frame="velodyne").points
     first = map_velodyne(SCAN_STAMPS[0])
     np.testing.assert_allclose(raw[:100], first[0].inv().apply(terrain[:100] - first[1]), atol=1e-9)

@@ -333,7 +333,7 @@ def _decompress_bag(args: argparse.Namespace) -> int:
     """``decompress MAP out_bag/``: the rebuilt map as a ROS 2 bag (PointCloud2, and a GridMap with --grid-map)."""
     import numpy as np
 
-    from .io.rosbag import NS_PER_S
+    from .io.bag import NS_PER_S
     from .io.rosmap import DEFAULT_TOPIC, FLOAT32_SAFE_M, check_bag_output, grid_map_topic, local_origin, write_map_bag
     from .mapfile import open as open_map
 

@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from .errors import DftpccError, InvalidInputError
-from .io.rosbag import PoseStream
+from .io.poses import PoseStream
 from .link import DEFAULT_WINDOW_S, Budget, Receiver, Sender
 from .mapbuilder import DEFAULT_GROWING_TILE_SIZE, DEFAULT_STEP_M, MapBuilder
 

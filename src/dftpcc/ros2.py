@@ -99,7 +99,7 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
               save_every: float = 10.0, loss: float = 0.0, seed: int = 0, duration: float | None = None,
               say: Callable[[str], None] = print) -> int:
     """The rover node: scans and poses in, the map kept on disk, frames out on :data:`DOWNLINK_TOPIC`."""
-    from .io.rosbag import pointcloud2_xyz
+    from .io.pointcloud2 import pointcloud2_xyz
     from .live import RoverCore
 
     ros = require()

@@ -42,7 +42,7 @@ from .._optional import import_optional
 from ..errors import InvalidInputError, advice
 from ..rebuild import dem_to_points
 from .atomic import writer_errors
-from .rosbag import NS_PER_S
+from .bag import NS_PER_S
 
 __all__ = ["local_origin", "static_transform_message", "GRID_MAP_MSGS", "DEFAULT_TOPIC", "ELEVATION_LAYER", "FLOAT32_SAFE_M", "is_bag_output",
            "check_bag_output", "grid_map_topic", "map_typestore", "pointcloud2_message", "grid_map_message",
