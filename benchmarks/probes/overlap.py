@@ -10,7 +10,7 @@ and a fine step (1 mm), so that only the low-pass rings, with the constant overl
 of 1/(1 - f_c) cells rounded up to a multiple of 8 (what a ringing reach that grows with the cutoff
 would ask). Nothing here fails; see docs/benchmarks.md, *The overlap follows the cutoff*.
 
-    .venv/bin/python -m benchmarks.probe_overlap [--overlap 8] [--fixed] [--data ../shared/data]
+    .venv/bin/python -m benchmarks.probes.overlap [--overlap 8] [--fixed] [--data ../shared/data]
 """
 
 from __future__ import annotations

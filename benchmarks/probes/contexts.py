@@ -5,7 +5,7 @@ symbols given a context, with the statistics known in advance (no learning
 cost), against the same with the contexts the file format uses now.
 
 - Coefficients: the quantized DCT of the DEM (plane removed, smooth fill) at
-  the step that meets the target RMSE as one tile of ``probe_tiles.py``. Now:
+  the step that meets the target RMSE as one tile of ``probes/tiles.py``. Now:
   one model per frequency band (8 bands per octave of radius here, finer than
   the format's). Richer: band x the size of the already decoded neighbours
   (u-1, v), (u, v-1), (u-1, v-1), (u-2, v), (u, v-2), in 8 classes.
@@ -13,7 +13,7 @@ cost), against the same with the contexts the file format uses now.
   MASK kind 2. Richer: those x the count in a 7 x 3 causal window x the
   density over the 8 rows above (8 classes each).
 
-    .venv/bin/python -m benchmarks.probe_contexts [--multiple 1.25 3] [--relief 0.001 0.01]
+    .venv/bin/python -m benchmarks.probes.contexts [--multiple 1.25 3] [--relief 0.001 0.01]
 
 Prints a table; nothing here fails.
 """
@@ -35,7 +35,7 @@ from dftpcc.grid import fit_grid, rasterize
 from dftpcc.io import read_raster_dem
 
 from benchmarks.common import DEFAULT_DATA, warnings_as_notes
-from benchmarks.probe_tiles import code_tiled
+from benchmarks.probes.tiles import code_tiled
 
 #: (file, resolution, classes) as in bench_anchors.py; a .tif is read from dems/.
 FILES = (("field_gentle_ign.laz", 0.5, [2]), ("coastal_plain_ign.laz", 2.0, [2]), ("mars_gale_1m.tif", None, None))

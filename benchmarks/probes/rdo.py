@@ -13,7 +13,7 @@ coefficients with the library's coder and compare sizes:
   is given the integers as they are, so its size is what such a file would
   need apart from the per-band step table).
 
-    .venv/bin/python -m benchmarks.probe_rdo [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
+    .venv/bin/python -m benchmarks.probes.rdo [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
         [--cutoff 0.2 --multiple 1.25]
 
 The target is the DEM error that makes the points' vertical RMSE ``multiple``

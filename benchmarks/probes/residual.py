@@ -24,7 +24,7 @@ JPEG XL (libjxl, effort 7, one thread) on the same quantized heights is measured
 as benchmarks/max_error.py charges it (its bytes plus the raster anchors' 64-byte header and
 occupancy bitmap). The DEMs and bounds are max_error.py's.
 
-    .venv/bin/python -m benchmarks.probe_residual [--files earth_davos_10m.tif ...]
+    .venv/bin/python -m benchmarks.probes.residual [--files earth_davos_10m.tif ...]
 
 Prints a table; nothing here fails.
 """

@@ -14,7 +14,7 @@ already decoded neighbours' sizes (the activity classes of ``RESD`` kind 5: two 
 Each variant sweeps the step, and its bits at each level are read off by log-log interpolation;
 dftpcc's figure is the file ``compress(target_rmse=level)`` writes (mask and header included).
 
-    .venv/bin/python -m benchmarks.probe_wavelets [--file earth_davos_10m.tif ...]
+    .venv/bin/python -m benchmarks.probes.wavelets [--file earth_davos_10m.tif ...]
 
 Prints a table; nothing here fails.
 """
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         import pywt
     except ImportError:
-        print("probe_wavelets needs PyWavelets: pip install -e '.[compare]'", file=sys.stderr)
+        print("probes/wavelets needs PyWavelets: pip install -e '.[compare]'", file=sys.stderr)
         return 2
     rows: list[list[str]] = []
     notes: list[str] = []

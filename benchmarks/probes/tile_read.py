@@ -4,7 +4,7 @@ bench_tiles measures the same read among its other parts (20 minutes of a shared
 probe builds the mosaic, codes it at bench_tiles' fixed parameters and times only the tile, so the
 figure can be taken again when the machine is quiet:
 
-    .venv/bin/python -m benchmarks.probe_tile_read [--repeats N]
+    .venv/bin/python -m benchmarks.probes.tile_read [--repeats N]
 """
 
 from __future__ import annotations

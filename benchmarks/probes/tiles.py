@@ -8,9 +8,9 @@ searched so that the rebuilt DEM meets the same RMSE (occupied cells), and the
 coefficient bytes (plus 24 B of plane per tile, no mask) are compared with
 one tile covering the map.
 
-    .venv/bin/python -m benchmarks.probe_tiles [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
+    .venv/bin/python -m benchmarks.probes.tiles [--file field_gentle_ign.laz --resolution 0.5 --classes 2]
         [--multiple 1.25] [--tiles 256 128 64]
-    .venv/bin/python -m benchmarks.probe_tiles --file mars_gale_1m.tif --relief 0.001
+    .venv/bin/python -m benchmarks.probes.tiles --file mars_gale_1m.tif --relief 0.001
 
 For a point cloud the target is the DEM error that makes the points' vertical
 RMSE ``multiple`` times the gridding floor; a GeoTIFF DEM (from dems/) is coded
