@@ -20,7 +20,7 @@ from pathlib import Path
 
 import zstandard
 
-from .format import Header, Source, leb128, read_leb128, unpack_source
+from .format import Header, Source, leb128, read_leb128, tile_sections, unpack_source
 from .errors import CorruptFileError, DftpccError, InvalidInputError, MissingFileError
 from .io.atomic import atomic_write, check_distinct, check_output
 from .io.lock import lock_path, locked
@@ -81,12 +81,7 @@ class Delta:
 
 def _tile_payloads(data: bytes) -> list[tuple[int, int]]:
     """(offset, length) of every tile section payload of a tiled map (empty for any other bytes)."""
-    if not data:
-        return []
-    header, _ = unpack_source(Source(data))
-    if header.tiles is None:
-        return []
-    return sorted((start, length) for sections in header.tiles.sections.values()
+    return sorted((start, length) for sections in tile_sections(data).values()
                   for start, length, _crc in sections.values())
 
 

@@ -26,7 +26,7 @@ from typing import Callable
 
 import zstandard
 
-from .format import Source, leb128, read_leb128, unpack_source
+from .format import leb128, read_leb128, tile_sections
 from .errors import CorruptFileError, DftpccError, InvalidInputError
 from .io.atomic import atomic_write
 
@@ -250,16 +250,12 @@ class Plan:
 
 def _tile_blocks(data: bytes) -> list[tuple[int, int, int]]:
     """(tile, start, end) of every tile of a tiled map whose sections lie together, by start; none for other bytes."""
-    if not data:
-        return []
     try:
-        header, _ = unpack_source(Source(data))
-    except DftpccError:  # not a tiled map dftpcc reads: sent whole, as the plan's rest
-        return []
-    if header.tiles is None:
+        tiles = tile_sections(data)
+    except DftpccError:  # not a map dftpcc reads: sent whole, as the plan's rest
         return []
     blocks = []
-    for k, sections in header.tiles.sections.items():
+    for k, sections in tiles.items():
         spans = sorted((start, start + length) for start, length, _crc in sections.values())
         if spans and sum(e - s for s, e in spans) == spans[-1][1] - spans[0][0]:
             blocks.append((k, spans[0][0], spans[-1][1]))

@@ -177,6 +177,23 @@ def is_tiled(entries: list[tuple[bytes, int, int, int]]) -> bool:
     return any(tag == b"TIDX" and tile == 0 for tag, tile, _, _ in entries)
 
 
+def tile_sections(data: bytes) -> dict[int, dict[bytes, tuple[int, int, int]]]:
+    """Where the sections of each tile of the map ``data`` lie: by tile number (0-based), by tag,
+    (start, length, CRC-32); nothing for no bytes or an untiled map (its sections are the map's).
+
+    What a delta or a link frame copies from one version of a map to the next.
+
+    Raises
+    ------
+    DftpccError
+        As :func:`unpack_source`: ``data`` is no map this reader reads.
+    """
+    if not data:
+        return {}
+    header, _ = unpack_source(Source(data))
+    return {} if header.tiles is None else header.tiles.sections
+
+
 def read_tile(source: Source, header: Header, k: int) -> dict[bytes, memoryview]:
     """The checked sections of tile ``k`` (0-based) of a tiled map.
 
