@@ -129,18 +129,18 @@ def _candidates(dem: DEM, params) -> tuple[list[bytes], int]:
     args = (params, int(dem.mask.sum()), None, encoder.no_stage, None)
 
     def analysis(cycles):
-        return encoder._analysis(dem, params, encoder.no_stage, base_cycles=cycles)
+        return encoder._TILES.analysis(dem, params, encoder.no_stage, base_cycles=cycles)
 
-    first, cutoff = encoder._encode(analysis(tiles.BASE_CYCLES_PER_TILE), *args)
+    first, cutoff = encoder._TILES.encode(analysis(tiles.BASE_CYCLES_PER_TILE), *args)
     if params.has_target and params.cutoff is None:
         lowest = tiles.covering_cutoff(dem.grid.shape, params.tile_size)
         cutoff = max(cutoff, 1.0 if lowest is None else lowest)
     cover = tiles.covering_reach(dem.grid.shape, params.tile_size, cutoff)
     assert cover is not None and cover > 1
-    out = [first, encoder._encode(analysis(cover), *args)[0]]
+    out = [first, encoder._TILES.encode(analysis(cover), *args)[0]]
     if params.has_target:  # at fixed settings the base layer alone would lose the tiles' refinement
         try:
-            out.append(encoder._encode(analysis(cover).without_tile_coefs(), *args)[0])
+            out.append(encoder._TILES.encode(analysis(cover).without_tile_coefs(), *args)[0])
         except InvalidInputError:
             pass
     return out, cover
@@ -353,7 +353,7 @@ def test_the_overlap_follows_the_cutoff_and_rate_control_measures_the_file(cutof
     params = make_params(tile_size=64, cutoff=cutoff, step=0.02, resolution=dem.grid.resolution)
     # The writer's first file, with the base reach of one cycle per tile that rate control searches
     # at (a base layer covering its cutoff's circle is tried after, in a second search).
-    data, _ = encoder._encode(encoder._analysis(dem, params, encoder.no_stage, base_cycles=tiles.BASE_CYCLES_PER_TILE),
+    data, _ = encoder._TILES.encode(encoder._TILES.analysis(dem, params, encoder.no_stage, base_cycles=tiles.BASE_CYCLES_PER_TILE),
                               params, int(dem.mask.sum()), None, encoder.no_stage, None)
     m = dftpcc.open(data)
     assert m.header.tiles.overlap == tiles.tile_overlap(cutoff, 64) == (8 if cutoff < 0.29 else 16)

@@ -164,126 +164,250 @@ def encode_dem(dem: DEM, params: Params, *, point_count: int | None = None,
         raise InvalidInputError("the map has no occupied cell")
     tile = tile_size_for(params, dem.grid.shape)
     params = params.replace(resolution=dem.grid.resolution, tile_size=tile)
-    if tile:
-        _check_tiled(params)
     point_count = int(dem.mask.sum()) if point_count is None else point_count
     # What the reader would refuse, refused before any work: heights, then the grid.
     # (z0 + the lowest height is the lowest of z0 + each height: rounding is monotone.)
     occupied = dem.heights[dem.mask]
     check_heights(float(dem.grid.z0 + occupied.min()), float(dem.grid.z0 + occupied.max()))
-    if not tile:
-        check_grid(dem.grid, point_count=point_count, cell_count=occupied.size, params=params)
-        return _encode(_analysis(dem, params, on_stage, fill), params, point_count, crs, on_stage, map_tiles,
-                       occupied_heights=occupied)[0]
-    first = _analysis(dem, params, on_stage, base_cycles=BASE_CYCLES_PER_TILE)
-    masks = tiled_masks(first)  # every run's: they depend on the occupancy alone
-    data, cutoff = _encode(first, params, point_count, crs, on_stage, map_tiles, masks)
-    # Where the cutoff's whole circle is a small base layer (covering_reach), the base layer may hold
-    # all of it, and the tiles only what its quantization leaves: the tiles no longer repeat the
-    # map's frequencies (nor pay for them in their own headers), so their edges rarely show. The
-    # reach is that of the first run's cutoff or, where rate control chooses the cutoff and that
-    # circle is too large, of the lowest cutoff whose circle is not (in small tiles the first run
-    # may keep every frequency, and pay for them in every tile); rate control then searches again.
-    # Kept when smaller (a size target keeps its first file). The second run repeats the plane fit
-    # and fill of the first (TiledAnalysis). With a target, a third run codes that base layer
-    # alone, every tile without coefficients of its own (TiledAnalysis.without_tile_coefs, which
-    # shares the second's plane, fill and base layer): on a small map in small tiles, each tile's
-    # COEF entry and stream headers (about 40 bytes) cost more than its few coefficients save.
-    if params.target_bpp > 0:
-        return data
-    if params.has_target and params.cutoff is None:
-        lowest = covering_cutoff(dem.grid.shape, tile)
-        cutoff = max(cutoff, 1.0 if lowest is None else lowest)
-    cycles = covering_reach(dem.grid.shape, tile, cutoff) if cutoff < 1 else None
-    if cycles is None or cycles <= BASE_CYCLES_PER_TILE:
-        return data
-    with warnings.catch_warnings():  # the first run has said whatever these would
-        warnings.simplefilter("ignore")
-        covering = _analysis(dem, params, on_stage, base_cycles=cycles)
-        # Without a target the settings fix the quality, and a base layer alone would lose the
-        # tiles' refinement of it: only a target compares files of equal quality.
-        for an in (covering, covering.without_tile_coefs()) if params.has_target else (covering,):
+    layout = _TILES if tile else _WHOLE  # the one place the two layouts part (docs/format.md)
+    return layout.encode_dem(dem, params, point_count, crs, on_stage, map_tiles, fill=fill, occupied=occupied)
+
+
+class _Layout:
+    """How a map is laid out in its file, and so analysed, coded and packed: whole (format 1.0,
+    :class:`_Whole`) or in tiles (1.1, :class:`_Tiles`). :meth:`encode` (the fixed settings, or rate
+    control) is the same for both; the layouts differ in their analysis, their masks, what a trial
+    keeps, where the coefficients are coded and how the file is packed."""
+
+    def encode(self, an: Any, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
+               map_tiles: Callable[..., list] | None, masks: Masks | None = None, *,
+               occupied_heights: np.ndarray | None = None) -> tuple[bytes, float]:
+        """:func:`encode_dem` of a checked map's analysis (``masks``: its masks, when known;
+        ``occupied_heights``: ``dem.heights[dem.mask]``, if the caller has them): its bytes and the
+        cutoff they were coded with."""
+        dem = an.dem
+        if params.target_max_error > 0:
+            _check_max_error(an, params.target_max_error)
+        side = self.masks(an) if masks is None else None
+
+        on_stage("encode")
+        if not params.has_target:
+            cutoff, step = params.cutoff_or_default, params.step
+            with spectrum.fft_workers(None if side is None else side.cores_left):
+                if params.storage == "quantized" and step == 0.0:
+                    target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
+                    step = quantizer.choose_step(an.largest(cutoff), target_rmse=target,
+                                              n_cells=dem.grid.size, deadzone=params.deadzone)
+                if params.storage == "quantized":
+                    _check_step(an, cutoff, step)
+                # No refill without a target: at a fixed step it lowers the error by a
+                # few per cent rather than the size, for two more transforms.
+                trial = self.trial(an, cutoff, step)
+                if params.step == 0.0 and params.storage == "quantized":  # a step was chosen for the user
+                    _flag_coarse(dem, trial, occupied_heights)
+                coefs = self.coefficients(an, trial)
+            if side is not None:
+                masks = side.result()
+            return (self.pack(Choice(an, trial, coefs), params, masks, point_count, crs, on_stage, map_tiles=map_tiles),
+                    cutoff)
+        if side is not None:  # rate control weighs the mask's bytes from its start
+            masks = side.result()
+        # Rate control. For a size target the header's own bytes count too: start
+        # from an estimate, then shrink the budget by any overshoot.
+        overhead = len(masks.map) + sum(map(len, masks.tiles)) + HEADER_ESTIMATE
+        for round_ in range(BUDGET_ROUNDS):
             try:
-                other, _ = _encode(an, params, point_count, crs, on_stage, map_tiles, masks)
-            except InvalidInputError:  # a target the base layer alone cannot reach
-                if an.tile_coefs:
+                choice = ratemodel.choose(an, params, point_count, overhead,
+                                            progress=lambda done: on_stage("encode", done))
+            except InvalidInputError:
+                # The estimate can exceed a small map's whole header: measure it before giving up.
+                measured = self.overhead(an, params, masks, point_count, crs)
+                if params.target_bpp <= 0 or round_ or measured >= overhead:
                     raise
+                overhead = measured
                 continue
-            data = other if len(other) < len(data) else data
-    return data
+            data = self.pack(choice, params, masks, point_count, crs, on_stage, map_tiles=map_tiles)
+            if params.target_bpp <= 0 or 8 * len(data) <= params.target_bpp * point_count:
+                return data, choice.trial.cutoff
+            # Measured now: everything but the coefficients, plus room for the
+            # statistics' digits to change with the next candidate.
+            overhead = len(data) - choice.size + STATS_SLACK
+        raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be met with these settings")
+
+    def overhead(self, an: Any, params: Params, masks: Masks, point_count: int, crs: dict[str, Any] | None) -> int:
+        """Bytes of the file besides its coded coefficients, measured by packing it without them."""
+        trial = an.trial(max(ratecontrol.cutoffs(params)), an.tiny_step())
+        return len(self.pack(Choice(an, trial, b""), params, masks, point_count, crs, no_stage,
+                             header_only=True)) + STATS_SLACK
 
 
-def _analysis(dem: DEM, params: Params, on_stage: Stage, fill: Callable[..., np.ndarray] | None = None, *,
-              base_cycles: int | None = None) -> Analysis | TiledAnalysis:
-    """The analysis :func:`_encode` codes a checked map from: whole, or tiled with a base reach of
-    ``base_cycles`` cycles per tile."""
-    on_stage("spectrum")
-    searching = params.has_target and params.cutoff is None
-    if base_cycles is None:  # the energy the low-pass drops: rate control's, a fixed setting needs none
-        return Analysis(dem, params, searching=searching, fill=fill, outside_energy=params.has_target)
-    return TiledAnalysis(dem, params, params.tile_size, searching=searching, base_cycles=base_cycles)
+class _Whole(_Layout):
+    """An untiled map: one analysis of the whole grid; the mask coded beside the trial (on a second
+    core, with the compiled kernels); the coefficients coded with the trial; the file packed whole."""
+
+    def encode_dem(self, dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
+                   map_tiles: Callable[..., list] | None, *, fill: Callable[..., np.ndarray] | None,
+                   occupied: np.ndarray) -> bytes:
+        check_grid(dem.grid, point_count=point_count, cell_count=occupied.size, params=params)
+        return self.encode(self.analysis(dem, params, on_stage, fill), params, point_count, crs, on_stage, map_tiles,
+                           occupied_heights=occupied)[0]
+
+    @staticmethod
+    def analysis(dem: DEM, params: Params, on_stage: Stage, fill: Callable[..., np.ndarray] | None = None) -> Analysis:
+        """The whole map's analysis; the energy the low-pass drops only where rate control needs it."""
+        on_stage("spectrum")
+        return Analysis(dem, params, searching=params.has_target and params.cutoff is None, fill=fill,
+                        outside_energy=params.has_target)
+
+    @staticmethod
+    def masks(an: Analysis) -> kernels.Side:
+        return kernels.Side(lambda kept: Masks(occupancy.encode_mask(kept), []), an.kept_cells,
+                            cells=an.dem.grid.size)
+
+    @staticmethod
+    def trial(an: Analysis, cutoff: float, step: float) -> Trial:
+        # The file's statistics are made of this trial's errors: kept, not computed again.
+        return an.trial(cutoff, step, keep_errors=True)
+
+    @staticmethod
+    def coefficients(an: Analysis, trial: Trial) -> bytes:
+        return an.encode(trial)
+
+    @staticmethod
+    def pack(choice: Choice, params: Params, masks: Masks, point_count: int, crs: dict[str, Any] | None,
+             on_stage: Stage, *, map_tiles: Callable[..., list] | None = None, header_only: bool = False) -> bytes:
+        """Measure what the decoder will rebuild and pack the file with those figures."""
+        an, trial = choice.analysis, choice.trial
+        params = params.replace(cutoff=trial.cutoff, step=trial.step)
+        dem, occupied = an.dem, an.mask
+        heights = trial.heights
+        asked_rmse = 0.0
+        if choice.residual is not None:
+            # The file states the bound its residual layer was made for, whatever the target: the
+            # decoder's step, and the promise an RMSE target met by a residual layer keeps as well.
+            # Such an RMSE target goes to STAT (target_rmse_m), so the file still says what it was made for.
+            asked_rmse = params.target_rmse
+            params = params.replace(target_rmse=0.0, target_max_error=choice.bound)
+            _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, choice.bound)
+        # Without a residual layer the decoder rebuilds the trial's heights, whose errors it may have kept.
+        errors = trial.errors if choice.residual is None else None
+        kept = int(an.kept_cells.sum())
+        writer = MapWriter(dem.grid, params, point_count=point_count, plane=an.plane, crs=crs)
+        rmse, largest, weighted = _figures(dem, params, heights, occupied, errors=errors,
+                                           figures=None if errors is None else (trial.rmse, trial.max_error))
+        writer.add(0, masks.map, choice.coefs, choice.residual_blob, cells=kept, squared_error=0.0, max_error=largest,
+                   weighted_squared_error=weighted)
+        extra = {"target_rmse_m": asked_rmse} if asked_rmse > 0 else {}
+        stats = writer.stats(rmse=rmse, max_error=largest, cells_interpolated=kept - int(occupied.sum()),
+                             **_map_figures(dem, params), **extra)
+        on_stage("container")
+        return writer.finish(stats, coef_count=an.count(params.cutoff))
 
 
-def _encode(an: Analysis | TiledAnalysis, params: Params, point_count: int, crs: dict[str, Any] | None,
-            on_stage: Stage, map_tiles: Callable[..., list] | None,
-            masks: TiledMasks | None = None, *, occupied_heights: np.ndarray | None = None) -> tuple[bytes, float]:
-    """:func:`encode_dem` of a checked map's analysis (``masks``: a tiled map's, when known;
-    ``occupied_heights``: ``dem.heights[dem.mask]``, if the caller has them): its bytes and the
-    cutoff they were coded with."""
-    dem, tile = an.dem, params.tile_size
-    if params.target_max_error > 0:
-        _check_max_error(an, params.target_max_error)
-    mask_blob: bytes | TiledMasks
-    side = None
-    if isinstance(an, TiledAnalysis):
-        mask_blob = tiled_masks(an) if masks is None else masks
-    else:  # coded beside the trial and the coefficients (on a second core, with the compiled kernels)
-        side = kernels.Side(occupancy.encode_mask, an.kept_cells, cells=dem.grid.size)
+class _Tiles(_Layout):
+    """A tiled map: a base layer and tiles, each tile coded on its own when the file is packed
+    (:func:`~dftpcc.tiles.code_tile`, through ``map_tiles``); a trial measures the whole map."""
 
-    on_stage("encode")
-    if not params.has_target:
-        cutoff, step = params.cutoff_or_default, params.step
-        with spectrum.fft_workers(None if side is None else side.cores_left):
-            if params.storage == "quantized" and step == 0.0:
-                target = max(QUANT_FLOOR_FRACTION * (dem.gridding_rmse or 0.0), MIN_QUANT_RMSE)
-                step = quantizer.choose_step(an.largest(cutoff), target_rmse=target,
-                                          n_cells=dem.grid.size, deadzone=params.deadzone)
-            if params.storage == "quantized":
-                _check_step(an, cutoff, step)
-            # No refill without a target: at a fixed step it lowers the error by a
-            # few per cent rather than the size, for two more transforms.
-            # The file's statistics are made of this trial's errors: kept, not computed again.
-            trial = an.trial(cutoff, step) if tile else an.trial(cutoff, step, keep_errors=True)
-            if params.step == 0.0 and params.storage == "quantized":  # a step was chosen for the user
-                _flag_coarse(dem, trial, occupied_heights)
-            coefs = b"" if tile else an.encode(trial)  # a tiled map codes its tiles when packing
-        if side is not None:
-            mask_blob = side.result()
-        return (_pack(Choice(an, trial, coefs), params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles),
-                cutoff)
-    if side is not None:  # rate control weighs the mask's bytes from its start
-        mask_blob = side.result()
-    # Rate control. For a size target the header's own bytes count too: start
-    # from an estimate, then shrink the budget by any overshoot.
-    overhead = _length(mask_blob) + HEADER_ESTIMATE
-    for round_ in range(BUDGET_ROUNDS):
-        try:
-            choice = ratemodel.choose(an, params, point_count, overhead,
-                                        progress=lambda done: on_stage("encode", done))
-        except InvalidInputError:
-            # The estimate can exceed a small map's whole header: measure it before giving up.
-            measured = _overhead(an, params, mask_blob, point_count, crs)
-            if params.target_bpp <= 0 or round_ or measured >= overhead:
-                raise
-            overhead = measured
-            continue
-        data = _pack(choice, params, mask_blob, point_count, crs, on_stage, map_tiles=map_tiles)
-        if params.target_bpp <= 0 or 8 * len(data) <= params.target_bpp * point_count:
-            return data, choice.trial.cutoff
-        # Measured now: everything but the coefficients, plus room for the
-        # statistics' digits to change with the next candidate.
-        overhead = len(data) - choice.size + STATS_SLACK
-    raise InvalidInputError(f"target {params.target_bpp} bits/point cannot be met with these settings")
+    def encode_dem(self, dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
+                   map_tiles: Callable[..., list] | None, *, fill: Callable[..., np.ndarray] | None,
+                   occupied: np.ndarray) -> bytes:
+        _check_tiled(params)
+        first = self.analysis(dem, params, on_stage, base_cycles=BASE_CYCLES_PER_TILE)
+        masks = tiled_masks(first)  # every run's: they depend on the occupancy alone
+        data, cutoff = self.encode(first, params, point_count, crs, on_stage, map_tiles, masks)
+        # Where the cutoff's whole circle is a small base layer (covering_reach), the base layer may hold
+        # all of it, and the tiles only what its quantization leaves: the tiles no longer repeat the
+        # map's frequencies (nor pay for them in their own headers), so their edges rarely show. The
+        # reach is that of the first run's cutoff or, where rate control chooses the cutoff and that
+        # circle is too large, of the lowest cutoff whose circle is not (in small tiles the first run
+        # may keep every frequency, and pay for them in every tile); rate control then searches again.
+        # Kept when smaller (a size target keeps its first file). The second run repeats the plane fit
+        # and fill of the first (TiledAnalysis). With a target, a third run codes that base layer
+        # alone, every tile without coefficients of its own (TiledAnalysis.without_tile_coefs, which
+        # shares the second's plane, fill and base layer): on a small map in small tiles, each tile's
+        # COEF entry and stream headers (about 40 bytes) cost more than its few coefficients save.
+        if params.target_bpp > 0:
+            return data
+        if params.has_target and params.cutoff is None:
+            lowest = covering_cutoff(dem.grid.shape, params.tile_size)
+            cutoff = max(cutoff, 1.0 if lowest is None else lowest)
+        cycles = covering_reach(dem.grid.shape, params.tile_size, cutoff) if cutoff < 1 else None
+        if cycles is None or cycles <= BASE_CYCLES_PER_TILE:
+            return data
+        with warnings.catch_warnings():  # the first run has said whatever these would
+            warnings.simplefilter("ignore")
+            covering = self.analysis(dem, params, on_stage, base_cycles=cycles)
+            # Without a target the settings fix the quality, and a base layer alone would lose the
+            # tiles' refinement of it: only a target compares files of equal quality.
+            for an in (covering, covering.without_tile_coefs()) if params.has_target else (covering,):
+                try:
+                    other, _ = self.encode(an, params, point_count, crs, on_stage, map_tiles, masks)
+                except InvalidInputError:  # a target the base layer alone cannot reach
+                    if an.tile_coefs:
+                        raise
+                    continue
+                data = other if len(other) < len(data) else data
+        return data
+
+    @staticmethod
+    def analysis(dem: DEM, params: Params, on_stage: Stage, *, base_cycles: int) -> TiledAnalysis:
+        """The tiled map's analysis with a base reach of ``base_cycles`` cycles per tile."""
+        on_stage("spectrum")
+        return TiledAnalysis(dem, params, params.tile_size, searching=params.has_target and params.cutoff is None,
+                             base_cycles=base_cycles)
+
+    @staticmethod
+    def masks(an: TiledAnalysis) -> kernels.Side:
+        return kernels.Side(tiled_masks, an, cells=0)  # at once: the tiles' masks are small
+
+    @staticmethod
+    def trial(an: TiledAnalysis, cutoff: float, step: float) -> Trial:
+        return an.trial(cutoff, step)
+
+    @staticmethod
+    def coefficients(an: TiledAnalysis, trial: Trial) -> bytes:
+        return b""  # the tiles are coded when packing
+
+    @staticmethod
+    def pack(choice: Choice, params: Params, masks: Masks, point_count: int, crs: dict[str, Any] | None,
+             on_stage: Stage, *, map_tiles: Callable[..., list] | None = None, header_only: bool = False) -> bytes:
+        """:meth:`_Whole.pack` of a tiled map: the base layer, then every tile coded on its own at the
+        chosen cutoff and step, with its errors in the index (``header_only``: without the tiles'
+        coefficients, to measure the rest)."""
+        an, trial = choice.analysis, choice.trial
+        params = params.replace(cutoff=trial.cutoff, step=trial.step)
+        dem = an.dem
+        map_resid = b""
+        if not header_only:
+            q = an.base_at(params.cutoff, params.step)
+            base_blob = an.base_blob(q)
+            on_stage("encode tiles")
+            jobs = an.jobs(q, params.cutoff, params.step)
+            # A small map may keep its residual whole, which needs the tiles' integers.
+            whole = params.target_max_error > 0 and dem.mask.size <= MAP_MASK_CELLS
+            for job, blob in zip(jobs, masks.tiles):  # coded already, or none (a full tile; the map mask)
+                job.mask_code, job.keep_residual = blob, whole
+            codes = (map_tiles or serial)(code_tile, jobs, params, an.refill_step)
+            if whole:
+                masks, map_resid = map_residual(an, masks, codes, params.coder)
+                codes = [dataclasses.replace(c, residual=None, **({"mask": b"", "resid": b""} if map_resid else {}))
+                         for c in codes]
+        else:  # measuring the header's own bytes: every tile without coefficients
+            base_blob = b""
+            codes = [TileCode(k, blob, b"", b"", int(an.tile_cells(dem.mask, k).sum()), 0.0, 0.0)
+                     for k, blob in zip(an.occupied, masks.tiles)]
+        writer = MapWriter(dem.grid, params, point_count=point_count, plane=an.plane, crs=crs, tiling=an.tiling,
+                           overlap=tile_overlap(params.cutoff, an.tile), base_cycles=an.base_cycles)
+        for c in codes:
+            writer.add_code(c)
+        stats = writer.stats(**_map_figures(dem, params))
+        on_stage("container")
+        return writer.finish(stats, coef_count=an.base_count(params.cutoff), base=base_blob, map_mask=masks.map,
+                             map_resid=map_resid)
+
+
+_WHOLE, _TILES = _Whole(), _Tiles()
+
 
 
 def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | None = None,
@@ -316,15 +440,16 @@ def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | 
     return params.replace(cutoff=choice.trial.cutoff, step=choice.trial.step), choice.analysis.refill_step
 
 
-class TiledMasks(NamedTuple):
-    """A tiled map's masks: the map mask at tile 0 (b"": none) and each occupied tile's ``MASK``
-    (b"": none), in the order of ``TiledAnalysis.occupied``."""
+class Masks(NamedTuple):
+    """A map's coded masks: the map mask (an untiled map's ``MASK``; a tiled map's at tile 0, b"":
+    none) and each occupied tile's ``MASK`` (b"": none), in the order of ``TiledAnalysis.occupied``
+    (none for an untiled map)."""
 
     map: bytes
     tiles: list[bytes]
 
 
-def tiled_masks(an: TiledAnalysis) -> TiledMasks:
+def tiled_masks(an: TiledAnalysis) -> Masks:
     """The masks of a tiled map: the whole grid's at tile 0 where it has at most
     :data:`~dftpcc.tiles.MAP_MASK_CELLS` cells and that is shorter, entries counted, than the tiles'
     own (each pays its header, seeds and entry, and its context model learns the map again);
@@ -332,14 +457,14 @@ def tiled_masks(an: TiledAnalysis) -> TiledMasks:
     mask = an.dem.mask
     per = [tile_mask_code(an.tile_cells(mask, k)) for k in an.occupied]
     if mask.size > MAP_MASK_CELLS or not any(per):  # too large to decode for every region; or all full
-        return TiledMasks(b"", per)
+        return Masks(b"", per)
     whole = occupancy.encode_mask(mask)
     if _entries([(0, whole)]) < _entries(zip([k + 1 for k in an.occupied], per)):
-        return TiledMasks(whole, [b""] * len(per))
-    return TiledMasks(b"", per)
+        return Masks(whole, [b""] * len(per))
+    return Masks(b"", per)
 
 
-def map_residual(an: TiledAnalysis, masks: TiledMasks, codes: list[TileCode], coder: str) -> tuple[TiledMasks, bytes]:
+def map_residual(an: TiledAnalysis, masks: Masks, codes: list[TileCode], coder: str) -> tuple[Masks, bytes]:
     """The map residual (tile 0's ``RESD``, beside the map mask) where the two are shorter,
     entries counted, than ``masks`` and the tiles' residual layers; else ``masks`` and b""
     (docs/format.md, *Tile sections*). A sparse residual is mostly its nonzero map, whose context
@@ -354,18 +479,13 @@ def map_residual(an: TiledAnalysis, masks: TiledMasks, codes: list[TileCode], co
     theirs = (_entries([(0, masks.map)] + [(k + 1, b) for k, b in zip(an.occupied, masks.tiles)])
               + _entries((c.k + 1, c.resid) for c in codes))
     if _entries([(0, whole_mask), (0, whole)]) < theirs:
-        return TiledMasks(whole_mask, [b""] * len(masks.tiles)), whole
+        return Masks(whole_mask, [b""] * len(masks.tiles)), whole
     return masks, b""
 
 
 def _entries(parts: Iterable[tuple[int, bytes]]) -> int:
     """Bytes of the payloads ``(tile number in the table, payload)`` and of their section entries (b"": none)."""
     return sum(entry_bytes(t, len(b)) + len(b) for t, b in parts if b)
-
-
-def _length(mask_blob: bytes | TiledMasks) -> int:
-    return len(mask_blob.map) + sum(map(len, mask_blob.tiles)) if isinstance(mask_blob, TiledMasks) \
-        else len(mask_blob)
 
 
 def _check_tiled(params: Params) -> None:
@@ -426,13 +546,6 @@ def _check_max_error(an: Analysis, bound: float) -> None:
             f"heights round by as much; the smallest workable target is {quantizer.round_up(need):g} m")
 
 
-def _overhead(an: Analysis, params: Params, mask_blob: bytes | TiledMasks, point_count: int, crs: dict[str, Any] | None) -> int:
-    """Bytes of the file besides its coded coefficients, measured by packing it without them."""
-    trial = an.trial(max(ratecontrol.cutoffs(params)), an.tiny_step())
-    return len(_pack(Choice(an, trial, b""), params, mask_blob, point_count, crs, no_stage,
-                     header_only=True)) + STATS_SLACK
-
-
 def _flag_coarse(dem: DEM, trial: Trial, heights: np.ndarray | None = None) -> None:
     """Warn when an automatic step leaves a DEM error that is a large part of the map's own height spread
     (``heights``: the occupied cells' heights, metres above z0, if the caller has them)."""
@@ -445,81 +558,6 @@ def _flag_coarse(dem: DEM, trial: Trial, heights: np.ndarray | None = None) -> N
             f"coarse for a map whose heights spread by {spread:.3g} m RMS: the step follows the points' scatter "
             f"within each cell ({dem.gridding_rmse or 0:.3g} m RMS: vegetation, walls?); keep ground points only "
             f"(e.g. --classes 2), or give a --step or a --target-rmse", CoarseMapWarning, stacklevel=3)
-
-
-def _pack(choice: Choice, params: Params, mask_blob: bytes | TiledMasks, point_count: int,
-          crs: dict[str, Any] | None, on_stage: Stage, *, map_tiles: Callable[..., list] | None = None,
-          header_only: bool = False) -> bytes:
-    """Measure what the decoder will rebuild and pack the file with those figures
-    (``header_only``: a tiled map without its tiles' coefficients, to measure the rest)."""
-    if isinstance(choice.analysis, TiledAnalysis):
-        assert isinstance(mask_blob, TiledMasks)
-        return _pack_tiled(choice, params, mask_blob, point_count, crs, on_stage, map_tiles, header_only)
-    assert isinstance(mask_blob, bytes)
-    an, trial = choice.analysis, choice.trial
-    params = params.replace(cutoff=trial.cutoff, step=trial.step)
-    dem, occupied = an.dem, an.mask
-    heights = trial.heights
-    asked_rmse = 0.0
-    if choice.residual is not None:
-        # The file states the bound its residual layer was made for, whatever the target: the
-        # decoder's step, and the promise an RMSE target met by a residual layer keeps as well.
-        # Such an RMSE target goes to STAT (target_rmse_m), so the file still says what it was made for.
-        asked_rmse = params.target_rmse
-        params = params.replace(target_rmse=0.0, target_max_error=choice.bound)
-        _, heights = residual(dem.heights, trial.heights, occupied, an.kept_cells, choice.bound)
-    # Without a residual layer the decoder rebuilds the trial's heights, whose errors it may have kept.
-    errors = trial.errors if choice.residual is None else None
-    kept = int(an.kept_cells.sum())
-    writer = MapWriter(dem.grid, params, point_count=point_count, plane=an.plane, crs=crs)
-    rmse, largest, weighted = _figures(dem, params, heights, occupied, errors=errors,
-                                       figures=None if errors is None else (trial.rmse, trial.max_error))
-    writer.add(0, mask_blob, choice.coefs, choice.residual_blob, cells=kept, squared_error=0.0, max_error=largest,
-               weighted_squared_error=weighted)
-    extra = {"target_rmse_m": asked_rmse} if asked_rmse > 0 else {}
-    stats = writer.stats(rmse=rmse, max_error=largest, cells_interpolated=kept - int(occupied.sum()),
-                         **_map_figures(dem, params), **extra)
-    on_stage("container")
-    return writer.finish(stats, coef_count=an.count(params.cutoff))
-
-
-def _pack_tiled(choice: Choice, params: Params, masks: TiledMasks, point_count: int,
-                crs: dict[str, Any] | None, on_stage: Stage, map_tiles: Callable[..., list] | None = None,
-                header_only: bool = False) -> bytes:
-    """:func:`_pack` of a tiled map: the base layer, then every tile coded on its own at the
-    chosen cutoff and step (:func:`~dftpcc.tiles.code_tile`, through ``map_tiles``), with its errors
-    in the index."""
-    an, trial = choice.analysis, choice.trial
-    assert isinstance(an, TiledAnalysis)
-    params = params.replace(cutoff=trial.cutoff, step=trial.step)
-    dem = an.dem
-    map_resid = b""
-    if not header_only:
-        q = an.base_at(params.cutoff, params.step)
-        base_blob = an.base_blob(q)
-        on_stage("encode tiles")
-        jobs = an.jobs(q, params.cutoff, params.step)
-        # A small map may keep its residual whole, which needs the tiles' integers.
-        whole = params.target_max_error > 0 and dem.mask.size <= MAP_MASK_CELLS
-        for job, blob in zip(jobs, masks.tiles):  # coded already, or none (a full tile; the map mask)
-            job.mask_code, job.keep_residual = blob, whole
-        codes = (map_tiles or serial)(code_tile, jobs, params, an.refill_step)
-        if whole:
-            masks, map_resid = map_residual(an, masks, codes, params.coder)
-            codes = [dataclasses.replace(c, residual=None, **({"mask": b"", "resid": b""} if map_resid else {}))
-                     for c in codes]
-    else:  # measuring the header's own bytes: every tile without coefficients
-        base_blob = b""
-        codes = [TileCode(k, blob, b"", b"", int(an.tile_cells(dem.mask, k).sum()), 0.0, 0.0)
-                 for k, blob in zip(an.occupied, masks.tiles)]
-    writer = MapWriter(dem.grid, params, point_count=point_count, plane=an.plane, crs=crs, tiling=an.tiling,
-                       overlap=tile_overlap(params.cutoff, an.tile), base_cycles=an.base_cycles)
-    for c in codes:
-        writer.add_code(c)
-    stats = writer.stats(**_map_figures(dem, params))
-    on_stage("container")
-    return writer.finish(stats, coef_count=an.base_count(params.cutoff), base=base_blob, map_mask=masks.map,
-                         map_resid=map_resid)
 
 
 def _map_figures(dem: DEM, params: Params) -> dict[str, Any]:
