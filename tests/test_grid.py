@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from dftpcc.dem import Grid
 from dftpcc.errors import InvalidInputError, MultiHeightWarning
 from dftpcc.fill import fill_empty, fit_plane, plane_values
-from dftpcc.grid import auto_resolution, fit_grid, rasterize
+from dftpcc.grid import HEIGHT_QUANTUM_M, CellSums, auto_resolution, fit_grid, lattice_cells, rasterize
 from dftpcc.limits import MAX_CELLS
 
 
@@ -129,3 +130,41 @@ def test_an_oriented_grid_breaks_a_tie_of_rectangles_alike_whole_and_in_chunks()
     whole = fit_grid(points, resolution, frame="oriented")
     chunked = summary.fit_grid(resolution, frame="oriented")
     assert (whole.rows, whole.cols, whole.angle) == (chunked.rows, chunked.cols, chunked.angle)
+
+
+def test_cell_sums_do_not_depend_on_the_order_of_the_scans():
+    """A growing map's gridder: exact integer sums, so scans added in any order and any split give
+    the same cells to the bit; the means agree with rasterize's within the height quantum."""
+    rng = np.random.default_rng(7)
+    pts = np.column_stack([rng.uniform(0, 8, 5000), rng.uniform(0, 8, 5000), rng.normal(100, 0.1, 5000)])
+    origin = (0.0, 0.0, 100.0)
+    row, col, quanta = lattice_cells(pts, origin, 0.5)
+    flat = row * 16 + col
+
+    def grown(parts):
+        cells = CellSums.empty((16, 16))
+        for part in parts:
+            cells.add(flat[part], quanta[part])
+        return cells
+
+    one = grown([np.arange(pts.shape[0])])
+    shuffled = grown(np.array_split(rng.permutation(pts.shape[0]), 7))
+    for a, b in ((one.sum, shuffled.sum), (one.count, shuffled.count)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(one.heights()[0], shuffled.heights()[0])
+    assert math.isclose(one.squared_spread(), shuffled.squared_spread(), rel_tol=1e-12)
+    dem = rasterize(pts, Grid(x0=0.0, y0=0.0, z0=100.0, resolution=0.5, rows=16, cols=16))
+    mean, occupied = one.heights()
+    np.testing.assert_array_equal(occupied, dem.mask)
+    assert np.abs(mean - dem.heights)[occupied].max() <= HEIGHT_QUANTUM_M
+
+
+def test_cell_sums_report_which_cells_moved():
+    """What a growing map re-codes: the cells seen, the new ones, and those whose mean changed
+    (a point added at a cell's mean moves nothing)."""
+    cells = CellSums.empty((4, 4))
+    seen, new, moved = cells.add(np.array([1, 1, 5]), np.array([10.0, 20.0, 7.0]))
+    assert seen.tolist() == [1, 5] and new.all() and moved.all()
+    seen, new, moved = cells.add(np.array([1, 5, 9]), np.array([15.0, 8.0, 1.0]))
+    assert seen.tolist() == [1, 5, 9] and new.tolist() == [False, False, True]
+    assert moved.tolist() == [False, True, True]  # cell 1's mean stays 15

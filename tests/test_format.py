@@ -1,4 +1,4 @@
-"""The container: what ``dftpcc.open`` accepts and refuses, and what ``pack`` will write.
+"""The format (dftpcc.format): what ``dftpcc.open`` accepts and refuses, and what ``pack`` will write.
 
 The corrupt-file corpus (tests/test_corrupt.py) covers the reader's checks one file each;
 these tests pin the rules that involve both sides: the arguments of ``open``, the integers of
