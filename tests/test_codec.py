@@ -262,6 +262,12 @@ def test_an_automatic_step_coarser_than_the_relief_warns():
 
     with pytest.warns(CoarseMapWarning, match=r"automatic step of [0-9.]+ m .* keep ground points only"):
         dftpcc.compress(_shrubland(), resolution=1.0)
+    # In the heights' unit: a map in US survey feet says feet.
+    from rasterio.crs import CRS
+
+    feet = {"wkt": CRS.from_epsg(2227).to_wkt()}
+    with pytest.warns(CoarseMapWarning, match=r"automatic step of [0-9.]+ ftUS .* spread by [0-9.]+ ftUS RMS"):
+        dftpcc.compress(_shrubland(), resolution=1.0, crs=feet)
     with warnings.catch_warnings():  # a step the user gave is theirs: no warning
         warnings.simplefilter("error", CoarseMapWarning)
         dftpcc.compress(_shrubland(), resolution=1.0, step=0.5)

@@ -28,6 +28,7 @@ from .grid import Survey, auto_resolution, fit_grid, rasterize, survey
 from .params import MAX_COORDINATE_M, Params, make_params, tile_size_for
 from .ratecontrol import Choice
 from .residual import GUARANTEE_MARGIN, encode_residual, residual
+from .units import length, units_of
 from .tiles import (BASE_CYCLES_PER_TILE, MAP_MASK_CELLS, TileCode, TiledAnalysis, code_tile, covering_cutoff,
                     covering_reach, tile_mask_code, tile_overlap)
 
@@ -204,7 +205,7 @@ class _Layout:
                 # few per cent rather than the size, for two more transforms.
                 trial = self.trial(an, cutoff, step)
                 if params.step == 0.0 and params.storage == "quantized":  # a step was chosen for the user
-                    _flag_coarse(dem, trial, occupied_heights)
+                    _flag_coarse(dem, trial, occupied_heights, crs)
                 coefs = self.coefficients(an, trial)
             if side is not None:
                 masks = side.result()
@@ -546,17 +547,24 @@ def _check_max_error(an: Analysis, bound: float) -> None:
             f"heights round by as much; the smallest workable target is {quantizer.round_up(need):g} m")
 
 
-def _flag_coarse(dem: DEM, trial: Trial, heights: np.ndarray | None = None) -> None:
+def _flag_coarse(dem: DEM, trial: Trial, heights: np.ndarray | None = None,
+                 crs: dict[str, Any] | None = None) -> None:
     """Warn when an automatic step leaves a DEM error that is a large part of the map's own height spread
-    (``heights``: the occupied cells' heights, metres above z0, if the caller has them)."""
+    (``heights``: the occupied cells' heights above z0, if the caller has them), in the heights' unit
+    (``crs``: :func:`~dftpcc.units.units_of`)."""
     heights = dem.heights[dem.mask] if heights is None else heights
     spread = float(np.sqrt(np.mean((heights - heights.mean()) ** 2))) if heights.size else 0.0
     floor = dem.gridding_rmse or 0.0
     if spread > 0 and min(trial.rmse, floor) > COARSE_ERROR_FRACTION * spread:
+        unit = units_of(crs).vertical
+
+        def say(value: float) -> str:
+            return length(value, unit)
+
         warnings.warn(
-            f"the automatic step of {trial.step:.3g} m (DEM RMSE {trial.rmse:.3g} m, max {trial.max_error:.3g} m) is "
-            f"coarse for a map whose heights spread by {spread:.3g} m RMS: the step follows the points' scatter "
-            f"within each cell ({dem.gridding_rmse or 0:.3g} m RMS: vegetation, walls?); keep ground points only "
+            f"the automatic step of {say(trial.step)} (DEM RMSE {say(trial.rmse)}, max {say(trial.max_error)}) is "
+            f"coarse for a map whose heights spread by {say(spread)} RMS: the step follows the points' scatter "
+            f"within each cell ({say(dem.gridding_rmse or 0.0)} RMS: vegetation, walls?); keep ground points only "
             f"(e.g. --classes 2), or give a --step or a --target-rmse", CoarseMapWarning, stacklevel=3)
 
 
