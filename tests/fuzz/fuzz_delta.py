@@ -54,6 +54,11 @@ from dftpcc.delta import (COPY, DATA, DATA_ALLOWANCE, HEAD_LIMIT, MAX_COPY_FACTO
 from dftpcc.errors import DftpccError  # noqa: E402
 from dftpcc.mapbuilder import MapBuilder  # noqa: E402
 
+try:
+    from .mutations import blind as mutate
+except ImportError:  # run as a script
+    from mutations import blind as mutate  # type: ignore[no-redef]  # noqa: E402
+
 #: The real survey the growing map is made of (../shared/data).
 SURVEY = Path(__file__).resolve().parents[3] / "shared" / "data" / "pointclouds" / "mountain_arid_alirt.las"
 #: Traced bytes an application may take beyond this many times the largest data its sizes allow.
@@ -228,26 +233,6 @@ def mutate_structure(parts: Parts, versions: list[bytes], rnd: random.Random) ->
     if op not in (4, 9, 10) and rnd.random() < 0.7:  # mostly keep the result size consistent with the pieces
         p = replace(p, result_size=sum(n for _, _, n in pieces) % (1 << 64))
     return replace(p, pieces=pieces).pack(frame=frame, crc=rnd.random() < 0.95)
-
-
-def mutate(data: bytes, rnd: random.Random) -> bytes:
-    """One structure-blind mutation: flip, set, cut, insert or duplicate bytes."""
-    buf = bytearray(data)
-    for _ in range(rnd.randint(1, 4)):
-        choice = rnd.random()
-        pos = rnd.randrange(len(buf)) if buf else 0
-        if choice < 0.35 and buf:
-            buf[pos] ^= 1 << rnd.randrange(8)
-        elif choice < 0.55 and buf:
-            buf[pos] = rnd.choice((0, 1, 0x7F, 0x80, 0xFF, rnd.randrange(256)))
-        elif choice < 0.7:
-            del buf[pos:pos + rnd.randint(1, 64)]
-        elif choice < 0.85:
-            buf[pos:pos] = bytes(rnd.randrange(256) for _ in range(rnd.randint(1, 16)))
-        else:
-            start = rnd.randrange(len(buf)) if buf else 0
-            buf[pos:pos] = buf[start:start + rnd.randint(1, 64)]
-    return bytes(buf)
 
 
 def recrc(data: bytes) -> bytes:

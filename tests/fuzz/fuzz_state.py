@@ -55,6 +55,16 @@ from dftpcc.errors import DftpccError  # noqa: E402
 from dftpcc.mapbuilder import MapBuilder, state_path  # noqa: E402
 from dftpcc.mapstate import ARRAYS  # noqa: E402
 
+try:
+    from .mutations import blind as _blind
+except ImportError:  # run as a script
+    from mutations import blind as _blind  # type: ignore[no-redef]  # noqa: E402
+
+
+def blind(data: bytes, rnd: random.Random) -> bytes:
+    """One structure-blind mutation (cuts of up to 4 kB: a state's members are larger than a delta's)."""
+    return _blind(data, rnd, longest_cut=4096)
+
 #: No input may make reading a state allocate more (bytes; a seed state is about 60 kB, its
 #: map 3 kB, and resuming one takes about 1.3 MB, the interrupted-update path about 2.5 MB).
 MEMORY_BUDGET_BYTES = 16 * 2**20
@@ -111,26 +121,6 @@ def _npy(value: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.lib.format.write_array(buf, value, allow_pickle=False)
     return buf.getvalue()
-
-
-def blind(data: bytes, rnd: random.Random) -> bytes:
-    """One structure-blind mutation: flip, set, cut, insert or duplicate bytes."""
-    buf = bytearray(data)
-    for _ in range(rnd.randint(1, 4)):
-        choice = rnd.random()
-        pos = rnd.randrange(len(buf)) if buf else 0
-        if choice < 0.35 and buf:
-            buf[pos] ^= 1 << rnd.randrange(8)
-        elif choice < 0.55 and buf:
-            buf[pos] = rnd.choice((0, 1, 0x7F, 0x80, 0xFF, rnd.randrange(256)))
-        elif choice < 0.7:
-            del buf[pos:pos + rnd.randint(1, 4096)]
-        elif choice < 0.85:
-            buf[pos:pos] = bytes(rnd.randrange(256) for _ in range(rnd.randint(1, 16)))
-        else:
-            start = rnd.randrange(len(buf)) if buf else 0
-            buf[pos:pos] = buf[start:start + rnd.randint(1, 64)]
-    return bytes(buf)
 
 
 def mutate(state: bytes, rnd: random.Random) -> bytes:
