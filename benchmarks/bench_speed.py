@@ -37,7 +37,7 @@ from typing import Any, Callable, Iterator  # noqa: E402
 import numpy as np  # noqa: E402
 
 import dftpcc  # noqa: E402
-from dftpcc import analysis, coding, decoder, encoder, kernels, mapfile, occupancy, spectrum  # noqa: E402
+from dftpcc import analysis, coding, decoder, encoder, kernels, mapfile, occupancy, quantizer, spectrum  # noqa: E402
 from dftpcc import format as fmt  # noqa: E402
 from dftpcc.files import dem_from_geotiff  # noqa: E402
 
@@ -73,11 +73,11 @@ COMPRESS_STAGES = (
     ("fill empty cells", analysis, "fill_empty", 1),
     ("forward transform", spectrum, "forward", 1),
     ("code the mask", occupancy, "encode_mask", 0),
-    ("choose the step", coding, "choose_step", 0),
+    ("choose the step", quantizer, "choose_step", 0),
     ("quantize + rebuild (trial)", analysis.Analysis, "trial", 0),
     ("inverse transform", spectrum, "inverse", 1),
     ("entropy-code coefficients", analysis.Analysis, "encode", 0),
-    ("statistics + container", encoder, "_pack", 0),
+    ("statistics + container", encoder._Whole, "pack", 0),
 )
 DECOMPRESS_STAGES = (
     ("parse the container", mapfile, "unpack_source", 0),
@@ -104,7 +104,8 @@ def timed(stages: tuple, spent: dict[str, float]) -> Iterator[None]:
                 spent[_label] = spent.get(_label, 0.0) + time.perf_counter() - t0
 
         saved.append((owner, name, original))
-        setattr(owner, name, wrapper)
+        # A static method stays one (a layout's pack is called on its instance).
+        setattr(owner, name, staticmethod(wrapper) if isinstance(original, staticmethod) else wrapper)
     try:
         yield
     finally:
