@@ -179,6 +179,21 @@ def test_a_pose_is_applied_as_rotation_then_translation(scans):
     assert posed == placed
 
 
+def test_a_pose_places_points_by_rounded_products_and_sums_not_blas():
+    # Points whose place is on a cell's edge: a product rounded as BLAS's kernel does (FMA on this
+    # machine, not on another) moves some of them to the next cell.
+    rng = np.random.default_rng(5)
+    rotation, translation = yaw_pose(0.7, (3.0, -2.0, 1.0))
+    placed = np.c_[rng.integers(-200, 200, (4000, 2)) * RES, rng.random(4000)]
+    points = (placed - translation) @ rotation
+    x, y, z = points[:, 0:1], points[:, 1:2], points[:, 2:3]
+    # Each coordinate as IEEE double arithmetic gives it, one rounding a product or sum, left to right.
+    by_hand = x * rotation[:, 0] + y * rotation[:, 1] + z * rotation[:, 2] + translation
+    origin = (0.0, 0.0, 0.0)
+    posed = new_builder(origin=origin).add(points, (rotation, translation))
+    assert posed.encode() == new_builder(origin=origin).add(by_hand).encode()
+
+
 def test_a_map_within_one_tile_is_still_a_tiled_file():
     pts = np.c_[np.random.default_rng(2).random((500, 2)) * 3, np.zeros(500)]
     data = new_builder().add(pts).encode()
