@@ -648,7 +648,7 @@ def cmd_ros_ground(args: argparse.Namespace) -> int:
     from .ros2 import run_ground
 
     return run_ground(map_path=args.map, frame_id=args.frame_id, max_frame_bytes=args.max_frame_bytes,
-                      loss=args.loss, seed=args.seed, duration=args.duration,
+                      new_maps=args.new_maps, loss=args.loss, seed=args.seed, duration=args.duration,
                       say=(lambda _l: None) if args.quiet else print)
 
 
@@ -691,6 +691,10 @@ def _add_ros_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--map", required=True, help="the ground's map (.dftpc), resumed if it exists")
     p.add_argument("--frame-id", default="map", help="frame id of the published points (default map)")
     p.add_argument("--max-frame-bytes", type=_positive_int, help="refuse longer frames (default: any)")
+    p.add_argument("--new-maps", choices=("refuse", "archive"), default="refuse",
+                   help="frames of another map id (a rover started a new mission): refuse them (default, one "
+                        "logged line), or archive: keep the map held as MAP's stem.<old map id>.dftpc and take the "
+                        "new map once a whole version of it verifies")
     p.set_defaults(func=cmd_ros_ground)
 
 

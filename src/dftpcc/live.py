@@ -263,12 +263,15 @@ class GroundCore:
         The ground's map, written atomically at each version applied; read back on start.
     max_frame_bytes : int, optional
         Longer frames are refused.
+    new_maps : {"refuse", "archive"}
+        Frames of another map id (a new mission): refused, or taken once a whole version verifies,
+        the map held so far kept beside the file (:class:`dftpcc.link.Receiver`).
     """
 
     def __init__(self, map_path: str | os.PathLike[str], *, max_frame_bytes: int | None = None,
-                 log: Callable[[str, str], None] | None = None):
+                 new_maps: str = "refuse", log: Callable[[str, str], None] | None = None):
         self.counter = Counter(log)
-        self.receiver = Receiver(map_path, max_frame_bytes=max_frame_bytes, log=self.counter)
+        self.receiver = Receiver(map_path, max_frame_bytes=max_frame_bytes, new_maps=new_maps, log=self.counter)
 
     @property
     def refused(self) -> collections.Counter[str]:

@@ -190,8 +190,9 @@ def cloud_message(ros: SimpleNamespace, points: np.ndarray, frame_id: str, stamp
     return msg
 
 
-def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | None = None, loss: float = 0.0,
-               seed: int = 0, duration: float | None = None, say: Callable[[str], None] = print) -> int:
+def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | None = None, new_maps: str = "refuse",
+               loss: float = 0.0, seed: int = 0, duration: float | None = None,
+               say: Callable[[str], None] = print) -> int:
     """The ground node: frames in, the map on disk and on :data:`MAP_TOPIC` (latched), acknowledgements out."""
     from .live import GroundCore
 
@@ -199,11 +200,13 @@ def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | N
     ros.rclpy.init(args=None)
     node = ros.rclpy.create_node("dftpcc_ground")
     log = node.get_logger()
-    core = GroundCore(map_path, max_frame_bytes=max_frame_bytes,
+    core = GroundCore(map_path, max_frame_bytes=max_frame_bytes, new_maps=new_maps,
                       log=lambda cause, message: log.warning(f"{message} ({cause}; counted, not logged again)"))
-    _declare(node, {"map": str(map_path), "frame_id": frame_id},
+    _declare(node, {"map": str(map_path), "frame_id": frame_id, "new_maps": new_maps},
              {"map": "the ground's map (.dftpc), byte for byte the rover's at each version applied",
-              "frame_id": "frame of the published points: the frame the rover placed its scans in"})
+              "frame_id": "frame of the published points: the frame the rover placed its scans in",
+              "new_maps": "frames of another map id (a new mission): refuse, or archive (keep the map held "
+                          "beside the file, take the new one once a whole version of it verifies)"})
     drop = _dropper(loss, seed)
     cloud = node.create_publisher(ros.PointCloud2, MAP_TOPIC, _qos(ros, 1, latched=True))
     acks = node.create_publisher(ros.UInt8MultiArray, ACK_TOPIC, _qos(ros, LINK_DEPTH))
