@@ -87,6 +87,17 @@ def _positive(text: str) -> float:
     return value
 
 
+def _non_negative(text: str) -> float:
+    """A number, 0 (none) or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be 0 or a positive number, got {text}")
+    return value
+
+
 def _resolution(text: str) -> float | str:
     return "auto" if text == "auto" else _positive(text)
 
@@ -569,6 +580,7 @@ def cmd_update(args: argparse.Namespace) -> int:
         result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
                              pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
                              cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame,
+                             target_max_error=args.target_max_error,
                              waiting=lambda lock: _say(args, f"{args.map}: another update holds {lock}; waiting for it"),
                              on_stage=on_stage)
     delta = f"; delta {args.delta}: {result.delta_size:,} bytes" if result.delta_size is not None else ""
@@ -617,6 +629,10 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--tile-size", type=_positive_int, metavar="CELLS", help="tile side of a new map (default 256)")
     p.add_argument("--cutoff", "-c", type=_cutoff, help="cutoff ratio of a new map (default 0.8)")
     p.add_argument("--step", type=_positive, help="quantizer step of a new map in metres (default 0.01)")
+    p.add_argument("--target-max-error", type=_non_negative, metavar="METRES",
+                   help="largest error of any occupied cell from this update on (0: none; default: the map's): "
+                        "every tile coded keeps a residual layer within it; a bound other than the map's codes "
+                        "every tile again")
     p.add_argument("--force", "-f", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=cmd_update)
 

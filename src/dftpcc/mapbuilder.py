@@ -428,11 +428,19 @@ class MapBuilder:
                     gridding=np.array([self._gridding[t] for t in held]))
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike[str], state: str | os.PathLike[str] | None = None) -> "MapBuilder":
+    def from_file(cls, path: str | os.PathLike[str], state: str | os.PathLike[str] | None = None, *,
+                  target_max_error: float | None = None) -> "MapBuilder":
         """Resume a growing map from its file and its state (default :func:`state_path`).
 
         Untouched tiles keep the bytes they have in the file; the next
         :meth:`encode` codes only the tiles later adds change.
+
+        Parameters
+        ----------
+        target_max_error : float, optional
+            Metres: the bound the update being resumed asked for. Only used to repair a map left
+            one update behind its state (the state was written, the map not) when that update
+            changed the bound: the state does not record it, the file states the old one.
 
         Raises
         ------
@@ -480,7 +488,7 @@ class MapBuilder:
                 raise InvalidInputError(f"{path}: its state file {state} belongs to another map (it names the map "
                                         f"{str(settings['map_sha256'])[:16]}..., this one is {digest[:16]}...); give "
                                         f"the state written with this map")
-            return builder._recovered(path, state, settings["map_sha256"], on_disk=digest)
+            return builder._recovered(path, state, settings["map_sha256"], on_disk=digest, bound=target_max_error)
         builder._file_sha256 = digest
         builder._check_header(path, header, tiles)
         i0, j0 = min(i for i, _ in tiles) - 1, min(j for _, j in tiles) - 1
@@ -499,11 +507,19 @@ class MapBuilder:
                                     f"one of another version of it); give the state written with this map")
         return builder
 
-    def _recovered(self, path: Path, state: Path, expected: str, *, on_disk: str) -> "MapBuilder":
-        """A state one update ahead of its map (the map was not written after it): code the map again from it."""
-        data = self.encode()
-        if hashlib.sha256(data).hexdigest() != expected:
-            raise CorruptFileError(f"{state}: the map state does not give the map it names (damaged state)")
+    def _recovered(self, path: Path, state: Path, expected: str, *, on_disk: str,
+                   bound: float | None = None) -> "MapBuilder":
+        """A state one update ahead of its map (the map was not written after it): code the map again from it,
+        with the bound the file states (the builder's now), or else ``bound`` (that update's)."""
+        bounds = [self.params.target_max_error] + ([float(bound)] if bound is not None else [])
+        for tried in dict.fromkeys(bounds):
+            data = self.encode(target_max_error=tried)
+            if hashlib.sha256(data).hexdigest() == expected:
+                break
+        else:
+            raise CorruptFileError(f"{state}: the map state does not give the map it names with a maximum error of "
+                                   f"{' or '.join(f'{b:g} m' for b in dict.fromkeys(bounds))} (a damaged state, or "
+                                   f"the interrupted update changed --target-max-error: run it again with it)")
         # The next state names the map still on disk as the one it started from (as its delta does):
         # were that update interrupted too, the map on disk is still the one the state knows.
         self._file_sha256 = on_disk
