@@ -5,11 +5,13 @@ from __future__ import annotations
 import hashlib
 import logging
 
+import numpy as np
 import pytest
 
+import dftpcc
 from dftpcc.errors import InvalidInputError
-from dftpcc.link import (DATA_OVERHEAD, Ack, Budget, DataFrame, FrameError, Receiver, Sender, make_change, pack_ack,
-                         pack_data, read_frame)
+from dftpcc.link import (DATA_OVERHEAD, PREVIEW_ITEM, Ack, Budget, DataFrame, FrameError, Receiver, Sender, make_change,
+                         pack_ack, pack_data, read_frame)
 from dftpcc.linksim import Channel, Ends, run_link
 from dftpcc.mapbuilder import MapBuilder
 
@@ -490,3 +492,35 @@ def test_a_sender_restarted_before_hearing_the_ground_applied_a_change_sends_fro
     whole = Sender(max_frame_bytes=FRAME)
     whole.update(versions[8])
     assert sum(map(len, change)) < sum(map(len, frames_of(whole)))
+
+
+def test_a_large_change_carries_a_preview_after_its_plan_which_never_reaches_the_map(drive_scans):
+    builder = MapBuilder(RES, tile_size=TILE, step=STEP)
+    for points, pose in drive_scans[:12]:
+        builder.add(points, pose)
+    data = builder.encode()
+    preview = builder.preview()
+    assert 0 < len(preview) < 0.25 * len(data)
+    sender = Sender(max_frame_bytes=FRAME, preview_over=1000)
+    sender.update(data, preview=builder.preview)
+    frames = frames_of(sender)
+    items = [read_frame(f).item for f in frames]
+    k, n = items.index(PREVIEW_ITEM), items.count(PREVIEW_ITEM)
+    assert set(items[:k]) == {0} and set(items[k:k + n]) == {PREVIEW_ITEM} and PREVIEW_ITEM not in items[k + n:]
+    # The document alone: the change rebuilt without the preview, and the preview joined.
+    assert spec_decoder.link_rebuild(b"", frames) == data
+    assert spec_decoder.link_preview(frames[::-1]) == preview
+    receiver = Receiver(max_frame_bytes=FRAME)
+    for f in frames[:k + n]:  # the plan and the preview only
+        assert receiver.receive(f) is None
+    assert receiver.preview == (1, preview, sender.map_id) and receiver.data == b""
+    coarse = dftpcc.decompress(receiver.preview[1])
+    assert coarse.shape[0] > 0 and np.isfinite(coarse).all()
+    for f in frames:
+        receiver.receive(f)
+    assert receiver.data == data
+    # A small change, or none asked for: no preview.
+    for over in (None, 10 * len(data)):
+        quiet = Sender(max_frame_bytes=FRAME, preview_over=over)
+        quiet.update(data, preview=builder.preview)
+        assert PREVIEW_ITEM not in {read_frame(f).item for f in frames_of(quiet)}

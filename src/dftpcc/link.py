@@ -53,6 +53,10 @@ ACK_OVERHEAD = _HEAD.size + _ACK.size + 1 + _CRC.size
 MIN_FRAME_BYTES = 64
 #: Parts an item may have (a u16 count).
 MAX_PARTS = 0xFFFF
+#: The item number of a change's preview (docs/format.md, *Link frames*): never a tile's.
+PREVIEW_ITEM = 0xFFFFFFFF
+#: A preview is sent only when it is under this share of the change's tile items.
+PREVIEW_SHARE = 0.25
 #: Largest map a receiver rebuilds unless told otherwise (bytes): a plan claiming more is refused unread.
 MAX_MAP_BYTES = 1 << 30
 #: The base check of a frame: the first bytes of the base's SHA-256.
@@ -355,8 +359,9 @@ def read_plan(plan: bytes, *, base_size: int, max_map_bytes: int = MAX_MAP_BYTES
                 if kind == COPY and a + n > base_size:
                     raise FrameError("plan", f"a plan copying bytes {a:,} to {a + n:,} of a {base_size:,}-byte base")
                 if kind == TILE:
-                    if a == 0 or a in tiles or a > 0xFFFFFFFF:
-                        raise FrameError("plan", f"a plan naming tile {a} as an item twice or as tile 0")
+                    if a == 0 or a in tiles or a >= PREVIEW_ITEM:
+                        raise FrameError("plan", f"a plan naming tile {a} as an item twice, as tile 0 or as the "
+                                                 f"preview")
                     tiles[a] = n
                 pieces.append((kind, a, n))
             else:
@@ -466,14 +471,21 @@ class Sender:
         Seconds before a part sent and not confirmed is sent again.
     silence_after : float
         Seconds without an acknowledgement after which resends slow to one part per ``retry_after``.
+    preview_over : int, optional
+        Bytes: a change whose tile items add up to more carries the newest version's preview (given
+        to :meth:`update`) right after its plan, when the preview is under :data:`PREVIEW_SHARE` of
+        them; None: never (docs/format.md, *Link frames*, the preview).
     """
 
     def __init__(self, *, max_frame_bytes: int, map_id: int | None = None, state: str | os.PathLike[str] | None = None,
-                 retry_after: float = DEFAULT_RETRY_S, silence_after: float = DEFAULT_SILENCE_S):
+                 retry_after: float = DEFAULT_RETRY_S, silence_after: float = DEFAULT_SILENCE_S,
+                 preview_over: int | None = None):
         if not (isinstance(max_frame_bytes, int) and max_frame_bytes >= MIN_FRAME_BYTES):
             raise InvalidInputError(f"max_frame_bytes must be a whole number of bytes, at least {MIN_FRAME_BYTES}, "
                                     f"got {max_frame_bytes!r}")
         self.max_frame_bytes = max_frame_bytes
+        self.preview_over = preview_over
+        self._preview: Callable[[], bytes] | None = None  # of the newest version
         self.retry_after, self.silence_after = float(retry_after), float(silence_after)
         self._clock = 0.0  # the last poll's time: when an acknowledgement is taken
         self._heard = 0.0  # when the last acknowledgement was taken
@@ -502,11 +514,19 @@ class Sender:
 
     # -- versions
 
-    def update(self, data: bytes) -> int:
-        """Take ``data`` (the map's bytes) as the newest version; returns its number (the same if unchanged)."""
+    def update(self, data: bytes, *, preview: Callable[[], bytes] | None = None) -> int:
+        """Take ``data`` (the map's bytes) as the newest version; returns its number (the same if unchanged).
+
+        ``preview``: makes that version's preview (a small ``.dftpc`` file of the map at a coarser
+        cell, :meth:`dftpcc.mapbuilder.MapBuilder.preview`), called only when a change to this
+        version starts and is large enough to carry one (``preview_over``).
+        """
         data = bytes(data)
         if self.version and data == self._versions.get(self.version):
+            if preview is not None:
+                self._preview = preview
             return self.version
+        self._preview = preview
         if not (self.version and self.version not in self._versions
                 and self._resumed_sha == hashlib.sha256(data).hexdigest()):
             self.version += 1  # else the map the state names, after a restart: its number again
@@ -594,7 +614,14 @@ class Sender:
         parts: dict[tuple[int, int], bytes] = {}
         order = []
         age = {k: self._first_seen.get(hashlib.sha1(b).digest(), self.version) for k, b in items.items()}
-        for item, data in [(0, plan)] + sorted(items.items(), key=lambda kv: (-age[kv[0]], kv[0])):
+        first = [(0, plan)]
+        detail = sum(map(len, items.values()))
+        if self._preview is not None and self.preview_over is not None and detail > self.preview_over:
+            preview = self._preview()
+            if len(preview) < PREVIEW_SHARE * detail:
+                first.append((PREVIEW_ITEM, preview))
+                self.counts["previews"] += 1
+        for item, data in first + sorted(items.items(), key=lambda kv: (-age[kv[0]], kv[0])):
             count = max(1, -(-len(data) // payload))
             if count > MAX_PARTS:
                 raise InvalidInputError(f"an item of {len(data):,} bytes needs more than {MAX_PARTS} frames of "
@@ -765,6 +792,8 @@ class Receiver:
         self.data = b""
         self.version = 0
         self.archived: list[int] = []  # map ids put aside for a new mission's, oldest first
+        #: The preview of the change in progress or last applied: (its target version, its bytes, map id).
+        self.preview: tuple[int, bytes, int] | None = None
         self.epoch = secrets.randbits(32)
         self.sequence = 0
         self.refused: collections.Counter[str] = collections.Counter()
@@ -856,14 +885,30 @@ class Receiver:
                 self._refuse(exc.cause, str(exc))
                 self.pending = None
                 return None
-            for item in [k for k in pending.items if k and k not in pending.plan.tiles]:
+            for item in [k for k in pending.items if k and k != PREVIEW_ITEM and k not in pending.plan.tiles]:
                 self._refuse("item", f"a frame of item {item}, which the change's plan does not name")
                 del pending.items[item]  # a stray item costs itself, not the change
+        elif f.item == PREVIEW_ITEM:
+            return self._preview_part(pending, f)
         elif pending.plan is not None and f.item and f.item not in pending.plan.tiles:
             self._refuse("item", f"a frame of item {f.item}, which the change's plan does not name")
             del pending.items[f.item]
             return None
         return self._complete(f, now)
+
+    def _preview_part(self, pending: _Pending, f: DataFrame) -> int | None:
+        """A part of the change's preview: kept; the whole preview taken for display (never the map)."""
+        count, parts = pending.items[PREVIEW_ITEM]
+        if len(parts) == count and (self.preview is None or self.preview[0] != f.target_version
+                                    or self.preview[2] != f.map_id):
+            data = self._joined(PREVIEW_ITEM)
+            if len(data) > self.max_map_bytes:
+                self._refuse("preview", f"a preview of {len(data):,} bytes")
+                del pending.items[PREVIEW_ITEM]
+                return None
+            self.preview = (f.target_version, data, f.map_id)
+            self.counts["previews"] += 1
+        return None
 
     def _base(self, f: DataFrame) -> bytes:
         return self.data if f.base_version else b""

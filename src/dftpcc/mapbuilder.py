@@ -71,6 +71,10 @@ DEFAULT_STEP_M = 0.01
 DEFAULT_GROWING_TILE_SIZE = 256
 #: The state file of ``MAP`` is ``MAP`` + this.
 STATE_SUFFIX = ".state"
+#: A preview's cell is a block of this many cells a side (:meth:`MapBuilder.preview`).
+PREVIEW_BLOCK = 8
+#: A preview's quantizer step, metres: a preview is for the eye, coarse in height too.
+PREVIEW_STEP_M = 0.05
 
 
 class StateRecoveredWarning(DftpccWarning):
@@ -274,6 +278,47 @@ class MapBuilder:
         a tile's edge lies in the neighbour's window too, so it changes both.
         """
         return sorted(k for k in self._tiles if k in self._dirty or k not in self._codes)
+
+    def preview(self, *, block: int = PREVIEW_BLOCK, step: float = PREVIEW_STEP_M) -> bytes:
+        """The map at a coarser cell: a small ``.dftpc`` file a slow link carries ahead of the tiles' detail.
+
+        Every occupied ``block`` x ``block`` block of the lattice (from its origin) gives one point
+        at the block's centre at the mean height of the block's points (from the exact sums, so
+        the same map gives the same preview whatever the order of its scans), compressed with a
+        cell of the block's side (metres: ``block`` times the resolution), the map's cutoff and
+        ``step`` (metres). docs/format.md, *Link frames*, the preview.
+
+        Raises
+        ------
+        InvalidInputError
+            Nothing was added yet.
+        """
+        from .encoder import compress
+
+        if not self._tiles:
+            raise InvalidInputError("the map is empty: add a scan first")
+        size = self.tile_size
+        rows, cols, sums, counts = [], [], [], []
+        for (i, j), cells in self._tiles.items():
+            r, c = np.nonzero(cells.count)
+            rows.append((i * size + r) // block)
+            cols.append((j * size + c) // block)
+            sums.append(cells.sum[r, c])
+            counts.append(cells.count[r, c])
+        row, col = np.concatenate(rows), np.concatenate(cols)
+        r0, c0 = int(row.min()), int(col.min())
+        width = int(col.max()) - c0 + 1
+        keys, where = np.unique((row - r0) * width + (col - c0), return_inverse=True)
+        # int64 sums of int64 quanta: exact, as the cells' own means are.
+        total = np.zeros(keys.size, np.int64)
+        np.add.at(total, where, np.concatenate(sums))
+        count = np.bincount(where, weights=np.concatenate(counts), minlength=keys.size)
+        ox, oy, oz = self.origin  # type: ignore[misc]
+        side = block * self.resolution
+        br, bc = np.divmod(keys, width)
+        points = np.c_[ox + (bc + c0 + 0.5) * side, oy + (br + r0 + 0.5) * side,
+                       oz + total / count * HEIGHT_QUANTUM_M]
+        return compress(points, resolution=side, cutoff=self.params.cutoff, step=step, crs=self.crs or None)
 
     # -- coding --------------------------------------------------------------------------------
 

@@ -218,10 +218,17 @@ def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | N
     def on_frame(msg: Any) -> None:
         if drop():
             return
+        previews = core.receiver.counts["previews"]
         version = core.frame(bytes(msg.data), time.monotonic() - start)
         if version is not None:
             log.info(f"version {version} applied: {len(core.receiver.data):,} bytes")
             publish_map()
+        elif core.receiver.counts["previews"] != previews:
+            # The coarse whole map of the change on its way: shown until the change is applied.
+            coarse = core.preview_points()
+            if coarse is not None:
+                log.info(f"preview of version {core.receiver.preview[0]}: {coarse.shape[0]:,} points")
+                cloud.publish(cloud_message(ros, coarse, frame_id, node.get_clock().now().to_msg()))
 
     node.create_subscription(ros.UInt8MultiArray, DOWNLINK_TOPIC, on_frame, _qos(ros, LINK_DEPTH))
 
