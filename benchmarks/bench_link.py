@@ -194,9 +194,10 @@ def latency(ground, scans, route, resolutions, map_cells, timed: int) -> str:
                            "write ms (map and state)", "prefill s", f"CPU mean under {TARGET_MS:g} ms"], rows)
 
 
-def versions_of(scans, route, resolution: float) -> tuple[list[tuple[float, float, bytes]], int]:
+def versions_of(scans, route, resolution: float) -> tuple[list[tuple[float, float, bytes, bytes]], int]:
     """The map's versions as the rover node makes them (a version a second of scans): (stamp of the first scan it
-    holds that the one before did not, stamp of the scan that made it, its bytes); and the Draco bytes of the scans."""
+    holds that the one before did not, stamp of the scan that made it, its bytes, its preview); and the Draco
+    bytes of the scans."""
     import DracoPy
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -211,13 +212,13 @@ def versions_of(scans, route, resolution: float) -> tuple[list[tuple[float, floa
             if k == len(scans) - 1:
                 core.flush()
             if core.sender.version != before:
-                out.append((first, scans[k][0], core.map_path.read_bytes()))
+                out.append((first, scans[k][0], core.map_path.read_bytes(), core.builder.preview()))
                 first = None
     draco = sum(len(DracoPy.encode(p.astype(np.float32), quantization_bits=DRACO_BITS)) for _t, p in scans)
     return out, draco
 
 
-def run(versions: list[tuple[float, float, bytes]], rate: float, scenario: str) -> dict:
+def run(versions: list[tuple[float, float, bytes, bytes]], rate: float, scenario: str) -> dict:
     """One link run on a simulated clock: the versions at their times, until the ground holds the last."""
     down_outages = up_outages = ()
     loss = 0.0
@@ -227,35 +228,44 @@ def run(versions: list[tuple[float, float, bytes]], rate: float, scenario: str) 
         down_outages = up_outages = ((OUTAGE_START_S, OUTAGE_START_S + OUTAGE_S),)
     down = Channel(seed=1, loss=loss, delay=0.3, jitter=0.1, rate=None, outages=down_outages)
     up = Channel(seed=2, loss=loss, delay=0.3, jitter=0.1, outages=up_outages)
-    sender, receiver, budget = Sender(max_frame_bytes=FRAME_BYTES), Receiver(max_frame_bytes=FRAME_BYTES), Budget(rate)
+    budget = Budget(rate)
+    sender = Sender(max_frame_bytes=FRAME_BYTES, preview_over=int(rate * budget.window))  # as RoverCore makes it
+    receiver = Receiver(max_frame_bytes=FRAME_BYTES)
     number: list[int] = []  # the sender's version of each scan
     applied: list[tuple[int, float]] = []
+    shown: list[tuple[int, float]] = []  # (target version, time) of each preview the ground took
     drive_end = versions[-1][1]
     n, now, k = 0, 0.0, 0
     while now <= drive_end + CATCH_UP_S:
         while k < len(versions) and versions[k][1] <= now:
-            number.append(sender.update(versions[k][2]))
+            number.append(sender.update(versions[k][2], preview=lambda p=versions[k][3]: p))
             k += 1
         for f in up.deliver(now):
             sender.receive(f)
         for f in sender.poll(now, budget):
             down.send(f, now)
         for f in down.deliver(now):
+            previews = receiver.counts["previews"]
             v = receiver.receive(f, now)
             if v is not None:
                 applied.append((v, now))
+            elif receiver.counts["previews"] != previews:
+                shown.append((receiver.preview[0], now))
         for f in receiver.poll(now):
             up.send(f, now)
         if k == len(versions) and receiver.version == sender.version:
             break
         n += 1
         now = n * TICK_S
-    reached = []
-    for (first, _t, _data), v in zip(versions, number):
+    reached, seen = [], []
+    for (first, _t, _data, _preview), v in zip(versions, number):
         at = next((when for version, when in applied if version >= v), math.nan)
+        coarse = next((when for version, when in shown if version >= v), math.inf)
         reached.append(at - first)
+        seen.append(min(at, coarse) - first)
     after_outage = [when for _v, when in applied if when >= OUTAGE_START_S + OUTAGE_S]
     return {"equal": receiver.data == versions[-1][2], "end": now, "drive_end": drive_end, "reached": reached,
+            "seen": seen, "previews": len(shown), "preview_bytes": sender.counts["preview bytes"],
             "frames_bytes": down.bytes, "acks_bytes": up.bytes, "versions": len(applied), "resent": sender.counts["resent"],
             "changes": sender.counts["changes"],
             "first_after_outage": (after_outage[0] - OUTAGE_START_S - OUTAGE_S) if after_outage else math.nan}
@@ -266,22 +276,26 @@ def link_table(versions, draco: int, resolution: float) -> str:
     drive_s = versions[-1][1] + 1.0 / SCAN_HZ
     per_minute = 60.0 / drive_s
     # Resending the whole map at each version (once a second) instead.
-    whole = sum(len(data) for _f, _t, data in versions) * per_minute
+    whole = sum(len(data) for _f, _t, data, _p in versions) * per_minute
     for rate in BUDGETS:
         for scenario in ("clean", "10 % loss", "60 s outage"):
             r = run(versions, rate, scenario)
-            lag = np.array(r["reached"])
+            lag, seen = np.array(r["reached"]), np.array(r["seen"])
             rows.append([f"{resolution:g} m", f"{rate / 1e3:g}", scenario,
                          f"{r['frames_bytes'] * per_minute / 1e3:,.0f} (all {r['frames_bytes'] / 1e3:,.0f})",
                          f"{whole / 1e3:,.0f}", f"{draco * per_minute / 1e3:,.0f}",
                          f"{np.nanmedian(lag):.1f} / {np.nanmax(lag):.1f}",
+                         f"{np.nanmedian(seen):.1f} / {np.nanmax(seen):.1f} ({r['previews']}, "
+                         f"{r['preview_bytes'] / 1e3:,.0f} kB)",
                          f"{r['versions']} of {len(versions)}", f"{r['resent']}",
                          f"{r['first_after_outage']:.1f}" if scenario == "60 s outage" else "",
                          f"{r['end'] - r['drive_end']:.1f}", "yes" if r["equal"] else "NO"])
             print(" | ".join(rows[-1]), flush=True)
     return markdown_table(["cell size", "budget kB/s", "link", "sent kB per minute of driving (whole run, kB)",
                            "whole map at each version, kB/min", f"raw scans, Draco {DRACO_BITS}-bit, kB/min ({SCAN_HZ:g} Hz)",
-                           "scan to ground s, median / max (per version, from its first scan)", "versions the ground took", "frames resent",
+                           "scan to ground s, median / max (per version, from its first scan)",
+                           "scan to ground, preview or map, s, median / max (previews taken; bytes of the previews sent, kB)",
+                           "versions the ground took", "frames resent",
                            "first version after the outage, s", "ground caught up, s after the drive",
                            "final files equal"], rows)
 
@@ -333,6 +347,27 @@ def main() -> None:
     for resolution in RESOLUTIONS:
         versions, draco = versions_of(scans, route, resolution)
         parts.append(link_table(versions, draco, resolution))
+    try:
+        import rclpy  # noqa: F401
+    except ImportError:
+        parts.append("**The ROS 2 nodes in real time**: not run (the ros2 extra is not installed).")
+    else:
+        from benchmarks.bench_link_ros import COVER_M, COVER_SHARE, OUTAGE, ros_table
+
+        parts.append(
+            f"**The ROS 2 nodes in real time** (`benchmarks/bench_link_ros.py`): `dftpcc ros ground` and `dftpcc ros "
+            f"rover` (pinned to one core) as two processes over loopback (a ROS domain of their own, Fast DDS with "
+            f"4 MB socket buffers and shared memory for the 1.4 MB scans), the same {drive_s:g} s drive replayed "
+            f"on `/points` and `/odom` at its stamps' pace (wall clock; {SCAN_HZ:g} scans a second, 50 Hz "
+            f"odometry); frames of {FRAME_BYTES:,} bytes; the node's defaults otherwise (a version a second, a "
+            f"write every 10 s). *Rover ms*: from the rover's own last line (wall, on its core shared with this "
+            f"machine's other processes). *Scan to ground*: from a scan's publication to the first cloud on "
+            f"`/dftpcc/map` (a map or a preview) holding {COVER_SHARE:.0%} of the scan's {COVER_M:g} m cells. "
+            f"*10 % loss*: each node drops 10 % of the link frames it receives; *outage*: both drop every frame "
+            f"for {OUTAGE[1]:g} s from {OUTAGE[0]:g} s into the drive (scaled down from 60 s to keep the run "
+            f"short; the simulated runs above have the 60 s). Equality: the rover's file (written when it "
+            f"stops) against the ground's.")
+        parts.append(ros_table(scans, route, quick=args.quick))
     finish_run(parts, args, "bench-link", "The rover-ground link (issue 44)",
                f"Run time {time.perf_counter() - t0:.0f} s.")
 

@@ -98,6 +98,11 @@ def _non_negative(text: str) -> float:
     return value
 
 
+def _outage(text: str) -> tuple[float, float]:
+    start, _, length = text.partition(":")
+    return _non_negative(start), _positive(length)
+
+
 def _resolution(text: str) -> float | str:
     return "auto" if text == "auto" else _positive(text)
 
@@ -656,7 +661,7 @@ def cmd_ros_rover(args: argparse.Namespace) -> int:
                      resolution=args.resolution, rate=args.budget, max_frame_bytes=args.max_frame_bytes,
                      cutoff=args.cutoff, step=args.step, map_frame=args.map_frame, in_map_frame=args.in_map_frame,
                      version_every=args.version_every, save_every=args.save_every,
-                     loss=args.loss, seed=args.seed,
+                     loss=args.loss, seed=args.seed, outage=args.outage,
                      duration=args.duration, say=(lambda _l: None) if args.quiet else print)
 
 
@@ -665,6 +670,7 @@ def cmd_ros_ground(args: argparse.Namespace) -> int:
 
     return run_ground(map_path=args.map, frame_id=args.frame_id, max_frame_bytes=args.max_frame_bytes,
                       new_maps=args.new_maps, loss=args.loss, seed=args.seed, duration=args.duration,
+                      outage=args.outage,
                       say=(lambda _l: None) if args.quiet else print)
 
 
@@ -679,6 +685,9 @@ def _add_ros_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
                             help="drop this share of incoming link frames at random (a bad link, for tests)")
     test_flags.add_argument("--seed", type=int, default=0, help="seed of --loss")
     test_flags.add_argument("--duration", type=_positive, help="stop after this many seconds (default: run on)")
+    test_flags.add_argument("--outage", type=_outage, metavar="START:SECONDS",
+                            help="drop every incoming link frame for SECONDS from START seconds after the node "
+                                 "starts (a link down, for tests and benchmarks)")
     p = nodes.add_parser("rover", parents=[common, test_flags], help="grow the map from scans and send it within a budget",
                          description="Subscribe to sensor_msgs/PointCloud2 scans and their poses, grow the map "
                                      "(kept current in MAP), and publish link frames on /dftpcc/downlink within "

@@ -621,6 +621,7 @@ class Sender:
             if len(preview) < PREVIEW_SHARE * detail:
                 first.append((PREVIEW_ITEM, preview))
                 self.counts["previews"] += 1
+                self.counts["preview bytes"] += len(preview)
         for item, data in first + sorted(items.items(), key=lambda kv: (-age[kv[0]], kv[0])):
             count = max(1, -(-len(data) // payload))
             if count > MAX_PARTS:

@@ -14,6 +14,7 @@ reliable topic would resend on its own, past the budget.
 from __future__ import annotations
 
 import random
+import statistics
 import time
 from types import SimpleNamespace
 from typing import Any, Callable
@@ -74,12 +75,21 @@ def _stamp_ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def _dropper(loss: float, seed: int) -> Callable[[], bool]:
-    """Whether to drop an incoming frame: a bad link for tests, seeded."""
+def _dropper(loss: float, seed: int, outage: tuple[float, float] | None = None) -> Callable[[], bool]:
+    """Whether to drop an incoming frame: a bad link for tests and benchmarks, seeded; ``outage``:
+    (start, length), seconds from now, during which every frame is dropped."""
     if not 0.0 <= loss < 1.0:
         raise InvalidInputError(f"--loss is a share of frames in [0, 1), got {loss!r}")
     rng = random.Random(seed)
-    return lambda: loss > 0 and rng.random() < loss
+    start = time.monotonic()
+    down = None if outage is None else (start + outage[0], start + outage[0] + outage[1])
+
+    def drop() -> bool:
+        if down is not None and down[0] <= time.monotonic() < down[1]:
+            return True
+        return loss > 0 and rng.random() < loss
+
+    return drop
 
 
 def _spin(ros: SimpleNamespace, node: Any, duration: float | None) -> None:
@@ -97,7 +107,7 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
               resolution: float, rate: float, max_frame_bytes: int, cutoff: float, step: float,
               map_frame: str = "map", in_map_frame: bool = False, version_every: float = 1.0,
               save_every: float = 10.0, loss: float = 0.0, seed: int = 0, duration: float | None = None,
-              say: Callable[[str], None] = print) -> int:
+              outage: tuple[float, float] | None = None, say: Callable[[str], None] = print) -> int:
     """The rover node: scans and poses in, the map kept on disk, frames out on :data:`DOWNLINK_TOPIC`."""
     from .io.rosbag import pointcloud2_xyz
     from .live import RoverCore
@@ -118,7 +128,7 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
               "budget": "downlink bytes per second, averaged over 10 s", "resolution": "cell size of a new map, m",
               "max_frame_bytes": "no frame on the downlink is longer, bytes", "step": "quantizer step, m",
               "cutoff": "cutoff ratio f_c of a new map", "map_frame": "scans in this frame need no pose"})
-    drop = _dropper(loss, seed)
+    drop = _dropper(loss, seed, outage)
     downlink = node.create_publisher(ros.UInt8MultiArray, DOWNLINK_TOPIC, _qos(ros, LINK_DEPTH))
 
     def on_scan(msg: Any) -> None:
@@ -175,6 +185,13 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
     finally:  # stopped (a signal, the duration): the newest map reaches the disk
         core.flush()
         core.save()
+        add, ver = core.add_seconds, core.version_seconds
+        if add:
+            # One line a benchmark reads: wall ms, the scan's own work and its share of the versions.
+            say(f"dftpcc rover stopped: {core.scans} scans, {len(ver)} versions, "
+                f"{core.sender.counts['bytes']} bytes sent; add median {1e3 * statistics.median(add):.1f} ms, "
+                f"version median {1e3 * statistics.median(ver or [0.0]):.1f} ms, "
+                f"per scan {1e3 * (sum(add) + sum(ver)) / len(add):.1f} ms")
     return 0
 
 
@@ -192,7 +209,7 @@ def cloud_message(ros: SimpleNamespace, points: np.ndarray, frame_id: str, stamp
 
 def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | None = None, new_maps: str = "refuse",
                loss: float = 0.0, seed: int = 0, duration: float | None = None,
-               say: Callable[[str], None] = print) -> int:
+               outage: tuple[float, float] | None = None, say: Callable[[str], None] = print) -> int:
     """The ground node: frames in, the map on disk and on :data:`MAP_TOPIC` (latched), acknowledgements out."""
     from .live import GroundCore
 
@@ -207,7 +224,7 @@ def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | N
               "frame_id": "frame of the published points: the frame the rover placed its scans in",
               "new_maps": "frames of another map id (a new mission): refuse, or archive (keep the map held "
                           "beside the file, take the new one once a whole version of it verifies)"})
-    drop = _dropper(loss, seed)
+    drop = _dropper(loss, seed, outage)
     cloud = node.create_publisher(ros.PointCloud2, MAP_TOPIC, _qos(ros, 1, latched=True))
     acks = node.create_publisher(ros.UInt8MultiArray, ACK_TOPIC, _qos(ros, LINK_DEPTH))
     start = time.monotonic()
