@@ -228,7 +228,11 @@ QUICK_RUNS = ((0.5, 2_000.0, "10 % loss"), (0.1, 20_000.0, "clean"))
 
 def ros_table(scans, route, *, quick: bool) -> str:
     rows = []
-    cpu = max(os.sched_getaffinity(0))
+    # The nodes inherit this process's CPUs: all of them again (a benchmark pins itself to one), the
+    # rover then pinned to the last one.
+    every = set(range(os.cpu_count() or 1))
+    os.sched_setaffinity(0, every)
+    cpu = max(every)
     with tempfile.TemporaryDirectory() as tmp:
         for resolution, rate, scenario in QUICK_RUNS if quick else RUNS:
             r = run(scans, route, resolution=resolution, rate=rate, scenario=scenario, cpu=cpu, tmp=Path(tmp))
