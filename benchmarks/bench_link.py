@@ -362,10 +362,11 @@ def main() -> None:
             f"odometry); frames of {FRAME_BYTES:,} bytes; the node's defaults otherwise (a version a second, a "
             f"write every 10 s). *Rover ms*: from the rover's own last line (wall, on its core shared with this "
             f"machine's other processes). *Scan to ground*: from a scan's publication to the first cloud on "
-            f"`/dftpcc/map` (a map or a preview) holding {COVER_SHARE:.0%} of the scan's {COVER_M:g} m cells. "
+            f"`/dftpcc/map` (a map or a preview) holding {COVER_SHARE:.0%} of the scan's {COVER_M:g} m cells (at 0.5 m, "
+            f"the preview's 4 m blocks). "
             f"*10 % loss*: each node drops 10 % of the link frames it receives; *outage*: both drop every frame "
-            f"for {OUTAGE[1]:g} s from {OUTAGE[0]:g} s into the drive (scaled down from 60 s to keep the run "
-            f"short; the simulated runs above have the 60 s). Equality: the rover's file (written when it "
+            f"for {OUTAGE[1]:g} s from about {OUTAGE[0]:g} s into the drive (counted from the nodes' start; "
+            f"scaled down from 60 s to keep the run short; the simulated runs above have the 60 s). Equality: the rover's file (written when it "
             f"stops) against the ground's.")
         parts.append(ros_table(scans, route, quick=args.quick))
     finish_run(parts, args, "bench-link", "The rover-ground link (issue 44)",

@@ -28,9 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import DEFAULT_DATA, markdown_table
+from dftpcc.mapbuilder import PREVIEW_BLOCK
 
 NS = 1_000_000_000
-#: Ground cells (metres) of the coverage test: coarse enough for a preview's 8-cell blocks.
+#: Ground cells (metres) of the coverage test, or a preview's block where that is wider.
 COVER_M = 2.0
 #: Share of a scan's cells the ground's map must hold for the scan to count as on the ground.
 COVER_SHARE = 0.9
@@ -77,8 +78,8 @@ def _env(domain: int, profile: Path) -> dict[str, str]:
     return env
 
 
-def _cells(points: np.ndarray) -> set[tuple[int, int]]:
-    k = np.unique(np.floor(points[:, :2] / COVER_M).astype(np.int64), axis=0)
+def _cells(points: np.ndarray, side: float) -> set[tuple[int, int]]:
+    k = np.unique(np.floor(points[:, :2] / side).astype(np.int64), axis=0)
     return set(map(tuple, k.tolist()))
 
 
@@ -90,6 +91,7 @@ def run(scans, route, *, resolution: float, rate: float, scenario: str, cpu: int
     from scipy.spatial.transform import Rotation
     from sensor_msgs.msg import PointCloud2, PointField
 
+    cover = max(COVER_M, PREVIEW_BLOCK * resolution)  # a preview's point spacing
     domain = random.Random(os.getpid() + int(rate) + len(scenario)).randrange(100, 200)
     profile = tmp / "dds.xml"
     profile.write_text(DDS_PROFILE)
@@ -115,6 +117,12 @@ def run(scans, route, *, resolution: float, rate: float, scenario: str, cpu: int
                                   stderr=subprocess.STDOUT, preexec_fn=lambda: os.sched_setaffinity(0, {cpu})),
     }
     started = time.monotonic()
+    # The nodes' clocks start when they are up (their first line): the outage is counted from there.
+    ready = None
+    while ready is None and time.monotonic() < started + 120:
+        time.sleep(0.1)
+        if all(f"dftpcc {name}:" in (tmp / f"{name}.log").read_text() for name in ("rover", "ground")):
+            ready = time.monotonic()
     rclpy.init()
     node = rclpy.create_node("dftpcc_bench_drive")
     clouds: list[tuple[float, np.ndarray]] = []
@@ -157,7 +165,7 @@ def run(scans, route, *, resolution: float, rate: float, scenario: str, cpu: int
             scan_pub.publish(msg)
             published.append(time.monotonic())
             j = int(np.argmin(np.abs(route.times - t)))
-            cells.append(_cells(points @ route.poses[j][:3, :3].T + route.poses[j][:3, 3]))
+            cells.append(_cells(points @ route.poses[j][:3, :3].T + route.poses[j][:3, 3], cover))
         drive_end = time.monotonic()
         # The ground holds the rover's newest version when its file's SHA-256 is the one the rover's link names.
         import hashlib
@@ -193,19 +201,20 @@ def run(scans, route, *, resolution: float, rate: float, scenario: str, cpu: int
             fh.close()
     seen = []
     covered: set[tuple[int, int]] = set()
-    views = [(when, _cells(points.astype(np.float64))) for when, points in clouds]
+    views = [(when, _cells(points.astype(np.float64), cover)) for when, points in clouds]
     for when_pub, need in zip(published, cells):
         at = next((when for when, have in views if when >= when_pub and len(need & have) >= COVER_SHARE * len(need)),
                   math.nan)
         seen.append(at - when_pub)
-    after = [when for when, _ in clouds if when >= drive_start + OUTAGE[0] + OUTAGE[1]]
+    outage_end = (ready or started) + discovery_s + OUTAGE[0] + OUTAGE[1]
+    after = [when for when, _ in clouds if when >= outage_end]
     line = (tmp / "rover.log").read_text()
     stats = re.search(r"rover stopped: (\d+) scans, (\d+) versions, (\d+) bytes sent; add median ([\d.]+) ms, "
                       r"version median ([\d.]+) ms, per scan ([\d.]+) ms", line)
     drive_s = drive_end - drive_start
     result = {"equal": rover_map.is_file() and ground_map.is_file() and rover_map.read_bytes() == ground_map.read_bytes(),
               "seen": np.array(seen), "caught": caught, "clouds": len(clouds), "drive_s": drive_s,
-              "first_after_outage": (after[0] - drive_start - OUTAGE[0] - OUTAGE[1]) if after else math.nan,
+              "first_after_outage": (after[0] - outage_end) if after else math.nan,
               "map_kB": rover_map.stat().st_size / 1e3 if rover_map.is_file() else math.nan}
     if stats:
         scans_n, versions, sent, add, ver, per = stats.groups()
@@ -251,8 +260,8 @@ def ros_table(scans, route, *, quick: bool) -> str:
                            "rover wall ms: add / version / per scan (medians; per scan: mean of add and versions)",
                            "sent kB per minute of driving (during the run)", "rover's map kB",
                            f"scan to ground s, median / max (a map or preview on /dftpcc/map holding "
-                           f"{COVER_SHARE:.0%} of its {COVER_M:g} m cells)",
-                           "first map after the outage, s", "ground holds the newest map, s after the drive",
+                           f"{COVER_SHARE:.0%} of its {COVER_M:g} m cells, or {PREVIEW_BLOCK} cells')",
+                           "first map after the outage ends, s", "ground holds the newest map, s after the drive",
                            "final files equal"], rows)
 
 
