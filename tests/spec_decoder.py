@@ -1007,8 +1007,8 @@ def link_plan(plan: bytes, base_size: int) -> dict:
             n, pos = _uleb(body, pos, "plan")
             if kind == 0 and a + n > base_size:
                 raise ValueError("copy past the base")
-            if kind == 2 and (a == 0 or a in seen):
-                raise ValueError("tile item 0 or twice")
+            if kind == 2 and (a == 0 or a == 2**32 - 1 or a in seen):
+                raise ValueError("tile item 0, the preview's or twice")
             seen.add(a)
             pieces.append((kind, a, n))
         else:
@@ -1017,6 +1017,27 @@ def link_plan(plan: bytes, base_size: int) -> dict:
     if rest_total != len(rest) or sum(n for _, _, n in pieces) != size:
         raise ValueError("pieces do not add up")
     return {"size": size, "sha256": sha, "pieces": pieces, "rest": rest}
+
+
+#: The item of a change's preview (not part of the target; the plan never names it).
+LINK_PREVIEW_ITEM = 2**32 - 1
+
+
+def link_preview(frames: list[bytes]) -> bytes:
+    """The preview of one change (item 2^32 - 1, its parts joined in part order): a ``.dftpc`` file."""
+    parts: dict[int, bytes] = {}
+    count = None
+    for raw in frames:
+        f = link_frame(raw)
+        if f["kind"] != "data" or f["item"] != LINK_PREVIEW_ITEM:
+            continue
+        if count is not None and count != f["parts"]:
+            raise ValueError("part counts disagree")
+        count = f["parts"]
+        parts[f["part"]] = f["payload"]
+    if count is None or len(parts) != count:
+        raise ValueError("no whole preview")
+    return b"".join(parts[i] for i in range(count))
 
 
 def link_rebuild(base: bytes, frames: list[bytes]) -> bytes:

@@ -5,11 +5,13 @@ from __future__ import annotations
 import hashlib
 import logging
 
+import numpy as np
 import pytest
 
+import dftpcc
 from dftpcc.errors import InvalidInputError
-from dftpcc.link import (DATA_OVERHEAD, Ack, Budget, DataFrame, FrameError, Receiver, Sender, make_change, pack_ack,
-                         pack_data, read_frame)
+from dftpcc.link import (DATA_OVERHEAD, PREVIEW_ITEM, Ack, Budget, DataFrame, FrameError, Receiver, Sender, make_change,
+                         pack_ack, pack_data, read_frame)
 from dftpcc.linksim import Channel, Ends, run_link
 from dftpcc.mapbuilder import MapBuilder
 
@@ -423,3 +425,102 @@ def test_a_plan_declaring_far_more_than_its_bytes_is_refused_unread():
         read_plan(bomb, base_size=0)
     with pytest.raises(ValueError, match="declares more"):
         spec_decoder.link_plan(bomb, 0)
+
+
+def test_a_new_missions_map_is_refused_with_one_line_naming_the_option_or_archived(tmp_path, versions, caplog):
+    path = tmp_path / "ground.dftpc"
+    old, new = Sender(max_frame_bytes=FRAME), Sender(max_frame_bytes=FRAME)
+    old.update(versions[3])
+    ground = Receiver(path, max_frame_bytes=FRAME)
+    for f in frames_of(old):
+        ground.receive(f)
+    assert path.read_bytes() == versions[3]
+    other = MapBuilder(RES, tile_size=TILE, step=STEP).add(*drive(2, seed=11)[0]).encode()
+    new.update(other)
+    change = frames_of(new)
+    assert len(change) > 2
+    with caplog.at_level(logging.WARNING, logger="dftpcc.link"):
+        for f in change:
+            assert ground.receive(f) is None
+    assert ground.refused["another map"] > 1 and path.read_bytes() == versions[3]
+    lines = [r.getMessage() for r in caplog.records if "another map" in r.getMessage()]
+    assert len(lines) == 1 and "--new-maps archive" in lines[0]
+    # Restarted to take new missions: the old map stays until the new one's first version is whole.
+    ground = Receiver(path, max_frame_bytes=FRAME, new_maps="archive")
+    assert ground.receive(change[0]) is None and path.read_bytes() == versions[3]
+    # Its acknowledgement speaks to the new map's sender, which learns the ground holds none of it.
+    assert new.receive(ground.poll(2.0)[0]) and new.ground == 0
+    assert [ground.receive(f) for f in change[1:]][-1] == new.version
+    kept = tmp_path / f"ground.{old.map_id:016x}.dftpc"
+    assert path.read_bytes() == other and kept.read_bytes() == versions[3]
+    assert Receiver(path).map_id == new.map_id and Receiver(kept).map_id == old.map_id
+    # The old map, put aside, is not taken again: not a change from a version of it, nor a whole one.
+    old.update(versions[5])
+    for f in frames_of(old, 3.0):
+        assert ground.receive(f) is None
+    ground = Receiver(path, max_frame_bytes=FRAME, new_maps="archive")
+    again = Sender(max_frame_bytes=FRAME, map_id=old.map_id)  # the old rover, restarted: a whole version
+    again.update(versions[5])
+    for f in frames_of(again):
+        assert ground.receive(f) is None
+    assert path.read_bytes() == other and ground.refused["another map"] > 0
+    with pytest.raises(InvalidInputError, match="new_maps"):
+        Receiver(path, new_maps="yes")
+
+
+def test_a_sender_restarted_before_hearing_the_ground_applied_a_change_sends_from_that_change(tmp_path, versions):
+    # The ground applied the change, but its acknowledgement never reached the rover before it
+    # crashed: the restarted sender holds the change's target (STATE.target) and sends from it.
+    state = tmp_path / "map.dftpc.link"
+    sender, ground = Sender(max_frame_bytes=FRAME, state=state), Receiver(max_frame_bytes=FRAME)
+    sender.update(versions[3])
+    for f in frames_of(sender):
+        ground.receive(f)
+    assert sender.receive(ground.poll(0.0)[0]) and sender.ground == 1
+    sender.update(versions[6])
+    for f in frames_of(sender, 1.0):
+        ground.receive(f)
+    assert ground.data == versions[6]  # its acknowledgement is lost
+    again = Sender(max_frame_bytes=FRAME, state=state)
+    again.update(versions[8])
+    assert again.receive(ground.poll(5.0)[0]) and again.ground == 2
+    change = frames_of(again, 6.0)
+    assert {read_frame(f).base_version for f in change} == {2}
+    for f in change:
+        ground.receive(f)
+    assert ground.data == versions[8]
+    whole = Sender(max_frame_bytes=FRAME)
+    whole.update(versions[8])
+    assert sum(map(len, change)) < sum(map(len, frames_of(whole)))
+
+
+def test_a_large_change_carries_a_preview_after_its_plan_which_never_reaches_the_map(drive_scans):
+    builder = MapBuilder(RES, tile_size=TILE, step=STEP)
+    for points, pose in drive_scans[:12]:
+        builder.add(points, pose)
+    data = builder.encode()
+    preview = builder.preview()
+    assert 0 < len(preview) < 0.25 * len(data)
+    sender = Sender(max_frame_bytes=FRAME, preview_over=1000)
+    sender.update(data, preview=builder.preview)
+    frames = frames_of(sender)
+    items = [read_frame(f).item for f in frames]
+    k, n = items.index(PREVIEW_ITEM), items.count(PREVIEW_ITEM)
+    assert set(items[:k]) == {0} and set(items[k:k + n]) == {PREVIEW_ITEM} and PREVIEW_ITEM not in items[k + n:]
+    # The document alone: the change rebuilt without the preview, and the preview joined.
+    assert spec_decoder.link_rebuild(b"", frames) == data
+    assert spec_decoder.link_preview(frames[::-1]) == preview
+    receiver = Receiver(max_frame_bytes=FRAME)
+    for f in frames[:k + n]:  # the plan and the preview only
+        assert receiver.receive(f) is None
+    assert receiver.preview == (1, preview, sender.map_id) and receiver.data == b""
+    coarse = dftpcc.decompress(receiver.preview[1])
+    assert coarse.shape[0] > 0 and np.isfinite(coarse).all()
+    for f in frames:
+        receiver.receive(f)
+    assert receiver.data == data
+    # A small change, or none asked for: no preview.
+    for over in (None, 10 * len(data)):
+        quiet = Sender(max_frame_bytes=FRAME, preview_over=over)
+        quiet.update(data, preview=builder.preview)
+        assert PREVIEW_ITEM not in {read_frame(f).item for f in frames_of(quiet)}

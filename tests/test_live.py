@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dftpcc.errors import InvalidInputError
-from dftpcc.link import Budget
+from dftpcc.link import Budget, Sender
 from dftpcc.linksim import Channel
 from dftpcc.live import NS, GroundCore, RoverCore
 from dftpcc.mapbuilder import MapBuilder
@@ -162,3 +162,37 @@ def test_the_map_is_written_at_its_cadence_and_a_crash_resumes_from_the_last_wri
     assert (tmp_path / "map.dftpc").read_bytes() == on_disk.encode()
     with pytest.raises(InvalidInputError, match="save_every"):
         new_rover(tmp_path, "other.dftpc", save_every=float("nan"))
+
+
+def test_a_rover_restarted_behind_the_ground_sends_a_change_from_the_grounds_map(tmp_path):
+    # The rover writes its map rarely (save_every), so after a crash it resumes a map older than the
+    # version the ground holds: the link must send from the ground's map (kept as MAP.link.base), not
+    # the whole map.
+    scans = drive(12, heading=0.3)
+    rover = new_rover(tmp_path, "rover.dftpc", save_every=0.35)  # written at scans 0 and 4
+    ground = GroundCore(tmp_path / "ground.dftpc", max_frame_bytes=FRAME)
+    budget_free = Budget(1e9)
+
+    def exchange(rover, now):
+        for f in rover.sender.poll(now, budget_free):
+            ground.frame(f, now)
+        for f in ground.acks(now):
+            rover.acknowledge(f)
+
+    feed(rover, scans[:6])
+    for k in range(20):
+        exchange(rover, 0.1 * k)
+    assert ground.receiver.version == rover.sender.version == 6
+    assert (tmp_path / "rover.dftpc").read_bytes() != ground.receiver.data  # the ground has scan 5, the disk not
+    again = new_rover(tmp_path, "rover.dftpc", save_every=0.35)  # the crash: resumed from scan 4's version
+    feed(again, scans[6:], t0=3.0)
+    sent = again.sender.counts
+    for k in range(40):
+        exchange(again, 5.0 + 0.1 * k)
+    assert ground.receiver.data == again.sender._versions[again.sender.version]
+    assert again.sender.history and all(base == 6 for base, _target in again.sender.history)
+    whole = Sender(max_frame_bytes=FRAME)  # the same map to a ground that holds nothing
+    whole.update(ground.receiver.data)
+    # Scan 5's tiles, and those of the scans after the crash, travel again; the tiles of scans 0-4
+    # only are copies.
+    assert sent["bytes"] < sum(len(f) for f in whole.poll(0.0))

@@ -179,6 +179,21 @@ def test_a_pose_is_applied_as_rotation_then_translation(scans):
     assert posed == placed
 
 
+def test_a_pose_places_points_by_rounded_products_and_sums_not_blas():
+    # Points whose place is on a cell's edge: a product rounded as BLAS's kernel does (FMA on this
+    # machine, not on another) moves some of them to the next cell.
+    rng = np.random.default_rng(5)
+    rotation, translation = yaw_pose(0.7, (3.0, -2.0, 1.0))
+    placed = np.c_[rng.integers(-200, 200, (4000, 2)) * RES, rng.random(4000)]
+    points = (placed - translation) @ rotation
+    x, y, z = points[:, 0:1], points[:, 1:2], points[:, 2:3]
+    # Each coordinate as IEEE double arithmetic gives it, one rounding a product or sum, left to right.
+    by_hand = x * rotation[:, 0] + y * rotation[:, 1] + z * rotation[:, 2] + translation
+    origin = (0.0, 0.0, 0.0)
+    posed = new_builder(origin=origin).add(points, (rotation, translation))
+    assert posed.encode() == new_builder(origin=origin).add(by_hand).encode()
+
+
 def test_a_map_within_one_tile_is_still_a_tiled_file():
     pts = np.c_[np.random.default_rng(2).random((500, 2)) * 3, np.zeros(500)]
     data = new_builder().add(pts).encode()
@@ -380,3 +395,30 @@ def test_a_resumed_map_keeps_the_bound_its_tiles_were_coded_with(tmp_path, scans
     with dftpcc.open(data) as cmap:
         assert cmap.params.target_max_error == 0.003
     assert _largest_error(data, in_map_frame(scans[:6])) <= 0.003 + HEIGHT_QUANTUM_M
+
+
+def test_update_takes_a_target_max_error_and_an_update_interrupted_after_changing_it_is_finished(
+        tmp_path, scans, capsys):
+    first, second = write_scans(tmp_path, scans[:4], "a.laz"), write_scans(tmp_path, scans[4:], "b.laz")
+    m = tmp_path / "m.dftpc"
+    assert run(capsys, "update", m, first, "-r", RES, "--tile-size", TILE, "--step", STEP,
+               "--target-max-error", "0.003") == (0, "")
+    with dftpcc.open(m) as cmap:
+        assert cmap.params.target_max_error == 0.003
+    assert _largest_error(m.read_bytes(), dftpcc.read(first).points) <= 0.003 + HEIGHT_QUANTUM_M
+    old = m.read_bytes()
+    assert run(capsys, "update", m, second, "--target-max-error", "0.002") == (0, "")
+    new = m.read_bytes()
+    with dftpcc.open(new) as cmap:
+        assert cmap.params.target_max_error == 0.002
+    # The same update killed after its state was written, before its map: the file states the old
+    # bound, the state does not record one. Run again as it was, it finishes the update.
+    m.write_bytes(old)
+    assert run(capsys, "update", m, second, "--target-max-error", "0.002")[0] == 0
+    assert m.read_bytes() == new
+    # Without the bound it says what to do, in one line.
+    m.write_bytes(old)
+    code, err = run(capsys, "update", m, second)
+    assert code != 0 and err.count("\n") == 1 and "--target-max-error" in err
+    with pytest.raises(SystemExit):  # argparse's usage error: one line, exit 2
+        run(capsys, "update", m, second, "--target-max-error", "-1")

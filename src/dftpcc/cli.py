@@ -87,6 +87,22 @@ def _positive(text: str) -> float:
     return value
 
 
+def _non_negative(text: str) -> float:
+    """A number, 0 (none) or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be 0 or a positive number, got {text}")
+    return value
+
+
+def _outage(text: str) -> tuple[float, float]:
+    start, _, length = text.partition(":")
+    return _non_negative(start), _positive(length)
+
+
 def _resolution(text: str) -> float | str:
     return "auto" if text == "auto" else _positive(text)
 
@@ -569,6 +585,7 @@ def cmd_update(args: argparse.Namespace) -> int:
         result = update_file(args.map, args.input, output=args.output, delta=args.delta, points_topic=args.topic,
                              pose_topic=args.pose_topic, resolution=args.resolution, tile_size=args.tile_size,
                              cutoff=args.cutoff, step=args.step, force=args.force, map_frame=args.map_frame,
+                             target_max_error=args.target_max_error,
                              waiting=lambda lock: _say(args, f"{args.map}: another update holds {lock}; waiting for it"),
                              on_stage=on_stage)
     delta = f"; delta {args.delta}: {result.delta_size:,} bytes" if result.delta_size is not None else ""
@@ -617,6 +634,10 @@ def _add_growing_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--tile-size", type=_positive_int, metavar="CELLS", help="tile side of a new map (default 256)")
     p.add_argument("--cutoff", "-c", type=_cutoff, help="cutoff ratio of a new map (default 0.8)")
     p.add_argument("--step", type=_positive, help="quantizer step of a new map in metres (default 0.01)")
+    p.add_argument("--target-max-error", type=_non_negative, metavar="METRES",
+                   help="largest error of any occupied cell from this update on (0: none; default: the map's): "
+                        "every tile coded keeps a residual layer within it; a bound other than the map's codes "
+                        "every tile again")
     p.add_argument("--force", "-f", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=cmd_update)
 
@@ -640,7 +661,7 @@ def cmd_ros_rover(args: argparse.Namespace) -> int:
                      resolution=args.resolution, rate=args.budget, max_frame_bytes=args.max_frame_bytes,
                      cutoff=args.cutoff, step=args.step, map_frame=args.map_frame, in_map_frame=args.in_map_frame,
                      version_every=args.version_every, save_every=args.save_every,
-                     loss=args.loss, seed=args.seed,
+                     loss=args.loss, seed=args.seed, outage=args.outage,
                      duration=args.duration, say=(lambda _l: None) if args.quiet else print)
 
 
@@ -648,7 +669,8 @@ def cmd_ros_ground(args: argparse.Namespace) -> int:
     from .ros2 import run_ground
 
     return run_ground(map_path=args.map, frame_id=args.frame_id, max_frame_bytes=args.max_frame_bytes,
-                      loss=args.loss, seed=args.seed, duration=args.duration,
+                      new_maps=args.new_maps, loss=args.loss, seed=args.seed, duration=args.duration,
+                      outage=args.outage,
                       say=(lambda _l: None) if args.quiet else print)
 
 
@@ -663,6 +685,9 @@ def _add_ros_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
                             help="drop this share of incoming link frames at random (a bad link, for tests)")
     test_flags.add_argument("--seed", type=int, default=0, help="seed of --loss")
     test_flags.add_argument("--duration", type=_positive, help="stop after this many seconds (default: run on)")
+    test_flags.add_argument("--outage", type=_outage, metavar="START:SECONDS",
+                            help="drop every incoming link frame for SECONDS from START seconds after the node "
+                                 "starts (a link down, for tests and benchmarks)")
     p = nodes.add_parser("rover", parents=[common, test_flags], help="grow the map from scans and send it within a budget",
                          description="Subscribe to sensor_msgs/PointCloud2 scans and their poses, grow the map "
                                      "(kept current in MAP), and publish link frames on /dftpcc/downlink within "
@@ -691,6 +716,10 @@ def _add_ros_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--map", required=True, help="the ground's map (.dftpc), resumed if it exists")
     p.add_argument("--frame-id", default="map", help="frame id of the published points (default map)")
     p.add_argument("--max-frame-bytes", type=_positive_int, help="refuse longer frames (default: any)")
+    p.add_argument("--new-maps", choices=("refuse", "archive"), default="refuse",
+                   help="frames of another map id (a rover started a new mission): refuse them (default, one "
+                        "logged line), or archive: keep the map held as MAP's stem.<old map id>.dftpc and take the "
+                        "new map once a whole version of it verifies")
     p.set_defaults(func=cmd_ros_ground)
 
 

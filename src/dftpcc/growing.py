@@ -170,7 +170,7 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
                 points_topic: str | None = None, pose_topic: str | None = None, resolution: float | None = None,
                 tile_size: int | None = None, cutoff: float | None = None, step: float | None = None,
                 force: bool = False, map_frame: str | None = None, new: bool = False,
-                waiting: Callable[[Path], None] | None = None,
+                target_max_error: float | None = None, waiting: Callable[[Path], None] | None = None,
                 on_stage: Callable[..., None] | None = None) -> UpdateResult:
     """Add scans to a growing map and write it with its state (``dftpcc update``).
 
@@ -206,6 +206,10 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     new : bool
         Start a new map even where ``map_path`` exists (``dftpcc compress --growable``; replacing a
         file needs ``force``).
+    target_max_error : float, optional
+        Largest error of any occupied cell, metres, from this update on (0: none): every tile coded
+        keeps a residual layer within it (:meth:`MapBuilder.encode`). The file states one bound, so a
+        bound other than the map's codes every tile again; None keeps the map's.
     waiting : callable, optional
         Called with the lock file's path when another update holds it, before waiting for it.
 
@@ -232,13 +236,14 @@ def update_file(map_path: str | os.PathLike[str], inputs: Sequence[str | os.Path
     with locked([map_path, out], waiting=waiting):
         return _update_locked(map_path, out, inputs, delta=delta, points_topic=points_topic, pose_topic=pose_topic,
                               resolution=resolution, tile_size=tile_size, cutoff=cutoff, step=step,
-                              map_frame=map_frame, new=new, stage=on_stage or (lambda *_: None))
+                              map_frame=map_frame, new=new, target_max_error=target_max_error,
+                              stage=on_stage or (lambda *_: None))
 
 
 def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike[str]], *,
                    delta: str | os.PathLike[str] | None, points_topic: str | None, pose_topic: str | None,
                    resolution: float | None, tile_size: int | None, cutoff: float | None, step: float | None,
-                   map_frame: str | None, new: bool = False,
+                   map_frame: str | None, new: bool = False, target_max_error: float | None = None,
                    stage: Callable[..., None] = lambda *_: None) -> UpdateResult:
     """:func:`update_file` once the map is locked and the outputs checked."""
     from .delta import make_delta
@@ -255,7 +260,7 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
                              cutoff=DEFAULT_CUTOFF if cutoff is None else cutoff, step=DEFAULT_STEP_M if step is None else step)
     else:
         base = map_path.read_bytes()
-        builder = MapBuilder.from_file(map_path)
+        builder = MapBuilder.from_file(map_path, target_max_error=target_max_error)
         _check_settings(map_path, builder, resolution, tile_size, cutoff, step)
     last_update = builder.update_sha256
     stage("read")
@@ -277,12 +282,14 @@ def _update_locked(map_path: Path, out: Path, inputs: Sequence[str | os.PathLike
     if not created and out == map_path and record.hexdigest() == last_update:
         with warnings.catch_warnings():  # the map was recovered from its state once already, and said so
             warnings.simplefilter("ignore", StateRecoveredWarning)
-            again = MapBuilder.from_file(map_path)
+            again = MapBuilder.from_file(map_path, target_max_error=target_max_error)
         return _finish_update(map_path, base, again, delta, scans, points)
     builder.update_sha256 = record.hexdigest()
-    recoded = len(builder.changed_tiles())
+    # A bound other than the map's codes every tile again (encode checks the value).
+    rebound = target_max_error is not None and target_max_error != builder.params.target_max_error
+    recoded = len(builder.tiles) if rebound else len(builder.changed_tiles())
     stage("code")
-    data = builder.encode()
+    data = builder.encode(target_max_error=target_max_error)
     patch = make_delta(base, data) if delta is not None else None
     stage("write")
     # One transaction, renamed delta first: a kill after it leaves the old map and state (a rerun

@@ -53,6 +53,10 @@ ACK_OVERHEAD = _HEAD.size + _ACK.size + 1 + _CRC.size
 MIN_FRAME_BYTES = 64
 #: Parts an item may have (a u16 count).
 MAX_PARTS = 0xFFFF
+#: The item number of a change's preview (docs/format.md, *Link frames*): never a tile's.
+PREVIEW_ITEM = 0xFFFFFFFF
+#: A preview is sent only when it is under this share of the change's tile items.
+PREVIEW_SHARE = 0.25
 #: Largest map a receiver rebuilds unless told otherwise (bytes): a plan claiming more is refused unread.
 MAX_MAP_BYTES = 1 << 30
 #: The base check of a frame: the first bytes of the base's SHA-256.
@@ -77,6 +81,8 @@ TRIP_SAMPLES = 256
 #: The receiver acknowledges at most this often (seconds), and at least every keep-alive when idle.
 DEFAULT_ACK_INTERVAL_S = 1.0
 DEFAULT_KEEPALIVE_S = 5.0
+#: What a receiver does with frames of another map id (:class:`Receiver`'s ``new_maps``).
+NEW_MAPS = ("refuse", "archive")
 #: Window over which the budget is kept (seconds).
 DEFAULT_WINDOW_S = 10.0
 #: The sender's and receiver's link state beside the map: ``MAP`` + this (JSON), and the ground's
@@ -349,8 +355,9 @@ def read_plan(plan: bytes, *, base_size: int, max_map_bytes: int = MAX_MAP_BYTES
                 if kind == COPY and a + n > base_size:
                     raise FrameError("plan", f"a plan copying bytes {a:,} to {a + n:,} of a {base_size:,}-byte base")
                 if kind == TILE:
-                    if a == 0 or a in tiles or a > 0xFFFFFFFF:
-                        raise FrameError("plan", f"a plan naming tile {a} as an item twice or as tile 0")
+                    if a == 0 or a in tiles or a >= PREVIEW_ITEM:
+                        raise FrameError("plan", f"a plan naming tile {a} as an item twice, as tile 0 or as the "
+                                                 f"preview")
                     tiles[a] = n
                 pieces.append((kind, a, n))
             else:
@@ -460,14 +467,21 @@ class Sender:
         Seconds before a part sent and not confirmed is sent again.
     silence_after : float
         Seconds without an acknowledgement after which resends slow to one part per ``retry_after``.
+    preview_over : int, optional
+        Bytes: a change whose tile items add up to more carries the newest version's preview (given
+        to :meth:`update`) right after its plan, when the preview is under :data:`PREVIEW_SHARE` of
+        them; None: never (docs/format.md, *Link frames*, the preview).
     """
 
     def __init__(self, *, max_frame_bytes: int, map_id: int | None = None, state: str | os.PathLike[str] | None = None,
-                 retry_after: float = DEFAULT_RETRY_S, silence_after: float = DEFAULT_SILENCE_S):
+                 retry_after: float = DEFAULT_RETRY_S, silence_after: float = DEFAULT_SILENCE_S,
+                 preview_over: int | None = None):
         if not (isinstance(max_frame_bytes, int) and max_frame_bytes >= MIN_FRAME_BYTES):
             raise InvalidInputError(f"max_frame_bytes must be a whole number of bytes, at least {MIN_FRAME_BYTES}, "
                                     f"got {max_frame_bytes!r}")
         self.max_frame_bytes = max_frame_bytes
+        self.preview_over = preview_over
+        self._preview: Callable[[], bytes] | None = None  # of the newest version
         self.retry_after, self.silence_after = float(retry_after), float(silence_after)
         self._clock = 0.0  # the last poll's time: when an acknowledgement is taken
         self._heard = 0.0  # when the last acknowledgement was taken
@@ -485,6 +499,10 @@ class Sender:
         self.change: _Change | None = None
         self.counts: collections.Counter[str] = collections.Counter()
         self._resumed_sha: str | None = None
+        #: After a restart: the version the last change before it went to, kept (with its bytes, from
+        #: ``STATE.target``) until the ground says what it holds: it may have applied that change.
+        self._in_flight: int | None = None
+        self._on_disk: dict[Path, bytes] = {}  # SHA-256 of what STATE.base and STATE.target hold
         #: (base version, target version) of every change started.
         self.history: list[tuple[int, int]] = []
         if self.state is not None and self.state.is_file():
@@ -492,11 +510,19 @@ class Sender:
 
     # -- versions
 
-    def update(self, data: bytes) -> int:
-        """Take ``data`` (the map's bytes) as the newest version; returns its number (the same if unchanged)."""
+    def update(self, data: bytes, *, preview: Callable[[], bytes] | None = None) -> int:
+        """Take ``data`` (the map's bytes) as the newest version; returns its number (the same if unchanged).
+
+        ``preview``: makes that version's preview (a small ``.dftpc`` file of the map at a coarser
+        cell, :meth:`dftpcc.mapbuilder.MapBuilder.preview`), called only when a change to this
+        version starts and is large enough to carry one (``preview_over``).
+        """
         data = bytes(data)
         if self.version and data == self._versions.get(self.version):
+            if preview is not None:
+                self._preview = preview
             return self.version
+        self._preview = preview
         if not (self.version and self.version not in self._versions
                 and self._resumed_sha == hashlib.sha256(data).hexdigest()):
             self.version += 1  # else the map the state names, after a restart: its number again
@@ -512,7 +538,7 @@ class Sender:
         return self.version
 
     def _prune(self) -> None:
-        keep = {self.version, self.ground}
+        keep = {self.version, self.ground, self._in_flight}
         if self.change is not None:
             keep |= {self.change.base_version, self.change.target_version}
         for v in [v for v in self._versions if v not in keep]:
@@ -543,8 +569,9 @@ class Sender:
         held = next((v for v, sha in self._sha.items() if sha == ack.sha256 and (v in self._versions or v == 0)),
                     None)
         ground = 0 if held is None else held
-        moved = ground != self.ground
+        moved = ground != self.ground or self._in_flight is not None
         self.ground = ground
+        self._in_flight = None
         change = self.change
         if change is not None:
             if ground == change.target_version:
@@ -583,7 +610,15 @@ class Sender:
         parts: dict[tuple[int, int], bytes] = {}
         order = []
         age = {k: self._first_seen.get(hashlib.sha1(b).digest(), self.version) for k, b in items.items()}
-        for item, data in [(0, plan)] + sorted(items.items(), key=lambda kv: (-age[kv[0]], kv[0])):
+        first = [(0, plan)]
+        detail = sum(map(len, items.values()))
+        if self._preview is not None and self.preview_over is not None and detail > self.preview_over:
+            preview = self._preview()
+            if len(preview) < PREVIEW_SHARE * detail:
+                first.append((PREVIEW_ITEM, preview))
+                self.counts["previews"] += 1
+                self.counts["preview bytes"] += len(preview)
+        for item, data in first + sorted(items.items(), key=lambda kv: (-age[kv[0]], kv[0])):
             count = max(1, -(-len(data) // payload))
             if count > MAX_PARTS:
                 raise InvalidInputError(f"an item of {len(data):,} bytes needs more than {MAX_PARTS} frames of "
@@ -593,6 +628,7 @@ class Sender:
                                                      data[i * payload:(i + 1) * payload]))
                 order.append((item, i))
         self.change = _Change(base_version, self.version, check, parts, order)
+        self._save(target=True)
         self.counts["changes"] += 1
         self.history.append((base_version, self.version))
 
@@ -641,19 +677,35 @@ class Sender:
 
     # -- state on disk
 
-    def _save(self) -> None:
+    def _save(self, *, target: bool = False) -> None:
+        """Write the link state; the ground's confirmed map as ``STATE.base`` when it moved, and with
+        ``target`` the map the change just started goes to as ``STATE.target``: a rover that restarts
+        before hearing the ground applied it still holds it, and sends from it rather than the whole map."""
         if self.state is None:
             return
         ground = self.ground if self.ground in self._versions else None
-        base = Path(f"{self.state}.base")
         if ground:
-            data = self._versions[ground]
-            if not base.is_file() or hashlib.sha256(base.read_bytes()).digest() != self._sha[ground]:
-                atomic_write(base, data)
+            self._keep(Path(f"{self.state}.base"), ground)
+        change = self.change
+        flight = change.target_version if change is not None else self._in_flight
+        if target and change is not None:
+            self._keep(Path(f"{self.state}.target"), change.target_version)
         doc = {"map_id": self.map_id, "version": self.version,
                "sha256": self._sha[self.version].hex() if self.version else None,
                "ground": ground, "ground_sha256": self._sha[ground].hex() if ground else None}
+        if flight and flight in self._versions and flight != ground:
+            doc.update(target=flight, target_sha256=self._sha[flight].hex())
         atomic_write(self.state, lambda tmp: Path(tmp).write_text(json.dumps(doc)))
+
+    def _keep(self, path: Path, version: int) -> None:
+        """``path`` holds the map of ``version`` (written when it holds another; what it holds is
+        remembered, so a version does not read and hash the file again)."""
+        sha = self._sha[version]
+        if self._on_disk.get(path) == sha:
+            return
+        if not path.is_file() or hashlib.sha256(path.read_bytes()).digest() != sha:
+            atomic_write(path, self._versions[version])
+        self._on_disk[path] = sha
 
     def _resume(self) -> None:
         assert self.state is not None
@@ -666,13 +718,17 @@ class Sender:
             raise CorruptFileError(f"{self.state}: not a readable link state ({exc})") from None
         if not (0 < self.map_id < 1 << 64):
             raise CorruptFileError(f"{self.state}: a link state with map id {self.map_id}")
-        base = Path(f"{self.state}.base")
-        if ground and ground_sha and base.is_file():
-            data = base.read_bytes()
-            if hashlib.sha256(data).hexdigest() == ground_sha:
-                self._versions[int(ground)] = data
-                self._sha[int(ground)] = bytes.fromhex(ground_sha)
-                self.ground = int(ground)
+        for name, version, sha in (("base", ground, ground_sha), ("target", doc.get("target"), doc.get("target_sha256"))):
+            path = Path(f"{self.state}.{name}")
+            if version and sha and path.is_file():
+                data = path.read_bytes()
+                if hashlib.sha256(data).hexdigest() == sha:
+                    self._versions[int(version)] = data
+                    self._sha[int(version)] = bytes.fromhex(sha)
+                    if name == "base":
+                        self.ground = int(version)
+                    else:
+                        self._in_flight = int(version)
         # The newest map before the restart is not kept: the next update numbers the map after it.
         self._resumed_sha = doc.get("sha256")
 
@@ -683,6 +739,7 @@ class Sender:
 @dataclass
 class _Pending:
     change: tuple[int, int, bytes]
+    map_id: int
     items: dict[int, tuple[int, dict[int, bytes]]] = field(default_factory=dict)  # item -> (parts, part -> payload)
     plan: Plan | None = None
 
@@ -703,6 +760,14 @@ class Receiver:
         Largest map rebuilt (bytes).
     ack_interval, keepalive : float
         Seconds: acknowledgements at most this often, and at least every ``keepalive``.
+    new_maps : {"refuse", "archive"}
+        Frames of a map other than the one held (a rover started a new mission: a new map id):
+        ``"refuse"`` counts and logs them (``another map``, one line naming this option);
+        ``"archive"`` takes the other map once a whole first version of it verifies (a change from
+        nothing, every frame of it), then keeps the map held so far beside ``path`` as
+        ``STEM.<its map id, 16 hex digits>SUFFIX`` (with its link state) and holds the new one at ``path``.
+        Until then the map held stays as it was. A map once put aside is not taken again (an old
+        rover still sending would make the ground go back and forth).
     log : callable, optional
         ``log(cause, message)``, called once per cause of refusal; default a warning on the ``dftpcc.link`` logger.
     """
@@ -710,7 +775,10 @@ class Receiver:
     def __init__(self, path: str | os.PathLike[str] | None = None, *, map_id: int = 0,
                  max_frame_bytes: int | None = None, max_map_bytes: int = MAX_MAP_BYTES,
                  ack_interval: float = DEFAULT_ACK_INTERVAL_S, keepalive: float = DEFAULT_KEEPALIVE_S,
-                 log: Callable[[str, str], None] | None = None):
+                 new_maps: str = "refuse", log: Callable[[str, str], None] | None = None):
+        if new_maps not in NEW_MAPS:
+            raise InvalidInputError(f"new_maps is one of {', '.join(NEW_MAPS)}, got {new_maps!r}")
+        self.new_maps = new_maps
         self.path = None if path is None else Path(path)
         self.map_id = int(map_id)
         self.max_frame_bytes = max_frame_bytes
@@ -720,6 +788,9 @@ class Receiver:
                                                                 message, cause))
         self.data = b""
         self.version = 0
+        self.archived: list[int] = []  # map ids put aside for a new mission's, oldest first
+        #: The preview of the change in progress or last applied: (its target version, its bytes, map id).
+        self.preview: tuple[int, bytes, int] | None = None
         self.epoch = secrets.randbits(32)
         self.sequence = 0
         self.refused: collections.Counter[str] = collections.Counter()
@@ -742,6 +813,7 @@ class Receiver:
                 self.version = int(doc["version"])
             if not self.map_id:
                 self.map_id = int(doc["map_id"])
+            self.archived = [int(v) for v in doc.get("archived", [])]
         except (OSError, ValueError, KeyError, TypeError):
             pass  # no state or another map's: the sender finds the map by its SHA-256 or sends it whole
 
@@ -760,12 +832,26 @@ class Receiver:
         if not isinstance(f, DataFrame):
             self._refuse("kind", "an acknowledgement on the downlink")
             return None
-        if self.map_id and f.map_id != self.map_id:
-            self._refuse("another map", f"a frame of map {f.map_id:016x}, not of this ground's map {self.map_id:016x}")
+        newcomer = bool(self.map_id) and f.map_id != self.map_id
+        if newcomer and self.new_maps == "refuse":
+            self._refuse("another map", f"a frame of map {f.map_id:016x}, not of this ground's map {self.map_id:016x} "
+                                        f"(a new mission's map? new_maps='archive', 'dftpcc ros ground --new-maps "
+                                        f"archive', keeps this map beside the file and takes the new one)")
             return None
-        self.map_id = f.map_id
+        if newcomer and f.map_id in self.archived:
+            self._refuse("another map", f"a frame of map {f.map_id:016x}, which this ground put aside for map "
+                                        f"{self.map_id:016x} (an earlier mission's rover still sending?)")
+            return None
+        if newcomer and f.base_version:
+            # A change from a map of the other id, which this ground does not hold: only a whole first
+            # version of the new map can start it.
+            self._refuse("another map", f"a change of map {f.map_id:016x} from its version {f.base_version}, "
+                                        f"which this ground does not hold (it holds map {self.map_id:016x})")
+            return None
+        if not newcomer:
+            self.map_id = f.map_id
         self._due = True
-        if f.target_version <= self.version:
+        if not newcomer and f.target_version <= self.version:
             self.counts["already applied"] += 1
             return None
         if f.base_version and f.base_check != self.sha256[:CHECK_BYTES]:
@@ -773,13 +859,13 @@ class Receiver:
                                        f"(version {self.version})")
             return None
         pending = self.pending
-        if pending is not None and pending.change != f.change:
-            if f.target_version < pending.change[1]:
+        if pending is not None and (pending.change != f.change or pending.map_id != f.map_id):
+            if f.target_version < pending.change[1] and pending.map_id == f.map_id:
                 self.counts["stale"] += 1
                 return None
             pending = None
         if pending is None:
-            pending = self.pending = _Pending(f.change)
+            pending = self.pending = _Pending(f.change, f.map_id)
         count, parts = pending.items.setdefault(f.item, (f.parts, {}))
         if count != f.parts:
             self._refuse("fields", f"item {f.item} of a change in {f.parts} parts and in {count}")
@@ -796,14 +882,30 @@ class Receiver:
                 self._refuse(exc.cause, str(exc))
                 self.pending = None
                 return None
-            for item in [k for k in pending.items if k and k not in pending.plan.tiles]:
+            for item in [k for k in pending.items if k and k != PREVIEW_ITEM and k not in pending.plan.tiles]:
                 self._refuse("item", f"a frame of item {item}, which the change's plan does not name")
                 del pending.items[item]  # a stray item costs itself, not the change
+        elif f.item == PREVIEW_ITEM:
+            return self._preview_part(pending, f)
         elif pending.plan is not None and f.item and f.item not in pending.plan.tiles:
             self._refuse("item", f"a frame of item {f.item}, which the change's plan does not name")
             del pending.items[f.item]
             return None
         return self._complete(f, now)
+
+    def _preview_part(self, pending: _Pending, f: DataFrame) -> int | None:
+        """A part of the change's preview: kept; the whole preview taken for display (never the map)."""
+        count, parts = pending.items[PREVIEW_ITEM]
+        if len(parts) == count and (self.preview is None or self.preview[0] != f.target_version
+                                    or self.preview[2] != f.map_id):
+            data = self._joined(PREVIEW_ITEM)
+            if len(data) > self.max_map_bytes:
+                self._refuse("preview", f"a preview of {len(data):,} bytes")
+                del pending.items[PREVIEW_ITEM]
+                return None
+            self.preview = (f.target_version, data, f.map_id)
+            self.counts["previews"] += 1
+        return None
 
     def _base(self, f: DataFrame) -> bytes:
         return self.data if f.base_version else b""
@@ -833,8 +935,19 @@ class Receiver:
         return f.target_version
 
     def _apply(self, data: bytes, version: int, map_id: int) -> None:
+        if map_id != self.map_id and self.map_id and self.path is not None and self.path.is_file():
+            kept = self.path.with_name(f"{self.path.stem}.{self.map_id:016x}{self.path.suffix}")
+            os.replace(self.path, kept)  # the map first: a crash after it leaves a state naming no map held
+            state = Path(f"{self.path}{LINK_SUFFIX}")
+            if state.is_file():
+                os.replace(state, Path(f"{kept}{LINK_SUFFIX}"))
+            self._log("new map", f"map {map_id:016x} taken (a new mission); map {self.map_id:016x} kept as {kept}")
+            self.counts["new maps"] += 1
+        if map_id != self.map_id and self.map_id:
+            self.archived.append(self.map_id)
         if self.path is not None:
-            state = {"map_id": map_id, "version": version, "sha256": hashlib.sha256(data).hexdigest()}
+            state = {"map_id": map_id, "version": version, "sha256": hashlib.sha256(data).hexdigest(),
+                     **({"archived": self.archived} if self.archived else {})}
             # The map first, then the state naming it: a state naming another map is ignored on start.
             atomic_write(self.path, data)
             atomic_write(Path(f"{self.path}{LINK_SUFFIX}"), lambda tmp: Path(tmp).write_text(json.dumps(state)))
@@ -855,9 +968,12 @@ class Receiver:
         pending = self.pending
         reports = {}
         base_v = target_v = 0
+        map_id, version, sha = self.map_id, self.version, self.sha256
         if pending is not None:
             base_v, target_v = pending.change[0], pending.change[1]
             reports = {item: (count, frozenset(parts)) for item, (count, parts) in pending.items.items()}
-        ack = Ack(self.map_id, self.epoch, self.sequence, self.version, self.sha256, base_v, target_v, reports)
+            if pending.map_id != self.map_id:  # to the new map's sender: nothing of its map held, these parts
+                map_id, version, sha = pending.map_id, 0, _EMPTY_SHA
+        ack = Ack(map_id, self.epoch, self.sequence, version, sha, base_v, target_v, reports)
         self.counts["acks"] += 1
         return [pack_ack(ack, max_bytes=self.max_frame_bytes)]

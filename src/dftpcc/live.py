@@ -89,6 +89,9 @@ class RoverCore:
         state holds every held cell's sums, 20 bytes a cell: 250 MB for 10^7 cells); 0: at every
         version. :meth:`save` writes the newest version now (the node does when it stops). A rover
         restarted after a crash resumes from the last write, and its link sends from there.
+    preview : bool
+        A change larger than the budget carries in its window brings the map's preview first (a
+        coarse whole map, :meth:`MapBuilder.preview`), so the ground sees the whole drive early.
     log : callable, optional
         ``log(cause, message)``, once per cause of refused input.
     """
@@ -96,7 +99,8 @@ class RoverCore:
     def __init__(self, map_path: str | os.PathLike[str], *, resolution: float, rate: float, max_frame_bytes: int,
                  cutoff: float = 0.8, step: float = DEFAULT_STEP_M, tile_size: int = DEFAULT_GROWING_TILE_SIZE,
                  window: float = DEFAULT_WINDOW_S, map_frame: str = "map", in_map_frame: bool = False,
-                 version_every: float = 0.0, save_every: float = 0.0, log: Callable[[str, str], None] | None = None):
+                 version_every: float = 0.0, save_every: float = 0.0, preview: bool = True,
+                 log: Callable[[str, str], None] | None = None):
         self.map_path = Path(map_path)
         self.refused = Counter(log)
         self.map_frame, self.in_map_frame = map_frame, in_map_frame
@@ -110,10 +114,12 @@ class RoverCore:
         if max_frame_bytes > rate * window:
             raise InvalidInputError(f"a frame of {max_frame_bytes:,} bytes does not fit a budget of {rate:g} B/s "
                                     f"over {window:g} s")
-        self.sender = Sender(max_frame_bytes=max_frame_bytes, state=link_state)
+        # A change the budget carries in more than its window carries the map's preview first.
+        self.sender = Sender(max_frame_bytes=max_frame_bytes, state=link_state,
+                             preview_over=int(rate * window) if preview else None)
         self.budget = Budget(rate, window=window)
         if self.map_path.exists():
-            self.sender.update(self.map_path.read_bytes())
+            self.sender.update(self.map_path.read_bytes(), preview=self.builder.preview)
         self._poses: collections.deque[tuple[int, np.ndarray, np.ndarray]] = collections.deque()
         self._waiting: collections.deque[_Scan] = collections.deque()
         self._last_scan_ns: int | None = None
@@ -225,7 +231,7 @@ class RoverCore:
             return False
         t0 = time.perf_counter()
         data = self.builder.encode()
-        self.sender.update(data)
+        self.sender.update(data, preview=self.builder.preview)
         self._unsent = 0
         self._unsaved = data
         if self._saved_ns is None or self._stamp_ns - self._saved_ns >= self.save_every * NS:
@@ -263,12 +269,15 @@ class GroundCore:
         The ground's map, written atomically at each version applied; read back on start.
     max_frame_bytes : int, optional
         Longer frames are refused.
+    new_maps : {"refuse", "archive"}
+        Frames of another map id (a new mission): refused, or taken once a whole version verifies,
+        the map held so far kept beside the file (:class:`dftpcc.link.Receiver`).
     """
 
     def __init__(self, map_path: str | os.PathLike[str], *, max_frame_bytes: int | None = None,
-                 log: Callable[[str, str], None] | None = None):
+                 new_maps: str = "refuse", log: Callable[[str, str], None] | None = None):
         self.counter = Counter(log)
-        self.receiver = Receiver(map_path, max_frame_bytes=max_frame_bytes, log=self.counter)
+        self.receiver = Receiver(map_path, max_frame_bytes=max_frame_bytes, new_maps=new_maps, log=self.counter)
 
     @property
     def refused(self) -> collections.Counter[str]:
@@ -280,6 +289,23 @@ class GroundCore:
 
     def acks(self, now: float) -> list[bytes]:
         return self.receiver.poll(now)
+
+    def preview_points(self) -> np.ndarray | None:
+        """The points (n, 3, float32) of the preview of the change in progress, when it is newer than the
+        map held (a coarse whole map, ahead of the tiles' detail); else None."""
+        from .mapfile import decompress
+
+        if self.receiver.preview is None:
+            return None
+        target, data, map_id = self.receiver.preview
+        if map_id == self.receiver.map_id and target <= self.receiver.version:
+            return None  # the map held is as new: its detail is there
+        try:
+            return decompress(data).astype(np.float32)
+        except DftpccError as exc:
+            self.counter("undecodable preview", f"a preview that does not decode: {exc}")
+            self.receiver.preview = None
+            return None
 
     def points(self) -> np.ndarray:
         """The rebuilt map's points (n, 3), metres, float32, in the frame the rover placed its scans in."""

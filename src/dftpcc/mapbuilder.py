@@ -71,6 +71,10 @@ DEFAULT_STEP_M = 0.01
 DEFAULT_GROWING_TILE_SIZE = 256
 #: The state file of ``MAP`` is ``MAP`` + this.
 STATE_SUFFIX = ".state"
+#: A preview's cell is a block of this many cells a side (:meth:`MapBuilder.preview`).
+PREVIEW_BLOCK = 8
+#: A preview's quantizer step, metres: a preview is for the eye, coarse in height too.
+PREVIEW_STEP_M = 0.05
 
 
 class StateRecoveredWarning(DftpccWarning):
@@ -209,7 +213,11 @@ class MapBuilder:
             if rotation.shape != (3, 3) or translation.shape != (3,) or not (
                     np.isfinite(rotation).all() and np.isfinite(translation).all()):
                 raise InvalidInputError("a pose is a finite (3, 3) rotation and a (3,) translation")
-            pts = pts @ rotation.T + translation
+            # Term by term, not ``pts @ rotation.T``: BLAS's product rounds by the machine's kernel (FMA
+            # or not), so a point on a cell's edge could fall in another cell on another machine; and on
+            # a rover pinned to one core its threads cost ten times the arithmetic.
+            pts = (pts[:, 0:1] * rotation[:, 0] + pts[:, 1:2] * rotation[:, 1] + pts[:, 2:3] * rotation[:, 2]
+                   + translation)
         self.update_sha256 = None
         check_heights(float(pts[:, 2].min()), float(pts[:, 2].max()))
         if float(np.abs(pts[:, :2]).max()) > MAX_COORDINATE_M:
@@ -270,6 +278,47 @@ class MapBuilder:
         a tile's edge lies in the neighbour's window too, so it changes both.
         """
         return sorted(k for k in self._tiles if k in self._dirty or k not in self._codes)
+
+    def preview(self, *, block: int = PREVIEW_BLOCK, step: float = PREVIEW_STEP_M) -> bytes:
+        """The map at a coarser cell: a small ``.dftpc`` file a slow link carries ahead of the tiles' detail.
+
+        Every occupied ``block`` x ``block`` block of the lattice (from its origin) gives one point
+        at the block's centre at the mean height of the block's points (from the exact sums, so
+        the same map gives the same preview whatever the order of its scans), compressed with a
+        cell of the block's side (metres: ``block`` times the resolution), the map's cutoff and
+        ``step`` (metres). docs/format.md, *Link frames*, the preview.
+
+        Raises
+        ------
+        InvalidInputError
+            Nothing was added yet.
+        """
+        from .encoder import compress
+
+        if not self._tiles:
+            raise InvalidInputError("the map is empty: add a scan first")
+        size = self.tile_size
+        rows, cols, sums, counts = [], [], [], []
+        for (i, j), cells in self._tiles.items():
+            r, c = np.nonzero(cells.count)
+            rows.append((i * size + r) // block)
+            cols.append((j * size + c) // block)
+            sums.append(cells.sum[r, c])
+            counts.append(cells.count[r, c])
+        row, col = np.concatenate(rows), np.concatenate(cols)
+        r0, c0 = int(row.min()), int(col.min())
+        width = int(col.max()) - c0 + 1
+        keys, where = np.unique((row - r0) * width + (col - c0), return_inverse=True)
+        # int64 sums of int64 quanta: exact, as the cells' own means are.
+        total = np.zeros(keys.size, np.int64)
+        np.add.at(total, where, np.concatenate(sums))
+        count = np.bincount(where, weights=np.concatenate(counts), minlength=keys.size)
+        ox, oy, oz = self.origin  # type: ignore[misc]
+        side = block * self.resolution
+        br, bc = np.divmod(keys, width)
+        points = np.c_[ox + (bc + c0 + 0.5) * side, oy + (br + r0 + 0.5) * side,
+                       oz + total / count * HEIGHT_QUANTUM_M]
+        return compress(points, resolution=side, cutoff=self.params.cutoff, step=step, crs=self.crs or None)
 
     # -- coding --------------------------------------------------------------------------------
 
@@ -424,11 +473,19 @@ class MapBuilder:
                     gridding=np.array([self._gridding[t] for t in held]))
 
     @classmethod
-    def from_file(cls, path: str | os.PathLike[str], state: str | os.PathLike[str] | None = None) -> "MapBuilder":
+    def from_file(cls, path: str | os.PathLike[str], state: str | os.PathLike[str] | None = None, *,
+                  target_max_error: float | None = None) -> "MapBuilder":
         """Resume a growing map from its file and its state (default :func:`state_path`).
 
         Untouched tiles keep the bytes they have in the file; the next
         :meth:`encode` codes only the tiles later adds change.
+
+        Parameters
+        ----------
+        target_max_error : float, optional
+            Metres: the bound the update being resumed asked for. Only used to repair a map left
+            one update behind its state (the state was written, the map not) when that update
+            changed the bound: the state does not record it, the file states the old one.
 
         Raises
         ------
@@ -476,7 +533,7 @@ class MapBuilder:
                 raise InvalidInputError(f"{path}: its state file {state} belongs to another map (it names the map "
                                         f"{str(settings['map_sha256'])[:16]}..., this one is {digest[:16]}...); give "
                                         f"the state written with this map")
-            return builder._recovered(path, state, settings["map_sha256"], on_disk=digest)
+            return builder._recovered(path, state, settings["map_sha256"], on_disk=digest, bound=target_max_error)
         builder._file_sha256 = digest
         builder._check_header(path, header, tiles)
         i0, j0 = min(i for i, _ in tiles) - 1, min(j for _, j in tiles) - 1
@@ -495,11 +552,19 @@ class MapBuilder:
                                     f"one of another version of it); give the state written with this map")
         return builder
 
-    def _recovered(self, path: Path, state: Path, expected: str, *, on_disk: str) -> "MapBuilder":
-        """A state one update ahead of its map (the map was not written after it): code the map again from it."""
-        data = self.encode()
-        if hashlib.sha256(data).hexdigest() != expected:
-            raise CorruptFileError(f"{state}: the map state does not give the map it names (damaged state)")
+    def _recovered(self, path: Path, state: Path, expected: str, *, on_disk: str,
+                   bound: float | None = None) -> "MapBuilder":
+        """A state one update ahead of its map (the map was not written after it): code the map again from it,
+        with the bound the file states (the builder's now), or else ``bound`` (that update's)."""
+        bounds = [self.params.target_max_error] + ([float(bound)] if bound is not None else [])
+        for tried in dict.fromkeys(bounds):
+            data = self.encode(target_max_error=tried)
+            if hashlib.sha256(data).hexdigest() == expected:
+                break
+        else:
+            raise CorruptFileError(f"{state}: the map state does not give the map it names with a maximum error of "
+                                   f"{' or '.join(f'{b:g} m' for b in dict.fromkeys(bounds))} (a damaged state, or "
+                                   f"the interrupted update changed --target-max-error: run it again with it)")
         # The next state names the map still on disk as the one it started from (as its delta does):
         # were that update interrupted too, the map on disk is still the one the state knows.
         self._file_sha256 = on_disk

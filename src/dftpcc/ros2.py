@@ -14,6 +14,7 @@ reliable topic would resend on its own, past the budget.
 from __future__ import annotations
 
 import random
+import statistics
 import time
 from types import SimpleNamespace
 from typing import Any, Callable
@@ -74,12 +75,21 @@ def _stamp_ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def _dropper(loss: float, seed: int) -> Callable[[], bool]:
-    """Whether to drop an incoming frame: a bad link for tests, seeded."""
+def _dropper(loss: float, seed: int, outage: tuple[float, float] | None = None) -> Callable[[], bool]:
+    """Whether to drop an incoming frame: a bad link for tests and benchmarks, seeded; ``outage``:
+    (start, length), seconds from now, during which every frame is dropped."""
     if not 0.0 <= loss < 1.0:
         raise InvalidInputError(f"--loss is a share of frames in [0, 1), got {loss!r}")
     rng = random.Random(seed)
-    return lambda: loss > 0 and rng.random() < loss
+    start = time.monotonic()
+    down = None if outage is None else (start + outage[0], start + outage[0] + outage[1])
+
+    def drop() -> bool:
+        if down is not None and down[0] <= time.monotonic() < down[1]:
+            return True
+        return loss > 0 and rng.random() < loss
+
+    return drop
 
 
 def _spin(ros: SimpleNamespace, node: Any, duration: float | None) -> None:
@@ -97,7 +107,7 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
               resolution: float, rate: float, max_frame_bytes: int, cutoff: float, step: float,
               map_frame: str = "map", in_map_frame: bool = False, version_every: float = 1.0,
               save_every: float = 10.0, loss: float = 0.0, seed: int = 0, duration: float | None = None,
-              say: Callable[[str], None] = print) -> int:
+              outage: tuple[float, float] | None = None, say: Callable[[str], None] = print) -> int:
     """The rover node: scans and poses in, the map kept on disk, frames out on :data:`DOWNLINK_TOPIC`."""
     from .io.pointcloud2 import pointcloud2_xyz
     from .live import RoverCore
@@ -118,7 +128,7 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
               "budget": "downlink bytes per second, averaged over 10 s", "resolution": "cell size of a new map, m",
               "max_frame_bytes": "no frame on the downlink is longer, bytes", "step": "quantizer step, m",
               "cutoff": "cutoff ratio f_c of a new map", "map_frame": "scans in this frame need no pose"})
-    drop = _dropper(loss, seed)
+    drop = _dropper(loss, seed, outage)
     downlink = node.create_publisher(ros.UInt8MultiArray, DOWNLINK_TOPIC, _qos(ros, LINK_DEPTH))
 
     def on_scan(msg: Any) -> None:
@@ -175,6 +185,13 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
     finally:  # stopped (a signal, the duration): the newest map reaches the disk
         core.flush()
         core.save()
+        add, ver = core.add_seconds, core.version_seconds
+        if add:
+            # One line a benchmark reads: wall ms, the scan's own work and its share of the versions.
+            say(f"dftpcc rover stopped: {core.scans} scans, {len(ver)} versions, "
+                f"{core.sender.counts['bytes']} bytes sent; add median {1e3 * statistics.median(add):.1f} ms, "
+                f"version median {1e3 * statistics.median(ver or [0.0]):.1f} ms, "
+                f"per scan {1e3 * (sum(add) + sum(ver)) / len(add):.1f} ms")
     return 0
 
 
@@ -190,8 +207,9 @@ def cloud_message(ros: SimpleNamespace, points: np.ndarray, frame_id: str, stamp
     return msg
 
 
-def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | None = None, loss: float = 0.0,
-               seed: int = 0, duration: float | None = None, say: Callable[[str], None] = print) -> int:
+def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | None = None, new_maps: str = "refuse",
+               loss: float = 0.0, seed: int = 0, duration: float | None = None,
+               outage: tuple[float, float] | None = None, say: Callable[[str], None] = print) -> int:
     """The ground node: frames in, the map on disk and on :data:`MAP_TOPIC` (latched), acknowledgements out."""
     from .live import GroundCore
 
@@ -199,12 +217,14 @@ def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | N
     ros.rclpy.init(args=None)
     node = ros.rclpy.create_node("dftpcc_ground")
     log = node.get_logger()
-    core = GroundCore(map_path, max_frame_bytes=max_frame_bytes,
+    core = GroundCore(map_path, max_frame_bytes=max_frame_bytes, new_maps=new_maps,
                       log=lambda cause, message: log.warning(f"{message} ({cause}; counted, not logged again)"))
-    _declare(node, {"map": str(map_path), "frame_id": frame_id},
+    _declare(node, {"map": str(map_path), "frame_id": frame_id, "new_maps": new_maps},
              {"map": "the ground's map (.dftpc), byte for byte the rover's at each version applied",
-              "frame_id": "frame of the published points: the frame the rover placed its scans in"})
-    drop = _dropper(loss, seed)
+              "frame_id": "frame of the published points: the frame the rover placed its scans in",
+              "new_maps": "frames of another map id (a new mission): refuse, or archive (keep the map held "
+                          "beside the file, take the new one once a whole version of it verifies)"})
+    drop = _dropper(loss, seed, outage)
     cloud = node.create_publisher(ros.PointCloud2, MAP_TOPIC, _qos(ros, 1, latched=True))
     acks = node.create_publisher(ros.UInt8MultiArray, ACK_TOPIC, _qos(ros, LINK_DEPTH))
     start = time.monotonic()
@@ -215,10 +235,17 @@ def run_ground(*, map_path: str, frame_id: str = "map", max_frame_bytes: int | N
     def on_frame(msg: Any) -> None:
         if drop():
             return
+        previews = core.receiver.counts["previews"]
         version = core.frame(bytes(msg.data), time.monotonic() - start)
         if version is not None:
             log.info(f"version {version} applied: {len(core.receiver.data):,} bytes")
             publish_map()
+        elif core.receiver.counts["previews"] != previews:
+            # The coarse whole map of the change on its way: shown until the change is applied.
+            coarse = core.preview_points()
+            if coarse is not None:
+                log.info(f"preview of version {core.receiver.preview[0]}: {coarse.shape[0]:,} points")
+                cloud.publish(cloud_message(ros, coarse, frame_id, node.get_clock().now().to_msg()))
 
     node.create_subscription(ros.UInt8MultiArray, DOWNLINK_TOPIC, on_frame, _qos(ros, LINK_DEPTH))
 

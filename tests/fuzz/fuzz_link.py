@@ -5,8 +5,10 @@ cut, insert, duplicate bytes; half of them with the CRC made right again, so
 mutations reach the checks behind it), shuffled, fed to a
 :class:`dftpcc.link.Receiver` that holds the change's base. The receiver must
 never raise, and its map must stay the base or become exactly the target
-(every byte). Mutated acknowledgements fed to a :class:`dftpcc.link.Sender`
-must never make it raise.
+(every byte). Half the changes carry a preview (item 2^32 - 1): a preview the
+receiver takes is display only, and decoding it must give points or refuse with
+a dftpcc error, nothing else. Mutated acknowledgements fed to a
+:class:`dftpcc.link.Sender` must never make it raise.
 
 ``python tests/fuzz/fuzz_link.py --iterations 100000 [--seed N]``
 """
@@ -24,7 +26,12 @@ from pathlib import Path
 if __name__ == "__main__":  # run as a script: the package from the checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src"))
 
+import numpy as np  # noqa: E402
+
+from dftpcc.encoder import compress  # noqa: E402
+from dftpcc.errors import DftpccError  # noqa: E402
 from dftpcc.link import Ack, Receiver, Sender, pack_ack  # noqa: E402
+from dftpcc.mapfile import decompress  # noqa: E402
 
 try:
     from .fuzz_delta import mutate, recrc, seed_maps
@@ -39,12 +46,14 @@ def seed_changes() -> list[tuple[bytes, bytes, list[bytes], int]]:
     out = []
     # Each pair of consecutive versions of the delta fuzzer's growing maps (the first from nothing).
     pairs = [(versions[i], versions[i + 1]) for versions in seed_maps() for i in range(len(versions) - 1)]
+    rng = np.random.default_rng(0)
+    small = compress(np.c_[rng.random((64, 2)) * 8, rng.random(64)], resolution=1.0, step=0.05)  # preview-sized
     for n, (base, target) in enumerate(pairs):
-        sender = Sender(max_frame_bytes=FRAME, map_id=1000 + n)
+        sender = Sender(max_frame_bytes=FRAME, map_id=1000 + n, preview_over=0 if n % 2 else None)
         if base:
             sender.update(base)
             sender.receive(pack_ack(Ack(0, 1, 1, 1, hashlib.sha256(base).digest(), 0, 0)))
-        sender.update(target)
+        sender.update(target, preview=lambda: small)
         out.append((base, target, sender.poll(0.0), sender.map_id))
     return out
 
@@ -63,6 +72,11 @@ def check(base: bytes, target: bytes, frames: list[bytes], map_id: int) -> str:
         if receiver.data not in (base, target):
             raise AssertionError("a mutated frame gave another map than the base or the target")
         receiver.poll(0.0)
+    if receiver.preview is not None:
+        try:
+            decompress(receiver.preview[1])
+        except DftpccError:
+            pass
     return "applied" if receiver.data == target and target != base else "refused"
 
 
