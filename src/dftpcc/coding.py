@@ -295,18 +295,25 @@ def _band_statistics(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | 
                      ) -> tuple[int, np.ndarray, np.ndarray]:
     """:func:`_band_scales` and the number of values in each band; ``magnitudes``:
     ``np.abs(q).astype(np.float64)``, if known (every layout of a chunk needs them)."""
+    lo, codes, count, _ = _band_sums(q, bands, magnitudes)
+    return lo, codes, count
+
+
+def _band_sums(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | None = None
+               ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_band_statistics` and each band's sum of ``|q|``."""
     lo = int(bands.min())
     local = bands - lo
     n = int(local.max()) + 1
     if magnitudes is None:
         magnitudes = np.abs(q).astype(np.float64)
-    mean_abs = np.bincount(local, weights=magnitudes, minlength=n)
+    total = np.bincount(local, weights=magnitudes, minlength=n)
     count = np.bincount(local, minlength=n)
     # A band's scale is its mean |q| (the maximum-likelihood Laplace scale; the
     # table models take the geometric distribution of that mean).
-    b = np.divide(mean_abs, count, out=np.zeros(n), where=count > 0)
+    b = np.divide(total, count, out=np.zeros(n), where=count > 0)
     codes = np.where(b > 0, np.clip(np.round(np.log2(np.maximum(b, 1e-12)) * SCALE_STEPS) + SCALE_BIAS, 1, 255), 0)
-    return lo, codes.astype(np.uint8), count
+    return lo, codes.astype(np.uint8), count, total
 
 
 def _scale_of(codes: np.ndarray) -> np.ndarray:
@@ -709,14 +716,29 @@ def _estimated_ans_bits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, ex
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
     rings: dict[float, np.ndarray] = {}
     best = None
+    at_zero, per_step = _log_geometric()
+    # log2 P(q) = at_zero + |q| per_step (see _estimated_bits) sums band by band from each band's
+    # count and sum of |q|, without a code per value; a value whose log2 P the table floors at
+    # -TABLE_BITS lies above its code's threshold, and only those few are looked at one by one.
+    threshold = (-TABLE_BITS - at_zero) / per_step
     for k in layouts:
         width = BAND_LAYOUTS[k][0]
         if width not in rings:
             rings[width] = (radius / width).astype(np.int64)
-        b = _Bands.of(q, radius, angle, k, magnitudes=magnitudes, rings=rings[width])
-        if b.table_work(max_abs) > table_budget(q.size):
+        bands = band_ids(radius, angle, k, rings=rings[width])
+        lo, codes, count, total = _band_sums(q, bands, magnitudes)
+        models = int(np.count_nonzero(np.bincount(codes[count > 0], minlength=256)[1:]))
+        if models * (2 * max_abs + 1) > table_budget(q.size):
             continue
-        bits = _estimated_bits(q, b, magnitudes)
+        coded = codes > 0
+        log_p = float(np.sum(count[coded] * at_zero[codes[coded]] + total[coded] * per_step[codes[coded]]))
+        if coded.any() and max_abs > threshold[codes[coded]].min():
+            far = np.flatnonzero(magnitudes > threshold[codes[coded]].min())
+            c = codes[bands[far] - lo]
+            a, c = magnitudes[far][c > 0], c[c > 0]
+            exact = at_zero[c] + a * per_step[c]
+            log_p += float(np.sum(np.maximum(exact, -TABLE_BITS) - exact))
+        bits = 8.0 * _side_info_size(codes.tobytes()) - log_p
         best = bits if best is None else min(best, bits)
     return best
 

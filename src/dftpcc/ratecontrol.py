@@ -27,7 +27,8 @@ import numpy as np
 from .analysis import Analysis, Trial
 from .errors import InvalidInputError
 from .params import Params
-from .residual import encode_residual, predicted_residual, residual, residual_step
+from .sums import dot
+from .residual import encode_residual, predicted_residual, residual_integers, residual_step
 
 __all__ = ["Choice", "search", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES", "METHODS",
            "method", "Tally", "tally"]
@@ -271,7 +272,7 @@ def _try_predicted_layout(choice: Choice, coder: str) -> None:
 def _corrected(an: Analysis, trial: Trial, coefs: bytes, coder: str, bound: float, *,
                predicted: bool = True) -> Choice:
     """``trial`` with the residual layer that brings every occupied cell within ``bound``."""
-    q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
+    q = residual_integers(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
     return Choice(an, trial, coefs, q, encode_residual(q, coder, an.kept_cells, predicted=predicted), bound)
 
 
@@ -368,11 +369,17 @@ def _coarsest_bound(an: Analysis, trial: Trial, target: float) -> float | None:
     # Held a hair inside the target: the encoder rebuilds the corrected heights by another route
     # (residual()), whose rounding may differ in the last bit.
     goal = target * (1.0 - RMSE_BOUND_MARGIN)
+    # Every bound tried is at least the target, so a cell within half of it rounds to 0 at every
+    # step (residual_step(bound) / 2 > target / 2): its error is left as it is, summed once, and
+    # each bisection looks only at the few cells a layer can correct.
+    small = np.abs(err) < 0.5 * target
+    kept_sum = dot(err[small], err[small])
+    big = err[~small]
 
     def meets(bound: float) -> bool:
         step = residual_step(bound)
-        left = err - np.round(err / step) * step
-        return float(np.sqrt(np.mean(left * left))) <= goal
+        left = big - np.round(big / step) * step
+        return math.sqrt((kept_sum + dot(left, left)) / err.size) <= goal
 
     lo, hi = target, float(np.abs(err).max())
     for _ in range(RMSE_BOUND_ITERATIONS):
