@@ -581,9 +581,9 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     layout, max_abs, side_len = _ANS_HEAD.unpack_from(payload, 0)
     if layout >= len(BAND_LAYOUTS) or max_abs > MAX_ANS_SYMBOL:
         raise CorruptFileError(f"{what} has an implausible header")
-    bands = band_ids(radius, angle, layout)
-    lo = int(bands.min())
-    ncodes = int(bands.max()) - lo + 1
+    width, sectors = BAND_LAYOUTS[layout]
+    lo, hi, bands = _band_range(radius, angle, width, sectors)
+    ncodes = hi - lo + 1
     end = _ANS_HEAD.size + side_len
     if len(payload) < end or (len(payload) - end) % 4:
         raise CorruptFileError(f"{what} has a wrong length")
@@ -597,7 +597,28 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     if codes.size != ncodes:
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
     words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
-    return _coded_values(words, codes[bands - lo], max_abs, what)
+    return _coded_values(words, _band_codes(radius, angle, width, sectors, codes, lo, bands), max_abs, what)
+
+
+@kernels.kernel("band_range")
+def _band_range(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int
+                ) -> tuple[int, int, np.ndarray | None]:
+    """The lowest and highest band of a chunk's values under a layout of ring ``width`` and
+    ``sectors`` (:func:`band_ids`), and the bands themselves where the implementation made them
+    (None: :func:`_band_codes` works them out again, value by value, without the array)."""
+    rings = (radius / width).astype(np.int64)
+    bands = rings if sectors == 1 else rings * sectors + np.minimum((angle * sectors).astype(np.int64), sectors - 1)
+    return int(bands.min()), int(bands.max()), bands
+
+
+@kernels.kernel("band_codes")
+def _band_codes(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int, codes: np.ndarray, lo: int,
+                bands: np.ndarray | None) -> np.ndarray:
+    """Each value's band scale code (uint8): ``codes[band - lo]``, its band as :func:`_band_range`
+    finds it (``bands``, when that made them)."""
+    if bands is None:
+        lo, hi, bands = _band_range.numpy(radius, angle, width, sectors)
+    return codes[bands - lo]
 
 
 def _coded_values_compiled(words: np.ndarray, per_value: np.ndarray, max_abs: int, what: str) -> np.ndarray:
