@@ -71,6 +71,11 @@ bench-ratecontrol: $(STAMP)
 bench-targets: $(STAMP)
 	$$(command -v taskset >/dev/null && echo taskset -c 0) $(BIN)/python -m benchmarks.bench_ratecontrol --speed $(ARGS)
 
+# A map's decode against one inverse DCT of its grid, on a 1.6 M-cell mosaic of two shared DEMs, fixed and with a residual layer, each backend (issue 43 item 3; ~2 min).
+.PHONY: bench-decode
+bench-decode: $(STAMP)
+	$$(command -v taskset >/dev/null && echo taskset -c 0) $(BIN)/python -m benchmarks.bench_decode $(ARGS)
+
 # Peak memory of a large cloud read whole and in chunks (~1 min, temporary LAZ files of up to 22.7 M points).
 bench-memory: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_memory $(ARGS)
