@@ -66,6 +66,16 @@ bench-anchors: $(STAMP)
 bench-ratecontrol: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_ratecontrol $(ARGS)
 
+# A target's CPU time against one fixed encode, per map, untiled and tiled, 3 runs, the achieved error against the bound (issue 43; ~10 min on the shared 2-core box; ARGS=--quick one run, ARGS=--with-search also the search's sizes, slow).
+.PHONY: bench-targets
+bench-targets: $(STAMP)
+	$$(command -v taskset >/dev/null && echo taskset -c 0) $(BIN)/python -m benchmarks.bench_ratecontrol --speed $(ARGS)
+
+# A map's decode against one inverse DCT of its grid, on a 1.6 M-cell mosaic of two shared DEMs, fixed and with a residual layer, each backend (issue 43 item 3; ~2 min).
+.PHONY: bench-decode
+bench-decode: $(STAMP)
+	$$(command -v taskset >/dev/null && echo taskset -c 0) $(BIN)/python -m benchmarks.bench_decode $(ARGS)
+
 # Peak memory of a large cloud read whole and in chunks (~1 min, temporary LAZ files of up to 22.7 M points).
 bench-memory: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_memory $(ARGS)

@@ -20,6 +20,12 @@ wall time; every figure is measured in this run.
     taskset -c 1 .venv/bin/python -m benchmarks.bench_ratecontrol [--quick] [--files NAME ...] [--fills]
         [--json PATH] [--docs | --no-docs]
 
+With ``--speed`` (``make bench-targets``), issue 43's speed table: per map, tiling and target,
+the CPU time of a fixed encode and of the target by the model, each run's ratio (medians and
+ranges over ``--runs``), the file's bytes against the search's (``--with-search`` runs it once,
+``--search-from`` takes an earlier run's), the decoded file's error against its bound, and the
+median and worst ratio over the maps.
+
 Targets are set from each map's gridding floor (the RMS distance of its
 points to their cell's mean): DEM RMSE 0.75x and 2x the floor (points at
 1.25x and about 2.2x the floor), a maximum error of 4x the floor, and
@@ -340,6 +346,158 @@ def model_main(args: Any, repeats: int) -> int:
     return 0
 
 
+# --- a target's cost against one fixed encode (issue 43's speed goals) ------------------------------
+
+def cpu(fn: Any) -> tuple[float, Any]:
+    """CPU seconds of this process for one call of ``fn`` (one core: other people's load on a
+    shared machine leaves it alone, where wall time grows with it), and the result."""
+    t0 = time.process_time()
+    out = fn()
+    return time.process_time() - t0, out
+
+
+def achieved(blob: bytes, dem: Any, name: str, n: int) -> float:
+    """The decoded file's error (metres, occupied cells) or bits per point, as the target counts it."""
+    if name == "target_bpp":
+        return 8 * len(blob) / n
+    err = (dftpcc.open(blob).read_dem().heights - dem.heights)[dem.mask]
+    return float(np.sqrt(np.mean(err * err))) if name == "target_rmse" else float(np.abs(err).max())
+
+
+def speed_map(case: Case, data: Path, runs: int, tiles: tuple[int, ...], searched: dict | None,
+              with_search: bool) -> list[dict[str, Any]]:
+    """Each target of ``case`` (as :func:`compare_map`) by the model, ``runs`` times, each run
+    timed against a fixed encode of the same map right before it; the file decoded and its error
+    measured; its size against the search's (run once with ``with_search``, or from ``searched``)."""
+    notes: list[str] = []
+    out = []
+    with warnings_as_notes(notes):
+        loaded = load(case, data)
+        _, dem = shared_grid(loaded.points, loaded.resolution)
+        unit, _ = unit_of(loaded, dem)
+        n = loaded.points.shape[0]
+        for tile in (t for t in tiles if not t or max(dem.grid.shape) > t):
+            base = Params(tile_size=tile)
+            encode_dem(dem, base, point_count=n)  # warm the coder's caches, as for every target after it
+            targets: list[tuple[str, float]] = [("target_rmse", 0.75 * unit), ("target_rmse", 2.0 * unit),
+                                                ("target_max_error", 4.0 * unit)]
+            sizes: list[int] = []
+            for i in range(4):
+                if i == 3:  # between the two RMSE targets' files (geometric mean), as compare_map
+                    targets.append(("target_bpp", 8 * math.sqrt(sizes[0] * sizes[1]) / n))
+                name, value = targets[i]
+                params = base.replace(**{name: value})
+                row: dict[str, Any] = dict(map=case.stem, tile=tile, cells=int(dem.grid.size), target=name,
+                                           value=value, unit=unit, fixed=[], model=[])
+                try:
+                    with ratecontrol.tally() as tally:
+                        for _ in range(runs):
+                            row["fixed"].append(cpu(lambda: encode_dem(dem, base, point_count=n))[0])
+                            seconds, blob = cpu(lambda: encode_dem(dem, params, point_count=n))
+                            row["model"].append(seconds)
+                    row.update(bytes=len(blob), fallbacks=tally.fallbacks, choices=tally.choices,
+                               error=achieved(blob, dem, name, n))
+                    key = (case.stem, tile, name, round(value, 9))
+                    if searched is not None and key in searched:
+                        row["search_bytes"] = searched[key]["bytes"]
+                    elif with_search:
+                        with ratecontrol.method("search"):
+                            row["search_bytes"] = len(encode_dem(dem, params, point_count=n))
+                except dftpcc.InvalidInputError as exc:
+                    row["unreached"] = str(exc)
+                sizes.append(row.get("bytes", 0))
+                out.append(row)
+                print(" | ".join(str(c) for c in speed_row(row)), flush=True)
+    for note in notes + loaded.notes:
+        print(f"  note ({case.stem}): {note}")
+    return out
+
+
+def _span(values: list[float], fmt: str) -> str:
+    return f"{format(statistics.median(values), fmt)} ({format(min(values), fmt)}-{format(max(values), fmt)})"
+
+
+def ratios(row: dict[str, Any]) -> list[float]:
+    """Each run's target time over the fixed encode timed right before it."""
+    return [m / f for m, f in zip(row["model"], row["fixed"])]
+
+
+def speed_row(row: dict[str, Any]) -> list[Any]:
+    head = [row["map"], row["tile"] or "whole", label_of(row["target"], row["value"], row["unit"])]
+    if "unreached" in row:
+        return head + ["unreached: " + row["unreached"][:60]] + [""] * 6
+    name, bound = row["target"], row["value"]
+    unit = "bits/pt" if name == "target_bpp" else "m"
+    size = f"{row['bytes'] / row['search_bytes'] - 1:+.2%}" if row.get("search_bytes") else "—"
+    held = row["error"] <= bound
+    return head + [_span(row["fixed"], ".3f"), _span(row["model"], ".3f"), _span(ratios(row), ".1f"),
+                   row["bytes"], size, f"{row['error']:.4g} / {bound:.4g} {unit} ({verdict(held)})",
+                   f"{row['fallbacks']}/{row['choices']}"]
+
+
+SPEED_HEADER = ["map", "tiles", "target", "fixed encode s", "target s", "target / fixed", "bytes",
+                "vs search", "achieved / bound", "fallbacks"]
+
+
+def speed_summary(rows: list[dict[str, Any]], runs: int) -> str:
+    done = [r for r in rows if "unreached" not in r]
+    if not done:
+        return "No target was reached."
+    per_row = [statistics.median(ratios(r)) for r in done]
+    # The median and the worst over the cases, in each run: their range over the runs.
+    by_run = [[ratios(r)[k] for r in done] for k in range(runs)]
+    medians = [statistics.median(v) for v in by_run]
+    worsts = [max(v) for v in by_run]
+    worst = max(done, key=lambda r: statistics.median(ratios(r)))
+    sized = [r["bytes"] / r["search_bytes"] - 1 for r in done if r.get("search_bytes")]
+    held = all(r["error"] <= r["value"] for r in done)
+    parts = [f"{len(done)} cases ({len(rows) - len(done)} unreached), {runs} runs each. Target / fixed encode "
+             f"(CPU time): median over the cases {statistics.median(per_row):.2f}x (per run "
+             f"{min(medians):.2f}-{max(medians):.2f}x; goal {GOAL_MEDIAN_RATIO:g}x), worst "
+             f"{max(per_row):.1f}x ({worst['map']} {worst['tile'] or 'whole'} {label_of(worst['target'], worst['value'], worst['unit'])}; "
+             f"per run {min(worsts):.1f}-{max(worsts):.1f}x; goal {GOAL_MAX_RATIO:g}x); over {GOAL_MAX_RATIO:g}x: "
+             f"{sum(v > GOAL_MAX_RATIO for v in per_row)} cases."]
+    if sized:
+        parts.append(f"Size against the search's ({len(sized)} cases): median {statistics.median(sized):+.2%}, "
+                     f"min {min(sized):+.2%}, max {max(sized):+.2%}; over {GOAL_SIZE:.0%} larger: "
+                     f"{sum(v > GOAL_SIZE for v in sized)}.")
+    parts.append(f"Fallbacks to the search: {sum(r['fallbacks'] for r in done)} of "
+                 f"{sum(r['choices'] for r in done)} choices. Every file meets its target (decoded and measured): "
+                 f"{verdict(held)}.")
+    return " ".join(parts)
+
+
+def speed_main(args: Any) -> int:
+    t0 = time.perf_counter()
+    print(f"Measuring {library_label()}; {load_average()}.", flush=True)
+    cases = [with_auto(c, args.data) for c in all_maps(args.data)]
+    if args.files:
+        cases = pick_cases(cases, args.files)
+    runs = 1 if args.quick else args.runs
+    searched = None
+    if args.search_from:
+        searched = {(r["map"], r["tile"], r["target"], round(r["value"], 9)): r["search"]
+                    for r in json.loads(Path(args.search_from).read_text()) if r.get("search")}
+    rows: list[dict[str, Any]] = []
+    print(" | ".join(SPEED_HEADER), flush=True)
+    for case in cases:
+        rows += speed_map(case, args.data, runs, tuple(args.tiles), searched, args.with_search)
+    intro = (f"A target's cost against one fixed encode of the same gridded map (issue 43: a median of at most "
+             f"{GOAL_MEDIAN_RATIO:g}x, no case above {GOAL_MAX_RATIO:g}x), encode_dem, default profile, "
+             f"{', '.join('untiled' if t == 0 else f'in {t}-cell tiles' for t in args.tiles)}; CPU seconds of one "
+             f"process on one core, {runs} runs, each target timed right after a fixed encode: medians (range). "
+             f"Targets in units u of the gridding floor (0.1 % of the RMS relief for a GeoTIFF): RMSE 0.75u and 2u, "
+             f"a maximum error of 4u, a size between the two RMSE files. Achieved: the decoded file's error on the "
+             f"occupied cells (or its bits per point).")
+    parts = [intro, speed_summary(rows, runs), markdown_table(SPEED_HEADER, [speed_row(r) for r in rows])]
+    print("\n" + parts[1], flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    finish_run(parts, args, "bench_ratecontrol_speed", "Rate control: a target against one fixed encode (issue 43)",
+               f"Run time {time.perf_counter() - t0:.0f} s; {load_average()} at the end.")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = run_arguments(__doc__.split("\n\n")[0], "one run per measurement instead of a median of 3")
     ap.add_argument("--fills", action="store_true", help="the consistent against the smooth fill, four maps")
@@ -347,8 +505,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-repeats", type=int, default=1, help="runs of today's (slow) search per target")
     ap.add_argument("--tiles", type=int, nargs="+", default=[0, TILE], help="tile sides (0: untiled)")
     ap.add_argument("--search-from", metavar="JSON", help="take the search's rows from an earlier --json output")
+    ap.add_argument("--speed", action="store_true",
+                    help="each target's CPU time against a fixed encode, run by run, and its achieved error")
+    ap.add_argument("--runs", type=int, default=REPEATS, help="--speed: runs of each target (ranges over them)")
+    ap.add_argument("--with-search", action="store_true", help="--speed: also run the (slow) search once per target")
     args = ap.parse_args(argv)
     repeats = QUICK_REPEATS if args.quick else REPEATS
+    if args.speed:
+        return speed_main(args)
     if not args.fills:
         return model_main(args, repeats)
     t0 = time.perf_counter()

@@ -851,3 +851,42 @@ def test_a_forked_child_codes_with_the_mask_beside(beside):
     with multiprocessing.get_context("fork").Pool(1) as pool:
         child = pool.apply_async(dftpcc.compress, (points,), {"resolution": 0.5, "cutoff": 0.7})
         assert child.get(timeout=60) == blob
+
+
+def test_band_codes_are_the_numpy_bands(jit):
+    """Each value's band scale code, worked out value by value in one compiled pass, is numpy's
+    ``codes[band_ids(...) - lo]`` under every layout, on the chunks the coder writes and on radii
+    that fall exactly on a ring's edge or an angle on a sector's."""
+    rng = np.random.default_rng(21)
+    chunks = [(radius, angle) for _, radius, angle in _coefficient_chunks(rng)]
+    edges = np.arange(0.0, 64.0, 4.0)
+    chunks.append((np.repeat(edges, 17), np.tile(np.linspace(0.0, 1.0, 17), edges.size)))
+    for radius, angle in chunks:
+        for layout, (width, sectors) in enumerate(coding.BAND_LAYOUTS):
+            bands = coding.band_ids(radius, angle, layout)
+            codes = rng.integers(0, 256, int(bands.max() - bands.min()) + 1).astype(np.uint8)
+            expected = codes[bands - bands.min()]
+            for on in (True, False):
+                jit(on)
+                lo, hi, made = coding._band_range(radius, angle, width, sectors)
+                assert (lo, hi) == (bands.min(), bands.max())
+                np.testing.assert_array_equal(coding._band_codes(radius, angle, width, sectors, codes, lo, made),
+                                              expected)
+
+
+def test_residual_added_in_one_pass_is_numpys(jit):
+    """The residual layer added cell by cell gives numpy's bits (``heights[mask] += q * step``)."""
+    from dftpcc import decoder
+
+    rng = np.random.default_rng(8)
+    for mask, _ in _masks(rng):
+        heights = rng.normal(0.0, 300.0, mask.shape)
+        q = rng.integers(-(1 << 40), 1 << 40, int(mask.sum()))
+        step = float(rng.uniform(1e-4, 3.0))
+        expected = heights.copy()
+        expected[mask] += q * step
+        for on in (True, False):
+            jit(on)
+            got = heights.copy()
+            decoder._add_residual(got, mask, q, step)
+            assert np.array_equal(got.view(np.int64), expected.view(np.int64))

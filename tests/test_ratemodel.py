@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import dftpcc
-from dftpcc import occupancy, quantizer, ratecontrol, ratemodel, residual
+from dftpcc import coding, geometric, occupancy, quantizer, ratecontrol, ratemodel, residual
 from dftpcc.analysis import Analysis
 from dftpcc.encoder import encode_dem
 from dftpcc.errors import InvalidInputError
@@ -172,3 +172,80 @@ def test_a_flat_map_at_a_fine_rmse_target_is_coded_not_a_math_error():
     sizes = {fill: len(dftpcc.compress(points, resolution=0.44815878227168376, fill=fill, target_rmse=3e-5))
              for fill in ("smooth", "consistent")}
     assert sizes["consistent"] <= sizes["smooth"]
+
+
+def _per_value_bits(q, radius, angle, exhaustive):
+    """The estimate value by value, as the coder's layout choice computes it (coding._estimated_bits)."""
+    max_abs = int(np.abs(q).max())
+    best = None
+    for k in range(len(coding.BAND_LAYOUTS)) if max_abs and exhaustive else range(1):
+        b = coding._Bands.of(q, radius, angle, k)
+        if b.table_work(max_abs) <= geometric.table_budget(q.size):
+            bits = coding._estimated_bits(q, b)
+            best = bits if best is None else min(best, bits)
+    return best
+
+
+def test_an_estimate_summed_band_by_band_is_the_per_value_estimate():
+    """Rate control's estimate sums each band's count and magnitudes, and looks one by one only at the
+    values whose probability the tables floor at 2**-24 (outliers far above their band's scale): the
+    same bits as the coder's value-by-value estimate, every layout, floor or not."""
+    rng = np.random.default_rng(3)
+    floored = 0
+    for t in range(40):
+        n = int(rng.choice([50, 3000, 40000]))
+        radius = np.sort(rng.uniform(0, 400, n))
+        angle = rng.uniform(0, 1, n)
+        q = np.round(rng.laplace(0, 30.0 * np.exp(-radius / 60.0))).astype(np.int64)
+        if t % 2:
+            q[rng.integers(0, n, 1 + n // 500)] = rng.integers(200, 3000)  # far past their bands' scales
+        for exhaustive in (False, True):
+            fast = coding._estimated_ans_bits(q, radius, angle, exhaustive)
+            slow = _per_value_bits(q, radius, angle, exhaustive)
+            assert (fast is None) == (slow is None)
+            if slow is not None:
+                assert fast == pytest.approx(slow, rel=1e-12, abs=1e-9)
+        b = coding._Bands.of(q, radius, angle, 0)
+        at_zero, per_step = geometric.log_geometric()
+        coded = b.per_value > 0
+        floored += int(np.any(at_zero[b.per_value[coded]] + np.abs(q[coded]) * per_step[b.per_value[coded]]
+                              < -geometric.TABLE_BITS))
+    assert floored  # the floor's correction was exercised
+
+
+def _direct_bound(err, target):
+    """The residual bound's bisection summing every cell at every step (ratecontrol._coarsest_bound
+    before its sorted sums)."""
+    goal = target * (1.0 - ratecontrol.RMSE_BOUND_MARGIN)
+
+    def meets(bound):
+        step = residual.residual_step(bound)
+        left = err - np.round(err / step) * step
+        return float(np.sqrt(np.mean(left * left))) <= goal
+
+    lo, hi = target, float(np.abs(err).max())
+    for _ in range(ratecontrol.RMSE_BOUND_ITERATIONS):
+        if hi <= lo * (1.0 + 1e-6):
+            break
+        mid = np.sqrt(lo * hi)
+        lo, hi = (mid, hi) if meets(mid) else (lo, mid)
+    return lo, meets
+
+
+@pytest.mark.parametrize("tail", [1.0, 8.0, 200.0])
+def test_the_residual_bound_from_sorted_sums_is_the_direct_bisections(gale, tail):
+    """The bound a residual layer gets for an RMSE target, found from sorted magnitudes and running
+    sums, is the one the cell-by-cell bisection finds, and meets the target by the cell-by-cell sum;
+    also with errors spanning hundreds of steps (the fast test hands over to the direct one)."""
+    an = _analysis(gale)
+    rng = np.random.default_rng(int(tail))
+    trial = an.trial(0.8, 1.0)
+    noise = rng.standard_t(3, gale.mask.sum()) * tail
+    trial.heights = trial.heights.copy()
+    trial.heights[gale.mask] += noise
+    err = (gale.heights - trial.heights)[gale.mask]
+    target = 0.5 * float(np.sqrt(np.mean(err * err)))
+    found = ratecontrol._coarsest_bound(an, trial, target)
+    expected, meets = _direct_bound(err, target)
+    assert found == pytest.approx(expected, rel=1e-9)
+    assert meets(found)

@@ -784,6 +784,41 @@ def _add_plane(heights, a, b, c):  # pragma: no cover - compiled
             heights[i, j] += (a + b * j) + ci
 
 
+@njit(cache=True, nogil=True)
+def _add_residual(heights, mask, q, step):  # pragma: no cover - compiled
+    k = 0
+    for i in range(heights.size):
+        if mask[i]:
+            heights[i] += q[k] * step
+            k += 1
+
+
+@njit(cache=True, nogil=True)
+def _band_range(radius, angle, width, sectors):  # pragma: no cover - compiled
+    lo = np.iinfo(np.int64).max
+    hi = np.iinfo(np.int64).min
+    for i in range(radius.size):
+        band = _band_at(radius[i], angle[i], width, sectors)
+        lo = min(lo, band)
+        hi = max(hi, band)
+    return lo, hi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _band_at(radius, angle, width, sectors):  # pragma: no cover - compiled
+    # As numpy's (radius / width).astype(np.int64): the quotient truncated towards 0.
+    ring = np.int64(radius / width)
+    if sectors == 1:
+        return ring
+    return ring * sectors + min(np.int64(angle * sectors), sectors - 1)
+
+
+@njit(cache=True, nogil=True)
+def _band_codes(radius, angle, width, sectors, codes, lo, out):  # pragma: no cover - compiled
+    for i in range(radius.size):
+        out[i] = codes[_band_at(radius[i], angle[i], width, sectors) - lo]
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _neighbour_at(r, c, up, left, cols):  # pragma: no cover - compiled
     # residual._neighbour for one cell: the flat index of a neighbour under format.md's edge rules,
@@ -1058,6 +1093,36 @@ def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, tables: list[tup
     return _encode_table_words(np.ascontiguousarray(symbols, dtype=np.int64), np.asarray(bounds, np.int64),
                                np.asarray(table_of, dtype=np.int64), lows, csum, near_bounds,
                                np.ascontiguousarray(alphabets))
+
+
+def add_residual(heights: np.ndarray, mask: np.ndarray, q: np.ndarray, step: float) -> None:
+    """``heights[mask] += q * step`` in one pass over the cells (the same float operations:
+    the integer made a float, times the step, added)."""
+    if (heights.dtype != np.float64 or not heights.flags.c_contiguous or mask.dtype != np.bool_
+            or q.dtype != np.int64 or heights.shape != mask.shape or q.size != int(np.count_nonzero(mask))):
+        return NotImplemented
+    _add_residual(heights.reshape(-1), np.ascontiguousarray(mask).reshape(-1), q, float(step))
+    return None
+
+
+def band_range(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int) -> tuple[int, int, None]:
+    """The lowest and highest band (``coding.band_ids``) of a chunk's values, in one pass without
+    the bands' array (``coding._band_codes`` finds each again); declines an empty or non-float chunk."""
+    if radius.size == 0 or radius.dtype != np.float64 or angle.dtype != np.float64:
+        return NotImplemented
+    lo, hi = _band_range(radius, angle, float(width), int(sectors))
+    return int(lo), int(hi), None
+
+
+def band_codes(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int, codes: np.ndarray, lo: int,
+               bands: np.ndarray | None) -> np.ndarray:
+    """Each value's band scale code, ``codes[band - lo]``, in one pass (uint8)."""
+    if bands is not None or radius.dtype != np.float64 or angle.dtype != np.float64 or codes.dtype != np.uint8:
+        return NotImplemented
+    out = np.empty(radius.size, dtype=np.uint8)
+    _band_codes(np.ascontiguousarray(radius), np.ascontiguousarray(angle), float(width), int(sectors),
+                codes, int(lo), out)
+    return out
 
 
 def decode_coded_values(words: np.ndarray, per_value: np.ndarray, present: np.ndarray,

@@ -23,7 +23,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 import zstandard
 
-from . import geometric
+from . import geometric, kernels
 from .errors import CorruptFileError, InvalidInputError
 
 __all__ = [
@@ -226,9 +226,9 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     layout, max_abs, side_len = _ANS_HEAD.unpack_from(payload, 0)
     if layout >= len(BAND_LAYOUTS) or max_abs > geometric.MAX_ANS_SYMBOL:
         raise CorruptFileError(f"{what} has an implausible header")
-    bands = band_ids(radius, angle, layout)
-    lo = int(bands.min())
-    ncodes = int(bands.max()) - lo + 1
+    width, sectors = BAND_LAYOUTS[layout]
+    lo, hi, bands = _band_range(radius, angle, width, sectors)
+    ncodes = hi - lo + 1
     end = _ANS_HEAD.size + side_len
     if len(payload) < end or (len(payload) - end) % 4:
         raise CorruptFileError(f"{what} has a wrong length")
@@ -242,7 +242,28 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     if codes.size != ncodes:
         raise CorruptFileError(f"{what} has {codes.size} band scales, expected {ncodes}")
     words = np.frombuffer(payload, dtype="<u4", offset=end).astype(np.uint32)
-    return geometric.coded_values(words, codes[bands - lo], max_abs, what)
+    return geometric.coded_values(words, _band_codes(radius, angle, width, sectors, codes, lo, bands), max_abs, what)
+
+
+@kernels.kernel("band_range")
+def _band_range(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int
+                ) -> tuple[int, int, np.ndarray | None]:
+    """The lowest and highest band of a chunk's values under a layout of ring ``width`` and
+    ``sectors`` (:func:`band_ids`), and the bands themselves where the implementation made them
+    (None: :func:`_band_codes` works them out again, value by value, without the array)."""
+    rings = (radius / width).astype(np.int64)
+    bands = rings if sectors == 1 else rings * sectors + np.minimum((angle * sectors).astype(np.int64), sectors - 1)
+    return int(bands.min()), int(bands.max()), bands
+
+
+@kernels.kernel("band_codes")
+def _band_codes(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int, codes: np.ndarray, lo: int,
+                bands: np.ndarray | None) -> np.ndarray:
+    """Each value's band scale code (uint8): ``codes[band - lo]``, its band as :func:`_band_range`
+    finds it (``bands``, when that made them)."""
+    if bands is None:
+        lo, hi, bands = _band_range.numpy(radius, angle, width, sectors)
+    return codes[bands - lo]
 
 
 def encode_coefficients(values: np.ndarray, *, radius: np.ndarray | None = None,
@@ -332,14 +353,29 @@ def _estimated_ans_bits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, ex
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
     rings: dict[float, np.ndarray] = {}
     best = None
+    at_zero, per_step = geometric.log_geometric()
+    # log2 P(q) = at_zero + |q| per_step (see _estimated_bits) sums band by band from each band's
+    # count and sum of |q|, without a code per value; a value whose log2 P the table floors at
+    # -TABLE_BITS lies above its code's threshold, and only those few are looked at one by one.
+    threshold = (-geometric.TABLE_BITS - at_zero) / per_step
     for k in layouts:
         width = BAND_LAYOUTS[k][0]
         if width not in rings:
             rings[width] = (radius / width).astype(np.int64)
-        b = _Bands.of(q, radius, angle, k, magnitudes=magnitudes, rings=rings[width])
-        if b.table_work(max_abs) > geometric.table_budget(q.size):
+        bands = band_ids(radius, angle, k, rings=rings[width])
+        lo, codes, count, total = geometric.band_sums(q, bands, magnitudes)
+        models = int(np.count_nonzero(np.bincount(codes[count > 0], minlength=256)[1:]))
+        if models * (2 * max_abs + 1) > geometric.table_budget(q.size):
             continue
-        bits = _estimated_bits(q, b, magnitudes)
+        coded = codes > 0
+        log_p = float(np.sum(count[coded] * at_zero[codes[coded]] + total[coded] * per_step[codes[coded]]))
+        if coded.any() and max_abs > threshold[codes[coded]].min():
+            far = np.flatnonzero(magnitudes > threshold[codes[coded]].min())
+            c = codes[bands[far] - lo]
+            a, c = magnitudes[far][c > 0], c[c > 0]
+            exact = at_zero[c] + a * per_step[c]
+            log_p += float(np.sum(np.maximum(exact, -geometric.TABLE_BITS) - exact))
+        bits = 8.0 * _side_info_size(codes.tobytes()) - log_p
         best = bits if best is None else min(best, bits)
     return best
 

@@ -65,11 +65,17 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
     mask = _checked_mask(side.result(), header)
     if b"RESD" in blobs and complete:
         # The residual layer only applies to the full-resolution map it was computed for.
-        q = decode_residual(blobs[b"RESD"], mask)
-        heights[mask] += q * residual_step(params.target_max_error)
+        _add_residual(heights, mask, decode_residual(blobs[b"RESD"], mask), residual_step(params.target_max_error))
     if not np.isfinite(heights).all() and not np.isfinite(heights[mask]).all():
         raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
     return DEM(grid=grid, heights=heights, mask=mask)
+
+
+@kernels.kernel("add_residual")
+def _add_residual(heights: np.ndarray, mask: np.ndarray, q: np.ndarray, step: float) -> None:
+    """``heights[mask] += q * step`` in place: ``q`` one integer per set cell of ``mask``, row-major;
+    ``step`` in metres."""
+    heights[mask] += q * step
 
 
 def _checked_mask(mask: np.ndarray, header: Header) -> np.ndarray:
@@ -339,8 +345,7 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any],
     if resid is not None:
         heights[mask] += resid[mask] * residual_step(params.target_max_error)
     elif b"RESD" in blobs:
-        q = decode_residual(blobs[b"RESD"], mask)
-        heights[mask] += q * residual_step(params.target_max_error)
+        _add_residual(heights, mask, decode_residual(blobs[b"RESD"], mask), residual_step(params.target_max_error))
     if not np.isfinite(heights[mask]).all():
         raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
     return heights, mask

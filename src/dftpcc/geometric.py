@@ -25,7 +25,7 @@ with warnings.catch_warnings():
 from . import kernels
 from .errors import CorruptFileError
 
-__all__ = ["band_statistics", "band_scales", "scale_of", "decay", "magnitude_weights", "table_model", "build_table_model",
+__all__ = ["band_statistics", "band_sums", "band_scales", "scale_of", "decay", "magnitude_weights", "table_model", "build_table_model",
            "table_frequencies", "table_cumulative", "code_groups", "code_order", "log_geometric", "check_ans_words",
            "table_budget", "table_words", "coded_values", "TABLE_BITS", "MAX_ANS_SYMBOL", "SCALE_STEPS",
            "SCALE_BIAS", "MIN_SCALE"]
@@ -62,21 +62,28 @@ def band_scales(q: np.ndarray, bands: np.ndarray) -> tuple[int, np.ndarray]:
 
 
 def band_statistics(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | None = None
-                     ) -> tuple[int, np.ndarray, np.ndarray]:
+                    ) -> tuple[int, np.ndarray, np.ndarray]:
     """:func:`band_scales` and the number of values in each band; ``magnitudes``:
     ``np.abs(q).astype(np.float64)``, if known (every layout of a chunk needs them)."""
+    lo, codes, count, _ = band_sums(q, bands, magnitudes)
+    return lo, codes, count
+
+
+def band_sums(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | None = None
+              ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`band_statistics` and each band's sum of ``|q|``."""
     lo = int(bands.min())
     local = bands - lo
     n = int(local.max()) + 1
     if magnitudes is None:
         magnitudes = np.abs(q).astype(np.float64)
-    mean_abs = np.bincount(local, weights=magnitudes, minlength=n)
+    total = np.bincount(local, weights=magnitudes, minlength=n)
     count = np.bincount(local, minlength=n)
     # A band's scale is its mean |q| (the maximum-likelihood Laplace scale; the
     # table models take the geometric distribution of that mean).
-    b = np.divide(mean_abs, count, out=np.zeros(n), where=count > 0)
+    b = np.divide(total, count, out=np.zeros(n), where=count > 0)
     codes = np.where(b > 0, np.clip(np.round(np.log2(np.maximum(b, 1e-12)) * SCALE_STEPS) + SCALE_BIAS, 1, 255), 0)
-    return lo, codes.astype(np.uint8), count
+    return lo, codes.astype(np.uint8), count, total
 
 
 def scale_of(codes: np.ndarray) -> np.ndarray:

@@ -27,7 +27,8 @@ import numpy as np
 from .analysis import Analysis, Trial
 from .errors import InvalidInputError
 from .params import Params
-from .residual import encode_residual, predicted_residual, residual, residual_step
+from .sums import dot
+from .residual import encode_residual, predicted_residual, residual_integers, residual_step
 
 __all__ = ["Choice", "search", "cutoffs", "for_rmse", "for_max_error", "for_bpp", "CUTOFF_CANDIDATES", "METHODS",
            "method", "Tally", "tally"]
@@ -61,6 +62,10 @@ FIRST_SEARCH_SHARE = 0.8
 RMSE_BOUND_ITERATIONS = 16
 #: ... held this fraction inside the target (see :func:`_coarsest_bound`).
 RMSE_BOUND_MARGIN = 1e-9
+#: The bisection's fast test sums cells by the multiple of the step they round to, up to this
+#: many multiples (its sums lose about k**2 * 1e-16 of the error: 1e-10 here, a tenth of the
+#: margin); past them it sums cell by cell.
+FAST_BOUND_MULTIPLES = 30
 #: Steps (times the RMSE target) of the low-passed maps a residual layer may correct for an RMSE
 #: target: the first at every cutoff, the others at the best (:func:`corrected_for_rmse`).
 CORRECTED_STEP_FACTORS = (8.0, 4.0, 16.0)
@@ -271,7 +276,7 @@ def _try_predicted_layout(choice: Choice, coder: str) -> None:
 def _corrected(an: Analysis, trial: Trial, coefs: bytes, coder: str, bound: float, *,
                predicted: bool = True) -> Choice:
     """``trial`` with the residual layer that brings every occupied cell within ``bound``."""
-    q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
+    q = residual_integers(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
     return Choice(an, trial, coefs, q, encode_residual(q, coder, an.kept_cells, predicted=predicted), bound)
 
 
@@ -368,19 +373,49 @@ def _coarsest_bound(an: Analysis, trial: Trial, target: float) -> float | None:
     # Held a hair inside the target: the encoder rebuilds the corrected heights by another route
     # (residual()), whose rounding may differ in the last bit.
     goal = target * (1.0 - RMSE_BOUND_MARGIN)
+    # Every bound tried is at least the target, so a cell within half of it rounds to 0 at every
+    # step (residual_step(bound) / 2 > target / 2): its error is left as it is, summed once, and
+    # each bisection looks only at the few cells a layer can correct.
+    small = np.abs(err) < 0.5 * target
+    kept_sum = dot(err[small], err[small])
+    big = err[~small]
 
     def meets(bound: float) -> bool:
         step = residual_step(bound)
-        left = err - np.round(err / step) * step
-        return float(np.sqrt(np.mean(left * left))) <= goal
+        left = big - np.round(big / step) * step
+        return math.sqrt((kept_sum + dot(left, left)) / err.size) <= goal
 
-    lo, hi = target, float(np.abs(err).max())
-    for _ in range(RMSE_BOUND_ITERATIONS):
-        if hi <= lo * (1.0 + 1e-6):
-            break
-        mid = math.sqrt(lo * hi)
-        lo, hi = (mid, hi) if meets(mid) else (lo, mid)
-    return lo
+    # The bisection asks sixteen times; sorted magnitudes and their running sums answer each in
+    # a search of the few multiples of the step they span (the sum over the cells rounding to k
+    # is S2 - 2 k step S1 + n (k step)^2). Its answer is checked by the exact sum at the end.
+    mags = np.sort(np.abs(big))
+    s1 = np.concatenate(([0.0], np.cumsum(mags)))
+    s2 = np.concatenate(([0.0], np.cumsum(mags * mags)))
+
+    def roughly_meets(bound: float) -> bool:
+        step = residual_step(bound)
+        top = int(round(float(mags[-1]) / step)) if mags.size else 0
+        if top > FAST_BOUND_MULTIPLES:
+            return meets(bound)
+        k = np.arange(top + 1, dtype=np.float64)
+        ends = np.searchsorted(mags, (k + 0.5) * step)
+        starts = np.concatenate(([0], ends[:-1]))
+        n = ends - starts
+        one, two = s1[ends] - s1[starts], s2[ends] - s2[starts]
+        left = float(np.sum(two - 2.0 * k * step * one + n * (k * step) ** 2))
+        return math.sqrt(max(kept_sum + left, 0.0) / err.size) <= goal
+
+    def bisect(test: Callable[[float], bool]) -> float:
+        lo, hi = target, float(np.abs(err).max())
+        for _ in range(RMSE_BOUND_ITERATIONS):
+            if hi <= lo * (1.0 + 1e-6):
+                break
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if test(mid) else (lo, mid)
+        return lo
+
+    found = bisect(roughly_meets)
+    return found if found == target or meets(found) else bisect(meets)
 
 
 def _empty_step(an: Analysis, cutoff: float) -> float:

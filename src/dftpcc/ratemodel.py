@@ -43,7 +43,7 @@ from .params import Params
 from .ratecontrol import (_METHOD, _TALLY, Progress, _no_progress, search, CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
                           MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
                           bpp_out_of_reach, coef_budget, cutoffs)
-from .residual import encode_residual, estimated_size, residual
+from .residual import encode_residual, estimated_size, residual_integers
 from .sums import dot
 
 __all__ = ["choose", "predict", "Energy"]
@@ -306,7 +306,7 @@ def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: flo
         bound = _coarsest_bound(on, trial, target)
         if bound is None:
             return None
-        q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        q = residual_integers(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
         size = coefs + estimated_size(q, coder, on.kept_cells, predicted=False)
         if predicted:
             size = min(size, coefs + _predicted_size(q, coder, on.kept_cells,
@@ -480,10 +480,16 @@ class _Layer:
         return self.coefs + self.resd
 
 
-def _layer(an: Analysis, cutoff: float, step: float, bound: float, coder: str) -> _Layer:
+def _layer(an: Analysis, cutoff: float, step: float, bound: float, coder: str,
+           to_beat: float = math.inf) -> _Layer | None:
+    """The candidate rebuilt and sized; None, without rebuilding it, where its coefficients alone
+    take ``to_beat`` bytes or more (no residual layer can make it smaller)."""
+    coefs = an.estimate_stream(an.quantized(cutoff, step), exhaustive=True)
+    if coefs >= to_beat:
+        return None
     trial = an.trial(cutoff, step)
-    q, _ = residual(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
-    return _Layer(an, trial, _coded(an, trial), estimated_size(q, coder, an.kept_cells, predicted=False), q)
+    q = residual_integers(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
+    return _Layer(an, trial, coefs, estimated_size(q, coder, an.kept_cells, predicted=False), q)
 
 
 class _ResidualCurve:
@@ -538,16 +544,19 @@ def _for_max_error(an: Analysis, params: Params) -> Choice | None:
         if len(best_at) > RISES and all(best_at[-k - 1] > best_at[-k - 2] for k in range(RISES)):
             break
     ranked.sort()
+    # Candidates whose coefficients alone pass the best rebuilt are not rebuilt (nor can win).
     for _, cutoff, factor in ranked[:VERIFIED]:
         if (cutoff, factor) not in rebuilt:
-            rebuilt[(cutoff, factor)] = _layer(an, cutoff, bound * factor, bound, coder)
-    best = _climb(an, rebuilt, min(rebuilt.values(), key=lambda layer: layer.size), sorted(tried), bound, coder)
+            smallest = min(layer.size for layer in rebuilt.values() if layer is not None)
+            rebuilt[(cutoff, factor)] = _layer(an, cutoff, bound * factor, bound, coder, smallest)
+    best = _climb(an, rebuilt, min((layer for layer in rebuilt.values() if layer is not None),
+                                   key=lambda layer: layer.size), sorted(tried), bound, coder)
     if an.refillable:
         other = an.refilled(best.trial)
         factor = best.trial.step / bound
         for f in (factor / 2.0, factor, factor * 2.0):
-            layer = _layer(other, best.trial.cutoff, bound * f, bound, coder)
-            if layer.size < best.size:
+            layer = _layer(other, best.trial.cutoff, bound * f, bound, coder, best.size)
+            if layer is not None and layer.size < best.size:
                 best = layer
     choice = Choice(best.analysis, best.trial, b"", best.q, b"", bound)
     size = best.size
@@ -558,7 +567,7 @@ def _for_max_error(an: Analysis, params: Params) -> Choice | None:
     free = _spectrum_free(an, params)
     if free is not None:
         on, trial = free
-        q, _ = residual(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        q = residual_integers(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
         coefs = _coded(on, trial)
         free_size = coefs + min(estimated_size(q, coder, on.kept_cells, predicted=False),
                                 _predicted_size(q, coder, on.kept_cells, size - coefs))
@@ -573,7 +582,7 @@ def _for_max_error(an: Analysis, params: Params) -> Choice | None:
 CLIMB_MOVES = 4
 
 
-def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer], best: _Layer, tried: list[float],
+def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer | None], best: _Layer, tried: list[float],
            bound: float, coder: str) -> _Layer:
     """The model's choice corrected by rebuilt candidates: from ``best``, move to the smallest of
     its four neighbours (the next cutoff either way, the step doubled or halved) while that is
@@ -588,8 +597,9 @@ def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer], best: _Laye
                   if 0 <= i + di < len(tried) and 0 <= j + dj < len(factors)]
         for key in around:
             if key not in rebuilt:
-                rebuilt[key] = _layer(an, key[0], bound * key[1], bound, coder)
-        nearest = min((rebuilt[key] for key in around), key=lambda layer: layer.size)
+                rebuilt[key] = _layer(an, key[0], bound * key[1], bound, coder, best.size)
+        nearer = [rebuilt[key] for key in around if rebuilt[key] is not None]
+        nearest = min(nearer, key=lambda layer: layer.size) if nearer else best
         if nearest.size >= best.size:
             break
         best = nearest

@@ -28,7 +28,7 @@ import numpy as np
 from . import coding, geometric, kernels, occupancy, quantizer
 from .errors import CorruptFileError, InvalidInputError
 
-__all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "encode_residual", "decode_residual", "layout_of",
+__all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "residual_integers", "encode_residual", "decode_residual", "layout_of",
            "predicted_residual", "estimated_size"]
 
 #: The residual layer aims this much inside the promised bound, so float
@@ -61,6 +61,16 @@ def residual(target: np.ndarray, rebuilt: np.ndarray, measured: np.ndarray, kept
     q : ndarray of int64, one per kept cell (row-major)
     heights : ndarray, the corrected ``rebuilt``
     """
+    q = residual_integers(target, rebuilt, measured, kept, bound)
+    heights = rebuilt.copy()
+    heights[kept] += q * residual_step(bound)
+    return q, heights
+
+
+def residual_integers(target: np.ndarray, rebuilt: np.ndarray, measured: np.ndarray, kept: np.ndarray,
+                      bound: float) -> np.ndarray:
+    """The integers of :func:`residual` without the corrected map: rate control sizes many
+    layers and rebuilds none of them."""
     step = residual_step(bound)
     err = np.where(measured, target - rebuilt, 0.0)[kept]
     with np.errstate(over="ignore", invalid="ignore"):
@@ -72,10 +82,7 @@ def residual(target: np.ndarray, rebuilt: np.ndarray, measured: np.ndarray, kept
             f"target maximum error {bound:g} m is too fine for residuals up to {worst:g} m: their integers would "
             f"pass 2**63 and wrap; the smallest workable target is "
             f"{quantizer.round_up(quantizer.finest_step(err) / (2.0 * (1.0 - GUARANTEE_MARGIN))):g} m")
-    q = r.astype(np.int64)
-    heights = rebuilt.copy()
-    heights[kept] += q * step
-    return q, heights
+    return r.astype(np.int64)
 
 
 def encode_residual(q: np.ndarray, coder: str, kept: np.ndarray, *, predicted: bool = True) -> bytes:
@@ -144,7 +151,7 @@ def median_predicted_size(q: np.ndarray, kept: np.ndarray) -> float:
 def _estimated_predicted(q: np.ndarray, kept: np.ndarray) -> float:
     """Bytes of :func:`predicted_residual` of ``q``, from its model's probabilities (inf where the
     layout does not apply)."""
-    model = _predicted_model(q, kept)
+    model = _predicted_model(q, kept, fit_cells=ESTIMATE_FIT_CELLS)
     if model is None:
         return math.inf
     _, e, classes, codes, _ = model
@@ -317,7 +324,7 @@ def _exact_products(x: np.ndarray) -> np.ndarray:
     summed in float64 by blocks, which is exact below 2**53 and a matrix product's speed."""
     total = np.zeros((x.shape[0], x.shape[0]), dtype=np.int64)
     for at in range(0, x.shape[1], PRODUCT_BLOCK):
-        block = x[:, at:at + PRODUCT_BLOCK].astype(np.float64)
+        block = x[:, at:at + PRODUCT_BLOCK].astype(np.float64, copy=False)
         total += (block @ block.T).astype(np.int64)
     return total
 
@@ -325,10 +332,13 @@ def _exact_products(x: np.ndarray) -> np.ndarray:
 def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
     """Least-squares weights (sum 2**16) of the neighbours' ``values`` for ``target``, from exact
     integer sums and an exact solve, so the file is the same on every machine."""
-    d = np.stack([*values[1:], target])  # the six others, then the target, relative to W
-    d -= values[0]
-    usable = np.abs(d, out=np.empty_like(d)).max(axis=0) <= FIT_LIMIT
     m = len(values) - 1
+    # The six others, then the target, relative to W: integers below VALUE_LIMIT, so their
+    # differences are exact in float64, which the products take anyway (no int64 copy first).
+    d = np.empty((m + 1, target.size))
+    for row, v in enumerate([*values[1:], target]):
+        np.subtract(v, values[0], out=d[row])
+    usable = np.abs(d).max(axis=0) <= FIT_LIMIT
     sums = _exact_products(d if usable.all() else d[:, usable])
     # The normal equations, plus 1 on the diagonal so they always have a solution.
     a = [[Fraction(int(sums[i, j]) + (i == j)) for j in range(m)] + [Fraction(int(sums[i, m]))]
@@ -346,15 +356,23 @@ def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
     return np.array([west] + others, dtype=np.int64)
 
 
-def _predicted_model(q: np.ndarray, kept: np.ndarray
+#: An estimate of the predicted layout's bytes fits its weights on about this many cells, evenly
+#: strided (the file's own fit takes every cell): the weights of a smooth least-squares fit move
+#: little, and the fit is most of the estimate's time.
+ESTIMATE_FIT_CELLS = 1 << 16
+
+
+def _predicted_model(q: np.ndarray, kept: np.ndarray, *, fit_cells: int | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """Kind 5's model of ``q``: the weights, the prediction errors, each cell's class, each class's
-    scale code and largest |error|; None when its values or errors pass the layout's limits."""
+    """Kind 5's model of ``q``: the weights (fitted on every cell, or on about ``fit_cells`` of
+    them evenly strided), the prediction errors, each cell's class, each class's scale code and
+    largest |error|; None when its values or errors pass the layout's limits."""
     if np.abs(q).max() >= VALUE_LIMIT:
         return None
     grid = _filled(q, kept)
     values = [_shifted(grid, up, left)[kept] for up, left in NEIGHBOURS]
-    weights = _fit_weights(values, q)
+    stride = max(1, q.size // fit_cells) if fit_cells else 1
+    weights = _fit_weights([v[::stride] for v in values], q[::stride])
     e = q - _prediction(weights, values)
     if np.abs(e).max() > geometric.MAX_ANS_SYMBOL:
         return None
