@@ -140,3 +140,48 @@ def test_a_decoded_geotiff_is_the_same_bytes_whatever_the_block_width(small_thre
         dftpcc.files.decompress_bands(src, tmp_path / f"b{tiles}.tif")
         written.append((tmp_path / f"b{tiles}.tif").read_bytes())
     assert written[0] == written[1] == written[2]
+
+
+def test_a_geotiff_read_by_windows_is_the_whole_read(tmp_path):
+    """One reader for the whole-file and the band paths: any window is the same cells as the whole DEM."""
+    from dftpcc.io.geotiff import RasterWindows, dem_from_geotiff
+
+    path = data_file("dems/mars_korolev_mola.tif")  # int16 with nodata, north-up (flipped rows)
+    dem, _ = dem_from_geotiff(path)
+    whole = np.where(dem.mask, dem.heights + dem.grid.z0, np.nan)
+    with RasterWindows(path) as raster:
+        assert raster.grid(dem.grid.z0) == dem.grid
+        for (r0, r1), (c0, c1) in [((0, 1), (0, 859)), ((17, 200), (300, 301)), ((100, 349), (5, 600))]:
+            h, m = raster.read(r0, r1, c0, c1)
+            np.testing.assert_array_equal(m, dem.mask[r0:r1, c0:c1])
+            np.testing.assert_allclose(h[m], whole[r0:r1, c0:c1][m], rtol=0, atol=1e-9)
+            assert np.isnan(h[~m]).all()
+
+
+def test_the_plane_summed_band_by_band_is_the_plane_of_the_whole():
+    from dftpcc.fill import PlaneSums, fit_plane
+    from dftpcc.io.geotiff import dem_from_geotiff
+
+    dem, _ = dem_from_geotiff(data_file("dems/earth_bigtujunga_srtm30.tif"))
+    heights = dem.heights + dem.grid.z0
+    fit = None
+    for r0 in range(0, dem.grid.rows, 50):
+        rows, cols = np.nonzero(dem.mask[r0:r0 + 50])
+        z = heights[r0:r0 + 50][rows, cols]
+        fit = fit or PlaneSums(float(z.mean()))
+        fit.add(cols.astype(float), (rows + r0).astype(float), z)
+    assert fit.count == int(dem.mask.sum())
+    np.testing.assert_allclose(fit.mean(), dem.grid.z0, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fit.plane(dem.grid.z0), fit_plane(dem), rtol=1e-9, atol=1e-9)
+
+
+def test_the_base_coefficients_of_block_means_are_those_of_the_map_they_stand_for():
+    """A decimated copy's coefficients (``block`` > 1) are the whole map's when each block is flat."""
+    from dftpcc.tiles import base_coefficients, base_order
+
+    shape, tile, d = (1000, 1300), 128, 8  # edges cut the last blocks
+    i, j, _, _ = base_order(shape, tile, 0.0)
+    means = np.random.default_rng(3).normal(size=(-(-shape[0] // d), -(-shape[1] // d)))
+    full = np.kron(means, np.ones((d, d)))[:shape[0], :shape[1]]
+    np.testing.assert_allclose(base_coefficients(means, i, j, rows=shape[0], cols=shape[1], block=d),
+                               base_coefficients(full, i, j), rtol=0, atol=1e-9)

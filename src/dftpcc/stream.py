@@ -22,17 +22,16 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .sums import dot
 from . import coding
 from .cluster import serial
 from .format import MapWriter
 from .dem import DEM, Grid, TileGrid
 from .encoder import Stage, check_heights, choose_for_tiles, no_stage
 from .errors import InvalidInputError, RasterTypeWarning
-from .fill import fill_empty
+from .fill import PlaneSums, fill_empty
 from .params import Params, tile_size_for
 from .rebuild import dem_to_points
-from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_basis, base_heights, base_limit, base_order,
+from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_coefficients, base_heights, base_limit, base_order,
                     code_tile, coded_window, tile_overlap)
 
 __all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
@@ -73,67 +72,29 @@ def _gdal_env() -> Any:
 
 
 class _Raster:
-    """A north-up GeoTIFF read by grid rows (row 0 south, as dftpcc's grids).
-
-    Pickled, it is its path and geometry: a dask worker opens the file itself and reads its own
-    windows, so no cells travel from the main process.
-    """
+    """A GeoTIFF read by windows (:class:`~dftpcc.io.geotiff.RasterWindows`) under the bounded GDAL
+    cache; a dask worker reopens it by its path, so no cells travel from the main process."""
 
     in_memory = False
 
     def __init__(self, path: str | os.PathLike[str]):
-        import rasterio
+        from .io.geotiff import RasterWindows  # rasterio, loaded only for a raster
 
-        try:
-            with _gdal_env():
-                self.ds = rasterio.open(path)
-        except Exception as exc:  # noqa: BLE001 - GDAL's own errors on a bad file
-            raise InvalidInputError(f"{path}: cannot read as a GeoTIFF DEM: {exc}") from None
-        t = self.ds.transform
-        if t.b != 0 or t.d != 0 or t.a <= 0:
-            self.ds.close()
-            raise InvalidInputError(f"{path}: pixels are rotated or flipped; give a --resolution to grid its points")
-        self.path, self.t = path, t
-        self.rows, self.cols = self.ds.height, self.ds.width
-        self.flipped = t.e < 0
-        self.crs = {"wkt": self.ds.crs.to_wkt()} if self.ds.crs else {}
+        self.windows = RasterWindows(path, cache_bytes=GDAL_CACHE_BYTES)
+        self.path, self.rows, self.cols, self.crs = path, self.windows.rows, self.windows.cols, self.windows.crs
         self.point_count: int | None = None  # the valid pixels, counted on the first pass
 
-    def __getstate__(self) -> dict[str, Any]:
-        return {key: value for key, value in self.__dict__.items() if key != "ds"}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        import rasterio
-
-        self.__dict__.update(state)
-        with _gdal_env():
-            self.ds = rasterio.open(self.path)
+    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        return self.windows.read(r0, r1, c0, c1)
 
     def counts(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> None:
         return None
 
-    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Heights (float64, NaN where empty) and validity of grid rows [r0, r1) and columns [c0, c1)."""
-        from rasterio.windows import Window
-
-        c1 = self.cols if c1 is None else c1
-        f0 = self.rows - r1 if self.flipped else r0
-        with _gdal_env():
-            band = self.ds.read(1, window=Window(c0, f0, c1 - c0, r1 - r0), masked=True)
-        heights = np.asarray(band.astype(np.float64).filled(np.nan))
-        valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
-        if self.flipped:
-            heights, valid = heights[::-1], valid[::-1]
-        return heights, valid
-
     def grid(self, z0: float) -> Grid:
-        t = self.t
-        y0 = t.f + t.e * self.rows if self.flipped else t.f
-        res_y = abs(t.e) if abs(abs(t.e) - t.a) > 1e-9 * t.a else None
-        return Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=self.rows, cols=self.cols, resolution_y=res_y)
+        return self.windows.grid(z0)
 
     def close(self) -> None:
-        self.ds.close()
+        self.windows.close()
 
 
 class _Grid:
@@ -173,12 +134,13 @@ def _bands(rows: int, tile: int) -> Iterator[tuple[int, int]]:
 
 
 def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
-    """First pass: the reference height, the plane, the height range and a decimated copy."""
+    """First pass: the reference height, the plane (:class:`~dftpcc.fill.PlaneSums`), the height
+    range and a decimated copy (block sums and counts)."""
     d = max(1, tile // SAMPLES_PER_TILE)
     rb, cb = -(-raster.rows // d), -(-raster.cols // d)
     sums, counts = np.zeros((rb, cb)), np.zeros((rb, cb))
-    moments = np.zeros(9)  # n, z, x, y, xx, xy, yy, xz, yz (z about the first band's mean)
-    ref, lowest, highest = None, math.inf, -math.inf
+    fit: PlaneSums | None = None
+    lowest, highest = math.inf, -math.inf
     on_stage("read")
     # Thin bands: the sums need several arrays of a band's occupied cells, not only its heights.
     for r0, r1 in _bands(raster.rows, SURVEY_ROWS):
@@ -188,34 +150,23 @@ def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
             continue
         rows, cols = np.nonzero(m)
         z = h[rows, cols]
-        ref = float(z.mean()) if ref is None else ref
+        fit = PlaneSums(float(z.mean())) if fit is None else fit  # heights about the first band's mean
         lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
-        z = z - ref
-        x, y = cols.astype(float), (rows + r0).astype(float)
-        moments += [z.size, z.sum(), x.sum(), y.sum(), dot(x, x), dot(x, y), dot(y, y), dot(x, z), dot(y, z)]
-        np.add.at(sums, ((rows + r0) // d, cols // d), z)
+        fit.add(cols.astype(float), (rows + r0).astype(float), z)
+        np.add.at(sums, ((rows + r0) // d, cols // d), z - fit.ref)
         np.add.at(counts, ((rows + r0) // d, cols // d), 1.0)
-    if ref is None:
+    if fit is None:
         raise InvalidInputError(f"{raster.path}: every pixel is nodata")
     check_heights(lowest, highest)
-    n, sz, sx, sy, sxx, sxy, syy, sxz, syz = moments
-    z0 = ref + sz / n
-    # The plane a + b*col + c*row through the heights about z0 (normal equations, centred).
-    mx, my, mz = sx / n, sy / n, sz / n
-    cov = np.array([[sxx / n - mx * mx, sxy / n - mx * my], [sxy / n - mx * my, syy / n - my * my]])
-    rhs = np.array([sxz / n - mx * mz, syz / n - my * mz])
-    try:
-        b, c = np.linalg.solve(cov, rhs)
-    except np.linalg.LinAlgError:
-        b, c = np.linalg.lstsq(cov, rhs, rcond=None)[0]
-    a = float(mz - b * mx - c * my) - (z0 - ref)
-    return {"z0": z0, "plane": (a, float(b), float(c)), "block": d, "sums": sums, "counts": counts,
-            "ref": ref, "cells": int(n)}
+    z0 = fit.mean()
+    return {"z0": z0, "plane": fit.plane(z0), "block": d, "sums": sums, "counts": counts,
+            "ref": fit.ref, "cells": fit.count}
 
 
 def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int, cycles: int
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The base layer's coefficients (exact, unquantized) from the decimated copy."""
+    """The base layer's coefficients (exact, unquantized) from the decimated copy
+    (:func:`dftpcc.tiles.base_coefficients` of its block means, detrended and filled)."""
     i, j, radius, angle = base_order(shape, tile, 0.0, cycles)
     if i.size == 0:
         return i, j, radius, angle, np.zeros(0)
@@ -229,11 +180,7 @@ def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int
     means = np.where(mask, sums / np.maximum(counts, 1) + survey["ref"] - survey["z0"], 0.0)
     means -= np.where(mask, a + b * cols_c[None, :] + c * rows_c[:, None], 0.0)
     filled = fill_empty(means, mask, method="smooth")
-    ki, kj = int(i.max()) + 1, int(j.max()) + 1
-    # Each block stands for its cells: the basis summed over them.
-    br = np.add.reduceat(base_basis(shape[0], ki, 0, shape[0]), np.arange(0, shape[0], d), axis=0)
-    bc = np.add.reduceat(base_basis(shape[1], kj, 0, shape[1]), np.arange(0, shape[1], d), axis=0)
-    return i, j, radius, angle, (br.T @ filled @ bc)[i, j]
+    return i, j, radius, angle, base_coefficients(filled, i, j, rows=shape[0], cols=shape[1], block=d)
 
 
 def _sample(raster: Any, grid: Grid, tile: int, gridding_rmse: float) -> DEM:
