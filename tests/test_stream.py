@@ -185,3 +185,39 @@ def test_the_base_coefficients_of_block_means_are_those_of_the_map_they_stand_fo
     full = np.kron(means, np.ones((d, d)))[:shape[0], :shape[1]]
     np.testing.assert_allclose(base_coefficients(means, i, j, rows=shape[0], cols=shape[1], block=d),
                                base_coefficients(full, i, j), rtol=0, atol=1e-9)
+
+
+def test_rate_controls_sample_is_bounded_by_cells(mosaic, monkeypatch):
+    """The sample rate control codes is at most SAMPLE_CELLS (at least a tile): its trials, not the map,
+    set the peak memory of a large tile size."""
+    raster = stream._Raster(mosaic)
+    try:
+        grid = raster.grid(0.0)
+        assert stream._sample(raster, grid, 128, 0.0).grid.shape == (256, 256)  # 2 x 2 tiles
+        monkeypatch.setattr(stream, "SAMPLE_CELLS", 128 * 128 * 3)
+        assert stream._sample(raster, grid, 128, 0.0).grid.shape == (128, 128)
+    finally:
+        raster.close()
+
+
+def test_the_survey_in_narrow_windows_finds_the_same_plane(mosaic, monkeypatch):
+    """The first pass reads windows of SURVEY_COLS columns, so its memory does not follow the map's width;
+    the plane, height and decimated copy are those of full-width bands, to round-off."""
+    raster = stream._Raster(mosaic)
+    try:
+        wide = stream._survey(raster, 128, lambda *a: None)
+        monkeypatch.setattr(stream, "SURVEY_COLS", 64)
+        reads = []
+        read = raster.read
+        monkeypatch.setattr(raster, "read", lambda *a: reads.append(a) or read(*a))
+        narrow = stream._survey(raster, 128, lambda *a: None)
+    finally:
+        raster.close()
+    assert max(c1 - c0 for _, _, c0, c1 in reads) == 64
+    assert narrow["cells"] == wide["cells"]
+    np.testing.assert_allclose(narrow["z0"], wide["z0"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(narrow["plane"], wide["plane"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(narrow["counts"], wide["counts"])
+    # Sums of heights about each pass's reference (its first window's mean).
+    np.testing.assert_allclose(narrow["sums"] + narrow["ref"] * narrow["counts"],
+                               wide["sums"] + wide["ref"] * wide["counts"], rtol=1e-12, atol=1e-6)

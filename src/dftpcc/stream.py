@@ -38,10 +38,18 @@ __all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CE
 
 #: A GeoTIFF of more cells than this is coded band by band (and a tiled map of more is decoded so).
 STREAM_CELLS = 16_000_000
-#: Rate control chooses the cutoff and step on this many tiles a side from the map's middle.
+#: Rate control chooses the cutoff and step on this many tiles a side from the map's middle
+#: (fewer where they would pass :data:`SAMPLE_CELLS`).
 SAMPLE_TILES = 2
-#: Rows of the raster the first pass reads at a time.
+#: Most cells of rate control's sample (at least one tile). Its trials hold about a kilobyte a cell
+#: at a max-error target (4.3 GB on 2 x 2 tiles of 1,024, 1.2 GB on one): the sample, not the map,
+#: set the peak of a run.
+SAMPLE_CELLS = 1 << 21
+#: Rows and columns of the raster the first pass reads at a time: its sums hold several arrays of a
+#: window's occupied cells, so a window is bounded whatever the map's width. A multiple of every
+#: decimation block (:data:`SAMPLES_PER_TILE` into a power-of-two tile), so that no block straddles two.
 SURVEY_ROWS = 128
+SURVEY_COLS = 4096
 #: Samples a tile side of the decimated copy the base layer is computed from.
 SAMPLES_PER_TILE = 16
 #: Attempts at an RMSE target before giving up: a step chosen on part of the map may miss on all of it.
@@ -142,19 +150,25 @@ def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
     fit: PlaneSums | None = None
     lowest, highest = math.inf, -math.inf
     on_stage("read")
-    # Thin bands: the sums need several arrays of a band's occupied cells, not only its heights.
+    # Small windows: the sums need several arrays of a window's occupied cells, not only its heights.
     for r0, r1 in _bands(raster.rows, SURVEY_ROWS):
         on_stage("read", r0 / raster.rows)
-        h, m = raster.read(r0, r1)
-        if not m.any():
-            continue
-        rows, cols = np.nonzero(m)
-        z = h[rows, cols]
-        fit = PlaneSums(float(z.mean())) if fit is None else fit  # heights about the first band's mean
-        lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
-        fit.add(cols.astype(float), (rows + r0).astype(float), z)
-        np.add.at(sums, ((rows + r0) // d, cols // d), z - fit.ref)
-        np.add.at(counts, ((rows + r0) // d, cols // d), 1.0)
+        for c0, c1 in _bands(raster.cols, SURVEY_COLS):
+            h, m = raster.read(r0, r1, c0, c1)
+            if not m.any():
+                continue
+            rows, cols = np.nonzero(m)
+            z = h[rows, cols]
+            del h
+            fit = PlaneSums(float(z.mean())) if fit is None else fit  # heights about the first window's mean
+            lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
+            rows += r0
+            cols += c0
+            fit.add(cols.astype(float), rows.astype(float), z)
+            rows //= d
+            cols //= d
+            np.add.at(sums, (rows, cols), z - fit.ref)
+            np.add.at(counts, (rows, cols), 1.0)
     if fit is None:
         raise InvalidInputError(f"{raster.path}: every pixel is nodata")
     check_heights(lowest, highest)
@@ -184,11 +198,14 @@ def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int
 
 
 def _sample(raster: Any, grid: Grid, tile: int, gridding_rmse: float) -> DEM:
-    """A block of :data:`SAMPLE_TILES` x :data:`SAMPLE_TILES` tiles from the map's middle, in memory."""
+    """A block of :data:`SAMPLE_TILES` x :data:`SAMPLE_TILES` tiles from the map's middle (fewer, down to
+    one, where they would pass :data:`SAMPLE_CELLS`), in memory."""
     tiling = TileGrid(grid.rows, grid.cols, tile)
 
+    side = max(1, min(SAMPLE_TILES, math.isqrt(SAMPLE_CELLS) // tile))
+
     def span(count: int, size: int) -> tuple[int, int]:
-        n = min(SAMPLE_TILES, -(-size // tile))
+        n = min(side, -(-size // tile))
         first = max(0, count // 2 - n // 2)
         return first * tile, min(size, (first + n) * tile)
 
@@ -196,8 +213,8 @@ def _sample(raster: Any, grid: Grid, tile: int, gridding_rmse: float) -> DEM:
     c0, c1 = span(tiling.tile_cols, grid.cols)
     h, m = raster.read(r0, r1, c0, c1)
     if not m.any():  # an empty middle: the first band of tiles that has data
-        for r0, r1 in _bands(grid.rows, tile * SAMPLE_TILES):
-            h, m = raster.read(r0, r1, 0, min(grid.cols, tile * SAMPLE_TILES * 4))
+        for r0, r1 in _bands(grid.rows, tile * side):
+            h, m = raster.read(r0, r1, 0, min(grid.cols, tile * side * 4))
             c0, c1 = 0, h.shape[1]
             if m.any():
                 break
