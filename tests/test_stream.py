@@ -221,3 +221,29 @@ def test_the_survey_in_narrow_windows_finds_the_same_plane(mosaic, monkeypatch):
     # Sums of heights about each pass's reference (its first window's mean).
     np.testing.assert_allclose(narrow["sums"] + narrow["ref"] * narrow["counts"],
                                wide["sums"] + wide["ref"] * wide["counts"], rtol=1e-12, atol=1e-6)
+
+
+@pytest.mark.parametrize("workers", [None, 2])
+def test_an_input_that_changes_during_the_run_is_refused_and_nothing_is_written(small_threshold, mosaic, tmp_path,
+                                                                               monkeypatch, workers):
+    """A GeoTIFF rewritten between the survey and the tiles' reads (by length or modification time) would
+    make a map of two files: one error, no output (serial: checked before the file is written; on a
+    cluster: also where each worker reopens it)."""
+    import os
+    import shutil
+
+    src = tmp_path / "in.tif"
+    shutil.copy(mosaic, src)
+    sample = stream._sample
+
+    def touched(*args, **kwargs):  # after the survey, before the tiles are read
+        st = os.stat(src)
+        os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+        return sample(*args, **kwargs)
+
+    monkeypatch.setattr(stream, "_sample", touched)
+    out = tmp_path / "m.dftpc"
+    with pytest.raises(InvalidInputError, match="changed while it was read"):
+        dftpcc.compress_file(src, out, tile_size=128, cutoff=0.8, step=0.05, workers=workers)
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.tif"]

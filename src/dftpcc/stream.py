@@ -101,6 +101,9 @@ class _Raster:
     def grid(self, z0: float) -> Grid:
         return self.windows.grid(z0)
 
+    def check_unchanged(self) -> None:
+        self.windows.check_unchanged()
+
     def close(self) -> None:
         self.windows.close()
 
@@ -131,6 +134,9 @@ class _Grid:
         g = self.dem.grid
         return Grid(x0=g.x0, y0=g.y0, z0=z0, resolution=g.resolution, rows=g.rows, cols=g.cols, angle=g.angle,
                     resolution_y=g.resolution_y)
+
+    def check_unchanged(self) -> None:
+        pass
 
     def close(self) -> None:
         pass
@@ -291,6 +297,7 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
             chosen = chosen.replace(step=coding.short_step(chosen.step * ratio))
         with writer:
             start = writer.head(stats, coef_count=nb, base=base_blob)  # every check, before the file is created
+            raster.check_unchanged()  # the tiles coded are of the file surveyed, or nothing is written
 
             def fill(tmp: Path) -> None:
                 with open(tmp, "wb") as out:

@@ -58,6 +58,15 @@ def read_raster_dem(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarra
         return heights, valid, src.transform, _crs_of(src)
 
 
+def _stamp(path: str | os.PathLike[str]) -> tuple[int, int]:
+    """A file's length (bytes) and modification time (ns); (-1, -1) when it is gone."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return -1, -1
+    return st.st_size, st.st_mtime_ns
+
+
 def _crs_of(src: Any) -> dict[str, Any]:
     return {"wkt": src.crs.to_wkt()} if src.crs else {}
 
@@ -107,6 +116,18 @@ class RasterWindows:
         self.crs = _crs_of(self.ds)
         nodata = self.ds.nodata
         self.source = RasterSource(str(self.ds.dtypes[0]), None if nodata is None else float(nodata))
+        #: The file's length and modification time when opened: a read that spans minutes (or another
+        #: process, a worker) checks it still reads that file (:meth:`check_unchanged`).
+        self.stamp = _stamp(path)
+
+    def check_unchanged(self) -> None:
+        """Raise :class:`InvalidInputError` if the file's length or modification time is not the one
+        it had when opened: cells read before and after a change would make a map of two files."""
+        now = _stamp(self.path)
+        if now != self.stamp:
+            raise InvalidInputError(f"{self.path}: the file changed while it was read (length {self.stamp[0]:,} "
+                                    f"-> {now[0]:,} bytes, or modified since); nothing was written: run again on "
+                                    f"the finished file")
 
     def _env(self) -> Any:
         return rasterio.Env(GDAL_CACHEMAX=self.cache_bytes) if self.cache_bytes is not None else rasterio.Env()
@@ -116,6 +137,10 @@ class RasterWindows:
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
+        # A worker reopening the file checks, at its first read, that it is the one its client
+        # opened (raised there, as the task's own error: an error while unpickling reaches the
+        # client as a bare Exception).
+        self._reopened = True
         with _raster_errors(self.path), self._env():
             self.ds = rasterio.open(self.path)
 
@@ -129,6 +154,8 @@ class RasterWindows:
         """Heights (metres, float64, NaN where empty) and validity of grid rows [r0, r1) and columns [c0, c1)."""
         from rasterio.windows import Window
 
+        if self.__dict__.pop("_reopened", False):
+            self.check_unchanged()
         c1 = self.cols if c1 is None else c1
         f0 = self.rows - r1 if self.flipped else r0
         with _raster_errors(self.path), self._env():
