@@ -247,3 +247,36 @@ def test_an_input_that_changes_during_the_run_is_refused_and_nothing_is_written(
         dftpcc.compress_file(src, out, tile_size=128, cutoff=0.8, step=0.05, workers=workers)
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["in.tif"]
+
+
+def test_a_full_disk_while_a_band_coded_map_is_written_leaves_nothing(small_threshold, mosaic, tmp_path, monkeypatch):
+    """The tiles spooled, the disk fills while the file is written: one OSError naming the file, and neither
+    a partial map nor the temporary beside it."""
+    import errno
+    import subprocess
+    import sys
+
+    from dftpcc.format.writer import MapWriter
+
+    def full(self, out):
+        out.write(b"\0" * 1000)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(MapWriter, "write_payloads", full)
+    out = tmp_path / "m.dftpc"
+    with pytest.raises(OSError, match="No space left") as info:
+        dftpcc.compress_file(mosaic, out, tile_size=128, cutoff=0.8, step=0.05)
+    assert str(out) in str(info.value)
+    assert not list(tmp_path.iterdir())
+    # The command line says it in one line, with a non-zero exit.
+    code = ("import sys, errno, runpy; from dftpcc import stream; from dftpcc.format.writer import MapWriter\n"
+            "stream.STREAM_CELLS = 50_000\n"
+            "def full(self, out):\n    out.write(b'0' * 1000); raise OSError(errno.ENOSPC, 'No space left on device')\n"
+            "MapWriter.write_payloads = full\n"
+            "sys.argv = ['dftpcc', 'compress', sys.argv[1], sys.argv[2], '--tile-size', '128', '--cutoff', '0.8',"
+            " '--step', '0.05']\n"
+            "runpy.run_module('dftpcc', run_name='__main__')\n")
+    result = subprocess.run([sys.executable, "-c", code, mosaic, str(out)], capture_output=True, text=True)
+    assert result.returncode != 0
+    assert result.stderr.strip().count("\n") == 0 and "No space left" in result.stderr
+    assert not list(tmp_path.iterdir())
