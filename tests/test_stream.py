@@ -35,6 +35,10 @@ def mosaic(tmp_path_factory) -> str:
     return str(path)
 
 
+#: How far below a size target a band-coded file may fall (its step is chosen on the map's middle).
+BPP_TOLERANCE = 0.25
+
+
 def _reference(path: str) -> np.ma.MaskedArray:
     with rasterio.open(path) as ds:
         return ds.read(1, masked=True)[::-1]  # grid rows run south to north
@@ -56,10 +60,40 @@ def test_a_raster_coded_band_by_band_keeps_its_promise(small_threshold, mosaic, 
     assert np.sqrt(np.mean(err ** 2)) <= cmap.header.stats["dem_rmse_m"] * (1 + 1e-6)
 
 
-def test_a_size_target_needs_the_map_in_memory(small_threshold, mosaic, tmp_path):
-    with pytest.raises(InvalidInputError, match="needs the whole map in memory"):
-        dftpcc.compress_file(mosaic, tmp_path / "m.dftpc", tile_size=128, target_bpp=2.0)
-    assert not (tmp_path / "m.dftpc").exists()
+@pytest.mark.parametrize("bpp", [1.0, 3.0])
+def test_a_size_target_on_a_map_coded_band_by_band(small_threshold, mosaic, tmp_path, bpp):
+    """--target-bpp is chosen on the map's middle and checked on the whole file: at most the target,
+    and within BPP_TOLERANCE of it (not a file far smaller than asked)."""
+    out = tmp_path / "m.dftpc"
+    cmap = dftpcc.compress_file(mosaic, out, tile_size=128, target_bpp=bpp)
+    assert cmap.tiled and cmap.header.params.target_bpp == bpp
+    got = 8 * out.stat().st_size / cmap.header.point_count
+    assert (1 - BPP_TOLERANCE) * bpp <= got <= bpp
+
+
+def test_a_size_target_missed_on_the_whole_map_is_coded_again_or_refused(small_threshold, mosaic, tmp_path,
+                                                                         monkeypatch):
+    """A step chosen on the middle that gives the whole file too many bits: a coarser step, coded
+    again; still missed after RMSE_ATTEMPTS: one error, no file."""
+    choose = stream.choose_for_tiles
+
+    def too_fine(*args, **kwargs):  # a middle that takes a finer step than the whole map can afford
+        chosen, refill = choose(*args, **kwargs)
+        return chosen.replace(step=chosen.step / 3), refill
+
+    monkeypatch.setattr(stream, "choose_for_tiles", too_fine)
+    coded = []
+    code = stream._code_bands
+    monkeypatch.setattr(stream, "_code_bands", lambda *a: coded.append(a[2].step) or code(*a))
+    out = tmp_path / "m.dftpc"
+    cmap = dftpcc.compress_file(mosaic, out, tile_size=128, target_bpp=2.0)
+    assert len(coded) > 1 and coded[1] > coded[0]
+    assert 8 * out.stat().st_size / cmap.header.point_count <= 2.0
+    coded.clear()
+    monkeypatch.setattr(stream, "BITS_PER_HALVING", 0.0)  # a retry that does not change the step
+    with pytest.raises(InvalidInputError, match="bits/point was missed"):
+        dftpcc.compress_file(mosaic, tmp_path / "n.dftpc", tile_size=128, target_bpp=2.0)
+    assert len(coded) == stream.RMSE_ATTEMPTS and not (tmp_path / "n.dftpc").exists()
 
 
 def test_band_by_band_decoding_writes_what_a_whole_decode_does(small_threshold, mosaic, tmp_path):

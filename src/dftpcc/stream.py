@@ -56,6 +56,12 @@ SAMPLES_PER_TILE = 16
 RMSE_ATTEMPTS = 3
 #: The middle block's RMSE target, as a fraction of the map's: room for the rest of the map to differ.
 SAMPLE_RMSE_MARGIN = 0.95
+#: The middle block's size target (bits per point), as a fraction of the map's, for the same reason.
+SAMPLE_BPP_MARGIN = 0.95
+#: Bits a coded coefficient costs for each halving of the step, about (entropy-coded uniform
+#: quantizer: one bit per halving): a size target missed on the whole map takes a coarser step by
+#: as many halvings as the excess's share of the bits times this.
+BITS_PER_HALVING = 4.0
 #: Output formats written band by band.
 STREAM_FORMATS = ("tif", "tiff", "las", "laz")
 #: Tile columns of the block a band is read, reduced and coded (or decoded and written) in: memory
@@ -237,8 +243,9 @@ def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], pa
     Parameters
     ----------
     params : Params
-        A target RMSE or maximum error, or a cutoff and step (automatic
-        when 0); ``target_bpp`` needs the whole map and is refused.
+        A target RMSE, maximum error or size (``target_bpp``), or a cutoff and step (automatic
+        when 0). The cutoff and step are chosen on the map's middle; an RMSE or size target is
+        checked on the whole map, the step changed and the map coded again if missed.
     map_tiles : callable, optional
         Where the tiles are coded (:func:`dftpcc.cluster.executor`).
     write : callable
@@ -248,8 +255,9 @@ def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], pa
     Raises
     ------
     InvalidInputError
-        A raster that is not a north-up DEM, no valid pixel, heights out of range, a size target,
-        or an RMSE target missed on the whole map after :data:`RMSE_ATTEMPTS` steps chosen on part of it.
+        A raster that is not a north-up DEM, no valid pixel, heights out of range, a file that
+        changed while it was read, or an RMSE or size target missed on the whole map after
+        :data:`RMSE_ATTEMPTS` steps chosen on part of it.
     """
     _compress(_Raster(src), dst, params, map_tiles=map_tiles, on_stage=on_stage, write=write)
 
@@ -277,23 +285,25 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
         bi, bj, bradius, bangle, bcoefs = _base_coefficients(survey, grid.shape, tile, cycles)
         on_stage("rate control")
         aim = params.replace(target_rmse=params.target_rmse * SAMPLE_RMSE_MARGIN) if params.target_rmse else params
-        chosen, refill = choose_for_tiles(_sample(raster, grid, tile, gridding_rmse), aim, tile, base_cycles=cycles)
-        chosen = chosen.replace(target_rmse=params.target_rmse)
+        aim = aim.replace(target_bpp=params.target_bpp * SAMPLE_BPP_MARGIN) if params.target_bpp else aim
+        sample = _sample(raster, grid, tile, gridding_rmse)
+        chosen, refill = choose_for_tiles(sample, aim, tile, base_cycles=cycles,
+                                          share=sample.grid.size / grid.size if params.target_bpp else None)
+        del sample
+        chosen = chosen.replace(target_rmse=params.target_rmse, target_bpp=params.target_bpp)
         chosen = chosen.replace(resolution=grid.resolution)
         for attempt in range(RMSE_ATTEMPTS):
             writer, stats, nb, base_blob = _code_bands(raster, grid, chosen, refill, tile, survey,
                                                        (bi, bj, bradius, bangle, bcoefs), run, on_stage,
                                                        gridding_rmse, spread)
-            if params.target_rmse <= 0 or stats["dem_rmse_m"] <= params.target_rmse:
+            missed = _missed(writer, stats, nb, base_blob, params)
+            if missed is None:
                 break
+            ratio = _step_ratio(writer, stats, nb, base_blob, params)
             writer.close()
             if attempt + 1 == RMSE_ATTEMPTS:
-                raise InvalidInputError(
-                    f"target RMSE {params.target_rmse:g} m was missed on the whole map ({stats['dem_rmse_m']:.4g} m "
-                    f"with the step chosen on its middle); give a smaller target or a --step")
-            # Part of the error is the low-pass's, which the step does not change: shrink the step
-            # by the square of the miss, a little inside.
-            ratio = SAMPLE_RMSE_MARGIN * (params.target_rmse / stats["dem_rmse_m"]) ** 2
+                raise InvalidInputError(f"{missed} on the whole map with the step chosen on its middle; "
+                                        f"give a {'larger' if params.target_bpp else 'smaller'} target or a --step")
             chosen = chosen.replace(step=coding.short_step(chosen.step * ratio))
         with writer:
             start = writer.head(stats, coef_count=nb, base=base_blob)  # every check, before the file is created
@@ -308,6 +318,33 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
             write(dst, fill)
     finally:
         raster.close()
+
+
+def _bits_per_point(writer: MapWriter, stats: dict[str, Any], nb: int, base_blob: bytes) -> float:
+    """The file's bits per original point: its header and index (:meth:`MapWriter.head`) and its tiles' sections."""
+    size = len(writer.head(stats, coef_count=nb, base=base_blob)) + sum(entry[2] for entry in writer.entries)
+    return 8.0 * size / writer.point_count
+
+
+def _missed(writer: MapWriter, stats: dict[str, Any], nb: int, base_blob: bytes, params: Params) -> str | None:
+    """What a coded map misses of an RMSE or size target, or None (met, or neither asked)."""
+    if params.target_rmse > 0 and stats["dem_rmse_m"] > params.target_rmse:
+        return f"target RMSE {params.target_rmse:g} m was missed ({stats['dem_rmse_m']:.4g} m)"
+    if params.target_bpp > 0:
+        bpp = _bits_per_point(writer, stats, nb, base_blob)
+        if bpp > params.target_bpp:
+            return f"target {params.target_bpp:g} bits/point was missed ({bpp:.4g})"
+    return None
+
+
+def _step_ratio(writer: MapWriter, stats: dict[str, Any], nb: int, base_blob: bytes, params: Params) -> float:
+    """How much to scale the step after a miss of :func:`_missed`."""
+    if params.target_rmse > 0 and stats["dem_rmse_m"] > params.target_rmse:
+        # Part of the error is the low-pass's, which the step does not change: shrink the step
+        # by the square of the miss, a little inside.
+        return SAMPLE_RMSE_MARGIN * (params.target_rmse / stats["dem_rmse_m"]) ** 2
+    bpp = _bits_per_point(writer, stats, nb, base_blob)
+    return 2.0 ** (BITS_PER_HALVING * (bpp - SAMPLE_BPP_MARGIN * params.target_bpp) / bpp)
 
 
 @dataclass(frozen=True)
