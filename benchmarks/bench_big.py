@@ -9,7 +9,8 @@ so its peak resident memory is its own, and is set against the peak of a process
 imports dftpcc, measured in the same run. The GeoTIFF's quarter is also coded and decoded on a
 local dask cluster of 2 workers and checked byte-identical to the serial run.
 
-    .venv/bin/python -m benchmarks.bench_big [--quick] [--only raster|cloud|parallel] [--docs | --no-docs]
+    .venv/bin/python -m benchmarks.bench_big [--quick] [--only raster|cloud|parallel] [--target-max-error M]
+        [--parallel-every-size] [--docs | --no-docs]
 
 ``--quick`` runs at a quarter of the full side of the GeoTIFF (10,000 x 10,000 cells at most) and a
 quarter of the cloud (9 copies, 25 M points at most): about 7 minutes on the shared 2-core box.
@@ -53,6 +54,8 @@ QUICK_DIVISOR = 4
 TILE_SIZE = 1024
 #: Workers of the local dask cluster in the parallel runs.
 WORKERS = 2
+#: Whether every size is also coded on WORKERS workers (``--parallel-every-size``), not only the first.
+PARALLEL_EVERY_SIZE = False
 #: Target the peak resident memory of every run should stay under, bytes.
 RSS_TARGET = 2 * 1024 ** 3
 #: How often the whole process tree's resident memory is sampled, seconds (dask runs).
@@ -103,7 +106,8 @@ CHILD = textwrap.dedent("""
     out = {}
     if job["op"] == "compress":
         extra = {"chunk_points": job["chunk"]} if job.get("chunk") else {}
-        m = compress_file(job["src"], job["dst"], tile_size=job["tile"], workers=job["workers"], **extra)
+        m = compress_file(job["src"], job["dst"], tile_size=job["tile"], workers=job["workers"], **extra,
+                          **job.get("target", {}))
         out = {"points": m.header.point_count, "cells": m.header.cell_count, "rows": m.grid.rows,
                "cols": m.grid.cols, "rmse": m.header.stats.get("dem_rmse_m"),
                "max_error": m.header.stats.get("dem_max_error_m"), "resolution": m.grid.resolution}
@@ -350,8 +354,13 @@ class _Report:
         print(" | ".join(self.rows[-1]), flush=True)
 
 
+#: The compress target of every run (``--target-max-error``): none by default (the default cutoff and step).
+TARGET: dict[str, float] = {}
+
+
 def _job(op: str, src: Path, dst: Path, workers: int | None, **extra: Any) -> dict[str, Any]:
-    return {"op": op, "src": str(src), "dst": str(dst), "tile": TILE_SIZE, "workers": workers, **extra}
+    return {"op": op, "src": str(src), "dst": str(dst), "tile": TILE_SIZE, "workers": workers, "target": TARGET,
+            **extra}
 
 
 def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int, report: _Report,
@@ -367,7 +376,7 @@ def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int
         print(" | ".join(inputs[-1]), flush=True)
         size = f"{_fraction(f)} ({side:,}²)"
         cells = side * side
-        for workers in ([None, WORKERS] if n == 0 else [None]):
+        for workers in ([None, WORKERS] if n == 0 or PARALLEL_EVERY_SIZE else [None]):
             dst = coded if workers is None else coded.with_suffix(".w.dftpc")
             m = measure(_job("compress", src, dst, workers))
             nbytes = dst.stat().st_size if dst.exists() else 0
@@ -435,10 +444,19 @@ def main(argv: list[str] | None = None) -> int:
                                                 f"and {FULL_COPIES // QUICK_DIVISOR} copies of the cloud")
     ap.add_argument("--only", choices=("raster", "cloud", "parallel"),
                     help="measure one of the two maps, or only the GeoTIFF's quarter with 1 and 2 workers")
+    ap.add_argument("--target-max-error", type=float, metavar="METRES",
+                    help="compress at this max-error target (rate control on the map's middle) instead of the "
+                         "default cutoff and step")
+    ap.add_argument("--parallel-every-size", action="store_true",
+                    help=f"code every size on {WORKERS} workers too, not only the first")
     ap.add_argument("--tmp", type=Path, default=Path(tempfile.gettempdir()), help="where the temporary folder goes")
     args = ap.parse_args(argv)
     if not sys.platform.startswith("linux"):
         sys.exit("bench_big reads peak memory from /proc: Linux only")
+    global PARALLEL_EVERY_SIZE
+    PARALLEL_EVERY_SIZE = args.parallel_every_size
+    if args.target_max_error:
+        TARGET["target_max_error"] = args.target_max_error
     divisor = QUICK_DIVISOR if args.quick else 1
     full_side = FULL_SIDE // divisor
     copies = [max(1, round(FULL_COPIES * f / divisor)) for f in FRACTIONS]
@@ -483,7 +501,8 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
              f"of shifted copies of `{SOURCE_CLOUD}` laid side by side ({CLOUD_COPIES_PER_ROW} a row), "
              f"written copy after copy. The quarter and half maps are built the same way.",
              markdown_table(["map", "size", "shape", "content", "file MB", "build s"], inputs),
-             f"Each run is a fresh process (`compress_file(..., tile_size={TILE_SIZE})`, the cloud with "
+             f"Each run is a fresh process (`compress_file(..., tile_size={TILE_SIZE}"
+             f"{''.join(f', {k}={v:g}' for k, v in TARGET.items())})`, the cloud with "
              f"`chunk_points={CLOUD_CHUNK:,}`; `decompress_bands` to `.tif` / `.laz`; a band is coded and a "
              f"GeoTIFF decoded in column blocks of `stream.BLOCK_TILES` = {stream.BLOCK_TILES} tiles, with "
              f"GDAL's cache at `stream.GDAL_CACHE_BYTES` = {stream.GDAL_CACHE_BYTES / 2 ** 20:.0f} MiB). Peak RSS: "
@@ -496,7 +515,8 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
              markdown_table(_Report.HEAD, report.rows)]
     if report.parallel:
         parts += [f"Serial against a local dask cluster of {WORKERS} workers (`workers={WORKERS}`), "
-                  "on the GeoTIFF's quarter; identical: the two outputs compared byte for byte.",
+                  f"on {'every size of the GeoTIFF' if PARALLEL_EVERY_SIZE else 'the GeoTIFF quarter'}; each worker "
+                  "reads its own blocks of the file; identical: the two outputs compared byte for byte.",
                   markdown_table(["op", "size", "1 worker s", f"{WORKERS} workers s", "speed-up",
                                   "identical", "tree peak MB"], report.parallel)]
     if report.grids:

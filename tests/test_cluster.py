@@ -190,3 +190,47 @@ def test_a_stop_signal_ends_a_local_cluster_and_its_workers(tmp_path, sig, after
     assert err.strip().count("\n") == 0 and ("stopped by signal" in err or "interrupted" in err), err
     assert ended <= STOP_WITHIN_S and gone <= STOP_WITHIN_S, (ended, gone)
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def _killing_coder(marker: Path | None):
+    """stream._code_block that kills its worker process on the block holding tile 0: on every attempt
+    (``marker`` None), or on the first only (it leaves ``marker``). Pickled by value with the task."""
+    from dftpcc import stream
+
+    code = stream._code_block
+
+    def coder(block, job):
+        if 0 in block.tiles and (marker is None or not marker.exists()):
+            if marker is not None:
+                marker.touch()
+            os._exit(3)  # as a worker killed by the OOM killer or a kill -9
+        return code(block, job)
+
+    return coder
+
+
+@pytest.mark.parametrize("always", [True, False])
+def test_a_worker_killed_mid_run_fails_cleanly_or_reruns_to_the_serial_bytes(tmp_path, monkeypatch, always):
+    """A band-coded map whose worker dies on a block: the scheduler reruns the block once on another
+    worker (the same bytes as the serial run); a block that kills every worker it lands on ends the
+    run in one ClusterError, with no output."""
+    from dftpcc import stream
+
+    monkeypatch.setattr(stream, "STREAM_CELLS", 50_000)
+    monkeypatch.setattr(stream, "BLOCK_TILES", 1)
+    src = data_file("dems/mars_gale_1m.tif")
+    out = tmp_path / "out" / "p.dftpc"
+    out.parent.mkdir()
+    serial = tmp_path / "s.dftpc"
+    monkeypatch.setattr(stream, "_code_block", _killing_coder(None if always else tmp_path / "killed"))
+    if always:
+        with pytest.raises(ClusterError, match="died"):
+            dftpcc.compress_file(src, out, tile_size=64, cutoff=0.8, step=0.05, workers=2)
+        assert not list(out.parent.iterdir())
+        return
+    dftpcc.compress_file(src, out, tile_size=64, cutoff=0.8, step=0.05, workers=2)
+    assert (tmp_path / "killed").exists()  # a worker did die
+    monkeypatch.undo()
+    monkeypatch.setattr(stream, "STREAM_CELLS", 50_000)
+    dftpcc.compress_file(src, serial, tile_size=64, cutoff=0.8, step=0.05)
+    assert out.read_bytes() == serial.read_bytes()

@@ -35,6 +35,10 @@ def mosaic(tmp_path_factory) -> str:
     return str(path)
 
 
+#: How far below a size target a band-coded file may fall (its step is chosen on the map's middle).
+BPP_TOLERANCE = 0.25
+
+
 def _reference(path: str) -> np.ma.MaskedArray:
     with rasterio.open(path) as ds:
         return ds.read(1, masked=True)[::-1]  # grid rows run south to north
@@ -56,10 +60,40 @@ def test_a_raster_coded_band_by_band_keeps_its_promise(small_threshold, mosaic, 
     assert np.sqrt(np.mean(err ** 2)) <= cmap.header.stats["dem_rmse_m"] * (1 + 1e-6)
 
 
-def test_a_size_target_needs_the_map_in_memory(small_threshold, mosaic, tmp_path):
-    with pytest.raises(InvalidInputError, match="needs the whole map in memory"):
-        dftpcc.compress_file(mosaic, tmp_path / "m.dftpc", tile_size=128, target_bpp=2.0)
-    assert not (tmp_path / "m.dftpc").exists()
+@pytest.mark.parametrize("bpp", [1.0, 3.0])
+def test_a_size_target_on_a_map_coded_band_by_band(small_threshold, mosaic, tmp_path, bpp):
+    """--target-bpp is chosen on the map's middle and checked on the whole file: at most the target,
+    and within BPP_TOLERANCE of it (not a file far smaller than asked)."""
+    out = tmp_path / "m.dftpc"
+    cmap = dftpcc.compress_file(mosaic, out, tile_size=128, target_bpp=bpp)
+    assert cmap.tiled and cmap.header.params.target_bpp == bpp
+    got = 8 * out.stat().st_size / cmap.header.point_count
+    assert (1 - BPP_TOLERANCE) * bpp <= got <= bpp
+
+
+def test_a_size_target_missed_on_the_whole_map_is_coded_again_or_refused(small_threshold, mosaic, tmp_path,
+                                                                         monkeypatch):
+    """A step chosen on the middle that gives the whole file too many bits: a coarser step, coded
+    again; still missed after RMSE_ATTEMPTS: one error, no file."""
+    choose = stream.choose_for_tiles
+
+    def too_fine(*args, **kwargs):  # a middle that takes a finer step than the whole map can afford
+        chosen, refill = choose(*args, **kwargs)
+        return chosen.replace(step=chosen.step / 3), refill
+
+    monkeypatch.setattr(stream, "choose_for_tiles", too_fine)
+    coded = []
+    code = stream._code_bands
+    monkeypatch.setattr(stream, "_code_bands", lambda *a: coded.append(a[2].step) or code(*a))
+    out = tmp_path / "m.dftpc"
+    cmap = dftpcc.compress_file(mosaic, out, tile_size=128, target_bpp=2.0)
+    assert len(coded) > 1 and coded[1] > coded[0]
+    assert 8 * out.stat().st_size / cmap.header.point_count <= 2.0
+    coded.clear()
+    monkeypatch.setattr(stream, "BITS_PER_HALVING", 0.0)  # a retry that does not change the step
+    with pytest.raises(InvalidInputError, match="bits/point was missed"):
+        dftpcc.compress_file(mosaic, tmp_path / "n.dftpc", tile_size=128, target_bpp=2.0)
+    assert len(coded) == stream.RMSE_ATTEMPTS and not (tmp_path / "n.dftpc").exists()
 
 
 def test_band_by_band_decoding_writes_what_a_whole_decode_does(small_threshold, mosaic, tmp_path):
@@ -140,3 +174,143 @@ def test_a_decoded_geotiff_is_the_same_bytes_whatever_the_block_width(small_thre
         dftpcc.files.decompress_bands(src, tmp_path / f"b{tiles}.tif")
         written.append((tmp_path / f"b{tiles}.tif").read_bytes())
     assert written[0] == written[1] == written[2]
+
+
+def test_a_geotiff_read_by_windows_is_the_whole_read(tmp_path):
+    """One reader for the whole-file and the band paths: any window is the same cells as the whole DEM."""
+    from dftpcc.io.geotiff import RasterWindows, dem_from_geotiff
+
+    path = data_file("dems/mars_korolev_mola.tif")  # int16 with nodata, north-up (flipped rows)
+    dem, _ = dem_from_geotiff(path)
+    whole = np.where(dem.mask, dem.heights + dem.grid.z0, np.nan)
+    with RasterWindows(path) as raster:
+        assert raster.grid(dem.grid.z0) == dem.grid
+        for (r0, r1), (c0, c1) in [((0, 1), (0, 859)), ((17, 200), (300, 301)), ((100, 349), (5, 600))]:
+            h, m = raster.read(r0, r1, c0, c1)
+            np.testing.assert_array_equal(m, dem.mask[r0:r1, c0:c1])
+            np.testing.assert_allclose(h[m], whole[r0:r1, c0:c1][m], rtol=0, atol=1e-9)
+            assert np.isnan(h[~m]).all()
+
+
+def test_the_plane_summed_band_by_band_is_the_plane_of_the_whole():
+    from dftpcc.fill import PlaneSums, fit_plane
+    from dftpcc.io.geotiff import dem_from_geotiff
+
+    dem, _ = dem_from_geotiff(data_file("dems/earth_bigtujunga_srtm30.tif"))
+    heights = dem.heights + dem.grid.z0
+    fit = None
+    for r0 in range(0, dem.grid.rows, 50):
+        rows, cols = np.nonzero(dem.mask[r0:r0 + 50])
+        z = heights[r0:r0 + 50][rows, cols]
+        fit = fit or PlaneSums(float(z.mean()))
+        fit.add(cols.astype(float), (rows + r0).astype(float), z)
+    assert fit.count == int(dem.mask.sum())
+    np.testing.assert_allclose(fit.mean(), dem.grid.z0, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fit.plane(dem.grid.z0), fit_plane(dem), rtol=1e-9, atol=1e-9)
+
+
+def test_the_base_coefficients_of_block_means_are_those_of_the_map_they_stand_for():
+    """A decimated copy's coefficients (``block`` > 1) are the whole map's when each block is flat."""
+    from dftpcc.tiles import base_coefficients, base_order
+
+    shape, tile, d = (1000, 1300), 128, 8  # edges cut the last blocks
+    i, j, _, _ = base_order(shape, tile, 0.0)
+    means = np.random.default_rng(3).normal(size=(-(-shape[0] // d), -(-shape[1] // d)))
+    full = np.kron(means, np.ones((d, d)))[:shape[0], :shape[1]]
+    np.testing.assert_allclose(base_coefficients(means, i, j, rows=shape[0], cols=shape[1], block=d),
+                               base_coefficients(full, i, j), rtol=0, atol=1e-9)
+
+
+def test_rate_controls_sample_is_bounded_by_cells(mosaic, monkeypatch):
+    """The sample rate control codes is at most SAMPLE_CELLS (at least a tile): its trials, not the map,
+    set the peak memory of a large tile size."""
+    raster = stream._Raster(mosaic)
+    try:
+        grid = raster.grid(0.0)
+        assert stream._sample(raster, grid, 128, 0.0).grid.shape == (256, 256)  # 2 x 2 tiles
+        monkeypatch.setattr(stream, "SAMPLE_CELLS", 128 * 128 * 3)
+        assert stream._sample(raster, grid, 128, 0.0).grid.shape == (128, 128)
+    finally:
+        raster.close()
+
+
+def test_the_survey_in_narrow_windows_finds_the_same_plane(mosaic, monkeypatch):
+    """The first pass reads windows of SURVEY_COLS columns, so its memory does not follow the map's width;
+    the plane, height and decimated copy are those of full-width bands, to round-off."""
+    raster = stream._Raster(mosaic)
+    try:
+        wide = stream._survey(raster, 128, lambda *a: None)
+        monkeypatch.setattr(stream, "SURVEY_COLS", 64)
+        reads = []
+        read = raster.read
+        monkeypatch.setattr(raster, "read", lambda *a: reads.append(a) or read(*a))
+        narrow = stream._survey(raster, 128, lambda *a: None)
+    finally:
+        raster.close()
+    assert max(c1 - c0 for _, _, c0, c1 in reads) == 64
+    assert narrow["cells"] == wide["cells"]
+    np.testing.assert_allclose(narrow["z0"], wide["z0"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(narrow["plane"], wide["plane"], rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(narrow["counts"], wide["counts"])
+    # Sums of heights about each pass's reference (its first window's mean).
+    np.testing.assert_allclose(narrow["sums"] + narrow["ref"] * narrow["counts"],
+                               wide["sums"] + wide["ref"] * wide["counts"], rtol=1e-12, atol=1e-6)
+
+
+@pytest.mark.parametrize("workers", [None, 2])
+def test_an_input_that_changes_during_the_run_is_refused_and_nothing_is_written(small_threshold, mosaic, tmp_path,
+                                                                               monkeypatch, workers):
+    """A GeoTIFF rewritten between the survey and the tiles' reads (by length or modification time) would
+    make a map of two files: one error, no output (serial: checked before the file is written; on a
+    cluster: also where each worker reopens it)."""
+    import os
+    import shutil
+
+    src = tmp_path / "in.tif"
+    shutil.copy(mosaic, src)
+    sample = stream._sample
+
+    def touched(*args, **kwargs):  # after the survey, before the tiles are read
+        st = os.stat(src)
+        os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+        return sample(*args, **kwargs)
+
+    monkeypatch.setattr(stream, "_sample", touched)
+    out = tmp_path / "m.dftpc"
+    with pytest.raises(InvalidInputError, match="changed while it was read"):
+        dftpcc.compress_file(src, out, tile_size=128, cutoff=0.8, step=0.05, workers=workers)
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.tif"]
+
+
+def test_a_full_disk_while_a_band_coded_map_is_written_leaves_nothing(small_threshold, mosaic, tmp_path, monkeypatch):
+    """The tiles spooled, the disk fills while the file is written: one OSError naming the file, and neither
+    a partial map nor the temporary beside it."""
+    import errno
+    import subprocess
+    import sys
+
+    from dftpcc.format.writer import MapWriter
+
+    def full(self, out):
+        out.write(b"\0" * 1000)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(MapWriter, "write_payloads", full)
+    out = tmp_path / "m.dftpc"
+    with pytest.raises(OSError, match="No space left") as info:
+        dftpcc.compress_file(mosaic, out, tile_size=128, cutoff=0.8, step=0.05)
+    assert str(out) in str(info.value)
+    assert not list(tmp_path.iterdir())
+    # The command line says it in one line, with a non-zero exit.
+    code = ("import sys, errno, runpy; from dftpcc import stream; from dftpcc.format.writer import MapWriter\n"
+            "stream.STREAM_CELLS = 50_000\n"
+            "def full(self, out):\n    out.write(b'0' * 1000); raise OSError(errno.ENOSPC, 'No space left on device')\n"
+            "MapWriter.write_payloads = full\n"
+            "sys.argv = ['dftpcc', 'compress', sys.argv[1], sys.argv[2], '--tile-size', '128', '--cutoff', '0.8',"
+            " '--step', '0.05']\n"
+            "runpy.run_module('dftpcc', run_name='__main__')\n")
+    result = subprocess.run([sys.executable, "-c", code, mosaic, str(out)], capture_output=True, text=True)
+    assert result.returncode != 0
+    assert result.stderr.strip().count("\n") == 0 and "No space left" in result.stderr
+    assert not list(tmp_path.iterdir())

@@ -40,6 +40,10 @@ STOP_CLOSE_S = 1
 #: ``allowed-failures``): a tile that kills its workers fails the run quickly.
 ALLOWED_FAILURES = 1
 
+#: Items of one map up to this many bytes in all go inside the task graph (rerun if their worker
+#: dies); larger ones (blocks carrying their cells) are scattered to the workers first.
+INLINE_BYTES = 1 << 20
+
 #: ``map(func, items, *args)``: ``[func(item, *args) for item in items]``, in order.
 Map = Callable[..., list]
 
@@ -164,6 +168,13 @@ def _cancelled() -> tuple[type[BaseException], ...]:
     return tuple(getattr(dc, name) for name in ("FutureCancelledError", "FuturesCancelledError") if hasattr(dc, name))
 
 
+def _nbytes(item: Any) -> int:
+    """Bytes an item holds, its fields' for an object (dask's ``sizeof`` sees an object's shell only)."""
+    from dask.sizeof import sizeof
+
+    return sizeof(vars(item)) if hasattr(item, "__dict__") else sizeof(item)
+
+
 def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: tuple) -> list:
     """``func(item, *args)`` for every item on the cluster, in order; a dead worker or an empty
     cluster ends in :class:`ClusterError`."""
@@ -174,8 +185,11 @@ def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: t
     # Keys of their own (hash=False): data scattered under a content key by the previous call may
     # still be being forgotten by the scheduler, and a task then waits for data no worker has.
     shared = client.scatter(list(args), broadcast=True, hash=False) if args else []
-    futures = client.map(func, client.scatter(list(items), hash=False), *[[a] * len(items) for a in shared],
-                         pure=False)
+    # Items that carry cells travel as data; small ones (a block a worker reads itself) travel in the
+    # graph, so that the scheduler can rerun the task of a worker that died: scattered data die with it.
+    small = sum(_nbytes(item) for item in items) <= INLINE_BYTES
+    futures = client.map(func, list(items) if small else client.scatter(list(items), hash=False),
+                         *[[a] * len(items) for a in shared], pure=False)
     idle_since: float | None = None
     cancelled = _cancelled()
     try:

@@ -412,15 +412,17 @@ _WHOLE, _TILES = _Whole(), _Tiles()
 
 
 def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | None = None,
-                     base_cycles: int = 1) -> tuple[Params, float | None]:
+                     base_cycles: int = 1, share: float | None = None) -> tuple[Params, float | None]:
     """The cutoff, step and refill step a tiled map of ``dem`` is coded with (what
     :func:`encode_dem` chooses), for a caller that codes the tiles itself, e.g. a map
     larger than memory whose parameters are chosen on a part of it.
 
     Returns ``params`` with ``cutoff`` and ``step`` set, and the refill step (None: smooth fill).
-    A size target (``target_bpp``) needs the whole map and is refused.
+    A size target (``target_bpp``) is met on ``dem`` as a part of a larger map, of which it is
+    ``share`` of the cells (its masks and that share of a header count against it); without
+    ``share`` it needs the whole map and is refused.
     """
-    if params.target_bpp > 0:
+    if params.target_bpp > 0 and share is None:
         raise InvalidInputError("a size target (target_bpp) needs the whole map in memory; give a target_rmse, "
                                 "a target_max_error, or a cutoff and step")
     params = params.replace(resolution=dem.grid.resolution, tile_size=tile)
@@ -437,7 +439,10 @@ def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | 
     if params.target_max_error > 0:
         _check_max_error(an, params.target_max_error)
     count = int(dem.mask.sum()) if point_count is None else point_count
-    choice = ratemodel.choose(an, params, count, HEADER_ESTIMATE)
+    fixed = HEADER_ESTIMATE
+    if params.target_bpp > 0:
+        fixed = _length(tiled_masks(an)) + math.ceil(HEADER_ESTIMATE * share)
+    choice = ratemodel.choose(an, params, count, fixed)
     return params.replace(cutoff=choice.trial.cutoff, step=choice.trial.step), choice.analysis.refill_step
 
 

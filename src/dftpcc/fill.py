@@ -15,8 +15,9 @@ import numpy as np
 from . import kernels
 from .dem import DEM
 from .errors import InvalidInputError
+from .sums import dot
 
-__all__ = ["fit_plane", "plane_values", "add_plane", "fill_empty", "footprint"]
+__all__ = ["fit_plane", "plane_from_moments", "PlaneSums", "plane_values", "add_plane", "fill_empty", "footprint"]
 
 
 def fit_plane(dem: DEM) -> tuple[float, float, float]:
@@ -28,7 +29,13 @@ def fit_plane(dem: DEM) -> tuple[float, float, float]:
         return (float(z.mean()) if z.size else 0.0, 0.0, 0.0)
     # Normal equations on centred coordinates: 3 x 3, well conditioned, and
     # a few passes over the cells instead of a least-squares solve on them.
-    mx, my, mz, xx, xy, yy, xz, yz = _plane_sums(dem.heights, mask)
+    return plane_from_moments(*_plane_sums(dem.heights, mask))
+
+
+def plane_from_moments(mx: float, my: float, mz: float, xx: float, xy: float, yy: float, xz: float,
+                       yz: float) -> tuple[float, float, float]:
+    """The plane ``a + b*col + c*row`` of :func:`fit_plane` from the means of the cells' column, row and
+    height and the (equally scaled) sums of products of their centred values: the normal equations."""
     normal = np.array([[xx, xy], [xy, yy]])
     rhs = np.array([xz, yz])
     try:
@@ -36,6 +43,39 @@ def fit_plane(dem: DEM) -> tuple[float, float, float]:
     except np.linalg.LinAlgError:  # all cells on one line: fit along it only
         b, c = np.linalg.lstsq(normal, rhs, rcond=None)[0]
     return float(mz - b * mx - c * my), float(b), float(c)
+
+
+class PlaneSums:
+    """:func:`fit_plane` for a map read in pieces: the sums of one pass over its occupied cells.
+
+    Heights are summed about ``ref`` (metres; the first piece's mean is a good choice), so that the
+    raw second moments keep their precision over a map too large to centre in memory first.
+    """
+
+    def __init__(self, ref: float):
+        self.ref = ref
+        self.moments = np.zeros(9)  # n, z, x, y, xx, xy, yy, xz, yz
+
+    def add(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> None:
+        """Occupied cells at columns ``x`` and rows ``y`` (float, of the whole map) with heights ``z`` (metres)."""
+        z = z - self.ref
+        self.moments += [z.size, z.sum(), x.sum(), y.sum(), dot(x, x), dot(x, y), dot(y, y), dot(x, z), dot(y, z)]
+
+    @property
+    def count(self) -> int:
+        return int(self.moments[0])
+
+    def mean(self) -> float:
+        """The cells' mean height, metres."""
+        return self.ref + self.moments[1] / self.moments[0]
+
+    def plane(self, z0: float) -> tuple[float, float, float]:
+        """The least-squares plane through the cells' heights about ``z0`` (metres)."""
+        n, sz, sx, sy, sxx, sxy, syy, sxz, syz = self.moments
+        mx, my, mz = sx / n, sy / n, sz / n
+        a, b, c = plane_from_moments(mx, my, mz, sxx / n - mx * mx, sxy / n - mx * my, syy / n - my * my,
+                                     sxz / n - mx * mz, syz / n - my * mz)
+        return a - (z0 - self.ref), b, c
 
 
 @kernels.kernel("plane_sums")

@@ -22,33 +22,46 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .sums import dot
 from . import coding, quantizer
 from .cluster import serial
 from .format import MapWriter
 from .dem import DEM, Grid, TileGrid
 from .encoder import Stage, check_heights, choose_for_tiles, no_stage
 from .errors import InvalidInputError, RasterTypeWarning
-from .fill import fill_empty
+from .fill import PlaneSums, fill_empty
 from .params import Params, tile_size_for
 from .rebuild import dem_to_points
-from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_basis, base_heights, base_limit, base_order,
+from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_coefficients, base_heights, base_limit, base_order,
                     code_tile, coded_window, tile_overlap)
 
 __all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
 
 #: A GeoTIFF of more cells than this is coded band by band (and a tiled map of more is decoded so).
 STREAM_CELLS = 16_000_000
-#: Rate control chooses the cutoff and step on this many tiles a side from the map's middle.
+#: Rate control chooses the cutoff and step on this many tiles a side from the map's middle
+#: (fewer where they would pass :data:`SAMPLE_CELLS`).
 SAMPLE_TILES = 2
-#: Rows of the raster the first pass reads at a time.
+#: Most cells of rate control's sample (at least one tile). Its trials hold about a kilobyte a cell
+#: at a max-error target (4.3 GB on 2 x 2 tiles of 1,024, 1.2 GB on one): the sample, not the map,
+#: set the peak of a run.
+SAMPLE_CELLS = 1 << 21
+#: Rows and columns of the raster the first pass reads at a time: its sums hold several arrays of a
+#: window's occupied cells, so a window is bounded whatever the map's width. A multiple of every
+#: decimation block (:data:`SAMPLES_PER_TILE` into a power-of-two tile), so that no block straddles two.
 SURVEY_ROWS = 128
+SURVEY_COLS = 4096
 #: Samples a tile side of the decimated copy the base layer is computed from.
 SAMPLES_PER_TILE = 16
 #: Attempts at an RMSE target before giving up: a step chosen on part of the map may miss on all of it.
 RMSE_ATTEMPTS = 3
 #: The middle block's RMSE target, as a fraction of the map's: room for the rest of the map to differ.
 SAMPLE_RMSE_MARGIN = 0.95
+#: The middle block's size target (bits per point), as a fraction of the map's, for the same reason.
+SAMPLE_BPP_MARGIN = 0.95
+#: Bits a coded coefficient costs for each halving of the step, about (entropy-coded uniform
+#: quantizer: one bit per halving): a size target missed on the whole map takes a coarser step by
+#: as many halvings as the excess's share of the bits times this.
+BITS_PER_HALVING = 4.0
 #: Output formats written band by band.
 STREAM_FORMATS = ("tif", "tiff", "las", "laz")
 #: Tile columns of the block a band is read, reduced and coded (or decoded and written) in: memory
@@ -73,67 +86,32 @@ def _gdal_env() -> Any:
 
 
 class _Raster:
-    """A north-up GeoTIFF read by grid rows (row 0 south, as dftpcc's grids).
-
-    Pickled, it is its path and geometry: a dask worker opens the file itself and reads its own
-    windows, so no cells travel from the main process.
-    """
+    """A GeoTIFF read by windows (:class:`~dftpcc.io.geotiff.RasterWindows`) under the bounded GDAL
+    cache; a dask worker reopens it by its path, so no cells travel from the main process."""
 
     in_memory = False
 
     def __init__(self, path: str | os.PathLike[str]):
-        import rasterio
+        from .io.geotiff import RasterWindows  # rasterio, loaded only for a raster
 
-        try:
-            with _gdal_env():
-                self.ds = rasterio.open(path)
-        except Exception as exc:  # noqa: BLE001 - GDAL's own errors on a bad file
-            raise InvalidInputError(f"{path}: cannot read as a GeoTIFF DEM: {exc}") from None
-        t = self.ds.transform
-        if t.b != 0 or t.d != 0 or t.a <= 0:
-            self.ds.close()
-            raise InvalidInputError(f"{path}: pixels are rotated or flipped; give a --resolution to grid its points")
-        self.path, self.t = path, t
-        self.rows, self.cols = self.ds.height, self.ds.width
-        self.flipped = t.e < 0
-        self.crs = {"wkt": self.ds.crs.to_wkt()} if self.ds.crs else {}
+        self.windows = RasterWindows(path, cache_bytes=GDAL_CACHE_BYTES)
+        self.path, self.rows, self.cols, self.crs = path, self.windows.rows, self.windows.cols, self.windows.crs
         self.point_count: int | None = None  # the valid pixels, counted on the first pass
 
-    def __getstate__(self) -> dict[str, Any]:
-        return {key: value for key, value in self.__dict__.items() if key != "ds"}
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        import rasterio
-
-        self.__dict__.update(state)
-        with _gdal_env():
-            self.ds = rasterio.open(self.path)
+    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        return self.windows.read(r0, r1, c0, c1)
 
     def counts(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> None:
         return None
 
-    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Heights (float64, NaN where empty) and validity of grid rows [r0, r1) and columns [c0, c1)."""
-        from rasterio.windows import Window
-
-        c1 = self.cols if c1 is None else c1
-        f0 = self.rows - r1 if self.flipped else r0
-        with _gdal_env():
-            band = self.ds.read(1, window=Window(c0, f0, c1 - c0, r1 - r0), masked=True)
-        heights = np.asarray(band.astype(np.float64).filled(np.nan))
-        valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
-        if self.flipped:
-            heights, valid = heights[::-1], valid[::-1]
-        return heights, valid
-
     def grid(self, z0: float) -> Grid:
-        t = self.t
-        y0 = t.f + t.e * self.rows if self.flipped else t.f
-        res_y = abs(t.e) if abs(abs(t.e) - t.a) > 1e-9 * t.a else None
-        return Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=self.rows, cols=self.cols, resolution_y=res_y)
+        return self.windows.grid(z0)
+
+    def check_unchanged(self) -> None:
+        self.windows.check_unchanged()
 
     def close(self) -> None:
-        self.ds.close()
+        self.windows.close()
 
 
 class _Grid:
@@ -163,6 +141,9 @@ class _Grid:
         return Grid(x0=g.x0, y0=g.y0, z0=z0, resolution=g.resolution, rows=g.rows, cols=g.cols, angle=g.angle,
                     resolution_y=g.resolution_y)
 
+    def check_unchanged(self) -> None:
+        pass
+
     def close(self) -> None:
         pass
 
@@ -173,49 +154,45 @@ def _bands(rows: int, tile: int) -> Iterator[tuple[int, int]]:
 
 
 def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
-    """First pass: the reference height, the plane, the height range and a decimated copy."""
+    """First pass: the reference height, the plane (:class:`~dftpcc.fill.PlaneSums`), the height
+    range and a decimated copy (block sums and counts)."""
     d = max(1, tile // SAMPLES_PER_TILE)
     rb, cb = -(-raster.rows // d), -(-raster.cols // d)
     sums, counts = np.zeros((rb, cb)), np.zeros((rb, cb))
-    moments = np.zeros(9)  # n, z, x, y, xx, xy, yy, xz, yz (z about the first band's mean)
-    ref, lowest, highest = None, math.inf, -math.inf
+    fit: PlaneSums | None = None
+    lowest, highest = math.inf, -math.inf
     on_stage("read")
-    # Thin bands: the sums need several arrays of a band's occupied cells, not only its heights.
+    # Small windows: the sums need several arrays of a window's occupied cells, not only its heights.
     for r0, r1 in _bands(raster.rows, SURVEY_ROWS):
         on_stage("read", r0 / raster.rows)
-        h, m = raster.read(r0, r1)
-        if not m.any():
-            continue
-        rows, cols = np.nonzero(m)
-        z = h[rows, cols]
-        ref = float(z.mean()) if ref is None else ref
-        lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
-        z = z - ref
-        x, y = cols.astype(float), (rows + r0).astype(float)
-        moments += [z.size, z.sum(), x.sum(), y.sum(), dot(x, x), dot(x, y), dot(y, y), dot(x, z), dot(y, z)]
-        np.add.at(sums, ((rows + r0) // d, cols // d), z)
-        np.add.at(counts, ((rows + r0) // d, cols // d), 1.0)
-    if ref is None:
+        for c0, c1 in _bands(raster.cols, SURVEY_COLS):
+            h, m = raster.read(r0, r1, c0, c1)
+            if not m.any():
+                continue
+            rows, cols = np.nonzero(m)
+            z = h[rows, cols]
+            del h
+            fit = PlaneSums(float(z.mean())) if fit is None else fit  # heights about the first window's mean
+            lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
+            rows += r0
+            cols += c0
+            fit.add(cols.astype(float), rows.astype(float), z)
+            rows //= d
+            cols //= d
+            np.add.at(sums, (rows, cols), z - fit.ref)
+            np.add.at(counts, (rows, cols), 1.0)
+    if fit is None:
         raise InvalidInputError(f"{raster.path}: every pixel is nodata")
     check_heights(lowest, highest)
-    n, sz, sx, sy, sxx, sxy, syy, sxz, syz = moments
-    z0 = ref + sz / n
-    # The plane a + b*col + c*row through the heights about z0 (normal equations, centred).
-    mx, my, mz = sx / n, sy / n, sz / n
-    cov = np.array([[sxx / n - mx * mx, sxy / n - mx * my], [sxy / n - mx * my, syy / n - my * my]])
-    rhs = np.array([sxz / n - mx * mz, syz / n - my * mz])
-    try:
-        b, c = np.linalg.solve(cov, rhs)
-    except np.linalg.LinAlgError:
-        b, c = np.linalg.lstsq(cov, rhs, rcond=None)[0]
-    a = float(mz - b * mx - c * my) - (z0 - ref)
-    return {"z0": z0, "plane": (a, float(b), float(c)), "block": d, "sums": sums, "counts": counts,
-            "ref": ref, "cells": int(n)}
+    z0 = fit.mean()
+    return {"z0": z0, "plane": fit.plane(z0), "block": d, "sums": sums, "counts": counts,
+            "ref": fit.ref, "cells": fit.count}
 
 
 def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int, cycles: int
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The base layer's coefficients (exact, unquantized) from the decimated copy."""
+    """The base layer's coefficients (exact, unquantized) from the decimated copy
+    (:func:`dftpcc.tiles.base_coefficients` of its block means, detrended and filled)."""
     i, j, radius, angle = base_order(shape, tile, 0.0, cycles)
     if i.size == 0:
         return i, j, radius, angle, np.zeros(0)
@@ -229,19 +206,18 @@ def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int
     means = np.where(mask, sums / np.maximum(counts, 1) + survey["ref"] - survey["z0"], 0.0)
     means -= np.where(mask, a + b * cols_c[None, :] + c * rows_c[:, None], 0.0)
     filled = fill_empty(means, mask, method="smooth")
-    ki, kj = int(i.max()) + 1, int(j.max()) + 1
-    # Each block stands for its cells: the basis summed over them.
-    br = np.add.reduceat(base_basis(shape[0], ki, 0, shape[0]), np.arange(0, shape[0], d), axis=0)
-    bc = np.add.reduceat(base_basis(shape[1], kj, 0, shape[1]), np.arange(0, shape[1], d), axis=0)
-    return i, j, radius, angle, (br.T @ filled @ bc)[i, j]
+    return i, j, radius, angle, base_coefficients(filled, i, j, rows=shape[0], cols=shape[1], block=d)
 
 
 def _sample(raster: Any, grid: Grid, tile: int, gridding_rmse: float) -> DEM:
-    """A block of :data:`SAMPLE_TILES` x :data:`SAMPLE_TILES` tiles from the map's middle, in memory."""
+    """A block of :data:`SAMPLE_TILES` x :data:`SAMPLE_TILES` tiles from the map's middle (fewer, down to
+    one, where they would pass :data:`SAMPLE_CELLS`), in memory."""
     tiling = TileGrid(grid.rows, grid.cols, tile)
 
+    side = max(1, min(SAMPLE_TILES, math.isqrt(SAMPLE_CELLS) // tile))
+
     def span(count: int, size: int) -> tuple[int, int]:
-        n = min(SAMPLE_TILES, -(-size // tile))
+        n = min(side, -(-size // tile))
         first = max(0, count // 2 - n // 2)
         return first * tile, min(size, (first + n) * tile)
 
@@ -249,8 +225,8 @@ def _sample(raster: Any, grid: Grid, tile: int, gridding_rmse: float) -> DEM:
     c0, c1 = span(tiling.tile_cols, grid.cols)
     h, m = raster.read(r0, r1, c0, c1)
     if not m.any():  # an empty middle: the first band of tiles that has data
-        for r0, r1 in _bands(grid.rows, tile * SAMPLE_TILES):
-            h, m = raster.read(r0, r1, 0, min(grid.cols, tile * SAMPLE_TILES * 4))
+        for r0, r1 in _bands(grid.rows, tile * side):
+            h, m = raster.read(r0, r1, 0, min(grid.cols, tile * side * 4))
             c0, c1 = 0, h.shape[1]
             if m.any():
                 break
@@ -267,8 +243,9 @@ def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], pa
     Parameters
     ----------
     params : Params
-        A target RMSE or maximum error, or a cutoff and step (automatic
-        when 0); ``target_bpp`` needs the whole map and is refused.
+        A target RMSE, maximum error or size (``target_bpp``), or a cutoff and step (automatic
+        when 0). The cutoff and step are chosen on the map's middle; an RMSE or size target is
+        checked on the whole map, the step changed and the map coded again if missed.
     map_tiles : callable, optional
         Where the tiles are coded (:func:`dftpcc.cluster.executor`).
     write : callable
@@ -278,8 +255,9 @@ def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], pa
     Raises
     ------
     InvalidInputError
-        A raster that is not a north-up DEM, no valid pixel, heights out of range, a size target,
-        or an RMSE target missed on the whole map after :data:`RMSE_ATTEMPTS` steps chosen on part of it.
+        A raster that is not a north-up DEM, no valid pixel, heights out of range, a file that
+        changed while it was read, or an RMSE or size target missed on the whole map after
+        :data:`RMSE_ATTEMPTS` steps chosen on part of it.
     """
     _compress(_Raster(src), dst, params, map_tiles=map_tiles, on_stage=on_stage, write=write)
 
@@ -307,26 +285,29 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
         bi, bj, bradius, bangle, bcoefs = _base_coefficients(survey, grid.shape, tile, cycles)
         on_stage("rate control")
         aim = params.replace(target_rmse=params.target_rmse * SAMPLE_RMSE_MARGIN) if params.target_rmse else params
-        chosen, refill = choose_for_tiles(_sample(raster, grid, tile, gridding_rmse), aim, tile, base_cycles=cycles)
-        chosen = chosen.replace(target_rmse=params.target_rmse)
+        aim = aim.replace(target_bpp=params.target_bpp * SAMPLE_BPP_MARGIN) if params.target_bpp else aim
+        sample = _sample(raster, grid, tile, gridding_rmse)
+        chosen, refill = choose_for_tiles(sample, aim, tile, base_cycles=cycles,
+                                          share=sample.grid.size / grid.size if params.target_bpp else None)
+        del sample
+        chosen = chosen.replace(target_rmse=params.target_rmse, target_bpp=params.target_bpp)
         chosen = chosen.replace(resolution=grid.resolution)
         for attempt in range(RMSE_ATTEMPTS):
             writer, stats, nb, base_blob = _code_bands(raster, grid, chosen, refill, tile, survey,
                                                        (bi, bj, bradius, bangle, bcoefs), run, on_stage,
                                                        gridding_rmse, spread)
-            if params.target_rmse <= 0 or stats["dem_rmse_m"] <= params.target_rmse:
+            missed = _missed(writer, stats, nb, base_blob, params)
+            if missed is None:
                 break
+            ratio = _step_ratio(writer, stats, nb, base_blob, params)
             writer.close()
             if attempt + 1 == RMSE_ATTEMPTS:
-                raise InvalidInputError(
-                    f"target RMSE {params.target_rmse:g} m was missed on the whole map ({stats['dem_rmse_m']:.4g} m "
-                    f"with the step chosen on its middle); give a smaller target or a --step")
-            # Part of the error is the low-pass's, which the step does not change: shrink the step
-            # by the square of the miss, a little inside.
-            ratio = SAMPLE_RMSE_MARGIN * (params.target_rmse / stats["dem_rmse_m"]) ** 2
+                raise InvalidInputError(f"{missed} on the whole map with the step chosen on its middle; "
+                                        f"give a {'larger' if params.target_bpp else 'smaller'} target or a --step")
             chosen = chosen.replace(step=quantizer.short_step(chosen.step * ratio))
         with writer:
             start = writer.head(stats, coef_count=nb, base=base_blob)  # every check, before the file is created
+            raster.check_unchanged()  # the tiles coded are of the file surveyed, or nothing is written
 
             def fill(tmp: Path) -> None:
                 with open(tmp, "wb") as out:
@@ -337,6 +318,33 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
             write(dst, fill)
     finally:
         raster.close()
+
+
+def _bits_per_point(writer: MapWriter, stats: dict[str, Any], nb: int, base_blob: bytes) -> float:
+    """The file's bits per original point: its header and index (:meth:`MapWriter.head`) and its tiles' sections."""
+    size = len(writer.head(stats, coef_count=nb, base=base_blob)) + sum(entry[2] for entry in writer.entries)
+    return 8.0 * size / writer.point_count
+
+
+def _missed(writer: MapWriter, stats: dict[str, Any], nb: int, base_blob: bytes, params: Params) -> str | None:
+    """What a coded map misses of an RMSE or size target, or None (met, or neither asked)."""
+    if params.target_rmse > 0 and stats["dem_rmse_m"] > params.target_rmse:
+        return f"target RMSE {params.target_rmse:g} m was missed ({stats['dem_rmse_m']:.4g} m)"
+    if params.target_bpp > 0:
+        bpp = _bits_per_point(writer, stats, nb, base_blob)
+        if bpp > params.target_bpp:
+            return f"target {params.target_bpp:g} bits/point was missed ({bpp:.4g})"
+    return None
+
+
+def _step_ratio(writer: MapWriter, stats: dict[str, Any], nb: int, base_blob: bytes, params: Params) -> float:
+    """How much to scale the step after a miss of :func:`_missed`."""
+    if params.target_rmse > 0 and stats["dem_rmse_m"] > params.target_rmse:
+        # Part of the error is the low-pass's, which the step does not change: shrink the step
+        # by the square of the miss, a little inside.
+        return SAMPLE_RMSE_MARGIN * (params.target_rmse / stats["dem_rmse_m"]) ** 2
+    bpp = _bits_per_point(writer, stats, nb, base_blob)
+    return 2.0 ** (BITS_PER_HALVING * (bpp - SAMPLE_BPP_MARGIN * params.target_bpp) / bpp)
 
 
 @dataclass(frozen=True)

@@ -154,18 +154,28 @@ def base_heights(values: np.ndarray, i: np.ndarray, j: np.ndarray, shape: tuple[
 
 
 def base_coefficients(filled: np.ndarray, i: np.ndarray, j: np.ndarray, *, row_start: int = 0,
-                      rows: int | None = None) -> np.ndarray:
+                      rows: int | None = None, block: int = 1, cols: int | None = None) -> np.ndarray:
     """The base coefficients (i, j) of a filled map, or a band of its rows' share of them.
 
     The DCT is separable, so a band ``filled`` of the map's rows starting at
     ``row_start`` contributes ``basis_rows.T @ band @ basis_cols``; the bands
     of a map add up to its coefficients (a map larger than memory is read band
     by band). ``rows``: the map's row count (default: the band is the map).
+
+    ``block`` > 1: ``filled`` holds the means of ``block`` x ``block`` cells of a whole map of
+    ``rows`` x ``cols`` cells (the last blocks cut by its edges), a decimated copy of a map too
+    large to hold: each mean stands for its cells, so each basis vector is summed over them.
     """
-    n_rows = filled.shape[0] if rows is None else rows
     if i.size == 0:
         return np.zeros(0)
     ki, kj = int(i.max()) + 1, int(j.max()) + 1
+    if block > 1:
+        if rows is None or cols is None or row_start:
+            raise ValueError("a decimated map's coefficients need the whole map's rows and cols")
+        br = np.add.reduceat(base_basis(rows, ki, 0, rows), np.arange(0, rows, block), axis=0)
+        bc = np.add.reduceat(base_basis(cols, kj, 0, cols), np.arange(0, cols, block), axis=0)
+        return (br.T @ filled @ bc)[i, j]
+    n_rows = filled.shape[0] if rows is None else rows
     br = base_basis(n_rows, ki, row_start, row_start + filled.shape[0])
     bc = base_basis(filled.shape[1], kj, 0, filled.shape[1])
     return (br.T @ filled @ bc)[i, j]

@@ -23,7 +23,7 @@ from ..errors import InvalidInputError, RasterTypeWarning
 from .atomic import atomic_write, writer_errors
 from .reader import Reader
 
-__all__ = ["GeoTiffReader", "read_raster_dem", "pixel_centres", "dem_from_geotiff", "write_geotiff", "SQUARE_TOLERANCE",
+__all__ = ["GeoTiffReader", "RasterWindows", "read_raster_dem", "pixel_centres", "dem_from_geotiff", "write_geotiff", "SQUARE_TOLERANCE",
            "raster_source", "output_type", "ROUNDS_BACK_BELOW"]
 
 #: Pixels whose sides differ by less than this fraction count as square.
@@ -54,13 +54,126 @@ def read_raster_dem(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarra
         ``{"wkt": ...}``, or empty when the file has none.
     """
     with _raster_errors(path), rasterio.open(path) as src:
-        band = src.read(1, masked=True)
-        crs = {"wkt": src.crs.to_wkt()} if src.crs else {}
-        transform = src.transform
+        heights, valid = _read_band(src, None)
+        return heights, valid, src.transform, _crs_of(src)
+
+
+def _stamp(path: str | os.PathLike[str]) -> tuple[int, int]:
+    """A file's length (bytes) and modification time (ns); (-1, -1) when it is gone."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return -1, -1
+    return st.st_size, st.st_mtime_ns
+
+
+def _crs_of(src: Any) -> dict[str, Any]:
+    return {"wkt": src.crs.to_wkt()} if src.crs else {}
+
+
+def _read_band(src: Any, window: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Heights (float64, NaN where empty) and validity of the first band's ``window`` (None: all), rows as stored."""
+    band = src.read(1, window=window, masked=True)
     # Integer DEMs (int16 SRTM, MOLA) cannot hold NaN: convert before filling nodata.
     heights = np.asarray(band.astype(np.float64).filled(np.nan), dtype=np.float64)
     valid = ~np.ma.getmaskarray(band) & np.isfinite(heights)
-    return heights, valid, transform, crs
+    return heights, valid
+
+
+class RasterWindows:
+    """A north-up GeoTIFF DEM read by windows of grid rows and columns (row 0 south, as dftpcc's grids).
+
+    The one way a GeoTIFF's pixels become grid cells: :func:`dem_from_geotiff` reads it as one
+    window, the band coder (:mod:`dftpcc.stream`) a block of tiles at a time. Pickled, it is its
+    path and geometry: a dask worker reopens the file and reads its own windows.
+
+    Parameters
+    ----------
+    path : path
+    cache_bytes : int, optional
+        GDAL's block cache while the file is opened and read, bytes (GDAL's default, a share of
+        the machine's memory, when None).
+
+    Raises
+    ------
+    InvalidInputError
+        Not a readable GeoTIFF; rotated or east-to-west pixels (read it as points instead, with a
+        resolution).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, cache_bytes: int | None = None):
+        self.path, self.cache_bytes = path, cache_bytes
+        with _raster_errors(path), self._env():
+            self.ds = rasterio.open(path)
+        t = self.ds.transform
+        if t.b != 0 or t.d != 0 or t.a <= 0:
+            self.ds.close()
+            raise InvalidInputError(f"{path}: pixels are rotated or flipped; give a --resolution to grid its points")
+        self.transform = t
+        self.rows, self.cols = self.ds.height, self.ds.width
+        # Grid rows run south to north; a north-up file's row 0 is the northern edge.
+        self.flipped = t.e < 0
+        self.crs = _crs_of(self.ds)
+        nodata = self.ds.nodata
+        self.source = RasterSource(str(self.ds.dtypes[0]), None if nodata is None else float(nodata))
+        #: The file's length and modification time when opened: a read that spans minutes (or another
+        #: process, a worker) checks it still reads that file (:meth:`check_unchanged`).
+        self.stamp = _stamp(path)
+
+    def check_unchanged(self) -> None:
+        """Raise :class:`InvalidInputError` if the file's length or modification time is not the one
+        it had when opened: cells read before and after a change would make a map of two files."""
+        now = _stamp(self.path)
+        if now != self.stamp:
+            raise InvalidInputError(f"{self.path}: the file changed while it was read (length {self.stamp[0]:,} "
+                                    f"-> {now[0]:,} bytes, or modified since); nothing was written: run again on "
+                                    f"the finished file")
+
+    def _env(self) -> Any:
+        return rasterio.Env(GDAL_CACHEMAX=self.cache_bytes) if self.cache_bytes is not None else rasterio.Env()
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {key: value for key, value in self.__dict__.items() if key != "ds"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        # A worker reopening the file checks, at its first read, that it is the one its client
+        # opened (raised there, as the task's own error: an error while unpickling reaches the
+        # client as a bare Exception).
+        self._reopened = True
+        with _raster_errors(self.path), self._env():
+            self.ds = rasterio.open(self.path)
+
+    def __enter__(self) -> "RasterWindows":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Heights (metres, float64, NaN where empty) and validity of grid rows [r0, r1) and columns [c0, c1)."""
+        from rasterio.windows import Window
+
+        if self.__dict__.pop("_reopened", False):
+            self.check_unchanged()
+        c1 = self.cols if c1 is None else c1
+        f0 = self.rows - r1 if self.flipped else r0
+        with _raster_errors(self.path), self._env():
+            heights, valid = _read_band(self.ds, Window(c0, f0, c1 - c0, r1 - r0))
+        if self.flipped:
+            heights, valid = heights[::-1], valid[::-1]
+        return heights, valid
+
+    def grid(self, z0: float) -> Grid:
+        """The grid of the file's pixels with its datum at ``z0`` metres (non-square pixels keep both spacings)."""
+        t = self.transform
+        y0 = t.f + t.e * self.rows if self.flipped else t.f
+        # Planetary DEMs often have slightly (or very) non-square pixels.
+        res_y = abs(t.e) if abs(abs(t.e) - t.a) > SQUARE_TOLERANCE * t.a else None
+        return Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=self.rows, cols=self.cols, resolution_y=res_y)
+
+    def close(self) -> None:
+        self.ds.close()
 
 
 def pixel_centres(heights: np.ndarray, valid: np.ndarray, transform: Affine) -> np.ndarray:
@@ -77,6 +190,7 @@ def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]
 
     Heights are relative to their mean (metres); the grid's rows run south
     to north, its cells are the pixels (non-square pixels keep both spacings).
+    The whole file is one window of :class:`RasterWindows`.
 
     Raises
     ------
@@ -84,23 +198,14 @@ def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]
         Rotated or east-to-west pixels (read it as points instead, with a
         resolution), or no valid pixel.
     """
-    heights, valid, t, crs = read_raster_dem(path)
-    source = raster_source(path)
-    if t.b != 0 or t.d != 0 or t.a <= 0:
-        raise InvalidInputError(f"{path}: pixels are rotated or flipped; give a --resolution to grid its points")
-    if not valid.any():
-        raise InvalidInputError(f"{path}: every pixel is nodata")
-    rows, cols = heights.shape
-    # Grid rows run south to north; a north-up file's row 0 is the northern edge.
-    flipped = t.e < 0
-    h = heights[::-1] if flipped else heights
-    m = valid[::-1] if flipped else valid
-    y0 = t.f + t.e * rows if flipped else t.f
-    z0 = float(h[m].mean())
-    # Planetary DEMs often have slightly (or very) non-square pixels: keep both spacings.
-    res_y = abs(t.e) if abs(abs(t.e) - t.a) > SQUARE_TOLERANCE * t.a else None
-    grid = Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=rows, cols=cols, resolution_y=res_y)
-    return DEM(grid=grid, heights=np.where(m, h - z0, 0.0), mask=m, gridding_rmse=0.0, source=source), crs
+    with RasterWindows(path) as raster:
+        h, m = raster.read(0, raster.rows)
+        if not m.any():
+            raise InvalidInputError(f"{path}: every pixel is nodata")
+        z0 = float(h[m].mean())
+        dem = DEM(grid=raster.grid(z0), heights=np.where(m, h - z0, 0.0), mask=m, gridding_rmse=0.0,
+                  source=raster.source)
+        return dem, raster.crs
 
 
 def raster_source(path: str | os.PathLike[str]) -> RasterSource:
