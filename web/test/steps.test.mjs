@@ -5,19 +5,23 @@ import assert from "node:assert/strict";
 import { readFileSync } from "node:fs";
 import { join } from "node:path";
 import { test } from "node:test";
-import { addIdct, decayOf, prefix, radiusLimit } from "../dist/internals.mjs";
+import { addIdct, cutOf, decayOf, prefix } from "../dist/internals.mjs";
 import { fixtures } from "./helpers.mjs";
 
 const M = JSON.parse(readFileSync(join(fixtures(), "manifest.json"), "utf8"));
 
 for (const c of M.orders) {
-  test(`coefficient order of a ${c.rows} x ${c.cols} ${c.transform}/${c.storage} grid at cutoff ${c.cutoff} is the writer's`, () => {
+  const rule = c.legacy ? "legacy (1.0, 1.1)" : "integer (1.2)";
+  test(`${rule} coefficient order of a ${c.rows} x ${c.cols} ${c.transform}/${c.storage} grid at cutoff ${c.cutoff} is the writer's`, () => {
     const kind = c.transform === "dct" ? "dct" : c.storage === "complex64" ? "dft-full" : "dft-half";
-    const p = prefix(c.rows, c.cols, kind, radiusLimit(c.rows, c.cols, c.cutoff));
+    const p = prefix(c.rows, c.cols, kind, cutOf(c.rows, c.cols, kind, c.cutoff, c.legacy));
     assert.equal(p.pos.length, c.order.length);
     let moved = 0;
     for (let k = 0; k < c.order.length; k++) if (p.pos[k] !== c.order[k]) moved++;
     assert.equal(moved, 0, `${moved} coefficients out of place`);
+    let radii = 0;
+    for (let k = 0; k < c.radius.length; k++) if (p.radius[k] !== c.radius[k]) radii++;
+    assert.equal(radii, 0, `${radii} radii differ from the writer's (their bands could)`);
     for (const sectors of [1, 4, 16]) {
       let differ = 0;
       for (let k = 0; k < c.angle.length; k++) {
