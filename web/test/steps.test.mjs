@@ -45,3 +45,24 @@ test("the inverse DCT is scipy's idctn(type=2, norm='ortho') within 1e-12", () =
   for (let k = 0; k < out.length; k++) worst = Math.max(worst, Math.abs(out[k] - heights[k]));
   assert.ok(worst < 1e-12, `differs by ${worst}`);
 });
+
+test("the inverse DCT by FFT equals plain sums on every FFT path (powers of two, mixed radix, Bluestein)", () => {
+  // 1024: fft.js; 495 = 3^2 x 5 x 11, 1197 = 3^2 x 7 x 19, 37: the mixed-radix FFT (a generic radix);
+  // 804 = 4 x 3 x 67, 643 and 1009 (primes): Bluestein over fft.js.
+  let seed = 1;
+  const rnd = () => (seed = (seed * 16807) % 2147483647) / 2147483647 - 0.5;
+  for (const N of [1, 3, 37, 495, 643, 804, 1009, 1024, 1197]) {
+    for (const M of [5, 96, 559]) {
+      const K = Math.min(N, 1 + Math.floor(N / 3));
+      const L = Math.min(M, 1 + Math.floor(M / 2));
+      const g = Float64Array.from({ length: K * L }, rnd);
+      const byFft = new Float64Array(N * M);
+      const bySums = new Float64Array(N * M);
+      addIdct(byFft, g, K, L, N, M, 0, N, 0, M, "fft");
+      addIdct(bySums, g, K, L, N, M, 0, N, 0, M, "sums");
+      let worst = 0;
+      for (let k = 0; k < byFft.length; k++) worst = Math.max(worst, Math.abs(byFft[k] - bySums[k]));
+      assert.ok(worst < 1e-11, `${N} x ${M}: differs by ${worst}`);
+    }
+  }
+});
