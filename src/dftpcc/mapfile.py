@@ -16,7 +16,7 @@ from typing import Any, BinaryIO, Callable, Sequence
 
 import numpy as np
 
-from .format import (MAGIC, VERSION, VERSION_TILED, RemoteSource, Source, cells_allowed, check_max_bytes,
+from .format import (MAGIC, VERSION, RemoteSource, Source, cells_allowed, check_max_bytes,
                      check_max_cells, is_url, read_tile, unpack_source)
 from . import kernels
 from .decoder import Whole, decode_dem, decode_window
