@@ -5,9 +5,9 @@
 // target, whose residual layer is decoded too), and so is a S x S mosaic of them (4 M cells by
 // default: benchmarks/bench_big.py's layout); each default file's DEM is LERC-encoded with maxZErr
 // = the file's stated maximum error (bench/lerc_encode.py). The table gives million cells (rows x
-// cols) per second: medians of N decodes after a warm-up. Node and Python: CPU time, both pinned to
-// core 0 (taskset -c 0 when it exists), so a shared machine's other work does not count; Chromium:
-// wall time in the page (performance.now), its processes pinned to core 0 as well.
+// cols) per second: medians of N decodes after a warm-up, in CPU time, so that a shared machine's
+// other work does not count: Node's and Python's process time, both pinned to core 0 (taskset -c 0
+// when it exists), and Chromium's page main thread (DevTools task durations in thread ticks).
 import { spawnSync } from "node:child_process";
 import { createReadStream, existsSync, mkdtempSync, readdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { createServer } from "node:http";
@@ -51,7 +51,7 @@ function timeCpu(f) {
   return { result, cold: cold / 1000, seconds: median(times) / 1000 };
 }
 
-/** The same timings in headless Chromium: {name: {js, lerc}} wall seconds (medians). */
+/** The same timings in headless Chromium: {name: {js, lerc}} CPU seconds of the page's main thread (medians). */
 async function inChromium(dir, names) {
   const { default: puppeteer } = await import("puppeteer-core");
   const types = { ".mjs": "text/javascript", ".js": "text/javascript", ".wasm": "application/wasm", ".html": "text/html" };
@@ -83,34 +83,37 @@ async function inChromium(dir, names) {
     const page = await browser.newPage();
     await page.goto(url);
     if (pinned) pinTree(browser.process().pid);
-    const out = await page.evaluate(async (names, repeats) => {
+    // CPU time of the page's main thread, as for Node and Python: the DevTools protocol's task
+    // durations measured in thread ticks (a shared machine's other work does not count).
+    const cdp = await page.createCDPSession();
+    await cdp.send("Performance.enable", { timeDomain: "threadTicks" });
+    const taskSeconds = async () => (await cdp.send("Performance.getMetrics")).metrics.find((m) => m.name === "TaskDuration").value;
+    await page.evaluate(async () => {
       const { decode } = await import("/dftpcc.mjs");
       const Lerc = await import("/lerc/LercDecode.es.js");
       await Lerc.load({ locateFile: (name) => `/lerc/${name}` });
-      const med = (v) => [...v].sort((a, b) => a - b)[Math.floor(v.length / 2)];
-      const time = (f) => {
-        f();
-        const t = [];
-        for (let k = 0; k < repeats; k++) {
-          const t0 = performance.now();
-          f();
-          t.push(performance.now() - t0);
-        }
-        return med(t) / 1000;
-      };
-      const res = {};
-      for (const name of names) {
-        const data = new Uint8Array(await (await fetch(`/${name}.dftpc`)).arrayBuffer());
-        const r = { js: time(() => decode(data)) };
-        const lerc = await fetch(`/${name}.lerc`);
-        if (lerc.ok) {
-          const blob = new Uint8Array(await lerc.arrayBuffer());
-          r.lerc = time(() => Lerc.decode(blob));
-        }
-        res[name] = r;
+      Object.assign(window, { decodeDftpcc: decode, Lerc });
+    });
+    const timePage = async (f, arg) => {
+      await page.evaluate(f, arg); // warm-up
+      const t = [];
+      for (let k = 0; k < REPEATS; k++) {
+        const t0 = await taskSeconds();
+        await page.evaluate(f, arg);
+        t.push((await taskSeconds()) - t0);
       }
-      return res;
-    }, names, REPEATS);
+      return median(t);
+    };
+    const out = {};
+    for (const name of names) {
+      const hasLerc = existsSync(join(dir, `${name}.lerc`));
+      await page.evaluate(async (name, hasLerc) => {
+        window.data = new Uint8Array(await (await fetch(`/${name}.dftpc`)).arrayBuffer());
+        window.lercBlob = hasLerc ? new Uint8Array(await (await fetch(`/${name}.lerc`)).arrayBuffer()) : null;
+      }, name, hasLerc);
+      out[name] = { js: await timePage(() => void window.decodeDftpcc(window.data)) };
+      if (hasLerc) out[name].lerc = await timePage(() => void window.Lerc.decode(window.lercBlob));
+    }
     return { out, version: await browser.version() };
   } finally {
     await browser.close();
@@ -179,7 +182,7 @@ build_raster(Path(${JSON.stringify(DATA)}), Path(sys.argv[1]), ${SIDE})`, tif]);
       + `${r.lercBytes ? `${r.lercBytes} (${r.maxError.toPrecision(3)} m)` : ""} | ${rate(r, r.lerc)} | ${rate(r, r.lercChromium)} |`);
   }
   console.log(`\nM cells per second: medians of ${REPEATS} decodes after one warm-up each. Node and Python: CPU time, `
-    + `${pinned ? "both pinned to core 0 (taskset)" : "not pinned"}; Chromium: wall time in the page${pinned ? ", pinned to core 0" : ""}. `
+    + `${pinned ? "both pinned to core 0 (taskset)" : "not pinned"}; Chromium: CPU time of the page's main thread (DevTools task durations in thread ticks)${pinned ? ", pinned to core 0" : ""}. `
     + `node ${process.version}${browser ? `, ${browser.version}` : ""}. LERC at maxZErr = the dftpcc file's stated maximum error.`);
 } finally {
   rmSync(dir, { recursive: true, force: true });
