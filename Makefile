@@ -36,8 +36,10 @@ test-web: $(STAMP) $(WEB_STAMP)
 	cd web && PYTHON=$(abspath $(BIN))/python node test/prepare.mjs
 	cd web && PYTHON=$(abspath $(BIN))/python node --test --test-concurrency=1 test/*.test.mjs
 
-# JS decode speed (M cells/s) in Node against the Python decoder, same run, one core each, on the shared DEMs (~2 min);
-# then the viewer's time to first rendered frame of a 4 M-cell mosaic in headless chromium (~2 min).
+# JS decode speed (M cells/s) in Node and in headless chromium against the Python decoder and the lerc npm
+# decoder (at equal maximum error), same run, one core each, on the shared DEMs and a 4 M-cell mosaic (~6 min;
+# ARGS="--repeats N --side S --no-mosaic --no-browser"); then the viewer's time to first rendered frame of the
+# mosaic in headless chromium (~2 min).
 .PHONY: bench-web
 bench-web: $(STAMP) $(WEB_STAMP)
 	cd web && npm run build

@@ -22,6 +22,7 @@ helper who wrote that module, so a weaker check than a reader who never saw it.
 from __future__ import annotations
 
 import decimal
+import fractions
 import json
 import math
 import struct
@@ -557,7 +558,7 @@ def _residual(p: bytes, mask: np.ndarray) -> np.ndarray:
 
 
 def _layout(rows: int, cols: int, transform: str, storage: str):
-    """Coefficient array shape, and per coefficient (row-major): radius, angle in [0, 1]."""
+    """Coefficient array shape, and per coefficient (row-major): the legacy radius (hypot), angle in [0, 1]."""
     if transform == "dft" and storage == "complex64":
         i, j = np.meshgrid(np.arange(rows) - rows // 2, np.arange(cols) - cols // 2,
                            indexing="ij")
@@ -572,6 +573,49 @@ def _layout(rows: int, cols: int, transform: str, storage: str):
         i, j = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
         return (rows, cols), np.hypot(i / 2, j / 2), np.arctan2(i, j) / (np.pi / 2)
     raise ValueError(f"unknown transform {transform!r}")
+
+
+def _keys(rows: int, cols: int, transform: str, storage: str) -> tuple[np.ndarray, float]:
+    """Version 1.2: the integer key q of each coefficient (row-major), and the radius's scale (sqrt(q) times it)."""
+    if transform == "dft" and storage == "complex64":
+        i, j = np.meshgrid(np.arange(rows) - rows // 2, np.arange(cols) - cols // 2, indexing="ij")
+        return (i * i + j * j).ravel(), 1.0
+    if transform == "dft":
+        k = np.arange(rows)
+        di = np.where(k < (rows + 1) // 2, k, k - rows)
+        i, j = np.meshgrid(di, np.arange(cols // 2 + 1), indexing="ij")
+        return (i * i + j * j).ravel(), 1.0
+    i, j = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    return (i * i + j * j).ravel(), 0.5
+
+
+S_SLACK = float.fromhex("0x1.0000000001198p+0")
+
+
+def _bound(rows: int, cols: int, cutoff: float) -> fractions.Fraction:
+    """A² S² (rows² + cols²), exactly, with A = 1 - cutoff in binary64."""
+    a = fractions.Fraction(1.0 - cutoff)
+    return a * a * fractions.Fraction(S_SLACK) ** 2 * (rows * rows + cols * cols)
+
+
+def _order(rows: int, cols: int, transform: str, storage: str, cutoff: float, legacy: bool):
+    """Which coefficient is which: (coefficient array shape, flat positions kept in stream order,
+    their radii and angles)."""
+    shape, radius, angle = _layout(rows, cols, transform, storage)
+    if legacy:  # 1.0, 1.1: stable sort by the hypot radius, the prefix inside the circle
+        order = np.argsort(radius.ravel(), kind="stable")
+        r_sorted = radius.ravel()[order]
+        limit = (1 - cutoff) * math.hypot(rows / 2, cols / 2) * (1 + 1e-12)
+        kept = int(np.searchsorted(r_sorted, limit, side="right"))
+        pos = order[:kept]
+        return shape, pos, r_sorted[:kept], angle.ravel()[pos]
+    q, scale = _keys(rows, cols, transform, storage)
+    c = 1 if transform == "dct" else 4
+    # c q <= bound exactly: q <= floor(bound / c) (q and the floor are integers).
+    q_max = math.floor(_bound(rows, cols, cutoff) / c)
+    inside = np.flatnonzero(q <= min(q_max, rows * rows + cols * cols))
+    pos = inside[np.lexsort((inside, q[inside]))]  # by q, ties by row-major index
+    return shape, pos, np.sqrt(q[pos].astype(float)) * scale, angle.ravel()[pos]
 
 
 # --------------------------------------------------------------------------- decode
@@ -628,16 +672,12 @@ def decode(data: bytes) -> np.ndarray:
     if int(mask.sum()) != g["cells"]:
         raise ValueError("occupancy mask disagrees with the header's cell count")
 
-    # Which coefficient is which: stable sort by radius, keep the prefix inside the circle.
-    shape, radius, angle = _layout(rows, cols, transform, storage)
-    order = np.argsort(radius.ravel(), kind="stable")
-    r_sorted = radius.ravel()[order]
-    limit = (1 - cutoff) * math.hypot(rows / 2, cols / 2) * (1 + 1e-12)
-    kept = int(np.searchsorted(r_sorted, limit, side="right"))
+    # Which coefficient is which: the integer order (1.2) or the legacy one (1.0).
+    shape, pos, r_kept, a_kept = _order(rows, cols, transform, storage, cutoff, minor < 2)
+    kept = pos.size
     coef_count = stats.get("coef_count")
     if not isinstance(coef_count, int) or isinstance(coef_count, bool) or coef_count != kept:
         raise ValueError("coefficient count is missing or disagrees with the grid and cutoff")
-    pos, r_kept, a_kept = order[:kept], r_sorted[:kept], angle.ravel()[order[:kept]]
     pairs = transform == "dft" and storage == "quantized"
     per = 2 if pairs else 1
     values = _stream(sec[b"COEF"], per * kept, np.repeat(r_kept, per), np.repeat(a_kept, per))
@@ -740,18 +780,14 @@ def _tile_index(p: bytes, n: int, size: int) -> tuple[int, np.ndarray, np.ndarra
     return overlap, reach, cells, rmse, max_error
 
 
-def _dct_prefix(h: int, w: int, cutoff: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _dct_prefix(h: int, w: int, cutoff: float, legacy: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Row-major positions, radii and angles of the kept DCT coefficients of an h x w array."""
-    _shape, radius, angle = _layout(h, w, "dct", "quantized")
-    order = np.argsort(radius.ravel(), kind="stable")
-    limit = (1 - cutoff) * math.hypot(h / 2, w / 2) * (1 + 1e-12)
-    kept = int(np.searchsorted(radius.ravel()[order], limit, side="right"))
-    pos = order[:kept]
-    return pos, radius.ravel()[pos], angle.ravel()[pos]
+    _shape, pos, radius, angle = _order(h, w, "dct", "quantized", cutoff, legacy)
+    return pos, radius, angle
 
 
 def _base_layer(p: bytes, rows: int, cols: int, size: int, cutoff: float, step: float,
-                coef_count, reach: int) -> np.ndarray:
+                coef_count, reach: int, legacy: bool) -> np.ndarray:
     """BASE: the whole grid's lowest DCT coefficients as a dense (ni, nj) array g(i, j), metres."""
     radius_max = min(reach * max(rows, cols) / size, (1 - cutoff) * math.hypot(rows / 2, cols / 2)) * (1 + 1e-12)
     if reach == 0:  # no base layer: not even the DC
@@ -762,9 +798,19 @@ def _base_layer(p: bytes, rows: int, cols: int, size: int, cutoff: float, step: 
     # hypot(i/2, j/2) <= radius_max needs i, j <= 2 radius_max: only that corner is enumerated.
     ni, nj = min(rows, int(2 * radius_max) + 1), min(cols, int(2 * radius_max) + 1)
     i, j = np.meshgrid(np.arange(ni), np.arange(nj), indexing="ij")
-    radius, angle = np.hypot(i / 2, j / 2).ravel(), (np.arctan2(i, j) / (np.pi / 2)).ravel()
-    order = np.argsort(radius, kind="stable")  # ties in row-major order of (i, j)
-    kept = int(np.searchsorted(radius[order], radius_max, side="right"))
+    angle = (np.arctan2(i, j) / (np.pi / 2)).ravel()
+    if legacy:
+        radius = np.hypot(i / 2, j / 2).ravel()
+        order = np.argsort(radius, kind="stable")  # ties in row-major order of (i, j)
+        kept = int(np.searchsorted(radius[order], radius_max, side="right"))
+    else:  # q <= A² S² (rows² + cols²) and q T² <= 4 S² (K max(rows, cols))², exactly
+        q = (i * i + j * j).ravel()
+        q_max = min(math.floor(_bound(rows, cols, cutoff)),
+                    math.floor(4 * fractions.Fraction(S_SLACK) ** 2 * (reach * max(rows, cols)) ** 2 / (size * size)))
+        inside = np.flatnonzero(q <= q_max)
+        order = inside[np.lexsort((inside, q[inside]))]
+        kept = order.size
+        radius = np.sqrt(q.astype(float)) * 0.5
     if not isinstance(coef_count, int) or isinstance(coef_count, bool) or coef_count != kept:
         raise ValueError("coefficient count is missing or disagrees with the base layer")
     pos = order[:kept]
@@ -805,7 +851,7 @@ def _decode_tile(data: bytes, k: int, secs: dict, g: dict, params: dict, size: i
     wr0, wr1 = max(0, r0 - overlap), min(rows, r1 + overlap)
     wc0, wc1 = max(0, c0 - overlap), min(cols, c1 + overlap)
     hh, ww = wr1 - wr0, wc1 - wc0
-    pos, radius, angle = _dct_prefix(hh, ww, float(params["cutoff"]))
+    pos, radius, angle = _dct_prefix(hh, ww, float(params["cutoff"]), data[9] < 2)  # 1.1: legacy order
     coefs = np.zeros(hh * ww)
     if b"COEF" in secs:  # none: every coefficient 0
         values = _stream(_payload(data, b"COEF", secs[b"COEF"], name), len(pos), radius, angle, free=True)
@@ -907,7 +953,7 @@ def _tiled_grid(data: bytes, entries, sec: dict, g: dict, params: dict,
             if (tag in have) != wanted:
                 raise ValueError(f"tile {k}: section {tag!r} " + ("is missing" if wanted else "is not expected"))
     base = _base_layer(sec[b"BASE"], rows, cols, size, float(params["cutoff"]), float(params["step"]),
-                       stats.get("coef_count"), reach)
+                       stats.get("coef_count"), reach, data[9] < 2)  # the preamble's minor version: 1.1's legacy order
     heights = np.zeros((rows, cols))
     mask = np.zeros((rows, cols), bool)
     for k in range(1, n + 1):

@@ -111,7 +111,7 @@ def test_info_and_decompress_by_url_on_the_command_line(tmp_path, serve, capsys)
     path = _tiled(tmp_path)
     base = serve(ranges=True)
     assert cli.main(["info", f"{base}/tiled.dftpc", "--json"]) == 0
-    assert '"format_version": "1.1"' in capsys.readouterr().out
+    assert '"format_version": "1.2"' in capsys.readouterr().out
     out = tmp_path / "part.xyz"
     assert cli.main(["decompress", f"{base}/tiled.dftpc", str(out), "--bbox", "10,10,100,100", "-q"]) == 0
     with dftpcc.open(path) as local:

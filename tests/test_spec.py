@@ -274,7 +274,7 @@ def test_refusals(small):
 def check_tiled(data: bytes) -> dict:
     """Assert the spec decoder rebuilds a tiled file as dftpcc does (points and mask); return its
     layout: ``sections`` (tile 0), ``entries`` (the table), ``cells`` per tile, ``size`` T, ``grid``."""
-    assert data[8:10] == b"\x01\x01", "not a version 1.1 file"
+    assert data[8:10] == b"\x01\x02", "not a version 1.2 file"
     check(data)
     mask, _heights = spec_decoder.decode_grid(data)
     np.testing.assert_array_equal(mask, dftpcc.open(data).read_dem().mask)
@@ -571,7 +571,7 @@ def split_tiled(data: bytes) -> list[tuple[bytes, int, bytes]]:
     return [(tag, tile, data[off:off + length]) for tag, tile, off, length, _crc in spec_decoder._table(data)[1]]
 
 
-def join_tiled(sections: list[tuple[bytes, int, bytes]], minor: int = 1) -> bytes:
+def join_tiled(sections: list[tuple[bytes, int, bytes]], minor: int = 2) -> bytes:
     """A file of these sections (format.md's layout), every checksum correct."""
     table = b"".join(craft.entry(tag, tile, len(p), zlib.crc32(p)) for tag, tile, p in sections)
     top = spec_decoder.MAGIC + struct.pack("<BBHI", 1, minor, 0, len(sections)) + table

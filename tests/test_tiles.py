@@ -84,7 +84,7 @@ def test_a_map_in_one_tile_is_written_as_today(gale):
     whole = encode_dem(dem, make_params(tile_size=0, cutoff=0.8), point_count=n, crs=crs)
     one_tile = encode_dem(dem, make_params(tile_size=512, cutoff=0.8), point_count=n, crs=crs)
     assert one_tile == whole
-    assert whole[9] == 0  # format 1.0
+    assert whole[9] == 2  # untiled, format 1.2
 
 
 def test_a_full_tile_has_no_mask_section_and_one_with_it_still_reads(tile_masks):
@@ -195,7 +195,7 @@ def test_a_small_map_in_small_tiles_may_be_its_base_layer_alone(gale):
 def test_tiled_round_trip_and_stated_errors():
     dem = _terrain()
     data = encode_dem(dem, make_params(tile_size=64, cutoff=0.8, step=0.01))
-    assert data[9] == 1  # format 1.1
+    assert data[9] == 2  # format 1.2 (a tiled map)
     m = dftpcc.open(data)
     assert m.tiled and m.header.tiles.tiling.count == 25
     rebuilt = m.read_dem()
@@ -305,7 +305,7 @@ def test_cli_tile_size_bbox_and_info(tmp_path):
 
     assert run("compress", str(src), str(out), "--tile-size", "128", "--cutoff", "0.8", "-q").returncode == 0
     info = run("info", str(out), "--json")
-    assert '"occupied"' in info.stdout and '"format_version": "1.1"' in info.stdout
+    assert '"occupied"' in info.stdout and '"format_version": "1.2"' in info.stdout
     m = dftpcc.open(out)
     x0, y0, x1, y1 = m.bounds()
     m.close()
@@ -340,7 +340,7 @@ def test_a_tiled_header_over_the_whole_grid_limit_is_written():
     header = Header(grid=Grid(0.0, 0.0, 0.0, 1.0, rows, cols), params=params, point_count=10, cell_count=10,
                     tiles=index, coef_count=0, stats={"dem_rmse_m": 0.01, "dem_max_error_m": 0.02})
     head = tiled_head(header, b"\x00\x00\x00\x00", [(0, b"MASK", 3, 0), (0, b"COEF", 4, 0)])
-    assert head[:8] == b"\x89DFTPC\r\n" and head[9] == 1
+    assert head[:8] == b"\x89DFTPC\r\n" and head[9] == 2
 
 
 @pytest.mark.parametrize("cutoff", [0.0, 0.8])

@@ -89,7 +89,7 @@ def _spectrum_heights(header: Header, blobs: dict[bytes, Any], cutoff: float | N
     """The heights of an untiled file's coefficients and plane (relative to z0, before any residual
     layer), and whether every coefficient was decoded at the file's own cutoff."""
     params, grid = header.params, header.grid
-    lay = spectrum.layout(params.transform, params.storage, grid.shape)
+    lay = spectrum.layout(params.transform, params.storage, grid.shape, legacy=header.legacy_order)
     order, radii, angles = spectrum.kept_order(lay, params.cutoff)
     n = spectrum.kept_count(lay, params.cutoff, radii)  # all of them (a search, not a pass over the grid)
     if n != header.coef_count:
@@ -135,7 +135,7 @@ class Whole:
         params, grid = header.params, header.grid
         self.header = header
         self.mask = _checked_mask(occupancy.decode_mask(blobs[b"MASK"], grid.shape), header)
-        self.lay = spectrum.layout(params.transform, params.storage, grid.shape)
+        self.lay = spectrum.layout(params.transform, params.storage, grid.shape, legacy=header.legacy_order)
         self.corner: np.ndarray | None = None
         self.dem: np.ndarray | None = None
         if self.lay.kind == "dct" and params.storage == "quantized":
@@ -177,7 +177,7 @@ class Whole:
 def _dct_corner(header: Header, blob: Any) -> np.ndarray:
     """The dequantized low-frequency corner of an untiled DCT map's coefficients (the rest are 0)."""
     params, grid = header.params, header.grid
-    lay = spectrum.layout(params.transform, params.storage, grid.shape)
+    lay = spectrum.layout(params.transform, params.storage, grid.shape, legacy=header.legacy_order)
     order, radii, angles = spectrum.kept_order(lay, params.cutoff)
     n = spectrum.kept_count(lay, params.cutoff, radii)
     if n != header.coef_count:
@@ -219,7 +219,7 @@ class _Base:
         assert header.tiles is not None
         params, grid = header.params, header.grid
         self.i, self.j, radius, angle = tiles.base_order(grid.shape, header.tiles.tiling.size, params.cutoff,
-                                                         header.tiles.base_cycles)
+                                                         header.tiles.base_cycles, legacy=header.legacy_order)
         if self.i.size != header.coef_count:
             raise CorruptFileError(f"the base layer's coefficient count {header.coef_count} disagrees with the "
                                    f"grid, tile size and cutoff ({self.i.size})")
@@ -327,7 +327,7 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any],
         raise CorruptFileError("occupancy mask disagrees with the tile index's cell count")
     w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)
     if b"COEF" in blobs:
-        lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0))
+        lay = spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0), legacy=header.legacy_order)
         order, radii, angles = spectrum.kept_order(lay, params.cutoff)
         n = order.size
         stream = coding.decode_coefficients(blobs[b"COEF"], n, radius=radii, angle=angles, progressive=False)

@@ -48,7 +48,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from . import coding, kernels, quantizer
-from .format import Header, MapWriter, Source, read_tile, unpack_source
+from .format import VERSION, Header, MapWriter, Source, read_tile, unpack_source
 from .dem import Grid, TileGrid, as_points
 from .grid import HEIGHT_QUANTUM_M, CellSums, lattice_cells
 from .encoder import check_heights
@@ -172,6 +172,9 @@ class MapBuilder:
         self._recount: set[tuple[int, int]] = set()  # tiles with cells seen again at the same mean
         #: During :meth:`encode`: the tiles it codes, and the (heights, occupied) of those computed yet.
         self._coding: dict[tuple[int, int], tuple[np.ndarray, np.ndarray] | None] = {}
+        #: The minor version the held tiles' sections were coded for (a map resumed from a 1.1 file
+        #: holds them in the legacy coefficient order until they are coded again).
+        self._minor = VERSION[1]
         self._file_sha256: str | None = None  # of the map file this builder was read from or last saved as
         #: SHA-256 of the scans of the update that gave this map (:func:`update_file`, docs/growing-maps.md);
         #: None once anything else was added.
@@ -414,7 +417,7 @@ class MapBuilder:
         grid = Grid(x0=ox + j0 * self.span, y0=oy + i0 * self.span, z0=oz, resolution=self.resolution,
                     rows=tiling.rows, cols=tiling.cols)
         writer = MapWriter(grid, self.params, point_count=self.point_count, crs=self.crs, tiling=tiling,
-                           overlap=TILE_OVERLAP, base_cycles=0)
+                           overlap=TILE_OVERLAP, base_cycles=0, minor=self._minor)
         for tile in held:  # sorted: ascending tile numbers
             writer.add_code(dataclasses.replace(self._codes[tile], k=(tile[0] - i0) * tile_cols + (tile[1] - j0)))
         floor = math.sqrt(sum(self._gridding[t] for t in held) / self.point_count)
@@ -547,9 +550,13 @@ class MapBuilder:
                                             float(largest), float(weighted))
         # The map the state lays out again (head, index, statistics from the state; sections from the
         # file) must be the file: an edited state that passes its checksum cannot give another map.
+        builder._minor = header.minor
         if builder._write() != data:
             raise InvalidInputError(f"{path}: its state file {state} does not give this map (an edited state, or "
                                     f"one of another version of it); give the state written with this map")
+        if header.legacy_order:  # a 1.1 map: its tiles are coded again, in the integer order, at the next encode
+            builder._dirty.update(builder._tiles)
+            builder._minor = VERSION[1]
         return builder
 
     def _recovered(self, path: Path, state: Path, expected: str, *, on_disk: str,

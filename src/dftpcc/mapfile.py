@@ -16,7 +16,7 @@ from typing import Any, BinaryIO, Callable, Sequence
 
 import numpy as np
 
-from .format import (MAGIC, VERSION, VERSION_TILED, RemoteSource, Source, cells_allowed, check_max_bytes,
+from .format import (MAGIC, VERSION, RemoteSource, Source, cells_allowed, check_max_bytes,
                      check_max_cells, is_url, read_tile, unpack_source)
 from . import kernels
 from .decoder import Whole, decode_dem, decode_window
@@ -256,7 +256,7 @@ class CompressedMap:
         from . import coding, spectrum
 
         p = self.header.params
-        lay = spectrum.layout(p.transform, p.storage, self.grid.shape)
+        lay = spectrum.layout(p.transform, p.storage, self.grid.shape, legacy=self.header.legacy_order)
         n = int(self.header.coef_count) * spectrum.values_per_coefficient(lay, p.storage)
         _, radii, angles = spectrum.kept_order(lay, p.cutoff)
         per = spectrum.values_per_coefficient(lay, p.storage)
@@ -280,7 +280,7 @@ class CompressedMap:
         out = {
             "file": self.name,
             "bytes": self.size,
-            "format_version": "{}.{}".format(*(VERSION_TILED if h.tiles is not None else VERSION)),
+            "format_version": f"{VERSION[0]}.{h.minor}",
             "points_original": h.point_count,
             "points_rebuilt": h.cell_count,
             "bits_per_point": 8.0 * self.size / h.point_count if h.point_count else None,
@@ -326,7 +326,8 @@ def _tile_coefficients(header: Any) -> int:
         if b"COEF" not in index.sections.get(k, {}):
             continue
         w0, w1, v0, v1 = tiles.coded_window(index.tiling, k, index.overlap)
-        total += spectrum.kept_count(spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0)), header.params.cutoff)
+        total += spectrum.kept_count(spectrum.layout("dct", "quantized", (w1 - w0, v1 - v0), legacy=header.legacy_order),
+                                     header.params.cutoff)
     return total
 
 

@@ -20,6 +20,12 @@ so ``f_c = 0`` keeps every coefficient. A coefficient at frequency
 ``(du, dv)`` (in DFT pixels) is kept when ``hypot(du, dv) <= r``. The DCT
 uses the same circle in the same units, so a cutoff removes the same spatial
 frequencies whichever transform is used.
+
+Which coefficients are kept, and their order, is decided in exact integers
+(docs/format.md, *Which coefficient is which*): by the key ``du² + dv²`` (times
+4 for the DCT, whose frequencies are half-integers), so that no ``hypot`` of
+one C library or another can split a tie. Files of format 1.0 and 1.1 follow
+the legacy rule, ordered by numpy's (glibc's) ``hypot``: ``legacy=True``.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import contextlib
 import functools
 import math
 import threading
+from fractions import Fraction
 from typing import Any, Callable, Iterator
 
 import numpy as np
@@ -91,31 +98,49 @@ class Layout:
         Shape of the coefficient array.
     radius : ndarray, shape coef_shape
         Distance of each coefficient from DC in DFT frequency pixels.
+    legacy : bool
+        The legacy order by ``hypot`` (format 1.0 and 1.1), else the integer order.
+    key : ndarray of int64, shape coef_shape, or None
+        The integer order's key ``i² + j²`` (DCT) or ``di² + dj²`` (DFT), a property; None for the
+        legacy order.
 
     See :meth:`angle_of` for the direction of a coefficient's frequency.
     """
 
-    def __init__(self, kind: str, shape: tuple[int, int]):
+    def __init__(self, kind: str, shape: tuple[int, int], *, legacy: bool = False):
         self.kind = kind
         self.shape = shape
+        self.legacy = legacy
         n, m = shape
         if kind == "full":
-            du = np.arange(n, dtype=float) - n // 2
-            dv = np.arange(m, dtype=float) - m // 2
+            iu, iv = np.arange(n) - n // 2, np.arange(m) - m // 2
         elif kind == "half":
             # Signed integer row frequencies (fftfreq's order), computed exactly:
             # fftfreq(n, 1/n) is off by an ulp for some n, which reorders ties.
             k = np.arange(n)
-            du = np.where(k < (n + 1) // 2, k, k - n).astype(float)
-            dv = np.arange(m // 2 + 1, dtype=float)
+            iu, iv = np.where(k < (n + 1) // 2, k, k - n), np.arange(m // 2 + 1)
         elif kind == "dct":
-            du = np.arange(n, dtype=float) / 2.0
-            dv = np.arange(m, dtype=float) / 2.0
+            iu, iv = np.arange(n), np.arange(m)
         else:
             raise ValueError(f"unknown layout {kind!r}")
+        half = 0.5 if kind == "dct" else 1.0  # DCT index k is DFT frequency k/2
+        du, dv = iu.astype(float) * half, iv.astype(float) * half
         self.coef_shape = (du.size, dv.size)
         self._du, self._dv = du, dv
-        self.radius = np.hypot(du[:, None], dv[None, :])
+        self._iu, self._iv = iu.astype(np.int64), iv.astype(np.int64)
+        if legacy:
+            self.radius = np.hypot(du[:, None], dv[None, :])
+        else:
+            # sqrt is correctly rounded everywhere: equal keys, equal radii (the bands need no more).
+            self.radius = np.sqrt(self.key.astype(float)) * half
+
+    @property
+    def key(self) -> np.ndarray | None:
+        """The integer order's key per coefficient (int64, coef_shape), made when asked (a large grid's
+        layout holds its radii already); None for the legacy order."""
+        if self.legacy:
+            return None
+        return self._iu[:, None] * self._iu[:, None] + self._iv[None, :] * self._iv[None, :]
 
     def angle_of(self, flat: np.ndarray) -> np.ndarray:
         """Direction of the frequencies at flat indices ``flat``, scaled to [0, 1]
@@ -127,11 +152,12 @@ class Layout:
 
 
 @functools.lru_cache(maxsize=8)
-def layout(transform: str, storage: str, shape: tuple[int, int]) -> Layout:
-    """The coefficient layout used by a transform/storage pair (cached: treat it as read-only)."""
+def layout(transform: str, storage: str, shape: tuple[int, int], *, legacy: bool = False) -> Layout:
+    """The coefficient layout used by a transform/storage pair (cached: treat it as read-only);
+    ``legacy``: a 1.0 or 1.1 file's order."""
     if transform == "dct":
-        return Layout("dct", shape)
-    return Layout("full" if storage == "complex64" else "half", shape)
+        return Layout("dct", shape, legacy=legacy)
+    return Layout("full" if storage == "complex64" else "half", shape, legacy=legacy)
 
 
 def radius_limit(shape: tuple[int, int], cutoff: float) -> float:
@@ -147,9 +173,37 @@ _ORDER_CACHE_SIZE = 16
 _ORDER_LOCK = threading.Lock()
 
 
+#: The circle's relative slack: a coefficient a cutoff's circle runs through (0.8 on a square
+#: grid, although 1 - 0.8 rounds below 0.2) is kept.
+SLACK = 1 + 1e-12
+
+
+def key_limit(shape: tuple[int, int], cutoff: float, *, dct: bool) -> int:
+    """The largest integer key inside the circle of ``cutoff`` (docs/format.md: ``c q <= A² S² (rows² +
+    cols²)``, ``A = 1 - cutoff`` and ``S`` :data:`SLACK` as binary64 numbers, the rest exact).
+
+    Exact rationals, not floats: a last bit of a float radius or limit would decide, on one
+    machine or another, whether a coefficient on the circle is in the stream.
+    """
+    n, m = shape
+    bound = Fraction(1.0 - cutoff) ** 2 * Fraction(SLACK) ** 2 * (n * n + m * m)
+    return math.floor(bound if dct else bound / 4)
+
+
+def key_radius(key: int, *, dct: bool) -> float:
+    """The radius (frequency pixels) of an integer key: a limit on :attr:`Layout.radius` that keeps
+    exactly the keys up to ``key`` (the radii of distinct keys differ below 2^51)."""
+    return math.sqrt(float(key)) * (0.5 if dct else 1.0)
+
+
 def _limit(lay: Layout, cutoff: float) -> float:
-    # A hair of slack so a coefficient exactly on the circle is kept on every platform.
-    return radius_limit(lay.shape, cutoff) * (1 + 1e-12)
+    if lay.legacy:
+        # A hair of slack so a coefficient exactly on the circle is kept on every platform.
+        return radius_limit(lay.shape, cutoff) * SLACK
+    n, m = lay.shape
+    # Beyond every key the grid has: then its radius stays where distinct keys' radii are distinct.
+    return key_radius(min(key_limit(lay.shape, cutoff, dct=lay.kind == "dct"), n * n + m * m),
+                      dct=lay.kind == "dct")
 
 
 def kept_order(lay: Layout, cutoff: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -164,17 +218,25 @@ def kept_order(lay: Layout, cutoff: float = 0.0) -> tuple[np.ndarray, np.ndarray
     """
     def make() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         flat_radius = lay.radius.ravel()
-        inside = np.flatnonzero(flat_radius <= _limit(lay, cutoff)) if cutoff > 0 else np.arange(flat_radius.size)
-        order = inside[np.argsort(flat_radius[inside], kind="stable")]
+        if lay.legacy:
+            inside = np.flatnonzero(flat_radius <= _limit(lay, cutoff)) if cutoff > 0 else np.arange(flat_radius.size)
+            order = inside[np.argsort(flat_radius[inside], kind="stable")]
+        else:
+            flat_key = lay.key.ravel()
+            n, m = lay.shape
+            limit = min(key_limit(lay.shape, cutoff, dct=lay.kind == "dct"), n * n + m * m)  # an int64
+            inside = np.flatnonzero(flat_key <= limit) if cutoff > 0 else np.arange(flat_key.size)
+            order = inside[np.argsort(flat_key[inside], kind="stable")]  # ties in row-major order
         return order, flat_radius[order], lay.angle_of(order)
 
-    return _cached(("order", lay.kind, lay.shape, cutoff), make)
+    return _cached(("order", lay.kind, lay.shape, lay.legacy, cutoff), make)
 
 
 def kept_corner(lay: Layout, cutoff: float) -> tuple[tuple[int, int], np.ndarray]:
     """:func:`corner` of all of :func:`kept_order`'s coefficients, cached as it is: what a
     decoder scatters a whole stream into."""
-    return _cached(("corner", lay.kind, lay.shape, cutoff), lambda: corner(lay, kept_order(lay, cutoff)[0]))
+    return _cached(("corner", lay.kind, lay.shape, lay.legacy, cutoff),
+                   lambda: corner(lay, kept_order(lay, cutoff)[0]))
 
 
 def _cached(key: tuple, make: Callable[[], Any]) -> Any:

@@ -17,6 +17,7 @@ import copy
 import functools
 import math
 from dataclasses import dataclass, field
+from fractions import Fraction
 
 import numpy as np
 
@@ -57,9 +58,20 @@ WIDE_OVERLAP_CUTOFF = 1 - 1 / math.sqrt(2)
 _SLACK = 1 + 1e-12
 
 
-def base_limit(shape: tuple[int, int], tile: int, cutoff: float, cycles: int) -> float:
-    """Largest radius of the base layer: ``cycles`` per tile along the longer side, within the cutoff's circle."""
-    return min(max(shape) / tile * cycles, spectrum.radius_limit(shape, cutoff)) * _SLACK
+def base_limit(shape: tuple[int, int], tile: int, cutoff: float, cycles: int, *, legacy: bool = False) -> float:
+    """Largest radius of the base layer: ``cycles`` per tile along the longer side, within the cutoff's circle
+    (of the integer order, the radius of :func:`base_key_limit`; ``legacy``: a 1.1 file's float limit)."""
+    if legacy:
+        return min(max(shape) / tile * cycles, spectrum.radius_limit(shape, cutoff)) * _SLACK
+    return spectrum.key_radius(base_key_limit(shape, tile, cutoff, cycles), dct=True)
+
+
+def base_key_limit(shape: tuple[int, int], tile: int, cutoff: float, cycles: int) -> int:
+    """The largest key ``i² + j²`` of the base layer (docs/format.md, *BASE*): inside the cutoff's
+    circle and ``q T² <= 4 S² (cycles max(rows, cols))²``, in exact arithmetic."""
+    rows, cols = shape
+    reach = Fraction(spectrum.SLACK) ** 2 * 4 * (cycles * max(shape)) ** 2 / (tile * tile)
+    return min(spectrum.key_limit(shape, cutoff, dct=True), math.floor(reach), rows * rows + cols * cols)
 
 
 def covering_cycles(shape: tuple[int, int], tile: int, cutoff: float) -> int:
@@ -94,23 +106,32 @@ def covering_cutoff(shape: tuple[int, int], tile: int) -> float | None:
 
 
 def base_order(shape: tuple[int, int], tile: int, cutoff: float,
-               cycles: int = BASE_CYCLES_PER_TILE) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               cycles: int = BASE_CYCLES_PER_TILE, *, legacy: bool = False
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The base layer's coefficients: row and column frequency indices, radii and angles, in stream order.
 
-    Every (i, j) with ``hypot(i/2, j/2)`` at most ``cycles`` cycles per tile and inside the
-    cutoff's circle, sorted by radius (stable; ties in row-major order of (i, j)); none when
-    ``cycles`` is 0 (a map whose tiles depend on nothing else, as a growing map needs).
+    Every (i, j) with ``sqrt(i² + j²) / 2`` at most ``cycles`` cycles per tile and inside the
+    cutoff's circle (decided on the integer key ``i² + j²``, :func:`base_key_limit`), sorted by
+    that key, ties in row-major order of (i, j); none when ``cycles`` is 0 (a map whose tiles
+    depend on nothing else, as a growing map needs). ``legacy``: a 1.1 file's order, by the
+    float radius ``hypot(i/2, j/2)``.
     """
     rows, cols = shape
     if cycles == 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty, np.zeros(0), np.zeros(0)
-    limit = base_limit(shape, tile, cutoff, cycles)
+    limit = base_limit(shape, tile, cutoff, cycles, legacy=legacy)
     ki, kj = min(rows, int(2 * limit) + 1), min(cols, int(2 * limit) + 1)
     i, j = np.divmod(np.arange(ki * kj), kj)
-    radius = np.hypot(i / 2.0, j / 2.0)
-    inside = np.flatnonzero(radius <= limit)
-    order = inside[np.argsort(radius[inside], kind="stable")]
+    if legacy:
+        radius = np.hypot(i / 2.0, j / 2.0)
+        inside = np.flatnonzero(radius <= limit)
+        order = inside[np.argsort(radius[inside], kind="stable")]
+    else:
+        key = i * i + j * j
+        inside = np.flatnonzero(key <= base_key_limit(shape, tile, cutoff, cycles))
+        order = inside[np.argsort(key[inside], kind="stable")]  # ties in row-major order of (i, j)
+        radius = np.sqrt(key.astype(float)) * 0.5
     i, j = i[order], j[order]
     angle = np.clip(np.arctan2(i.astype(float), j.astype(float)) / (math.pi / 2), 0.0, 1.0)
     return i, j, radius[order], angle

@@ -105,7 +105,7 @@ def version_of(data: bytes) -> tuple[int, int]:
     return major, minor
 
 
-def join_tiled(sections: list[tuple[bytes, int, bytes]], *, version: tuple[int, int] = fmt.sections.VERSION_TILED,
+def join_tiled(sections: list[tuple[bytes, int, bytes]], *, version: tuple[int, int] = fmt.sections.VERSION,
                flags: int = 0, count: int | None = None) -> bytes:
     """Bytes of a file holding ``(tag, tile, payload)`` sections, every checksum correct (``count`` may lie)."""
     entries = [entry(tag, tile, len(payload), zlib.crc32(payload)) for tag, tile, payload in sections]

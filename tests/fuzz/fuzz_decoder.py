@@ -66,11 +66,11 @@ if __name__ == "__main__" and "--atheris" in sys.argv:  # pragma: no cover - nee
 try:  # as part of the test package, or run as a script from this folder
     from . import craft
     from ..workbound import WorkLimitExceeded, measure_work
-    from .seeds import seed_files
+    from .seeds import legacy_files, seed_files
 except ImportError:  # pragma: no cover - script mode
     sys.path[:0] = [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1])]
     import craft  # type: ignore[no-redef]
-    from seeds import seed_files  # type: ignore[no-redef]
+    from seeds import legacy_files, seed_files  # type: ignore[no-redef]
     from workbound import WorkLimitExceeded, measure_work  # type: ignore[no-redef]
 
 import dftpcc
@@ -605,7 +605,7 @@ def run(iterations: int, *, seed: int = 0, time_budget: float | None = None, sav
     ``time_limit``, ``max_events`` and ``watchdog`` are those of :func:`check`.
     """
     rng = random.Random(seed)
-    seeds = list(seed_files().values())
+    seeds = list(seed_files().values()) + list(legacy_files().values())
     mutate = Mutator(seeds, rng)
     campaign = Campaign()
     # The unmutated seeds first (each must decode), then mutations.
@@ -629,7 +629,7 @@ def run(iterations: int, *, seed: int = 0, time_budget: float | None = None, sav
 def _atheris(argv: list[str]) -> None:  # pragma: no cover - needs atheris
     import atheris
 
-    seeds = seed_files()
+    seeds = seed_files() | legacy_files()
     corpus = [a for a in argv[1:] if not a.startswith("-")]
     for folder in corpus:
         Path(folder).mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,9 @@
 """Valid ``.dftpc`` files to start fuzzing from: small, and covering every code path.
 
 Made with the current encoder each time (never checked in), so the seeds
-follow the format as it evolves. ``python tests/fuzz/seeds.py DIR`` writes
+follow the format as it evolves; beside them the committed maps of versions
+1.0 and 1.1 (tests/legacy, :func:`legacy_files`), which no encoder writes
+any more and every reader still reads. ``python tests/fuzz/seeds.py DIR`` writes
 them to DIR as ``NAME.dftpc``.
 """
 
@@ -17,6 +19,11 @@ import numpy as np
 
 import dftpcc
 from dftpcc.experiments.terrain import regolith_plain
+
+#: The committed maps of versions 1.0 and 1.1 (the legacy coefficient order).
+LEGACY = Path(__file__).resolve().parents[1] / "legacy"
+#: The legacy maps fuzzed: the small ones (a mutation of a large map costs a whole decode).
+LEGACY_MAX_BYTES = 4000
 
 #: name -> compress() options. Small grids (at most ~40 x 40 cells) keep
 #: each decode around a millisecond, so a fuzzer runs many inputs a second.
@@ -128,6 +135,13 @@ def seed_files() -> dict[str, bytes]:
         dem = replace(grid_points(points[::4], params), source=RasterSource("int16", -32768.0))
         out["int16_raster"] = encode_dem(dem, params)
     return out
+
+
+def legacy_files() -> dict[str, bytes]:
+    """name -> bytes of the committed 1.0 and 1.1 maps of at most :data:`LEGACY_MAX_BYTES` (one holds
+    coefficients the legacy ``hypot`` order and the integer one place apart)."""
+    return {f"legacy_{p.stem}": p.read_bytes() for p in sorted(LEGACY.glob("*.dftpc"))
+            if p.stat().st_size <= LEGACY_MAX_BYTES}
 
 
 def main(argv: list[str]) -> int:

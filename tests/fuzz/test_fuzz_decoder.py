@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from .fuzz_decoder import check, run
-from .seeds import seed_files
+from .seeds import legacy_files, seed_files
 
 #: Inputs per CI run: all of them are decoded (39 s on the shared 2-core machine with the tiled seeds).
 CI_INPUTS = 6_000
@@ -53,7 +53,8 @@ def test_no_input_runs_away(report):
 
 
 def test_every_seed_decodes():
-    for name, data in seed_files().items():
+    assert len(legacy_files()) >= 20 and "legacy_tie_dct" in legacy_files()  # the 1.0 and 1.1 maps are fuzzed too
+    for name, data in (seed_files() | legacy_files()).items():
         outcome = check(bytes([0]) + data)
         assert outcome.kind == "decoded", (name, outcome.detail)
 

@@ -1,68 +1,189 @@
-// Decode speed of the JavaScript decoder against the Python decoder, same run, on the shared DEMs
-// (make bench-web; ARGS: --repeats N, --cutoff C). Each DEM is compressed by the Python codec at
-// its defaults (and once with a maximum-error target, whose residual layer is decoded too), then
-// decoded by both; the table gives million cells (rows x cols) per second of CPU time (a shared
-// machine's other work does not count), medians of N decodes.
-// Both run on one core (taskset -c 0 when it exists), so the figures compare like with like.
+// Decode speed of the JavaScript decoder in Node and in headless Chromium, against the Python decoder
+// and the `lerc` npm decoder (Esri's LERC, WebAssembly) at equal maximum error, all in the same run
+// (make bench-web; ARGS: --repeats N, --side S for the mosaic, --no-mosaic, --no-browser).
+// Each shared DEM is compressed by the Python codec at its defaults (and once with a maximum-error
+// target, whose residual layer is decoded too), and so is a S x S mosaic of them (4 M cells by
+// default: benchmarks/bench_big.py's layout); each default file's DEM is LERC-encoded with maxZErr
+// = the file's stated maximum error (bench/lerc_encode.py). The table gives million cells (rows x
+// cols) per second: medians of N decodes after a warm-up, in CPU time, so that a shared machine's
+// other work does not count: Node's and Python's process time, both pinned to core 0 (taskset -c 0
+// when it exists), and Chromium's page main thread (DevTools task durations in thread ticks).
 import { spawnSync } from "node:child_process";
-import { mkdtempSync, readdirSync, readFileSync, rmSync } from "node:fs";
+import { createReadStream, existsSync, mkdtempSync, readdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
+import { createServer } from "node:http";
 import { tmpdir } from "node:os";
-import { join } from "node:path";
+import { extname, join } from "node:path";
+import * as Lerc from "lerc";
 import { decode } from "../dist/dftpcc.mjs";
 import { python, ROOT } from "../test/helpers.mjs";
 
 const args = process.argv.slice(2);
 const opt = (name, dflt) => (args.includes(name) ? args[args.indexOf(name) + 1] : dflt);
 const REPEATS = Number(opt("--repeats", 7));
-const DEMS = join(ROOT, "..", "shared", "data", "dems");
+const SIDE = Number(opt("--side", 2048));
+const WEB = join(ROOT, "web");
+const DATA = join(ROOT, "..", "shared", "data");
+const DEMS = join(DATA, "dems");
 const env = { ...process.env, PYTHONPATH: join(ROOT, "src"), PYTHONWARNINGS: "ignore", OMP_NUM_THREADS: "1" };
 const pinned = spawnSync("taskset", ["-c", "0", "true"]).status === 0;
 const run = (cmd, a) => {
-  const r = spawnSync(pinned ? "taskset" : cmd, pinned ? ["-c", "0", cmd, ...a] : a, { env, encoding: "utf8", maxBuffer: 1 << 26 });
+  const r = spawnSync(pinned ? "taskset" : cmd, pinned ? ["-c", "0", cmd, ...a] : a, { env, encoding: "utf8", maxBuffer: 1 << 26, cwd: ROOT });
   if (r.status !== 0) throw new Error(`${cmd} ${a.join(" ")}: ${r.stderr}`);
   return r.stdout;
 };
+const median = (v) => [...v].sort((a, b) => a - b)[Math.floor(v.length / 2)];
+const cpu = () => {
+  const u = process.cpuUsage();
+  return (u.user + u.system) / 1000;
+};
+
+/** Median CPU seconds of `f` over REPEATS calls after one warm-up, and the warm-up's own. */
+function timeCpu(f) {
+  const t0 = cpu();
+  const result = f();
+  const cold = cpu() - t0;
+  const times = [];
+  for (let k = 0; k < REPEATS; k++) {
+    const t = cpu();
+    f();
+    times.push(cpu() - t);
+  }
+  return { result, cold: cold / 1000, seconds: median(times) / 1000 };
+}
+
+/** The same timings in headless Chromium: {name: {js, lerc}} CPU seconds of the page's main thread (medians). */
+async function inChromium(dir, names) {
+  const { default: puppeteer } = await import("puppeteer-core");
+  const types = { ".mjs": "text/javascript", ".js": "text/javascript", ".wasm": "application/wasm", ".html": "text/html" };
+  const routes = { "/dftpcc.mjs": join(WEB, "dist", "dftpcc.mjs"), "/lerc/LercDecode.es.js": join(WEB, "node_modules", "lerc", "LercDecode.es.js"),
+    "/lerc/lerc-wasm.wasm": join(WEB, "node_modules", "lerc", "lerc-wasm.wasm") };
+  const server = createServer((req, res) => {
+    const path = req.url === "/" ? null : routes[req.url] ?? join(dir, req.url.slice(1).replace(/[^\w.-]/g, ""));
+    if (req.url === "/") {
+      res.writeHead(200, { "content-type": "text/html" });
+      res.end("<!doctype html><title>bench</title>");
+      return;
+    }
+    if (!path || !existsSync(path)) {
+      res.writeHead(404);
+      res.end();
+      return;
+    }
+    res.writeHead(200, { "content-type": types[extname(path)] ?? "application/octet-stream" });
+    createReadStream(path).pipe(res);
+  });
+  await new Promise((resolve) => server.listen(0, "127.0.0.1", resolve));
+  const url = `http://127.0.0.1:${server.address().port}/`;
+  const browser = await puppeteer.launch({
+    executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium", headless: true, pipe: true,
+    args: ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+      "--disable-sync", "--no-first-run", `--user-data-dir=${join(dir, "profile")}`],
+  });
+  try {
+    const page = await browser.newPage();
+    await page.goto(url);
+    if (pinned) pinTree(browser.process().pid);
+    // CPU time of the page's main thread, as for Node and Python: the DevTools protocol's task
+    // durations measured in thread ticks (a shared machine's other work does not count).
+    const cdp = await page.createCDPSession();
+    await cdp.send("Performance.enable", { timeDomain: "threadTicks" });
+    const taskSeconds = async () => (await cdp.send("Performance.getMetrics")).metrics.find((m) => m.name === "TaskDuration").value;
+    await page.evaluate(async () => {
+      const { decode } = await import("/dftpcc.mjs");
+      const Lerc = await import("/lerc/LercDecode.es.js");
+      await Lerc.load({ locateFile: (name) => `/lerc/${name}` });
+      Object.assign(window, { decodeDftpcc: decode, Lerc });
+    });
+    const timePage = async (f, arg) => {
+      await page.evaluate(f, arg); // warm-up
+      const t = [];
+      for (let k = 0; k < REPEATS; k++) {
+        const t0 = await taskSeconds();
+        await page.evaluate(f, arg);
+        t.push((await taskSeconds()) - t0);
+      }
+      return median(t);
+    };
+    const out = {};
+    for (const name of names) {
+      const hasLerc = existsSync(join(dir, `${name}.lerc`));
+      await page.evaluate(async (name, hasLerc) => {
+        window.data = new Uint8Array(await (await fetch(`/${name}.dftpc`)).arrayBuffer());
+        window.lercBlob = hasLerc ? new Uint8Array(await (await fetch(`/${name}.lerc`)).arrayBuffer()) : null;
+      }, name, hasLerc);
+      out[name] = { js: await timePage(() => void window.decodeDftpcc(window.data)) };
+      if (hasLerc) out[name].lerc = await timePage(() => void window.Lerc.decode(window.lercBlob));
+    }
+    return { out, version: await browser.version() };
+  } finally {
+    await browser.close();
+    server.close();
+  }
+}
+
+/** Pin a process and all its descendants (Chromium's renderers) to core 0. */
+function pinTree(pid) {
+  const pids = [pid];
+  for (let k = 0; k < pids.length; k++) {
+    const children = spawnSync("ps", ["-o", "pid=", "--ppid", String(pids[k])], { encoding: "utf8" }).stdout;
+    pids.push(...children.split(/\s+/).filter(Boolean).map(Number));
+  }
+  for (const p of pids) spawnSync("taskset", ["-a", "-p", "-c", "0", String(p)]);
+}
 
 const dir = mkdtempSync(join(tmpdir(), "dftpcc-bench-web-"));
 try {
-  for (const name of readdirSync(DEMS).filter((n) => n.endsWith(".tif")).sort()) {
-    const stem = name.replace(/\.tif$/, "");
-    run(python(), ["-m", "dftpcc", "compress", "-q", "--no-warnings", join(DEMS, name), join(dir, `${stem}.dftpc`)]);
-    run(python(), ["-m", "dftpcc", "compress", "-q", "--no-warnings", "--target-max-error", "1", join(DEMS, name),
-      join(dir, `${stem}.maxerr1m.dftpc`)]);
+  const sources = [];
+  for (const name of readdirSync(DEMS).filter((n) => n.endsWith(".tif")).sort()) sources.push([name.replace(/\.tif$/, ""), join(DEMS, name)]);
+  if (!args.includes("--no-mosaic")) {
+    const tif = join(dir, `mosaic_${SIDE}.tif`);
+    run(python(), ["-c", `import sys; from pathlib import Path; sys.path.insert(0, ${JSON.stringify(ROOT)});
+from benchmarks.bench_big import build_raster
+build_raster(Path(${JSON.stringify(DATA)}), Path(sys.argv[1]), ${SIDE})`, tif]);
+    sources.push([`mosaic_${SIDE}`, tif]);
   }
-  const py = JSON.parse(run(python(), [join(ROOT, "web", "bench", "py_decode.py"), dir, String(REPEATS)]));
+  for (const [stem, src] of sources) {
+    run(python(), ["-m", "dftpcc", "compress", "-q", "--no-warnings", src, join(dir, `${stem}.dftpc`)]);
+    writeFileSync(join(dir, `${stem}.src`), src);
+    run(python(), ["-m", "dftpcc", "compress", "-q", "--no-warnings", "--target-max-error", "1", src, join(dir, `${stem}.maxerr1m.dftpc`)]);
+    writeFileSync(join(dir, `${stem}.maxerr1m.src`), src);
+  }
+  const lercInfo = JSON.parse(run(python(), [join(WEB, "bench", "lerc_encode.py"), dir]));
+  const py = JSON.parse(run(python(), [join(WEB, "bench", "py_decode.py"), dir, String(REPEATS)]));
   // The JS side in this same process, pinned like the Python one when taskset exists.
   if (pinned) spawnSync("taskset", ["-p", "-c", "0", String(process.pid)]);
+  await Lerc.load();
+  const names = readdirSync(dir).filter((n) => n.endsWith(".dftpc")).sort().map((n) => n.replace(/\.dftpc$/, ""));
   const rows = [];
-  for (const file of readdirSync(dir).filter((n) => n.endsWith(".dftpc")).sort()) {
-    const stem = file.replace(/\.dftpc$/, "");
-    const data = new Uint8Array(readFileSync(join(dir, file)));
-    const cpu = () => {
-      const u = process.cpuUsage();
-      return (u.user + u.system) / 1000;
-    };
-    const first = cpu();
-    const map = decode(data);
-    const cold = cpu() - first;
-    const times = [];
-    for (let k = 0; k < REPEATS; k++) {
-      const t0 = cpu();
-      decode(data);
-      times.push(cpu() - t0);
+  for (const stem of names) {
+    const data = new Uint8Array(readFileSync(join(dir, `${stem}.dftpc`)));
+    const js = timeCpu(() => decode(data));
+    const map = js.result;
+    const row = { stem, bytes: data.length, cells: map.width * map.height, cold: js.cold, js: js.seconds, py: py[stem].seconds };
+    if (lercInfo[stem]) {
+      const blob = new Uint8Array(readFileSync(join(dir, `${stem}.lerc`)));
+      row.lercBytes = blob.length;
+      row.maxError = lercInfo[stem].max_error_m;
+      row.lerc = timeCpu(() => Lerc.decode(blob)).seconds;
     }
-    times.sort((a, b) => a - b);
-    const js = times[Math.floor(times.length / 2)] / 1000;
-    const cells = map.width * map.height;
-    rows.push({ stem, bytes: data.length, cells, cold: cold / 1000, js, py: py[stem].seconds });
+    rows.push(row);
   }
-  console.log(`| map | bytes | cells | JS first decode (CPU s) | JS (M cells/s) | Python (M cells/s) | JS / Python |`);
-  console.log(`|---|---:|---:|---:|---:|---:|---:|`);
+  let browser = null;
+  if (!args.includes("--no-browser")) {
+    browser = await inChromium(dir, names);
+    for (const r of rows) Object.assign(r, { jsChromium: browser.out[r.stem].js, lercChromium: browser.out[r.stem].lerc });
+  }
+  const rate = (r, s) => (s ? (r.cells / s / 1e6).toFixed(2) : "");
+  console.log("| map | cells | bytes | JS Node | JS Chromium | Python | JS Node / Python | JS Chromium / Python | LERC bytes (same max error) | lerc Node | lerc Chromium |");
+  console.log("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
   for (const r of rows) {
-    console.log(`| ${r.stem} | ${r.bytes} | ${r.cells} | ${r.cold.toFixed(3)} | ${(r.cells / r.js / 1e6).toFixed(2)} | `
-      + `${(r.cells / r.py / 1e6).toFixed(2)} | ${(r.py / r.js).toFixed(2)} |`);
+    console.log(`| ${r.stem} | ${r.cells} | ${r.bytes} | ${rate(r, r.js)} | ${rate(r, r.jsChromium)} | ${rate(r, r.py)} | `
+      + `${(r.py / r.js).toFixed(2)} | ${r.jsChromium ? (r.py / r.jsChromium).toFixed(2) : ""} | `
+      + `${r.lercBytes ? `${r.lercBytes} (${r.maxError.toPrecision(3)} m)` : ""} | ${rate(r, r.lerc)} | ${rate(r, r.lercChromium)} |`);
   }
-  console.log(`\nCPU time, medians of ${REPEATS} decodes after one warm-up each, ${pinned ? "both pinned to core 0 (taskset)" : "not pinned"}; node ${process.version}`);
+  console.log(`\nM cells per second: medians of ${REPEATS} decodes after one warm-up each. Node and Python: CPU time, `
+    + `${pinned ? "both pinned to core 0 (taskset)" : "not pinned"}; Chromium: CPU time of the page's main thread (DevTools task durations in thread ticks)${pinned ? ", pinned to core 0" : ""}. `
+    + `node ${process.version}${browser ? `, ${browser.version}` : ""}. LERC at maxZErr = the dftpcc file's stated maximum error.`);
 } finally {
   rmSync(dir, { recursive: true, force: true });
 }

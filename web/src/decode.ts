@@ -1,4 +1,4 @@
-// decode(bytes, options): a .dftpc file (version 1.0 or the tiled 1.1) to its DEM, as LERC's
+// decode(bytes, options): a .dftpc file (version 1.0, the tiled 1.1, or 1.2 of either layout) to its DEM, as LERC's
 // JavaScript decoder returns pixels and mask. format.md "Decoding", "Progressive decoding" and
 // "Tiles: version 1.1".
 import { count as fmt, f32, inflate, u16, u32 } from "./bytes.js";
@@ -8,7 +8,7 @@ import {
   parseTable, payload,
 } from "./container.js";
 import { CorruptFileError, guard, InvalidInputError, ResourceLimitError } from "./errors.js";
-import { prefix, radiusLimit, Transform } from "./layout.js";
+import { baseCut, cutOf, prefix, Transform } from "./layout.js";
 import { decodeMask } from "./mask.js";
 import { decodeResidual } from "./residual.js";
 import { addIdct, ifft2Shifted, irfft2 } from "./transform.js";
@@ -73,6 +73,8 @@ interface Opened {
   entries: Entry[];
   size: number;
   cutCoef: boolean;
+  /** A 1.0 or 1.1 file: the coefficients follow the legacy hypot order (format.md). */
+  legacy: boolean;
 }
 
 function open(bytes: Uint8Array, options: DecodeOptions): Opened {
@@ -121,7 +123,7 @@ function open(bytes: Uint8Array, options: DecodeOptions): Opened {
     sizes: { mask_bytes: len("MASK"), coef_bytes: len("COEF"), residual_bytes: len("RESD") },
   };
   if (tiled) header.tiles = tileIndex(sections, header, data.length, tiles);
-  return { data, header, sections, entries: table.entries, size, cutCoef };
+  return { data, header, sections, entries: table.entries, size, cutCoef, legacy: table.minor < 2 };
 }
 
 /** A .dftpc file's DEM. Throws the classes of errors.ts only. */
@@ -181,7 +183,7 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   for (let k = 0; k < mask.length; k++) set += mask[k];
   if (set !== g.cells) throw new CorruptFileError("occupancy mask disagrees with the header's cell count");
   const kind: Transform = params.transform === "dct" ? "dct" : params.storage === "complex64" ? "dft-full" : "dft-half";
-  const pre = prefix(rows, cols, kind, radiusLimit(rows, cols, params.cutoff));
+  const pre = prefix(rows, cols, kind, cutOf(rows, cols, kind, params.cutoff, o.legacy));
   const kept = pre.pos.length;
   if (stats.coef_count !== kept) throw new CorruptFileError("coefficient count disagrees with the grid and cutoff");
   let use = kept;
@@ -189,7 +191,7 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     const c = options.cutoff;
     if (!(typeof c === "number" && c >= 0 && c < 1)) throw new InvalidInputError("cutoff must be in [0, 1)");
     if (c < params.cutoff) throw new InvalidInputError(`cannot decode at cutoff ${c}: the file holds coefficients up to cutoff ${params.cutoff} only`);
-    use = prefix(rows, cols, kind, radiusLimit(rows, cols, c)).pos.length;
+    use = prefix(rows, cols, kind, cutOf(rows, cols, kind, c, o.legacy)).pos.length;
   }
   const pairs = kind === "dft-half";
   const per = pairs ? 2 : 1;
@@ -410,7 +412,8 @@ function decodeTiled(o: Opened, options: DecodeOptions): DecodedMap {
   // The budget: every cell of the tiles the window touches, the base layer's frequency pairs, and
   // the map mask and residual (decoded whole for any window).
   const cutoff = params.cutoff;
-  const baseRadius = Math.min((t.reach * Math.max(rows, cols)) / T, (1 - cutoff) * Math.hypot(rows / 2, cols / 2)) * (1 + 1e-12);
+  const bcut = baseCut(rows, cols, cutoff, t.reach, T, o.legacy);
+  const baseRadius = bcut.limit;
   const ni = Math.min(rows, Math.floor(2 * baseRadius) + 1);
   const nj = Math.min(cols, Math.floor(2 * baseRadius) + 1);
   const spanR = Math.min(rows, ti1 * T) - ti0 * T;
@@ -433,7 +436,7 @@ function decodeTiled(o: Opened, options: DecodeOptions): DecodedMap {
     if (stats.coef_count !== 0) throw new CorruptFileError(`the base layer's coefficient count ${stats.coef_count} disagrees with the grid, tile size and cutoff (0)`);
     decodeStream(basePayload, 0, null, null, { free: true, name: "base layer" });
   } else {
-    const pre = prefix(ni, nj, "dct", baseRadius);
+    const pre = prefix(ni, nj, "dct", bcut);
     const kept = pre.pos.length;
     if (stats.coef_count !== kept) {
       throw new CorruptFileError(`the base layer's coefficient count ${stats.coef_count} disagrees with the grid, tile size and cutoff (${kept})`);
@@ -526,7 +529,7 @@ function decodeTile(o: Opened, k: number, secs: Map<string, Entry>, count: numbe
   const WW = yc1 - yc0;
   const tileH = new Float64Array(h * w);
   if (secs.has("COEF")) {
-    const pre = prefix(HH, WW, "dct", radiusLimit(HH, WW, params.cutoff));
+    const pre = prefix(HH, WW, "dct", cutOf(HH, WW, "dct", params.cutoff, o.legacy));
     const s = decodeStream(payload(o.data, secs.get("COEF")!, ""), pre.pos.length, pre.radius, pre.angle, { free: true });
     if (!s.ints) throw new CorruptFileError("holds float coefficients");
     let K = 0;

@@ -1,5 +1,9 @@
+import { UnsupportedFormatError } from "./errors.js";
+
 // Which coefficient is which (format.md, "Which coefficient is which"): the kept prefix of the
-// coefficients sorted by radius, ties in row-major order, with each one's radius and angle.
+// coefficients with each one's radius and angle. Version 1.2 sorts by the integer key i² + j²
+// (di² + dj² for the DFT), ties in row-major order, and cuts at an integer bound derived in exact
+// arithmetic (BigInt); 1.0 and 1.1 sort by the writer's hypot (the legacy order, emulated below).
 
 const EPS = 2 ** -54;
 const TINY = 2 ** -459;
@@ -53,18 +57,85 @@ export interface Prefix {
   angle: Float64Array;
 }
 
-/** The radius limit (1 - cutoff) hypot(rows/2, cols/2) (1 + 1e-12), frequency pixels. */
+/** The legacy radius limit (1 - cutoff) hypot(rows/2, cols/2) (1 + 1e-12), frequency pixels. */
 export function radiusLimit(rows: number, cols: number, cutoff: number): number {
   return (1 - cutoff) * Math.hypot(rows / 2, cols / 2) * (1 + 1e-12);
+}
+
+/** Where the stream stops: the legacy float radius `limit`, or (version 1.2) every key up to
+ * `qmax`, whose radius `limit` then is (it bounds the candidates enumerated). */
+export interface Cut {
+  legacy: boolean;
+  limit: number;
+  qmax: number;
+}
+
+/** A binary64 number as an exact fraction m / 2^e (m, e BigInt; x finite and >= 0). */
+function fraction(x: number): [bigint, bigint] {
+  const view = new DataView(new ArrayBuffer(8));
+  view.setFloat64(0, x);
+  const bits = view.getBigUint64(0);
+  const exp = Number((bits >> 52n) & 0x7ffn);
+  const frac = bits & ((1n << 52n) - 1n);
+  // value = m * 2^(exp - 1075) (normal) or frac * 2^-1074 (subnormal): as m / 2^e with e >= 0 here.
+  const m = exp === 0 ? frac : frac | (1n << 52n);
+  const e = 1075 - Math.max(exp, 1);
+  return e >= 0 ? [m, BigInt(e)] : [m << BigInt(-e), 0n];
+}
+
+/** S, the slack 1 + 1e-12 as binary64: 0x1.0000000001198p+0 = (2^52 + 4504) / 2^52. */
+const S_NUM = (1n << 52n) + 4504n;
+const S_SHIFT = 52n;
+
+/** floor(A² S² (rows² + cols²) / c) exactly, A = 1 - cutoff in binary64 (format.md). */
+function keyBound(rows: number, cols: number, cutoff: number, c: number): bigint {
+  const [a, u] = fraction(1 - cutoff);
+  const d = BigInt(rows) * BigInt(rows) + BigInt(cols) * BigInt(cols);
+  return ((a * a * S_NUM * S_NUM * d) >> (2n * u + 2n * S_SHIFT)) / BigInt(c);
+}
+
+/** Keys are exact in binary64 below 2^53: a grid beyond it (a line of 10^8 cells) is refused. */
+function checkKeys(rows: number, cols: number): void {
+  if (rows * rows + cols * cols >= 2 ** 53) {
+    throw new UnsupportedFormatError(`a ${rows} x ${cols} grid's frequency keys exceed 2^53: this decoder does not read it`);
+  }
+}
+
+function integerCut(q: bigint, rows: number, cols: number, dct: boolean): Cut {
+  const most = BigInt(rows) * BigInt(rows) + BigInt(cols) * BigInt(cols);
+  const qmax = Number(q < most ? q : most);
+  return { legacy: false, qmax, limit: Math.sqrt(qmax) * (dct ? 0.5 : 1) };
+}
+
+/** The cut of the file's (or a coarser) cutoff: the legacy radius, or version 1.2's integer bound. */
+export function cutOf(rows: number, cols: number, kind: Transform, cutoff: number, legacy: boolean): Cut {
+  if (legacy) return { legacy, limit: radiusLimit(rows, cols, cutoff), qmax: NaN };
+  checkKeys(rows, cols);
+  const dct = kind === "dct";
+  return integerCut(keyBound(rows, cols, cutoff, dct ? 1 : 4), rows, cols, dct);
+}
+
+/** The base layer's cut (format.md, "BASE"): within the cutoff's circle and reach K cycles per tile of T cells. */
+export function baseCut(rows: number, cols: number, cutoff: number, reach: number, T: number, legacy: boolean): Cut {
+  if (legacy) {
+    const limit = Math.min((reach * Math.max(rows, cols)) / T, (1 - cutoff) * Math.hypot(rows / 2, cols / 2)) * (1 + 1e-12);
+    return { legacy, limit, qmax: NaN };
+  }
+  checkKeys(rows, cols);
+  const km = BigInt(reach) * BigInt(Math.max(rows, cols));
+  const byReach = (4n * S_NUM * S_NUM * km * km) / ((1n << (2n * S_SHIFT)) * BigInt(T) * BigInt(T));
+  const byCutoff = keyBound(rows, cols, cutoff, 1);
+  return integerCut(byReach < byCutoff ? byReach : byCutoff, rows, cols, true);
 }
 
 const cache = new Map<string, Prefix>();
 const MAX_CACHED_COEFS = 1 << 22;
 let cachedCoefs = 0;
 
-/** The kept coefficients of a rows x cols grid within `limit` (radiusLimit, or the base layer's). */
-export function prefix(rows: number, cols: number, kind: Transform, limit: number): Prefix {
-  const key = `${rows},${cols},${kind},${limit}`;
+/** The kept coefficients of a rows x cols grid within `cut` (cutOf, or the base layer's baseCut). */
+export function prefix(rows: number, cols: number, kind: Transform, cut: Cut): Prefix {
+  const { legacy, limit, qmax } = cut;
+  const key = `${rows},${cols},${kind},${legacy},${limit},${qmax}`;
   const hit = cache.get(key);
   if (hit) return hit;
   const C = kind === "dft-half" ? Math.floor(cols / 2) + 1 : cols;
@@ -96,7 +167,7 @@ export function prefix(rows: number, cols: number, kind: Transform, limit: numbe
   }
   // Candidates inside the circle, in row-major order, with the exact integer square of their radius
   // (in half-steps for the DCT): the sort is by that integer (stable, so row-major on ties), then,
-  // within a tie, by the writer's hypot value (its last bit can split a tie, format.md).
+  // for a legacy file, within a tie by the writer's hypot value (its last bit can split a tie).
   const half = Math.floor((rows + 1) / 2);
   const nCand = ri.length * (j1 - j0);
   const cPos = new Int32Array(nCand);
@@ -110,13 +181,15 @@ export function prefix(rows: number, cols: number, kind: Transform, limit: numbe
     const di = kind === "dct" ? i : kind === "dft-half" ? (i < half ? i : i - rows) : i - Math.floor(rows / 2);
     for (let j = j0; j < j1; j++) {
       const dj = kind === "dft-full" ? j - Math.floor(cols / 2) : j;
-      const r = kind === "dct" ? hypot(i / 2, j / 2) : hypot(di, dj);
+      const sq = di * di + dj * dj;
+      let r: number;
+      if (legacy) r = kind === "dct" ? hypot(i / 2, j / 2) : hypot(di, dj);
+      else r = sq <= qmax ? Math.sqrt(sq) * (kind === "dct" ? 0.5 : 1) : Infinity;
       if (r <= limit) {
         cPos[m] = i * C + j;
         cRad[m] = r;
         cI[m] = di;
         cJ[m] = dj;
-        const sq = di * di + dj * dj;
         cSq[m] = sq;
         if (sq > sqMax) sqMax = sq;
         m++;
@@ -135,8 +208,8 @@ export function prefix(rows: number, cols: number, kind: Transform, limit: numbe
     order = Int32Array.from({ length: m }, (_, k) => k);
     order.sort((a, b) => cSq[a] - cSq[b] || a - b);
   }
-  // Within a run of equal squares the writer's radii may differ in their last bit: order by them.
-  for (let a = 0; a < m;) {
+  // Within a run of equal squares a legacy writer's radii may differ in their last bit: order by them.
+  for (let a = 0; legacy && a < m;) {
     let b = a + 1;
     while (b < m && cSq[order[b]] === cSq[order[a]]) b++;
     if (b - a > 1) {

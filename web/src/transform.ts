@@ -47,7 +47,7 @@ function idctAxis(inp: Float64Array, nvec: number, klen: number, n: number, c0: 
     }
     return out;
   }
-  const dct = new Dct3(n);
+  const dct = dctOf(n);
   const y1 = new Float64Array(n);
   const y2 = new Float64Array(n);
   for (let v = 0; v < nvec; v += 2) {
@@ -57,6 +57,20 @@ function idctAxis(inp: Float64Array, nvec: number, klen: number, n: number, c0: 
     if (two) out.set(y2.subarray(c0, c0 + w), (v + 1) * w);
   }
   return out;
+}
+
+/** DCT plans by length (their tables cost a few trigonometric calls a point): a map's transforms
+ * have one or two lengths, a tiled map's windows a few. */
+const plans = new Map<number, Dct3>();
+
+function dctOf(n: number): Dct3 {
+  let plan = plans.get(n);
+  if (!plan) {
+    if (plans.size >= 8) plans.clear();
+    plan = new Dct3(n);
+    plans.set(n, plan);
+  }
+  return plan;
 }
 
 /** Plain sums cost about four times an FFT's estimated flop each (measured in Node 20: a

@@ -28,6 +28,7 @@ from dftpcc.errors import DftpccError
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 DEMS = DATA / "dems"
 CLOUDS = DATA / "pointclouds"
+LEGACY = Path(__file__).resolve().parents[2] / "tests" / "legacy"
 
 
 def _save(out: Path, name: str, dem, z0: float, suffix: str) -> None:
@@ -81,6 +82,21 @@ def _case(out: Path, name: str, src: Path, cli: list[str], manifest: list, *, pr
         entry["cutoff"] = cutoff
     manifest.append(entry)
     print(f"{name}: {len(data)} bytes", file=sys.stderr)
+
+
+def _legacy(out: Path, manifest: dict) -> None:
+    """The committed files of versions 1.0 and 1.1 (tests/legacy): the Python decoder's answers."""
+    cases = []
+    for src in sorted(LEGACY.glob("*.dftpc")):
+        name = f"legacy_{src.stem}"
+        data = src.read_bytes()
+        (out / f"{name}.dftpc").write_bytes(data)
+        with dftpcc.open(data) as cmap:
+            dem = cmap.read_dem()
+            _save(out, name, dem, cmap.grid.z0, "ref")
+            cases.append({"name": name, "minor": data[9], "rows": int(dem.heights.shape[0]),
+                          "cols": int(dem.heights.shape[1]), "tiled": bool(cmap.tiled)})
+    manifest["legacy"] = cases
 
 
 def _find(info, key):
@@ -137,15 +153,18 @@ def _deltas(out: Path, manifest: dict) -> None:
 
 
 def _orders(manifest: dict) -> None:
-    """The writer's coefficient order for a few shapes (ties decided by hypot's last bits)."""
+    """The writer's coefficient order for a few shapes: version 1.2's integer order, and the legacy one
+    (ties decided by hypot's last bits) of 1.0 and 1.1 files."""
     cases = []
     for rows, cols, transform, storage, cutoff in [(741, 702, "dct", "quantized", 0.5), (337, 348, "dct", "quantized", 0.0),
                                                    (300, 301, "dft", "quantized", 0.3), (128, 96, "dft", "complex64", 0.2),
-                                                   (1024, 1024, "dct", "quantized", 0.6)]:
-        lay = spectrum.layout(transform, storage, (rows, cols))
-        order, radius, angle = spectrum.kept_order(lay, cutoff)
-        cases.append({"rows": rows, "cols": cols, "transform": transform, "storage": storage, "cutoff": cutoff,
-                      "order": [int(x) for x in order], "angle": [float(x) for x in angle]})
+                                                   (1024, 1024, "dct", "quantized", 0.6), (10, 10, "dct", "quantized", 0.8)]:
+        for legacy in (False, True):
+            lay = spectrum.layout(transform, storage, (rows, cols), legacy=legacy)
+            order, radius, angle = spectrum.kept_order(lay, cutoff)
+            cases.append({"rows": rows, "cols": cols, "transform": transform, "storage": storage, "cutoff": cutoff,
+                          "legacy": legacy, "order": [int(x) for x in order], "angle": [float(x) for x in angle],
+                          "radius": [float(x) for x in radius]})
     manifest["orders"] = cases
     import decimal
     decays = []
@@ -190,6 +209,7 @@ def main() -> None:
     manifest: dict = {"cases": cases}
     _deltas(out, manifest)
     _orders(manifest)
+    _legacy(out, manifest)
     (out / "manifest.json").write_text(json.dumps(manifest))
 
 

@@ -5,19 +5,23 @@ import assert from "node:assert/strict";
 import { readFileSync } from "node:fs";
 import { join } from "node:path";
 import { test } from "node:test";
-import { addIdct, decayOf, prefix, radiusLimit } from "../dist/internals.mjs";
+import { addIdct, cutOf, decayOf, prefix } from "../dist/internals.mjs";
 import { fixtures } from "./helpers.mjs";
 
 const M = JSON.parse(readFileSync(join(fixtures(), "manifest.json"), "utf8"));
 
 for (const c of M.orders) {
-  test(`coefficient order of a ${c.rows} x ${c.cols} ${c.transform}/${c.storage} grid at cutoff ${c.cutoff} is the writer's`, () => {
+  const rule = c.legacy ? "legacy (1.0, 1.1)" : "integer (1.2)";
+  test(`${rule} coefficient order of a ${c.rows} x ${c.cols} ${c.transform}/${c.storage} grid at cutoff ${c.cutoff} is the writer's`, () => {
     const kind = c.transform === "dct" ? "dct" : c.storage === "complex64" ? "dft-full" : "dft-half";
-    const p = prefix(c.rows, c.cols, kind, radiusLimit(c.rows, c.cols, c.cutoff));
+    const p = prefix(c.rows, c.cols, kind, cutOf(c.rows, c.cols, kind, c.cutoff, c.legacy));
     assert.equal(p.pos.length, c.order.length);
     let moved = 0;
     for (let k = 0; k < c.order.length; k++) if (p.pos[k] !== c.order[k]) moved++;
     assert.equal(moved, 0, `${moved} coefficients out of place`);
+    let radii = 0;
+    for (let k = 0; k < c.radius.length; k++) if (p.radius[k] !== c.radius[k]) radii++;
+    assert.equal(radii, 0, `${radii} radii differ from the writer's (their bands could)`);
     for (const sectors of [1, 4, 16]) {
       let differ = 0;
       for (let k = 0; k < c.angle.length; k++) {
@@ -40,4 +44,25 @@ test("the inverse DCT is scipy's idctn(type=2, norm='ortho') within 1e-12", () =
   let worst = 0;
   for (let k = 0; k < out.length; k++) worst = Math.max(worst, Math.abs(out[k] - heights[k]));
   assert.ok(worst < 1e-12, `differs by ${worst}`);
+});
+
+test("the inverse DCT by FFT equals plain sums on every FFT path (powers of two, mixed radix, Bluestein)", () => {
+  // 1024: fft.js; 495 = 3^2 x 5 x 11, 1197 = 3^2 x 7 x 19, 37: the mixed-radix FFT (a generic radix);
+  // 804 = 4 x 3 x 67, 643 and 1009 (primes): Bluestein over fft.js.
+  let seed = 1;
+  const rnd = () => (seed = (seed * 16807) % 2147483647) / 2147483647 - 0.5;
+  for (const N of [1, 3, 37, 495, 643, 804, 1009, 1024, 1197]) {
+    for (const M of [5, 96, 559]) {
+      const K = Math.min(N, 1 + Math.floor(N / 3));
+      const L = Math.min(M, 1 + Math.floor(M / 2));
+      const g = Float64Array.from({ length: K * L }, rnd);
+      const byFft = new Float64Array(N * M);
+      const bySums = new Float64Array(N * M);
+      addIdct(byFft, g, K, L, N, M, 0, N, 0, M, "fft");
+      addIdct(bySums, g, K, L, N, M, 0, N, 0, M, "sums");
+      let worst = 0;
+      for (let k = 0; k < byFft.length; k++) worst = Math.max(worst, Math.abs(byFft[k] - bySums[k]));
+      assert.ok(worst < 1e-11, `${N} x ${M}: differs by ${worst}`);
+    }
+  }
 });

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 from ..dem import Grid
 from ..errors import CorruptFileError, InvalidInputError
 from ..params import Params
-from .sections import F32, TooWide, f32_up, json_text, leb128, pack_json, read_json, read_leb128_at
+from .sections import F32, VERSION, TooWide, f32_up, json_text, leb128, legacy_order, pack_json, read_json, read_leb128_at
 from .validate import (MAX_CELLS, as_writer, check_coef_count, check_crs, check_geometry, check_params,
                        check_points, check_row_spacing, check_grid_fields)
 
@@ -56,6 +56,9 @@ class Header:
         PARM fields :class:`Params` does not hold, kept as read and written back: a newer writer's,
         or what a tool on top of the codec records (the relocalization experiment's
         ``target_reloc``, metres).
+    minor : int
+        The file's minor version (what the writer writes for a new header): it says which
+        coefficient order the file follows (:attr:`legacy_order`).
     """
 
     grid: Grid
@@ -68,6 +71,12 @@ class Header:
     coef_count: int = 0
     tiles: "TileIndex | None" = None
     notes: dict[str, Any] = field(default_factory=dict)
+    minor: int = VERSION[1]
+
+    @property
+    def legacy_order(self) -> bool:
+        """Whether the coefficients follow the legacy ``hypot`` order (a 1.0 or 1.1 file)."""
+        return legacy_order(self.minor)
 
 
 #: Parameter values a version-1 file leaves out. Frozen here, apart from the

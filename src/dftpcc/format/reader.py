@@ -101,6 +101,7 @@ def unpack(data: bytes | memoryview, *, allow_truncated_coef: bool = False,
     budget = cells_allowed(len(data), max_cells)
     found, declared = _sections(data, allow_truncated_coef=allow_truncated_coef)
     header = parse_header(found, budget=budget, file_size=len(data))
+    header.minor = int(data[9])  # the preamble's minor version (table() checked the preamble is there)
     for key, tag in DERIVED_STATS.items():
         header.stats.setdefault(key, declared.get(tag, 0))
     return header, {tag: found[tag] for tag in (b"MASK", b"COEF", b"RESD") if tag in found}
@@ -118,7 +119,7 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
     entries, offset, minor = table_of(source)
     if not is_tiled(entries):
         return unpack(source.read(0, source.size), allow_truncated_coef=allow_truncated_coef, max_cells=max_cells)
-    if minor < VERSION_TILED[1]:  # format.md: a 1.0 file has no sections of tiles, a tiled map is 1.1
+    if minor < VERSION_TILED[1]:  # format.md: a 1.0 file has no sections of tiles, a tiled map is 1.1 or later
         raise CorruptFileError(f"a version 1.{minor} file holds a tile index (TIDX): a tiled map is version "
                                f"{VERSION_TILED[0]}.{VERSION_TILED[1]}")
     if allow_truncated_coef:
@@ -148,6 +149,7 @@ def unpack_source(source: Source, *, allow_truncated_coef: bool = False,
         start, length, crc = found[tag]
         payloads[tag] = checked(source, start, length, crc, f"section {tag.decode().strip()}")
     header = parse_header(payloads, budget=MAX_TILED_CELLS, file_size=source.size, limit=MAX_TILED_CELLS, tiled=True)
+    header.minor = minor
     grid, params, stats = header.grid, header.params, header.stats
     index = unpack_index(payloads[b"TIDX"], grid, params, header.cell_count, source.size)
     index.map_mask, index.map_resid = b"MASK" in payloads, b"RESD" in payloads

@@ -21,9 +21,19 @@ if TYPE_CHECKING:
 MAGIC = b"\x89DFTPC\r\n"
 #: (major, minor). A reader refuses another major; a newer minor may add
 #: sections and JSON fields, which an older reader skips.
-VERSION = (1, 0)
-#: A tiled map (docs/format.md, *Tiles*).
+#: What the writer writes, a tiled map or not: 1.2 orders coefficients by exact integers
+#: (docs/format.md, *Which coefficient is which*).
+VERSION = (1, 2)
+#: The first version with tiled maps (docs/format.md, *Tiles*).
 VERSION_TILED = (1, 1)
+#: The first minor version with the integer coefficient order; earlier ones keep the legacy
+#: order by the C library's ``hypot``.
+INTEGER_ORDER_MINOR = 2
+
+
+def legacy_order(minor: int) -> bool:
+    """Whether a file of this minor version orders its coefficients by the legacy ``hypot`` rule."""
+    return minor < INTEGER_ORDER_MINOR
 PREAMBLE = struct.Struct("<8sBBHI")  # magic, major, minor, flags, section count
 # A section table entry: 4-byte tag, LEB128 tile, LEB128 payload length, u32 CRC-32.
 CRC = struct.Struct("<I")

@@ -22,7 +22,7 @@ from ..params import Params
 from .header import DERIVED_STATS, Header, check_header, header_sections
 from .index import TileIndex, check_map_resid, pack_index, tile_needs
 from .reader import read_tile, unpack_source
-from .sections import MAX_SECTIONS_TILED, VERSION, VERSION_TILED, head, names
+from .sections import MAX_SECTIONS_TILED, VERSION, head, names
 from .source import Source
 from .validate import as_writer, check_tiled_params
 
@@ -54,7 +54,7 @@ def _untiled_head(header: Header, entries: list[tuple[int, bytes, int, int]]) ->
     check_header(header)
     sections = header_sections(header)
     table = [(tag, 0, len(p), zlib.crc32(p)) for tag, p in sections] + [(tag, 0, n, crc) for _, tag, n, crc in entries]
-    return head(table, VERSION) + b"".join(p for _, p in sections)
+    return head(table, (VERSION[0], header.minor)) + b"".join(p for _, p in sections)
 
 
 def _warn_large(g: Grid, size: int) -> None:
@@ -134,7 +134,7 @@ def tiled_head(header: Header, base_blob: bytes, entries: list[tuple[int, bytes,
     if len(table) > MAX_SECTIONS_TILED:
         raise InvalidInputError(f"cannot write this map: {len(table):,} sections, more than the "
                                 f"{MAX_SECTIONS_TILED:,} a tiled file holds; choose a larger tile size")
-    return head(table, VERSION_TILED) + b"".join(p for _, p in sections)
+    return head(table, (VERSION[0], header.minor)) + b"".join(p for _, p in sections)
 
 
 #: Statistics of the points one height per cell could not hold (walls, vegetation) a file states,
@@ -167,13 +167,18 @@ class MapWriter:
         A tiled map's tiles; ``overlap`` and ``base_cycles`` as in :class:`TileIndex`.
     notes : dict, optional
         PARM fields beside the parameters (:attr:`Header.notes`).
+    minor : int
+        The minor version to write: the coefficient order the sections follow (:func:`restate` keeps a
+        1.0 or 1.1 file's legacy order, and says so).
     """
 
     def __init__(self, grid: Grid, params: Params, *, point_count: int, plane: tuple[float, float, float] = (0.0, 0.0, 0.0),
                  crs: dict[str, Any] | None = None, tiling: TileGrid | None = None, overlap: int = 0,
-                 base_cycles: int = 0, spool: bool = False, notes: dict[str, Any] | None = None):
+                 base_cycles: int = 0, spool: bool = False, notes: dict[str, Any] | None = None,
+                 minor: int = VERSION[1]):
         self.grid, self.params, self.point_count, self.plane, self.crs = grid, params, point_count, plane, crs or {}
         self.notes = dict(notes or {})
+        self.minor = minor
         self.tiling, self.overlap, self.base_cycles = tiling, overlap, base_cycles
         n = tiling.count if tiling is not None else 1
         self.cells = np.zeros(n, dtype=np.int64)
@@ -255,7 +260,7 @@ class MapWriter:
                               cells=self.cells, rmse=self.rmse, max_error=self.max_error)
         return Header(grid=self.grid, params=self.params, point_count=self.point_count,
                       cell_count=int(self.cells.sum()), plane=self.plane, crs=self.crs, stats=stats,
-                      coef_count=coef_count, tiles=index, notes=self.notes)
+                      coef_count=coef_count, tiles=index, notes=self.notes, minor=self.minor)
 
     def head(self, stats: dict[str, Any], *, coef_count: int, base: bytes = b"", map_mask: bytes = b"",
              map_resid: bytes = b"") -> bytes:
@@ -311,7 +316,7 @@ def restate(data: bytes, *, notes: dict[str, Any] | None = None, **stats: Any) -
                        crs=header.crs, tiling=header.tiles.tiling if header.tiles else None,
                        overlap=header.tiles.overlap if header.tiles else 0,
                        base_cycles=header.tiles.base_cycles if header.tiles else 0,
-                       notes=header.notes | (notes or {}))
+                       notes=header.notes | (notes or {}), minor=header.minor)  # the sections' order stays theirs
     if header.tiles is None:
         writer.cells[0] = header.cell_count
         writer.add_sections(0, shared)
