@@ -215,7 +215,7 @@ class _Layout:
             masks = side.result()
         # Rate control. For a size target the header's own bytes count too: start
         # from an estimate, then shrink the budget by any overshoot.
-        overhead = len(masks.map) + sum(map(len, masks.tiles)) + HEADER_ESTIMATE
+        overhead = masks.size + HEADER_ESTIMATE
         for round_ in range(BUDGET_ROUNDS):
             try:
                 choice = ratemodel.choose(an, params, point_count, overhead,
@@ -441,7 +441,7 @@ def choose_for_tiles(dem: DEM, params: Params, tile: int, *, point_count: int | 
     count = int(dem.mask.sum()) if point_count is None else point_count
     fixed = HEADER_ESTIMATE
     if params.target_bpp > 0:
-        fixed = _length(tiled_masks(an)) + math.ceil(HEADER_ESTIMATE * share)
+        fixed = tiled_masks(an).size + math.ceil(HEADER_ESTIMATE * share)
     choice = ratemodel.choose(an, params, count, fixed)
     return params.replace(cutoff=choice.trial.cutoff, step=choice.trial.step), choice.analysis.refill_step
 
@@ -453,6 +453,11 @@ class Masks(NamedTuple):
 
     map: bytes
     tiles: list[bytes]
+
+    @property
+    def size(self) -> int:
+        """Bytes of the coded masks."""
+        return len(self.map) + sum(map(len, self.tiles))
 
 
 def tiled_masks(an: TiledAnalysis) -> Masks:
