@@ -516,69 +516,16 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
     def fill(tmp: Path) -> None:
         nonlocal written
         if fmt in ("tif", "tiff"):
-            written = _write_raster_bands(tmp, grid, cmap.crs, blocks(), cog=cog, sample=sample, empty=empty)
+            from .io.geotiff import write_geotiff_windows  # rasterio, loaded only for a raster
+
+            with _gdal_env():
+                written = write_geotiff_windows(tmp, grid, cmap.crs, blocks(), cog=cog, sample=sample, empty=empty)
         else:
-            written = _write_las_bands(tmp, grid, cmap.crs, bands(), fmt)
+            from .io.las import write_las_chunks  # laspy, loaded only for a cloud
+
+            corners = (grid.x0, grid.y0, grid.x0 + grid.cols * grid.resolution, grid.y0 + grid.rows * grid.dy)
+            written = write_las_chunks(tmp, (dem_to_points(dem) for _, dem in bands()), cmap.crs,
+                                       np.floor([min(corners[0], corners[2]), min(corners[1], corners[3]), grid.z0]), fmt)
 
     write(dst, fill)
     return written
-
-
-def _write_raster_bands(path: Path, grid: Grid, crs: dict[str, Any], blocks: Iterator[tuple[int, int, DEM]], *,
-                        cog: bool, sample: str = "float32", empty: float = float("nan")) -> int:
-    """Write decoded windows ``(row, column, DEM)`` into a GeoTIFF (or a COG) of ``sample`` values, empty
-    cells ``empty``, through windowed writes."""
-    import rasterio
-    import rasterio.shutil
-    from rasterio.transform import Affine
-    from rasterio.windows import Window
-
-    from .io.geotiff import FLOAT_PREDICTOR, GEOTIFF_CREATION, INTEGER_PREDICTOR, samples
-
-    if grid.angle != 0.0:
-        raise InvalidInputError("a rotated grid (frame 'oriented') is written as points, not as a GeoTIFF")
-    r, dy = grid.resolution, grid.dy
-    transform = Affine(r, 0.0, grid.x0, 0.0, -dy, grid.y0 + grid.rows * dy)
-    target = path.with_suffix(".strips.tif") if cog else path
-    predictor = INTEGER_PREDICTOR if np.dtype(sample).kind in "iu" else FLOAT_PREDICTOR
-    count = 0
-    with _gdal_env():
-        with rasterio.open(target, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1,
-                           dtype=sample, nodata=empty, transform=transform, crs=crs.get("wkt") or None,
-                           BIGTIFF="IF_SAFER", **(GEOTIFF_CREATION | {"predictor": predictor})) as out:
-            for r0, c0, dem in blocks:
-                values = samples(dem, sample, empty)[::-1]
-                count += int(dem.mask.sum())
-                h, w = values.shape
-                out.write(values, 1, window=Window(c0, grid.rows - r0 - h, w, h))
-        if cog:
-            try:
-                rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR=str(predictor),
-                                     BIGTIFF="IF_SAFER")
-            finally:
-                target.unlink(missing_ok=True)
-    return count
-
-
-def _write_las_bands(path: Path, grid: Grid, crs: dict[str, Any], bands: Iterator[tuple[int, DEM]],
-                     fmt: str) -> int:
-    import laspy
-
-    from .io.las import GROUND, las_header
-
-    corners_x = [grid.x0, grid.x0 + grid.cols * grid.resolution]
-    corners_y = [grid.y0, grid.y0 + grid.rows * grid.dy]
-    header = las_header(crs, np.floor([min(corners_x), min(corners_y), grid.z0]))
-    count = 0
-    with open(path, "wb") as fh, laspy.open(fh, mode="w", header=header, do_compress=(fmt == "laz"),
-                                           closefd=False) as writer:
-        for _, dem in bands:
-            points = dem_to_points(dem)
-            if not points.size:
-                continue
-            record = laspy.ScaleAwarePointRecord.zeros(points.shape[0], header=header)
-            record.x, record.y, record.z = points[:, 0], points[:, 1], points[:, 2]
-            record.classification = np.full(points.shape[0], GROUND, dtype=np.uint8)
-            writer.write_points(record)
-            count += points.shape[0]
-    return count

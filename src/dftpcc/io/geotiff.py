@@ -10,7 +10,7 @@ import math
 import os
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, ClassVar, Iterator
+from typing import Any, ClassVar, Iterable, Iterator
 
 import numpy as np
 import rasterio
@@ -19,7 +19,7 @@ from rasterio.io import MemoryFile
 from rasterio.transform import Affine
 
 from ..dem import DEM, Grid, RasterSource
-from ..errors import InvalidInputError, RasterTypeWarning
+from ..errors import InvalidInputError
 from .atomic import atomic_write, writer_errors
 from .reader import Reader
 
@@ -398,3 +398,40 @@ def write_geotiff(path: str | os.PathLike[str], dem: DEM, *, crs: dict[str, Any]
     with writer_errors(path, "tif"):
         atomic_write(path, _write)
 
+
+def write_geotiff_windows(path: Path, grid: Grid, crs: dict[str, Any], blocks: Iterable[tuple[int, int, DEM]], *,
+                          cog: bool, sample: str = "float32", empty: float = float("nan")) -> int:
+    """:func:`write_geotiff` of a map that arrives in windows ``(row, column, DEM)`` (decoded band by
+    band): each written where it lies, through windowed writes; empty cells ``empty``. A COG is
+    written as strips first, then copied by GDAL's COG driver. Returns the occupied cells written.
+
+    Raises
+    ------
+    InvalidInputError
+        A rotated grid (its windows are not the file's).
+    """
+    import rasterio.shutil
+    from rasterio.windows import Window
+
+    if grid.angle != 0.0:
+        raise InvalidInputError("a rotated grid (frame 'oriented') is written as points, not as a GeoTIFF")
+    r, dy = grid.resolution, grid.dy
+    transform = Affine(r, 0.0, grid.x0, 0.0, -dy, grid.y0 + grid.rows * dy)
+    target = path.with_suffix(".strips.tif") if cog else path
+    predictor = INTEGER_PREDICTOR if np.dtype(sample).kind in "iu" else FLOAT_PREDICTOR
+    count = 0
+    with rasterio.open(target, "w", driver="GTiff", height=grid.rows, width=grid.cols, count=1,
+                       dtype=sample, nodata=empty, transform=transform, crs=crs.get("wkt") or None,
+                       BIGTIFF="IF_SAFER", **(GEOTIFF_CREATION | {"predictor": predictor})) as out:
+        for r0, c0, dem in blocks:
+            values = samples(dem, sample, empty)[::-1]
+            count += int(dem.mask.sum())
+            h, w = values.shape
+            out.write(values, 1, window=Window(c0, grid.rows - r0 - h, w, h))
+    if cog:
+        try:
+            rasterio.shutil.copy(target, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR=str(predictor),
+                                 BIGTIFF="IF_SAFER")
+        finally:
+            target.unlink(missing_ok=True)
+    return count

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import base64
 from pathlib import Path
-from typing import Any, ClassVar, Iterator, Sequence
+from typing import Any, ClassVar, Iterable, Iterator, Sequence
 
 import laspy
 import numpy as np
@@ -119,3 +119,22 @@ def write_las(tmp: Path, points: np.ndarray, crs: dict[str, Any], fmt: str) -> N
     las.classification = np.full(points.shape[0], GROUND, dtype=np.uint8)
     with open(tmp, "wb") as fh:
         las.write(fh, do_compress=(fmt == "laz"))
+
+
+def write_las_chunks(path: Path, chunks: Iterable[np.ndarray], crs: dict[str, Any], offsets: np.ndarray,
+                     fmt: str) -> int:
+    """:func:`write_las` of points that arrive in chunks (a map decoded band by band), each appended as it
+    comes, at the scales of :func:`las_scales` about ``offsets``. Returns the points written."""
+    header = las_header(crs, offsets)
+    count = 0
+    with open(path, "wb") as fh, laspy.open(fh, mode="w", header=header, do_compress=(fmt == "laz"),
+                                           closefd=False) as writer:
+        for points in chunks:
+            if not points.size:
+                continue
+            record = laspy.ScaleAwarePointRecord.zeros(points.shape[0], header=header)
+            record.x, record.y, record.z = points[:, 0], points[:, 1], points[:, 2]
+            record.classification = np.full(points.shape[0], GROUND, dtype=np.uint8)
+            writer.write_points(record)
+            count += points.shape[0]
+    return count
