@@ -53,7 +53,8 @@ def test_no_input_runs_away(report):
 
 
 def test_every_seed_decodes():
-    assert len(legacy_files()) >= 20 and "legacy_tie_dct" in legacy_files()  # the 1.0 and 1.1 maps are fuzzed too
+    legacy = legacy_files()  # the 1.0 and 1.1 maps are fuzzed too, tiled and not
+    assert len(legacy) >= 20 and "legacy_tiled_map_residual" in legacy and "legacy_paper_dft" in legacy
     for name, data in (seed_files() | legacy_files()).items():
         outcome = check(bytes([0]) + data)
         assert outcome.kind == "decoded", (name, outcome.detail)
