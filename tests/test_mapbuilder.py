@@ -422,3 +422,19 @@ def test_update_takes_a_target_max_error_and_an_update_interrupted_after_changin
     assert code != 0 and err.count("\n") == 1 and "--target-max-error" in err
     with pytest.raises(SystemExit):  # argparse's usage error: one line, exit 2
         run(capsys, "update", m, second, "--target-max-error", "-1")
+
+
+def test_one_crs_written_two_ways_is_the_same_crs():
+    """Two IGN surveys in EPSG:2154, one stating it as WKT1 "RGF93 v1 / Lambert-93", the other as
+    WKT2 "RGF93 / Lambert-93": an update of a map made of one with the other was refused."""
+    from rasterio.crs import CRS
+
+    from dftpcc.mapbuilder import same_crs
+
+    from .conftest import data_file
+
+    field = dftpcc.read(data_file("pointclouds/field_gentle_ign.laz")).crs
+    coast = dftpcc.read(data_file("pointclouds/coastal_plain_ign.laz")).crs
+    assert field["wkt"] != coast["wkt"]
+    assert same_crs(field, coast) and same_crs(coast, {"wkt": CRS.from_epsg(2154).to_wkt()})
+    assert not same_crs(field, {"wkt": CRS.from_epsg(32631).to_wkt()})  # UTM 31N: another CRS

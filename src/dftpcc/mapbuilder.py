@@ -101,10 +101,15 @@ def same_crs(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
     if a.get("wkt") and b.get("wkt"):
         if a["wkt"] == b["wkt"]:
             return True
-        try:  # the same CRS written two ways
+        try:  # the same CRS written two ways: equal definitions, or one authority code (EPSG:2154 as
+            # WKT1 "RGF93 v1 / Lambert-93" from one LAS file and WKT2 "RGF93 / Lambert-93" from another)
             from rasterio.crs import CRS
 
-            return bool(CRS.from_wkt(a["wkt"]) == CRS.from_wkt(b["wkt"]))
+            first, second = CRS.from_wkt(a["wkt"]), CRS.from_wkt(b["wkt"])
+            if first == second:
+                return True
+            code = first.to_authority(confidence_threshold=100)
+            return code is not None and code == second.to_authority(confidence_threshold=100)
         except Exception:  # noqa: BLE001 - unparsable WKT: the texts differ, so do the CRSs
             return False
     return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
