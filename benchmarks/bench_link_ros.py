@@ -133,8 +133,17 @@ def run(scans, route, *, resolution: float, rate: float, scenario: str, cpu: int
                                                                        reliability=ReliabilityPolicy.BEST_EFFORT))
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        node.create_subscription(PointCloud2, "/dftpcc/map", lambda m: clouds.append(
-            (time.monotonic(), np.frombuffer(bytes(m.data), dtype="<f4").reshape(-1, 3))), latched)
+        # A cloud counts from its stamp (the ground's clock when it applied the version or took the
+        # preview: the same machine's), not from when this process got round to taking it.
+        offset = time.time() - time.monotonic()
+        late: list[float] = []
+
+        def on_cloud(m) -> None:
+            stamped = m.header.stamp.sec + m.header.stamp.nanosec / NS - offset
+            late.append(time.monotonic() - stamped)
+            clouds.append((stamped, np.frombuffer(bytes(m.data), dtype="<f4").reshape(-1, 3)))
+
+        node.create_subscription(PointCloud2, "/dftpcc/map", on_cloud, latched)
         while time.monotonic() < started + discovery_s:
             rclpy.spin_once(node, timeout_sec=0.1)
         if not scan_pub.get_subscription_count():
@@ -215,7 +224,8 @@ def run(scans, route, *, resolution: float, rate: float, scenario: str, cpu: int
     result = {"equal": rover_map.is_file() and ground_map.is_file() and rover_map.read_bytes() == ground_map.read_bytes(),
               "seen": np.array(seen), "caught": caught, "clouds": len(clouds), "drive_s": drive_s,
               "first_after_outage": (after[0] - outage_end) if after else math.nan,
-              "map_kB": rover_map.stat().st_size / 1e3 if rover_map.is_file() else math.nan}
+              "map_kB": rover_map.stat().st_size / 1e3 if rover_map.is_file() else math.nan,
+              "late_s": max(late, default=math.nan)}
     if stats:
         scans_n, versions, sent, add, ver, per = stats.groups()
         result.update(scans=int(scans_n), versions=int(versions), sent=int(sent), add_ms=float(add),
@@ -255,7 +265,7 @@ def ros_table(scans, route, *, quick: bool) -> str:
                          if np.isfinite(seen).any() else "none",
                          f"{r['first_after_outage']:.1f}" if scenario.endswith("outage") else "",
                          f"{r['caught']:.1f}", "yes" if r["equal"] else "NO"])
-            print(" | ".join(rows[-1]), flush=True)
+            print(" | ".join(rows[-1]), f"(clouds taken up to {r['late_s']:.1f} s after their stamps)", flush=True)
     return markdown_table(["cell size", "budget kB/s", "link", "scans the rover took",
                            "rover wall ms: add / version / per scan (medians; per scan: mean of add and versions)",
                            "sent kB per minute of driving (during the run)", "rover's map kB",
