@@ -9,7 +9,8 @@ scan's publication to the first map (or preview) on ``/dftpcc/map`` covering
 90 % of its ground (2 m cells), the time after an outage to the first map after
 it, and whether the ground's file ends byte for byte the rover's.
 
-    .venv/bin/python -m benchmarks.bench_link_ros [--quick]
+:mod:`benchmarks.bench_link` runs it on its drive (``make bench-link``), so the drive is made in one
+place and this module imports nothing of it.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import DEFAULT_DATA, markdown_table
+from benchmarks.common import markdown_table
 from dftpcc.mapbuilder import PREVIEW_BLOCK
 
 NS = 1_000_000_000
@@ -273,21 +274,3 @@ def ros_table(scans, route, *, quick: bool) -> str:
                            f"{COVER_SHARE:.0%} of its {COVER_M:g} m cells, or {PREVIEW_BLOCK} cells')",
                            "first map after the outage ends, s", "ground holds the newest map, s after the drive",
                            "final files equal"], rows)
-
-
-def main() -> None:
-    import argparse
-
-    from benchmarks import bench_link
-
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="two runs of a 20 s drive")
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding dems/")
-    args = ap.parse_args()
-    ground = bench_link.surface(args.data)
-    scans, route = bench_link.the_drive(ground, bench_link.QUICK_DRIVE_S if args.quick else bench_link.DRIVE_S)
-    print(ros_table(scans, route, quick=args.quick))
-
-
-if __name__ == "__main__":
-    main()
