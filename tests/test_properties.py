@@ -230,6 +230,7 @@ def test_a_max_error_target_just_below_the_natural_error_holds_at_real_heights(c
     top = float(np.abs(points[:, 2]).max())
     bound = fraction * natural
     assume(bound > 64 * np.spacing(top))  # a target the heights' floats can keep (the encoder refuses less)
+    assume(bound >= np.finfo(np.float32).tiny)  # a target the file's float32 figures can state (refused below)
     data = _compress(points, dict(options, target_max_error=bound))
     cmap = dftpcc.open(data)
     with warnings.catch_warnings():
@@ -425,3 +426,11 @@ def test_same_bytes_in_another_process_with_other_thread_counts(tmp_path):
     child = subprocess.run([sys.executable, "-c", DETERMINISM_CHILD, str(tmp_path / "p.npy")], env=env,
                            capture_output=True, text=True, timeout=300, check=True)
     assert child.stdout.split() == here
+
+
+def test_a_max_error_target_below_what_a_file_states_is_refused():
+    """The case hypothesis found: subnormal heights, a target of 0.999 of their 1.4e-45 m error, which the
+    file's float32 statistics state rounded up, above the target. Refused, naming the smallest target."""
+    points = np.array([[0.637, 0.270, 1.1e-313], [0.041, 0.017, 7.6e-315]])
+    with pytest.raises(dftpcc.InvalidInputError, match=r"below the 1.18e-38 m a file states its errors to"):
+        dftpcc.compress(points, resolution=0.596, target_max_error=1.3999e-45)

@@ -62,6 +62,10 @@ COARSE_ERROR_FRACTION = 0.15
 #: it the gridding, transforms and residual round by as much as the bound (at 3,000 m, 1e-13 m was
 #: broken by 0.03 %; from 4 spacings up every target on real heights held).
 FLOAT_SPACINGS = 4
+#: A maximum-error target is at least float32's smallest normal number (metres): the file states its
+#: errors as float32 rounded up (STAT), and below this float32's steps are coarser than the guarantee's
+#: margin, so a bound met to the cell could be stated as exceeded (a hypothesis case at 1.4e-45 m).
+STATED_ERROR_FLOOR = float(np.finfo(np.float32).tiny)
 
 
 def no_stage(_: str, done: float | None = None) -> None:
@@ -555,6 +559,11 @@ def _check_max_error(an: Analysis, bound: float) -> None:
             f"target maximum error {bound:g} m is too fine for this map's height range ({_height_range(an)}): "
             f"its coefficients or residuals would quantize to integers beyond the 64-bit range, or float64 "
             f"heights round by as much; the smallest workable target is {quantizer.round_up(need):g} m")
+    if bound < STATED_ERROR_FLOOR:
+        raise InvalidInputError(
+            f"target maximum error {bound:g} m is below the {STATED_ERROR_FLOOR:.3g} m a file states its errors "
+            f"to (float32, rounded up: finer steps would state more than the target); the smallest workable "
+            f"target is {quantizer.round_up(STATED_ERROR_FLOOR):g} m")
 
 
 def _flag_coarse(dem: DEM, trial: Trial, heights: np.ndarray | None = None,
