@@ -215,18 +215,27 @@ def run_method(dem: Any, params: Params, n: int, how: str, repeats: int) -> dict
                 choices=tally.choices, fallbacks=tally.fallbacks, blob=blob)
 
 
+def _tilings(case: Case, data: Path, tiles: tuple[int, ...], loading: list[str]
+             ) -> Iterator[tuple[Any, int, float, int]]:
+    """The map of ``case`` gridded once, at each of ``tiles`` it is larger than (0: untiled): its DEM,
+    its point count, its target unit and the tile side; what loading it noted goes to ``loading``."""
+    loaded = load(case, data)
+    loading.extend(loaded.notes)
+    _, dem = shared_grid(loaded.points, loaded.resolution)
+    unit, _ = unit_of(loaded, dem)
+    for tile in (t for t in tiles if not t or max(dem.grid.shape) > t):
+        yield dem, loaded.points.shape[0], unit, tile
+
+
 def compare_map(case: Case, data: Path, repeats: int, search_repeats: int, tiles: tuple[int, ...],
                 cached: dict | None = None) -> list[dict[str, Any]]:
     """Every target level of ``case`` at each of ``tiles`` (0: untiled; a side no side of the map
     exceeds is left out), by the search (or its row in ``cached``) and by the model."""
     notes: list[str] = []
+    loading: list[str] = []
     out = []
     with warnings_as_notes(notes):
-        loaded = load(case, data)
-        _, dem = shared_grid(loaded.points, loaded.resolution)
-        unit, _ = unit_of(loaded, dem)
-        n = loaded.points.shape[0]
-        for tile in (t for t in tiles if not t or max(dem.grid.shape) > t):
+        for dem, n, unit, tile in _tilings(case, data, tiles, loading):
             base = Params(tile_size=tile)
             fixed, _ = timed(lambda: encode_dem(dem, base, point_count=n), repeats)
             rmse_targets = [0.75 * unit, 2.0 * unit]
@@ -256,7 +265,7 @@ def compare_map(case: Case, data: Path, repeats: int, search_repeats: int, tiles
                 sizes[i] = row["search"]["bytes"] if row.get("search") else 0
                 out.append(row)
                 print(line_of(row), flush=True)
-    for note in notes + loaded.notes:
+    for note in notes + loading:
         print(f"  note ({case.stem}): {note}")
     return out
 
@@ -370,13 +379,10 @@ def speed_map(case: Case, data: Path, runs: int, tiles: tuple[int, ...], searche
     timed against a fixed encode of the same map right before it; the file decoded and its error
     measured; its size against the search's (run once with ``with_search``, or from ``searched``)."""
     notes: list[str] = []
+    loading: list[str] = []
     out = []
     with warnings_as_notes(notes):
-        loaded = load(case, data)
-        _, dem = shared_grid(loaded.points, loaded.resolution)
-        unit, _ = unit_of(loaded, dem)
-        n = loaded.points.shape[0]
-        for tile in (t for t in tiles if not t or max(dem.grid.shape) > t):
+        for dem, n, unit, tile in _tilings(case, data, tiles, loading):
             base = Params(tile_size=tile)
             encode_dem(dem, base, point_count=n)  # warm the coder's caches, as for every target after it
             targets: list[tuple[str, float]] = [("target_rmse", 0.75 * unit), ("target_rmse", 2.0 * unit),
@@ -408,7 +414,7 @@ def speed_map(case: Case, data: Path, runs: int, tiles: tuple[int, ...], searche
                 sizes.append(row.get("bytes", 0))
                 out.append(row)
                 print(" | ".join(str(c) for c in speed_row(row)), flush=True)
-    for note in notes + loaded.notes:
+    for note in notes + loading:
         print(f"  note ({case.stem}): {note}")
     return out
 

@@ -210,18 +210,8 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     if (!s.ints) throw new CorruptFileError("quantized file holds float coefficients");
     const step = params.step;
     if (kind === "dct") {
-      let K = 0;
-      let L = 0;
-      for (let k = 0; k < use; k++) {
-        K = Math.max(K, Math.floor(pre.pos[k] / cols) + 1);
-        L = Math.max(L, (pre.pos[k] % cols) + 1);
-      }
-      const gm = new Float64Array(K * L);
-      for (let k = 0; k < use; k++) {
-        const i = Math.floor(pre.pos[k] / cols);
-        gm[i * L + (pre.pos[k] - i * cols)] = s.ints[k] * step;
-      }
-      addIdct(h, gm, K, L, rows, cols, 0, rows, 0, cols);
+      const ints = s.ints;
+      addDctCorner(h, pre.pos, use, (k) => ints[k] * step, rows, cols);
     } else {
       const v = new Float64Array(2 * use);
       for (let k = 0; k < 2 * use; k++) v[k] = s.ints[k] * step;
@@ -231,19 +221,7 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     if (!s.complex && kept) throw new CorruptFileError("complex64 file holds integer coefficients");
     const v = s.complex ?? new Float64Array(0);
     if (kind === "dct") {
-      // A complex64 DCT: the real parts are the coefficients.
-      let K = 0;
-      let L = 0;
-      for (let k = 0; k < use; k++) {
-        K = Math.max(K, Math.floor(pre.pos[k] / cols) + 1);
-        L = Math.max(L, (pre.pos[k] % cols) + 1);
-      }
-      const gm = new Float64Array(K * L);
-      for (let k = 0; k < use; k++) {
-        const i = Math.floor(pre.pos[k] / cols);
-        gm[i * L + (pre.pos[k] - i * cols)] = v[2 * k];
-      }
-      addIdct(h, gm, K, L, rows, cols, 0, rows, 0, cols);
+      addDctCorner(h, pre.pos, use, (k) => v[2 * k], rows, cols); // a complex64 DCT: the real parts
     } else if (kind === "dft-full") {
       ifft2Shifted(pre.pos.subarray(0, use), v.subarray(0, 2 * use), rows, cols, h);
     } else {
@@ -572,4 +550,22 @@ function decodeTile(o: Opened, k: number, secs: Map<string, Entry>, count: numbe
       heights[dst] = tileH[src];
     }
   }
+}
+
+/** Add to ``h`` the inverse DCT of the first ``use`` coefficients at flat positions ``pos`` (values
+ * ``value(k)``), laid in the smallest top-left corner of the spectrum that holds them. */
+function addDctCorner(h: Float64Array, pos: Int32Array, use: number,
+  value: (k: number) => number, rows: number, cols: number): void {
+  let K = 0;
+  let L = 0;
+  for (let k = 0; k < use; k++) {
+    K = Math.max(K, Math.floor(pos[k] / cols) + 1);
+    L = Math.max(L, (pos[k] % cols) + 1);
+  }
+  const gm = new Float64Array(K * L);
+  for (let k = 0; k < use; k++) {
+    const i = Math.floor(pos[k] / cols);
+    gm[i * L + (pos[k] - i * cols)] = value(k);
+  }
+  addIdct(h, gm, K, L, rows, cols, 0, rows, 0, cols);
 }
