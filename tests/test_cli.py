@@ -313,6 +313,11 @@ def test_standard_input_and_output_as_dash(tmp_path, cloud_file, small_terrain):
 
     assert np.array_equal(np.load(io.BytesIO(rebuilt.stdout)), dftpcc.decompress(packed))
     assert b"points" in rebuilt.stderr  # the summary goes to stderr when the map goes to stdout
+    cog = subprocess.run(dftpcc_cmd + ["decompress", "-", str(tmp_path / "c.tif"), "--cog", "-q"], input=packed,
+                         capture_output=True)
+    assert cog.returncode == 0, cog.stderr  # band by band from a pipe: held in memory
+    assert main(["decompress", str(direct), str(tmp_path / "d.tif"), "--cog", "-q"]) == 0
+    assert (tmp_path / "c.tif").read_bytes() == (tmp_path / "d.tif").read_bytes()
     via_dev = subprocess.run(dftpcc_cmd + ["compress", "/dev/stdin", str(tmp_path / "s.dftpc"), "--format", "xyz",
                                            "-r", "0.5", "-q"], input=xyz.read_bytes(), capture_output=True)
     assert via_dev.returncode == 0, via_dev.stderr

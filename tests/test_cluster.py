@@ -68,6 +68,12 @@ def test_an_unreachable_scheduler_is_one_error_in_bounded_time(tmp_path, monkeyp
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+def test_a_map_of_one_tile_reaches_no_cluster():
+    """An untiled map is one tile: nothing to share out, so no cluster is started or reached."""
+    with executor(scheduler="tcp://127.0.0.1:9", tiles=1) as run:
+        assert run(abs, [-1, 2]) == [1, 2]
+
+
 def test_a_worker_that_dies_ends_in_a_cluster_error():
     with executor(workers=1) as run:
         with pytest.raises(ClusterError, match="worker died"):

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import dftpcc
+from dftpcc.files import decompress_bands, wants_bands
 from dftpcc import spectrum
 from dftpcc.dem import DEM, Grid
 from dftpcc.encoder import encode_dem
@@ -82,18 +83,36 @@ def test_an_untiled_map_decodes_to_a_cog(tmp_path, monkeypatch):
     src.write_bytes(encode_dem(dem, make_params(target_max_error=0.05)))
     assert cli.main(["decompress", str(src), str(tmp_path / "cog.tif"), "--cog", "-q"]) == 0
     assert cli.main(["decompress", str(src), str(tmp_path / "whole.tif"), "-q"]) == 0
+    assert wants_bands(src, tmp_path / "cog.tif", cog=True)  # the one band path, as a tiled map's
     with rasterio.open(tmp_path / "cog.tif") as cog, rasterio.open(tmp_path / "whole.tif") as whole:
         assert cog.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG" and cog.shape == whole.shape == dem.grid.shape
         a, b = cog.read(1), whole.read(1)
     assert np.array_equal(np.isnan(a), np.isnan(b))
     assert np.nanmax(np.abs(a.astype(float) - b)) <= 1e-3  # float32 either way
     # ... and band by band through the one window reader, as a tiled map is.
-    from dftpcc.files import decompress_bands
-
     assert decompress_bands(src, tmp_path / "bands.tif", cog=True) == int(dem.mask.sum())
     with rasterio.open(tmp_path / "bands.tif") as bands:
         c = bands.read(1)
     assert np.array_equal(np.isnan(a), np.isnan(c)) and np.nanmax(np.abs(c.astype(float) - a)) <= 1e-3
+
+
+def test_a_large_untiled_map_is_written_band_by_band_as_a_tiled_one_is(tmp_path, monkeypatch):
+    """Past STREAM_CELLS every map goes band by band to LAS (memory holds one band of points); the
+    points are those of a whole decode, in the same order."""
+    pytest.importorskip("laspy")
+    from dftpcc import mapfile, stream
+
+    monkeypatch.setattr(mapfile, "UNTILED_BLOCK", 64)
+    dem = _hills()
+    src = tmp_path / "map.dftpc"
+    src.write_bytes(encode_dem(dem, make_params(target_max_error=0.05)))
+    assert not wants_bands(src, tmp_path / "out.las")
+    monkeypatch.setattr(stream, "STREAM_CELLS", dem.grid.size - 1)
+    assert wants_bands(src, tmp_path / "out.las") and not wants_bands(src, tmp_path / "out.las", cutoff=0.5)
+    assert decompress_bands(src, tmp_path / "bands.las") == int(dem.mask.sum())
+    whole = dftpcc.decompress_file(src, tmp_path / "whole.las")
+    bands = dftpcc.read(tmp_path / "bands.las").points
+    assert bands.shape == whole.shape and np.abs(bands - whole).max() <= 1e-3  # LAS's scale
 
 
 def test_a_tiled_integer_dem_comes_back_in_its_type_band_by_band(tmp_path):

@@ -315,9 +315,10 @@ def _decompress(args: argparse.Namespace) -> int:
         return _decompress_bag(args)
     if wants_bands(args.input, args.output, format=args.format, cog=args.cog, bbox=args.bbox,
                    cutoff=args.cutoff, max_bytes=args.max_bytes):
-        # A tiled map larger than memory, or a COG: one band of tile rows at a time.
+        # A map larger than memory, or a COG: one band of rows at a time.
         with _progress(not args.quiet, ("decode",), verbose=args.verbose) as on_stage:
-            count = decompress_bands(args.input, args.output, format=args.format, cog=args.cog, force=args.force,
+            count = decompress_bands(_stream(args.input, "r"), args.output, format=args.format, cog=args.cog,
+                                     force=args.force,
                                      max_cells=args.max_cells, workers=args.workers, scheduler=args.scheduler,
                                      on_stage=on_stage, dtype=args.dtype, nodata=args.nodata)
         _say(args, f"{args.output}: {count:,} points, written band by band")

@@ -69,8 +69,11 @@ def check_executor(workers: int | None, scheduler: str | None) -> None:
 
 
 @contextmanager
-def executor(workers: int | None = None, scheduler: str | None = None) -> Iterator[Map]:
+def executor(workers: int | None = None, scheduler: str | None = None, *, tiles: int | None = None) -> Iterator[Map]:
     """A map over tiles: serial by default, else on a local cluster or a running scheduler.
+
+    ``tiles``, when known, is how many tiles the map has: a map of one tile (an untiled map is one)
+    has nothing to share out, so it is mapped here and no cluster is started or reached.
 
     Raises
     ------
@@ -82,7 +85,7 @@ def executor(workers: int | None = None, scheduler: str | None = None) -> Iterat
         :data:`NO_WORKER_TIMEOUT_S`), never a hang.
     """
     check_executor(workers, scheduler)
-    if workers is None and scheduler is None:
+    if (workers is None and scheduler is None) or (tiles is not None and tiles < 2):
         yield serial
         return
     distributed = import_optional("distributed", "dask", needed_for="parallel coding", name="dask.distributed")

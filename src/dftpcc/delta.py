@@ -235,9 +235,9 @@ def _tiles_in_space(header: Header, shift: tuple[int, int]) -> dict[tuple[int, i
 
 def _same_map(base: Header, result: Header) -> bool | None:
     """Whether two maps look like two versions of one growing map (format.md, *Applying*, step 2);
-    None where this cannot tell (untiled or rotated maps)."""
+    None where this cannot tell (a map that is no growing map, or a rotated one)."""
     a, b = base.grid, result.grid
-    if base.tiles is None or result.tiles is None or a.angle or b.angle:
+    if not (base.growing and result.growing) or a.angle or b.angle:
         return None
     size = base.tiles.tiling.size
     if (size, a.resolution, a.dy, a.z0, base.params, base.crs) != (

@@ -29,7 +29,7 @@ from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, check_output, format
 from .limits import MAX_CELLS, holds_in_memory
 from .mapfile import CompressedMap
 from .mapfile import open as open_map
-from .params import Params, tile_size_for
+from .params import Params
 from .rebuild import dem_to_dense_points, dem_to_points
 
 __all__ = ["compress_file", "decompress_file", "read_dem", "check_compressed_output", "dem_from_geotiff", "reads_in_chunks", "stored_point_count"]
@@ -199,7 +199,7 @@ def _compress_file(src: Source, dst: Source, params: Params, *, format: str | No
                                    drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage,
                                    map_frame=map_frame)
     with executor(workers, scheduler) as map_tiles:
-        if not _is_stream(dst) and dem.grid.size > stream.STREAM_CELLS and tile_size_for(params, dem.grid.shape):
+        if not _is_stream(dst) and stream.codes_in_bands(dem.grid.shape, params):
             # A large grid: its tiles coded band by band, memory holding the grid and one band.
             stream.compress_gridded(dem, dst, params, point_count=count, crs=crs, map_tiles=map_tiles,
                                     on_stage=on_stage, write=atomic_write)
@@ -227,18 +227,20 @@ def streams_raster(src: str | os.PathLike[str], params: Params, format: str | No
             shape = (ds.height, ds.width)
     except Exception:  # noqa: BLE001 - the reader says what is wrong, on the in-memory path
         return False
-    return shape[0] * shape[1] > stream.STREAM_CELLS and tile_size_for(params, shape) > 0
+    return stream.codes_in_bands(shape, params)
 
 
 def wants_bands(src: Any, dst: Any, *, format: str | None = None, cog: bool = False,  # noqa: A002
                 bbox: Any = None, cutoff: float | None = None, max_bytes: int | None = None) -> bool:
     """Whether a decode of ``src`` into ``dst`` goes band by band (:func:`decompress_bands`): a COG, or a
-    tiled map of more than :data:`~dftpcc.stream.STREAM_CELLS` cells written whole to GeoTIFF, LAS or LAZ.
-    A region (``bbox``) is decoded as one piece, in every output format: the box cuts them all alike. An
-    untiled map's COG is written whole (it fits in memory: it was coded so), in its source's sample type."""
-    if cog and bbox is None:
-        return _is_stream(src) or not Path(src).is_file() or _tiled(src)
-    if _is_stream(src) or _is_stream(dst) or bbox is not None or cutoff is not None or max_bytes is not None:
+    map of more than :data:`~dftpcc.stream.STREAM_CELLS` cells written whole to GeoTIFF, LAS or LAZ.
+    A region (``bbox``) or a coarser map (``cutoff``, ``max_bytes``) is decoded as one piece, in every
+    output format."""
+    if bbox is not None or cutoff is not None or max_bytes is not None:
+        return False  # a region or a coarser map, decoded whole (it is read whole or refused)
+    if cog:
+        return True
+    if _is_stream(src) or _is_stream(dst):
         return False
     try:
         if format_of(dst, format) not in stream.STREAM_FORMATS or not Path(src).is_file():
@@ -247,27 +249,19 @@ def wants_bands(src: Any, dst: Any, *, format: str | None = None, cog: bool = Fa
         return False
     try:
         with open_map(src) as cmap:
-            return cmap.tiled and cmap.grid.size > stream.STREAM_CELLS
+            return cmap.grid.size > stream.STREAM_CELLS
     except Exception:  # noqa: BLE001 - decompress_file reports what is wrong with the file
         return False
 
 
-def _tiled(src: Any) -> bool:
-    """Whether the map file ``src`` is tiled (True for one that does not open: the band path reports it)."""
-    try:
-        with open_map(src) as cmap:
-            return cmap.tiled
-    except Exception:  # noqa: BLE001 - decompress_bands reports what is wrong with the file
-        return True
-
-
-def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
+def decompress_bands(src: Source, dst: str | os.PathLike[str], *, format: str | None = None,  # noqa: A002
                      cog: bool = False, force: bool = False, max_cells: int | None = None,
                      workers: int | None = None, scheduler: str | None = None,
                      on_stage: Stage = no_stage, dtype: str | None = None, nodata: float | None = None) -> int:
     """Decode the map ``src`` one band of rows at a time into ``dst``: a GeoTIFF (a Cloud Optimized
     GeoTIFF with ``cog``), LAS or LAZ. Of a tiled map memory holds one band of tiles, never the map;
-    an untiled map keeps its decoded mask and spectrum and rebuilds each band from them.
+    an untiled map keeps its decoded mask and spectrum and rebuilds each band from them (it was coded
+    whole, so they fit).
 
     Returns
     -------
@@ -283,8 +277,10 @@ def decompress_bands(src: str | os.PathLike[str], dst: str | os.PathLike[str], *
         raise InvalidInputError(f"{dst}: --dtype and --nodata apply to a GeoTIFF (.tif) output, not {fmt}")
     check_output(dst, force=force)
     check_executor(workers, scheduler)
+    if _is_stream(src):  # a pipe: held in memory, the reader needs to seek
+        src = src.read()
     with open_map(src, max_cells=max_cells) as cmap:
-        with executor(workers, scheduler) as map_tiles:
+        with executor(workers, scheduler, tiles=cmap.tile_count) as map_tiles:
             return stream.decompress_bands(cmap, dst, fmt, cog=cog, map_tiles=map_tiles, on_stage=on_stage,
                                            write=atomic_write, dtype=dtype, nodata=nodata)
 
@@ -405,7 +401,7 @@ def decompress_file(src: Source, dst: Source, *,
             sample, empty, note = output_type(cmap.header.stats, dtype=dtype, nodata=nodata,
                                               bound_holds=cutoff is None and max_bytes is None)
         on_stage("decode")
-        with executor(workers, scheduler) if cmap.tiled else _nothing() as map_tiles:
+        with executor(workers, scheduler, tiles=cmap.tile_count) as map_tiles:
             dem = cmap.read_dem(cutoff=cutoff, bbox=bbox, map_tiles=map_tiles)
         crs = cmap.crs
         on_stage("write")

@@ -87,10 +87,8 @@ def state_path(map_path: str | os.PathLike[str]) -> Path:
 
 
 def is_growing(header: Header) -> bool:
-    """Whether a map's header is that of a growing map: tiled, no base layer, a zero plane, the
-    tiles' own masks (no map mask: a tile's sections are all a scan may rewrite)."""
-    return (header.tiles is not None and header.tiles.base_cycles == 0 and not any(header.plane)
-            and not header.tiles.map_mask)
+    """Whether a map's header is that of a growing map (:attr:`Header.growing`)."""
+    return header.growing
 
 
 def same_crs(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
@@ -509,7 +507,7 @@ class MapBuilder:
         data = path.read_bytes()
         source = Source(data)
         header, _ = unpack_source(source, max_cells=None)
-        if not is_growing(header):
+        if not header.growing:
             why = ("it is not tiled" if header.tiles is None else
                    f"its base layer reaches {header.tiles.base_cycles} cycle(s) per tile" if header.tiles.base_cycles
                    else "it has a detrending plane" if any(header.plane) else "its mask is the whole map's")

@@ -106,6 +106,11 @@ class CompressedMap:
         return self.header.tiles is not None
 
     @property
+    def tile_count(self) -> int:
+        """Tiles of the map's tiling (an untiled map is one tile)."""
+        return self.header.tiles.tiling.count if self.header.tiles is not None else 1
+
+    @property
     def block(self) -> int:
         """Rows (and columns) of the windows a band-by-band reader asks for: a tiled map's tile size, or
         :data:`UNTILED_BLOCK` cells of an untiled map."""

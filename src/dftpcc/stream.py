@@ -34,7 +34,7 @@ from .rebuild import dem_to_points
 from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_coefficients, base_heights, base_limit, base_order,
                     code_tile, coded_window, tile_overlap)
 
-__all__ = ["compress_raster", "compress_gridded", "decompress_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
+__all__ = ["compress_raster", "compress_gridded", "decompress_bands", "codes_in_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
 
 #: A GeoTIFF of more cells than this is coded band by band (and a tiled map of more is decoded so).
 STREAM_CELLS = 16_000_000
@@ -254,6 +254,13 @@ def _sample(raster: Any, grid: Grid, tile: int, gridding_rmse: float) -> DEM:
                 break
     return DEM(grid=grid.window(r0, c0, h.shape[0], h.shape[1]),
                heights=np.where(m, h - grid.z0, 0.0), mask=m, gridding_rmse=gridding_rmse)
+
+
+def codes_in_bands(shape: tuple[int, int], params: Params) -> bool:
+    """Whether a map of ``shape`` is coded band by band (:func:`compress_raster`, :func:`compress_gridded`):
+    more than :data:`STREAM_CELLS` cells, in tiles. A map coded whole (``tile_size`` 0, or one tile
+    holds it) is coded in memory: it was asked so, or it fits."""
+    return shape[0] * shape[1] > STREAM_CELLS and tile_size_for(params, shape) > 0
 
 
 def compress_raster(src: str | os.PathLike[str], dst: str | os.PathLike[str], params: Params, *,

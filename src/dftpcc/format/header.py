@@ -78,6 +78,14 @@ class Header:
         """Whether the coefficients follow the legacy ``hypot`` order (a 1.0 or 1.1 file)."""
         return legacy_order(self.minor)
 
+    @property
+    def growing(self) -> bool:
+        """Whether this is a growing map's header (docs/growing-maps.md): tiled, no base
+        layer, a zero plane, the tiles' own masks (no map mask: a tile's sections are all a scan may
+        rewrite)."""
+        return (self.tiles is not None and self.tiles.base_cycles == 0 and not any(self.plane)
+                and not self.tiles.map_mask)
+
 
 #: Parameter values a version-1 file leaves out. Frozen here, apart from the
 #: library's defaults, so that changing a default later cannot change what
