@@ -507,10 +507,8 @@ class MapBuilder:
         data = path.read_bytes()
         source = Source(data)
         header, _ = unpack_source(source, max_cells=None)
-        if not header.growing:
-            why = ("it is not tiled" if header.tiles is None else
-                   f"its base layer reaches {header.tiles.base_cycles} cycle(s) per tile" if header.tiles.base_cycles
-                   else "it has a detrending plane" if any(header.plane) else "its mask is the whole map's")
+        why = header.why_not_growing()
+        if why:
             raise InvalidInputError(f"{path}: not a growing map ({why}); a map made by 'dftpcc compress' can be "
                                     f"updated when made with --growable (or start one with 'dftpcc update "
                                     f"NEW.dftpc SCANS --resolution R')")

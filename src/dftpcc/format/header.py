@@ -80,11 +80,22 @@ class Header:
 
     @property
     def growing(self) -> bool:
-        """Whether this is a growing map's header (docs/growing-maps.md): tiled, no base
-        layer, a zero plane, the tiles' own masks (no map mask: a tile's sections are all a scan may
-        rewrite)."""
-        return (self.tiles is not None and self.tiles.base_cycles == 0 and not any(self.plane)
-                and not self.tiles.map_mask)
+        """Whether this is a growing map's header (docs/growing-maps.md): :meth:`why_not_growing` is None."""
+        return self.why_not_growing() is None
+
+    def why_not_growing(self) -> str | None:
+        """Why this is no growing map's header, or None when it is one: a growing map is tiled, with no
+        base layer, a zero plane and the tiles' own masks (no map mask: a tile's sections are all a scan
+        may rewrite)."""
+        if self.tiles is None:
+            return "it is not tiled"
+        if self.tiles.base_cycles:
+            return f"its base layer reaches {self.tiles.base_cycles} cycle(s) per tile"
+        if any(self.plane):
+            return "it has a detrending plane"
+        if self.tiles.map_mask:
+            return "its mask is the whole map's"
+        return None
 
 
 #: Parameter values a version-1 file leaves out. Frozen here, apart from the
