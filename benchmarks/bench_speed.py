@@ -427,8 +427,10 @@ def main() -> None:
     parser = run_arguments("Per-stage speed on one core against DracoPy, LERC and HTJ2K, and on two cores apart (issue 16).",
                            f"{QUICK_REPEATS} repeats instead of {REPEATS}")
     parser.add_argument("--repeats", type=int, default=None, help=f"repeats per timing (default {REPEATS})")
-    parser.add_argument("--no-dems", action="store_true", help="skip the GeoTIFF DEMs")
+    parser.add_argument("--no-dems", action="store_true", help="skip the GeoTIFF DEMs (a partial run: the docs section is kept unless --docs)")
     args = parser.parse_args()
+    if args.no_dems and args.docs is None:
+        args.docs = False  # a run without the DEMs is partial: it would drop their tables from the docs
     repeats = args.repeats or (QUICK_REPEATS if args.quick else REPEATS)
     data = Path(args.data)
     # One core, as every anchor here: scipy.fft on one worker, no stage beside another.
