@@ -890,3 +890,27 @@ def test_residual_added_in_one_pass_is_numpys(jit):
             got = heights.copy()
             decoder._add_residual(got, mask, q, step)
             assert np.array_equal(got.view(np.int64), expected.view(np.int64))
+
+
+def test_coefficients_dequantized_where_they_go_are_numpys(jit):
+    """The decoder's coefficient block written value by value gives numpy's scatter of
+    ``q * step`` (the same bits, zeros elsewhere), for a whole grid and a corner of it."""
+    rng = np.random.default_rng(9)
+    for shape, n in (((337, 348), 337 * 348), ((64, 40), 700), ((1, 1), 1), ((5, 7), 0)):
+        where = rng.permutation(shape[0] * shape[1])[:n].astype(np.int64)
+        q = rng.integers(-(1 << 40), 1 << 40, n)
+        step = float(rng.uniform(1e-4, 3.0))
+        expected = np.zeros(shape)
+        expected.ravel()[where] = q.astype(np.float64) * step
+        for on in (True, False):
+            jit(on)
+            got = quantizer.dequantize_into(shape, where, q, step)
+            assert got.shape == shape and np.array_equal(got.view(np.int64), expected.view(np.int64))
+
+
+def test_scale_codes_counted_in_one_pass_are_numpys():
+    rng = np.random.default_rng(10)
+    for n in (0, 1, 1000, 100_000):
+        codes = rng.integers(0, 256, n).astype(np.uint8)
+        codes[: n // 2] = rng.integers(0, 3, n // 2)  # a few codes carry most values
+        assert np.array_equal(kernels.compiled_module().code_counts(codes), np.bincount(codes, minlength=256))

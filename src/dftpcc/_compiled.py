@@ -41,6 +41,9 @@ from numba import njit
 #: constriction's probabilities: integers out of 2**PRECISION; FREE: what its Bernoulli model spreads.
 PRECISION = 24
 TOTAL = 1 << PRECISION
+#: The table decoders' quantile slots (2**12 of the 2**24 quantiles; see _decode_coded_values).
+SLOT_SHIFT = 12
+SLOTS = TOTAL >> SLOT_SHIFT
 FREE = float(TOTAL - 2)
 
 
@@ -324,6 +327,7 @@ def _decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, al
         fill[c] += 1
     state, pos = _ans_start(words)
     lefts = np.empty(alphabets.max() + 1 if alphabets.size else 1, dtype=np.int64)
+    slots = np.empty(SLOTS + 1, dtype=np.int64)
     mask24 = np.uint64(TOTAL - 1)
     low = np.uint64(1) << np.uint64(32)
     for c in range(1, 256):
@@ -338,10 +342,20 @@ def _decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, al
         for i in range(n):
             lefts[i] = _left(i, lo, csum, at, size, n)
         lefts[n] = TOTAL
+        # slots[s]: the last symbol whose left cumulative is at most s * 2**SLOT_SHIFT, so a
+        # quantile's symbol lies between slots[s] and slots[s + 1] (most often they are equal):
+        # the search is over those few symbols, not the alphabet (the same symbol as _pop_table).
+        a = 0
+        for s in range(SLOTS):
+            while lefts[a + 1] <= (s << SLOT_SHIFT):
+                a += 1
+            slots[s] = a
+        slots[SLOTS] = n - 1
         half = (n - 1) // 2
         for j in range(count[c], count[c + 1]):
             quantile = np.int64(state & mask24)
-            a, b = 0, n - 1  # as _pop_table
+            s = quantile >> SLOT_SHIFT
+            a, b = slots[s], slots[s + 1]
             while a < b:
                 mid = (a + b + 1) // 2
                 if lefts[mid] <= quantile:
@@ -1095,6 +1109,23 @@ def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, tables: list[tup
                                np.ascontiguousarray(alphabets))
 
 
+@njit(cache=True, nogil=True)
+def _dequantize_into(out, where, q, step):  # pragma: no cover - compiled
+    for i in range(q.size):
+        out[where[i]] = float(q[i]) * step
+
+
+def dequantize_into(shape: tuple[int, int], where: np.ndarray, q: np.ndarray, step: float) -> np.ndarray:
+    """``quantizer.dequantize_into`` in one pass (the same float operations: the integer made a
+    float, times the step); ``where`` comes from the layout (no position is checked here), so it
+    declines one that is not as long as ``q``."""
+    if q.dtype != np.int64 or where.dtype != np.int64 or where.shape != q.shape or q.ndim != 1:
+        return NotImplemented
+    out = np.zeros(shape)
+    _dequantize_into(out.reshape(-1), where, q, float(step))
+    return out
+
+
 def add_residual(heights: np.ndarray, mask: np.ndarray, q: np.ndarray, step: float) -> None:
     """``heights[mask] += q * step`` in one pass over the cells (the same float operations:
     the integer made a float, times the step, added)."""
@@ -1122,6 +1153,20 @@ def band_codes(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int
     out = np.empty(radius.size, dtype=np.uint8)
     _band_codes(np.ascontiguousarray(radius), np.ascontiguousarray(angle), float(width), int(sectors),
                 codes, int(lo), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _code_counts(codes, out):  # pragma: no cover - compiled
+    for i in range(codes.size):
+        out[codes[i]] += 1
+
+
+def code_counts(codes: np.ndarray) -> np.ndarray:
+    """``np.bincount(codes, minlength=256)`` of uint8 scale codes in one pass (numpy's widens every
+    code to an intp first: a third of a table decode's time)."""
+    out = np.zeros(256, dtype=np.int64)
+    _code_counts(np.ascontiguousarray(codes, dtype=np.uint8), out)
     return out
 
 

@@ -104,9 +104,9 @@ def _spectrum_heights(header: Header, blobs: dict[bytes, Any], cutoff: float | N
     elif params.storage == "quantized":
         if stream.dtype.kind != "i":
             raise CorruptFileError("quantized file holds float coefficients")
-        values = quantizer.dequantize(stream[: stream.size - stream.size % per_coef], params.step)
+        values = stream[: stream.size - stream.size % per_coef]  # a DCT's: dequantized where they go
         if per_coef == 2:
-            values = values.view(np.complex128)
+            values = quantizer.dequantize(values, params.step).view(np.complex128)
     else:
         if stream.dtype.kind != "c":
             raise CorruptFileError("complex64 file holds integer coefficients")
@@ -118,8 +118,11 @@ def _spectrum_heights(header: Header, blobs: dict[bytes, Any], cutoff: float | N
             spectrum.corner(lay, order[: values.size])
     else:
         shape, where = lay.coef_shape, order[: values.size]
-    coefs = np.zeros(shape, dtype=values.dtype)
-    coefs.ravel()[where] = values
+    if values.dtype.kind == "i":
+        coefs = quantizer.dequantize_into(shape, where, values, params.step)
+    else:
+        coefs = np.zeros(shape, dtype=values.dtype)
+        coefs.ravel()[where] = values
     heights = spectrum.inverse(coefs, lay)
     if params.detrend == "plane":
         add_plane(heights, header.plane)
@@ -187,9 +190,7 @@ def _dct_corner(header: Header, blob: Any) -> np.ndarray:
         raise CorruptFileError("quantized file holds float coefficients" if stream.dtype.kind != "i" else
                                "coefficient section holds fewer values than the header states")
     shape, where = spectrum.kept_corner(lay, params.cutoff)
-    corner = np.zeros(shape)
-    corner.ravel()[where] = quantizer.dequantize(stream, params.step)
-    return corner
+    return quantizer.dequantize_into(shape, where, stream, params.step)
 
 
 def decode_window(header: Header, shared: dict[bytes, Any], read: Callable[[int], dict[bytes, Any]], *,
@@ -334,8 +335,7 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any],
         if stream.dtype.kind != "i" or stream.size != n:
             raise CorruptFileError("tile coefficients are not one integer per kept coefficient")
         corner_shape, where = spectrum.kept_corner(lay, params.cutoff)
-        coefs = np.zeros(corner_shape)
-        coefs.ravel()[where] = quantizer.dequantize(stream, params.step)
+        coefs = quantizer.dequantize_into(corner_shape, where, stream, params.step)
         heights = spectrum.inverse(coefs, lay)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
     else:  # every coefficient 0 (format.md, TIDX)
         heights = np.zeros(shape)

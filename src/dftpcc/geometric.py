@@ -207,9 +207,10 @@ def code_order(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
+@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
 def table_cumulative(max_abs: int, code: int) -> tuple[int, np.ndarray]:
     """:func:`table_frequencies` as its first symbol above the floor and the running sums of the
-    frequencies from there, from 0 (what the compiled coder reads)."""
+    frequencies from there, from 0 (what the compiled coder reads). Cached as that is (read-only)."""
     lo, near = table_frequencies(max_abs, code)
     cumulative = np.zeros(near.size + 1, dtype=np.int64)
     np.cumsum(near, out=cumulative[1:])
@@ -265,12 +266,13 @@ def table_budget(count: int) -> int:
 
 def _coded_values_compiled(words: np.ndarray, per_value: np.ndarray, max_abs: int, what: str) -> np.ndarray:
     # The same values, the groups sorted and decoded in one compiled pass.
-    present = np.flatnonzero(np.bincount(per_value, minlength=256)[1:]) + 1
+    compiled = kernels.compiled_module()
+    present = np.flatnonzero(compiled.code_counts(per_value)[1:]) + 1
     if present.size * (2 * max_abs + 1) > table_budget(per_value.size):
         raise CorruptFileError(f"{what} asks for larger probability tables than its {per_value.size} values allow")
     check_ans_words(words, what)
     tables = [table_cumulative(max_abs, code) for code in present.tolist()]
-    return kernels.compiled_module().decode_coded_values(words, per_value, present, tables, 2 * max_abs + 1)
+    return compiled.decode_coded_values(words, per_value, present, tables, 2 * max_abs + 1)
 
 
 @kernels.kernel(_coded_values_compiled)

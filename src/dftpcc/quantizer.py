@@ -109,6 +109,16 @@ def dequantize(q: np.ndarray, step: float) -> np.ndarray:
     return q.astype(np.float64) * step
 
 
+@kernels.kernel("dequantize_into")
+def dequantize_into(shape: tuple[int, int], where: np.ndarray, q: np.ndarray, step: float) -> np.ndarray:
+    """A float64 array of ``shape``, zero but at the flat positions ``where``, which hold
+    ``dequantize(q, step)`` (a decoder's coefficient block: the compiled twin writes each value
+    where it goes instead of making the values, then scattering them)."""
+    out = np.zeros(shape)
+    out.ravel()[where] = dequantize(q, step)
+    return out
+
+
 def choose_step(values: np.ndarray, *, target_rmse: float, n_cells: int, deadzone: float) -> float:
     """Largest step whose quantization error is at most ``target_rmse`` metres.
 
