@@ -196,3 +196,29 @@ def test_a_rover_restarted_behind_the_ground_sends_a_change_from_the_grounds_map
     # Scan 5's tiles, and those of the scans after the crash, travel again; the tiles of scans 0-4
     # only are copies.
     assert sent["bytes"] < sum(len(f) for f in whole.poll(0.0))
+
+
+def test_a_rover_with_a_bound_sends_versions_within_it(tmp_path):
+    """``target_max_error`` reaches every version: the map the rover keeps (and sends) is the one
+    MapBuilder codes at that bound, the file states the bound, and a bad bound is refused before
+    anything is made."""
+    import dftpcc
+
+    bound = 0.002  # below what the cutoff alone keeps on this rolling ground: residual layers
+    scans = drive(5)
+    rover = new_rover(tmp_path, target_max_error=bound, version_every=0.0)
+    feed(rover, scans)
+    expected = MapBuilder(RES, tile_size=TILE, step=STEP)
+    for points, pose in scans:
+        expected.add(points, pose)
+    data = (tmp_path / "map.dftpc").read_bytes()
+    assert data == expected.encode(target_max_error=bound)
+    with dftpcc.open(data) as cmap:
+        info = cmap.info()
+        assert cmap.params.target_max_error == bound and info["stats"]["residual_bytes"] > 0
+        assert info["stats"]["dem_max_error_m"] <= bound
+    resumed = new_rover(tmp_path)  # no bound given: the map's own is kept
+    assert resumed.builder.params.target_max_error == bound
+    with pytest.raises(InvalidInputError, match="target_max_error"):
+        new_rover(tmp_path, name="other.dftpc", target_max_error=-0.1)
+    assert not (tmp_path / "other.dftpc").exists()

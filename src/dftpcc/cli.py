@@ -660,7 +660,8 @@ def cmd_ros_rover(args: argparse.Namespace) -> int:
                                 "(geometry_msgs/PoseStamped), or --in-map-frame for scans placed already")
     return run_rover(map_path=args.map, points_topic=args.points, odom_topic=args.odom, pose_topic=args.pose,
                      resolution=args.resolution, rate=args.budget, max_frame_bytes=args.max_frame_bytes,
-                     cutoff=args.cutoff, step=args.step, map_frame=args.map_frame, in_map_frame=args.in_map_frame,
+                     cutoff=args.cutoff, step=args.step, target_max_error=args.target_max_error,
+                     map_frame=args.map_frame, in_map_frame=args.in_map_frame,
                      version_every=args.version_every, save_every=args.save_every,
                      loss=args.loss, seed=args.seed, outage=args.outage,
                      duration=args.duration, say=(lambda _l: None) if args.quiet else print)
@@ -704,6 +705,9 @@ def _add_ros_parsers(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--max-frame-bytes", type=_positive_int, default=1000, help="longest frame, bytes (default 1000)")
     p.add_argument("--cutoff", "-c", type=_cutoff, default=0.8, help="cutoff ratio of a new map (default 0.8)")
     p.add_argument("--step", type=_positive, default=0.01, help="quantizer step of a new map, metres (default 0.01)")
+    p.add_argument("--target-max-error", type=_non_negative, metavar="METRES",
+                   help="largest error of any occupied cell of every version (0: none; default: the map's own, "
+                        "none for a new map): each tile coded keeps a residual layer within it")
     p.add_argument("--version-every", type=float, default=1.0, metavar="SECONDS",
                    help="seconds between two versions of the map (encoded and sent); 0: every scan (default 1)")
     p.add_argument("--save-every", type=float, default=10.0, metavar="SECONDS",

@@ -25,7 +25,7 @@ import numpy as np
 from .errors import DftpccError, InvalidInputError
 from .io.poses import PoseStream
 from .link import DEFAULT_WINDOW_S, Budget, Receiver, Sender
-from .mapbuilder import DEFAULT_GROWING_TILE_SIZE, DEFAULT_STEP_M, MapBuilder
+from .mapbuilder import DEFAULT_GROWING_TILE_SIZE, DEFAULT_STEP_M, MapBuilder, check_bound
 
 __all__ = ["RoverCore", "GroundCore", "Counter", "MAX_POSE_GAP_S", "MAX_POSE_WAIT_S", "POSE_HISTORY_S"]
 
@@ -76,6 +76,11 @@ class RoverCore:
         No frame is longer.
     cutoff, step, tile_size : optional
         Settings of a new map.
+    target_max_error : float, optional
+        Largest error (metres) of any occupied cell of every version from now on: each tile coded
+        keeps a residual layer within it (0: none; None: the map's own bound, none for a new map).
+        A bound other than the resumed map's codes every tile again once (``dftpcc update
+        --target-max-error`` does the same).
     map_frame : str
         Scans in this frame are taken as placed; others are placed by the odometry.
     in_map_frame : bool
@@ -98,15 +103,16 @@ class RoverCore:
 
     def __init__(self, map_path: str | os.PathLike[str], *, resolution: float, rate: float, max_frame_bytes: int,
                  cutoff: float = 0.8, step: float = DEFAULT_STEP_M, tile_size: int = DEFAULT_GROWING_TILE_SIZE,
-                 window: float = DEFAULT_WINDOW_S, map_frame: str = "map", in_map_frame: bool = False,
+                 target_max_error: float | None = None, window: float = DEFAULT_WINDOW_S, map_frame: str = "map", in_map_frame: bool = False,
                  version_every: float = 0.0, save_every: float = 0.0, preview: bool = True,
                  log: Callable[[str, str], None] | None = None):
         self.map_path = Path(map_path)
         self.refused = Counter(log)
         self.map_frame, self.in_map_frame = map_frame, in_map_frame
         link_state = Path(f"{self.map_path}.link")
+        self.target_max_error = check_bound(target_max_error)
         if self.map_path.exists():
-            self.builder = MapBuilder.from_file(self.map_path)
+            self.builder = MapBuilder.from_file(self.map_path, target_max_error=self.target_max_error)
         else:
             if link_state.exists():  # a link state without its map: another map's, start afresh
                 link_state.unlink()
@@ -230,7 +236,7 @@ class RoverCore:
         if not self._unsent:
             return False
         t0 = time.perf_counter()
-        data = self.builder.encode()
+        data = self.builder.encode(target_max_error=self.target_max_error)
         self.sender.update(data, preview=self.builder.preview)
         self._unsent = 0
         self._unsaved = data

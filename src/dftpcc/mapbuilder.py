@@ -113,6 +113,23 @@ def same_crs(a: dict[str, Any] | None, b: dict[str, Any] | None) -> bool:
     return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
+
+def check_bound(target_max_error: float | None) -> float | None:
+    """A growing map's maximum-error bound as given (metres, 0: none; None: the map's own), checked.
+
+    Raises
+    ------
+    InvalidInputError
+        Not a number of metres from 0 to :data:`~dftpcc.params.MAX_COORDINATE_M`.
+    """
+    if target_max_error is None:
+        return None
+    if isinstance(target_max_error, bool) or not (isinstance(target_max_error, (int, float)) and
+                                                  0.0 <= target_max_error <= MAX_COORDINATE_M):
+        raise InvalidInputError(f"target_max_error must be a number of metres from 0 (none) to "
+                                f"{MAX_COORDINATE_M:g}, got {target_max_error!r}")
+    return float(target_max_error)
+
 class MapBuilder:
     """A tiled map grown by adding scans, re-coding only the tiles they change.
 
@@ -382,11 +399,8 @@ class MapBuilder:
         """
         if not self._tiles:
             raise InvalidInputError("the map is empty: add a scan first")
+        target_max_error = check_bound(target_max_error)
         if target_max_error is not None:
-            if isinstance(target_max_error, bool) or not (isinstance(target_max_error, (int, float)) and
-                                                          0.0 <= target_max_error <= MAX_COORDINATE_M):
-                raise InvalidInputError(f"target_max_error must be a number of metres from 0 (none) to "
-                                        f"{MAX_COORDINATE_M:g}, got {target_max_error!r}")
             if float(target_max_error) != self.params.target_max_error:
                 self.params = self.params.replace(target_max_error=float(target_max_error))
                 self._dirty.update(self._tiles)  # every tile's residual is in steps of the one bound

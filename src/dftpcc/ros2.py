@@ -105,7 +105,7 @@ def _spin(ros: SimpleNamespace, node: Any, duration: float | None) -> None:
 
 def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_topic: str | None,
               resolution: float, rate: float, max_frame_bytes: int, cutoff: float, step: float,
-              map_frame: str = "map", in_map_frame: bool = False, version_every: float = 1.0,
+              target_max_error: float | None = None, map_frame: str = "map", in_map_frame: bool = False, version_every: float = 1.0,
               save_every: float = 10.0, loss: float = 0.0, seed: int = 0, duration: float | None = None,
               outage: tuple[float, float] | None = None, say: Callable[[str], None] = print) -> int:
     """The rover node: scans and poses in, the map kept on disk, frames out on :data:`DOWNLINK_TOPIC`."""
@@ -117,17 +117,19 @@ def run_rover(*, map_path: str, points_topic: str, odom_topic: str | None, pose_
     node = ros.rclpy.create_node("dftpcc_rover")
     log = node.get_logger()
     core = RoverCore(map_path, resolution=resolution, rate=rate, max_frame_bytes=max_frame_bytes, cutoff=cutoff,
-                     step=step, map_frame=map_frame, in_map_frame=in_map_frame, version_every=version_every,
+                     step=step, target_max_error=target_max_error, map_frame=map_frame, in_map_frame=in_map_frame, version_every=version_every,
                      save_every=save_every,
                      log=lambda cause, message: log.warning(f"{message} ({cause}; counted, not logged again)"))
     _declare(node, {"map": str(map_path), "points_topic": points_topic, "odom_topic": odom_topic or "",
                     "pose_topic": pose_topic or "", "resolution": float(resolution), "budget": float(rate),
                     "max_frame_bytes": int(max_frame_bytes), "cutoff": float(cutoff), "step": float(step),
+                    "target_max_error": -1.0 if target_max_error is None else float(target_max_error),
                     "map_frame": map_frame},
              {"map": "the growing map kept on disk (.dftpc, with .state and .link beside it)",
               "budget": "downlink bytes per second, averaged over 10 s", "resolution": "cell size of a new map, m",
               "max_frame_bytes": "no frame on the downlink is longer, bytes", "step": "quantizer step, m",
-              "cutoff": "cutoff ratio f_c of a new map", "map_frame": "scans in this frame need no pose"})
+              "cutoff": "cutoff ratio f_c of a new map", "map_frame": "scans in this frame need no pose",
+              "target_max_error": "largest error of any occupied cell, m (0: none; -1: the map's own)"})
     drop = _dropper(loss, seed, outage)
     downlink = node.create_publisher(ros.UInt8MultiArray, DOWNLINK_TOPIC, _qos(ros, LINK_DEPTH))
 
