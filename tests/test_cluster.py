@@ -74,6 +74,28 @@ def test_a_map_of_one_tile_reaches_no_cluster():
         assert run(abs, [-1, 2]) == [1, 2]
 
 
+def test_a_local_cluster_says_nothing_when_another_holds_dasks_port():
+    """Another dask cluster on the machine (its HTTP port, 8787, taken) is no concern of the user's
+    run: dask warned of it in three lines on the command's stderr."""
+    import socket
+    import warnings
+
+    holder = socket.socket()
+    try:
+        holder.bind(("", 8787))
+        holder.listen()
+    except OSError:
+        pass  # held already: the case itself
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with executor(workers=1, tiles=2) as run:
+                assert run(abs, [-1, 2]) == [1, 2]
+        assert not [w for w in caught if "already in use" in str(w.message)]
+    finally:
+        holder.close()
+
+
 def test_a_worker_that_dies_ends_in_a_cluster_error():
     with executor(workers=1) as run:
         with pytest.raises(ClusterError, match="worker died"):

@@ -106,8 +106,11 @@ def executor(workers: int | None = None, scheduler: str | None = None, *, tiles:
             try:
                 if scheduler is None:
                     # Processes, one thread each: the tiles' numpy work holds the GIL in places.
+                    # No dashboard, and the scheduler's own HTTP server on a free port: on its default
+                    # (8787) a second cluster on the machine made dask print three lines of warning.
                     cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                                       dashboard_address=None, silence_logs=logging.ERROR)
+                                                       dashboard_address=None, silence_logs=logging.ERROR,
+                                                       scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
                     client = distributed.Client(cluster, timeout=CONNECT_TIMEOUT_S)
                 else:
                     client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
