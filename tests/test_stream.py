@@ -4,6 +4,8 @@ threshold is lowered so that real maps of ../shared/data play the part of huge o
 
 from __future__ import annotations
 
+import pickle
+
 import laspy
 import numpy as np
 import pytest
@@ -255,6 +257,33 @@ def test_the_survey_in_narrow_windows_finds_the_same_plane(mosaic, monkeypatch):
     # Sums of heights about each pass's reference (its first window's mean).
     np.testing.assert_allclose(narrow["sums"] + narrow["ref"] * narrow["counts"],
                                wide["sums"] + wide["ref"] * wide["counts"], rtol=1e-12, atol=1e-6)
+
+
+@pytest.mark.parametrize("tile", [128, 200])  # blocks of 8 cells inside every window; blocks of 12 straddling
+def test_the_survey_is_mapped_by_rows_and_gives_the_serial_bits(mosaic, monkeypatch, tile):
+    """The first pass goes to the map (a cluster: each worker reads its own rows) in tasks of
+    SURVEY_TASK_ROWS rows, added back in order: the same bits as one pass here. A tile whose
+    decimation blocks straddle windows is surveyed here (their sums would round otherwise)."""
+    monkeypatch.setattr(stream, "SURVEY_TASK_ROWS", 256)
+    monkeypatch.setattr(stream, "SURVEY_COLS", 256)
+    mapped = []
+
+    def recording(func, items, *args):
+        mapped.append((func.__name__, list(items)))
+        return [func(pickle.loads(pickle.dumps(item)), *pickle.loads(pickle.dumps(args))) for item in items]
+
+    raster = stream._Raster(mosaic)
+    try:
+        here = stream._survey(raster, tile, lambda *a: None)
+        there = stream._survey(raster, tile, lambda *a: None, recording)
+    finally:
+        raster.close()
+    if tile == 128:
+        assert [name for name, _ in mapped] == ["_survey_rows"] and mapped[0][1] == [(0, 256), (256, 512), (512, 674)]
+    else:
+        assert mapped == []
+    for key in here:
+        assert np.asarray(there[key]).tobytes() == np.asarray(here[key]).tobytes(), key
 
 
 @pytest.mark.parametrize("workers", [None, 2])

@@ -175,40 +175,128 @@ def _bands(rows: int, tile: int) -> Iterator[tuple[int, int]]:
         yield start, min(rows, start + tile)
 
 
-def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
-    """First pass: the reference height, the plane (:class:`~dftpcc.fill.PlaneSums`), the height
-    range and a decimated copy (block sums and counts)."""
-    d = max(1, tile // SAMPLES_PER_TILE)
-    rb, cb = -(-raster.rows // d), -(-raster.cols // d)
-    sums, counts = np.zeros((rb, cb)), np.zeros((rb, cb))
-    fit: PlaneSums | None = None
-    lowest, highest = math.inf, -math.inf
-    on_stage("read")
-    # Small windows: the sums need several arrays of a window's occupied cells, not only its heights.
-    for r0, r1 in _bands(raster.rows, SURVEY_ROWS):
-        on_stage("read", r0 / raster.rows)
+#: Rows of the raster one task of the first pass surveys (windows of :data:`SURVEY_ROWS` by
+#: :data:`SURVEY_COLS`, in order): on a cluster, a worker decodes each GeoTIFF block of its rows once.
+SURVEY_TASK_ROWS = 1024
+
+
+@dataclass(frozen=True)
+class _SurveyPass:
+    """What every task of the first pass shares: the raster (a worker reopens it), the heights'
+    reference (the first occupied window's mean), the decimation block, and whether blocks lie
+    whole inside windows (then a window's block sums are final)."""
+
+    source: Any
+    ref: float
+    block: int
+    aligned: bool
+
+
+def _survey_rows(rows: tuple[int, int], job: _SurveyPass) -> list[Any]:
+    """The first pass over grid rows ``rows`` (:func:`_survey_windows`), as a list: a task's result."""
+    out = list(_survey_windows(rows, job))
+    _release_heap()
+    return out
+
+
+def _survey_windows(rows: tuple[int, int], job: _SurveyPass) -> Iterator[Any]:
+    """The first pass over grid rows ``rows``, window by window: for each occupied window, its plane
+    sums, its lowest and highest heights, and its decimated block sums and counts (the blocks it
+    covers, when they lie whole inside it; else its cells' blocks and heights, for the caller to
+    add in order); None for an empty window. A pure function of the rows and the pass: the same
+    bits here or on a worker."""
+    raster, d = job.source, job.block
+    for r0, r1 in _bands_from(rows, SURVEY_ROWS):
         for c0, c1 in _bands(raster.cols, SURVEY_COLS):
             h, m = raster.read(r0, r1, c0, c1)
             if not m.any():
+                yield None
                 continue
-            rows, cols = np.nonzero(m)
-            z = h[rows, cols]
+            rr, cc = np.nonzero(m)
+            z = h[rr, cc]
             del h
-            fit = PlaneSums(float(z.mean())) if fit is None else fit  # heights about the first window's mean
-            lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
-            rows += r0
-            cols += c0
-            fit.add(cols.astype(float), rows.astype(float), z)
-            rows //= d
-            cols //= d
-            np.add.at(sums, (rows, cols), z - fit.ref)
-            np.add.at(counts, (rows, cols), 1.0)
-    if fit is None:
+            fit = PlaneSums(job.ref)
+            lowest, highest = float(z.min()), float(z.max())
+            rr += r0
+            cc += c0
+            fit.add(cc.astype(float), rr.astype(float), z)
+            rr //= d
+            cc //= d
+            zr = z - job.ref
+            if job.aligned:  # every block of the window is whole in it: its sums, in the cells' order
+                b0, k0 = r0 // d, c0 // d
+                shape = (-(-(r1 - r0) // d), -(-(c1 - c0) // d))
+                flat = (rr - b0) * shape[1] + (cc - k0)
+                sums = np.bincount(flat, weights=zr, minlength=shape[0] * shape[1]).reshape(shape)
+                counts = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape).astype(float)
+                yield fit.moments, lowest, highest, (b0, k0, sums, counts)
+            else:
+                yield fit.moments, lowest, highest, (rr, cc, zr)
+
+
+def _bands_from(rows: tuple[int, int], size: int) -> Iterator[tuple[int, int]]:
+    for start in range(rows[0], rows[1], size):
+        yield start, min(rows[1], start + size)
+
+
+def _survey(raster: _Raster, tile: int, on_stage: Stage, run: Map = serial) -> dict[str, Any]:
+    """First pass: the reference height, the plane (:class:`~dftpcc.fill.PlaneSums`), the height
+    range and a decimated copy (block sums and counts).
+
+    Rows of :data:`SURVEY_TASK_ROWS` are surveyed by ``run`` (on a cluster, each worker reads its
+    own) when the decimation blocks lie whole inside the windows; their sums are added here in the
+    windows' order, so the bits are the serial pass's.
+    """
+    d = max(1, tile // SAMPLES_PER_TILE)
+    rb, cb = -(-raster.rows // d), -(-raster.cols // d)
+    sums, counts = np.zeros((rb, cb)), np.zeros((rb, cb))
+    on_stage("read")
+    ref = _first_mean(raster)
+    if ref is None:
         raise InvalidInputError(f"{raster.path}: every pixel is nodata")
+    # A block straddling two windows gets its sum in two parts, whose addition rounds otherwise than
+    # the cell-by-cell sum: such a map (a tile side not 16 times a power of two) is surveyed here.
+    aligned = SURVEY_ROWS % d == 0 and SURVEY_COLS % d == 0
+    parallel = aligned and not raster.in_memory and run is not serial
+    job = _SurveyPass(raster, ref, d, aligned)
+    fit = PlaneSums(ref)
+    lowest, highest = math.inf, -math.inf
+    tasks = list(_bands(raster.rows, SURVEY_TASK_ROWS))
+    step = BATCH_BLOCKS if parallel else 1
+    for i in range(0, len(tasks), step):
+        on_stage("read", tasks[i][0] / raster.rows)
+        if parallel:
+            windows: Iterator[Any] = (w for part in run(_survey_rows, tasks[i:i + step], job) for w in part)
+        else:  # one window at a time: a window's cells are not held past it
+            windows = _survey_windows(tasks[i], job)
+        for window in windows:
+            if window is None:
+                continue
+            moments, low, high, blocks = window
+            fit.moments += moments
+            lowest, highest = min(lowest, low), max(highest, high)
+            if aligned:
+                b0, k0, s, c = blocks
+                sums[b0:b0 + s.shape[0], k0:k0 + s.shape[1]] += s
+                counts[b0:b0 + s.shape[0], k0:k0 + s.shape[1]] += c
+            else:
+                rows, cols, zr = blocks
+                np.add.at(sums, (rows, cols), zr)
+                np.add.at(counts, (rows, cols), 1.0)
     check_heights(lowest, highest)
     z0 = fit.mean()
     return {"z0": z0, "plane": fit.plane(z0), "block": d, "sums": sums, "counts": counts,
             "ref": fit.ref, "cells": fit.count}
+
+
+def _first_mean(raster: Any) -> float | None:
+    """The mean height of the first occupied window of the first pass (its sums' reference), or None."""
+    for r0, r1 in _bands(raster.rows, SURVEY_ROWS):
+        for c0, c1 in _bands(raster.cols, SURVEY_COLS):
+            h, m = raster.read(r0, r1, c0, c1)
+            if m.any():
+                return float(h[m].mean())
+    return None
 
 
 def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int, cycles: int
@@ -308,7 +396,7 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
         tile = tile_size_for(params, (raster.rows, raster.cols))
         if not tile:
             raise InvalidInputError(f"{src}: a {raster.rows} x {raster.cols} raster fits one tile: code it in memory")
-        survey = _survey(raster, tile, on_stage)
+        survey = _survey(raster, tile, on_stage, run)
         grid = raster.grid(survey["z0"])
         cycles = BASE_CYCLES_PER_TILE
         bi, bj, bradius, bangle, bcoefs = _base_coefficients(survey, grid.shape, tile, cycles)
