@@ -117,6 +117,25 @@ def test_band_by_band_decoding_writes_what_a_whole_decode_does(small_threshold, 
     np.testing.assert_allclose(np.c_[las.x, las.y, las.z], whole, atol=0.0006)  # the LAS millimetre
 
 
+def test_a_band_is_written_to_laz_in_parts_of_rows_with_the_same_bytes(small_threshold, mosaic, tmp_path,
+                                                                        monkeypatch):
+    """A band of tile rows across a wide map is millions of points: it goes to the LAS writer in parts
+    of about LAS_CHUNK_CELLS cells (whole rows), and the file is the one a band at a time writes."""
+    from dftpcc.io import las
+
+    src = tmp_path / "m.dftpc"
+    dftpcc.compress_file(mosaic, src, tile_size=128, cutoff=0.8, step=0.01)
+    dftpcc.files.decompress_bands(src, tmp_path / "band.laz")
+    monkeypatch.setattr(stream, "LAS_CHUNK_CELLS", 5_000)
+    sizes = []
+    write = las.write_las_chunks
+    monkeypatch.setattr(las, "write_las_chunks",
+                        lambda path, chunks, *a: write(path, (sizes.append(len(c)) or c for c in chunks), *a))
+    dftpcc.files.decompress_bands(src, tmp_path / "parts.laz")
+    assert 0 < max(sizes) <= 5_000 and len(sizes) > 674 * 696 // 5_000
+    assert (tmp_path / "parts.laz").read_bytes() == (tmp_path / "band.laz").read_bytes()
+
+
 def test_a_gridded_cloud_is_coded_band_by_band(small_threshold, tmp_path):
     cmap = dftpcc.compress_file(data_file("pointclouds/field_gentle_ign.laz"), tmp_path / "f.dftpc",
                                 tile_size=128, classes=[2], target_rmse=0.05)

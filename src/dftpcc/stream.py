@@ -30,7 +30,7 @@ from .encoder import Stage, check_heights, choose_for_tiles, no_stage
 from .errors import InvalidInputError, RasterTypeWarning
 from .fill import PlaneSums, fill_empty
 from .params import Params, tile_size_for
-from .rebuild import dem_to_points
+from .rebuild import dem_to_point_chunks
 from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_coefficients, base_heights, base_limit, base_order,
                     code_tile, coded_window, tile_overlap)
 
@@ -74,6 +74,10 @@ BATCH_BLOCKS = 8
 #: tiles come back, so a larger batch costs little memory, and the workers wait less often for the
 #: slowest block of a batch (with 8, a 2-worker run idled about half a block every 4 blocks).
 READ_BATCH_BLOCKS = 32
+#: Cells of a decoded band turned into points and written to LAS/LAZ at a time: a band of tile
+#: rows across a 20,000-column map is 20 M points, and its point array and LAS record held 1.8 GB
+#: at 10,000 columns.
+LAS_CHUNK_CELLS = 1 << 20
 #: GDAL's block cache while a raster is read or written band by band, bytes. GDAL's default, 5 % of
 #: RAM (1.2 GB on a 24 GB machine), is more than the rest of a run holds; a decoded band's
 #: partly written GeoTIFF blocks (a 256-row block row of a block of tiles) must fit in it.
@@ -647,7 +651,8 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
             from .io.las import write_las_chunks  # laspy, loaded only for a cloud
 
             corners = (grid.x0, grid.y0, grid.x0 + grid.cols * grid.resolution, grid.y0 + grid.rows * grid.dy)
-            written = write_las_chunks(tmp, (dem_to_points(dem) for _, dem in bands()), cmap.crs,
+            points = (part for _, dem in bands() for part in dem_to_point_chunks(dem, LAS_CHUNK_CELLS))
+            written = write_las_chunks(tmp, points, cmap.crs,
                                        np.floor([min(corners[0], corners[2]), min(corners[1], corners[3]), grid.z0]), fmt)
 
     write(dst, fill)
