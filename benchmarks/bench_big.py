@@ -7,7 +7,8 @@ copy after copy), each at a quarter, a half and the whole of the full size. Each
 decompress runs in its own process under ``/usr/bin/time -v`` (else a ``getrusage`` wrapper),
 so its peak resident memory is its own, and is set against the peak of a process that only
 imports dftpcc, measured in the same run. The GeoTIFF's quarter is also coded and decoded on a
-local dask cluster of 2 workers and checked byte-identical to the serial run.
+local dask cluster of 1 and of 2 workers and checked byte-identical to the serial run, and read by URL
+(1, 4 and 16 tiles fetched by range requests from a loopback HTTP server).
 
     .venv/bin/python -m benchmarks.bench_big [--quick] [--only raster|cloud|parallel] [--target-max-error M]
         [--parallel-every-size] [--docs | --no-docs]
@@ -335,8 +336,10 @@ class _Report:
         self.baseline, self.rows, self.failures, self.first = baseline, [], [], {}
         self.parallel: list[list[str]] = []
         self.grids: list[list[str]] = []
+        self.remote: list[list[str]] = []
+        self.seconds: dict[tuple[str, str, int], float] = {}
 
-    def add(self, kind: str, size: str, op: str, workers: int, m: dict[str, Any], units: float, unit: str,
+    def add(self, kind: str, size: str, op: str, workers: int | str, m: dict[str, Any], units: float, unit: str,
             out_bytes: int, coded_bytes: int, per: float, per_unit: str) -> None:
         if "error" in m:
             self.failures.append(f"{kind} {size} {op} (workers {workers}): {m['error']}")
@@ -376,23 +379,25 @@ def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int
         print(" | ".join(inputs[-1]), flush=True)
         size = f"{_fraction(f)} ({side:,}²)"
         cells = side * side
-        for workers in ([None, WORKERS] if n == 0 or PARALLEL_EVERY_SIZE else [None]):
-            dst = coded if workers is None else coded.with_suffix(".w.dftpc")
+        for workers in ([None, 1, WORKERS] if n == 0 or PARALLEL_EVERY_SIZE else [None]):
+            dst = coded if workers is None else coded.with_suffix(f".w{workers}.dftpc")
             m = measure(_job("compress", src, dst, workers))
             nbytes = dst.stat().st_size if dst.exists() else 0
-            report.add("GeoTIFF", size, "compress", workers or 1, m, cells, "cells", nbytes, nbytes,
+            report.add("GeoTIFF", size, "compress", _label(workers), m, cells, "cells", nbytes, nbytes,
                        m.get("cells") or 1, "cell")
             if workers is not None:
-                report.parallel.append(_parallel_row("compress", size, report, m, coded, dst))
+                _parallel(report, "compress", size, workers, m, coded, dst)
             if not coded.exists():
                 break
-            out = back if workers is None else back.with_suffix(".w.tif")
+            if n == 0 and workers is None:
+                report.remote += remote_reads(coded)
+            out = back if workers is None else back.with_suffix(f".w{workers}.tif")
             m = measure(_job("decompress", coded, out, workers))
             obytes = out.stat().st_size if out.exists() else 0
-            report.add("GeoTIFF", size, "decompress", workers or 1, m, cells, "cells", obytes,
+            report.add("GeoTIFF", size, "decompress", _label(workers), m, cells, "cells", obytes,
                        coded.stat().st_size, m.get("written") or 1, "cell")
             if workers is not None:
-                report.parallel.append(_parallel_row("decompress", size, report, m, back, out))
+                _parallel(report, "decompress", size, workers, m, back, out)
                 out.unlink(missing_ok=True)
                 dst.unlink(missing_ok=True)
         back.unlink(missing_ok=True)
@@ -400,14 +405,81 @@ def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int
         src.unlink(missing_ok=True)
 
 
-def _parallel_row(op: str, size: str, report: _Report, m: dict[str, Any], serial: Path, parallel: Path) -> list[str]:
-    """Time with 2 workers against 1 (the row before the last of ``op``), and whether the outputs are identical."""
-    one = next((r for r in reversed(report.rows) if r[1] == size and r[2] == op and r[3] == "1"), None)
+def _label(workers: int | None) -> str:
+    return "serial" if workers is None else str(workers)
+
+
+def _parallel(report: "_Report", op: str, size: str, workers: int, m: dict[str, Any], serial: Path,
+              parallel: Path) -> None:
+    """A row of the parallel table: the serial run's time (the last serial row of ``op`` at ``size``),
+    this run's on ``workers`` workers, the speed-ups, and whether the outputs are byte-identical."""
+    one = next((r for r in reversed(report.rows) if r[1] == size and r[2] == op and r[3] == "serial"), None)
     if "error" in m or one is None or one[5] == "failed":
-        return [op, size, one[4] if one else "", f"{m['wall']:.0f}", "failed", "", ""]
+        report.parallel.append([op, size, str(workers), one[4] if one else "", f"{m['wall']:.0f}", "failed",
+                                "", "", ""])
+        return
     same = serial.exists() and parallel.exists() and filecmp.cmp(serial, parallel, shallow=False)
-    return [op, size, one[4], f"{m['seconds']:.0f}", f"{float(one[4]) / m['seconds']:.2f}",
-            "yes" if same else "NO", _mb(m["tree"])]
+    report.seconds[(op, size, workers)] = m["seconds"]
+    single = report.seconds.get((op, size, 1))
+    report.parallel.append([op, size, str(workers), one[4], f"{m['seconds']:.0f}",
+                            f"{float(one[4]) / m['seconds']:.2f}",
+                            f"{single / m['seconds']:.2f}" if single and workers != 1 else "",
+                            "yes" if same else "NO", _mb(m["tree"])])
+
+
+#: Regions read by URL from the coded quarter map: this many tiles a side, from its middle.
+REMOTE_TILES = (1, 2, 4)
+
+
+def remote_reads(coded: Path) -> list[list[str]]:
+    """Bytes fetched to decode 1, 4 and 16 tiles of ``coded`` by URL (a loopback HTTP server with byte
+    ranges, in this process), against the file's size: what a bbox read over the network costs."""
+    import http.server
+
+    import dftpcc
+
+    class Ranges(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args: Any) -> None:
+            pass
+
+        def do_GET(self) -> None:  # noqa: N802 - http.server's name
+            data = Path(self.translate_path(self.path)).read_bytes()
+            found = re.fullmatch(r"bytes=(\d+)-(\d*)", self.headers.get("Range", ""))
+            start, end = (int(found[1]), min(int(found[2]) + 1 if found[2] else len(data), len(data))) \
+                if found else (0, len(data))
+            self.send_response(206 if found else 200)
+            if found:
+                self.send_header("Content-Range", f"bytes {start}-{end - 1}/{len(data)}")
+            self.send_header("Content-Length", str(end - start))
+            self.end_headers()
+            self.wfile.write(data[start:end])
+            self.server.sent += end - start  # type: ignore[attr-defined]
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
+                                             lambda *a, **k: Ranges(*a, directory=str(coded.parent), **k))
+    server.sent = 0  # type: ignore[attr-defined]
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{server.server_address[1]}/{coded.name}"
+    size = coded.stat().st_size
+    rows = []
+    try:
+        for k in REMOTE_TILES:
+            server.sent = 0  # type: ignore[attr-defined]
+            t0 = time.perf_counter()
+            with dftpcc.open(url) as cmap:
+                g, tile = cmap.grid, cmap.block
+                r0 = (g.rows // tile // 2 - k // 2) * tile
+                c0 = (g.cols // tile // 2 - k // 2) * tile
+                dem = cmap.read_window((r0, r0 + k * tile), (c0, c0 + k * tile))
+                fetched = cmap.bytes_read
+            rows.append([f"{k * k}", f"{k * tile:,}²", f"{int(dem.mask.sum()):,}", f"{fetched / 1e6:,.2f}",
+                         f"{server.sent / 1e6:,.2f}",  # type: ignore[attr-defined]
+                         f"{size / 1e6:,.1f}", f"{100 * fetched / size:.1f} %", f"{time.perf_counter() - t0:.1f}"])
+            print(" | ".join(rows[-1]), flush=True)
+    finally:
+        server.shutdown()
+        server.server_close()
+    return rows
 
 
 def run_cloud(data: Path, tmp: Path, copies: Sequence[int], report: _Report, inputs: list[list[str]],
@@ -423,13 +495,13 @@ def run_cloud(data: Path, tmp: Path, copies: Sequence[int], report: _Report, inp
         size = f"{_fraction(f)} ({points / 1e6:.0f} M)"
         m = measure(_job("compress", src, coded, None, chunk=CLOUD_CHUNK))
         nbytes = coded.stat().st_size if coded.exists() else 0
-        report.add("LAZ", size, "compress", 1, m, points, "points", nbytes, nbytes, points, "point")
+        report.add("LAZ", size, "compress", "serial", m, points, "points", nbytes, nbytes, points, "point")
         if "error" not in m:
             report.grids.append([size, f"{m['rows']:,} x {m['cols']:,}", f"{m['rows'] * m['cols']:,}",
                                  f"{m['cells']:,}", f"{m['resolution']:.3f}"])
             d = measure(_job("decompress", coded, back, None))
             obytes = back.stat().st_size if back.exists() else 0
-            report.add("LAZ", size, "decompress", 1, d, d.get("written") or 1, "points", obytes, nbytes, points,
+            report.add("LAZ", size, "decompress", "serial", d, d.get("written") or 1, "points", obytes, nbytes, points,
                        "point")
         for path in (back, coded, src):
             path.unlink(missing_ok=True)
@@ -514,11 +586,20 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
              "read, of the .dftpc file. One run each.",
              markdown_table(_Report.HEAD, report.rows)]
     if report.parallel:
-        parts += [f"Serial against a local dask cluster of {WORKERS} workers (`workers={WORKERS}`), "
-                  f"on {'every size of the GeoTIFF' if PARALLEL_EVERY_SIZE else 'the GeoTIFF quarter'}; each worker "
-                  "reads its own blocks of the file; identical: the two outputs compared byte for byte.",
-                  markdown_table(["op", "size", "1 worker s", f"{WORKERS} workers s", "speed-up",
-                                  "identical", "tree peak MB"], report.parallel)]
+        parts += [f"Serial (this process) against local dask clusters of 1 and {WORKERS} workers (`workers=1`, "
+                  f"`workers={WORKERS}`), on {'every size of the GeoTIFF' if PARALLEL_EVERY_SIZE else 'the GeoTIFF quarter'}; "
+                  "each worker reads its own windows of the file (the first pass too); identical: the output "
+                  "compared byte for byte with the serial run's. The machine's load is stated above and below: "
+                  "on a shared box a speed-up is only as good as the cores that were free.",
+                  markdown_table(["op", "size", "workers", "serial s", "cluster s", "speed-up vs serial",
+                                  "vs 1 worker", "identical", "tree peak MB"], report.parallel)]
+    if report.remote:
+        parts += [f"The quarter map read by URL (`dftpcc.open(url).read_window`, a loopback HTTP server with "
+                  f"byte ranges, in the benchmark's process): the tiles from its middle, {', '.join(str(k * k) for k in REMOTE_TILES)} "
+                  "of them; fetched: the bytes the reader asked for (its header, index and tiles); served: what "
+                  "the server sent.",
+                  markdown_table(["tiles", "region", "cells", "fetched MB", "served MB", "file MB", "share of file",
+                                  "time s"], report.remote)]
     if report.grids:
         parts += ["The cloud's grid (automatic resolution), held whole in memory while its tiles are coded:",
                   markdown_table(["size", "grid", "cells", "occupied", "resolution m"], report.grids)]

@@ -4,6 +4,8 @@ threshold is lowered so that real maps of ../shared/data play the part of huge o
 
 from __future__ import annotations
 
+import pickle
+
 import laspy
 import numpy as np
 import pytest
@@ -113,6 +115,25 @@ def test_band_by_band_decoding_writes_what_a_whole_decode_does(small_threshold, 
     assert dftpcc.files.decompress_bands(src, tmp_path / "bands.laz") == n
     las = laspy.read(tmp_path / "bands.laz")
     np.testing.assert_allclose(np.c_[las.x, las.y, las.z], whole, atol=0.0006)  # the LAS millimetre
+
+
+def test_a_band_is_written_to_laz_in_parts_of_rows_with_the_same_bytes(small_threshold, mosaic, tmp_path,
+                                                                        monkeypatch):
+    """A band of tile rows across a wide map is millions of points: it goes to the LAS writer in parts
+    of about LAS_CHUNK_CELLS cells (whole rows), and the file is the one a band at a time writes."""
+    from dftpcc.io import las
+
+    src = tmp_path / "m.dftpc"
+    dftpcc.compress_file(mosaic, src, tile_size=128, cutoff=0.8, step=0.01)
+    dftpcc.files.decompress_bands(src, tmp_path / "band.laz")
+    monkeypatch.setattr(stream, "LAS_CHUNK_CELLS", 5_000)
+    sizes = []
+    write = las.write_las_chunks
+    monkeypatch.setattr(las, "write_las_chunks",
+                        lambda path, chunks, *a: write(path, (sizes.append(len(c)) or c for c in chunks), *a))
+    dftpcc.files.decompress_bands(src, tmp_path / "parts.laz")
+    assert 0 < max(sizes) <= 5_000 and len(sizes) > 674 * 696 // 5_000
+    assert (tmp_path / "parts.laz").read_bytes() == (tmp_path / "band.laz").read_bytes()
 
 
 def test_a_gridded_cloud_is_coded_band_by_band(small_threshold, tmp_path):
@@ -255,6 +276,33 @@ def test_the_survey_in_narrow_windows_finds_the_same_plane(mosaic, monkeypatch):
     # Sums of heights about each pass's reference (its first window's mean).
     np.testing.assert_allclose(narrow["sums"] + narrow["ref"] * narrow["counts"],
                                wide["sums"] + wide["ref"] * wide["counts"], rtol=1e-12, atol=1e-6)
+
+
+@pytest.mark.parametrize("tile", [128, 200])  # blocks of 8 cells inside every window; blocks of 12 straddling
+def test_the_survey_is_mapped_by_rows_and_gives_the_serial_bits(mosaic, monkeypatch, tile):
+    """The first pass goes to the map (a cluster: each worker reads its own rows) in tasks of
+    SURVEY_TASK_ROWS rows, added back in order: the same bits as one pass here. A tile whose
+    decimation blocks straddle windows is surveyed here (their sums would round otherwise)."""
+    monkeypatch.setattr(stream, "SURVEY_TASK_ROWS", 256)
+    monkeypatch.setattr(stream, "SURVEY_COLS", 256)
+    mapped = []
+
+    def recording(func, items, *args):
+        mapped.append((func.__name__, list(items)))
+        return [func(pickle.loads(pickle.dumps(item)), *pickle.loads(pickle.dumps(args))) for item in items]
+
+    raster = stream._Raster(mosaic)
+    try:
+        here = stream._survey(raster, tile, lambda *a: None)
+        there = stream._survey(raster, tile, lambda *a: None, recording)
+    finally:
+        raster.close()
+    if tile == 128:
+        assert [name for name, _ in mapped] == ["_survey_rows"] and mapped[0][1] == [(0, 256), (256, 512), (512, 674)]
+    else:
+        assert mapped == []
+    for key in here:
+        assert np.asarray(there[key]).tobytes() == np.asarray(here[key]).tobytes(), key
 
 
 @pytest.mark.parametrize("workers", [None, 2])

@@ -959,7 +959,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("compress", parents=[common], help="point cloud -> .dftpc", description=(
         "Grid a point cloud into a DEM, low-pass its spectrum and write a .dftpc file. "
         "Inputs: .las .laz .ply .pcd .xyz .txt .csv .npy .drc .tif, and ROS bags (.bag, or a ROS 2 bag folder)"))
-    p.add_argument("input", help="the point cloud or GeoTIFF DEM to compress ('-': standard input, with --format)")
+    p.add_argument("input", help="the point cloud or GeoTIFF DEM to compress ('-': standard input, with --format; "
+                                 "a URL (https://, s3://...): a GeoTIFF, LAS or LAZ is read by range requests, "
+                                 "another format downloaded first)")
     p.add_argument("output", help="the .dftpc file to write ('-': standard output)")
     p.add_argument("--force", "-f", action="store_true",
                    help=FORCE_HELP + "; also write under another format's extension")

@@ -25,6 +25,7 @@ __all__ = [
     "InputMismatchWarning",
     "CoarseMapWarning",
     "RasterTypeWarning",
+    "RemoteWarning",
 ]
 
 
@@ -98,6 +99,11 @@ class InputMismatchWarning(DftpccWarning):
 
 class CoarseMapWarning(DftpccWarning):
     """An automatic quantizer step leaves errors beyond the map's own height spread."""
+
+
+class RemoteWarning(DftpccWarning):
+    """A file at a URL is read another way than asked: its server serves no byte ranges, so it is
+    downloaded whole first."""
 
 
 class RasterTypeWarning(DftpccWarning):

@@ -24,13 +24,14 @@ from .format import unpack
 from .dem import DEM
 from .encoder import Stage, encode_dem, no_stage, params_of
 from .grid import CloudSummary, check_chunked_aggregate, rasterize, rasterize_chunks
-from .errors import InvalidInputError, RasterTypeWarning
+from .errors import InvalidInputError, RasterTypeWarning, RemoteWarning
 from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, check_output, format_of, open_reader, write
 from .limits import MAX_CELLS, holds_in_memory
 from .mapfile import CompressedMap
 from .mapfile import open as open_map
 from .params import Params
 from .rebuild import dem_to_dense_points, dem_to_points
+from .remote import Remote, is_url, one_version, url_suffix
 
 __all__ = ["compress_file", "decompress_file", "read_dem", "check_compressed_output", "dem_from_geotiff", "reads_in_chunks", "stored_point_count"]
 
@@ -82,16 +83,28 @@ def _is_stream(target: Any) -> bool:
 
 @contextmanager
 def _as_path(src: Source, format: str | None) -> Iterator[str | os.PathLike[str]]:  # noqa: A002
-    """``src`` as a path readers can open: a stream or a pipe (``/dev/stdin``) is copied to a temporary file."""
-    if not _is_stream(src) and (Path(src).is_file() or Path(src).is_dir() or not Path(src).exists()):
+    """``src`` as a path readers can open: a stream or a pipe (``/dev/stdin``) is copied to a temporary
+    file, as is a URL of a format not read by range requests or on a server that serves none."""
+    remote = Remote(src) if is_url(src) else None
+    if remote is not None and (format or io.FORMATS.get(url_suffix(src))) in io.URL_FORMATS:
+        if remote.serves_ranges():
+            yield src  # read by range requests
+            return
+        warnings.warn(f"{src}: the server does not serve byte ranges: the file is downloaded whole to a "
+                      f"temporary file first ({remote.stamp.size:,} bytes)", RemoteWarning, stacklevel=4)
+    if remote is None and not _is_stream(src) and (Path(src).is_file() or Path(src).is_dir()
+                                                   or not Path(src).exists()):
         yield src  # a file, a ROS 2 bag folder, or a missing path the reader reports
         return
     with tempfile.TemporaryDirectory(prefix="dftpcc-") as tmp:
         raw = Path(tmp) / "stream"
-        with raw.open("wb") as out:
+        if remote is not None:
+            remote.download(raw)
+            format = format or io.FORMATS.get(url_suffix(src))  # noqa: A001 - else told by its first bytes
+        with raw.open("ab") as out:
             if _is_stream(src):
                 shutil.copyfileobj(src, out)
-            else:
+            elif remote is None:
                 with open(src, "rb") as fh:
                     shutil.copyfileobj(fh, out)
         if format is None:
@@ -178,7 +191,7 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
     params = params_of(params, shortcuts)
     check_compressed_output(dst, force=force)
     check_executor(workers, scheduler)
-    with kernels.use(backend, work=None if _is_stream(src) else stored_point_count(src, format)):
+    with one_version(), kernels.use(backend, work=None if _is_stream(src) else stored_point_count(src, format)):
         return _compress_file(src, dst, params, format=format, classes=classes, drop_nonfinite=drop_nonfinite,
                               chunk_points=chunk_points, topic=topic, on_stage=on_stage, pose_topic=pose_topic,
                               map_frame=map_frame, workers=workers, scheduler=scheduler)
@@ -189,12 +202,13 @@ def _compress_file(src: Source, dst: Source, params: Params, *, format: str | No
                    on_stage: Stage, pose_topic: str | None, map_frame: str | None, workers: int | None,
                    scheduler: str | None) -> CompressedMap:
     on_stage("read")
-    if not _is_stream(src) and streams_raster(src, params, format):
-        # Larger than memory: coded band of tile rows by band, straight into the file.
-        with executor(workers, scheduler) as map_tiles:
-            stream.compress_raster(src, dst, params, map_tiles=map_tiles, on_stage=on_stage, write=atomic_write)
-        return open_map(dst)
     with _as_path(src, format) as path:
+        if not _is_stream(src) and streams_raster(path, params, format):
+            # Larger than memory: coded band of tile rows by band, straight into the file.
+            with executor(workers, scheduler) as map_tiles:
+                stream.compress_raster(path, dst, params, map_tiles=map_tiles, on_stage=on_stage,
+                                       write=atomic_write)
+            return open_map(dst)
         dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic,
                                    drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage,
                                    map_frame=map_frame)
@@ -216,14 +230,17 @@ def _compress_file(src: Source, dst: Source, params: Params, *, format: str | No
 
 
 def streams_raster(src: str | os.PathLike[str], params: Params, format: str | None = None) -> bool:  # noqa: A002
-    """Whether :func:`compress_file` codes ``src`` band by band: a GeoTIFF on its own grid of more
-    than :data:`~dftpcc.stream.STREAM_CELLS` cells, in tiles."""
-    if params.resolution != "auto" or format_of(src, format) not in ("tif", "tiff") or not Path(src).is_file():
+    """Whether :func:`compress_file` codes ``src`` band by band: a GeoTIFF (a file, or a URL on a
+    server that serves byte ranges) on its own grid of more than :data:`~dftpcc.stream.STREAM_CELLS`
+    cells, in tiles."""
+    if params.resolution != "auto" or format_of(src, format) not in ("tif", "tiff"):
         return False
-    import rasterio
+    if not (Path(src).is_file() or is_url(src) and Remote(str(src)).serves_ranges()):
+        return False
+    from .io.geotiff import open_raster
 
     try:
-        with rasterio.open(src) as ds:
+        with open_raster(src) as ds:
             shape = (ds.height, ds.width)
     except Exception:  # noqa: BLE001 - the reader says what is wrong, on the in-memory path
         return False

@@ -7,13 +7,15 @@ or, :func:`dem_to_dense_points`, ``factor**2`` samples of the rebuilt surface pe
 
 from __future__ import annotations
 
+from typing import Iterator
+
 import numpy as np
 
 from . import kernels
 from .errors import InvalidInputError
 from .grid import DEM
 
-__all__ = ["dem_to_points", "dem_to_dense_points"]
+__all__ = ["dem_to_points", "dem_to_point_chunks", "dem_to_dense_points"]
 
 
 def dem_to_points(dem: DEM) -> np.ndarray:
@@ -41,6 +43,27 @@ def dem_to_points(dem: DEM) -> np.ndarray:
     z += grid.z0
     out[:, 2] = z
     return out
+
+
+def dem_to_point_chunks(dem: DEM, cells: int) -> Iterator[np.ndarray]:
+    """:func:`dem_to_points` in parts of whole rows, about ``cells`` grid cells each (at least a row):
+    the same points in the same order and bits, without the whole array of them (a band of a
+    20,000-column map is 20 M points).
+
+    Yields
+    ------
+    ndarray, shape (n, 3), float64
+    """
+    grid, mask = dem.grid, dem.mask
+    if grid.angle != 0.0:
+        yield dem_to_points(dem)
+        return
+    xs, _ = grid.centres(np.zeros(grid.cols), np.arange(grid.cols))
+    _, ys = grid.centres(np.arange(grid.rows), np.zeros(grid.rows))
+    rows = max(1, cells // max(grid.cols, 1))
+    for r0 in range(0, grid.rows, rows):
+        r1 = min(grid.rows, r0 + rows)
+        yield _cell_points(mask[r0:r1], xs, ys[r0:r1], dem.heights[r0:r1], grid.z0)
 
 
 @kernels.kernel("cell_points")

@@ -30,7 +30,7 @@ from .encoder import Stage, check_heights, choose_for_tiles, no_stage
 from .errors import InvalidInputError, RasterTypeWarning
 from .fill import PlaneSums, fill_empty
 from .params import Params, tile_size_for
-from .rebuild import dem_to_points
+from .rebuild import dem_to_point_chunks
 from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_coefficients, base_heights, base_limit, base_order,
                     code_tile, coded_window, tile_overlap)
 
@@ -70,6 +70,14 @@ BLOCK_TILES = 4
 #: Blocks handed to ``map_tiles`` at once: enough to keep a few workers busy between two
 #: batches; a block of a map held in memory carries its cells, so this also bounds those copies.
 BATCH_BLOCKS = 8
+#: Blocks handed to ``map_tiles`` at once when each reads its own cells (a file): only their coded
+#: tiles come back, so a larger batch costs little memory, and the workers wait less often for the
+#: slowest block of a batch (with 8, a 2-worker run idled about half a block every 4 blocks).
+READ_BATCH_BLOCKS = 32
+#: Cells of a decoded band turned into points and written to LAS/LAZ at a time: a band of tile
+#: rows across a 20,000-column map is 20 M points, and its point array and LAS record held 1.8 GB
+#: at 10,000 columns.
+LAS_CHUNK_CELLS = 1 << 20
 #: GDAL's block cache while a raster is read or written band by band, bytes. GDAL's default, 5 % of
 #: RAM (1.2 GB on a 24 GB machine), is more than the rest of a run holds; a decoded band's
 #: partly written GeoTIFF blocks (a 256-row block row of a block of tiles) must fit in it.
@@ -175,40 +183,128 @@ def _bands(rows: int, tile: int) -> Iterator[tuple[int, int]]:
         yield start, min(rows, start + tile)
 
 
-def _survey(raster: _Raster, tile: int, on_stage: Stage) -> dict[str, Any]:
-    """First pass: the reference height, the plane (:class:`~dftpcc.fill.PlaneSums`), the height
-    range and a decimated copy (block sums and counts)."""
-    d = max(1, tile // SAMPLES_PER_TILE)
-    rb, cb = -(-raster.rows // d), -(-raster.cols // d)
-    sums, counts = np.zeros((rb, cb)), np.zeros((rb, cb))
-    fit: PlaneSums | None = None
-    lowest, highest = math.inf, -math.inf
-    on_stage("read")
-    # Small windows: the sums need several arrays of a window's occupied cells, not only its heights.
-    for r0, r1 in _bands(raster.rows, SURVEY_ROWS):
-        on_stage("read", r0 / raster.rows)
+#: Rows of the raster one task of the first pass surveys (windows of :data:`SURVEY_ROWS` by
+#: :data:`SURVEY_COLS`, in order): on a cluster, a worker decodes each GeoTIFF block of its rows once.
+SURVEY_TASK_ROWS = 1024
+
+
+@dataclass(frozen=True)
+class _SurveyPass:
+    """What every task of the first pass shares: the raster (a worker reopens it), the heights'
+    reference (the first occupied window's mean), the decimation block, and whether blocks lie
+    whole inside windows (then a window's block sums are final)."""
+
+    source: Any
+    ref: float
+    block: int
+    aligned: bool
+
+
+def _survey_rows(rows: tuple[int, int], job: _SurveyPass) -> list[Any]:
+    """The first pass over grid rows ``rows`` (:func:`_survey_windows`), as a list: a task's result."""
+    out = list(_survey_windows(rows, job))
+    _release_heap()
+    return out
+
+
+def _survey_windows(rows: tuple[int, int], job: _SurveyPass) -> Iterator[Any]:
+    """The first pass over grid rows ``rows``, window by window: for each occupied window, its plane
+    sums, its lowest and highest heights, and its decimated block sums and counts (the blocks it
+    covers, when they lie whole inside it; else its cells' blocks and heights, for the caller to
+    add in order); None for an empty window. A pure function of the rows and the pass: the same
+    bits here or on a worker."""
+    raster, d = job.source, job.block
+    for r0, r1 in _bands_from(rows, SURVEY_ROWS):
         for c0, c1 in _bands(raster.cols, SURVEY_COLS):
             h, m = raster.read(r0, r1, c0, c1)
             if not m.any():
+                yield None
                 continue
-            rows, cols = np.nonzero(m)
-            z = h[rows, cols]
+            rr, cc = np.nonzero(m)
+            z = h[rr, cc]
             del h
-            fit = PlaneSums(float(z.mean())) if fit is None else fit  # heights about the first window's mean
-            lowest, highest = min(lowest, float(z.min())), max(highest, float(z.max()))
-            rows += r0
-            cols += c0
-            fit.add(cols.astype(float), rows.astype(float), z)
-            rows //= d
-            cols //= d
-            np.add.at(sums, (rows, cols), z - fit.ref)
-            np.add.at(counts, (rows, cols), 1.0)
-    if fit is None:
+            fit = PlaneSums(job.ref)
+            lowest, highest = float(z.min()), float(z.max())
+            rr += r0
+            cc += c0
+            fit.add(cc.astype(float), rr.astype(float), z)
+            rr //= d
+            cc //= d
+            zr = z - job.ref
+            if job.aligned:  # every block of the window is whole in it: its sums, in the cells' order
+                b0, k0 = r0 // d, c0 // d
+                shape = (-(-(r1 - r0) // d), -(-(c1 - c0) // d))
+                flat = (rr - b0) * shape[1] + (cc - k0)
+                sums = np.bincount(flat, weights=zr, minlength=shape[0] * shape[1]).reshape(shape)
+                counts = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape).astype(float)
+                yield fit.moments, lowest, highest, (b0, k0, sums, counts)
+            else:
+                yield fit.moments, lowest, highest, (rr, cc, zr)
+
+
+def _bands_from(rows: tuple[int, int], size: int) -> Iterator[tuple[int, int]]:
+    for start in range(rows[0], rows[1], size):
+        yield start, min(rows[1], start + size)
+
+
+def _survey(raster: _Raster, tile: int, on_stage: Stage, run: Map = serial) -> dict[str, Any]:
+    """First pass: the reference height, the plane (:class:`~dftpcc.fill.PlaneSums`), the height
+    range and a decimated copy (block sums and counts).
+
+    Rows of :data:`SURVEY_TASK_ROWS` are surveyed by ``run`` (on a cluster, each worker reads its
+    own) when the decimation blocks lie whole inside the windows; their sums are added here in the
+    windows' order, so the bits are the serial pass's.
+    """
+    d = max(1, tile // SAMPLES_PER_TILE)
+    rb, cb = -(-raster.rows // d), -(-raster.cols // d)
+    sums, counts = np.zeros((rb, cb)), np.zeros((rb, cb))
+    on_stage("read")
+    ref = _first_mean(raster)
+    if ref is None:
         raise InvalidInputError(f"{raster.path}: every pixel is nodata")
+    # A block straddling two windows gets its sum in two parts, whose addition rounds otherwise than
+    # the cell-by-cell sum: such a map (a tile side not 16 times a power of two) is surveyed here.
+    aligned = SURVEY_ROWS % d == 0 and SURVEY_COLS % d == 0
+    parallel = aligned and not raster.in_memory and run is not serial
+    job = _SurveyPass(raster, ref, d, aligned)
+    fit = PlaneSums(ref)
+    lowest, highest = math.inf, -math.inf
+    tasks = list(_bands(raster.rows, SURVEY_TASK_ROWS))
+    step = BATCH_BLOCKS if parallel else 1
+    for i in range(0, len(tasks), step):
+        on_stage("read", tasks[i][0] / raster.rows)
+        if parallel:
+            windows: Iterator[Any] = (w for part in run(_survey_rows, tasks[i:i + step], job) for w in part)
+        else:  # one window at a time: a window's cells are not held past it
+            windows = _survey_windows(tasks[i], job)
+        for window in windows:
+            if window is None:
+                continue
+            moments, low, high, blocks = window
+            fit.moments += moments
+            lowest, highest = min(lowest, low), max(highest, high)
+            if aligned:
+                b0, k0, s, c = blocks
+                sums[b0:b0 + s.shape[0], k0:k0 + s.shape[1]] += s
+                counts[b0:b0 + s.shape[0], k0:k0 + s.shape[1]] += c
+            else:
+                rows, cols, zr = blocks
+                np.add.at(sums, (rows, cols), zr)
+                np.add.at(counts, (rows, cols), 1.0)
     check_heights(lowest, highest)
     z0 = fit.mean()
     return {"z0": z0, "plane": fit.plane(z0), "block": d, "sums": sums, "counts": counts,
             "ref": fit.ref, "cells": fit.count}
+
+
+def _first_mean(raster: Any) -> float | None:
+    """The mean height of the first occupied window of the first pass (its sums' reference), or None."""
+    for r0, r1 in _bands(raster.rows, SURVEY_ROWS):
+        for c0, c1 in _bands(raster.cols, SURVEY_COLS):
+            h, m = raster.read(r0, r1, c0, c1)
+            if m.any():
+                return float(h[m].mean())
+    return None
 
 
 def _base_coefficients(survey: dict[str, Any], shape: tuple[int, int], tile: int, cycles: int
@@ -308,7 +404,7 @@ def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_t
         tile = tile_size_for(params, (raster.rows, raster.cols))
         if not tile:
             raise InvalidInputError(f"{src}: a {raster.rows} x {raster.cols} raster fits one tile: code it in memory")
-        survey = _survey(raster, tile, on_stage)
+        survey = _survey(raster, tile, on_stage, run)
         grid = raster.grid(survey["z0"])
         cycles = BASE_CYCLES_PER_TILE
         bi, bj, bradius, bangle, bcoefs = _base_coefficients(survey, grid.shape, tile, cycles)
@@ -458,11 +554,11 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
     return codes
 
 
-def _batches(blocks: Iterator[_Block]) -> Iterator[list[_Block]]:
+def _batches(blocks: Iterator[_Block], size: int = BATCH_BLOCKS) -> Iterator[list[_Block]]:
     batch: list[_Block] = []
     for block in blocks:
         batch.append(block)
-        if len(batch) == BATCH_BLOCKS:
+        if len(batch) == size:
             yield batch
             batch = []
     if batch:
@@ -489,7 +585,7 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
                        overlap=tile_overlap(params.cutoff, tile), base_cycles=BASE_CYCLES_PER_TILE, spool=True)
     on_stage("encode")
     blocks = (block for band in range(tiling.tile_rows) for block in _blocks(raster, tiling, band, writer.overlap))
-    for batch in _batches(blocks):
+    for batch in _batches(blocks, BATCH_BLOCKS if raster.in_memory else READ_BATCH_BLOCKS):
         on_stage("encode", batch[0].tiles[0] / n)
         for code in (code for codes in run(_code_block, batch, job) for code in codes):
             writer.add_code(code)
@@ -555,7 +651,8 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
             from .io.las import write_las_chunks  # laspy, loaded only for a cloud
 
             corners = (grid.x0, grid.y0, grid.x0 + grid.cols * grid.resolution, grid.y0 + grid.rows * grid.dy)
-            written = write_las_chunks(tmp, (dem_to_points(dem) for _, dem in bands()), cmap.crs,
+            points = (part for _, dem in bands() for part in dem_to_point_chunks(dem, LAS_CHUNK_CELLS))
+            written = write_las_chunks(tmp, points, cmap.crs,
                                        np.floor([min(corners[0], corners[2]), min(corners[1], corners[3]), grid.z0]), fmt)
 
     write(dst, fill)

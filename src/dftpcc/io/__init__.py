@@ -21,6 +21,7 @@ import numpy as np
 
 from ..errors import InvalidInputError, MissingDependencyError, UnsupportedFormatError
 from .atomic import atomic_write, check_output, writer_errors
+from ..remote import is_url, url_suffix
 from .reader import DEFAULT_CHUNK_POINTS, PointCloud, Reader
 
 if TYPE_CHECKING:
@@ -28,7 +29,7 @@ if TYPE_CHECKING:
     from .geotiff import dem_from_geotiff, read_raster_dem, write_geotiff
 
 __all__ = ["PointCloud", "Reader", "ChunkedCloud", "Format", "REGISTRY", "FORMATS", "CHUNKED_FORMATS",
-           "DEFAULT_CHUNK_POINTS", "format_of", "sniff_format", "open_reader", "open_chunked", "check_chunkable", "read",
+           "DEFAULT_CHUNK_POINTS", "URL_FORMATS", "format_of", "sniff_format", "open_reader", "open_chunked", "check_chunkable", "read",
            "stored_point_count", "write", "write_dem", "write_geotiff", "read_raster_dem", "dem_from_geotiff", "atomic_write", "check_output"]
 
 #: A point writer: ``write(tmp_path, points (N, 3) float64, crs dict, format name)``.
@@ -60,6 +61,9 @@ class Format:
         Whether its reader reads from disk chunk by chunk, so that memory
         holds one chunk (:data:`CHUNKED_FORMATS`); other readers read the
         file whole, then slice it.
+    by_url : bool
+        Whether its reader reads a URL by range requests (:data:`URL_FORMATS`); a file of
+        another format at a URL is downloaded first (:func:`dftpcc.files.compress_file`).
     """
 
     name: str
@@ -70,6 +74,7 @@ class Format:
     dem_writer: str | None = None
     not_written: str = ""
     streams: bool = False
+    by_url: bool = False
 
     def load(self) -> ModuleType:
         """The format's module (imported on first use: rasterio alone takes a fifth of a second)."""
@@ -86,8 +91,8 @@ class Format:
 
 #: Format name -> its entry.
 REGISTRY: dict[str, Format] = {f.name: f for f in (
-    Format("las", (".las",), "las", "LasReader", "write_las", streams=True),
-    Format("laz", (".laz",), "las", "LasReader", "write_las", streams=True),
+    Format("las", (".las",), "las", "LasReader", "write_las", streams=True, by_url=True),
+    Format("laz", (".laz",), "las", "LasReader", "write_las", streams=True, by_url=True),
     Format("ply", (".ply",), "ply", "PlyReader", "write_ply", streams=True),
     Format("pcd", (".pcd",), "pcd", "PcdReader", "write_pcd"),
     Format("xyz", (".xyz", ".txt"), "text", "TextReader", "write_text"),
@@ -96,7 +101,7 @@ REGISTRY: dict[str, Format] = {f.name: f for f in (
     Format("drc", (".drc",), "drc", "DracoReader",
            not_written="Draco files are read, not written: write .ply, .pcd, .las or .npy"),
     Format("tif", (".tif", ".tiff"), "geotiff", "GeoTiffReader", dem_writer="write_geotiff",
-           not_written="a GeoTIFF holds a DEM, not points: use write_geotiff"),
+           not_written="a GeoTIFF holds a DEM, not points: use write_geotiff", by_url=True),
     Format("rosbag", (".bag", ".db3", ".mcap"), "rosbag", "BagReader",
            not_written="ROS bags are read, not written as files: a ROS 2 bag of the map is a folder "
                        "(decompress MAP out_bag/, or dftpcc.io.rosmap.write_map_bag); "
@@ -109,6 +114,8 @@ WRITTEN_EXTENSIONS: tuple[str, ...] = tuple(sorted(ext for f in REGISTRY.values(
                                                    for ext in f.extensions))
 #: Formats read chunk by chunk from disk (:func:`open_chunked`).
 CHUNKED_FORMATS: tuple[str, ...] = tuple(name for name, f in REGISTRY.items() if f.streams)
+#: Formats read from a URL by range requests (:class:`dftpcc.remote.Remote`), without a download.
+URL_FORMATS: tuple[str, ...] = tuple(name for name, f in REGISTRY.items() if f.by_url)
 
 #: Functions of a format module offered here, imported on first use (see :func:`__getattr__`).
 _LAZY = {"write_geotiff": "geotiff", "read_raster_dem": "geotiff", "dem_from_geotiff": "geotiff"}
@@ -147,9 +154,12 @@ def format_of(path: str | os.PathLike[str], fmt: str | None = None, *, output: b
         if fmt not in REGISTRY:
             raise UnsupportedFormatError(f"unknown format {fmt!r}; known: {', '.join(sorted(REGISTRY))}")
         return fmt
-    if Path(path).is_dir() and (Path(path) / "metadata.yaml").is_file():
+    if is_url(path):
+        ext = url_suffix(str(path))
+    elif Path(path).is_dir() and (Path(path) / "metadata.yaml").is_file():
         return "rosbag"  # a ROS 2 bag is a folder
-    ext = Path(path).suffix.lower()
+    else:
+        ext = Path(path).suffix.lower()
     if ext not in FORMATS:
         known = WRITTEN_EXTENSIONS if output else tuple(sorted(FORMATS))
         bag = ", or a folder name ending in / for a ROS 2 bag" if output else ""
@@ -190,7 +200,9 @@ def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # n
 
     Parameters
     ----------
-    path : path
+    path : path or URL
+        A URL (``https://``, ``s3://``...) of a LAS, LAZ or GeoTIFF file is read by range
+        requests through fsspec (:data:`URL_FORMATS`, :class:`dftpcc.remote.Remote`).
     format : str, optional
         A name of :data:`REGISTRY`; default from the extension (:func:`format_of`).
     classes : sequence of int, optional
@@ -227,11 +239,14 @@ def open_reader(path: str | os.PathLike[str], *, format: str | None = None,  # n
     MissingDependencyError
         The format needs an optional package that is not installed.
     """
-    path = Path(path)
+    path = str(path) if is_url(path) else Path(path)
     fmt = format_of(path, format)
     if chunk_points is not None:
         check_chunkable(path, fmt)
     entry = REGISTRY[fmt]
+    if isinstance(path, str) and not entry.by_url:
+        raise InvalidInputError(f"{path}: {fmt} files are not read by URL (only {', '.join(URL_FORMATS)}): "
+                                f"download it first, or compress it (compress downloads it)")
     return entry.reader_class()(path, format=fmt, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
                                 chunk_points=chunk_points, streams=entry.streams, pose_topic=pose_topic,
                                 map_frame=map_frame)

@@ -15,11 +15,13 @@ from typing import Any, ClassVar, Iterable, Iterator
 import numpy as np
 import rasterio
 import rasterio.shutil
+from rasterio.abc import FileContainer
 from rasterio.io import MemoryFile
 from rasterio.transform import Affine
 
 from ..dem import DEM, Grid, RasterSource
 from ..errors import InvalidInputError
+from ..remote import Remote, Stamp, is_url
 from .atomic import atomic_write, writer_errors
 from .reader import Reader
 
@@ -31,15 +33,18 @@ SQUARE_TOLERANCE = 1e-9
 
 
 @contextmanager
-def _raster_errors(path: str | os.PathLike[str]) -> Iterator[None]:
+def _raster_errors(path: str | os.PathLike[str], remote: Remote | None = None) -> Iterator[None]:
     try:
         yield
     except Exception as exc:  # noqa: BLE001 - GDAL raises its own errors on bad files
+        if remote is not None and remote.error is not None:
+            raise remote.error from None  # GDAL reports a failed read of a URL as its own I/O error
         raise InvalidInputError(f"{path}: cannot read as a GeoTIFF DEM: {exc}") from None
 
 
-def read_raster_dem(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, Affine, dict[str, Any]]:
-    """A GeoTIFF DEM as its pixels.
+def read_raster_dem(path: str | os.PathLike[str], *, remote: Remote | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, Affine, dict[str, Any]]:
+    """A GeoTIFF DEM (a path or a URL, ``remote`` its file if opened before) as its pixels.
 
     Returns
     -------
@@ -53,7 +58,8 @@ def read_raster_dem(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarra
     crs : dict
         ``{"wkt": ...}``, or empty when the file has none.
     """
-    with _raster_errors(path), rasterio.open(path) as src:
+    remote = remote if remote is not None else Remote(str(path)) if is_url(path) else None
+    with _raster_errors(path, remote), open_raster(path, remote=remote) as src:
         heights, valid = _read_band(src, None)
         return heights, valid, src.transform, _crs_of(src)
 
@@ -65,6 +71,63 @@ def _stamp(path: str | os.PathLike[str]) -> tuple[int, int]:
     except OSError:
         return -1, -1
     return st.st_size, st.st_mtime_ns
+
+
+def open_raster(path: str | os.PathLike[str], *, remote: Remote | None = None) -> Any:
+    """``rasterio.open(path)``; a URL is read by range requests through fsspec (:class:`~dftpcc.remote.Remote`,
+    each response checked against ``remote`` 's stamp), GDAL asking for the blocks it decodes.
+
+    Raises
+    ------
+    InvalidInputError
+        A URL that cannot be read (no such file, unreachable), and, as GDAL's own errors, a file
+        that is not a raster (inside :func:`_raster_errors`).
+    """
+    if not is_url(path):
+        return rasterio.open(path)
+    remote = Remote(str(path)) if remote is None else remote
+    return rasterio.open(str(path), opener=_OneRemoteFile(remote))
+
+
+class _OneRemoteFile(FileContainer):
+    """The one file at a URL as GDAL's virtual file system sees it (rasterio's ``opener``): GDAL's
+    look-ups of side-car files (``.ovr``, ``.aux.xml``, ``.msk``) find nothing, not the raster."""
+
+    def __init__(self, remote: Remote):
+        self.remote = remote
+        # GDAL holds the file objects it opened by a borrowed reference, kept alive by rasterio in a
+        # context variable: a dask task runs in a context of its own, and the next task of the same
+        # dataset found a freed object there (a segmentation fault). Held here, for the dataset's life.
+        self.files: list[Any] = []
+
+    def _mine(self, path: str) -> bool:
+        return path.rstrip("/") == self.remote.url.rstrip("/")
+
+    def open(self, path: str, mode: str = "rb", **kwds: Any) -> Any:
+        if not self._mine(path) or "w" in mode or "+" in mode:
+            raise FileNotFoundError(path)
+        self.files.append(self.remote.open(for_c=True))
+        return self.files[-1]
+
+    def isfile(self, path: str) -> bool:
+        return self._mine(path)
+
+    def isdir(self, path: str) -> bool:
+        return False
+
+    def ls(self, path: str) -> list[str]:
+        return []
+
+    def mtime(self, path: str) -> int:
+        return 0
+
+    def size(self, path: str) -> int:
+        if not self._mine(path):
+            raise FileNotFoundError(path)
+        return self.remote.stamp.size
+
+    def rm(self, path: str) -> None:
+        raise PermissionError(path)
 
 
 def _crs_of(src: Any) -> dict[str, Any]:
@@ -93,6 +156,8 @@ class RasterWindows:
     cache_bytes : int, optional
         GDAL's block cache while the file is opened and read, bytes (GDAL's default, a share of
         the machine's memory, when None).
+    remote : Remote, optional
+        The file at the URL ``path`` as a reader opened it before (its stamp the one to hold to).
 
     Raises
     ------
@@ -101,10 +166,13 @@ class RasterWindows:
         resolution).
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, cache_bytes: int | None = None):
+    def __init__(self, path: str | os.PathLike[str], *, cache_bytes: int | None = None,
+                 remote: Remote | None = None):
         self.path, self.cache_bytes = path, cache_bytes
-        with _raster_errors(path), self._env():
-            self.ds = rasterio.open(path)
+        #: A URL's file (None for a path): every range response is checked against its first stamp.
+        self.remote = remote if remote is not None else Remote(str(path)) if is_url(path) else None
+        with _raster_errors(path, self.remote), self._env():
+            self.ds = open_raster(path, remote=self.remote)
         t = self.ds.transform
         if t.b != 0 or t.d != 0 or t.a <= 0:
             self.ds.close()
@@ -116,13 +184,18 @@ class RasterWindows:
         self.crs = _crs_of(self.ds)
         nodata = self.ds.nodata
         self.source = RasterSource(str(self.ds.dtypes[0]), None if nodata is None else float(nodata))
-        #: The file's length and modification time when opened: a read that spans minutes (or another
-        #: process, a worker) checks it still reads that file (:meth:`check_unchanged`).
-        self.stamp = _stamp(path)
+        #: The file's length and modification time when opened (a URL's: its length and ETag, taken
+        #: before its first byte was read): a read that spans minutes (or another process, a worker)
+        #: checks it still reads that file (:meth:`check_unchanged`).
+        self.stamp: tuple[int, int] | Stamp = _stamp(path) if self.remote is None else self.remote.stamp
 
     def check_unchanged(self) -> None:
-        """Raise :class:`InvalidInputError` if the file's length or modification time is not the one
-        it had when opened: cells read before and after a change would make a map of two files."""
+        """Raise :class:`InvalidInputError` if the file's length or modification time (a URL's: length
+        or ETag) is not the one it had when opened: cells read before and after a change would make a
+        map of two files."""
+        if self.remote is not None:
+            self.remote.check_unchanged()
+            return
         now = _stamp(self.path)
         if now != self.stamp:
             raise InvalidInputError(f"{self.path}: the file changed while it was read (length {self.stamp[0]:,} "
@@ -140,9 +213,8 @@ class RasterWindows:
         # A worker reopening the file checks, at its first read, that it is the one its client
         # opened (raised there, as the task's own error: an error while unpickling reaches the
         # client as a bare Exception).
-        self._reopened = True
-        with _raster_errors(self.path), self._env():
-            self.ds = rasterio.open(self.path)
+        # The file is reopened there too: a URL's reopening reads it.
+        self.ds = None
 
     def __enter__(self) -> "RasterWindows":
         return self
@@ -154,11 +226,13 @@ class RasterWindows:
         """Heights (metres, float64, NaN where empty) and validity of grid rows [r0, r1) and columns [c0, c1)."""
         from rasterio.windows import Window
 
-        if self.__dict__.pop("_reopened", False):
+        if self.ds is None:  # a worker's copy, not yet reopened (until it is, each task checks the file)
             self.check_unchanged()
+            with _raster_errors(self.path, self.remote), self._env():
+                self.ds = open_raster(self.path, remote=self.remote)
         c1 = self.cols if c1 is None else c1
         f0 = self.rows - r1 if self.flipped else r0
-        with _raster_errors(self.path), self._env():
+        with _raster_errors(self.path, self.remote), self._env():
             heights, valid = _read_band(self.ds, Window(c0, f0, c1 - c0, r1 - r0))
         if self.flipped:
             heights, valid = heights[::-1], valid[::-1]
@@ -173,7 +247,8 @@ class RasterWindows:
         return Grid(x0=t.c, y0=y0, z0=z0, resolution=t.a, rows=self.rows, cols=self.cols, resolution_y=res_y)
 
     def close(self) -> None:
-        self.ds.close()
+        if self.ds is not None:
+            self.ds.close()
 
 
 def pixel_centres(heights: np.ndarray, valid: np.ndarray, transform: Affine) -> np.ndarray:
@@ -185,7 +260,7 @@ def pixel_centres(heights: np.ndarray, valid: np.ndarray, transform: Affine) -> 
     return np.column_stack([x, y, heights[rows, cols]])
 
 
-def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]:
+def dem_from_geotiff(path: str | os.PathLike[str], *, remote: Remote | None = None) -> tuple[DEM, dict[str, Any]]:
     """A north-up GeoTIFF DEM as a :class:`~dftpcc.dem.DEM` on its own pixel grid, and its CRS.
 
     Heights are relative to their mean (metres); the grid's rows run south
@@ -198,7 +273,7 @@ def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]
         Rotated or east-to-west pixels (read it as points instead, with a
         resolution), or no valid pixel.
     """
-    with RasterWindows(path) as raster:
+    with RasterWindows(path, remote=remote) as raster:
         h, m = raster.read(0, raster.rows)
         if not m.any():
             raise InvalidInputError(f"{path}: every pixel is nodata")
@@ -210,7 +285,8 @@ def dem_from_geotiff(path: str | os.PathLike[str]) -> tuple[DEM, dict[str, Any]]
 
 def raster_source(path: str | os.PathLike[str]) -> RasterSource:
     """The sample type and nodata value of a GeoTIFF's first band (its header only)."""
-    with _raster_errors(path), rasterio.open(path) as src:
+    remote = Remote(str(path)) if is_url(path) else None
+    with _raster_errors(path, remote), open_raster(path, remote=remote) as src:
         nodata = src.nodata
         return RasterSource(str(src.dtypes[0]), None if nodata is None else float(nodata))
 
@@ -296,7 +372,7 @@ class GeoTiffReader(Reader):
     own_grid: ClassVar[bool] = True
 
     def _open(self) -> None:
-        with _raster_errors(self.path), rasterio.open(self.path) as src:
+        with _raster_errors(self.path, self.remote), open_raster(self.path, remote=self.remote) as src:
             self.crs = {"wkt": src.crs.to_wkt()} if src.crs else {}
             self._pixels = int(src.width) * int(src.height)
 
@@ -306,10 +382,10 @@ class GeoTiffReader(Reader):
 
     def dem(self) -> DEM:
         """The DEM on the file's own pixel grid (see :func:`dem_from_geotiff`)."""
-        return dem_from_geotiff(self.path)[0]
+        return dem_from_geotiff(self.path, remote=self.remote)[0]
 
     def _raw_chunks(self, n: int | None) -> Iterator[np.ndarray]:
-        heights, valid, transform, _ = read_raster_dem(self.path)
+        heights, valid, transform, _ = read_raster_dem(self.path, remote=self.remote)
         points = pixel_centres(heights, valid, transform)
         self.stored_points = points.shape[0]
         yield from self._slices(points, n)

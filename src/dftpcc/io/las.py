@@ -33,7 +33,7 @@ GROUND = 2
 
 
 class LasReader(Reader):
-    """A LAS or LAZ file: the count and CRS from its header, the points in chunks of its records.
+    """A LAS or LAZ file (a path or a URL): the count and CRS from its header, the points in chunks of its records.
 
     ``classes`` keeps points of those classification codes (2 = ground);
     :attr:`stored_points` counts every point, before that selection.
@@ -42,14 +42,14 @@ class LasReader(Reader):
     options: ClassVar[frozenset[str]] = frozenset({"classes"})
 
     def _open(self) -> None:
-        with laspy.open(self.path) as fh:
+        with laspy.open(self._binary()) as fh:
             header = fh.header
             self.stored_points = int(header.point_count)
             self.crs = las_crs(list(header.vlrs) + list(getattr(header, "evlrs", None) or []))
 
     def _raw_chunks(self, n: int | None) -> Iterator[np.ndarray]:
         wanted = None if self.classes is None else np.asarray(list(self.classes))
-        with laspy.open(self.path) as fh:
+        with laspy.open(self._binary()) as fh:
             for part in fh.chunk_iterator(n or max(int(fh.header.point_count), 1)):
                 pts = np.column_stack([np.asarray(part.x, dtype=np.float64), np.asarray(part.y, dtype=np.float64),
                                        np.asarray(part.z, dtype=np.float64)])

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..dem import nonfinite_error
 from ..errors import InvalidInputError, MissingDependencyError, MissingFileError
+from ..remote import Remote, is_url
 
 __all__ = ["PointCloud", "Reader", "DEFAULT_CHUNK_POINTS", "xyz_columns", "crs_wkt", "parse_crs"]
 
@@ -98,8 +99,10 @@ class Reader:
 
     Parameters
     ----------
-    path : path
-        The file (a ROS 2 bag: its folder).
+    path : path or str
+        The file (a ROS 2 bag: its folder), or its URL for the formats read by range requests
+        (``Format.by_url``): :attr:`remote` then reads it, each response checked against the
+        file as first seen.
     format : str
         The format name it is read as (``las``, ``laz``, ...).
     classes : sequence of int, optional
@@ -146,7 +149,10 @@ class Reader:
                  classes: Sequence[int] | None = None, topic: str | None = None, drop_nonfinite: bool = False,
                  chunk_points: int | None = None, streams: bool = False, pose_topic: str | None = None,
                  map_frame: str | None = None):
-        self.path, self.format = Path(path), format
+        #: The file at a URL (its length and ETag taken now), or None for a local path.
+        self.remote = Remote(str(path)) if is_url(path) else None
+        self.path: Path | str = str(path) if self.remote is not None else Path(path)
+        self.format = format
         self.classes, self.topic, self.drop_nonfinite = classes, topic, drop_nonfinite
         self.pose_topic, self.map_frame = pose_topic, map_frame
         self.streams = streams
@@ -168,8 +174,8 @@ class Reader:
     # -- what a format module provides -------------------------------------------------------------
 
     def _locate(self) -> None:
-        """Refuse a source that is not there (a ROS bag also accepts a folder)."""
-        if not self.path.is_file():
+        """Refuse a source that is not there (a ROS bag also accepts a folder; a URL was checked on opening)."""
+        if self.remote is None and not Path(self.path).is_file():
             raise MissingFileError(self.path)
 
     def _open(self) -> None:
@@ -182,6 +188,10 @@ class Reader:
     def dem(self) -> Any:
         """The DEM on the source's own pixel grid, for a raster (:attr:`own_grid`) source."""
         raise InvalidInputError(f"{self.path}: {self.format} files hold points, not a DEM")
+
+    def _binary(self) -> Any:
+        """The file as an open binary file object: local, or the URL read by checked range requests."""
+        return open(self.path, "rb") if self.remote is None else self.remote.open()
 
     # -- what every reader offers ------------------------------------------------------------------
 
@@ -270,7 +280,9 @@ class Reader:
             yield
         except (InvalidInputError, MissingDependencyError):
             raise
-        except Exception as exc:  # noqa: BLE001 - laspy, plyfile, pypcd4, GDAL, rosbags have no common error
+        except Exception as exc:
+            if self.remote is not None and self.remote.error is not None:
+                raise self.remote.error from None  # a failed read of the URL, wrapped by the format's library  # noqa: BLE001 - laspy, plyfile, pypcd4, GDAL, rosbags have no common error
             raise InvalidInputError(f"{self.path}: cannot read as {self.format}: {exc}") from None
 
     @staticmethod
