@@ -4,3 +4,4 @@ export { baseCut, cutOf, hypot, prefix, radiusLimit } from "./layout.js";
 export { decayOf, tableModel, bernoulliLeft1 } from "./ans.js";
 export { addIdct } from "./transform.js";
 export { inflate } from "./bytes.js";
+export { BluesteinFft, factorize, MixedFft } from "./dct.js";

@@ -10,6 +10,22 @@ const POPCOUNT = Uint8Array.from({ length: 256 }, (_, c) => {
   return n;
 });
 
+/** The number of 1s of a mask of 0s and 1s: four cells a word, the byte lanes folded before they
+ * could overflow (a full-grid pass in V8 costs a few ns a cell; this one a quarter of that). */
+export function countOnes(mask: Uint8Array): number {
+  const words = mask.byteOffset % 4 === 0 ? mask.length >> 2 : 0;
+  const w = new Uint32Array(mask.buffer, mask.byteOffset, words);
+  let total = 0;
+  for (let k = 0; k < words;) {
+    const end = Math.min(words, k + 255);
+    let acc = 0;
+    for (; k < end; k++) acc = (acc + w[k]) | 0;
+    total += (acc & 0xff) + ((acc >>> 8) & 0xff) + ((acc >>> 16) & 0xff) + (acc >>> 24);
+  }
+  for (let k = 4 * words; k < mask.length; k++) total += mask[k];
+  return total;
+}
+
 /** The rows x cols occupancy, row-major, 1 = rebuilt. */
 export function decodeMask(p: Uint8Array, rows: number, cols: number): Uint8Array {
   if (p.length < 2) throw new CorruptFileError("occupancy mask is truncated");

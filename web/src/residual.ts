@@ -4,12 +4,11 @@ import { AnsDecoder, tableModel } from "./ans.js";
 import { crc32, i32, u16, u32 } from "./bytes.js";
 import { decodeStream, streamEnd } from "./coef.js";
 import { CorruptFileError } from "./errors.js";
-import { decodeMask } from "./mask.js";
+import { countOnes, decodeMask } from "./mask.js";
 
 /** The residual integers of the rebuilt cells of `mask` (rows x cols), in row-major order. */
 export function decodeResidual(p: Uint8Array, mask: Uint8Array, rows: number, cols: number): Float64Array {
-  let total = 0;
-  for (let k = 0; k < mask.length; k++) total += mask[k];
+  const total = countOnes(mask);
   const kind = p.length >= 20 ? u32(p, 16) : -1;
   if (kind === 4 || kind === 5) {
     const nchunks = u32(p, 0);
