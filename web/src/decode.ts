@@ -261,26 +261,23 @@ function finishWindow(o: Opened, h: Float64Array, mask: Uint8Array, rows: number
   let minZ = Infinity;
   let maxZ = -Infinity;
   let cells = 0;
-  let bad = false;
   for (let r = wr0; r < wr1; r++) {
-    const row = a + c * r;
-    for (let q = wc0, k = r * cols + wc0, t = (r - wr0) * W; q < wc1; q++, k++, t++) {
-      const m = mask[k];
-      if (!whole) outMask[t] = m;
-      if (m) {
-        let v = h[k];
-        if (plane) v += row + b * q;
-        // v - v is NaN for an infinite or NaN v: the check costs no call in the hot loop.
-        if (v - v !== 0) bad = true;
-        const z = z0 + v;
+    const row = z0 + (a + c * r);
+    const k0 = r * cols;
+    const t0 = (r - wr0) * W;
+    if (!whole) outMask.set(mask.subarray(k0 + wc0, k0 + wc1), t0);
+    for (let q = wc0, k = k0 + wc0, t = t0; q < wc1; q++, k++, t++) {
+      if (mask[k]) {
+        const z = h[k] + (row + b * q);
         heights[t] = z;
-        if (z < minZ) minZ = z;
-        if (z > maxZ) maxZ = z;
+        // Math.min and max carry a NaN through: the finite check below costs the loop nothing.
+        minZ = Math.min(minZ, z);
+        maxZ = Math.max(maxZ, z);
         cells++;
       } else heights[t] = NaN;
     }
   }
-  if (bad || (!whole && !allFinite(h, mask, plane, rows, cols))) {
+  if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ))) || (!whole && !allFinite(h, mask, plane, rows, cols))) {
     throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
   }
   return {

@@ -105,51 +105,92 @@ function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: numbe
     const cc = Math.min(Math.max(c - left, 0), cols - 1);
     return g[rr * cols + cc];
   };
-  const buckets: number[][] = Array.from({ length: 64 }, () => []);
-  const cells: number[] = [];
+  // One anti-diagonal (2 r + c = k) at a time; its cells' errors decode class by class (0 to 63),
+  // each class in the order of its cells (a stable counting sort), then its values predict.
+  const most = Math.min(rows, Math.ceil(cols / 2) + 1);
+  const line = new Int32Array(most);
+  const lineClass = new Uint8Array(most);
+  const order = new Int32Array(most);
+  const starts = new Int32Array(65);
+  const NONE = 255;
+  // While every value so far is below 2**26 in magnitude, sum a_k x_k exactly in one float64 (each
+  // product below 2**50, seven below 2**53); past that, split as the general case does.
+  const SMALL = 2 ** 26;
+  let small = true;
   for (let k = 0; k < 2 * (rows - 1) + cols; k++) {
-    cells.length = 0;
-    for (const b of buckets) b.length = 0;
+    let n = 0;
+    starts.fill(0);
     for (let r = Math.max(0, Math.ceil((k - cols + 1) / 2)); r < rows && 2 * r <= k; r++) {
       const c = k - 2 * r;
       const cell = r * cols + c;
-      cells.push(cell);
-      if (!mask[cell]) continue;
+      line[n] = cell;
+      if (!mask[cell]) {
+        lineClass[n++] = NONE;
+        continue;
+      }
       let act = 0;
-      for (let q = 0; q < 7; q++) if (ACTIVITY[q]) act += ACTIVITY[q] * Math.abs(nb(E, r, c, UP[q], LEFT[q]));
+      if (r >= 2 && c >= 2 && c < cols - 1) {
+        const up = cell - cols;
+        act = 2 * Math.abs(E[cell - 1]) + 2 * Math.abs(E[up]) + Math.abs(E[up - 1]) + Math.abs(E[up + 1])
+          + Math.abs(E[cell - 2]) + Math.abs(E[up - cols]);
+      } else {
+        for (let q = 0; q < 7; q++) if (ACTIVITY[q]) act += ACTIVITY[q] * Math.abs(nb(E, r, c, UP[q], LEFT[q]));
+      }
       let cls = 0;
       if (act > 0) {
         const bits = 32 - Math.clz32(act);
         const s = bits >= 2 ? (act >>> (bits - 2)) & 1 : 0;
         cls = Math.min(63, 2 * bits - 1 + s);
       }
-      buckets[cls].push(cell);
+      lineClass[n++] = cls;
+      starts[cls + 1]++;
     }
-    for (let cls = 0; cls < 64; cls++) {
+    for (let cls = 0; cls < 64; cls++) starts[cls + 1] += starts[cls];
+    for (let i = 0; i < n; i++) {
+      const cls = lineClass[i];
+      if (cls !== NONE) order[starts[cls]++] = line[i];
+    }
+    // starts[cls] is now the end of class cls; it began where class cls - 1 ended.
+    for (let cls = 0, from = 0; cls < 64; cls++) {
+      const to = starts[cls];
       const model = modelOf[cls];
-      if (!model) continue;
-      const n = 2 * widths[cls] + 1;
-      for (const cell of buckets[cls]) E[cell] = coder.decode(model, n) - widths[cls];
+      if (model) {
+        const w = widths[cls];
+        const m = 2 * w + 1;
+        for (let i = from; i < to; i++) E[order[i]] = coder.decode(model, m) - w;
+      }
+      from = to;
     }
-    for (const cell of cells) {
+    for (let i = 0; i < n; i++) {
+      const cell = line[i];
       const r = Math.floor(cell / cols);
       const c = cell - r * cols;
       let v: number;
-      if (mask[cell]) {
-        // P = (sum a_k x_k + 2**15) >> 16 exactly: x = 65536 xh + xl splits each product below 2**53.
-        let sh = 0;
-        let sl = 0;
-        for (let q = 0; q < 7; q++) {
-          const x = nb(V, r, c, UP[q], LEFT[q]);
-          const xh = Math.floor(x / 65536);
-          sh += a[q] * xh;
-          sl += a[q] * (x - xh * 65536);
+      if (lineClass[i] !== NONE) {
+        if (small && r >= 2 && c >= 2 && c < cols - 1) {
+          const up = cell - cols;
+          const up2 = up - cols;
+          // P = (sum a_k x_k + 2**15) >> 16, the sum exact below 2**53.
+          const S = a[0] * V[cell - 1] + a[1] * V[up] + a[2] * V[up - 1] + a[3] * V[up + 1] + a[4] * V[cell - 2]
+            + a[5] * V[up2] + a[6] * V[up2 + 1];
+          v = Math.floor((S + 32768) / 65536) + E[cell];
+        } else {
+          // P = (sum a_k x_k + 2**15) >> 16 exactly: x = 65536 xh + xl splits each product below 2**53.
+          let sh = 0;
+          let sl = 0;
+          for (let q = 0; q < 7; q++) {
+            const x = nb(V, r, c, UP[q], LEFT[q]);
+            const xh = Math.floor(x / 65536);
+            sh += a[q] * xh;
+            sl += a[q] * (x - xh * 65536);
+          }
+          v = sh + Math.floor((sl + 32768) / 65536) + E[cell];
         }
-        v = sh + Math.floor((sl + 32768) / 65536) + E[cell];
       } else {
         v = nb(V, r, c, 0, 1);
       }
       if (Math.abs(v) >= 2 ** 31) throw new CorruptFileError(`${what} decodes to values beyond 2**31`);
+      if (Math.abs(v) >= SMALL) small = false;
       V[cell] = v;
     }
   }
