@@ -11,7 +11,7 @@ import { CorruptFileError, guard, InvalidInputError, ResourceLimitError } from "
 import { baseCut, cutOf, prefix, Transform } from "./layout.js";
 import { countOnes, decodeMask } from "./mask.js";
 import { decodeResidual } from "./residual.js";
-import { addIdct, ifft2Shifted, irfft2 } from "./transform.js";
+import { addIdct, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
 
 export interface DecodeOptions {
   /** Decode only the first maxBytes bytes, as if the rest had not arrived (untiled maps). */
@@ -26,6 +26,11 @@ export interface DecodeOptions {
   window?: { rows: [number, number]; cols: [number, number] };
   /** Heights as float32 rather than float64. */
   float32?: boolean;
+  /** A progressive prefix of an untiled DCT map (ignored otherwise): its spectrum holds low
+   * frequencies only, so the heights are evaluated every few cells (PREVIEW_SAMPLES a shortest
+   * period along each axis) and bilinear between them, a preview much cheaper than the whole grid's
+   * inverse; it differs from the exact prefix decode by that interpolation (DecodedMap.stride). */
+  preview?: boolean;
 }
 
 export interface Header {
@@ -56,6 +61,8 @@ export interface DecodedMap {
   bytesRead: number;
   /** Whether the COEF section was cut (a progressive prefix): the map is low-passed further. */
   partial: boolean;
+  /** Cells between the heights evaluated exactly, the rest interpolated (options.preview); absent: 1. */
+  stride?: number;
 }
 
 const TIDX_HEAD = 8;
@@ -203,13 +210,19 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   }
   const coef = o.sections.get("COEF")!;
   const s = decodeStream(coef, per * kept, radius, angle, { partial: o.cutCoef });
+  // A progressive prefix holds the first coefficients only (the rest are zeros): its corner of the
+  // spectrum, and so its inverse, is that much smaller.
+  if (kind === "dct") use = Math.min(use, s.decoded);
   const h = new Float64Array(rows * cols);
+  // A preview samples a cut spectrum; a residual layer (whole only if COEF is) keeps the exact path.
+  const preview = options.preview === true && o.cutCoef && kind === "dct" && !o.sections.get("RESD");
+  let stride = 1;
   if (params.storage === "quantized") {
     if (!s.ints) throw new CorruptFileError("quantized file holds float coefficients");
     const step = params.step;
     if (kind === "dct") {
       const ints = s.ints;
-      addDctCorner(h, pre.pos, use, (k) => ints[k] * step, rows, cols);
+      stride = addDctCorner(h, pre.pos, use, (k) => ints[k] * step, rows, cols, preview);
     } else {
       const v = new Float64Array(2 * use);
       for (let k = 0; k < 2 * use; k++) v[k] = s.ints[k] * step;
@@ -219,7 +232,7 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     if (!s.complex && kept) throw new CorruptFileError("complex64 file holds integer coefficients");
     const v = s.complex ?? new Float64Array(0);
     if (kind === "dct") {
-      addDctCorner(h, pre.pos, use, (k) => v[2 * k], rows, cols); // a complex64 DCT: the real parts
+      stride = addDctCorner(h, pre.pos, use, (k) => v[2 * k], rows, cols, preview); // a complex64 DCT: the real parts
     } else if (kind === "dft-full") {
       ifft2Shifted(pre.pos.subarray(0, use), v.subarray(0, 2 * use), rows, cols, h);
     } else {
@@ -236,7 +249,9 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     for (let k = 0, c = 0; k < mask.length; k++) if (mask[k]) h[k] += q[c++] * 2 * e * (1 - 1e-6);
     return finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], null, options, o.cutCoef);
   }
-  return finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], params.detrend === "plane" ? g.plane : null, options, o.cutCoef);
+  const out = finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], params.detrend === "plane" ? g.plane : null, options, o.cutCoef);
+  if (stride > 1) out.stride = stride;
+  return out;
 }
 
 function addPlane(h: Float64Array, rows: number, cols: number, [a, b, c]: number[]): void {
@@ -599,10 +614,23 @@ function decodeTile(o: Opened, k: number, secs: Map<string, Entry>, count: numbe
   }
 }
 
+/** Samples a shortest period of a preview's spectrum along each axis (a cosine of index k over n
+ * cells has period 2 n / k): bilinear interpolation between 8 samples a period is within 8 % of
+ * its amplitude, and the prefix's highest frequencies carry the least of it. */
+const PREVIEW_SAMPLES = 8;
+/** At most this many cells between a preview's samples (a handful of coefficients still shows). */
+const PREVIEW_MAX_STRIDE = 32;
+/** Fewer cells between samples save too little of the whole inverse to be worth interpolating. */
+const PREVIEW_MIN_STRIDE = 3;
+/** A preview's sums (products) at most this share of rows cols log2(rows cols) (about the whole
+ * grid's FFT work, measured in Node on the shared DEMs: below it the samples cost less). */
+const PREVIEW_SUMS_SHARE = 0.5;
+
 /** Add to ``h`` the inverse DCT of the first ``use`` coefficients at flat positions ``pos`` (values
- * ``value(k)``), laid in the smallest top-left corner of the spectrum that holds them. */
+ * ``value(k)``), laid in the smallest top-left corner of the spectrum that holds them; for a
+ * preview, at every few cells and bilinear between. Returns the cells between evaluated ones. */
 function addDctCorner(h: Float64Array, pos: Int32Array, use: number,
-  value: (k: number) => number, rows: number, cols: number): void {
+  value: (k: number) => number, rows: number, cols: number, preview = false): number {
   let K = 0;
   let L = 0;
   for (let k = 0; k < use; k++) {
@@ -614,5 +642,57 @@ function addDctCorner(h: Float64Array, pos: Int32Array, use: number,
     const i = Math.floor(pos[k] / cols);
     gm[i * L + (pos[k] - i * cols)] = value(k);
   }
-  addIdct(h, gm, K, L, rows, cols, 0, rows, 0, cols);
+  const spacing = (n: number, k: number) => (k > 1 ? (2 * n) / ((k - 1) * PREVIEW_SAMPLES) : Infinity);
+  const stride = preview ? Math.min(PREVIEW_MAX_STRIDE, Math.floor(Math.min(spacing(rows, K), spacing(cols, L)))) : 1;
+  // The samples' plain sums grow as the corner's cube: against a rough count of the whole grid's
+  // FFTs, a preview pays only for a narrow corner (a few per cent of a map's bytes).
+  const [nr, nc] = [Math.ceil((rows - 1) / stride) + 1, Math.ceil((cols - 1) / stride) + 1];
+  const sums = K * nc * (L + nr);
+  if (stride < PREVIEW_MIN_STRIDE || sums > PREVIEW_SUMS_SHARE * rows * cols * Math.log2(rows * cols)) {
+    addIdct(h, gm, K, L, rows, cols, 0, rows, 0, cols);
+    return 1;
+  }
+  const rs = sampled(rows, stride);
+  const cs = sampled(cols, stride);
+  addBilinear(h, rows, cols, sampleIdct(gm, K, L, rows, cols, rs, cs), rs, cs);
+  return stride;
+}
+
+/** Cells 0, s, 2 s, ... and the last one. */
+function sampled(n: number, s: number): Int32Array {
+  const m = Math.ceil((n - 1) / s) + 1;
+  const out = new Int32Array(m);
+  for (let i = 0; i < m; i++) out[i] = Math.min(i * s, n - 1);
+  return out;
+}
+
+/** h (rows x cols) += the bilinear interpolation of v, given at rows rs and columns cs (each
+ * starting at 0 and ending at the last cell). */
+function addBilinear(h: Float64Array, rows: number, cols: number, v: Float64Array, rs: Int32Array, cs: Int32Array): void {
+  const nc = cs.length;
+  // Each sampled row along the columns first (rs.length x cols), then the rows between them.
+  const wide = new Float64Array(rs.length * cols);
+  for (let i = 0; i < rs.length; i++) {
+    const o = i * cols;
+    const vo = i * nc;
+    for (let j = 0; j + 1 < nc; j++) {
+      const a = cs[j];
+      const va = v[vo + j];
+      const d = (v[vo + j + 1] - va) / (cs[j + 1] - a);
+      for (let c = a; c < cs[j + 1]; c++) wide[o + c] = va + d * (c - a);
+    }
+    wide[o + cs[nc - 1]] = v[vo + nc - 1];
+  }
+  for (let i = 0; i < rs.length; i++) {
+    const a = rs[i];
+    const last = i + 1 === rs.length;
+    const b = last ? a + 1 : rs[i + 1];
+    const ua = wide.subarray(i * cols, (i + 1) * cols);
+    const ub = last ? ua : wide.subarray((i + 1) * cols, (i + 2) * cols);
+    for (let r = a; r < b; r++) {
+      const f = (r - a) / (b - a);
+      const o = r * cols;
+      for (let c = 0; c < cols; c++) h[o + c] += ua[c] + f * (ub[c] - ua[c]);
+    }
+  }
 }

@@ -14,13 +14,54 @@ function cosTable(_n: number, period: number): Float64Array {
 
 /** phi_N(k, n) for k < K and n in cells [c0, c0 + w): a K x w matrix, row-major. */
 function dctBasis(N: number, K: number, c0: number, w: number): Float64Array {
+  const cells = new Int32Array(w);
+  for (let c = 0; c < w; c++) cells[c] = c0 + c;
+  return dctBasisAt(N, K, cells);
+}
+
+/** phi_N(k, n) for k < K and n in `cells`: a K x cells.length matrix, row-major. */
+function dctBasisAt(N: number, K: number, cells: Int32Array): Float64Array {
   const table = cosTable(N, 4 * N);
+  const w = cells.length;
   const out = new Float64Array(K * w);
   const a0 = 1 / Math.sqrt(N);
   const ak = Math.sqrt(2 / N);
   for (let k = 0; k < K; k++) {
     for (let c = 0; c < w; c++) {
-      out[k * w + c] = k === 0 ? a0 : ak * table[(k * (2 * (c0 + c) + 1)) % (4 * N)];
+      out[k * w + c] = k === 0 ? a0 : ak * table[(k * (2 * cells[c] + 1)) % (4 * N)];
+    }
+  }
+  return out;
+}
+
+/** The inverse orthonormal DCT-II of the coefficients g (a dense K x L corner of the N x M spectrum,
+ * row-major) at the cells (rows[i], cols[j]) only: a rows.length x cols.length array, row-major. As
+ * plain sums (K L + rows.length K products a sampled column), for a few samples of a narrow corner. */
+export function sampleIdct(g: Float64Array, K: number, L: number, N: number, M: number,
+  rows: Int32Array, cols: Int32Array): Float64Array {
+  const nr = rows.length;
+  const nc = cols.length;
+  const out = new Float64Array(nr * nc);
+  if (K === 0 || L === 0) return out;
+  const bc = dctBasisAt(M, L, cols);
+  const br = dctBasisAt(N, K, rows);
+  // t (K x nc): each row of g along the columns; then each column of t along the rows.
+  const t = new Float64Array(K * nc);
+  for (let k = 0; k < K; k++) {
+    const o = k * nc;
+    for (let j = 0; j < L; j++) {
+      const x = g[k * L + j];
+      if (x === 0) continue;
+      const b = j * nc;
+      for (let c = 0; c < nc; c++) t[o + c] += x * bc[b + c];
+    }
+  }
+  for (let k = 0; k < K; k++) {
+    const o = k * nc;
+    for (let i = 0; i < nr; i++) {
+      const y = br[k * nr + i];
+      const d = i * nc;
+      for (let c = 0; c < nc; c++) out[d + c] += y * t[o + c];
     }
   }
   return out;
