@@ -1,6 +1,6 @@
 // RESD payloads (format.md, "RESD"): one integer per rebuilt cell, in COEF's chunks, as one sparse
 // chunk (kind 4) or one predicted chunk (kind 5).
-import { AnsDecoder, tableModel } from "./ans.js";
+import { AnsDecoder, slotsOf, tableModel } from "./ans.js";
 import { crc32, i32, u16, u32 } from "./bytes.js";
 import { decodeStream, streamEnd } from "./coef.js";
 import { CorruptFileError } from "./errors.js";
@@ -68,6 +68,10 @@ function sparse(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, 
 const UP = [0, 1, 1, 1, 0, 2, 2];
 const LEFT = [1, 0, 1, -1, 2, 0, -1];
 const ACTIVITY = [2, 2, 1, 1, 1, 1, 0];
+/** A class's slot table (ans.ts slotsOf, 4097 entries) pays for itself over a layer of this many
+ * cells, and for alphabets of at least 2 SLOTTED_WIDTH + 1 symbols (a binary search of 4+ steps). */
+const SLOTTED_CELLS = 1 << 16;
+const SLOTTED_WIDTH = 8;
 
 function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, total: number): Float64Array {
   const what = "predicted residual layer";
@@ -94,6 +98,10 @@ function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: numbe
   const models = coded.map((k) => tableModel(widths[k], codes[k], what));
   const modelOf: Array<Int32Array | null> = new Array(64).fill(null);
   coded.forEach((k, q) => { modelOf[k] = models[q]; });
+  // Wide alphabets search their quantile's slot rather than the whole table (a table's worth of
+  // slots each: only for a layer of more cells than that).
+  const slotted = total >= SLOTTED_CELLS;
+  const slotsOfClass: Array<Int32Array | null> = modelOf.map((m, k) => (m && slotted && widths[k] >= SLOTTED_WIDTH ? slotsOf(m, 2 * widths[k] + 1) : null));
   const coder = new AnsDecoder(body.subarray(at), what);
   const V = new Float64Array(rows * cols);
   const E = new Float64Array(rows * cols);
@@ -157,7 +165,9 @@ function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: numbe
       if (model) {
         const w = widths[cls];
         const m = 2 * w + 1;
-        for (let i = from; i < to; i++) E[order[i]] = coder.decode(model, m) - w;
+        const slots = slotsOfClass[cls];
+        if (slots) for (let i = from; i < to; i++) E[order[i]] = coder.decodeSlotted(model, slots) - w;
+        else for (let i = from; i < to; i++) E[order[i]] = coder.decode(model, m) - w;
       }
       from = to;
     }
