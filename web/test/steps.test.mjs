@@ -86,3 +86,37 @@ test("a table model's slots bound the symbol of every quantile in them (the narr
     }
   }
 });
+
+/** format.md's COEF kind 3 table, steps 1-4, all in BigInt: the reference for tableModel's floats. */
+function referenceTable(maxAbs, code) {
+  const ONE = 1n << 24n;
+  const R = BigInt(decayOf(code));
+  const w = [1n << 32n];
+  for (let k = 1; k <= maxAbs; k++) w.push((w[k - 1] * R) / 65536n);
+  const W = w.reduce((s, v, k) => s + (k ? 2n * v : v), 0n);
+  const n = 2 * maxAbs + 1;
+  const M = ONE - BigInt(n);
+  const fk = w.map((v) => (v === 0n ? 1n : 1n + (v * M) / W));
+  const f = Array.from({ length: n }, (_, s) => fk[Math.abs(s - maxAbs)]);
+  f[maxAbs] += ONE - fk.reduce((s, v, k) => s + (k ? 2n * v : v), 0n);
+  const cdf = [];
+  let K = 0n;
+  for (let s = 0; s < n; s++) {
+    cdf.push(Number((K * M) / ONE) + s);
+    K += f[s];
+  }
+  cdf.push(Number(ONE));
+  return cdf;
+}
+
+test("the table models built in floats are format.md's integer tables", () => {
+  for (const maxAbs of [1, 2, 7, 100, 3000, 32768]) {
+    for (let code = 1; code < 256; code += maxAbs > 1000 ? 37 : 5) {
+      const got = tableModel(maxAbs, code, "test");
+      const want = referenceTable(maxAbs, code);
+      let differ = 0;
+      for (let s = 0; s < want.length; s++) if (got[s] !== want[s]) differ++;
+      assert.equal(differ, 0, `maxAbs ${maxAbs} code ${code}: ${differ} entries differ`);
+    }
+  }
+});
