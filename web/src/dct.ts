@@ -564,22 +564,39 @@ export class Dct3 {
     const K = Math.min(klen, n);
     // W = conj(V1 + i V2), V = e^{i pi k / 2n} (X[k] - i X[n-k]): nonzero on k < K and k > n - K, so
     // that the forward FFT computes the inverse one.
-    re.fill(0);
-    im.fill(0);
+    // Only the entries between the two ends of the band are zeros; the ends are set below.
+    if (2 * K - 1 < n) {
+      re.fill(0, K, n - K + 1);
+      im.fill(0, K, n - K + 1);
+    } else {
+      re.fill(0);
+      im.fill(0);
+    }
     for (let k = 0; k < K; k++) {
       const a1 = inp[i1 + k * is];
       const a2 = two ? inp[i2 + k * is] : 0;
       re[k] = a1 * car[k] - a2 * sar[k];
       im[k] = -(a1 * sar[k] + a2 * car[k]);
     }
-    for (let j = 1; j < K; j++) {
-      // X[n - k] with n - k = j: at k = n - j.
-      const k = n - j;
-      const b1 = inp[i1 + j * is];
-      const b2 = two ? inp[i2 + j * is] : 0;
-      // v1 = (b1 s, -b1 c), v2 = (b2 s, -b2 c): re += v1r - v2i, im -= v1i + v2r.
-      re[k] += b1 * sb[k] + b2 * cb[k];
-      im[k] -= -b1 * cb[k] + b2 * sb[k];
+    if (2 * K - 1 < n) {
+      // The two ends apart: the upper one is set, not added to.
+      for (let j = 1; j < K; j++) {
+        const k = n - j;
+        const b1 = inp[i1 + j * is];
+        const b2 = two ? inp[i2 + j * is] : 0;
+        re[k] = b1 * sb[k] + b2 * cb[k];
+        im[k] = b1 * cb[k] - b2 * sb[k];
+      }
+    } else {
+      for (let j = 1; j < K; j++) {
+        // X[n - k] with n - k = j: at k = n - j.
+        const k = n - j;
+        const b1 = inp[i1 + j * is];
+        const b2 = two ? inp[i2 + j * is] : 0;
+        // v1 = (b1 s, -b1 c), v2 = (b2 s, -b2 c): re += v1r - v2i, im -= v1i + v2r.
+        re[k] += b1 * sb[k] + b2 * cb[k];
+        im[k] -= -b1 * cb[k] + b2 * sb[k];
+      }
     }
     this.fft.forward(re, im, K);
     // Cell 2m is entry m, cell 2(n - 1 - m) + 1 entry m: the even cells, then the odd ones.
@@ -587,7 +604,15 @@ export class Dct3 {
     const step = 2 * os;
     const even = c0 + (c0 & 1);
     const odd = c0 + 1 - (c0 & 1);
-    if (two) {
+    if (two && os === 1 && c0 === 0 && w === n && (n & 1) === 0) {
+      // The whole of contiguous vectors: cells 2i and 2i + 1 from entries i and n - 1 - i, in one sweep.
+      for (let i = 0, p1 = o1, p2 = o2, q = n - 1; i < n / 2; i++, p1 += 2, p2 += 2, q--) {
+        out[p1] += re[i];
+        out[p2] -= im[i];
+        out[p1 + 1] += re[q];
+        out[p2 + 1] -= im[q];
+      }
+    } else if (two) {
       for (let at = even, m = even >> 1, p = (even - c0) * os; at < end; at += 2, m++, p += step) {
         out[o1 + p] += re[m];
         out[o2 + p] -= im[m];

@@ -200,12 +200,17 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   }
   const pairs = kind === "dft-half";
   const per = pairs ? 2 : 1;
-  const radius = new Float64Array(per * kept);
-  const angle = new Float64Array(per * kept);
-  for (let k = 0; k < kept; k++) {
-    for (let q = 0; q < per; q++) {
-      radius[per * k + q] = pre.radius[k];
-      angle[per * k + q] = pre.angle[k];
+  // A DFT's pairs share their coefficient's radius and angle; a DCT reads the cached order's own.
+  let radius = pre.radius;
+  let angle = pre.angle;
+  if (per > 1) {
+    radius = new Float64Array(per * kept);
+    angle = new Float64Array(per * kept);
+    for (let k = 0; k < kept; k++) {
+      for (let q = 0; q < per; q++) {
+        radius[per * k + q] = pre.radius[k];
+        angle[per * k + q] = pre.angle[k];
+      }
     }
   }
   const coef = o.sections.get("COEF")!;
