@@ -9,6 +9,12 @@ const PRECISION = 24;
 const ONE = 1 << PRECISION; // 2**24
 const QUANTILE_MASK = ONE - 1;
 const TWO32 = 4294967296;
+const INV_65536 = 1 / 65536;
+const INV_TWO32 = 1 / TWO32;
+/** A table model's quantiles in slots of 2**SLOT_SHIFT: slotsOf's bounds per slot. */
+const SLOT_SHIFT = 12;
+/** Groups shorter than this search the table itself (a slot table costs 2**(24 - SLOT_SHIFT) steps). */
+const SLOTTED_GROUP = 1024;
 
 /** A stack ANS decoder over u32 words read from the end of the buffer (constriction's
  * `AnsCoder(words)`): the state is a 64-bit integer kept as two 32-bit halves in doubles. */
@@ -50,6 +56,22 @@ export class AnsDecoder {
     return a;
   }
 
+  /** decode() with the symbols at the slots' bounds (slotsOf(cdf)) narrowing the search: the
+   * quantile's slot holds one or two symbols of a model with large alphabets, not log2 n steps. */
+  decodeSlotted(cdf: Int32Array, slots: Int32Array): number {
+    const quantile = this.lo & QUANTILE_MASK;
+    const t = quantile >>> SLOT_SHIFT;
+    let a = slots[t];
+    let b = slots[t + 1];
+    while (a < b) {
+      const m = (a + b + 1) >> 1;
+      if (cdf[m] <= quantile) a = m;
+      else b = m - 1;
+    }
+    this.advance(quantile - cdf[a], cdf[a + 1] - cdf[a]);
+    return a;
+  }
+
   /** One bit of a Bernoulli model whose cumulative table is [0, left1, 2**24]. */
   decodeBit(left1: number): number {
     const quantile = this.lo & QUANTILE_MASK;
@@ -65,14 +87,15 @@ export class AnsDecoder {
    * below 2**32; in exact integer steps (every partial product below 2**53). */
   private advance(remainder: number, probability: number): void {
     const sh = this.hi >>> 24;
-    const sl = (this.hi & 0xffffff) * 256 + (this.lo >>> 24);
-    const sa = Math.floor(sl / 65536);
-    const sb = sl - sa * 65536;
+    const sl = (this.hi & 0xffffff) * 256 + (this.lo >>> 24); // below 2**32
+    const sa = sl >>> 16;
+    const sb = sl & 0xffff;
     const t1 = sb * probability + remainder;
     const t2 = sa * probability;
-    const t2h = Math.floor(t2 / 65536);
+    // Products by powers of two are exact: the floors below are the integer shifts, without a division.
+    const t2h = Math.floor(t2 * INV_65536);
     const low = t1 + (t2 - t2h * 65536) * 65536;
-    const carry = Math.floor(low / TWO32);
+    const carry = Math.floor(low * INV_TWO32);
     let lo = low - carry * TWO32;
     let hi = sh * probability + t2h + carry;
     if (hi === 0 && this.pos > 0) {
@@ -142,12 +165,8 @@ export function tableModel(maxAbs: number, code: number, what: string): Int32Arr
   let W = w[0];
   for (let k = 1; k <= maxAbs; k++) W += 2 * w[k];
   const M = ONE - n;
-  const bigM = BigInt(M);
-  const bigW = BigInt(W);
   const fk = new Float64Array(maxAbs + 1);
-  for (let k = 0; k <= maxAbs; k++) {
-    fk[k] = w[k] === 0 ? 1 : 1 + Number((BigInt(w[k]) * bigM) / bigW);
-  }
+  for (let k = 0; k <= maxAbs; k++) fk[k] = w[k] === 0 ? 1 : 1 + floorRatio(w[k], M, W);
   let sum = fk[0];
   for (let k = 1; k <= maxAbs; k++) sum += 2 * fk[k];
   const f = new Float64Array(n);
@@ -170,10 +189,49 @@ export function tableModel(maxAbs: number, code: number, what: string): Int32Arr
   return cdf;
 }
 
+/** floor(a b / c) exactly for integers a <= 2**32, b < 2**24, 0 < c < 2**53: in floats (the quotient,
+ * below 2**24, is within 2**-27 of a b / c) unless it lies that close to an integer, then in BigInt
+ * (a table of tens of thousands of entries builds in a fraction of a millisecond, not tens). */
+function floorRatio(a: number, b: number, c: number): number {
+  const x = (a * b) / c;
+  const q = Math.floor(x);
+  if (x - q > RATIO_GUARD && q + 1 - x > RATIO_GUARD) return q;
+  return Number((BigInt(a) * BigInt(b)) / BigInt(c));
+}
+
+/** Far above floorRatio's float error (2**-27 at most), far below the gap to the next integer. */
+const RATIO_GUARD = 1e-6;
+
 /** Decodes `count` symbols of one model into `out` at the positions `at` (or 0..count-1), as
  * symbol - maxAbs. */
 export function decodeGroup(coder: AnsDecoder, cdf: Int32Array, maxAbs: number, out: Float64Array,
   at: Int32Array | number[], count: number): void {
   const n = 2 * maxAbs + 1;
-  for (let k = 0; k < count; k++) out[at[k]] = coder.decode(cdf, n) - maxAbs;
+  if (count >= SLOTTED_GROUP && n > 2) {
+    const slots = slotsOf(cdf, n);
+    for (let k = 0; k < count; k++) out[at[k]] = coder.decodeSlotted(cdf, slots) - maxAbs;
+  } else {
+    for (let k = 0; k < count; k++) out[at[k]] = coder.decode(cdf, n) - maxAbs;
+  }
+}
+
+const slotTables = new WeakMap<Int32Array, Int32Array>();
+
+/** For a cumulative table of n symbols: entry t is the symbol of quantile t 2**SLOT_SHIFT (the
+ * largest s with cdf[s] <= it), and the last entry n - 1; a quantile of slot t decodes to a symbol
+ * between entries t and t + 1 (the symbol grows with the quantile). Cached with the table. */
+export function slotsOf(cdf: Int32Array, n: number): Int32Array {
+  let slots = slotTables.get(cdf);
+  if (slots) return slots;
+  const m = ONE >>> SLOT_SHIFT;
+  slots = new Int32Array(m + 1);
+  let s = 0;
+  for (let t = 0; t < m; t++) {
+    const q = t << SLOT_SHIFT;
+    while (s + 1 < n && cdf[s + 1] <= q) s++;
+    slots[t] = s;
+  }
+  slots[m] = n - 1;
+  slotTables.set(cdf, slots);
+  return slots;
 }

@@ -148,20 +148,25 @@ function ansChunk(body: Uint8Array, count: number, out: Float64Array, start: num
   else if (side > nbands) throw new CorruptFileError(`${what} has ${side} bytes of band scales for ${nbands} bands`);
   else codes = inflate(body.subarray(9, 9 + side), nbands, `${what}'s band scales`);
   if (codes.length !== nbands) throw new CorruptFileError(`${what} has ${codes.length} band scales, expected ${nbands}`);
-  const groups = new Map<number, number[]>();
+  // The values of each scale code in stream order, codes ascending (a counting sort; code 0 is all zeros).
+  const ends = new Int32Array(257);
   for (let v = 0; v < count; v++) {
     const c = codes[band[v] - lo];
-    if (c === 0) continue;
-    let g = groups.get(c);
-    if (!g) groups.set(c, (g = []));
-    g.push(start + v);
+    band[v] = c;
+    ends[c + 1]++;
   }
-  if (groups.size * (2 * maxAbs + 1) > 16 * count + 2 ** 19) {
+  let groups = 0;
+  for (let c = 1; c < 256; c++) if (ends[c + 1]) groups++;
+  if (groups * (2 * maxAbs + 1) > 16 * count + 2 ** 19) {
     throw new CorruptFileError(`${what} asks for larger probability tables than its ${count} values allow`);
   }
+  for (let c = 0; c < 256; c++) ends[c + 1] += ends[c];
+  const at = new Int32Array(count);
+  const fill = ends.slice(0, 256);
+  for (let v = 0; v < count; v++) at[fill[band[v]]++] = start + v;
   const coder = new AnsDecoder(body.subarray(9 + side), what);
-  for (const c of [...groups.keys()].sort((a, b) => a - b)) {
-    const at = groups.get(c)!;
-    decodeGroup(coder, tableModel(maxAbs, c, what), maxAbs, out, at, at.length);
+  for (let c = 1; c < 256; c++) {
+    if (ends[c + 1] === ends[c]) continue;
+    decodeGroup(coder, tableModel(maxAbs, c, what), maxAbs, out, at.subarray(ends[c], ends[c + 1]), ends[c + 1] - ends[c]);
   }
 }

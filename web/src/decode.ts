@@ -9,9 +9,9 @@ import {
 } from "./container.js";
 import { CorruptFileError, guard, InvalidInputError, ResourceLimitError } from "./errors.js";
 import { baseCut, cutOf, prefix, Transform } from "./layout.js";
-import { decodeMask } from "./mask.js";
+import { countOnes, decodeMask } from "./mask.js";
 import { decodeResidual } from "./residual.js";
-import { addIdct, ifft2Shifted, irfft2 } from "./transform.js";
+import { addIdct, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
 
 export interface DecodeOptions {
   /** Decode only the first maxBytes bytes, as if the rest had not arrived (untiled maps). */
@@ -26,6 +26,11 @@ export interface DecodeOptions {
   window?: { rows: [number, number]; cols: [number, number] };
   /** Heights as float32 rather than float64. */
   float32?: boolean;
+  /** A progressive prefix of an untiled DCT map (ignored otherwise): its spectrum holds low
+   * frequencies only, so the heights are evaluated every few cells (PREVIEW_SAMPLES a shortest
+   * period along each axis) and bilinear between them, a preview much cheaper than the whole grid's
+   * inverse; it differs from the exact prefix decode by that interpolation (DecodedMap.stride). */
+  preview?: boolean;
 }
 
 export interface Header {
@@ -56,6 +61,8 @@ export interface DecodedMap {
   bytesRead: number;
   /** Whether the COEF section was cut (a progressive prefix): the map is low-passed further. */
   partial: boolean;
+  /** Cells between the heights evaluated exactly, the rest interpolated (options.preview); absent: 1. */
+  stride?: number;
 }
 
 const TIDX_HEAD = 8;
@@ -179,9 +186,7 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   const { rows, cols } = g;
   const [wr0, wr1, wc0, wc1] = checkWindow(options, rows, cols);
   const mask = decodeMask(o.sections.get("MASK")!, rows, cols);
-  let set = 0;
-  for (let k = 0; k < mask.length; k++) set += mask[k];
-  if (set !== g.cells) throw new CorruptFileError("occupancy mask disagrees with the header's cell count");
+  if (countOnes(mask) !== g.cells) throw new CorruptFileError("occupancy mask disagrees with the header's cell count");
   const kind: Transform = params.transform === "dct" ? "dct" : params.storage === "complex64" ? "dft-full" : "dft-half";
   const pre = prefix(rows, cols, kind, cutOf(rows, cols, kind, params.cutoff, o.legacy));
   const kept = pre.pos.length;
@@ -195,23 +200,34 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   }
   const pairs = kind === "dft-half";
   const per = pairs ? 2 : 1;
-  const radius = new Float64Array(per * kept);
-  const angle = new Float64Array(per * kept);
-  for (let k = 0; k < kept; k++) {
-    for (let q = 0; q < per; q++) {
-      radius[per * k + q] = pre.radius[k];
-      angle[per * k + q] = pre.angle[k];
+  // A DFT's pairs share their coefficient's radius and angle; a DCT reads the cached order's own.
+  let radius = pre.radius;
+  let angle = pre.angle;
+  if (per > 1) {
+    radius = new Float64Array(per * kept);
+    angle = new Float64Array(per * kept);
+    for (let k = 0; k < kept; k++) {
+      for (let q = 0; q < per; q++) {
+        radius[per * k + q] = pre.radius[k];
+        angle[per * k + q] = pre.angle[k];
+      }
     }
   }
   const coef = o.sections.get("COEF")!;
   const s = decodeStream(coef, per * kept, radius, angle, { partial: o.cutCoef });
+  // A progressive prefix holds the first coefficients only (the rest are zeros): its corner of the
+  // spectrum, and so its inverse, is that much smaller.
+  if (kind === "dct") use = Math.min(use, s.decoded);
   const h = new Float64Array(rows * cols);
+  // A preview samples a cut spectrum; a residual layer (whole only if COEF is) keeps the exact path.
+  const preview = options.preview === true && o.cutCoef && kind === "dct" && !o.sections.get("RESD");
+  let stride = 1;
   if (params.storage === "quantized") {
     if (!s.ints) throw new CorruptFileError("quantized file holds float coefficients");
     const step = params.step;
     if (kind === "dct") {
       const ints = s.ints;
-      addDctCorner(h, pre.pos, use, (k) => ints[k] * step, rows, cols);
+      stride = addDctCorner(h, pre.pos, use, (k) => ints[k] * step, rows, cols, preview);
     } else {
       const v = new Float64Array(2 * use);
       for (let k = 0; k < 2 * use; k++) v[k] = s.ints[k] * step;
@@ -221,33 +237,88 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     if (!s.complex && kept) throw new CorruptFileError("complex64 file holds integer coefficients");
     const v = s.complex ?? new Float64Array(0);
     if (kind === "dct") {
-      addDctCorner(h, pre.pos, use, (k) => v[2 * k], rows, cols); // a complex64 DCT: the real parts
+      stride = addDctCorner(h, pre.pos, use, (k) => v[2 * k], rows, cols, preview); // a complex64 DCT: the real parts
     } else if (kind === "dft-full") {
       ifft2Shifted(pre.pos.subarray(0, use), v.subarray(0, 2 * use), rows, cols, h);
     } else {
       irfft2(pre.pos.subarray(0, use), v.subarray(0, 2 * use), rows, cols, h);
     }
   }
-  if (params.detrend === "plane") {
-    const [a, b, c] = g.plane;
-    for (let r = 0; r < rows; r++) for (let cc = 0; cc < cols; cc++) h[r * cols + cc] += a + b * cc + c * r;
-  }
   const resd = o.sections.get("RESD");
   if (resd) {
     const e = params.target_max_error;
     if (!(e > 0)) throw new CorruptFileError("a residual layer (RESD) in a file without a maximum-error target");
     const q = decodeResidual(resd, mask, rows, cols);
+    // The plane first, as the writer sums them (heights + plane, then the residual).
+    if (params.detrend === "plane") addPlane(h, rows, cols, g.plane);
     for (let k = 0, c = 0; k < mask.length; k++) if (mask[k]) h[k] += q[c++] * 2 * e * (1 - 1e-6);
+    return finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], null, options, o.cutCoef);
   }
-  checkFinite(h, mask);
-  if (wr0 === 0 && wr1 === rows && wc0 === 0 && wc1 === cols) return finish(o, h, mask, rows, cols, 0, 0, options, o.cutCoef);
-  const hw = new Float64Array((wr1 - wr0) * (wc1 - wc0));
-  const mw = new Uint8Array(hw.length);
+  const out = finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], params.detrend === "plane" ? g.plane : null, options, o.cutCoef);
+  if (stride > 1) out.stride = stride;
+  return out;
+}
+
+function addPlane(h: Float64Array, rows: number, cols: number, [a, b, c]: number[]): void {
+  for (let r = 0; r < rows; r++) {
+    const row = a + c * r;
+    for (let cc = 0, k = r * cols; cc < cols; cc++, k++) h[k] += row + b * cc;
+  }
+}
+
+/** The window's heights from the whole grid's h (plus the plane a + b c + c r when given), z0 added,
+ * NaN off the mask, in one pass (each pass over a grid costs a few ns a cell in V8): in place when
+ * the window is the grid and float64 is asked for. */
+function finishWindow(o: Opened, h: Float64Array, mask: Uint8Array, rows: number, cols: number,
+  [wr0, wr1, wc0, wc1]: number[], plane: number[] | null, options: DecodeOptions, partial: boolean): DecodedMap {
+  const z0 = o.header.geometry.z0;
+  const W = wc1 - wc0;
+  const H = wr1 - wr0;
+  const whole = H === rows && W === cols;
+  const heights = whole && !options.float32 ? h : options.float32 ? new Float32Array(H * W) : new Float64Array(H * W);
+  const outMask = whole ? mask : new Uint8Array(H * W);
+  const [a, b, c] = plane ?? [0, 0, 0];
+  let minZ = Infinity;
+  let maxZ = -Infinity;
+  let cells = 0;
   for (let r = wr0; r < wr1; r++) {
-    hw.set(h.subarray(r * cols + wc0, r * cols + wc1), (r - wr0) * (wc1 - wc0));
-    mw.set(mask.subarray(r * cols + wc0, r * cols + wc1), (r - wr0) * (wc1 - wc0));
+    const row = z0 + (a + c * r);
+    const k0 = r * cols;
+    const t0 = (r - wr0) * W;
+    if (!whole) outMask.set(mask.subarray(k0 + wc0, k0 + wc1), t0);
+    for (let q = wc0, k = k0 + wc0, t = t0; q < wc1; q++, k++, t++) {
+      if (mask[k]) {
+        const z = h[k] + (row + b * q);
+        heights[t] = z;
+        // Math.min and max carry a NaN through: the finite check below costs the loop nothing.
+        minZ = Math.min(minZ, z);
+        maxZ = Math.max(maxZ, z);
+        cells++;
+      } else heights[t] = NaN;
+    }
   }
-  return finish(o, hw, mw, wr1 - wr0, wc1 - wc0, wr0, wc0, options, o.cutCoef);
+  if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ))) || (!whole && !allFinite(h, mask, plane, rows, cols))) {
+    throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
+  }
+  return {
+    width: W, height: H, row0: wr0, col0: wc0, heights, mask: outMask, header: o.header,
+    statistics: { minZ, maxZ, cells }, bytesRead: o.data.length, partial,
+  };
+}
+
+/** Every rebuilt cell of the grid finite (a window's decode refuses a damaged file as a whole one does). */
+function allFinite(h: Float64Array, mask: Uint8Array, plane: number[] | null, rows: number, cols: number): boolean {
+  const [a, b, c] = plane ?? [0, 0, 0];
+  for (let r = 0; r < rows; r++) {
+    const row = a + c * r;
+    for (let q = 0, k = r * cols; q < cols; q++, k++) {
+      if (mask[k]) {
+        const v = plane ? h[k] + row + b * q : h[k];
+        if (v - v !== 0) return false;
+      }
+    }
+  }
+  return true;
 }
 
 // --- version 1.1 -----------------------------------------------------------------------------------
@@ -436,9 +507,7 @@ function decodeTiled(o: Opened, options: DecodeOptions): DecodedMap {
   let mapMask: Uint8Array | null = null;
   if (o.sections.has("MASK")) {
     mapMask = prefixed("map mask: ", () => decodeMask(o.sections.get("MASK")!, rows, cols));
-    let set = 0;
-    for (let k = 0; k < mapMask.length; k++) set += mapMask[k];
-    if (set !== g.cells) throw new CorruptFileError("map mask: occupancy mask disagrees with the header's cell count");
+    if (countOnes(mapMask) !== g.cells) throw new CorruptFileError("map mask: occupancy mask disagrees with the header's cell count");
   }
   let mapResid: Float64Array | null = null;
   if (o.sections.has("RESD")) {
@@ -494,9 +563,7 @@ function decodeTile(o: Opened, k: number, secs: Map<string, Entry>, count: numbe
   } else {
     mask = new Uint8Array(h * w).fill(1);
   }
-  let set = 0;
-  for (let q = 0; q < mask.length; q++) set += mask[q];
-  if (set !== count) throw new CorruptFileError("occupancy mask disagrees with the tile index's cell count");
+  if (countOnes(mask) !== count) throw new CorruptFileError("occupancy mask disagrees with the tile index's cell count");
   // The coded window: the tile and M cells around it, within the map.
   const M = t.overlap;
   const yr0 = Math.max(0, r0 - M);
@@ -552,10 +619,23 @@ function decodeTile(o: Opened, k: number, secs: Map<string, Entry>, count: numbe
   }
 }
 
+/** Samples a shortest period of a preview's spectrum along each axis (a cosine of index k over n
+ * cells has period 2 n / k): bilinear interpolation between 8 samples a period is within 8 % of
+ * its amplitude, and the prefix's highest frequencies carry the least of it. */
+const PREVIEW_SAMPLES = 8;
+/** At most this many cells between a preview's samples (a handful of coefficients still shows). */
+const PREVIEW_MAX_STRIDE = 32;
+/** Fewer cells between samples save too little of the whole inverse to be worth interpolating. */
+const PREVIEW_MIN_STRIDE = 3;
+/** A preview's sums (products) at most this share of rows cols log2(rows cols) (about the whole
+ * grid's FFT work, measured in Node on the shared DEMs: below it the samples cost less). */
+const PREVIEW_SUMS_SHARE = 0.5;
+
 /** Add to ``h`` the inverse DCT of the first ``use`` coefficients at flat positions ``pos`` (values
- * ``value(k)``), laid in the smallest top-left corner of the spectrum that holds them. */
+ * ``value(k)``), laid in the smallest top-left corner of the spectrum that holds them; for a
+ * preview, at every few cells and bilinear between. Returns the cells between evaluated ones. */
 function addDctCorner(h: Float64Array, pos: Int32Array, use: number,
-  value: (k: number) => number, rows: number, cols: number): void {
+  value: (k: number) => number, rows: number, cols: number, preview = false): number {
   let K = 0;
   let L = 0;
   for (let k = 0; k < use; k++) {
@@ -567,5 +647,57 @@ function addDctCorner(h: Float64Array, pos: Int32Array, use: number,
     const i = Math.floor(pos[k] / cols);
     gm[i * L + (pos[k] - i * cols)] = value(k);
   }
-  addIdct(h, gm, K, L, rows, cols, 0, rows, 0, cols);
+  const spacing = (n: number, k: number) => (k > 1 ? (2 * n) / ((k - 1) * PREVIEW_SAMPLES) : Infinity);
+  const stride = preview ? Math.min(PREVIEW_MAX_STRIDE, Math.floor(Math.min(spacing(rows, K), spacing(cols, L)))) : 1;
+  // The samples' plain sums grow as the corner's cube: against a rough count of the whole grid's
+  // FFTs, a preview pays only for a narrow corner (a few per cent of a map's bytes).
+  const [nr, nc] = [Math.ceil((rows - 1) / stride) + 1, Math.ceil((cols - 1) / stride) + 1];
+  const sums = K * nc * (L + nr);
+  if (stride < PREVIEW_MIN_STRIDE || sums > PREVIEW_SUMS_SHARE * rows * cols * Math.log2(rows * cols)) {
+    addIdct(h, gm, K, L, rows, cols, 0, rows, 0, cols);
+    return 1;
+  }
+  const rs = sampled(rows, stride);
+  const cs = sampled(cols, stride);
+  addBilinear(h, rows, cols, sampleIdct(gm, K, L, rows, cols, rs, cs), rs, cs);
+  return stride;
+}
+
+/** Cells 0, s, 2 s, ... and the last one. */
+function sampled(n: number, s: number): Int32Array {
+  const m = Math.ceil((n - 1) / s) + 1;
+  const out = new Int32Array(m);
+  for (let i = 0; i < m; i++) out[i] = Math.min(i * s, n - 1);
+  return out;
+}
+
+/** h (rows x cols) += the bilinear interpolation of v, given at rows rs and columns cs (each
+ * starting at 0 and ending at the last cell). */
+function addBilinear(h: Float64Array, rows: number, cols: number, v: Float64Array, rs: Int32Array, cs: Int32Array): void {
+  const nc = cs.length;
+  // Each sampled row along the columns first (rs.length x cols), then the rows between them.
+  const wide = new Float64Array(rs.length * cols);
+  for (let i = 0; i < rs.length; i++) {
+    const o = i * cols;
+    const vo = i * nc;
+    for (let j = 0; j + 1 < nc; j++) {
+      const a = cs[j];
+      const va = v[vo + j];
+      const d = (v[vo + j + 1] - va) / (cs[j + 1] - a);
+      for (let c = a; c < cs[j + 1]; c++) wide[o + c] = va + d * (c - a);
+    }
+    wide[o + cs[nc - 1]] = v[vo + nc - 1];
+  }
+  for (let i = 0; i < rs.length; i++) {
+    const a = rs[i];
+    const last = i + 1 === rs.length;
+    const b = last ? a + 1 : rs[i + 1];
+    const ua = wide.subarray(i * cols, (i + 1) * cols);
+    const ub = last ? ua : wide.subarray((i + 1) * cols, (i + 2) * cols);
+    for (let r = a; r < b; r++) {
+      const f = (r - a) / (b - a);
+      const o = r * cols;
+      for (let c = 0; c < cols; c++) h[o + c] += ua[c] + f * (ub[c] - ua[c]);
+    }
+  }
 }

@@ -1,15 +1,14 @@
 // RESD payloads (format.md, "RESD"): one integer per rebuilt cell, in COEF's chunks, as one sparse
 // chunk (kind 4) or one predicted chunk (kind 5).
-import { AnsDecoder, tableModel } from "./ans.js";
+import { AnsDecoder, slotsOf, tableModel } from "./ans.js";
 import { crc32, i32, u16, u32 } from "./bytes.js";
 import { decodeStream, streamEnd } from "./coef.js";
 import { CorruptFileError } from "./errors.js";
-import { decodeMask } from "./mask.js";
+import { countOnes, decodeMask } from "./mask.js";
 
 /** The residual integers of the rebuilt cells of `mask` (rows x cols), in row-major order. */
 export function decodeResidual(p: Uint8Array, mask: Uint8Array, rows: number, cols: number): Float64Array {
-  let total = 0;
-  for (let k = 0; k < mask.length; k++) total += mask[k];
+  const total = countOnes(mask);
   const kind = p.length >= 20 ? u32(p, 16) : -1;
   if (kind === 4 || kind === 5) {
     const nchunks = u32(p, 0);
@@ -69,6 +68,10 @@ function sparse(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, 
 const UP = [0, 1, 1, 1, 0, 2, 2];
 const LEFT = [1, 0, 1, -1, 2, 0, -1];
 const ACTIVITY = [2, 2, 1, 1, 1, 1, 0];
+/** A class's slot table (ans.ts slotsOf, 4097 entries) pays for itself over a layer of this many
+ * cells, and for alphabets of at least 2 SLOTTED_WIDTH + 1 symbols (a binary search of 4+ steps). */
+const SLOTTED_CELLS = 1 << 16;
+const SLOTTED_WIDTH = 8;
 
 function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, total: number): Float64Array {
   const what = "predicted residual layer";
@@ -95,6 +98,10 @@ function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: numbe
   const models = coded.map((k) => tableModel(widths[k], codes[k], what));
   const modelOf: Array<Int32Array | null> = new Array(64).fill(null);
   coded.forEach((k, q) => { modelOf[k] = models[q]; });
+  // Wide alphabets search their quantile's slot rather than the whole table (a table's worth of
+  // slots each: only for a layer of more cells than that).
+  const slotted = total >= SLOTTED_CELLS;
+  const slotsOfClass: Array<Int32Array | null> = modelOf.map((m, k) => (m && slotted && widths[k] >= SLOTTED_WIDTH ? slotsOf(m, 2 * widths[k] + 1) : null));
   const coder = new AnsDecoder(body.subarray(at), what);
   const V = new Float64Array(rows * cols);
   const E = new Float64Array(rows * cols);
@@ -106,51 +113,94 @@ function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: numbe
     const cc = Math.min(Math.max(c - left, 0), cols - 1);
     return g[rr * cols + cc];
   };
-  const buckets: number[][] = Array.from({ length: 64 }, () => []);
-  const cells: number[] = [];
+  // One anti-diagonal (2 r + c = k) at a time; its cells' errors decode class by class (0 to 63),
+  // each class in the order of its cells (a stable counting sort), then its values predict.
+  const most = Math.min(rows, Math.ceil(cols / 2) + 1);
+  const line = new Int32Array(most);
+  const lineClass = new Uint8Array(most);
+  const order = new Int32Array(most);
+  const starts = new Int32Array(65);
+  const NONE = 255;
+  // While every value so far is below 2**26 in magnitude, sum a_k x_k exactly in one float64 (each
+  // product below 2**50, seven below 2**53); past that, split as the general case does.
+  const SMALL = 2 ** 26;
+  let small = true;
   for (let k = 0; k < 2 * (rows - 1) + cols; k++) {
-    cells.length = 0;
-    for (const b of buckets) b.length = 0;
+    let n = 0;
+    starts.fill(0);
     for (let r = Math.max(0, Math.ceil((k - cols + 1) / 2)); r < rows && 2 * r <= k; r++) {
       const c = k - 2 * r;
       const cell = r * cols + c;
-      cells.push(cell);
-      if (!mask[cell]) continue;
+      line[n] = cell;
+      if (!mask[cell]) {
+        lineClass[n++] = NONE;
+        continue;
+      }
       let act = 0;
-      for (let q = 0; q < 7; q++) if (ACTIVITY[q]) act += ACTIVITY[q] * Math.abs(nb(E, r, c, UP[q], LEFT[q]));
+      if (r >= 2 && c >= 2 && c < cols - 1) {
+        const up = cell - cols;
+        act = 2 * Math.abs(E[cell - 1]) + 2 * Math.abs(E[up]) + Math.abs(E[up - 1]) + Math.abs(E[up + 1])
+          + Math.abs(E[cell - 2]) + Math.abs(E[up - cols]);
+      } else {
+        for (let q = 0; q < 7; q++) if (ACTIVITY[q]) act += ACTIVITY[q] * Math.abs(nb(E, r, c, UP[q], LEFT[q]));
+      }
       let cls = 0;
       if (act > 0) {
         const bits = 32 - Math.clz32(act);
         const s = bits >= 2 ? (act >>> (bits - 2)) & 1 : 0;
         cls = Math.min(63, 2 * bits - 1 + s);
       }
-      buckets[cls].push(cell);
+      lineClass[n++] = cls;
+      starts[cls + 1]++;
     }
-    for (let cls = 0; cls < 64; cls++) {
+    for (let cls = 0; cls < 64; cls++) starts[cls + 1] += starts[cls];
+    for (let i = 0; i < n; i++) {
+      const cls = lineClass[i];
+      if (cls !== NONE) order[starts[cls]++] = line[i];
+    }
+    // starts[cls] is now the end of class cls; it began where class cls - 1 ended.
+    for (let cls = 0, from = 0; cls < 64; cls++) {
+      const to = starts[cls];
       const model = modelOf[cls];
-      if (!model) continue;
-      const n = 2 * widths[cls] + 1;
-      for (const cell of buckets[cls]) E[cell] = coder.decode(model, n) - widths[cls];
+      if (model) {
+        const w = widths[cls];
+        const m = 2 * w + 1;
+        const slots = slotsOfClass[cls];
+        if (slots) for (let i = from; i < to; i++) E[order[i]] = coder.decodeSlotted(model, slots) - w;
+        else for (let i = from; i < to; i++) E[order[i]] = coder.decode(model, m) - w;
+      }
+      from = to;
     }
-    for (const cell of cells) {
+    for (let i = 0; i < n; i++) {
+      const cell = line[i];
       const r = Math.floor(cell / cols);
       const c = cell - r * cols;
       let v: number;
-      if (mask[cell]) {
-        // P = (sum a_k x_k + 2**15) >> 16 exactly: x = 65536 xh + xl splits each product below 2**53.
-        let sh = 0;
-        let sl = 0;
-        for (let q = 0; q < 7; q++) {
-          const x = nb(V, r, c, UP[q], LEFT[q]);
-          const xh = Math.floor(x / 65536);
-          sh += a[q] * xh;
-          sl += a[q] * (x - xh * 65536);
+      if (lineClass[i] !== NONE) {
+        if (small && r >= 2 && c >= 2 && c < cols - 1) {
+          const up = cell - cols;
+          const up2 = up - cols;
+          // P = (sum a_k x_k + 2**15) >> 16, the sum exact below 2**53.
+          const S = a[0] * V[cell - 1] + a[1] * V[up] + a[2] * V[up - 1] + a[3] * V[up + 1] + a[4] * V[cell - 2]
+            + a[5] * V[up2] + a[6] * V[up2 + 1];
+          v = Math.floor((S + 32768) / 65536) + E[cell];
+        } else {
+          // P = (sum a_k x_k + 2**15) >> 16 exactly: x = 65536 xh + xl splits each product below 2**53.
+          let sh = 0;
+          let sl = 0;
+          for (let q = 0; q < 7; q++) {
+            const x = nb(V, r, c, UP[q], LEFT[q]);
+            const xh = Math.floor(x / 65536);
+            sh += a[q] * xh;
+            sl += a[q] * (x - xh * 65536);
+          }
+          v = sh + Math.floor((sl + 32768) / 65536) + E[cell];
         }
-        v = sh + Math.floor((sl + 32768) / 65536) + E[cell];
       } else {
         v = nb(V, r, c, 0, 1);
       }
       if (Math.abs(v) >= 2 ** 31) throw new CorruptFileError(`${what} decodes to values beyond 2**31`);
+      if (Math.abs(v) >= SMALL) small = false;
       V[cell] = v;
     }
   }

@@ -14,13 +14,54 @@ function cosTable(_n: number, period: number): Float64Array {
 
 /** phi_N(k, n) for k < K and n in cells [c0, c0 + w): a K x w matrix, row-major. */
 function dctBasis(N: number, K: number, c0: number, w: number): Float64Array {
+  const cells = new Int32Array(w);
+  for (let c = 0; c < w; c++) cells[c] = c0 + c;
+  return dctBasisAt(N, K, cells);
+}
+
+/** phi_N(k, n) for k < K and n in `cells`: a K x cells.length matrix, row-major. */
+function dctBasisAt(N: number, K: number, cells: Int32Array): Float64Array {
   const table = cosTable(N, 4 * N);
+  const w = cells.length;
   const out = new Float64Array(K * w);
   const a0 = 1 / Math.sqrt(N);
   const ak = Math.sqrt(2 / N);
   for (let k = 0; k < K; k++) {
     for (let c = 0; c < w; c++) {
-      out[k * w + c] = k === 0 ? a0 : ak * table[(k * (2 * (c0 + c) + 1)) % (4 * N)];
+      out[k * w + c] = k === 0 ? a0 : ak * table[(k * (2 * cells[c] + 1)) % (4 * N)];
+    }
+  }
+  return out;
+}
+
+/** The inverse orthonormal DCT-II of the coefficients g (a dense K x L corner of the N x M spectrum,
+ * row-major) at the cells (rows[i], cols[j]) only: a rows.length x cols.length array, row-major. As
+ * plain sums (K L + rows.length K products a sampled column), for a few samples of a narrow corner. */
+export function sampleIdct(g: Float64Array, K: number, L: number, N: number, M: number,
+  rows: Int32Array, cols: Int32Array): Float64Array {
+  const nr = rows.length;
+  const nc = cols.length;
+  const out = new Float64Array(nr * nc);
+  if (K === 0 || L === 0) return out;
+  const bc = dctBasisAt(M, L, cols);
+  const br = dctBasisAt(N, K, rows);
+  // t (K x nc): each row of g along the columns; then each column of t along the rows.
+  const t = new Float64Array(K * nc);
+  for (let k = 0; k < K; k++) {
+    const o = k * nc;
+    for (let j = 0; j < L; j++) {
+      const x = g[k * L + j];
+      if (x === 0) continue;
+      const b = j * nc;
+      for (let c = 0; c < nc; c++) t[o + c] += x * bc[b + c];
+    }
+  }
+  for (let k = 0; k < K; k++) {
+    const o = k * nc;
+    for (let i = 0; i < nr; i++) {
+      const y = br[k * nr + i];
+      const d = i * nc;
+      for (let c = 0; c < nc; c++) out[d + c] += y * t[o + c];
     }
   }
   return out;
@@ -28,35 +69,50 @@ function dctBasis(N: number, K: number, c0: number, w: number): Float64Array {
 
 export type IdctMode = "auto" | "sums" | "fft";
 
-/** The inverse DCT along one axis of `nvec` vectors of `klen` coefficients (row-major nvec x klen)
- * of length-n transforms, at cells [c0, c0 + w): nvec x w. By plain sums or by FFT, whichever
- * costs less (or as `mode` says). */
-function idctAxis(inp: Float64Array, nvec: number, klen: number, n: number, c0: number, w: number, mode: IdctMode): Float64Array {
-  const out = new Float64Array(nvec * w);
-  const useFft = mode === "fft" || (mode === "auto" && fftCost(nvec, n, w) < sumsCost(nvec, klen, w));
+/** A strided set of vectors: vector v's element k is at a[off + v * vs + k * es]. */
+interface Strided {
+  a: Float64Array;
+  off: number;
+  vs: number;
+  es: number;
+}
+
+/**
+ * out += the inverse DCT along one axis of `nvec` vectors of at most `klen` coefficients (inp), each
+ * a length-n transform evaluated at cells [c0, c0 + w) (out's elements), by plain sums or by FFT,
+ * whichever costs less (or as `mode` says).
+ */
+function idctAxis(inp: Strided, nvec: number, klen: number, n: number, c0: number, w: number, out: Strided, mode: IdctMode): void {
+  const plan = dctOf(n);
+  const useFft = mode === "fft" || (mode === "auto" && fftCost(plan, nvec, klen, w) < sumsCost(nvec, klen, w));
   if (!useFft) {
     const basis = dctBasis(n, klen, c0, w);
     for (let v = 0; v < nvec; v++) {
-      const o = v * w;
+      const i0 = inp.off + v * inp.vs;
+      const o0 = out.off + v * out.vs;
+      const es = out.es;
       for (let k = 0; k < klen; k++) {
-        const x = inp[v * klen + k];
+        const x = inp.a[i0 + k * inp.es];
         if (x === 0) continue;
         const b = k * w;
-        for (let c = 0; c < w; c++) out[o + c] += x * basis[b + c];
+        if (es === 1) for (let c = 0; c < w; c++) out.a[o0 + c] += x * basis[b + c];
+        else for (let c = 0; c < w; c++) out.a[o0 + c * es] += x * basis[b + c];
       }
     }
-    return out;
+    return;
   }
-  const dct = dctOf(n);
-  const y1 = new Float64Array(n);
-  const y2 = new Float64Array(n);
   for (let v = 0; v < nvec; v += 2) {
     const two = v + 1 < nvec;
-    dct.run(inp.subarray(v * klen, (v + 1) * klen), klen, two ? inp.subarray((v + 1) * klen, (v + 2) * klen) : null, klen, y1, two ? y2 : null);
-    out.set(y1.subarray(c0, c0 + w), v * w);
-    if (two) out.set(y2.subarray(c0, c0 + w), (v + 1) * w);
+    // Each pair only as long as its longer vector's last nonzero coefficient (a quarter circle's
+    // rows shorten): a shorter band prunes the FFT.
+    let len = klen;
+    const i1 = inp.off + v * inp.vs;
+    const i2 = two ? i1 + inp.vs : -1;
+    while (len > 0 && inp.a[i1 + (len - 1) * inp.es] === 0 && (!two || inp.a[i2 + (len - 1) * inp.es] === 0)) len--;
+    if (len === 0) continue;
+    const o1 = out.off + v * out.vs;
+    plan.run(inp.a, i1, i2, inp.es, len, out.a, o1, two ? o1 + out.vs : -1, out.es, c0, w);
   }
-  return out;
 }
 
 /** DCT plans by length (their tables cost a few trigonometric calls a point): a map's transforms
@@ -73,26 +129,20 @@ function dctOf(n: number): Dct3 {
   return plan;
 }
 
-/** Plain sums cost about four times an FFT's estimated flop each (measured in Node 20: a
- * 337 x 348 grid of 97 x 97 coefficients decodes 2.4x faster by FFT, 804 x 804 of 300 x 300 13x). */
-const SUMS_WEIGHT = 4;
+/** Plain sums cost about this many times an FFT's estimated flop each (measured in Node 20 and
+ * Chromium: the crossing of the two paths over the shared DEMs' shapes). */
+const SUMS_WEIGHT = 2;
 
 function sumsCost(nvec: number, klen: number, w: number): number {
   return SUMS_WEIGHT * nvec * klen * w;
 }
 
-function fftCost(nvec: number, n: number, w: number): number {
-  return Math.ceil(nvec / 2) * Dct3.cost(n) + nvec * w;
+function fftCost(plan: Dct3, nvec: number, klen: number, w: number): number {
+  return Math.ceil(nvec / 2) * plan.cost(klen) + 2 * nvec * w;
 }
 
 function axisCost(nvec: number, klen: number, n: number, w: number): number {
-  return Math.min(sumsCost(nvec, klen, w), fftCost(nvec, n, w));
-}
-
-function transpose(a: Float64Array, rows: number, cols: number): Float64Array {
-  const t = new Float64Array(a.length);
-  for (let r = 0; r < rows; r++) for (let c = 0; c < cols; c++) t[c * rows + r] = a[r * cols + c];
-  return t;
+  return Math.min(sumsCost(nvec, klen, w), fftCost(dctOf(n), nvec, klen, w));
 }
 
 /** out (h x w) += the inverse orthonormal DCT-II of the coefficients g (a dense K x L corner of the
@@ -102,15 +152,17 @@ export function addIdct(out: Float64Array, g: Float64Array, K: number, L: number
   if (K === 0 || L === 0) return;
   // Columns first (L vectors along the N rows, then h vectors along the M columns) or rows first.
   const columnsFirst = axisCost(L, K, N, h) + axisCost(h, L, M, w) <= axisCost(K, L, M, w) + axisCost(w, K, N, h);
-  let result: Float64Array;
   if (columnsFirst) {
-    const t = idctAxis(transpose(g, K, L), L, K, N, r0, h, mode); // L x h
-    result = idctAxis(transpose(t, L, h), h, L, M, c0, w, mode); // h x w
+    // t (h x L): column j of g (element stride L) to column j of t.
+    const t = new Float64Array(h * L);
+    idctAxis({ a: g, off: 0, vs: 1, es: L }, L, K, N, r0, h, { a: t, off: 0, vs: 1, es: L }, mode);
+    idctAxis({ a: t, off: 0, vs: L, es: 1 }, h, L, M, c0, w, { a: out, off: 0, vs: w, es: 1 }, mode);
   } else {
-    const u = idctAxis(g, K, L, M, c0, w, mode); // K x w
-    result = transpose(idctAxis(transpose(u, K, w), w, K, N, r0, h, mode), w, h); // h x w
+    // u (K x w): row i of g to row i of u; then column c of u to column c of out.
+    const u = new Float64Array(K * w);
+    idctAxis({ a: g, off: 0, vs: L, es: 1 }, K, L, M, c0, w, { a: u, off: 0, vs: w, es: 1 }, mode);
+    idctAxis({ a: u, off: 0, vs: 1, es: w }, w, K, N, r0, h, { a: out, off: 0, vs: 1, es: w }, mode);
   }
-  for (let k = 0; k < out.length; k++) out[k] += result[k];
 }
 
 /** out (rows x cols) = irfft2(F, s=(rows, cols), norm="ortho") for F of shape rows x (cols//2 + 1)

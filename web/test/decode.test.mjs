@@ -119,3 +119,45 @@ test("maxCells bounds the grid a file may ask for, before anything is decoded", 
   assert.throws(() => decode(data, { maxCells: -1 }), { name: "InvalidInputError" });
   assert.throws(() => decode(data, { cutoff: 0.5 }), { name: "InvalidInputError" });
 });
+
+test("a preview of a short prefix samples the exact prefix decode every few cells and interpolates between", () => {
+  const data = bytes(join(DIR, "korolev.dftpc"));
+  const n = Math.floor(0.05 * data.length);
+  const exact = decode(data, { maxBytes: n });
+  const preview = decode(data, { maxBytes: n, preview: true });
+  assert.equal(exact.stride, undefined);
+  const s = preview.stride;
+  assert.ok(s >= 3, `a 5 % prefix samples every ${s} cells`);
+  assert.deepEqual(preview.mask, exact.mask);
+  const { width: W, height: H } = exact;
+  const range = exact.statistics.maxZ - exact.statistics.minZ;
+  let atSamples = 0;
+  let between = 0;
+  for (let r = 0; r < H; r++) {
+    for (let c = 0; c < W; c++) {
+      const k = r * W + c;
+      if (!exact.mask[k]) {
+        assert.ok(Number.isNaN(preview.heights[k]));
+        continue;
+      }
+      const d = Math.abs(preview.heights[k] - exact.heights[k]);
+      // Rows and columns 0, s, 2 s, ... and the last are evaluated, not interpolated.
+      const sampled = (r % s === 0 || r === H - 1) && (c % s === 0 || c === W - 1);
+      if (sampled) atSamples = Math.max(atSamples, d);
+      else between = Math.max(between, d);
+    }
+  }
+  assert.ok(atSamples <= 1e-9 * Math.max(1, Math.abs(exact.statistics.maxZ)), `samples off by ${atSamples} m`);
+  // Eight samples a shortest period: bilinear within a few per cent of the range.
+  assert.ok(between > 0 && between <= 0.05 * range, `interpolated cells off by ${between} m of a ${range} m range`);
+});
+
+test("a preview of the whole file, or of a prefix whose corner is wide, is the exact decode", () => {
+  const data = bytes(join(DIR, "korolev.dftpc"));
+  for (const n of [data.length, Math.floor(0.4 * data.length)]) {
+    const exact = decode(data, { maxBytes: n });
+    const preview = decode(data, { maxBytes: n, preview: true });
+    assert.equal(preview.stride, undefined);
+    assert.deepEqual(preview.heights, exact.heights);
+  }
+});

@@ -5,7 +5,7 @@ import assert from "node:assert/strict";
 import { readFileSync } from "node:fs";
 import { join } from "node:path";
 import { test } from "node:test";
-import { addIdct, cutOf, decayOf, prefix } from "../dist/internals.mjs";
+import { addIdct, cutOf, decayOf, prefix, slotsOf, tableModel } from "../dist/internals.mjs";
 import { fixtures } from "./helpers.mjs";
 
 const M = JSON.parse(readFileSync(join(fixtures(), "manifest.json"), "utf8"));
@@ -63,6 +63,60 @@ test("the inverse DCT by FFT equals plain sums on every FFT path (powers of two,
       let worst = 0;
       for (let k = 0; k < byFft.length; k++) worst = Math.max(worst, Math.abs(byFft[k] - bySums[k]));
       assert.ok(worst < 1e-11, `${N} x ${M}: differs by ${worst}`);
+    }
+  }
+});
+
+test("a table model's slots bound the symbol of every quantile in them (the narrowed search is the full one)", () => {
+  const SHIFT = 12;
+  for (const [maxAbs, code] of [[1, 128], [3, 90], [40, 150], [700, 200], [32768, 255], [5000, 10]]) {
+    const cdf = tableModel(maxAbs, code, "test");
+    const n = 2 * maxAbs + 1;
+    const slots = slotsOf(cdf, n);
+    assert.equal(slots.length, 2 ** (24 - SHIFT) + 1);
+    // Every symbol's first quantile, the one before it, and each slot's bounds.
+    const quantiles = [];
+    for (let s = 0; s < n; s++) quantiles.push(cdf[s], Math.max(0, cdf[s] - 1));
+    for (let t = 0; t < 2 ** (24 - SHIFT); t++) quantiles.push(t << SHIFT, ((t + 1) << SHIFT) - 1);
+    for (const q of quantiles) {
+      let s = 0;
+      while (s + 1 < n && cdf[s + 1] <= q) s++;
+      const t = q >>> SHIFT;
+      assert.ok(slots[t] <= s && s <= slots[t + 1], `maxAbs ${maxAbs} code ${code}: quantile ${q} is symbol ${s}, slots ${slots[t]}..${slots[t + 1]}`);
+    }
+  }
+});
+
+/** format.md's COEF kind 3 table, steps 1-4, all in BigInt: the reference for tableModel's floats. */
+function referenceTable(maxAbs, code) {
+  const ONE = 1n << 24n;
+  const R = BigInt(decayOf(code));
+  const w = [1n << 32n];
+  for (let k = 1; k <= maxAbs; k++) w.push((w[k - 1] * R) / 65536n);
+  const W = w.reduce((s, v, k) => s + (k ? 2n * v : v), 0n);
+  const n = 2 * maxAbs + 1;
+  const M = ONE - BigInt(n);
+  const fk = w.map((v) => (v === 0n ? 1n : 1n + (v * M) / W));
+  const f = Array.from({ length: n }, (_, s) => fk[Math.abs(s - maxAbs)]);
+  f[maxAbs] += ONE - fk.reduce((s, v, k) => s + (k ? 2n * v : v), 0n);
+  const cdf = [];
+  let K = 0n;
+  for (let s = 0; s < n; s++) {
+    cdf.push(Number((K * M) / ONE) + s);
+    K += f[s];
+  }
+  cdf.push(Number(ONE));
+  return cdf;
+}
+
+test("the table models built in floats are format.md's integer tables", () => {
+  for (const maxAbs of [1, 2, 7, 100, 3000, 32768]) {
+    for (let code = 1; code < 256; code += maxAbs > 1000 ? 37 : 5) {
+      const got = tableModel(maxAbs, code, "test");
+      const want = referenceTable(maxAbs, code);
+      let differ = 0;
+      for (let s = 0; s < want.length; s++) if (got[s] !== want[s]) differ++;
+      assert.equal(differ, 0, `maxAbs ${maxAbs} code ${code}: ${differ} entries differ`);
     }
   }
 });

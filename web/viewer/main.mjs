@@ -480,7 +480,7 @@ async function load() {
         state.coarse ??= map.heights;
         state.status = "partial";
         show(map.height, map.width, map.heights, map.header.geometry);
-        status(`${(100 * n / total).toFixed(0)} % of ${total.toLocaleString("en")} bytes: a coarser map (${map.statistics.cells.toLocaleString("en")} cells)`);
+        status(`${(100 * n / total).toFixed(0)} % of ${total.toLocaleString("en")} bytes: a coarser map (${map.statistics.cells.toLocaleString("en")} cells${map.stride ? `, sampled every ${map.stride} cells` : ""})`);
       } catch {
         // A prefix too short for its header or first coefficients: the next one may do.
       } finally {

@@ -10,7 +10,9 @@ self.onmessage = (event) => {
       return;
     }
     const t0 = performance.now();
-    const map = decode(bytes, { fileSize, window: win, float32: true });
+    // A prefix's low-passed map is sampled every few cells (options.preview): it is shown for a moment
+    // only, and the whole file decodes exactly.
+    const map = decode(bytes, { fileSize, window: win, float32: true, preview: true });
     const ms = performance.now() - t0;
     self.postMessage({ id, ms, map: { ...map } }, [...new Set([map.heights.buffer, map.mask.buffer])]);
   } catch (err) {
