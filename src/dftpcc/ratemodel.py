@@ -614,22 +614,35 @@ def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer | None], best
     """The model's choice corrected by rebuilt candidates: from ``best``, move to the smallest of
     its four neighbours (the next cutoff either way, the step doubled or halved) while that is
     smaller, at most :data:`CLIMB_MOVES` times: the model ranks well, but the curve it learned
-    from a few trials is coarse next to files a few % apart."""
+    from a few trials is coarse next to files a few % apart. After a move, the neighbour one more
+    step the same way is rebuilt first, and taken alone where it is smaller still: the files
+    fall along a line of cutoffs or steps on real maps, and the other neighbours of each step of
+    it, rebuilt by a full look around, were most of the climb's time."""
     factors = _factors(True)
+    heading: tuple[int, int] | None = None
     for _ in range(CLIMB_MOVES):
         cutoff, factor = best.trial.cutoff, best.trial.step / bound
         i = min(range(len(tried)), key=lambda k: abs(tried[k] - cutoff))
         j = min(range(len(factors)), key=lambda k: abs(math.log(factors[k] / factor)))
-        around = [(tried[i + di], factors[j + dj]) for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1))
-                  if 0 <= i + di < len(tried) and 0 <= j + dj < len(factors)]
-        for key in around:
+
+        def at(di: int, dj: int) -> _Layer | None:
+            if not (0 <= i + di < len(tried) and 0 <= j + dj < len(factors)):
+                return None
+            key = (tried[i + di], factors[j + dj])
             if key not in rebuilt:
                 rebuilt[key] = _layer(an, key[0], bound * key[1], bound, coder, best.size)
-        nearer = [rebuilt[key] for key in around if rebuilt[key] is not None]
-        nearest = min(nearer, key=lambda layer: layer.size) if nearer else best
-        if nearest.size >= best.size:
+            return rebuilt[key]
+
+        ahead = at(*heading) if heading is not None else None
+        if ahead is not None and ahead.size < best.size:
+            best = ahead
+            continue
+        around = {move: at(*move) for move in ((-1, 0), (1, 0), (0, -1), (0, 1)) if move != heading}
+        nearer = [(layer.size, move) for move, layer in around.items() if layer is not None]
+        if not nearer or min(nearer)[0] >= best.size:
             break
-        best = nearest
+        heading = min(nearer)[1]
+        best = around[heading]
     return best
 
 
