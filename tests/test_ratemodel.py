@@ -232,11 +232,15 @@ def _direct_bound(err, target):
     return lo, meets
 
 
+@pytest.mark.parametrize("multiples", [None, 4])
 @pytest.mark.parametrize("tail", [1.0, 8.0, 200.0])
-def test_the_residual_bound_from_sorted_sums_is_the_direct_bisections(gale, tail):
+def test_the_residual_bound_from_sorted_sums_is_the_direct_bisections(gale, tail, multiples, monkeypatch):
     """The bound a residual layer gets for an RMSE target, found from sorted magnitudes and running
     sums, is the one the cell-by-cell bisection finds, and meets the target by the cell-by-cell sum;
-    also with errors spanning hundreds of steps (the fast test hands over to the direct one)."""
+    also with errors spanning hundreds of steps (summed by multiples too, up to
+    ``FAST_BOUND_MULTIPLES``)."""
+    if multiples is not None:  # errors past the fast test's multiples: the direct test takes over
+        monkeypatch.setattr(ratecontrol, "FAST_BOUND_MULTIPLES", multiples)
     an = _analysis(gale)
     rng = np.random.default_rng(int(tail))
     trial = an.trial(0.8, 1.0)
