@@ -137,6 +137,19 @@ def test_the_model_matches_the_search_on_real_terrain(small_map):
             assert len(model) <= len(search) * (1 + SIZE_SLACK), (name, len(model), len(search))
 
 
+@pytest.mark.parametrize("target", [0.007, 0.019])
+def test_a_tiled_map_with_a_covering_base_layer_is_chosen_by_the_model(gale, target):
+    """A tiled RMSE target codes the map again with a base layer that holds the cutoff's whole circle
+    (and once more without the tiles' coefficients): the model counts the base values a cutoff
+    drops, so it predicts those runs' errors too (it predicted almost none, and every such run fell
+    back to the search). Its file meets the target."""
+    params = make_params(resolution=gale.grid.resolution, tile_size=256, target_rmse=target)
+    with ratecontrol.tally() as tally:
+        blob = encode_dem(gale, params)
+    assert tally.choices == 3 and tally.fallbacks == 0
+    assert _held(blob, gale, "target_rmse", target, int(gale.mask.sum()))
+
+
 def test_where_the_model_gives_up_the_search_chooses(gale, monkeypatch):
     params = make_params(resolution=gale.grid.resolution, target_rmse=0.01)
     with ratecontrol.method("search"):
@@ -232,11 +245,15 @@ def _direct_bound(err, target):
     return lo, meets
 
 
+@pytest.mark.parametrize("multiples", [None, 4])
 @pytest.mark.parametrize("tail", [1.0, 8.0, 200.0])
-def test_the_residual_bound_from_sorted_sums_is_the_direct_bisections(gale, tail):
+def test_the_residual_bound_from_sorted_sums_is_the_direct_bisections(gale, tail, multiples, monkeypatch):
     """The bound a residual layer gets for an RMSE target, found from sorted magnitudes and running
     sums, is the one the cell-by-cell bisection finds, and meets the target by the cell-by-cell sum;
-    also with errors spanning hundreds of steps (the fast test hands over to the direct one)."""
+    also with errors spanning hundreds of steps (summed by multiples too, up to
+    ``FAST_BOUND_MULTIPLES``)."""
+    if multiples is not None:  # errors past the fast test's multiples: the direct test takes over
+        monkeypatch.setattr(ratecontrol, "FAST_BOUND_MULTIPLES", multiples)
     an = _analysis(gale)
     rng = np.random.default_rng(int(tail))
     trial = an.trial(0.8, 1.0)

@@ -63,9 +63,13 @@ RMSE_BOUND_ITERATIONS = 16
 #: ... held this fraction inside the target (see :func:`_coarsest_bound`).
 RMSE_BOUND_MARGIN = 1e-9
 #: The bisection's fast test sums cells by the multiple of the step they round to, up to this
-#: many multiples (its sums lose about k**2 * 1e-16 of the error: 1e-10 here, a tenth of the
-#: margin); past them it sums cell by cell.
-FAST_BOUND_MULTIPLES = 30
+#: many multiples (a search of that many edges in the sorted magnitudes, a fraction of one pass
+#: over the cells); past them it sums cell by cell. Its sums lose about k**2 * 1e-16 of the
+#: squared error of the cells at multiple k: near the answer that may pass the margin, and the
+#: cell-by-cell test of the answer catches it (the bisection then runs cell by cell). Low-passed
+#: maps at a coarse step have errors of hundreds of steps: below a thousand, the cell-by-cell
+#: passes were most of the bound's time.
+FAST_BOUND_MULTIPLES = 1 << 16
 #: Steps (times the RMSE target) of the low-passed maps a residual layer may correct for an RMSE
 #: target: the first at every cutoff, the others at the best (:func:`corrected_for_rmse`).
 CORRECTED_STEP_FACTORS = (8.0, 4.0, 16.0)

@@ -36,14 +36,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import quantizer
+from . import coding, quantizer
 from .analysis import Analysis, Trial
 from .errors import InvalidInputError
 from .params import Params
 from .ratecontrol import (_METHOD, _TALLY, Progress, _no_progress, search, CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
                           MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
                           bpp_out_of_reach, coef_budget, cutoffs)
-from .residual import encode_residual, estimated_size, residual_integers
+from .residual import PREDICTED_SHARE, encode_residual, estimated_size, median_predicted_size, residual_integers
 from .sums import dot
 
 __all__ = ["choose", "predict", "Energy"]
@@ -323,7 +323,7 @@ def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: flo
             continue
         rises = rises + 1 if last is not None and size > last else 0
         last = size
-        if rises == 2 or size > GIVE_UP_FACTOR * min(best[0], to_beat):
+        if rises == CORRECTED_RISES or size > GIVE_UP_FACTOR * min(best[0], to_beat):
             break
     if best is not None:
         cutoff = best[2].cutoff
@@ -334,13 +334,40 @@ def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: flo
         if layout < size - _coded(on, trial):
             best = (_coded(on, trial) + layout, on, trial, bound, q)
     free = _spectrum_free(an, params)
-    if free is not None:
+    if free is not None and not _free_loses(*free, target, coder, min(to_beat, best[0] if best else math.inf)):
         attempt(free[0], free[1].cutoff, free[1].step, predicted=True)
     if best is None or best[0] >= to_beat:
         return None
     size, on, trial, bound, q = best
     choice = Choice(on, trial, on.encode(trial), q, encode_residual(q, coder, on.kept_cells), bound)
     return choice
+
+
+#: The walk of :func:`_corrected_for_rmse` up the cutoffs stops at the first file larger than the one
+#: before (the search's, :func:`dftpcc.ratecontrol.corrected_for_rmse`, at the second): on
+#: ../shared/data the sizes fall to one low and rise from it.
+CORRECTED_RISES = 1
+#: The map with no spectrum meets an RMSE target with a layer at a bound near sqrt(3) times the
+#: target (nearly every cell corrected, its error then uniform within the bound); sized at this
+#: many times the target, a coarser layer, its bytes are a floor of the file's (:func:`_free_loses`).
+FREE_FLOOR_BOUND = 4.0
+
+
+def _free_loses(on: Analysis, trial: Trial, target: float, coder: str, to_beat: float) -> bool:
+    """Whether the map with no spectrum (:func:`~dftpcc.ratecontrol._spectrum_free`) surely loses to
+    ``to_beat`` bytes at an RMSE ``target``: its layer at :data:`FREE_FLOOR_BOUND` times the target,
+    coarser than the one it needs, takes that many bytes chunked, and the median predictor's share
+    (:data:`~dftpcc.residual.PREDICTED_SHARE`) as many, whatever the layout. A few array passes
+    instead of the bound's bisection and the predicted layout's fit, on maps it loses by a factor."""
+    if not math.isfinite(to_beat):
+        return False
+    q = residual_integers(on.dem.heights, trial.heights, on.mask, on.kept_cells, FREE_FLOOR_BOUND * target)
+    flat = np.zeros(q.size)
+    coefs = on.estimate_stream(trial.stream)
+    chunked = coding.estimated_size(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
+    if coefs + chunked < to_beat:
+        return False
+    return coder != "ans" or not q.size or coefs + PREDICTED_SHARE * median_predicted_size(q, on.kept_cells) >= to_beat
 
 
 def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analysis, Trial] | None:
@@ -587,29 +614,36 @@ def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer | None], best
     """The model's choice corrected by rebuilt candidates: from ``best``, move to the smallest of
     its four neighbours (the next cutoff either way, the step doubled or halved) while that is
     smaller, at most :data:`CLIMB_MOVES` times: the model ranks well, but the curve it learned
-    from a few trials is coarse next to files a few % apart."""
+    from a few trials is coarse next to files a few % apart. After a move, the neighbour one more
+    step the same way is rebuilt first, and taken alone where it is smaller still: the files
+    fall along a line of cutoffs or steps on real maps, and the other neighbours of each step of
+    it, rebuilt by a full look around, were most of the climb's time."""
     factors = _factors(True)
+    heading: tuple[int, int] | None = None
     for _ in range(CLIMB_MOVES):
         cutoff, factor = best.trial.cutoff, best.trial.step / bound
         i = min(range(len(tried)), key=lambda k: abs(tried[k] - cutoff))
         j = min(range(len(factors)), key=lambda k: abs(math.log(factors[k] / factor)))
-        around = [(tried[i + di], factors[j + dj]) for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1))
-                  if 0 <= i + di < len(tried) and 0 <= j + dj < len(factors)]
-        for key in around:
+
+        def at(di: int, dj: int) -> _Layer | None:
+            if not (0 <= i + di < len(tried) and 0 <= j + dj < len(factors)):
+                return None
+            key = (tried[i + di], factors[j + dj])
             if key not in rebuilt:
                 rebuilt[key] = _layer(an, key[0], bound * key[1], bound, coder, best.size)
-        nearer = [rebuilt[key] for key in around if rebuilt[key] is not None]
-        nearest = min(nearer, key=lambda layer: layer.size) if nearer else best
-        if nearest.size >= best.size:
+            return rebuilt[key]
+
+        ahead = at(*heading) if heading is not None else None
+        if ahead is not None and ahead.size < best.size:
+            best = ahead
+            continue
+        around = {move: at(*move) for move in ((-1, 0), (1, 0), (0, -1), (0, 1)) if move != heading}
+        nearer = [(layer.size, move) for move, layer in around.items() if layer is not None]
+        if not nearer or min(nearer)[0] >= best.size:
             break
-        best = nearest
+        heading = min(nearer)[1]
+        best = around[heading]
     return best
-
-
-#: The predicted layout codes real maps in at least about this share of the median predictor's
-#: bytes (:func:`dftpcc.residual.median_predicted_size`; 0.56 the least measured): where that share
-#: of them cannot beat the file to beat, the layout's fit is not worth its time.
-PREDICTED_SHARE = 0.45
 
 
 def _predicted_size(q: np.ndarray, coder: str, kept: np.ndarray, to_beat: float = math.inf) -> float:

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import math
 import struct
+import threading
+import weakref
 from fractions import Fraction
 from typing import Any
 
@@ -85,23 +87,50 @@ def residual_integers(target: np.ndarray, rebuilt: np.ndarray, measured: np.ndar
     return r.astype(np.int64)
 
 
+#: :func:`encode_residual` codes only the layouts whose estimated bytes are within this fraction
+#: of the smallest (estimates are within 0.2 % of the coded chunked and predicted layouts and 2 %
+#: of the sparse one on ../shared/data): the layout it keeps is the one coding every layout would.
+LAYOUT_SLACK = 0.05
+#: The predicted layout codes real maps in at least about this share of the median predictor's
+#: bytes (:func:`median_predicted_size`; 0.56 the least measured): where that share of them cannot
+#: come within :data:`LAYOUT_SLACK` of another layout, its fit and contexts are not worth their time.
+PREDICTED_SHARE = 0.45
+
+
 def encode_residual(q: np.ndarray, coder: str, kept: np.ndarray, *, predicted: bool = True) -> bytes:
     """The RESD section of ``q``, one integer per ``True`` cell of ``kept`` (row-major): the
     chunked layout; the sparse one where at least half the values are 0 and it is shorter; the
     predicted one (``predicted``, ANS files) where it is shorter than both. Rate control sizes
     its many candidates without the predicted layout, the slowest to code, and tries it on the
-    few that may win (:func:`dftpcc.ratecontrol.for_max_error`)."""
+    few that may win (:func:`dftpcc.ratecontrol.for_max_error`). A layout whose estimate
+    (:func:`estimated_size`'s) passes another's by more than :data:`LAYOUT_SLACK` is not coded."""
     flat = np.zeros(q.size)  # one band per chunk: the residual has no frequency
-    # Every band layout puts all values in band 0, so there is no layout to choose.
-    best = coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
+    chunked = coding.estimated_size(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
     # At a coarse bound most values are 0, which kind 3 codes at 0.07 bits or more each (its scale
     # floor, MIN_SCALE), however they cluster: the sparse layout codes where they are not.
-    if 2 * np.count_nonzero(q) <= q.size:
-        sparse = _encode_sparse(q, coder, kept)
-        best = sparse if len(sparse) < len(best) else best
-    if predicted:
-        chunk = predicted_residual(q, coder, kept)
-        best = chunk if chunk is not None and len(chunk) < len(best) else best
+    sparse = _estimated_sparse(q, coder, kept) if 2 * np.count_nonzero(q) <= q.size else math.inf
+    smallest = min(chunked, sparse)
+    layer = None
+    # The layout's estimate where its model is at hand (rate control sized it), else the median
+    # predictor's floor of it.
+    if predicted and coder == "ans" and q.size and (_estimated_predicted(q, kept) if _known_model(q, kept) is not None else
+                                                    PREDICTED_SHARE * median_predicted_size(q, kept)) \
+            < (1.0 + LAYOUT_SLACK) * smallest:
+        layer = predicted_residual(q, coder, kept)
+        smallest = min(smallest, math.inf if layer is None else len(layer))
+    reach = (1.0 + LAYOUT_SLACK) * smallest
+    # In the order the layouts are preferred on a tie: chunked, sparse, predicted.
+    best = None
+    if chunked <= reach:
+        # Every band layout puts all values in band 0, so there is no layout to choose.
+        best = coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
+    if sparse <= reach:
+        other = _encode_sparse(q, coder, kept)
+        best = other if best is None or len(other) < len(best) else best
+    if layer is not None and (best is None or len(layer) < len(best)):
+        best = layer
+    if best is None:  # every estimate missed its layout by more than the slack: code the chunked one
+        best = coding.encode_coefficients(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
     return best
 
 
@@ -121,19 +150,23 @@ def estimated_size(q: np.ndarray, coder: str, kept: np.ndarray, *, predicted: bo
     for rate control to rank its candidates (:mod:`dftpcc.ratemodel`)."""
     flat = np.zeros(q.size)
     best = coding.estimated_size(q, radius=flat, angle=flat, coder=coder, exhaustive=False)
-    nonzero = np.count_nonzero(q)
-    if 2 * nonzero <= q.size:
-        picture = np.zeros(kept.shape, dtype=bool)
-        picture[kept] = q != 0
-        values = q[q != 0]
-        zero = np.zeros(values.size)
-        sparse = (4.0 + coding.CHUNK_HEAD.size + _LENGTH.size + occupancy.estimated_size(picture)
-                  + coding.estimated_size(np.abs(values) - 1, radius=zero, angle=zero, coder=coder,
-                                          exhaustive=False, progressive=False) + (values.size + 7) // 8)
-        best = min(best, sparse)
+    if 2 * np.count_nonzero(q) <= q.size:
+        best = min(best, _estimated_sparse(q, coder, kept))
     if predicted and coder == "ans" and q.size:
         best = min(best, _estimated_predicted(q, kept))
     return best
+
+
+def _estimated_sparse(q: np.ndarray, coder: str, kept: np.ndarray) -> float:
+    """Bytes of :func:`_encode_sparse` of ``q``, from its models' probabilities."""
+    nonzero = q != 0
+    picture = np.zeros(kept.shape, dtype=bool)
+    picture[kept] = nonzero
+    values = q[nonzero]
+    zero = np.zeros(values.size)
+    return (4.0 + coding.CHUNK_HEAD.size + _LENGTH.size + occupancy.estimated_size(picture)
+            + coding.estimated_size(np.abs(values) - 1, radius=zero, angle=zero, coder=coder,
+                                    exhaustive=False, progressive=False) + (values.size + 7) // 8)
 
 
 def median_predicted_size(q: np.ndarray, kept: np.ndarray) -> float:
@@ -151,7 +184,7 @@ def median_predicted_size(q: np.ndarray, kept: np.ndarray) -> float:
 def _estimated_predicted(q: np.ndarray, kept: np.ndarray) -> float:
     """Bytes of :func:`predicted_residual` of ``q``, from its model's probabilities (inf where the
     layout does not apply)."""
-    model = _predicted_model(q, kept, fit_cells=ESTIMATE_FIT_CELLS)
+    model = _shared_model(q, kept)
     if model is None:
         return math.inf
     _, e, classes, codes, _ = model
@@ -356,22 +389,22 @@ def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
     return np.array([west] + others, dtype=np.int64)
 
 
-#: An estimate of the predicted layout's bytes fits its weights on about this many cells, evenly
-#: strided (the file's own fit takes every cell): the weights of a smooth least-squares fit move
-#: little, and the fit is most of the estimate's time.
-ESTIMATE_FIT_CELLS = 1 << 16
+#: The predicted layout fits its weights on about this many cells, evenly strided: the weights of
+#: a smooth least-squares fit move little (the files' bytes by 0.01 % against a fit on every cell
+#: on ../shared/data), and a fit on every cell is a third of the model's time on a large map.
+FIT_CELLS = 1 << 16
 
 
-def _predicted_model(q: np.ndarray, kept: np.ndarray, *, fit_cells: int | None = None
+def _predicted_model(q: np.ndarray, kept: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """Kind 5's model of ``q``: the weights (fitted on every cell, or on about ``fit_cells`` of
-    them evenly strided), the prediction errors, each cell's class, each class's scale code and
-    largest |error|; None when its values or errors pass the layout's limits."""
+    """Kind 5's model of ``q``: the weights (fitted on about :data:`FIT_CELLS` cells), the
+    prediction errors, each cell's class, each class's scale code and largest |error|; None when
+    its values or errors pass the layout's limits."""
     if np.abs(q).max() >= VALUE_LIMIT:
         return None
     grid = _filled(q, kept)
     values = [_shifted(grid, up, left)[kept] for up, left in NEIGHBOURS]
-    stride = max(1, q.size // fit_cells) if fit_cells else 1
+    stride = max(1, q.size // FIT_CELLS)
     weights = _fit_weights([v[::stride] for v in values], q[::stride])
     e = q - _prediction(weights, values)
     if np.abs(e).max() > geometric.MAX_ANS_SYMBOL:
@@ -394,9 +427,38 @@ def _predicted_model(q: np.ndarray, kept: np.ndarray, *, fit_cells: int | None =
     return weights, e, classes, codes, max_abs
 
 
+#: The last layers' models (:func:`_shared_model`), per thread: (weak references to ``q`` and ``kept``,
+#: model), newest last; as many as :data:`SHARED_MODELS` (rate control sizes the predicted layout of
+#: its best candidate and of the map with no spectrum, then codes one of them).
+_MODELS = threading.local()
+SHARED_MODELS = 2
+
+
+def _known_model(q: np.ndarray, kept: np.ndarray) -> tuple | None:
+    """The entry of :func:`_shared_model` that holds the model of these very arrays, if any."""
+    for entry in getattr(_MODELS, "entries", ()):
+        if entry[0]() is q and entry[1]() is kept:
+            return entry
+    return None
+
+
+def _shared_model(q: np.ndarray, kept: np.ndarray):
+    """:func:`_predicted_model` of ``q``, kept for the next call on the same arrays: rate control
+    estimates the predicted layout of the layer it keeps (:func:`_estimated_predicted`), then codes
+    it (:func:`_encode_predicted`), and the model (fit, errors, contexts) is half of coding it.
+    Layers' integers are never changed in place once made."""
+    entry = _known_model(q, kept)
+    if entry is not None:
+        return entry[2]
+    model = _predicted_model(q, kept)
+    entries = [e for e in getattr(_MODELS, "entries", ()) if e[0]() is not None]
+    _MODELS.entries = (entries + [(weakref.ref(q), weakref.ref(kept), model)])[-SHARED_MODELS:]
+    return model
+
+
 def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
     """Kind 5's payload for ``q``, or None when its values or errors pass the layout's limits."""
-    model = _predicted_model(q, kept)
+    model = _shared_model(q, kept)
     if model is None:
         return None
     weights, e, classes, codes, max_abs = model

@@ -451,8 +451,13 @@ class TiledAnalysis:
         return math.sqrt((dot(err, err) + lost) * self.parseval)
 
     def energy_at(self, cutoff: float) -> tuple[np.ndarray, float]:
-        """As :meth:`Analysis.energy_at`, over the base layer and every tile."""
-        return self._proxy_parts(cutoff)
+        """As :meth:`Analysis.energy_at`, over the base layer and every tile; the base layer's values
+        past ``cutoff``'s count are lost too (the tiles code what the whole base layer leaves): a
+        base layer that holds the lowest cutoff's circle (:func:`covering_reach`) keeps a small
+        share of it at a high cutoff, and the model, blind to that, predicted almost no error."""
+        kept, lost = self._proxy_parts(cutoff)
+        dropped = self.base_coefs[self.base_count(cutoff):]
+        return kept, lost + dot(dropped, dropped)
 
     def _proxy_parts(self, cutoff: float) -> tuple[np.ndarray, float]:
         """Every value kept at ``cutoff`` in one array, and the energy the low-pass drops (cached:
