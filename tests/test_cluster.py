@@ -96,6 +96,29 @@ def test_a_local_cluster_says_nothing_when_another_holds_dasks_port():
         holder.close()
 
 
+class _Unpicklable(Exception):
+    """As GDAL's errors (rasterio's CPLE_*): pickled, but ``args`` cannot be set back."""
+
+    @property
+    def args(self):
+        return ("gdal",)
+
+
+def _refuse_after_a_library_error(x):
+    try:
+        raise _Unpicklable()
+    except _Unpicklable:
+        raise InvalidInputError(f"input {x} changed while it was read") from None
+
+
+def test_the_librarys_error_on_a_worker_reaches_the_client_as_itself():
+    """An error of ours raised while another library's was handled: dask pickled the chain, the
+    other's did not unpickle, and the client got a bare Exception (the CLI a traceback)."""
+    with pytest.raises(InvalidInputError, match="input 1 changed"):
+        with executor(workers=1, tiles=2) as run:
+            run(_refuse_after_a_library_error, [1])
+
+
 def test_a_worker_that_dies_ends_in_a_cluster_error():
     with executor(workers=1) as run:
         with pytest.raises(ClusterError, match="worker died"):

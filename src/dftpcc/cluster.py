@@ -10,6 +10,7 @@ Needs the optional ``distributed`` package (``pip install 'dftpcc[dask]'``).
 
 from __future__ import annotations
 
+import functools
 import logging
 import multiprocessing
 import time
@@ -17,7 +18,7 @@ from contextlib import contextmanager
 from typing import Any, Callable, Iterator, Sequence
 
 from ._optional import import_optional, install_hint
-from .errors import ClusterError, InvalidInputError
+from .errors import ClusterError, DftpccError, InvalidInputError
 from .kernels import available_cores
 
 __all__ = ["Map", "executor", "serial", "CONNECT_TIMEOUT_S", "NO_WORKER_TIMEOUT_S", "MAX_WORKERS_PER_CORE"]
@@ -181,6 +182,18 @@ def _nbytes(item: Any) -> int:
     return sizeof(vars(item)) if hasattr(item, "__dict__") else sizeof(item)
 
 
+def _task(func: Callable[..., Any], item: Any, *args: Any) -> Any:
+    """``func(item, *args)`` on a worker. The library's own errors go back to the client without the
+    errors of other libraries they were raised from: dask pickles that chain too, and some do not
+    unpickle (GDAL's), so the client got a bare ``Exception`` (and the command a traceback)."""
+    try:
+        return func(item, *args)
+    except DftpccError as exc:
+        error = exc
+    error.__cause__ = error.__context__ = None
+    raise error
+
+
 def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: tuple) -> list:
     """``func(item, *args)`` for every item on the cluster, in order; a dead worker or an empty
     cluster ends in :class:`ClusterError`."""
@@ -194,7 +207,7 @@ def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: t
     # Items that carry cells travel as data; small ones (a block a worker reads itself) travel in the
     # graph, so that the scheduler can rerun the task of a worker that died: scattered data die with it.
     small = sum(_nbytes(item) for item in items) <= INLINE_BYTES
-    futures = client.map(func, list(items) if small else client.scatter(list(items), hash=False),
+    futures = client.map(functools.partial(_task, func), list(items) if small else client.scatter(list(items), hash=False),
                          *[[a] * len(items) for a in shared], pure=False)
     idle_since: float | None = None
     cancelled = _cancelled()
