@@ -914,3 +914,19 @@ def test_scale_codes_counted_in_one_pass_are_numpys():
         codes = rng.integers(0, 256, n).astype(np.uint8)
         codes[: n // 2] = rng.integers(0, 3, n // 2)  # a few codes carry most values
         assert np.array_equal(kernels.compiled_module().code_counts(codes), np.bincount(codes, minlength=256))
+
+
+def test_kept_neighbours_are_the_shifted_grids(jit):
+    """The predicted residual's neighbours read cell by cell are those of the shifted grids, edges
+    included (row 0, column 0, the cell (0, 0)), on every mask shape."""
+    from dftpcc import residual
+
+    rng = np.random.default_rng(11)
+    for mask, _ in _masks(rng):
+        grid = rng.integers(-(1 << 40), 1 << 40, mask.shape)
+        offsets = residual.NEIGHBOURS + ((3, -2),)
+        expected = np.stack([residual._shifted(grid, up, left)[mask] for up, left in offsets]) \
+            if mask.any() else np.zeros((len(offsets), 0), dtype=np.int64)
+        for on in (True, False):
+            jit(on)
+            assert np.array_equal(residual._kept_neighbours(grid, mask, offsets), expected)

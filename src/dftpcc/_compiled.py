@@ -1126,6 +1126,31 @@ def dequantize_into(shape: tuple[int, int], where: np.ndarray, q: np.ndarray, st
     return out
 
 
+@njit(cache=True, nogil=True)
+def _kept_neighbours(flat, kept, ups, lefts, cols, out):  # pragma: no cover - compiled
+    k = 0
+    for cell in range(kept.size):
+        if kept[cell]:
+            r, c = cell // cols, cell % cols
+            for t in range(ups.size):
+                i = _neighbour_at(r, c, ups[t], lefts[t], cols)
+                out[t, k] = 0 if i < 0 else flat[i]
+            k += 1
+
+
+def kept_neighbours(grid: np.ndarray, kept: np.ndarray, offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """``residual._kept_neighbours`` in one pass over the kept cells, each neighbour read where it
+    is (no shifted copy of the grid per neighbour)."""
+    if grid.dtype != np.int64 or kept.dtype != np.bool_ or grid.shape != kept.shape or grid.ndim != 2:
+        return NotImplemented
+    ups = np.array([up for up, _ in offsets], dtype=np.int64)
+    lefts = np.array([left for _, left in offsets], dtype=np.int64)
+    out = np.empty((len(offsets), int(np.count_nonzero(kept))), dtype=np.int64)
+    _kept_neighbours(np.ascontiguousarray(grid).reshape(-1), np.ascontiguousarray(kept).reshape(-1), ups, lefts,
+                     grid.shape[1], out)
+    return out
+
+
 def add_residual(heights: np.ndarray, mask: np.ndarray, q: np.ndarray, step: float) -> None:
     """``heights[mask] += q * step`` in one pass over the cells (the same float operations:
     the integer made a float, times the step, added)."""

@@ -174,9 +174,8 @@ def median_predicted_size(q: np.ndarray, kept: np.ndarray) -> float:
     one scale for all: a few array passes against the predicted layout's fit and contexts, which
     code real maps in 0.56-1.1 times this (measured on ../shared/data at 1.3 and 4 times the
     gridding floor). Rate control's cheap look at whether that layout can win at all."""
-    grid = _filled(q, kept)
-    w, n, nw = (_shifted(grid, up, left) for up, left in ((0, 1), (1, 0), (1, 1)))
-    e = (grid - np.clip(w + n - nw, np.minimum(w, n), np.maximum(w, n)))[kept]
+    w, n, nw = _kept_neighbours(_filled(q, kept), kept, ((0, 1), (1, 0), (1, 1)))
+    e = q - np.clip(w + n - nw, np.minimum(w, n), np.maximum(w, n))  # the filled grid is q at the kept cells
     flat = np.zeros(e.size)
     return coding.estimated_size(e, radius=flat, angle=flat, exhaustive=False)
 
@@ -288,6 +287,16 @@ def _shifted(grid: np.ndarray, up: int, left: int) -> np.ndarray:
     else:
         out[1:, 0] = grid[:-1, 0]  # column 0: W and WW are N
     out[0, 0] = 0
+    return out
+
+
+@kernels.kernel("kept_neighbours")
+def _kept_neighbours(grid: np.ndarray, kept: np.ndarray, offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
+    """Each kept cell's neighbours (row-major, as ``grid[kept]``) at ``offsets`` (rows up, columns
+    left) under :func:`_shifted`'s edge rules: one row per offset (int64)."""
+    out = np.empty((len(offsets), int(np.count_nonzero(kept))), dtype=grid.dtype)
+    for row, (up, left) in enumerate(offsets):
+        out[row] = _shifted(grid, up, left)[kept]
     return out
 
 
@@ -403,7 +412,7 @@ def _predicted_model(q: np.ndarray, kept: np.ndarray
     if np.abs(q).max() >= VALUE_LIMIT:
         return None
     grid = _filled(q, kept)
-    values = [_shifted(grid, up, left)[kept] for up, left in NEIGHBOURS]
+    values = list(_kept_neighbours(grid, kept, NEIGHBOURS))
     stride = max(1, q.size // FIT_CELLS)
     weights = _fit_weights([v[::stride] for v in values], q[::stride])
     e = q - _prediction(weights, values)
@@ -411,10 +420,10 @@ def _predicted_model(q: np.ndarray, kept: np.ndarray
         return None
     errors = np.zeros(kept.shape, dtype=np.int64)
     errors[kept] = np.abs(e)
+    counted = [(offset, k) for offset, k in zip(NEIGHBOURS, ACTIVITY_WEIGHTS) if k]
     activity = np.zeros(q.size, dtype=np.int64)
-    for (up, left), k in zip(NEIGHBOURS, ACTIVITY_WEIGHTS):
-        if k:
-            activity += k * _shifted(errors, up, left)[kept]
+    for row, (_, k) in zip(_kept_neighbours(errors, kept, tuple(o for o, _ in counted)), counted):
+        activity += k * row
     classes = _classes(activity)
     lo, band_codes, _ = geometric.band_statistics(e, classes)
     codes = np.zeros(CLASSES, dtype=np.uint8)
