@@ -930,3 +930,21 @@ def test_kept_neighbours_are_the_shifted_grids(jit):
         for on in (True, False):
             jit(on)
             assert np.array_equal(residual._kept_neighbours(grid, mask, offsets), expected)
+
+
+def test_sparse_layer_integers_are_numpys(jit):
+    """A sparse residual layer's integers placed cell by cell are numpy's (signs, zeros, order)."""
+    from dftpcc import residual
+
+    rng = np.random.default_rng(12)
+    for mask, _ in _masks(rng):
+        picture = mask & (rng.random(mask.shape) < 0.1)
+        n = int(picture.sum())
+        sizes = rng.integers(0, 1 << 40, n)
+        negative = np.unpackbits(rng.integers(0, 256, (n + 7) // 8, dtype=np.uint8))
+        negative[n:] = 0
+        expected = np.zeros(int(mask.sum()), dtype=np.int64)
+        expected[picture[mask]] = np.where(negative[:n] == 1, -(sizes + 1), sizes + 1)
+        for on in (True, False):
+            jit(on)
+            assert np.array_equal(residual._signed_at(picture, mask, sizes, negative), expected)

@@ -225,8 +225,7 @@ def _decode_sparse(payload: bytes, kept: np.ndarray) -> np.ndarray:
     picture = occupancy.decode_mask(payload[_LENGTH.size:_LENGTH.size + length], kept.shape)
     if (picture & ~kept).any():
         raise CorruptFileError(f"{what} corrects a cell that is not rebuilt")
-    nonzero = picture[kept]
-    n = int(nonzero.sum())
+    n = int(np.count_nonzero(picture))  # all of them kept cells
     sign_at = len(payload) - (n + 7) // 8
     if sign_at < _LENGTH.size + length:
         raise CorruptFileError(f"{what} is too short for the signs of its {n} nonzero values")
@@ -239,9 +238,18 @@ def _decode_sparse(payload: bytes, kept: np.ndarray) -> np.ndarray:
     negative = np.unpackbits(packed)
     if negative[n:].any():
         raise CorruptFileError(f"{what} has a stray sign bit")
+    return _signed_at(picture, kept, sizes, negative)
+
+
+@kernels.kernel("signed_at")
+def _signed_at(picture: np.ndarray, kept: np.ndarray, sizes: np.ndarray, negative: np.ndarray) -> np.ndarray:
+    """A sparse layer's integers, one per ``kept`` cell (row-major): ``sizes + 1``, negative where
+    the bit of ``negative`` (0/1 bytes) says so, at the cells ``picture`` sets (a subset of
+    ``kept``, in order), 0 at the others."""
+    nonzero = picture[kept]
     magnitude = sizes + 1
     q = np.zeros(nonzero.size, dtype=np.int64)
-    q[nonzero] = np.where(negative[:n].astype(bool), -magnitude, magnitude)
+    q[nonzero] = np.where(negative[:sizes.size].astype(bool), -magnitude, magnitude)
     return q
 
 
