@@ -1,24 +1,31 @@
 // Decode speed of the JavaScript decoder in Node and in headless Chromium, against the Python decoder
 // and the `lerc` npm decoder (Esri's LERC, WebAssembly) at equal maximum error, all in the same run
-// (make bench-web; ARGS: --repeats N, --side S for the mosaic, --no-mosaic, --no-browser).
+// (make bench-web; ARGS: --repeats N, --side S for the mosaic, --no-mosaic, --no-browser, --dist D for
+// another build's dist/ folder, such as an earlier commit's, to compare in interleaved runs).
 // Each shared DEM is compressed by the Python codec at its defaults (and once with a maximum-error
 // target, whose residual layer is decoded too), and so is a S x S mosaic of them (4 M cells by
 // default: benchmarks/bench_big.py's layout); each default file's DEM is LERC-encoded with maxZErr
 // = the file's stated maximum error (bench/lerc_encode.py). The table gives million cells (rows x
 // cols) per second: medians of N decodes after a warm-up, in CPU time, so that a shared machine's
 // other work does not count: Node's and Python's process time, both pinned to core 0 (taskset -c 0
-// when it exists), and Chromium's page main thread (DevTools task durations in thread ticks).
+// when it exists), and Chromium's page main thread (DevTools task durations in thread ticks). A second
+// table times progressive prefixes of each untiled default map in Chromium (float32, as the viewer
+// asks): the first 5 % and 25 % of the bytes decoded exactly and as a preview, against the whole file.
 import { spawnSync } from "node:child_process";
 import { createReadStream, existsSync, mkdtempSync, readdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { createServer } from "node:http";
 import { tmpdir } from "node:os";
 import { extname, join } from "node:path";
 import * as Lerc from "lerc";
-import { decode } from "../dist/dftpcc.mjs";
+import { resolve } from "node:path";
 import { python, ROOT } from "../test/helpers.mjs";
 
 const args = process.argv.slice(2);
 const opt = (name, dflt) => (args.includes(name) ? args[args.indexOf(name) + 1] : dflt);
+const DIST = resolve(opt("--dist", new URL("../dist", import.meta.url).pathname));
+const { decode } = await import(join(DIST, "dftpcc.mjs"));
+/** Prefix lengths (fractions of a file's bytes) of the progressive table. */
+const PREFIXES = [0.05, 0.25];
 const REPEATS = Number(opt("--repeats", 7));
 const SIDE = Number(opt("--side", 2048));
 const WEB = join(ROOT, "web");
@@ -55,7 +62,7 @@ function timeCpu(f) {
 async function inChromium(dir, names) {
   const { default: puppeteer } = await import("puppeteer-core");
   const types = { ".mjs": "text/javascript", ".js": "text/javascript", ".wasm": "application/wasm", ".html": "text/html" };
-  const routes = { "/dftpcc.mjs": join(WEB, "dist", "dftpcc.mjs"), "/lerc/LercDecode.es.js": join(WEB, "node_modules", "lerc", "LercDecode.es.js"),
+  const routes = { "/dftpcc.mjs": join(DIST, "dftpcc.mjs"), "/lerc/LercDecode.es.js": join(WEB, "node_modules", "lerc", "LercDecode.es.js"),
     "/lerc/lerc-wasm.wasm": join(WEB, "node_modules", "lerc", "lerc-wasm.wasm") };
   const server = createServer((req, res) => {
     const path = req.url === "/" ? null : routes[req.url] ?? join(dir, req.url.slice(1).replace(/[^\w.-]/g, ""));
@@ -113,6 +120,26 @@ async function inChromium(dir, names) {
       }, name, hasLerc);
       out[name] = { js: await timePage(() => void window.decodeDftpcc(window.data)) };
       if (hasLerc) out[name].lerc = await timePage(() => void window.Lerc.decode(window.lercBlob));
+      if (!name.includes(".")) {
+        // Progressive prefixes as the viewer's worker decodes them (an older build ignores preview).
+        const decodePrefix = ([f, preview]) => {
+          const n = Math.floor(f * window.data.length);
+          void window.decodeDftpcc(window.data.subarray(0, n), { fileSize: window.data.length, float32: true, preview });
+        };
+        out[name].prefix = { whole: await timePage(() => void window.decodeDftpcc(window.data, { float32: true })) };
+        for (const f of PREFIXES) {
+          // A prefix shorter than the header (a small map's 5 %) has no map to time.
+          const short = await page.evaluate((f) => {
+            try {
+              window.decodeDftpcc(window.data.subarray(0, Math.floor(f * window.data.length)), { fileSize: window.data.length });
+              return false;
+            } catch {
+              return true;
+            }
+          }, f);
+          out[name].prefix[f] = short ? null : { exact: await timePage(decodePrefix, [f, false]), preview: await timePage(decodePrefix, [f, true]) };
+        }
+      }
     }
     return { out, version: await browser.version() };
   } finally {
@@ -181,9 +208,20 @@ build_raster(Path(${JSON.stringify(DATA)}), Path(sys.argv[1]), ${SIDE})`, tif]);
       + `${(r.py / r.js).toFixed(2)} | ${r.jsChromium ? (r.py / r.jsChromium).toFixed(2) : ""} | `
       + `${r.lercBytes ? `${r.lercBytes} (${r.maxError.toPrecision(3)} m)` : ""} | ${rate(r, r.lerc)} | ${rate(r, r.lercChromium)} |`);
   }
+  if (browser) {
+    console.log(`\n| map (Chromium, float32) | whole file | ${PREFIXES.map((f) => `${100 * f} % exact | ${100 * f} % preview`).join(" | ")} |`);
+    console.log(`|---|---:|${PREFIXES.map(() => "---:|---:").join("|")}|`);
+    for (const r of rows) {
+      const p = browser.out[r.stem].prefix;
+      if (!p) continue;
+      const ms = (s) => `${(1000 * s).toFixed(1)} ms`;
+      console.log(`| ${r.stem} | ${ms(p.whole)} | ${PREFIXES.map((f) => (p[f] ? `${ms(p[f].exact)} | ${ms(p[f].preview)}` : "header only | header only")).join(" | ")} |`);
+    }
+  }
   console.log(`\nM cells per second: medians of ${REPEATS} decodes after one warm-up each. Node and Python: CPU time, `
     + `${pinned ? "both pinned to core 0 (taskset)" : "not pinned"}; Chromium: CPU time of the page's main thread (DevTools task durations in thread ticks)${pinned ? ", pinned to core 0" : ""}. `
-    + `node ${process.version}${browser ? `, ${browser.version}` : ""}. LERC at maxZErr = the dftpcc file's stated maximum error.`);
+    + `node ${process.version}${browser ? `, ${browser.version}` : ""}. LERC at maxZErr = the dftpcc file's stated maximum error. `
+    + `Prefixes: CPU time of the page's main thread, medians likewise. Build: ${DIST}.`);
 } finally {
   rmSync(dir, { recursive: true, force: true });
 }

@@ -64,6 +64,8 @@ interface Stage {
   /** Generic radix: cos and sin of 2 pi a b / R for a, b in 1 .. (R-1)/2, row-major. */
   cos: Float64Array;
   sin: Float64Array;
+  /** The same for rows a, a + 1 (a odd) interleaved: cos(a, b), sin(a, b), cos(a + 1, b), sin(a + 1, b). */
+  quad: Float64Array;
 }
 
 /** Forward complex DFT (e^{-2 pi i j k / n}, unnormalised) of a length with factors of at most
@@ -79,6 +81,7 @@ export class MixedFft {
   private readonly pi: Float64Array;
   private readonly mr: Float64Array;
   private readonly mi: Float64Array;
+  private readonly pm: Float64Array; // pr, pi, mr, mi interleaved (from b = 1)
 
   constructor(n: number, radices: number[]) {
     this.n = n;
@@ -110,7 +113,18 @@ export class MixedFft {
           }
         }
       }
-      this.stages.push({ R, ns, twr, twi, cos, sin });
+      const hh = (R - 1) >> 1;
+      const quad = new Float64Array(R > SMALL_RADIX ? 4 * hh * hh : 0);
+      for (let a = 1; a < hh; a += 2) {
+        for (let b = 1; b <= hh; b++) {
+          const q = 4 * ((a - 1) / 2 * hh + b - 1);
+          quad[q] = cos[(a - 1) * hh + b - 1];
+          quad[q + 1] = sin[(a - 1) * hh + b - 1];
+          quad[q + 2] = cos[a * hh + b - 1];
+          quad[q + 3] = sin[a * hh + b - 1];
+        }
+      }
+      this.stages.push({ R, ns, twr, twi, cos, sin, quad });
       ns *= R;
     }
     this.br = new Float64Array(n);
@@ -122,6 +136,7 @@ export class MixedFft {
     this.pi = new Float64Array(most);
     this.mr = new Float64Array(most);
     this.mi = new Float64Array(most);
+    this.pm = new Float64Array(4 * most);
   }
 
   /** In place on (re, im). The input is zero outside indices [0, lo) and (n - lo, n): a generic
@@ -277,8 +292,8 @@ export class MixedFft {
    * sharing each cosine and sine (a quarter of the products of the plain sum). As the first stage
    * (ns = 1) with an input zero outside [0, lo) and (n - lo, n), the pairs beyond lo are zeros. */
   private generic(st: Stage, xr: Float64Array, xi: Float64Array, yr: Float64Array, yi: Float64Array, lo: number): void {
-    const { R, ns, twr, twi, cos, sin } = st;
-    const { n, vr, vi, pr, pi, mr, mi } = this;
+    const { R, ns, twr, twi, cos, sin, quad } = st;
+    const { n, vr, vi, pr, pi, mr, mi, pm } = this;
     const m = n / R;
     const blocks = m / ns;
     const h = (R - 1) >> 1;
@@ -308,9 +323,12 @@ export class MixedFft {
         }
         let s0r = vr[0], s0i = vi[0];
         for (let b = 1; b <= used; b++) {
-          pr[b] = vr[b] + vr[R - b]; pi[b] = vi[b] + vi[R - b];
-          mr[b] = vr[b] - vr[R - b]; mi[b] = vi[b] - vi[R - b];
-          s0r += pr[b]; s0i += pi[b];
+          const xr = vr[b] + vr[R - b], xi = vi[b] + vi[R - b];
+          const zr = vr[b] - vr[R - b], zi = vi[b] - vi[R - b];
+          pr[b] = xr; pi[b] = xi; mr[b] = zr; mi[b] = zi;
+          const q = 4 * (b - 1);
+          pm[q] = xr; pm[q + 1] = xi; pm[q + 2] = zr; pm[q + 3] = zi;
+          s0r += xr; s0i += xi;
         }
         const o = ob + jm;
         yr[o] = s0r; yi[o] = s0i;
@@ -320,12 +338,11 @@ export class MixedFft {
         for (; a < h; a += 2) {
           let ar = v0r, ai = v0i, br = 0, bi = 0;
           let cr = v0r, ci = v0i, dr = 0, di = 0;
-          const row = (a - 1) * h - 1;
-          const row2 = row + h;
-          for (let b = 1; b <= used; b++) {
-            const xr = pr[b], xi = pi[b], zr = mr[b], zi = mi[b];
-            const c = cos[row + b], sn = sin[row + b];
-            const c2 = cos[row2 + b], sn2 = sin[row2 + b];
+          // Both rows' cosines and sines, and the pairs' sums and differences, four in a row.
+          for (let b = 0, q = 4 * ((a - 1) >> 1) * h; b < 4 * used; b += 4, q += 4) {
+            const xr = pm[b], xi = pm[b + 1], zr = pm[b + 2], zi = pm[b + 3];
+            const c = quad[q], sn = quad[q + 1];
+            const c2 = quad[q + 2], sn2 = quad[q + 3];
             ar += xr * c; ai += xi * c;
             br += zr * sn; bi += zi * sn;
             cr += xr * c2; ci += xi * c2;
