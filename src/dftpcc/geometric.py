@@ -133,6 +133,11 @@ NARROW_TABLE_MAX_ABS = 255
 
 
 NARROW_TABLES_CACHED = 2048
+#: Frequency and cumulative tables wider than NARROW_TABLE_MAX_ABS hold up to 2 x 32,768 int64 (half
+#: a megabyte each, a slowly decaying band scale's): this many of them are cached. In the one cache of
+#: 2048 they shared with the narrow ones, decoding a 20,000² map (400 tiles) held 390 MB of them, and
+#: a band-coded run's memory grew with the tiles it had coded.
+WIDE_TABLES_CACHED = 64
 
 
 def table_model(max_abs: int, code: int):
@@ -154,8 +159,14 @@ def _cached_table_model(max_abs: int, code: int):
     return build_table_model(max_abs, code)
 
 
-@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
 def table_frequencies(max_abs: int, code: int) -> tuple[int, np.ndarray]:
+    """:func:`_table_frequencies`, cached (:data:`NARROW_TABLES_CACHED` narrow ones, :data:`WIDE_TABLES_CACHED` wide)."""
+    if max_abs <= NARROW_TABLE_MAX_ABS:
+        return _narrow_frequencies(max_abs, code)
+    return _wide_frequencies(max_abs, code)
+
+
+def _table_frequencies(max_abs: int, code: int) -> tuple[int, np.ndarray]:
     """Frequencies out of 2**24 of the symbols 0..2*max_abs of :func:`table_model`: 1 + w(|q|) *
     (2**24 - n) // total for each of the n = 2*max_abs+1 values (total: the sum of their weights),
     the remainder to q = 0. Returned as the first symbol above the floor of 1 and the frequencies
@@ -170,6 +181,10 @@ def table_frequencies(max_abs: int, code: int) -> tuple[int, np.ndarray]:
     near[known.size - 1] += (1 << TABLE_BITS) - int(near.sum()) - (n - both.size)
     near.flags.writeable = False  # cached: shared by every caller
     return max_abs - known.size + 1, near
+
+
+_narrow_frequencies = functools.lru_cache(maxsize=NARROW_TABLES_CACHED)(_table_frequencies)
+_wide_frequencies = functools.lru_cache(maxsize=WIDE_TABLES_CACHED)(_table_frequencies)
 
 
 def build_table_model(max_abs: int, code: int):
@@ -206,16 +221,24 @@ def code_order(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return order[skip:], present, bounds
 
 
-@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
-@functools.lru_cache(maxsize=NARROW_TABLES_CACHED)
 def table_cumulative(max_abs: int, code: int) -> tuple[int, np.ndarray]:
     """:func:`table_frequencies` as its first symbol above the floor and the running sums of the
-    frequencies from there, from 0 (what the compiled coder reads). Cached as that is (read-only)."""
+    frequencies from there, from 0 (what the compiled coder reads); cached as it is."""
+    if max_abs <= NARROW_TABLE_MAX_ABS:
+        return _narrow_cumulative(max_abs, code)
+    return _wide_cumulative(max_abs, code)
+
+
+def _table_cumulative(max_abs: int, code: int) -> tuple[int, np.ndarray]:
     lo, near = table_frequencies(max_abs, code)
     cumulative = np.zeros(near.size + 1, dtype=np.int64)
     np.cumsum(near, out=cumulative[1:])
     cumulative.flags.writeable = False
     return lo, cumulative
+
+
+_narrow_cumulative = functools.lru_cache(maxsize=NARROW_TABLES_CACHED)(_table_cumulative)
+_wide_cumulative = functools.lru_cache(maxsize=WIDE_TABLES_CACHED)(_table_cumulative)
 
 
 def _table_words_compiled(q: np.ndarray, per_value: np.ndarray, max_abs: int) -> np.ndarray:

@@ -67,7 +67,8 @@ class Stamp:
         if other.size != self.size:
             return f"its length went from {self.size:,} to {other.size:,} bytes"
         if self.version is not None and other.version is not None and other.version != self.version:
-            return f"its ETag went from {self.version} to {other.version}"
+            what = "ETag" if other.version.startswith(('"', "W/")) else "modification date"
+            return f"its {what} went from {self.version} to {other.version}"
         return None
 
 
