@@ -500,6 +500,8 @@ VERIFIED = 1
 #: A cutoff's smallest predicted file this many times in a row larger than the one before ends the
 #: walk down the cutoffs (the files only grow from there).
 RISES = 2
+#: The step (times the bound) the ranking's walk over the steps starts from at the highest cutoff.
+START_FACTOR = 4.0
 
 
 @dataclass
@@ -565,19 +567,31 @@ def _for_max_error(an: Analysis, params: Params) -> Choice | None:
         layer = _layer(an, cutoff, bound * factor, bound, coder)
         rebuilt[(cutoff, factor)] = layer
         curve.add(energies[cutoff].rmse(layer.trial.step) / bound, layer.resd)
-    # Rank every (cutoff, factor) by its estimated COEF bytes and the curve's RESD bytes.
+    # Rank each cutoff's smallest (cutoff, factor) by its estimated COEF bytes and the curve's RESD
+    # bytes: in the factor the predicted file falls to one low and rises from it (the spectrum
+    # shrinks, the layer grows), found by walking down from the last cutoff's (a few estimates a
+    # cutoff, where every factor up to the rise took twice as many).
+    factors = _factors(True)
     ranked: list[tuple[float, float, float]] = []
     best_at: list[float] = []
+    at = factors.index(START_FACTOR)
     for cutoff in sorted(tried, reverse=True):
-        smallest = math.inf
-        for factor in _factors(True):
-            energy = energies[cutoff]
-            size = _estimate(an, cutoff, bound * factor) + curve(energy.rmse(bound * factor) / bound)
-            ranked.append((size, cutoff, factor))
-            if size > smallest * GIVE_UP_FACTOR:
-                break  # coarser steps only grow the layer faster than they shrink the spectrum
-            smallest = min(smallest, size)
-        best_at.append(smallest)
+        energy = energies[cutoff]
+        sizes: dict[int, float] = {}
+
+        def size_at(j: int) -> float:
+            if j not in sizes:
+                step = bound * factors[j]
+                sizes[j] = _estimate(an, cutoff, step) + curve(energy.rmse(step) / bound)
+            return sizes[j]
+
+        while True:
+            nearer = min((j for j in (at - 1, at + 1) if 0 <= j < len(factors)), key=size_at)
+            if size_at(nearer) >= size_at(at):
+                break
+            at = nearer
+        ranked.append((sizes[at], cutoff, factors[at]))
+        best_at.append(sizes[at])
         if len(best_at) > RISES and all(best_at[-k - 1] > best_at[-k - 2] for k in range(RISES)):
             break
     ranked.sort()
