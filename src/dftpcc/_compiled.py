@@ -44,6 +44,8 @@ TOTAL = 1 << PRECISION
 #: The table decoders' quantile slots (2**12 of the 2**24 quantiles; see _decode_coded_values).
 SLOT_SHIFT = 12
 SLOTS = TOTAL >> SLOT_SHIFT
+#: Values of one scale code from which a table decoder builds its slots.
+SLOT_MIN_VALUES = 512
 FREE = float(TOTAL - 2)
 
 
@@ -345,17 +347,23 @@ def _decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, al
         # slots[s]: the last symbol whose left cumulative is at most s * 2**SLOT_SHIFT, so a
         # quantile's symbol lies between slots[s] and slots[s + 1] (most often they are equal):
         # the search is over those few symbols, not the alphabet (the same symbol as _pop_table).
-        a = 0
-        for s in range(SLOTS):
-            while lefts[a + 1] <= (s << SLOT_SHIFT):
-                a += 1
-            slots[s] = a
-        slots[SLOTS] = n - 1
+        # A code of few values searches the alphabet instead: the table would cost more than it saves.
+        slotted = count[c + 1] - count[c] >= SLOT_MIN_VALUES
+        if slotted:
+            a = 0
+            for s in range(SLOTS):
+                while lefts[a + 1] <= (s << SLOT_SHIFT):
+                    a += 1
+                slots[s] = a
+            slots[SLOTS] = n - 1
         half = (n - 1) // 2
         for j in range(count[c], count[c + 1]):
             quantile = np.int64(state & mask24)
-            s = quantile >> SLOT_SHIFT
-            a, b = slots[s], slots[s + 1]
+            if slotted:
+                s = quantile >> SLOT_SHIFT
+                a, b = slots[s], slots[s + 1]
+            else:
+                a, b = 0, n - 1
             while a < b:
                 mid = (a + b + 1) // 2
                 if lefts[mid] <= quantile:
