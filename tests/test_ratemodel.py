@@ -266,3 +266,39 @@ def test_the_residual_bound_from_sorted_sums_is_the_direct_bisections(gale, tail
     expected, meets = _direct_bound(err, target)
     assert found == pytest.approx(expected, rel=1e-9)
     assert meets(found)
+
+
+def _rough_layer(seed=3, n=96):
+    """A residual layer of a rough map (the predicted layout's case) and its cells."""
+    rng = np.random.default_rng(seed)
+    heights = np.cumsum(rng.normal(0, 4, (n, n)), 0) + np.cumsum(rng.normal(0, 4, (n, n)), 1)
+    kept = rng.random((n, n)) > 0.2
+    return np.round(heights[kept]).astype(np.int64), kept
+
+
+def test_the_predicted_layout_is_modelled_once_for_its_estimate_and_its_coding(monkeypatch):
+    """Rate control estimates the predicted layout of the layer it keeps, then codes it: one model
+    (fit, errors, contexts) serves both, and the file is the one a fresh model codes."""
+    q, kept = _rough_layer()
+    fresh = residual.encode_residual(q.copy(), "ans", kept)
+    assert residual.layout_of(fresh) == "predicted"
+    calls = []
+    real = residual._predicted_model
+    monkeypatch.setattr(residual, "_predicted_model", lambda *a, **k: calls.append(1) or real(*a, **k))
+    estimate = residual._estimated_predicted(q, kept)
+    blob = residual.encode_residual(q, "ans", kept)
+    assert len(calls) == 1
+    assert blob == fresh and estimate == pytest.approx(len(blob), rel=0.01)
+
+
+def test_a_layer_model_is_let_go_with_its_layer():
+    """The shared model (arrays the size of the map) is dropped when its layer is, not kept until
+    another layer is sized."""
+    import gc
+
+    q, kept = _rough_layer(seed=4)
+    residual._estimated_predicted(q, kept)
+    assert residual._known_model(q, kept) is not None
+    del q
+    gc.collect()
+    assert not residual._MODELS.entries

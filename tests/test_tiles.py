@@ -122,30 +122,25 @@ def test_a_full_tile_has_no_mask_section_and_one_with_it_still_reads(tile_masks)
 
 def _candidates(dem: DEM, params) -> tuple[list[bytes], int]:
     """The files encode_dem chooses among (first run, covering base layer with and without the tiles'
-    own coefficients; a target the base layer alone cannot reach has no third), and the covering reach.
-    A maximum-error target's covering runs are coded at the cutoff whose circle the base layer holds."""
+    own coefficients; a target the base layer alone cannot reach has no third), and the covering reach."""
     from dftpcc import encoder
 
     params = params.replace(resolution=dem.grid.resolution)
+    args = (params, int(dem.mask.sum()), None, encoder.no_stage, None)
 
-    def analysis(cycles, params=params):
+    def analysis(cycles):
         return encoder._TILES.analysis(dem, params, encoder.no_stage, base_cycles=cycles)
 
-    def rest(params):
-        return (params, int(dem.mask.sum()), None, encoder.no_stage, None)
-
-    first, cutoff = encoder._TILES.encode(analysis(tiles.BASE_CYCLES_PER_TILE), *rest(params))
+    first, cutoff = encoder._TILES.encode(analysis(tiles.BASE_CYCLES_PER_TILE), *args)
     if params.has_target and params.cutoff is None:
         lowest = tiles.covering_cutoff(dem.grid.shape, params.tile_size)
         cutoff = max(cutoff, 1.0 if lowest is None else lowest)
     cover = tiles.covering_reach(dem.grid.shape, params.tile_size, cutoff)
     assert cover is not None and cover > 1
-    if params.target_max_error > 0 and params.cutoff is None:
-        params = params.replace(cutoff=cutoff)
-    out = [first, encoder._TILES.encode(analysis(cover, params), *rest(params))[0]]
+    out = [first, encoder._TILES.encode(analysis(cover), *args)[0]]
     if params.has_target:  # at fixed settings the base layer alone would lose the tiles' refinement
         try:
-            out.append(encoder._TILES.encode(analysis(cover, params).without_tile_coefs(), *rest(params))[0])
+            out.append(encoder._TILES.encode(analysis(cover).without_tile_coefs(), *args)[0])
         except InvalidInputError:
             pass
     return out, cover

@@ -341,17 +341,12 @@ class _Tiles(_Layout):
             return data
         with warnings.catch_warnings():  # the first run has said whatever these would
             warnings.simplefilter("ignore")
-            # A maximum-error target's covering runs are asked for the cutoff whose circle the base
-            # layer holds (the first run's, or the lowest that fits): rate control searched every
-            # cutoff twice more. (An RMSE target may do better below it, where the base layer does
-            # not hold the whole circle: its runs still search.)
-            again = params.replace(cutoff=cutoff) if params.target_max_error > 0 and params.cutoff is None else params
-            covering = self.analysis(dem, again, on_stage, base_cycles=cycles)
+            covering = self.analysis(dem, params, on_stage, base_cycles=cycles)
             # Without a target the settings fix the quality, and a base layer alone would lose the
             # tiles' refinement of it: only a target compares files of equal quality.
             for an in (covering, covering.without_tile_coefs()) if params.has_target else (covering,):
                 try:
-                    other, _ = self.encode(an, again, point_count, crs, on_stage, map_tiles, masks)
+                    other, _ = self.encode(an, params, point_count, crs, on_stage, map_tiles, masks)
                 except InvalidInputError:  # a target the base layer alone cannot reach
                     if an.tile_coefs:
                         raise

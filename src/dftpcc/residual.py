@@ -468,8 +468,16 @@ def _shared_model(q: np.ndarray, kept: np.ndarray):
     if entry is not None:
         return entry[2]
     model = _predicted_model(q, kept)
-    entries = [e for e in getattr(_MODELS, "entries", ()) if e[0]() is not None]
-    _MODELS.entries = (entries + [(weakref.ref(q), weakref.ref(kept), model)])[-SHARED_MODELS:]
+    entries = getattr(_MODELS, "entries", None)
+    if entries is None:
+        entries = _MODELS.entries = []
+
+    def forget(ref: weakref.ref, entries: list = entries) -> None:
+        # The model (a few arrays of the map's size) goes with its layer, not with the next layer sized.
+        entries[:] = [e for e in entries if e[0] is not ref]
+
+    entries.append((weakref.ref(q, forget), weakref.ref(kept), model))
+    del entries[:-SHARED_MODELS]
     return model
 
 
