@@ -401,8 +401,8 @@ class MapBuilder:
             raise InvalidInputError("the map is empty: add a scan first")
         target_max_error = check_bound(target_max_error)
         if target_max_error is not None:
-            if float(target_max_error) != self.params.target_max_error:
-                self.params = self.params.replace(target_max_error=float(target_max_error))
+            if target_max_error != self.params.target_max_error:
+                self.params = self.params.replace(target_max_error=target_max_error)
                 self._dirty.update(self._tiles)  # every tile's residual is in steps of the one bound
         changed = self.changed_tiles()
         recount = sorted(self._recount.difference(changed))

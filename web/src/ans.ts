@@ -44,25 +44,19 @@ export class AnsDecoder {
   /** The next symbol under a model given by its cumulative table `cdf` (n + 1 entries, cdf[0] = 0,
    * cdf[n] = 2**24). */
   decode(cdf: Int32Array, n: number): number {
-    const quantile = this.lo & QUANTILE_MASK;
-    let a = 0;
-    let b = n - 1; // the symbol is the largest s with cdf[s] <= quantile
-    while (a < b) {
-      const m = (a + b + 1) >> 1;
-      if (cdf[m] <= quantile) a = m;
-      else b = m - 1;
-    }
-    this.advance(quantile - cdf[a], cdf[a + 1] - cdf[a]);
-    return a;
+    return this.symbolBetween(cdf, 0, n - 1);
   }
 
   /** decode() with the symbols at the slots' bounds (slotsOf(cdf)) narrowing the search: the
    * quantile's slot holds one or two symbols of a model with large alphabets, not log2 n steps. */
   decodeSlotted(cdf: Int32Array, slots: Int32Array): number {
+    const t = (this.lo & QUANTILE_MASK) >>> SLOT_SHIFT;
+    return this.symbolBetween(cdf, slots[t], slots[t + 1]);
+  }
+
+  /** The largest symbol s in a..b with cdf[s] <= the quantile, decoded. */
+  private symbolBetween(cdf: Int32Array, a: number, b: number): number {
     const quantile = this.lo & QUANTILE_MASK;
-    const t = quantile >>> SLOT_SHIFT;
-    let a = slots[t];
-    let b = slots[t + 1];
     while (a < b) {
       const m = (a + b + 1) >> 1;
       if (cdf[m] <= quantile) a = m;
