@@ -948,3 +948,59 @@ def test_sparse_layer_integers_are_numpys(jit):
         for on in (True, False):
             jit(on)
             assert np.array_equal(residual._signed_at(picture, mask, sizes, negative), expected)
+
+
+def test_predicted_errors_and_classes_are_numpys(jit):
+    """Kind 5's errors and classes read cell by cell (interior by offset, edges by format.md's rules)
+    are the neighbour arrays' ones, on every mask shape, with weights of both signs."""
+    from dftpcc import residual
+
+    rng = np.random.default_rng(13)
+    for mask, _ in _masks(rng):
+        if not mask.any():
+            continue
+        q = np.cumsum(rng.integers(-300, 301, int(mask.sum())))
+        grid = residual._filled(q, mask)
+        weights = rng.integers(-(1 << 17), 1 << 17, len(residual.NEIGHBOURS))
+        expected = residual._errors_and_classes.numpy(grid, mask, weights)
+        found = residual._errors_and_classes.compiled(grid, mask, weights)
+        assert found is not NotImplemented
+        for a, b in zip(found, expected):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+def test_predicted_coding_order_is_numpys(jit):
+    """Kind 5's order (wavefront, class, row), group bounds and classes from one counting sort per
+    wavefront are the two stable sorts' ones, with classes of code 0 left out."""
+    from dftpcc import residual
+
+    rng = np.random.default_rng(14)
+    for t, (mask, _) in enumerate(_masks(rng)):
+        classes = rng.integers(0, residual.CLASSES, int(mask.sum()))
+        codes = [np.zeros(residual.CLASSES, np.uint8), np.ones(residual.CLASSES, np.uint8),
+                 rng.integers(0, 3, residual.CLASSES).astype(np.uint8)][t % 3]
+        expected = residual._coding_order.numpy(mask, classes, codes)
+        found = residual._coding_order.compiled(mask, classes, codes)
+        assert found is not NotImplemented
+        for a, b in zip(found, expected):
+            assert np.array_equal(a, b)
+
+
+def test_a_geotiff_counts_its_pixels_for_the_backend(monkeypatch, tmp_path):
+    """compress_file of a GeoTIFF chooses the backend from its pixels, as a cloud's from its points:
+    a 1.6 G-cell raster ran every stage on numpy (its format stated no count)."""
+    pytest.importorskip("rasterio")
+    import dftpcc
+    from dftpcc import files, io
+
+    dem = dftpcc.open(dftpcc.compress(_patchy_points(), resolution=0.5, cutoff=0.7)).read_dem()
+    tif = tmp_path / "dem.tif"
+    io.write_geotiff(tif, dem)
+    pixels = dem.heights.size
+    assert files.stored_point_count(tif) == pixels
+    monkeypatch.delenv("DFTPCC_JIT", raising=False)
+    for threshold, loaded in ((pixels + 1, False), (pixels, True)):
+        monkeypatch.setattr(kernels, "_state", {"module": None, "tried": False, "found": None})
+        monkeypatch.setattr(kernels, "COMPILED_MIN_POINTS", threshold)
+        files.compress_file(tif, tmp_path / f"{threshold}.dftpc", cutoff=0.5)
+        assert (kernels._state["module"] is not None) is loaded

@@ -1160,6 +1160,154 @@ def kept_neighbours(grid: np.ndarray, kept: np.ndarray, offsets: tuple[tuple[int
 
 
 @njit(cache=True, nogil=True)
+def _predicted_errors(flat, kept, weights, rows, cols, e, magnitude):  # pragma: no cover - compiled
+    # residual._errors_and_classes' first half: each kept cell's prediction error (row-major, into
+    # e) and |error| at its cell (magnitude, zeros elsewhere); the interior's neighbours by offset,
+    # the edges' under format.md's rules (_neighbour_at). Integer arithmetic: the numpy twin's bits.
+    ups = (0, 1, 1, 1, 0, 2, 2)
+    lefts = (1, 0, 1, -1, 2, 0, -1)
+    w0, w1, w2, w3, w4, w5, w6 = weights[0], weights[1], weights[2], weights[3], weights[4], weights[5], weights[6]
+    half = np.int64(1) << np.int64(15)
+    k = 0
+    for r in range(rows):
+        base = r * cols
+        for c in range(cols):
+            cell = base + c
+            if not kept[cell]:
+                continue
+            if r >= 2 and 2 <= c <= cols - 2:
+                total = (w0 * flat[cell - 1] + w1 * flat[cell - cols] + w2 * flat[cell - cols - 1]
+                         + w3 * flat[cell - cols + 1] + w4 * flat[cell - 2] + w5 * flat[cell - 2 * cols]
+                         + w6 * flat[cell - 2 * cols + 1])
+            else:
+                total = np.int64(0)
+                for n in range(7):
+                    at = _neighbour_at(r, c, ups[n], lefts[n], cols)
+                    if at >= 0:
+                        total += weights[n] * flat[at]
+            err = flat[cell] - ((total + half) >> np.int64(16))
+            e[k] = err
+            magnitude[cell] = abs(err)
+            k += 1
+
+
+@njit(cache=True, nogil=True)
+def _activity_classes(magnitude, kept, rows, cols, classes):  # pragma: no cover - compiled
+    # residual._errors_and_classes' second half: each kept cell's class (row-major) from its
+    # neighbours' |errors| (residual.ACTIVITY_WEIGHTS), as residual._classes.
+    ups = (0, 1, 1, 1, 0, 2)
+    lefts = (1, 0, 1, -1, 2, 0)
+    act_w = (2, 2, 1, 1, 1, 1)
+    k = 0
+    for r in range(rows):
+        base = r * cols
+        for c in range(cols):
+            cell = base + c
+            if not kept[cell]:
+                continue
+            if r >= 2 and 2 <= c <= cols - 2:
+                a = (2 * magnitude[cell - 1] + 2 * magnitude[cell - cols] + magnitude[cell - cols - 1]
+                     + magnitude[cell - cols + 1] + magnitude[cell - 2] + magnitude[cell - 2 * cols])
+            else:
+                a = np.int64(0)
+                for n in range(6):
+                    at = _neighbour_at(r, c, ups[n], lefts[n], cols)
+                    if at >= 0:
+                        a += act_w[n] * magnitude[at]
+            if a == 0:
+                g = 0
+            else:
+                b = 0
+                x = a
+                while x:
+                    b += 1
+                    x >>= 1
+                s = (a >> (b - 2)) & 1 if b >= 2 else 0
+                g = min(63, 2 * b - 1 + s)
+            classes[k] = g
+            k += 1
+
+
+@njit(cache=True, nogil=True)
+def _coding_order(kept, classes, codes, rows, cols, order, bounds, group_classes):  # pragma: no cover - compiled
+    # residual._coding_order: the coded kept cells (code of their class > 0) by wavefront, then
+    # class, then row, as indices of the kept cells (row-major); each (wavefront, class) group's
+    # start in bounds and class in group_classes. Returns the number of groups.
+    at = np.empty(rows * cols, dtype=np.int64)
+    k = 0
+    for cell in range(rows * cols):
+        if kept[cell]:
+            at[cell] = k
+            k += 1
+        else:
+            at[cell] = -1
+    count = np.zeros(64, dtype=np.int64)
+    n = 0
+    groups = 0
+    for wave in range(2 * (rows - 1) + cols):
+        r_lo = max(0, (wave - cols + 2) // 2)
+        r_hi = min(rows - 1, wave // 2)
+        count[:] = 0
+        for r in range(r_lo, r_hi + 1):
+            p = at[r * cols + wave - 2 * r]
+            if p >= 0 and codes[classes[p]]:
+                count[classes[p]] += 1
+        start = n
+        for g in range(64):
+            if count[g]:
+                bounds[groups] = start
+                group_classes[groups] = g
+                groups += 1
+                c = count[g]
+                count[g] = start
+                start += c
+        for r in range(r_lo, r_hi + 1):
+            p = at[r * cols + wave - 2 * r]
+            if p >= 0 and codes[classes[p]]:
+                order[count[classes[p]]] = p
+                count[classes[p]] += 1
+        n = start
+    bounds[groups] = n
+    return groups
+
+
+def coding_order(kept: np.ndarray, classes: np.ndarray, codes: np.ndarray, *, classes_count: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``residual._coding_order`` in one counting sort per wavefront (no sorts of the whole map)."""
+    if (classes_count != 64 or kept.dtype != np.bool_ or kept.ndim != 2 or classes.dtype != np.int64
+            or codes.shape != (64,)):
+        return NotImplemented
+    rows, cols = kept.shape
+    coded = int(np.count_nonzero(codes[classes]))
+    order = np.empty(coded, dtype=np.int64)
+    bounds = np.empty(coded + 1, dtype=np.int64)
+    group_classes = np.empty(coded, dtype=np.int64)
+    groups = _coding_order(np.ascontiguousarray(kept).reshape(-1), classes, codes.astype(np.int64), rows, cols,
+                           order, bounds, group_classes)
+    return order, bounds[:groups + 1].copy(), group_classes[:groups].copy()
+
+
+def errors_and_classes(grid: np.ndarray, kept: np.ndarray, weights: np.ndarray, *, offsets: tuple, activity: tuple,
+                       classes: int, weight_bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """``residual._errors_and_classes`` in two passes over the grid, each neighbour read where it is
+    (no neighbour arrays); declines any layout constant other than the ones written in here."""
+    if (offsets != ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0), (2, -1)) or activity != (2, 2, 1, 1, 1, 1, 0)
+            or classes != 64 or weight_bits != 16 or grid.dtype != np.int64 or kept.dtype != np.bool_
+            or grid.shape != kept.shape or grid.ndim != 2 or weights.shape != (7,)):
+        return NotImplemented
+    rows, cols = grid.shape
+    flat = np.ascontiguousarray(grid).reshape(-1)
+    where = np.ascontiguousarray(kept).reshape(-1)
+    n = int(np.count_nonzero(where))
+    e = np.empty(n, dtype=np.int64)
+    magnitude = np.zeros(rows * cols, dtype=np.int64)
+    _predicted_errors(flat, where, weights.astype(np.int64), rows, cols, e, magnitude)
+    out = np.empty(n, dtype=np.int64)
+    _activity_classes(magnitude, where, rows, cols, out)
+    return e, out
+
+
+@njit(cache=True, nogil=True)
 def _signed_at(picture, kept, sizes, negative, out):  # pragma: no cover - compiled
     k = j = 0
     for cell in range(kept.size):

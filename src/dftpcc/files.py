@@ -37,7 +37,7 @@ __all__ = ["compress_file", "decompress_file", "read_dem", "check_compressed_out
 
 
 def stored_point_count(src: str | os.PathLike[str], format: str | None = None) -> int | None:  # noqa: A002
-    """:func:`dftpcc.io.stored_point_count`: points a file holds (a ROS bag: a bound), for the formats read in chunks."""
+    """:func:`dftpcc.io.stored_point_count`: points a file holds (a ROS bag: a bound; a GeoTIFF: its pixels)."""
     return io.stored_point_count(src, format)
 
 

@@ -412,6 +412,31 @@ def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
 FIT_CELLS = 1 << 16
 
 
+def _strided_neighbours(grid: np.ndarray, kept: np.ndarray, stride: int) -> list[np.ndarray]:
+    """The neighbours (:data:`NEIGHBOURS`) of every ``stride``-th kept cell (row-major), as
+    ``_kept_neighbours(grid, kept, NEIGHBOURS)[:, ::stride]`` without the other cells' rows."""
+    cells = np.flatnonzero(kept)[::stride]
+    r, c = np.divmod(cells, kept.shape[1])
+    flat = np.append(grid.ravel(), 0)  # the (0, 0) cell's "neighbour" is a zero
+    return [flat[_neighbour(up, left, r, c, kept.shape)] for up, left in NEIGHBOURS]
+
+
+@kernels.kernel("errors_and_classes", offsets=NEIGHBOURS, activity=ACTIVITY_WEIGHTS, classes=CLASSES,
+                weight_bits=WEIGHT_BITS)
+def _errors_and_classes(grid: np.ndarray, kept: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kind 5's prediction errors of the kept cells (row-major) from the filled ``grid`` (values V)
+    and ``weights``, and each kept cell's class from its neighbours' |errors| (format.md)."""
+    q = grid[kept]
+    e = q - _prediction(weights, list(_kept_neighbours(grid, kept, NEIGHBOURS)))
+    errors = np.zeros(kept.shape, dtype=np.int64)
+    errors[kept] = np.abs(e)
+    counted = [(offset, k) for offset, k in zip(NEIGHBOURS, ACTIVITY_WEIGHTS) if k]
+    activity = np.zeros(q.size, dtype=np.int64)
+    for row, (_, k) in zip(_kept_neighbours(errors, kept, tuple(o for o, _ in counted)), counted):
+        activity += k * row
+    return e, _classes(activity)
+
+
 def _predicted_model(q: np.ndarray, kept: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Kind 5's model of ``q``: the weights (fitted on about :data:`FIT_CELLS` cells), the
@@ -420,19 +445,11 @@ def _predicted_model(q: np.ndarray, kept: np.ndarray
     if np.abs(q).max() >= VALUE_LIMIT:
         return None
     grid = _filled(q, kept)
-    values = list(_kept_neighbours(grid, kept, NEIGHBOURS))
     stride = max(1, q.size // FIT_CELLS)
-    weights = _fit_weights([v[::stride] for v in values], q[::stride])
-    e = q - _prediction(weights, values)
+    weights = _fit_weights(_strided_neighbours(grid, kept, stride), q[::stride])
+    e, classes = _errors_and_classes(grid, kept, weights)
     if np.abs(e).max() > geometric.MAX_ANS_SYMBOL:
         return None
-    errors = np.zeros(kept.shape, dtype=np.int64)
-    errors[kept] = np.abs(e)
-    counted = [(offset, k) for offset, k in zip(NEIGHBOURS, ACTIVITY_WEIGHTS) if k]
-    activity = np.zeros(q.size, dtype=np.int64)
-    for row, (_, k) in zip(_kept_neighbours(errors, kept, tuple(o for o, _ in counted)), counted):
-        activity += k * row
-    classes = _classes(activity)
     lo, band_codes, _ = geometric.band_statistics(e, classes)
     codes = np.zeros(CLASSES, dtype=np.uint8)
     codes[lo:lo + band_codes.size] = band_codes
@@ -481,17 +498,15 @@ def _shared_model(q: np.ndarray, kept: np.ndarray):
     return model
 
 
-def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
-    """Kind 5's payload for ``q``, or None when its values or errors pass the layout's limits."""
-    model = _shared_model(q, kept)
-    if model is None:
-        return None
-    weights, e, classes, codes, max_abs = model
+@kernels.kernel("coding_order", classes_count=CLASSES)
+def _coding_order(kept: np.ndarray, classes: np.ndarray, codes: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Kind 5's coding order (format.md): the kept cells whose class has a nonzero code, by
+    wavefront, then class, then row, as indices of the kept cells (row-major); where each
+    (wavefront, class) group starts in that order (and its end), and each group's class."""
     rows, cols = kept.shape
-    r, c = np.nonzero(kept)  # row-major, as q
-    # Decoding order: wavefront, then class, then row; cells of code 0 are not coded.
-    per_cell = codes[classes]
-    coded = np.flatnonzero(per_cell)
+    r, c = np.nonzero(kept)  # row-major, as classes
+    coded = np.flatnonzero(codes[classes])
     # By wave, then class, then row: two stable sorts of small keys (radix sorts), class first;
     # ``coded`` is row-major, so cells of one wave and class stay in row order.
     by_class = coded[np.argsort(classes[coded].astype(np.uint8), kind="stable")]
@@ -499,8 +514,16 @@ def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
     order = by_class[np.argsort(wave.astype(np.uint16 if rows * 2 + cols < 1 << 16 else np.int64), kind="stable")]
     key = (2 * r[order] + c[order]) * CLASSES + classes[order]
     starts = np.flatnonzero(np.diff(key, prepend=-1))
-    bounds = np.append(starts, order.size)
-    group_classes = classes[order[starts]]
+    return order, np.append(starts, order.size), classes[order[starts]]
+
+
+def _encode_predicted(q: np.ndarray, kept: np.ndarray) -> bytes | None:
+    """Kind 5's payload for ``q``, or None when its values or errors pass the layout's limits."""
+    model = _shared_model(q, kept)
+    if model is None:
+        return None
+    weights, e, classes, codes, max_abs = model
+    order, bounds, group_classes = _coding_order(kept, classes, codes)
     symbols = e[order] + max_abs[classes[order]]
     present = np.flatnonzero(codes)
     words = _class_words(symbols, bounds, group_classes, codes, max_abs)

@@ -64,6 +64,9 @@ class Format:
     by_url : bool
         Whether its reader reads a URL by range requests (:data:`URL_FORMATS`); a file of
         another format at a URL is downloaded first (:func:`dftpcc.files.compress_file`).
+    counted : bool
+        Whether its header says how many points it holds (a raster: its pixels; a ROS bag: a
+        bound), for :func:`stored_point_count`; every format read in chunks does.
     """
 
     name: str
@@ -75,6 +78,7 @@ class Format:
     not_written: str = ""
     streams: bool = False
     by_url: bool = False
+    counted: bool = False
 
     def load(self) -> ModuleType:
         """The format's module (imported on first use: rasterio alone takes a fifth of a second)."""
@@ -91,21 +95,22 @@ class Format:
 
 #: Format name -> its entry.
 REGISTRY: dict[str, Format] = {f.name: f for f in (
-    Format("las", (".las",), "las", "LasReader", "write_las", streams=True, by_url=True),
-    Format("laz", (".laz",), "las", "LasReader", "write_las", streams=True, by_url=True),
-    Format("ply", (".ply",), "ply", "PlyReader", "write_ply", streams=True),
+    Format("las", (".las",), "las", "LasReader", "write_las", streams=True, counted=True, by_url=True),
+    Format("laz", (".laz",), "las", "LasReader", "write_las", streams=True, counted=True, by_url=True),
+    Format("ply", (".ply",), "ply", "PlyReader", "write_ply", streams=True, counted=True),
     Format("pcd", (".pcd",), "pcd", "PcdReader", "write_pcd"),
     Format("xyz", (".xyz", ".txt"), "text", "TextReader", "write_text"),
     Format("csv", (".csv",), "text", "TextReader", "write_text"),
-    Format("npy", (".npy",), "npy", "NpyReader", "write_npy", streams=True),
+    Format("npy", (".npy",), "npy", "NpyReader", "write_npy", streams=True, counted=True),
     Format("drc", (".drc",), "drc", "DracoReader",
            not_written="Draco files are read, not written: write .ply, .pcd, .las or .npy"),
     Format("tif", (".tif", ".tiff"), "geotiff", "GeoTiffReader", dem_writer="write_geotiff",
-           not_written="a GeoTIFF holds a DEM, not points: use write_geotiff", by_url=True),
+           not_written="a GeoTIFF holds a DEM, not points: use write_geotiff", by_url=True,
+           counted=True),
     Format("rosbag", (".bag", ".db3", ".mcap"), "rosbag", "BagReader",
            not_written="ROS bags are read, not written as files: a ROS 2 bag of the map is a folder "
                        "(decompress MAP out_bag/, or dftpcc.io.rosmap.write_map_bag); "
-                       "write .ply, .pcd, .las or .npy", streams=True),
+                       "write .ply, .pcd, .las or .npy", streams=True, counted=True),
 )}
 #: Extension -> format name.
 FORMATS: dict[str, str] = {ext: f.name for f in REGISTRY.values() for ext in f.extensions}
@@ -326,14 +331,14 @@ def read(path: str | os.PathLike[str], *, format: str | None = None,  # noqa: A0
 
 
 def stored_point_count(path: str | os.PathLike[str], format: str | None = None) -> int | None:  # noqa: A002
-    """Points a file holds, for the formats read in chunks; else None.
+    """Points a file holds, for the formats whose header says (:attr:`Format.counted`); else None.
 
-    From the header for LAS, LAZ, PLY and NPY. A ROS bag has no such count:
+    From the header for LAS, LAZ, PLY and NPY; a GeoTIFF's pixels. A ROS bag has no such count:
     its size over 12 bytes (one float32 x, y, z, the smallest point a
     PointCloud2 holds) bounds it from above.
     """
     try:
-        if not REGISTRY[format_of(path, format)].streams:
+        if not REGISTRY[format_of(path, format)].counted:
             return None
         with open_reader(path, format=format) as reader:
             return reader.points_bound
