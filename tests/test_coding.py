@@ -462,6 +462,26 @@ def test_predicted_weights_are_exact_and_sum_to_one():
         assert len(payload) < _WEIGHTS.size + 100, (len(payload), listed)
 
 
+def test_predicted_weights_solve_is_the_exact_rational_solution():
+    """The fraction-free elimination gives the normal equations' rational solution itself: A x = b
+    holds in fractions, on systems near singular (two neighbours alike), of large sums and of small."""
+    from fractions import Fraction
+
+    from dftpcc.residual import _exact_solution
+
+    rng = np.random.default_rng(5)
+    for t in range(300):
+        scale = [1, 30, 1 << 15][t % 3]
+        d = rng.integers(-scale, scale + 1, (7, int(rng.integers(1, 40))))
+        if t % 4 == 0:
+            d[2] = d[1]
+        sums = (d @ d.T).tolist()
+        rows = [[sums[i][j] + (i == j) for j in range(6)] + [sums[i][6]] for i in range(6)]
+        x = _exact_solution(rows)
+        assert all(isinstance(v, Fraction) for v in x)
+        assert all(sum(row[j] * x[j] for j in range(6)) == row[6] for row in rows)
+
+
 def _predicted_payload(weights, codes, widths, words: bytes) -> bytes:
     from dftpcc.residual import _WEIGHTS
 

@@ -918,7 +918,8 @@ def test_scale_codes_counted_in_one_pass_are_numpys():
 
 def test_kept_neighbours_are_the_shifted_grids(jit):
     """The predicted residual's neighbours read cell by cell are those of the shifted grids, edges
-    included (row 0, column 0, the cell (0, 0)), on every mask shape."""
+    included (row 0, column 0, the cell (0, 0)), on every mask shape, of every kept cell or every
+    stride-th."""
     from dftpcc import residual
 
     rng = np.random.default_rng(11)
@@ -930,6 +931,8 @@ def test_kept_neighbours_are_the_shifted_grids(jit):
         for on in (True, False):
             jit(on)
             assert np.array_equal(residual._kept_neighbours(grid, mask, offsets), expected)
+            for stride in (2, 7):  # every stride-th kept cell: the predicted layout's fit
+                assert np.array_equal(residual._kept_neighbours(grid, mask, offsets, stride), expected[:, ::stride])
 
 
 def test_sparse_layer_integers_are_numpys(jit):

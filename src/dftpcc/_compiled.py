@@ -1135,27 +1135,29 @@ def dequantize_into(shape: tuple[int, int], where: np.ndarray, q: np.ndarray, st
 
 
 @njit(cache=True, nogil=True)
-def _kept_neighbours(flat, kept, ups, lefts, cols, out):  # pragma: no cover - compiled
+def _kept_neighbours(flat, kept, ups, lefts, cols, stride, out):  # pragma: no cover - compiled
     k = 0
     for cell in range(kept.size):
         if kept[cell]:
-            r, c = cell // cols, cell % cols
-            for t in range(ups.size):
-                i = _neighbour_at(r, c, ups[t], lefts[t], cols)
-                out[t, k] = 0 if i < 0 else flat[i]
+            if k % stride == 0:
+                r, c = cell // cols, cell % cols
+                for t in range(ups.size):
+                    i = _neighbour_at(r, c, ups[t], lefts[t], cols)
+                    out[t, k // stride] = 0 if i < 0 else flat[i]
             k += 1
 
 
-def kept_neighbours(grid: np.ndarray, kept: np.ndarray, offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
+def kept_neighbours(grid: np.ndarray, kept: np.ndarray, offsets: tuple[tuple[int, int], ...],
+                    stride: int = 1) -> np.ndarray:
     """``residual._kept_neighbours`` in one pass over the kept cells, each neighbour read where it
     is (no shifted copy of the grid per neighbour)."""
-    if grid.dtype != np.int64 or kept.dtype != np.bool_ or grid.shape != kept.shape or grid.ndim != 2:
+    if grid.dtype != np.int64 or kept.dtype != np.bool_ or grid.shape != kept.shape or grid.ndim != 2 or stride < 1:
         return NotImplemented
     ups = np.array([up for up, _ in offsets], dtype=np.int64)
     lefts = np.array([left for _, left in offsets], dtype=np.int64)
-    out = np.empty((len(offsets), int(np.count_nonzero(kept))), dtype=np.int64)
+    out = np.empty((len(offsets), -(-int(np.count_nonzero(kept)) // stride)), dtype=np.int64)
     _kept_neighbours(np.ascontiguousarray(grid).reshape(-1), np.ascontiguousarray(kept).reshape(-1), ups, lefts,
-                     grid.shape[1], out)
+                     grid.shape[1], stride, out)
     return out
 
 

@@ -299,12 +299,14 @@ def _shifted(grid: np.ndarray, up: int, left: int) -> np.ndarray:
 
 
 @kernels.kernel("kept_neighbours")
-def _kept_neighbours(grid: np.ndarray, kept: np.ndarray, offsets: tuple[tuple[int, int], ...]) -> np.ndarray:
-    """Each kept cell's neighbours (row-major, as ``grid[kept]``) at ``offsets`` (rows up, columns
-    left) under :func:`_shifted`'s edge rules: one row per offset (int64)."""
-    out = np.empty((len(offsets), int(np.count_nonzero(kept))), dtype=grid.dtype)
+def _kept_neighbours(grid: np.ndarray, kept: np.ndarray, offsets: tuple[tuple[int, int], ...],
+                     stride: int = 1) -> np.ndarray:
+    """Each kept cell's neighbours (row-major, as ``grid[kept]``; every ``stride``-th kept cell) at
+    ``offsets`` (rows up, columns left) under :func:`_shifted`'s edge rules: one row per offset (int64)."""
+    cells = np.flatnonzero(kept)[::stride]
+    out = np.empty((len(offsets), cells.size), dtype=grid.dtype)
     for row, (up, left) in enumerate(offsets):
-        out[row] = _shifted(grid, up, left)[kept]
+        out[row] = _shifted(grid, up, left).ravel()[cells]
     return out
 
 
@@ -379,6 +381,23 @@ def _exact_products(x: np.ndarray) -> np.ndarray:
     return total
 
 
+def _exact_solution(rows: list[list[int]]) -> list[Fraction]:
+    """The solution of the integer system ``rows`` (m rows of A | b, A positive definite), exactly:
+    fraction-free Gauss-Jordan elimination (Bareiss), whose every division is exact, so integers
+    carry it and only the m answers are fractions (a tenth of the time of elimination in fractions)."""
+    a = [list(row) for row in rows]
+    m = len(a)
+    previous = 1
+    for k in range(m):
+        pivot = a[k][k]  # a leading minor of a positive definite matrix: never 0
+        for i in range(m):
+            if i != k:
+                factor = a[i][k]
+                a[i] = [(pivot * v - factor * p) // previous for v, p in zip(a[i], a[k])]
+        previous = pivot
+    return [Fraction(a[i][m], a[i][i]) for i in range(m)]
+
+
 def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
     """Least-squares weights (sum 2**16) of the neighbours' ``values`` for ``target``, from exact
     integer sums and an exact solve, so the file is the same on every machine."""
@@ -391,17 +410,12 @@ def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
     usable = np.abs(d).max(axis=0) <= FIT_LIMIT
     sums = _exact_products(d if usable.all() else d[:, usable])
     # The normal equations, plus 1 on the diagonal so they always have a solution.
-    a = [[Fraction(int(sums[i, j]) + (i == j)) for j in range(m)] + [Fraction(int(sums[i, m]))]
-         for i in range(m)]
-    for col in range(m):  # Gauss-Jordan: the matrix is positive definite, so no pivot is 0
-        pivot = a[col][col]
-        a[col] = [v / pivot for v in a[col]]
-        for row in range(m):
-            if row != col and a[row][col]:
-                factor = a[row][col]
-                a[row] = [v - factor * p for v, p in zip(a[row], a[col])]
+    a = sums.tolist()
+    for i in range(m):
+        a[i][i] += 1
+    solution = _exact_solution(a[:m])  # m rows of the six weights and the target: A | b
     limit = WEIGHT_LIMIT - 1
-    others = [max(-limit, min(limit, round(a[i][m] * (1 << WEIGHT_BITS)))) for i in range(m)]
+    others = [max(-limit, min(limit, round(x * (1 << WEIGHT_BITS)))) for x in solution]
     west = max(-limit, min(limit, (1 << WEIGHT_BITS) - sum(others)))
     return np.array([west] + others, dtype=np.int64)
 
@@ -410,15 +424,6 @@ def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
 #: a smooth least-squares fit move little (the files' bytes by 0.01 % against a fit on every cell
 #: on ../shared/data), and a fit on every cell is a third of the model's time on a large map.
 FIT_CELLS = 1 << 16
-
-
-def _strided_neighbours(grid: np.ndarray, kept: np.ndarray, stride: int) -> list[np.ndarray]:
-    """The neighbours (:data:`NEIGHBOURS`) of every ``stride``-th kept cell (row-major), as
-    ``_kept_neighbours(grid, kept, NEIGHBOURS)[:, ::stride]`` without the other cells' rows."""
-    cells = np.flatnonzero(kept)[::stride]
-    r, c = np.divmod(cells, kept.shape[1])
-    flat = np.append(grid.ravel(), 0)  # the (0, 0) cell's "neighbour" is a zero
-    return [flat[_neighbour(up, left, r, c, kept.shape)] for up, left in NEIGHBOURS]
 
 
 @kernels.kernel("errors_and_classes", offsets=NEIGHBOURS, activity=ACTIVITY_WEIGHTS, classes=CLASSES,
@@ -446,7 +451,7 @@ def _predicted_model(q: np.ndarray, kept: np.ndarray
         return None
     grid = _filled(q, kept)
     stride = max(1, q.size // FIT_CELLS)
-    weights = _fit_weights(_strided_neighbours(grid, kept, stride), q[::stride])
+    weights = _fit_weights(list(_kept_neighbours(grid, kept, NEIGHBOURS, stride)), q[::stride])
     e, classes = _errors_and_classes(grid, kept, weights)
     if np.abs(e).max() > geometric.MAX_ANS_SYMBOL:
         return None
