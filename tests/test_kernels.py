@@ -1007,3 +1007,43 @@ def test_a_geotiff_counts_its_pixels_for_the_backend(monkeypatch, tmp_path):
         monkeypatch.setattr(kernels, "COMPILED_MIN_POINTS", threshold)
         files.compress_file(tif, tmp_path / f"{threshold}.dftpc", cutoff=0.5)
         assert (kernels._state["module"] is not None) is loaded
+
+
+def test_median_predictor_errors_are_numpys(jit):
+    """The median predictor's errors (rate control's look at the predicted layout) read cell by cell
+    are the neighbour arrays' ones, edges included, on every mask shape."""
+    from dftpcc import residual
+
+    rng = np.random.default_rng(15)
+    for mask, _ in _masks(rng):
+        grid = residual._filled(np.cumsum(rng.integers(-300, 301, int(mask.sum()))), mask)
+        found = residual._median_errors.compiled(grid, mask)
+        assert found is not NotImplemented and np.array_equal(found, residual._median_errors.numpy(grid, mask))
+
+
+def test_fit_sums_are_numpys(jit):
+    """The predicted layout's fit sums taken cell by cell are numpy's exact products, edges
+    included, every cell or every stride-th, with cells past FIT_LIMIT left out."""
+    from dftpcc import residual
+
+    rng = np.random.default_rng(16)
+    for t, (mask, _) in enumerate(_masks(rng)):
+        if not mask.any():
+            continue
+        jump = 1 << 16 if t % 3 == 0 else 300  # some differences past FIT_LIMIT
+        grid = residual._filled(np.cumsum(rng.integers(-jump, jump + 1, int(mask.sum()))), mask)
+        for stride in (1, 3):
+            found = residual._fit_sums.compiled(grid, mask, stride)
+            assert found is not NotImplemented and np.array_equal(found, residual._fit_sums.numpy(grid, mask, stride))
+
+
+def test_filled_grid_is_numpys(jit):
+    """The predicted layout's values V (each cell not kept takes its W; column 0 the cell above)
+    filled cell by cell are numpy's, on every mask shape."""
+    from dftpcc import residual
+
+    rng = np.random.default_rng(17)
+    for mask, _ in _masks(rng):
+        q = rng.integers(-(1 << 40), 1 << 40, int(mask.sum()))
+        found = residual._filled.compiled(q, mask)
+        assert found is not NotImplemented and np.array_equal(found, residual._filled.numpy(q, mask))

@@ -1162,6 +1162,131 @@ def kept_neighbours(grid: np.ndarray, kept: np.ndarray, offsets: tuple[tuple[int
 
 
 @njit(cache=True, nogil=True)
+def _filled(q, kept, rows, cols, grid):  # pragma: no cover - compiled
+    # residual._filled: q at the kept cells (row-major), at the others their W; column 0's W is the
+    # cell above, and (0, 0)'s a zero.
+    k = 0
+    for r in range(rows):
+        base = r * cols
+        for c in range(cols):
+            cell = base + c
+            if kept[cell]:
+                grid[cell] = q[k]
+                k += 1
+            elif c:
+                grid[cell] = grid[cell - 1]
+            else:
+                grid[cell] = grid[cell - cols] if r else 0
+
+
+def filled(q: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """``residual._filled`` in one pass over the grid."""
+    if q.dtype != np.int64 or kept.dtype != np.bool_ or kept.ndim != 2 or q.ndim != 1 \
+            or q.size != np.count_nonzero(kept):
+        return NotImplemented
+    rows, cols = kept.shape
+    grid = np.empty(kept.shape, dtype=np.int64)
+    _filled(q, np.ascontiguousarray(kept).reshape(-1), rows, cols, grid.reshape(-1))
+    return grid
+
+
+@njit(cache=True, nogil=True)
+def _fit_sums(flat, kept, rows, cols, stride, limit, sums):  # pragma: no cover - compiled
+    # residual._fit_sums: int64 sums of products of the differences from W (six neighbours, then the
+    # cell), every stride-th kept cell whose differences are all within limit (each product below
+    # 2**30, so 2**33 cells fit in int64: exact, as numpy's float64 blocks).
+    ups = (0, 1, 1, 1, 0, 2, 2)
+    lefts = (1, 0, 1, -1, 2, 0, -1)
+    d = np.empty(7, dtype=np.int64)
+    k = -1
+    for r in range(rows):
+        base = r * cols
+        for c in range(cols):
+            cell = base + c
+            if not kept[cell]:
+                continue
+            k += 1
+            if k % stride:
+                continue
+            if r >= 2 and 2 <= c <= cols - 2:  # the interior: neighbours by offset
+                w = flat[cell - 1]
+                d[0] = flat[cell - cols] - w
+                d[1] = flat[cell - cols - 1] - w
+                d[2] = flat[cell - cols + 1] - w
+                d[3] = flat[cell - 2] - w
+                d[4] = flat[cell - 2 * cols] - w
+                d[5] = flat[cell - 2 * cols + 1] - w
+            else:
+                at = _neighbour_at(r, c, 0, 1, cols)
+                w = flat[at] if at >= 0 else 0
+                for n in range(1, 7):
+                    at = _neighbour_at(r, c, ups[n], lefts[n], cols)
+                    d[n - 1] = (flat[at] if at >= 0 else 0) - w
+            d[6] = flat[cell] - w
+            usable = True
+            for i in range(7):
+                if abs(d[i]) > limit:
+                    usable = False
+            if not usable:
+                continue
+            for i in range(7):
+                for j in range(i, 7):
+                    sums[i, j] += d[i] * d[j]
+    for i in range(7):
+        for j in range(i):
+            sums[i, j] = sums[j, i]
+
+
+def fit_sums(grid: np.ndarray, kept: np.ndarray, stride: int, *, offsets: tuple, fit_limit: int) -> np.ndarray:
+    """``residual._fit_sums`` in one pass over the kept cells, each neighbour read where it is."""
+    if (offsets != ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0), (2, -1)) or fit_limit > 1 << 15
+            or grid.dtype != np.int64 or kept.dtype != np.bool_ or grid.shape != kept.shape or grid.ndim != 2
+            or stride < 1 or np.count_nonzero(kept) > 1 << 32):
+        return NotImplemented
+    rows, cols = grid.shape
+    sums = np.zeros((7, 7), dtype=np.int64)
+    _fit_sums(np.ascontiguousarray(grid).reshape(-1), np.ascontiguousarray(kept).reshape(-1), rows, cols, stride,
+              fit_limit, sums)
+    return sums
+
+
+@njit(cache=True, nogil=True)
+def _median_errors(flat, kept, rows, cols, e):  # pragma: no cover - compiled
+    # residual._median_errors: each kept cell's value less LOCO-I's median of its W, N and NW
+    # (format.md's edge rules, _neighbour_at), row-major.
+    k = 0
+    for r in range(rows):
+        base = r * cols
+        for c in range(cols):
+            cell = base + c
+            if not kept[cell]:
+                continue
+            if r >= 1 and c >= 1:
+                w, n, nw = flat[cell - 1], flat[cell - cols], flat[cell - cols - 1]
+            else:
+                at = _neighbour_at(r, c, 0, 1, cols)
+                w = flat[at] if at >= 0 else 0
+                at = _neighbour_at(r, c, 1, 0, cols)
+                n = flat[at] if at >= 0 else 0
+                at = _neighbour_at(r, c, 1, 1, cols)
+                nw = flat[at] if at >= 0 else 0
+            lo, hi = min(w, n), max(w, n)
+            e[k] = flat[cell] - min(max(w + n - nw, lo), hi)
+            k += 1
+
+
+def median_errors(grid: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """``residual._median_errors`` in one pass, each neighbour read where it is."""
+    if grid.dtype != np.int64 or kept.dtype != np.bool_ or grid.shape != kept.shape or grid.ndim != 2:
+        return NotImplemented
+    rows, cols = grid.shape
+    where = np.ascontiguousarray(kept).reshape(-1)
+    e = np.empty(int(np.count_nonzero(where)), dtype=np.int64)
+    _median_errors(np.ascontiguousarray(grid).reshape(-1), where, rows, cols, e)
+    return e
+
+
+@njit(cache=True, nogil=True)
 def _predicted_errors(flat, kept, weights, rows, cols, e, magnitude):  # pragma: no cover - compiled
     # residual._errors_and_classes' first half: each kept cell's prediction error (row-major, into
     # e) and |error| at its cell (magnitude, zeros elsewhere); the interior's neighbours by offset,

@@ -174,10 +174,16 @@ def median_predicted_size(q: np.ndarray, kept: np.ndarray) -> float:
     one scale for all: a few array passes against the predicted layout's fit and contexts, which
     code real maps in 0.56-1.1 times this (measured on ../shared/data at 1.3 and 4 times the
     gridding floor). Rate control's cheap look at whether that layout can win at all."""
-    w, n, nw = _kept_neighbours(_filled(q, kept), kept, ((0, 1), (1, 0), (1, 1)))
-    e = q - np.clip(w + n - nw, np.minimum(w, n), np.maximum(w, n))  # the filled grid is q at the kept cells
+    e = _median_errors(_filled(q, kept), kept)
     flat = np.zeros(e.size)
     return coding.estimated_size(e, radius=flat, angle=flat, exhaustive=False)
+
+
+@kernels.kernel("median_errors")
+def _median_errors(grid: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """Each kept cell's value in the filled ``grid`` less the median of its W, N and NW (row-major)."""
+    w, n, nw = _kept_neighbours(grid, kept, ((0, 1), (1, 0), (1, 1)))
+    return grid[kept] - np.clip(w + n - nw, np.minimum(w, n), np.maximum(w, n))
 
 
 def _estimated_predicted(q: np.ndarray, kept: np.ndarray) -> float:
@@ -351,6 +357,7 @@ def _prediction(weights: np.ndarray, values: list[np.ndarray]) -> np.ndarray:
     return (total + (1 << (WEIGHT_BITS - 1))) >> WEIGHT_BITS
 
 
+@kernels.kernel("filled")
 def _filled(q: np.ndarray, kept: np.ndarray) -> np.ndarray:
     """The grid of values V: ``q`` at the kept cells, and at the others their W (format.md)."""
     rows, cols = kept.shape
@@ -398,17 +405,26 @@ def _exact_solution(rows: list[list[int]]) -> list[Fraction]:
     return [Fraction(a[i][m], a[i][i]) for i in range(m)]
 
 
-def _fit_weights(values: list[np.ndarray], target: np.ndarray) -> np.ndarray:
-    """Least-squares weights (sum 2**16) of the neighbours' ``values`` for ``target``, from exact
-    integer sums and an exact solve, so the file is the same on every machine."""
-    m = len(values) - 1
-    # The six others, then the target, relative to W: integers below VALUE_LIMIT, so their
-    # differences are exact in float64, which the products take anyway (no int64 copy first).
-    d = np.empty((m + 1, target.size))
-    for row, v in enumerate([*values[1:], target]):
-        np.subtract(v, values[0], out=d[row])
+@kernels.kernel("fit_sums", offsets=NEIGHBOURS, fit_limit=FIT_LIMIT)
+def _fit_sums(grid: np.ndarray, kept: np.ndarray, stride: int) -> np.ndarray:
+    """The fit's exact sums (7 x 7, int64) over every ``stride``-th kept cell of the filled ``grid``:
+    the products of the six other neighbours' and the cell's own value less W, of the cells where
+    none of those differences passes :data:`FIT_LIMIT`."""
+    w, *others = _kept_neighbours(grid, kept, NEIGHBOURS, stride)
+    target = grid[kept][::stride]
+    # Integers below VALUE_LIMIT, so their differences are exact in float64, which the products
+    # take anyway (no int64 copy first).
+    d = np.empty((len(others) + 1, target.size))
+    for row, v in enumerate([*others, target]):
+        np.subtract(v, w, out=d[row])
     usable = np.abs(d).max(axis=0) <= FIT_LIMIT
-    sums = _exact_products(d if usable.all() else d[:, usable])
+    return _exact_products(d if usable.all() else d[:, usable])
+
+
+def _fit_weights(sums: np.ndarray) -> np.ndarray:
+    """Least-squares weights (sum 2**16) of the neighbours from the fit's exact integer sums
+    (:func:`_fit_sums`) and an exact solve, so the file is the same on every machine."""
+    m = sums.shape[0] - 1
     # The normal equations, plus 1 on the diagonal so they always have a solution.
     a = sums.tolist()
     for i in range(m):
@@ -451,7 +467,7 @@ def _predicted_model(q: np.ndarray, kept: np.ndarray
         return None
     grid = _filled(q, kept)
     stride = max(1, q.size // FIT_CELLS)
-    weights = _fit_weights(list(_kept_neighbours(grid, kept, NEIGHBOURS, stride)), q[::stride])
+    weights = _fit_weights(_fit_sums(grid, kept, stride))
     e, classes = _errors_and_classes(grid, kept, weights)
     if np.abs(e).max() > geometric.MAX_ANS_SYMBOL:
         return None
