@@ -19,6 +19,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 from ._optional import import_optional, install_hint
 from .errors import ClusterError, DftpccError, InvalidInputError
+from . import kernels
 from .kernels import available_cores
 
 __all__ = ["Map", "executor", "serial", "CONNECT_TIMEOUT_S", "NO_WORKER_TIMEOUT_S", "MAX_WORKERS_PER_CORE"]
@@ -182,12 +183,15 @@ def _nbytes(item: Any) -> int:
     return sizeof(vars(item)) if hasattr(item, "__dict__") else sizeof(item)
 
 
-def _task(func: Callable[..., Any], item: Any, *args: Any) -> Any:
-    """``func(item, *args)`` on a worker. The library's own errors go back to the client without the
+def _task(func: Callable[..., Any], backend: kernels.Backend, item: Any, *args: Any) -> Any:
+    """``func(item, *args)`` on a worker, on the client's ``backend`` (a worker is a process of its
+    own: the client's choice does not reach it otherwise, and it ran numpy's kernels where the
+    client ran the compiled ones). The library's own errors go back to the client without the
     errors of other libraries they were raised from: dask pickles that chain too, and some do not
     unpickle (GDAL's), so the client got a bare ``Exception`` (and the command a traceback)."""
     try:
-        return func(item, *args)
+        with kernels.use(backend):
+            return func(item, *args)
     except DftpccError as exc:
         error = exc
     error.__cause__ = error.__context__ = None
@@ -207,7 +211,7 @@ def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: t
     # Items that carry cells travel as data; small ones (a block a worker reads itself) travel in the
     # graph, so that the scheduler can rerun the task of a worker that died: scattered data die with it.
     small = sum(_nbytes(item) for item in items) <= INLINE_BYTES
-    futures = client.map(functools.partial(_task, func), list(items) if small else client.scatter(list(items), hash=False),
+    futures = client.map(functools.partial(_task, func, kernels.current()), list(items) if small else client.scatter(list(items), hash=False),
                          *[[a] * len(items) for a in shared], pure=False)
     idle_since: float | None = None
     cancelled = _cancelled()
