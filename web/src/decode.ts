@@ -11,7 +11,8 @@ import { CorruptFileError, guard, InvalidInputError, ResourceLimitError } from "
 import { baseCut, cutOf, prefix, Transform } from "./layout.js";
 import { countOnes, decodeMask } from "./mask.js";
 import { decodeResidual } from "./residual.js";
-import { addIdct, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
+import { addIdct, idctInKernels, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
+import { Kernels, kernels, WasmMemoryError } from "./wasm.js";
 
 export interface DecodeOptions {
   /** Decode only the first maxBytes bytes, as if the rest had not arrived (untiled maps). */
@@ -218,9 +219,29 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   // A progressive prefix holds the first coefficients only (the rest are zeros): its corner of the
   // spectrum, and so its inverse, is that much smaller.
   if (kind === "dct") use = Math.min(use, s.decoded);
-  const h = new Float64Array(rows * cols);
   // A preview samples a cut spectrum; a residual layer (whole only if COEF is) keeps the exact path.
   const preview = options.preview === true && o.cutCoef && kind === "dct" && !o.sections.get("RESD");
+  const plane = params.detrend === "plane" ? g.plane : null;
+  if (kind === "dct" && !o.sections.get("RESD")) {
+    const k = kernels();
+    let corner: Corner | null = null;
+    if (k && params.storage === "quantized" && s.ints) {
+      const ints = s.ints;
+      const step = params.step;
+      corner = cornerOf(pre.pos, use, (q) => ints[q] * step, cols);
+    } else if (k && params.storage !== "quantized" && s.complex) {
+      const v = s.complex;
+      corner = cornerOf(pre.pos, use, (q) => v[2 * q], cols); // a complex64 DCT: the real parts
+    }
+    if (k && corner && previewStride(corner, rows, cols, preview) === 1) {
+      try {
+        return finishInKernels(k, o, corner, mask, rows, cols, [wr0, wr1, wc0, wc1], plane, options, o.cutCoef);
+      } catch (e) {
+        if (!(e instanceof WasmMemoryError)) throw e;
+      }
+    }
+  }
+  const h = new Float64Array(rows * cols);
   let stride = 1;
   if (params.storage === "quantized") {
     if (!s.ints) throw new CorruptFileError("quantized file holds float coefficients");
@@ -254,7 +275,7 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     for (let k = 0, c = 0; k < mask.length; k++) if (mask[k]) h[k] += q[c++] * 2 * e * (1 - 1e-6);
     return finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], null, options, o.cutCoef);
   }
-  const out = finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], params.detrend === "plane" ? g.plane : null, options, o.cutCoef);
+  const out = finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], plane, options, o.cutCoef);
   if (stride > 1) out.stride = stride;
   return out;
 }
@@ -299,6 +320,44 @@ function finishWindow(o: Opened, h: Float64Array, mask: Uint8Array, rows: number
   }
   if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ))) || (!whole && !allFinite(h, mask, plane, rows, cols))) {
     throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
+  }
+  return {
+    width: W, height: H, row0: wr0, col0: wc0, heights, mask: outMask, header: o.header,
+    statistics: { minZ, maxZ, cells }, bytesRead: o.data.length, partial,
+  };
+}
+
+/** decodeWhole's inverse DCT of a corner and finishWindow's pass in the WebAssembly kernels (the
+ * same operations in the same order: the same heights). Throws WasmMemoryError when the kernels'
+ * memory cannot hold the grid. */
+function finishInKernels(k: Kernels, o: Opened, corner: Corner, mask: Uint8Array, rows: number, cols: number,
+  [wr0, wr1, wc0, wc1]: number[], plane: number[] | null, options: DecodeOptions, partial: boolean): DecodedMap {
+  const z0 = o.header.geometry.z0;
+  const W = wc1 - wc0;
+  const H = wr1 - wr0;
+  const whole = H === rows && W === cols;
+  const f32 = options.float32 === true;
+  const maskBytes = (rows * cols + 15) & ~15;
+  const heightBytes = ((f32 ? 4 : 8) * H * W + 15) & ~15;
+  const hP = idctInKernels(k, corner.g, corner.K, corner.L, rows, cols, 0, rows, 0, cols, maskBytes + heightBytes + 16);
+  const maskP = hP + ((8 * rows * cols + 15) & ~15);
+  const outP = maskP + maskBytes;
+  const resP = outP + heightBytes;
+  k.bytes().set(mask, maskP);
+  const [a, b, c] = plane ?? [0, 0, 0];
+  const cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, a, b, c, f32 ? 1 : 0, resP);
+  const mem = k.view();
+  const minZ = mem[resP / 8];
+  const maxZ = mem[resP / 8 + 1];
+  if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ)))
+    || (!whole && !allFinite(mem.subarray(hP / 8, hP / 8 + rows * cols), mask, plane, rows, cols))) {
+    throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
+  }
+  const heights = f32 ? new Float32Array(mem.buffer.slice(outP, outP + 4 * H * W)) : new Float64Array(mem.buffer.slice(outP, outP + 8 * H * W));
+  let outMask = mask;
+  if (!whole) {
+    outMask = new Uint8Array(H * W);
+    for (let r = wr0; r < wr1; r++) outMask.set(mask.subarray(r * cols + wc0, r * cols + wc1), (r - wr0) * W);
   }
   return {
     width: W, height: H, row0: wr0, col0: wc0, heights, mask: outMask, header: o.header,
@@ -636,24 +695,10 @@ const PREVIEW_SUMS_SHARE = 0.5;
  * preview, at every few cells and bilinear between. Returns the cells between evaluated ones. */
 function addDctCorner(h: Float64Array, pos: Int32Array, use: number,
   value: (k: number) => number, rows: number, cols: number, preview = false): number {
-  let K = 0;
-  let L = 0;
-  for (let k = 0; k < use; k++) {
-    K = Math.max(K, Math.floor(pos[k] / cols) + 1);
-    L = Math.max(L, (pos[k] % cols) + 1);
-  }
-  const gm = new Float64Array(K * L);
-  for (let k = 0; k < use; k++) {
-    const i = Math.floor(pos[k] / cols);
-    gm[i * L + (pos[k] - i * cols)] = value(k);
-  }
-  const spacing = (n: number, k: number) => (k > 1 ? (2 * n) / ((k - 1) * PREVIEW_SAMPLES) : Infinity);
-  const stride = preview ? Math.min(PREVIEW_MAX_STRIDE, Math.floor(Math.min(spacing(rows, K), spacing(cols, L)))) : 1;
-  // The samples' plain sums grow as the corner's cube: against a rough count of the whole grid's
-  // FFTs, a preview pays only for a narrow corner (a few per cent of a map's bytes).
-  const [nr, nc] = [Math.ceil((rows - 1) / stride) + 1, Math.ceil((cols - 1) / stride) + 1];
-  const sums = K * nc * (L + nr);
-  if (stride < PREVIEW_MIN_STRIDE || sums > PREVIEW_SUMS_SHARE * rows * cols * Math.log2(rows * cols)) {
+  const corner = cornerOf(pos, use, value, cols);
+  const { g: gm, K, L } = corner;
+  const stride = previewStride(corner, rows, cols, preview);
+  if (stride === 1) {
     addIdct(h, gm, K, L, rows, cols, 0, rows, 0, cols);
     return 1;
   }
@@ -661,6 +706,40 @@ function addDctCorner(h: Float64Array, pos: Int32Array, use: number,
   const cs = sampled(cols, stride);
   addBilinear(h, rows, cols, sampleIdct(gm, K, L, rows, cols, rs, cs), rs, cs);
   return stride;
+}
+
+/** The smallest top-left corner of the spectrum that holds the first `use` coefficients: K x L, row-major. */
+interface Corner {
+  g: Float64Array;
+  K: number;
+  L: number;
+}
+
+function cornerOf(pos: Int32Array, use: number, value: (k: number) => number, cols: number): Corner {
+  let K = 0;
+  let L = 0;
+  for (let k = 0; k < use; k++) {
+    K = Math.max(K, Math.floor(pos[k] / cols) + 1);
+    L = Math.max(L, (pos[k] % cols) + 1);
+  }
+  const g = new Float64Array(K * L);
+  for (let k = 0; k < use; k++) {
+    const i = Math.floor(pos[k] / cols);
+    g[i * L + (pos[k] - i * cols)] = value(k);
+  }
+  return { g, K, L };
+}
+
+/** Cells between a preview's evaluated heights; 1: the exact inverse (no preview asked, or one that
+ * would save too little). */
+function previewStride({ K, L }: Corner, rows: number, cols: number, preview: boolean): number {
+  const spacing = (n: number, k: number) => (k > 1 ? (2 * n) / ((k - 1) * PREVIEW_SAMPLES) : Infinity);
+  const stride = preview ? Math.min(PREVIEW_MAX_STRIDE, Math.floor(Math.min(spacing(rows, K), spacing(cols, L)))) : 1;
+  // The samples' plain sums grow as the corner's cube: against a rough count of the whole grid's
+  // FFTs, a preview pays only for a narrow corner (a few per cent of a map's bytes).
+  const [nr, nc] = [Math.ceil((rows - 1) / stride) + 1, Math.ceil((cols - 1) / stride) + 1];
+  const sums = K * nc * (L + nr);
+  return stride < PREVIEW_MIN_STRIDE || sums > PREVIEW_SUMS_SHARE * rows * cols * Math.log2(rows * cols) ? 1 : stride;
 }
 
 /** Cells 0, s, 2 s, ... and the last one. */

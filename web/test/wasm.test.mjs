@@ -1,0 +1,136 @@
+// The WebAssembly SIMD kernels (web/wasm/kernels.ts) against the TypeScript path they replace: the
+// same operations in the same order, so the same heights to the bit (a zero's sign aside), on every
+// fixture map (whole, windows, float32, progressive prefixes and previews) and on inverse DCTs of
+// sides that take each FFT (radices 2 to 5, a generic odd radix, Bluestein's), bands and windows.
+import assert from "node:assert/strict";
+import { readdirSync } from "node:fs";
+import { join } from "node:path";
+import { test } from "node:test";
+import { decode, useWasm } from "../dist/dftpcc.mjs";
+import * as internals from "../dist/internals.mjs";
+import { bytes, fixtures } from "./helpers.mjs";
+
+const DIR = fixtures();
+
+/** Index of the first element where a and b differ (NaN equal to NaN, 0 to -0), or -1. */
+function firstDiff(a, b) {
+  if (a.length !== b.length) return 0;
+  for (let k = 0; k < a.length; k++) if (!(a[k] === b[k] || (Number.isNaN(a[k]) && Number.isNaN(b[k])))) return k;
+  return -1;
+}
+
+/** decode(data, options) by the kernels and by TypeScript alone: the results, or the errors' texts. */
+function both(data, options) {
+  const out = [];
+  for (const on of [true, false]) {
+    useWasm(on);
+    try {
+      out.push(decode(data, options));
+    } catch (e) {
+      out.push(`${e.name}: ${e.message}`);
+    } finally {
+      useWasm(true);
+    }
+  }
+  return out;
+}
+
+test("the kernels load in Node (WebAssembly SIMD)", () => {
+  assert.ok(internals.kernels(), "no WebAssembly SIMD kernels");
+});
+
+const maps = readdirSync(DIR).filter((n) => n.endsWith(".dftpc")).sort();
+// Small maps, large ones, then small again: the kernels' memory grows and its plans are rebuilt.
+const order = [...maps, ...maps.slice().reverse()];
+
+test("every fixture map decodes to the same heights by the kernels and by TypeScript", () => {
+  let compared = 0;
+  for (const name of order) {
+    const data = bytes(join(DIR, name));
+    for (const options of [{}, { float32: true }]) {
+      const [w, t] = both(data, options);
+      if (typeof t === "string") {
+        assert.equal(w, t, `${name}: the paths fail differently`);
+        continue;
+      }
+      assert.equal(typeof w, "object", `${name}: ${w}`);
+      assert.equal(w.heights.constructor, t.heights.constructor, name);
+      assert.equal(firstDiff(w.heights, t.heights), -1, `${name} ${JSON.stringify(options)}: heights differ`);
+      assert.equal(firstDiff(w.mask, t.mask), -1, `${name}: masks differ`);
+      assert.deepEqual(w.statistics, t.statistics, name);
+      compared++;
+      const { width: W, height: H } = t;
+      if (options.float32 || W < 4 || H < 4) continue;
+      // A window inside the grid, with odd sides (the kernels' pairs of cells and a single one).
+      const win = { rows: [1, H - 2], cols: [1, Math.max(2, W - 2)] };
+      const [ww, tw] = both(data, { window: win });
+      assert.equal(firstDiff(ww.heights, tw.heights), -1, `${name} window: heights differ`);
+      assert.deepEqual(ww.statistics, tw.statistics, `${name} window`);
+      if (!t.header.tiled) {
+        for (const f of [0.3, 0.6]) {
+          for (const preview of [false, true]) {
+            const opts = { fileSize: data.length, preview };
+            const [wp, tp] = both(data.subarray(0, Math.floor(f * data.length)), opts);
+            if (typeof tp === "string") assert.equal(wp, tp, `${name} prefix ${f}`);
+            else assert.equal(firstDiff(wp.heights, tp.heights), -1, `${name} prefix ${f} preview ${preview}: heights differ`);
+          }
+        }
+      }
+    }
+  }
+  assert.ok(compared >= maps.length, `compared ${compared} decodes`);
+});
+
+let seed = 11;
+const rnd = () => (seed = (seed * 16807) % 2147483647) / 2147483647 - 0.5;
+
+/** addIdct by the kernels and by TypeScript alone, into the same random starting grid. */
+function idctBoth(K, L, N, M, r0, h, c0, w, mode, zeroRows) {
+  const g = new Float64Array(K * L);
+  // A quarter circle of coefficients (rows shorten: pairs of vectors with different bands), some
+  // rows all zeros (vectors the FFT skips).
+  for (let i = 0; i < K; i++) {
+    const len = zeroRows && i % 5 === 3 ? 0 : Math.ceil(L * Math.sqrt(Math.max(0, 1 - (i / K) ** 2)));
+    for (let j = 0; j < len; j++) g[i * L + j] = rnd();
+  }
+  const init = new Float64Array(h * w).map(() => rnd());
+  const out = [];
+  for (const on of [true, false]) {
+    internals.useWasm(on);
+    const o = init.slice();
+    internals.addIdct(o, g, K, L, N, M, r0, h, c0, w, mode);
+    out.push(o);
+  }
+  internals.useWasm(true);
+  return out;
+}
+
+// Sides by their FFTs: 2^k (radix 4 and 2), 3 and 5 mixed, a generic odd radix first (7, 11, 13,
+// 43, 67), primes and large prime factors (Bluestein's over a smooth length).
+const SIDES = [2, 3, 7, 16, 30, 35, 67 * 3, 2 * 3 * 5 * 11, 13 * 43, 4 * 3 * 67, 97, 263, 337, 349, 1024, 3 * 347];
+
+for (const N of SIDES) {
+  test(`addIdct on side ${N}: the kernels give the TypeScript path's bits`, () => {
+    const M = SIDES[(SIDES.indexOf(N) + 5) % SIDES.length];
+    for (const [K, L] of [[1, 1], [Math.ceil(N / 3), Math.ceil(M / 2)], [N, M], [Math.max(1, N >> 3), M]]) {
+      for (const mode of ["fft", "auto"]) {
+        const cases = [[0, N, 0, M], [Math.floor(N / 3), Math.max(1, N >> 1), Math.floor(M / 4), Math.max(1, M >> 1)]];
+        for (const [r0, h, c0, w] of cases) {
+          const [a, b] = idctBoth(K, L, N, M, r0, h, c0, w, mode, K > 4);
+          const k = firstDiff(a, b);
+          assert.equal(k, -1, `K ${K} L ${L} N ${N} M ${M} rows ${r0}+${h} cols ${c0}+${w} ${mode}: ${a[k]} vs ${b[k]}`);
+        }
+      }
+    }
+  });
+}
+
+test("a kernels' decode leaves the caller's buffers alone: the heights outlive the next decode", () => {
+  const name = maps.find((n) => n.startsWith("gale_default"));
+  const data = bytes(join(DIR, name));
+  const a = decode(data);
+  const copy = a.heights.slice();
+  decode(bytes(join(DIR, maps.find((n) => n.startsWith("davos")))));
+  decode(data, { float32: true });
+  assert.equal(firstDiff(a.heights, copy), -1);
+});
