@@ -228,10 +228,10 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     if (k && params.storage === "quantized" && s.ints) {
       const ints = s.ints;
       const step = params.step;
-      corner = cornerOf(pre.pos, use, (q) => ints[q] * step, cols);
+      corner = cornerOf(pre.pos, use, ints, 1, step, cols);
     } else if (k && params.storage !== "quantized" && s.complex) {
       const v = s.complex;
-      corner = cornerOf(pre.pos, use, (q) => v[2 * q], cols); // a complex64 DCT: the real parts
+      corner = cornerOf(pre.pos, use, v, 2, 1, cols); // a complex64 DCT: the real parts
     }
     if (k && corner && previewStride(corner, rows, cols, preview) === 1) {
       try {
@@ -248,7 +248,7 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     const step = params.step;
     if (kind === "dct") {
       const ints = s.ints;
-      stride = addDctCorner(h, pre.pos, use, (k) => ints[k] * step, rows, cols, preview);
+      stride = addDctCorner(h, pre.pos, use, ints, 1, step, rows, cols, preview);
     } else {
       const v = new Float64Array(2 * use);
       for (let k = 0; k < 2 * use; k++) v[k] = s.ints[k] * step;
@@ -258,7 +258,7 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     if (!s.complex && kept) throw new CorruptFileError("complex64 file holds integer coefficients");
     const v = s.complex ?? new Float64Array(0);
     if (kind === "dct") {
-      stride = addDctCorner(h, pre.pos, use, (k) => v[2 * k], rows, cols, preview); // a complex64 DCT: the real parts
+      stride = addDctCorner(h, pre.pos, use, v, 2, 1, rows, cols, preview); // a complex64 DCT: the real parts
     } else if (kind === "dft-full") {
       ifft2Shifted(pre.pos.subarray(0, use), v.subarray(0, 2 * use), rows, cols, h);
     } else {
@@ -691,11 +691,11 @@ const PREVIEW_MIN_STRIDE = 3;
 const PREVIEW_SUMS_SHARE = 0.5;
 
 /** Add to ``h`` the inverse DCT of the first ``use`` coefficients at flat positions ``pos`` (values
- * ``value(k)``), laid in the smallest top-left corner of the spectrum that holds them; for a
+ * ``values[every k] scale``), laid in the smallest top-left corner of the spectrum that holds them; for a
  * preview, at every few cells and bilinear between. Returns the cells between evaluated ones. */
-function addDctCorner(h: Float64Array, pos: Int32Array, use: number,
-  value: (k: number) => number, rows: number, cols: number, preview = false): number {
-  const corner = cornerOf(pos, use, value, cols);
+function addDctCorner(h: Float64Array, pos: Int32Array, use: number, values: Float64Array, every: number, scale: number,
+  rows: number, cols: number, preview = false): number {
+  const corner = cornerOf(pos, use, values, every, scale, cols);
   const { g: gm, K, L } = corner;
   const stride = previewStride(corner, rows, cols, preview);
   if (stride === 1) {
@@ -715,17 +715,20 @@ interface Corner {
   L: number;
 }
 
-function cornerOf(pos: Int32Array, use: number, value: (k: number) => number, cols: number): Corner {
+/** Coefficient k's value is values[every k] scale (scale 1 leaves it as it is). */
+function cornerOf(pos: Int32Array, use: number, values: Float64Array, every: number, scale: number, cols: number): Corner {
   let K = 0;
   let L = 0;
   for (let k = 0; k < use; k++) {
-    K = Math.max(K, Math.floor(pos[k] / cols) + 1);
-    L = Math.max(L, (pos[k] % cols) + 1);
+    const i = Math.floor(pos[k] / cols);
+    if (i >= K) K = i + 1;
+    const j = pos[k] - i * cols;
+    if (j >= L) L = j + 1;
   }
   const g = new Float64Array(K * L);
   for (let k = 0; k < use; k++) {
     const i = Math.floor(pos[k] / cols);
-    g[i * L + (pos[k] - i * cols)] = value(k);
+    g[i * L + (pos[k] - i * cols)] = values[every * k] * scale;
   }
   return { g, K, L };
 }

@@ -177,9 +177,9 @@ export function kernels(): Kernels | null {
   return loaded;
 }
 
-/** Turns the WebAssembly kernels on or off (the tests compare both paths); returns the former setting. */
+/** Turns the WebAssembly SIMD kernels on (the default) or off (the TypeScript path alone, as where
+ * WebAssembly SIMD is missing; the tests compare both); returns whether decodes now use them. */
 export function useWasm(on: boolean): boolean {
-  const was = enabled;
   enabled = on;
-  return was;
+  return kernels() !== null;
 }

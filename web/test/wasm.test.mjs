@@ -3,12 +3,15 @@
 // fixture map (whole, windows, float32, progressive prefixes and previews) and on inverse DCTs of
 // sides that take each FFT (radices 2 to 5, a generic odd radix, Bluestein's), bands and windows.
 import assert from "node:assert/strict";
-import { readdirSync } from "node:fs";
+import { existsSync, mkdtempSync, readdirSync, readFileSync, rmSync } from "node:fs";
+import { createServer } from "node:http";
+import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { test } from "node:test";
+import puppeteer from "puppeteer-core";
 import { decode, useWasm } from "../dist/dftpcc.mjs";
 import * as internals from "../dist/internals.mjs";
-import { bytes, fixtures } from "./helpers.mjs";
+import { bytes, fixtures, WEB } from "./helpers.mjs";
 
 const DIR = fixtures();
 
@@ -35,8 +38,10 @@ function both(data, options) {
   return out;
 }
 
-test("the kernels load in Node (WebAssembly SIMD)", () => {
+test("the kernels load in Node (WebAssembly SIMD), and useWasm switches them off and on", () => {
   assert.ok(internals.kernels(), "no WebAssembly SIMD kernels");
+  assert.equal(useWasm(false), false);
+  assert.equal(useWasm(true), true);
 });
 
 const maps = readdirSync(DIR).filter((n) => n.endsWith(".dftpc")).sort();
@@ -133,4 +138,54 @@ test("a kernels' decode leaves the caller's buffers alone: the heights outlive t
   decode(bytes(join(DIR, maps.find((n) => n.startsWith("davos")))));
   decode(data, { float32: true });
   assert.equal(firstDiff(a.heights, copy), -1);
+});
+
+test("in Chromium (a page's main thread) the kernels load and give the TypeScript path's bits", async (t) => {
+  const CHROMIUM = process.env.CHROMIUM ?? "/usr/bin/chromium";
+  assert.ok(existsSync(CHROMIUM), `${CHROMIUM} is missing: apt-get install chromium (or set CHROMIUM)`);
+  const names = maps.filter((n) => !n.includes("tiled")).slice(0, 6);
+  const server = createServer((req, res) => {
+    const file = req.url === "/dftpcc.mjs" ? join(WEB, "dist", "dftpcc.mjs") : join(DIR, req.url.slice(1).replace(/[^\w.-]/g, ""));
+    if (req.url === "/" || !existsSync(file)) {
+      res.writeHead(req.url === "/" ? 200 : 404, { "content-type": "text/html" });
+      res.end("<!doctype html><title>wasm</title>");
+      return;
+    }
+    res.writeHead(200, { "content-type": file.endsWith(".mjs") ? "text/javascript" : "application/octet-stream" });
+    res.end(readFileSync(file));
+  });
+  await new Promise((resolve) => server.listen(0, "127.0.0.1", resolve));
+  const work = mkdtempSync(join(tmpdir(), "dftpcc-wasm-test-"));
+  const browser = await puppeteer.launch({ executablePath: CHROMIUM, headless: true, pipe: true,
+    args: ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", `--user-data-dir=${join(work, "profile")}`] });
+  try {
+    const page = await browser.newPage();
+    await page.goto(`http://127.0.0.1:${server.address().port}/`);
+    const got = await page.evaluate(async (names) => {
+      const { decode, useWasm } = await import("/dftpcc.mjs");
+      const loaded = useWasm(true);
+      const out = {};
+      for (const name of names) {
+        const data = new Uint8Array(await (await fetch(`/${name}`)).arrayBuffer());
+        useWasm(true);
+        const a = decode(data);
+        useWasm(false);
+        const b = decode(data);
+        useWasm(true);
+        let diff = 0;
+        for (let k = 0; k < a.heights.length; k++) if (!(a.heights[k] === b.heights[k] || (Number.isNaN(a.heights[k]) && Number.isNaN(b.heights[k])))) diff++;
+        out[name] = { cells: a.heights.length, diff };
+      }
+      return { loaded, out };
+    }, names);
+    assert.ok(got.loaded, "the kernels did not load in Chromium");
+    for (const name of names) {
+      assert.equal(got.out[name].diff, 0, `${name}: ${got.out[name].diff} heights differ in Chromium`);
+      t.diagnostic(`${name}: ${got.out[name].cells} cells equal`);
+    }
+  } finally {
+    await browser.close();
+    server.close();
+    rmSync(work, { recursive: true, force: true });
+  }
 });
