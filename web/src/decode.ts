@@ -11,7 +11,7 @@ import { CorruptFileError, guard, InvalidInputError, ResourceLimitError } from "
 import { baseCut, cutOf, prefix, Transform } from "./layout.js";
 import { countOnes, decodeMask } from "./mask.js";
 import { decodeResidual } from "./residual.js";
-import { addIdct, idctInKernels, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
+import { addIdct, idctFinishedInKernels, idctInKernels, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
 import { Kernels, kernels, WasmMemoryError } from "./wasm.js";
 
 export interface DecodeOptions {
@@ -331,24 +331,63 @@ function finishWindow(o: Opened, h: Float64Array, mask: Uint8Array, rows: number
  * same operations in the same order: the same heights). Throws WasmMemoryError when the kernels'
  * memory cannot hold the grid. */
 function finishInKernels(k: Kernels, o: Opened, corner: Corner, mask: Uint8Array, rows: number, cols: number,
-  [wr0, wr1, wc0, wc1]: number[], plane: number[] | null, options: DecodeOptions, partial: boolean): DecodedMap {
-  const z0 = o.header.geometry.z0;
+  win: number[], plane: number[] | null, options: DecodeOptions, partial: boolean): DecodedMap {
+  const f = cornerFinished(k, corner, mask, rows, cols, win, o.header.geometry.z0, plane, options.float32 === true);
+  return {
+    width: win[3] - win[2], height: win[1] - win[0], row0: win[0], col0: win[2], heights: f.heights, mask: f.mask,
+    header: o.header, statistics: { minZ: f.minZ, maxZ: f.maxZ, cells: f.cells }, bytesRead: o.data.length, partial,
+  };
+}
+
+/** The heights of the window [wr0, wr1) x [wc0, wc1) from a corner of DCT coefficients of the whole
+ * rows x cols grid, as finishWindow gives them (z0 and the plane a + b q + c r added, NaN off the
+ * mask), by the kernels. Throws WasmMemoryError when their memory cannot hold the grid. */
+export function cornerFinished(k: Kernels, corner: Corner, mask: Uint8Array, rows: number, cols: number,
+  [wr0, wr1, wc0, wc1]: number[], z0: number, plane: number[] | null, f32: boolean):
+  { heights: Float32Array | Float64Array; mask: Uint8Array; minZ: number; maxZ: number; cells: number } {
   const W = wc1 - wc0;
   const H = wr1 - wr0;
   const whole = H === rows && W === cols;
-  const f32 = options.float32 === true;
   const maskBytes = (rows * cols + 15) & ~15;
   const heightBytes = ((f32 ? 4 : 8) * H * W + 15) & ~15;
-  const hP = idctInKernels(k, corner.g, corner.K, corner.L, rows, cols, 0, rows, 0, cols, maskBytes + heightBytes + 16);
-  const maskP = hP + ((8 * rows * cols + 15) & ~15);
+  const extra = maskBytes + heightBytes + 16;
+  const [a, b, c] = plane ?? [0, 0, 0];
+  let hP: number;
+  let maskP: number;
+  let fused = false;
+  if (whole) {
+    // The finishing pass fused into the inverse's last axis (see idctFinishedInKernels).
+    const r = idctFinishedInKernels(k, corner.g, corner.K, corner.L, rows, cols, extra, (finP, extraP, down) => {
+      k.bytes().set(mask, extraP);
+      k.view().set([z0, a, b, c, Infinity, -Infinity], finP / 8);
+      new Int32Array(k.view().buffer, finP + 48, 6).set([extraP, extraP + maskBytes, f32 ? 1 : 0, cols, 0, down ? 1 : 0]);
+    });
+    hP = r.grid;
+    maskP = r.extra;
+    fused = r.fused;
+  } else {
+    hP = idctInKernels(k, corner.g, corner.K, corner.L, rows, cols, 0, rows, 0, cols, extra);
+    maskP = hP + ((8 * rows * cols + 15) & ~15);
+  }
   const outP = maskP + maskBytes;
   const resP = outP + heightBytes;
-  k.bytes().set(mask, maskP);
-  const [a, b, c] = plane ?? [0, 0, 0];
-  const cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, a, b, c, f32 ? 1 : 0, resP);
-  const mem = k.view();
-  const minZ = mem[resP / 8];
-  const maxZ = mem[resP / 8 + 1];
+  let cells: number;
+  let mem: Float64Array;
+  let minZ: number;
+  let maxZ: number;
+  if (fused) {
+    mem = k.view();
+    const finP = maskP - 80;
+    minZ = mem[finP / 8 + 4];
+    maxZ = mem[finP / 8 + 5];
+    cells = new Int32Array(mem.buffer, finP + 64, 1)[0];
+  } else {
+    k.bytes().set(mask, maskP);
+    cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, a, b, c, f32 ? 1 : 0, resP);
+    mem = k.view();
+    minZ = mem[resP / 8];
+    maxZ = mem[resP / 8 + 1];
+  }
   if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ)))
     || (!whole && !allFinite(mem.subarray(hP / 8, hP / 8 + rows * cols), mask, plane, rows, cols))) {
     throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
@@ -359,10 +398,7 @@ function finishInKernels(k: Kernels, o: Opened, corner: Corner, mask: Uint8Array
     outMask = new Uint8Array(H * W);
     for (let r = wr0; r < wr1; r++) outMask.set(mask.subarray(r * cols + wc0, r * cols + wc1), (r - wr0) * W);
   }
-  return {
-    width: W, height: H, row0: wr0, col0: wc0, heights, mask: outMask, header: o.header,
-    statistics: { minZ, maxZ, cells }, bytesRead: o.data.length, partial,
-  };
+  return { heights, mask: outMask, minZ, maxZ, cells };
 }
 
 /** Every rebuilt cell of the grid finite (a window's decode refuses a damaged file as a whole one does). */
@@ -709,7 +745,7 @@ function addDctCorner(h: Float64Array, pos: Int32Array, use: number, values: Flo
 }
 
 /** The smallest top-left corner of the spectrum that holds the first `use` coefficients: K x L, row-major. */
-interface Corner {
+export interface Corner {
   g: Float64Array;
   K: number;
   L: number;

@@ -6,3 +6,4 @@ export { addIdct } from "./transform.js";
 export { inflate } from "./bytes.js";
 export { BluesteinFft, factorize, MixedFft } from "./dct.js";
 export { kernels, useWasm } from "./wasm.js";
+export { cornerFinished } from "./decode.js";

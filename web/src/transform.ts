@@ -197,7 +197,27 @@ interface KStrided {
  */
 export function idctInKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number, M: number,
   r0: number, h: number, c0: number, w: number, extra: number, mode: IdctMode = "auto", init: Float64Array | null = null): number {
+  return inKernels(k, g, K, L, N, M, r0, h, c0, w, extra, mode, init, null).grid;
+}
+
+/**
+ * The inverse of the whole N x M grid, with the finishing pass fused into its last axis where that
+ * runs by FFT (each output finished as it comes, not in a pass over the grid): before the passes,
+ * `fin(finP, extraP, down)` writes the finishing descriptor (kernels.ts finishZeros) at finP, 80
+ * bytes, given the offset of the `extra` bytes of scratch and whether the last axis runs down the
+ * columns. Returns the grid's offset, the extra bytes' and whether the pass was fused (else the
+ * grid holds the heights before the finishing pass and fin was not called).
+ */
+export function idctFinishedInKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number, M: number,
+  extra: number, fin: (finP: number, extraP: number, down: boolean) => void): { grid: number; extra: number; fused: boolean } {
+  return inKernels(k, g, K, L, N, M, 0, N, 0, M, extra + 80, "auto", null, fin);
+}
+
+function inKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number, M: number,
+  r0: number, h: number, c0: number, w: number, extra: number, mode: IdctMode, init: Float64Array | null,
+  fin: ((finP: number, extraP: number, down: boolean) => void) | null): { grid: number; extra: number; fused: boolean } {
   const columnsFirst = columnsFirstOf(K, L, N, M, h, w);
+  const fused = fin !== null && (columnsFirst ? usesFft(h, L, M, w, mode) : usesFft(w, K, N, h, mode));
   const tn = columnsFirst ? h * L : K * w;
   const gridBytes = (8 * h * w + 15) & ~15;
   const extraBytes = (extra + 15) & ~15;
@@ -206,27 +226,33 @@ export function idctInKernels(k: Kernels, g: Float64Array, K: number, L: number,
   const tP = gP + 8 * K * L;
   const f = k.view();
   if (init) f.set(init, outP / 8);
-  else f.fill(0, outP / 8, outP / 8 + h * w);
+  else if (!fused) f.fill(0, outP / 8, outP / 8 + h * w);
   f.set(g.subarray(0, K * L), gP / 8);
   f.fill(0, tP / 8, tP / 8 + tn);
+  // The descriptor in the first 80 bytes of the extra scratch, the caller's bytes after it.
+  const finP = fused ? outP + gridBytes : 0;
+  if (fused) fin!(finP, outP + gridBytes + 80, !columnsFirst);
   if (columnsFirst) {
-    idctAxisKernels(k, { p: gP, off: 0, vs: 1, es: L }, L, K, N, r0, h, { p: tP, off: 0, vs: 1, es: L }, mode);
-    idctAxisKernels(k, { p: tP, off: 0, vs: L, es: 1 }, h, L, M, c0, w, { p: outP, off: 0, vs: w, es: 1 }, mode);
+    idctAxisKernels(k, { p: gP, off: 0, vs: 1, es: L }, L, K, N, r0, h, { p: tP, off: 0, vs: 1, es: L }, mode, 0);
+    idctAxisKernels(k, { p: tP, off: 0, vs: L, es: 1 }, h, L, M, c0, w, { p: outP, off: 0, vs: w, es: 1 }, mode, finP);
   } else {
-    idctAxisKernels(k, { p: gP, off: 0, vs: L, es: 1 }, K, L, M, c0, w, { p: tP, off: 0, vs: w, es: 1 }, mode);
-    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: w }, w, K, N, r0, h, { p: outP, off: 0, vs: 1, es: w }, mode);
+    idctAxisKernels(k, { p: gP, off: 0, vs: L, es: 1 }, K, L, M, c0, w, { p: tP, off: 0, vs: w, es: 1 }, mode, 0);
+    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: w }, w, K, N, r0, h, { p: outP, off: 0, vs: 1, es: w }, mode, finP);
   }
-  return outP;
+  return { grid: outP, extra: outP + gridBytes + (fin ? 80 : 0), fused };
+}
+
+function usesFft(nvec: number, klen: number, n: number, w: number, mode: IdctMode): boolean {
+  return mode === "fft" || (mode === "auto" && fftCost(dctOf(n), nvec, klen, w) < sumsCost(nvec, klen, w));
 }
 
 /** idctAxis on the kernels' memory: the same sums or FFTs, the FFTs two pairs of vectors a call
  * (pairs whose FFT is the same plan and band branch; a pair alone otherwise, so that each pair's
  * arithmetic is the TypeScript path's). */
 function idctAxisKernels(k: Kernels, inp: KStrided, nvec: number, klen: number, n: number, c0: number, w: number,
-  out: KStrided, mode: IdctMode): void {
+  out: KStrided, mode: IdctMode, finP: number): void {
   const plan = dctOf(n);
-  const useFft = mode === "fft" || (mode === "auto" && fftCost(plan, nvec, klen, w) < sumsCost(nvec, klen, w));
-  if (!useFft) {
+  if (!usesFft(nvec, klen, n, w, mode)) {
     // Views taken after the last allocation, and none happens below.
     const a = k.view();
     idctAxis({ a, off: inp.p / 8 + inp.off, vs: inp.vs, es: inp.es }, nvec, klen, n, c0, w,
@@ -242,7 +268,7 @@ function idctAxisKernels(k: Kernels, inp: KStrided, nvec: number, klen: number, 
     const i2 = B ? inp.off + B.v * inp.vs : -1;
     const o2 = B ? out.off + B.v * out.vs : -1;
     k.ex.dctGroup(dct, A.f instanceof MixedFft ? 0 : 1, fp, inp.p, i0, A.two ? i0 + inp.vs : -1, i2, B?.two ? i2 + inp.vs : -1,
-      inp.es, B ? Math.max(A.K, B.K) : A.K, out.p, o0, A.two ? o0 + out.vs : -1, o2, B?.two ? o2 + out.vs : -1, out.es, c0, w);
+      inp.es, B ? Math.max(A.K, B.K) : A.K, out.p, o0, A.two ? o0 + out.vs : -1, o2, B?.two ? o2 + out.vs : -1, out.es, c0, w, finP);
   };
   let pending: Pair | null = null;
   for (let v = 0; v < nvec; v += 2) {
@@ -252,7 +278,11 @@ function idctAxisKernels(k: Kernels, inp: KStrided, nvec: number, klen: number, 
     const i1 = inp.p / 8 + inp.off + v * inp.vs;
     const i2 = two ? i1 + inp.vs : -1;
     while (len > 0 && a[i1 + (len - 1) * inp.es] === 0 && (!two || a[i2 + (len - 1) * inp.es] === 0)) len--;
-    if (len === 0) continue;
+    if (len === 0) {
+      // Vectors of zeros: their cells are finished as zeros.
+      if (finP) for (let u = v; u < Math.min(v + 2, nvec); u++) k.ex.finishZeros(finP, out.off + u * out.vs, out.es, w);
+      continue;
+    }
     const K = Math.min(len, n);
     const pair: Pair = { v, two, K, f: plan.fft.pick(K), narrow: 2 * K - 1 < n };
     if (pending && pending.f === pair.f && pending.narrow === pair.narrow) {

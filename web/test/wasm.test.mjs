@@ -130,6 +130,54 @@ for (const N of SIDES) {
   });
 }
 
+/** finishWindow's heights from the TypeScript path's inverse, written here from its definition. */
+function finishedByTypeScript(g, K, L, rows, cols, mask, z0, [a, b, c], f32) {
+  internals.useWasm(false);
+  const h = new Float64Array(rows * cols);
+  internals.addIdct(h, g, K, L, rows, cols, 0, rows, 0, cols);
+  internals.useWasm(true);
+  const heights = f32 ? new Float32Array(rows * cols) : new Float64Array(rows * cols);
+  let minZ = Infinity;
+  let maxZ = -Infinity;
+  let cells = 0;
+  for (let r = 0; r < rows; r++) {
+    for (let q = 0; q < cols; q++) {
+      const k = r * cols + q;
+      if (!mask[k]) {
+        heights[k] = NaN;
+        continue;
+      }
+      const z = h[k] + (z0 + (a + c * r) + b * q);
+      heights[k] = z;
+      minZ = Math.min(minZ, z);
+      maxZ = Math.max(maxZ, z);
+      cells++;
+    }
+  }
+  return { heights, minZ, maxZ, cells };
+}
+
+// The finishing pass fused into the inverse's last axis: along rows (200 x 180 and 128 x 256 run
+// columns first) and down columns (90 x 77 and 160 x 240 run rows first), with the vectors of zeros
+// the inverse skips (a corner of zeros: every vector is one), float64 and float32, a plane and holes;
+// and not fused (97 x 120's narrow corner: its last axis by plain sums, then finish()).
+for (const [rows, cols, K, L] of [[90, 77, 60, 50], [200, 180, 150, 120], [160, 240, 130, 200], [128, 256, 100, 200], [97, 120, 3, 110]]) {
+  for (const zeros of [false, true]) {
+    test(`the fused finishing pass on a ${rows} x ${cols} grid, a ${K} x ${L} corner${zeros ? " of zeros" : ""}: TypeScript's heights`, () => {
+      const g = new Float64Array(K * L);
+      if (!zeros) for (let k = 0; k < g.length; k++) g[k] = 100 * rnd() / (1 + k);
+      const mask = new Uint8Array(rows * cols).map((_, k) => (k % 11 === 3 ? 0 : 1));
+      const plane = [3.25, 0.01 * rnd(), 0.02 * rnd()];
+      for (const f32 of [false, true]) {
+        const got = internals.cornerFinished(internals.kernels(), { g, K, L }, mask, rows, cols, [0, rows, 0, cols], 1234.5, plane, f32);
+        const want = finishedByTypeScript(g, K, L, rows, cols, mask, 1234.5, plane, f32);
+        assert.equal(firstDiff(got.heights, want.heights), -1, `f32 ${f32}: heights differ`);
+        assert.deepEqual([got.minZ, got.maxZ, got.cells], [want.minZ, want.maxZ, want.cells]);
+      }
+    });
+  }
+}
+
 test("a kernels' decode leaves the caller's buffers alone: the heights outlive the next decode", () => {
   const name = maps.find((n) => n.startsWith("gale_default"));
   const data = bytes(join(DIR, name));

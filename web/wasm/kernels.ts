@@ -314,7 +314,7 @@ export function bluesteinForward(plan: usize, re: usize, im: usize): void {
  * plan's words: n, car, sar, cb, sb (tables), re, im (lane buffers).
  */
 export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0: i32, i1: i32, i2: i32, i3: i32,
-  is: i32, K: i32, out: usize, o0: i32, o1: i32, o2: i32, o3: i32, os: i32, c0: i32, w: i32): void {
+  is: i32, K: i32, out: usize, o0: i32, o1: i32, o2: i32, o3: i32, os: i32, c0: i32, w: i32, fin: usize): void {
   const n = word(dct, 0);
   const car = <usize>word(dct, 1), sar = <usize>word(dct, 2), cb = <usize>word(dct, 3), sb = <usize>word(dct, 4);
   const re = <usize>word(dct, 5), im = <usize>word(dct, 6);
@@ -353,6 +353,80 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
   else mixedForward(fft, re, im, K);
   // Cell 2m is entry m, cell 2(n - 1 - m) + 1 entry m.
   const end = c0 + w;
+  if (fin) {
+    // The finishing pass on the outputs as they come (each cell once, out as zeros: 0 + x, as the
+    // TypeScript path adds x to a grid of zeros), then finish()'s operations.
+    const z0 = load<f64>(fin), a = load<f64>(fin, 8), b = load<f64>(fin, 16), c = load<f64>(fin, 24);
+    let lo = load<f64>(fin, 32), hi = load<f64>(fin, 40);
+    const mask = <usize>load<i32>(fin, 48), hts = <usize>load<i32>(fin, 52), f32 = load<i32>(fin, 56);
+    const cols = load<i32>(fin, 60), down = load<i32>(fin, 68);
+    let cells = load<i32>(fin, 64);
+    const r0 = o0 >= 0 ? o0 / cols : 0, q0 = o0 >= 0 ? o0 - r0 * cols : 0;
+    const r1 = o1 >= 0 ? o1 / cols : 0, q1 = o1 >= 0 ? o1 - r1 * cols : 0;
+    const r2 = o2 >= 0 ? o2 / cols : 0, q2 = o2 >= 0 ? o2 - r2 * cols : 0;
+    const r3 = o3 >= 0 ? o3 / cols : 0, q3 = o3 >= 0 ? o3 - r3 * cols : 0;
+    for (let cell = c0, p = 0; cell < end; cell++, p += os) {
+      const m = cell & 1 ? n - 1 - ((cell - 1) >> 1) : cell >> 1;
+      const r = ld(re, m), i = ld(im, m);
+      const d = cell - c0;
+      if (o0 >= 0) {
+        const k = o0 + p;
+        let z = NaN;
+        if (load<u8>(mask + <usize>k)) {
+          const h = 0.0 + f64x2.extract_lane(r, 0);
+          z = h + ((z0 + (a + c * <f64>(down ? r0 + d : r0))) + b * <f64>(down ? q0 : q0 + d));
+          lo = min(lo, z);
+          hi = max(hi, z);
+          cells++;
+        }
+        if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
+        else store<f64>(hts + (<usize>k << 3), z);
+      }
+      if (o1 >= 0) {
+        const k = o1 + p;
+        let z = NaN;
+        if (load<u8>(mask + <usize>k)) {
+          const h = 0.0 - f64x2.extract_lane(i, 0);
+          z = h + ((z0 + (a + c * <f64>(down ? r1 + d : r1))) + b * <f64>(down ? q1 : q1 + d));
+          lo = min(lo, z);
+          hi = max(hi, z);
+          cells++;
+        }
+        if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
+        else store<f64>(hts + (<usize>k << 3), z);
+      }
+      if (o2 >= 0) {
+        const k = o2 + p;
+        let z = NaN;
+        if (load<u8>(mask + <usize>k)) {
+          const h = 0.0 + f64x2.extract_lane(r, 1);
+          z = h + ((z0 + (a + c * <f64>(down ? r2 + d : r2))) + b * <f64>(down ? q2 : q2 + d));
+          lo = min(lo, z);
+          hi = max(hi, z);
+          cells++;
+        }
+        if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
+        else store<f64>(hts + (<usize>k << 3), z);
+      }
+      if (o3 >= 0) {
+        const k = o3 + p;
+        let z = NaN;
+        if (load<u8>(mask + <usize>k)) {
+          const h = 0.0 - f64x2.extract_lane(i, 1);
+          z = h + ((z0 + (a + c * <f64>(down ? r3 + d : r3))) + b * <f64>(down ? q3 : q3 + d));
+          lo = min(lo, z);
+          hi = max(hi, z);
+          cells++;
+        }
+        if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
+        else store<f64>(hts + (<usize>k << 3), z);
+      }
+    }
+    store<f64>(fin, lo, 32);
+    store<f64>(fin, hi, 40);
+    store<i32>(fin, cells, 64);
+    return;
+  }
   for (let cell = c0, p = 0; cell < end; cell++, p += os) {
     const m = cell & 1 ? n - 1 - ((cell - 1) >> 1) : cell >> 1;
     const r = ld(re, m), i = ld(im, m);
@@ -361,6 +435,37 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
     if (o2 >= 0) { const a = out + (<usize>(o2 + p) << 3); store<f64>(a, load<f64>(a) + f64x2.extract_lane(r, 1)); }
     if (o3 >= 0) { const a = out + (<usize>(o3 + p) << 3); store<f64>(a, load<f64>(a) - f64x2.extract_lane(i, 1)); }
   }
+}
+
+/**
+ * The fused finishing pass of a vector of zeros (one the inverse skips): cells o + p os, p < w, as
+ * dctGroup's fin. fin's layout: z0, a, b, c (f64 at bytes 0 .. 24), the least and greatest heights
+ * so far (f64 at 32, 40), then i32s: the mask (48), the heights (52), 1 for f32 heights (56), the
+ * grid's columns (60), the cells set so far (64), 1 when the vectors run down the columns (68).
+ */
+export function finishZeros(fin: usize, o: i32, os: i32, w: i32): void {
+  const z0 = load<f64>(fin), a = load<f64>(fin, 8), b = load<f64>(fin, 16), c = load<f64>(fin, 24);
+  let lo = load<f64>(fin, 32), hi = load<f64>(fin, 40);
+  const mask = <usize>load<i32>(fin, 48), hts = <usize>load<i32>(fin, 52), f32 = load<i32>(fin, 56);
+  const cols = load<i32>(fin, 60);
+  let cells = load<i32>(fin, 64);
+  for (let p = 0; p < w; p++) {
+    const k = o + p * os;
+    const r = k / cols, q = k - r * cols;
+    let z = NaN;
+    if (load<u8>(mask + <usize>k)) {
+      const h = 0.0;
+      z = h + ((z0 + (a + c * <f64>r)) + b * <f64>q);
+      lo = min(lo, z);
+      hi = max(hi, z);
+      cells++;
+    }
+    if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
+    else store<f64>(hts + (<usize>k << 3), z);
+  }
+  store<f64>(fin, lo, 32);
+  store<f64>(fin, hi, 40);
+  store<i32>(fin, cells, 64);
 }
 
 /**
