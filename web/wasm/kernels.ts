@@ -365,6 +365,51 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
     const r1 = o1 >= 0 ? o1 / cols : 0, q1 = o1 >= 0 ? o1 - r1 * cols : 0;
     const r2 = o2 >= 0 ? o2 / cols : 0, q2 = o2 >= 0 ? o2 - r2 * cols : 0;
     const r3 = o3 >= 0 ? o3 / cols : 0, q3 = o3 >= 0 ? o3 - r3 * cols : 0;
+    if (o0 >= 0 && o1 >= 0 && o2 >= 0 && o3 >= 0) {
+      // All four outputs: the pairs' lanes as they are, outputs o0 and o2 (0 + re) in A, o1 and o3
+      // (0 - im) in B; rows and columns as exact f64 integers stepped by the cell (down: the rows).
+      const zero = f64x2.splat(0), one = f64x2.splat(1);
+      const z0v = f64x2.splat(z0), av = f64x2.splat(a), bv = f64x2.splat(b), cv = f64x2.splat(c);
+      const inf = f64x2.splat(Infinity), minf = f64x2.splat(-Infinity), nan = f64x2.splat(NaN);
+      const dr = down ? one : zero, dq = down ? zero : one;
+      let rA = f64x2.replace_lane(f64x2.splat(<f64>r0), 1, <f64>r2), qA = f64x2.replace_lane(f64x2.splat(<f64>q0), 1, <f64>q2);
+      let rB = f64x2.replace_lane(f64x2.splat(<f64>r1), 1, <f64>r3), qB = f64x2.replace_lane(f64x2.splat(<f64>q1), 1, <f64>q3);
+      let loV = inf, hiV = minf;
+      for (let cell = c0, p = 0; cell < end; cell++, p += os) {
+        const m = cell & 1 ? n - 1 - ((cell - 1) >> 1) : cell >> 1;
+        const zA = add(add(zero, ld(re, m)), add(add(z0v, add(av, mul(cv, rA))), mul(bv, qA)));
+        const zB = add(sub(zero, ld(im, m)), add(add(z0v, add(av, mul(cv, rB))), mul(bv, qB)));
+        const k0 = o0 + p, k1 = o1 + p, k2 = o2 + p, k3 = o3 + p;
+        const m0 = load<u8>(mask + <usize>k0), m1 = load<u8>(mask + <usize>k1);
+        const m2 = load<u8>(mask + <usize>k2), m3 = load<u8>(mask + <usize>k3);
+        const sA = i64x2.replace_lane(i64x2.splat(m0 ? -1 : 0), 1, m2 ? -1 : 0);
+        const sB = i64x2.replace_lane(i64x2.splat(m1 ? -1 : 0), 1, m3 ? -1 : 0);
+        cells += <i32>(m0 != 0) + <i32>(m1 != 0) + <i32>(m2 != 0) + <i32>(m3 != 0);
+        loV = f64x2.min(f64x2.min(loV, v128.bitselect(zA, inf, sA)), v128.bitselect(zB, inf, sB));
+        hiV = f64x2.max(f64x2.max(hiV, v128.bitselect(zA, minf, sA)), v128.bitselect(zB, minf, sB));
+        const vA = v128.bitselect(zA, nan, sA), vB = v128.bitselect(zB, nan, sB);
+        if (f32) {
+          const fA = f32x4.demote_f64x2_zero(vA), fB = f32x4.demote_f64x2_zero(vB);
+          v128.store32_lane(hts + (<usize>k0 << 2), fA, 0);
+          v128.store32_lane(hts + (<usize>k2 << 2), fA, 1);
+          v128.store32_lane(hts + (<usize>k1 << 2), fB, 0);
+          v128.store32_lane(hts + (<usize>k3 << 2), fB, 1);
+        } else {
+          v128.store64_lane(hts + (<usize>k0 << 3), vA, 0);
+          v128.store64_lane(hts + (<usize>k2 << 3), vA, 1);
+          v128.store64_lane(hts + (<usize>k1 << 3), vB, 0);
+          v128.store64_lane(hts + (<usize>k3 << 3), vB, 1);
+        }
+        rA = add(rA, dr); qA = add(qA, dq);
+        rB = add(rB, dr); qB = add(qB, dq);
+      }
+      lo = min(lo, min(f64x2.extract_lane(loV, 0), f64x2.extract_lane(loV, 1)));
+      hi = max(hi, max(f64x2.extract_lane(hiV, 0), f64x2.extract_lane(hiV, 1)));
+      store<f64>(fin, lo, 32);
+      store<f64>(fin, hi, 40);
+      store<i32>(fin, cells, 64);
+      return;
+    }
     for (let cell = c0, p = 0; cell < end; cell++, p += os) {
       const m = cell & 1 ? n - 1 - ((cell - 1) >> 1) : cell >> 1;
       const r = ld(re, m), i = ld(im, m);
