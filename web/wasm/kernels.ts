@@ -326,8 +326,19 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
     memory.fill(re, 0, <usize>n << 4);
     memory.fill(im, 0, <usize>n << 4);
   }
+  // Four adjacent vectors (columns of a row-major array): two loads a row, lanes shuffled.
+  const adjacent = i0 >= 0 && i1 == i0 + 1 && i2 == i0 + 2 && i3 == i0 + 3;
   for (let k = 0; k < K; k++) {
-    const a1 = lanes(inp, i0, i2, k * is), a2 = lanes(inp, i1, i3, k * is);
+    let a1: v128, a2: v128;
+    if (adjacent) {
+      const p = inp + (<usize>(i0 + k * is) << 3);
+      const x = v128.load(p), y = v128.load(p, 16);
+      a1 = i64x2.shuffle(x, y, 0, 2);
+      a2 = i64x2.shuffle(x, y, 1, 3);
+    } else {
+      a1 = lanes(inp, i0, i2, k * is);
+      a2 = lanes(inp, i1, i3, k * is);
+    }
     const c = sp(car, k), s = sp(sar, k);
     st(re, k, sub(mul(a1, c), mul(a2, s)));
     st(im, k, neg(add(mul(a1, s), mul(a2, c))));
@@ -335,7 +346,16 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
   if (narrow) {
     for (let j = 1; j < K; j++) {
       const k = n - j;
-      const b1 = lanes(inp, i0, i2, j * is), b2 = lanes(inp, i1, i3, j * is);
+      let b1: v128, b2: v128;
+      if (adjacent) {
+        const p = inp + (<usize>(i0 + j * is) << 3);
+        const x = v128.load(p), y = v128.load(p, 16);
+        b1 = i64x2.shuffle(x, y, 0, 2);
+        b2 = i64x2.shuffle(x, y, 1, 3);
+      } else {
+        b1 = lanes(inp, i0, i2, j * is);
+        b2 = lanes(inp, i1, i3, j * is);
+      }
       const c = sp(cb, k), s = sp(sb, k);
       st(re, k, add(mul(b1, s), mul(b2, c)));
       st(im, k, sub(mul(b1, c), mul(b2, s)));
@@ -470,6 +490,17 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
     store<f64>(fin, lo, 32);
     store<f64>(fin, hi, 40);
     store<i32>(fin, cells, 64);
+    return;
+  }
+  if (o0 >= 0 && o1 == o0 + 1 && o2 == o0 + 2 && o3 == o0 + 3) {
+    // Four adjacent outputs: out += re, out -= im as adding the negation (the same in IEEE arithmetic).
+    for (let cell = c0, p = 0; cell < end; cell++, p += os) {
+      const m = cell & 1 ? n - 1 - ((cell - 1) >> 1) : cell >> 1;
+      const r = ld(re, m), i = neg(ld(im, m));
+      const a = out + (<usize>(o0 + p) << 3);
+      v128.store(a, add(v128.load(a), i64x2.shuffle(r, i, 0, 2)));
+      v128.store(a, add(v128.load(a, 16), i64x2.shuffle(r, i, 1, 3)), 16);
+    }
     return;
   }
   for (let cell = c0, p = 0; cell < end; cell++, p += os) {
