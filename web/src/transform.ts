@@ -233,8 +233,9 @@ function inKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number,
   const finP = fused ? outP + gridBytes : 0;
   if (fused) fin!(finP, outP + gridBytes + 80, !columnsFirst);
   if (columnsFirst) {
-    idctAxisKernels(k, { p: gP, off: 0, vs: 1, es: L }, L, K, N, r0, h, { p: tP, off: 0, vs: 1, es: L }, mode, 0);
-    idctAxisKernels(k, { p: tP, off: 0, vs: L, es: 1 }, h, L, M, c0, w, { p: outP, off: 0, vs: w, es: 1 }, mode, finP);
+    // t as L x h (t transposed): the second axis reads four adjacent vectors a call.
+    idctAxisKernels(k, { p: gP, off: 0, vs: 1, es: L }, L, K, N, r0, h, { p: tP, off: 0, vs: h, es: 1 }, mode, 0);
+    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: h }, h, L, M, c0, w, { p: outP, off: 0, vs: w, es: 1 }, mode, finP);
   } else {
     idctAxisKernels(k, { p: gP, off: 0, vs: L, es: 1 }, K, L, M, c0, w, { p: tP, off: 0, vs: w, es: 1 }, mode, 0);
     idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: w }, w, K, N, r0, h, { p: outP, off: 0, vs: 1, es: w }, mode, finP);

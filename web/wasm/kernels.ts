@@ -503,6 +503,19 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
     }
     return;
   }
+  if (o0 >= 0 && o1 >= 0 && o2 >= 0 && o3 >= 0) {
+    for (let cell = c0, p = 0; cell < end; cell++, p += os) {
+      const m = cell & 1 ? n - 1 - ((cell - 1) >> 1) : cell >> 1;
+      const r = ld(re, m), i = ld(im, m);
+      const a0 = out + (<usize>(o0 + p) << 3), a1 = out + (<usize>(o1 + p) << 3);
+      const a2 = out + (<usize>(o2 + p) << 3), a3 = out + (<usize>(o3 + p) << 3);
+      store<f64>(a0, load<f64>(a0) + f64x2.extract_lane(r, 0));
+      store<f64>(a1, load<f64>(a1) - f64x2.extract_lane(i, 0));
+      store<f64>(a2, load<f64>(a2) + f64x2.extract_lane(r, 1));
+      store<f64>(a3, load<f64>(a3) - f64x2.extract_lane(i, 1));
+    }
+    return;
+  }
   for (let cell = c0, p = 0; cell < end; cell++, p += os) {
     const m = cell & 1 ? n - 1 - ((cell - 1) >> 1) : cell >> 1;
     const r = ld(re, m), i = ld(im, m);
