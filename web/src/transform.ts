@@ -221,9 +221,12 @@ function inKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number,
   const tn = columnsFirst ? h * L : K * w;
   const gridBytes = (8 * h * w + 15) & ~15;
   const extraBytes = (extra + 15) & ~15;
-  const outP = k.scratch(gridBytes + extraBytes + 8 * K * L + 8 * tn);
+  // The plain sums' basis (K x h or L x w, the larger of an axis's).
+  const basisN = Math.max(K * h, L * w);
+  const outP = k.scratch(gridBytes + extraBytes + 8 * K * L + 8 * tn + 8 * basisN);
   const gP = outP + gridBytes + extraBytes;
   const tP = gP + 8 * K * L;
+  const bP = tP + 8 * tn;
   const f = k.view();
   if (init) f.set(init, outP / 8);
   else if (!fused) f.fill(0, outP / 8, outP / 8 + h * w);
@@ -234,11 +237,11 @@ function inKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number,
   if (fused) fin!(finP, outP + gridBytes + 80, !columnsFirst);
   if (columnsFirst) {
     // t as L x h (t transposed): the second axis reads four adjacent vectors a call.
-    idctAxisKernels(k, { p: gP, off: 0, vs: 1, es: L }, L, K, N, r0, h, { p: tP, off: 0, vs: h, es: 1 }, mode, 0);
-    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: h }, h, L, M, c0, w, { p: outP, off: 0, vs: w, es: 1 }, mode, finP);
+    idctAxisKernels(k, { p: gP, off: 0, vs: 1, es: L }, L, K, N, r0, h, { p: tP, off: 0, vs: h, es: 1 }, mode, 0, bP);
+    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: h }, h, L, M, c0, w, { p: outP, off: 0, vs: w, es: 1 }, mode, finP, bP);
   } else {
-    idctAxisKernels(k, { p: gP, off: 0, vs: L, es: 1 }, K, L, M, c0, w, { p: tP, off: 0, vs: w, es: 1 }, mode, 0);
-    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: w }, w, K, N, r0, h, { p: outP, off: 0, vs: 1, es: w }, mode, finP);
+    idctAxisKernels(k, { p: gP, off: 0, vs: L, es: 1 }, K, L, M, c0, w, { p: tP, off: 0, vs: w, es: 1 }, mode, 0, bP);
+    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: w }, w, K, N, r0, h, { p: outP, off: 0, vs: 1, es: w }, mode, finP, bP);
   }
   return { grid: outP, extra: outP + gridBytes + (fin ? 80 : 0), fused };
 }
@@ -251,13 +254,11 @@ function usesFft(nvec: number, klen: number, n: number, w: number, mode: IdctMod
  * (pairs whose FFT is the same plan and band branch; a pair alone otherwise, so that each pair's
  * arithmetic is the TypeScript path's). */
 function idctAxisKernels(k: Kernels, inp: KStrided, nvec: number, klen: number, n: number, c0: number, w: number,
-  out: KStrided, mode: IdctMode, finP: number): void {
+  out: KStrided, mode: IdctMode, finP: number, basisP: number): void {
   const plan = dctOf(n);
   if (!usesFft(nvec, klen, n, w, mode)) {
-    // Views taken after the last allocation, and none happens below.
-    const a = k.view();
-    idctAxis({ a, off: inp.p / 8 + inp.off, vs: inp.vs, es: inp.es }, nvec, klen, n, c0, w,
-      { a, off: out.p / 8 + out.off, vs: out.vs, es: out.es }, "sums");
+    k.view().set(dctBasis(n, klen, c0, w), basisP / 8);
+    k.ex.sumsAxis(inp.p, inp.off, inp.vs, inp.es, nvec, klen, basisP, out.p, out.off, out.vs, out.es, w);
     return;
   }
   const dct = k.dct(plan);

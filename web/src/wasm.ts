@@ -15,6 +15,8 @@ interface Exports {
   dctGroup(dct: number, bluestein: number, fft: number, inp: number, i0: number, i1: number, i2: number, i3: number,
     is: number, K: number, out: number, o0: number, o1: number, o2: number, o3: number, os: number, c0: number, w: number, fin: number): void;
   finishZeros(fin: number, o: number, os: number, w: number): void;
+  sumsAxis(inp: number, ioff: number, ivs: number, ies: number, nvec: number, klen: number, basis: number,
+    out: number, ooff: number, ovs: number, oes: number, w: number): void;
   finish(h: number, mask: number, out: number, cols: number, wr0: number, wr1: number, wc0: number, wc1: number,
     z0: number, a: number, b: number, c: number, f32: number, res: number): number;
 }

@@ -616,3 +616,66 @@ export function finish(h: usize, mask: usize, out: usize, cols: i32, wr0: i32, w
 export function heapBase(): usize {
   return __heap_base;
 }
+
+/**
+ * idctAxis's plain sums (transform.ts): for each of nvec vectors, out[o + c oes] += x_k basis[k w +
+ * c] for each nonzero coefficient x_k = inp[i + k ies], k < klen, and c < w, in that order (vector v
+ * reads at ioff + v ivs and writes at ooff + v ovs; element offsets). Two cells a step when the
+ * outputs are contiguous, two vectors a step when the vectors are adjacent (a lane whose
+ * coefficient is zero adds a zero product, which leaves a sum as it is but for a zero's sign).
+ */
+export function sumsAxis(inp: usize, ioff: i32, ivs: i32, ies: i32, nvec: i32, klen: i32, basis: usize,
+  out: usize, ooff: i32, ovs: i32, oes: i32, w: i32): void {
+  if (oes == 1) {
+    for (let v = 0; v < nvec; v++) {
+      const i0 = ioff + v * ivs;
+      const o = out + (<usize>(ooff + v * ovs) << 3);
+      for (let k = 0; k < klen; k++) {
+        const x = load<f64>(inp + (<usize>(i0 + k * ies) << 3));
+        if (x == 0) continue;
+        const xv = f64x2.splat(x);
+        const b = basis + (<usize>(k * w) << 3);
+        let c = 0;
+        for (; c + 1 < w; c += 2) {
+          const p = o + (<usize>c << 3);
+          v128.store(p, add(v128.load(p), mul(xv, v128.load(b + (<usize>c << 3)))));
+        }
+        for (; c < w; c++) {
+          const p = o + (<usize>c << 3);
+          store<f64>(p, load<f64>(p) + x * load<f64>(b + (<usize>c << 3)));
+        }
+      }
+    }
+    return;
+  }
+  let v = 0;
+  if (ovs == 1) {
+    for (; v + 1 < nvec; v += 2) {
+      const i0 = ioff + v * ivs, i1 = i0 + ivs;
+      const o = out + (<usize>(ooff + v) << 3);
+      for (let k = 0; k < klen; k++) {
+        const x0 = load<f64>(inp + (<usize>(i0 + k * ies) << 3)), x1 = load<f64>(inp + (<usize>(i1 + k * ies) << 3));
+        if (x0 == 0 && x1 == 0) continue;
+        const xv = f64x2.replace_lane(f64x2.splat(x0), 1, x1);
+        const b = basis + (<usize>(k * w) << 3);
+        for (let c = 0; c < w; c++) {
+          const p = o + (<usize>(c * oes) << 3);
+          v128.store(p, add(v128.load(p), mul(xv, v128.load64_splat(b + (<usize>c << 3)))));
+        }
+      }
+    }
+  }
+  for (; v < nvec; v++) {
+    const i0 = ioff + v * ivs;
+    const o = out + (<usize>(ooff + v * ovs) << 3);
+    for (let k = 0; k < klen; k++) {
+      const x = load<f64>(inp + (<usize>(i0 + k * ies) << 3));
+      if (x == 0) continue;
+      const b = basis + (<usize>(k * w) << 3);
+      for (let c = 0; c < w; c++) {
+        const p = o + (<usize>(c * oes) << 3);
+        store<f64>(p, load<f64>(p) + x * load<f64>(b + (<usize>c << 3)));
+      }
+    }
+  }
+}
