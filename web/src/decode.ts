@@ -12,7 +12,7 @@ import { baseCut, cutOf, prefix, Transform } from "./layout.js";
 import { countOnes, decodeMask } from "./mask.js";
 import { decodeResidual } from "./residual.js";
 import { addIdct, idctFinishedInKernels, idctInKernels, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
-import { Kernels, kernels, WasmMemoryError } from "./wasm.js";
+import { align16, Kernels, kernels, releaseKernels, WasmMemoryError } from "./wasm.js";
 
 export interface DecodeOptions {
   /** Decode only the first maxBytes bytes, as if the rest had not arrived (untiled maps). */
@@ -139,9 +139,13 @@ function open(bytes: Uint8Array, options: DecodeOptions): Opened {
 /** A .dftpc file's DEM. Throws the classes of errors.ts only. */
 export function decode(bytes: Uint8Array, options: DecodeOptions = {}): DecodedMap {
   return guard("damaged file", () => {
-    const o = open(bytes, options);
-    const out = o.header.tiled ? decodeTiled(o, options) : decodeWhole(o, options);
-    return out;
+    try {
+      const o = open(bytes, options);
+      const out = o.header.tiled ? decodeTiled(o, options) : decodeWhole(o, options);
+      return out;
+    } finally {
+      releaseKernels();
+    }
   });
 }
 
@@ -352,8 +356,8 @@ export function cornerFinished(k: Kernels, corner: Corner, mask: Uint8Array, row
   const W = wc1 - wc0;
   const H = wr1 - wr0;
   const whole = H === rows && W === cols;
-  const maskBytes = (rows * cols + 15) & ~15;
-  const heightBytes = ((f32 ? 4 : 8) * H * W + 15) & ~15;
+  const maskBytes = align16(rows * cols);
+  const heightBytes = align16((f32 ? 4 : 8) * H * W);
   const extra = maskBytes + heightBytes + 16;
   const [a, b, c] = plane ?? [0, 0, 0];
   let hP: number;
@@ -371,7 +375,7 @@ export function cornerFinished(k: Kernels, corner: Corner, mask: Uint8Array, row
     fused = r.fused;
   } else {
     hP = idctInKernels(k, corner.g, corner.K, corner.L, rows, cols, 0, rows, 0, cols, extra);
-    maskP = hP + ((8 * rows * cols + 15) & ~15);
+    maskP = hP + align16(8 * rows * cols);
   }
   const outP = maskP + maskBytes;
   const resP = outP + heightBytes;

@@ -4,7 +4,7 @@
 // (dct.ts), whichever costs less for the corner's size, and evaluates only the cells asked for (a
 // tile of its coded window); the DFTs, used by the paper profile and --transform dft only, are sums.
 import { Dct3, MixedFft } from "./dct.js";
-import { Kernels, kernels, WasmMemoryError } from "./wasm.js";
+import { align16, Kernels, kernels, WasmMemoryError } from "./wasm.js";
 
 /** cos(2 pi m / period) for m = 0 .. period-1: bases at exact integer phase. */
 function cosTable(_n: number, period: number): Float64Array {
@@ -219,8 +219,8 @@ function inKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number,
   const columnsFirst = columnsFirstOf(K, L, N, M, h, w);
   const fused = fin !== null && (columnsFirst ? usesFft(h, L, M, w, mode) : usesFft(w, K, N, h, mode));
   const tn = columnsFirst ? h * L : K * w;
-  const gridBytes = (8 * h * w + 15) & ~15;
-  const extraBytes = (extra + 15) & ~15;
+  const gridBytes = align16(8 * h * w);
+  const extraBytes = align16(extra);
   // The plain sums' basis (K x h or L x w, the larger of an axis's).
   const basisN = Math.max(K * h, L * w);
   const outP = k.scratch(gridBytes + extraBytes + 8 * K * L + 8 * tn + 8 * basisN);

@@ -25,7 +25,9 @@ interface Exports {
 export class WasmMemoryError extends Error {}
 
 const PAGE = 65536;
-const align = (p: number) => (p + 15) & ~15;
+/** p rounded up to a multiple of 16 (arithmetic, not bitwise: offsets pass 2**31). */
+export const align16 = (p: number) => Math.ceil(p / 16) * 16;
+const align = align16;
 
 export class Kernels {
   readonly ex: Exports;
@@ -85,15 +87,21 @@ export class Kernels {
     const end = align(this.base + n);
     if (end > 2 ** 32) throw new WasmMemoryError("more than 4 GiB of WebAssembly memory");
     if (end > this.scratchEnd || this.gen === 0) {
+      // Grown first (a failure leaves everything as it was), with room for the constants.
+      this.ensure(end + 64);
       this.scratchEnd = end;
       this.top = end;
       this.gen++;
       // The tables start anew: the constants first.
-      this.ensure(end);
       this.ex.setConstants(this.put(new Float64Array([Math.sqrt(3) / 2, Math.cos((2 * Math.PI) / 5),
         Math.cos((4 * Math.PI) / 5), Math.sin((2 * Math.PI) / 5), Math.sin((4 * Math.PI) / 5)])));
     }
     return this.base;
+  }
+
+  /** Bytes of memory held (it never shrinks). */
+  held(): number {
+    return this.ex.memory.buffer.byteLength;
   }
 
   private alloc(n: number): number {
@@ -162,22 +170,37 @@ export class Kernels {
 }
 
 let enabled = true;
-let loaded: Kernels | null | undefined;
+let compiled: WebAssembly.Module | null | undefined;
+let loaded: Kernels | null = null;
+
+/** A memory above this is let go after a decode (a WebAssembly memory never shrinks: one large map
+ * would otherwise hold its grids for the page's life); the next decode starts a fresh instance. */
+const RETAIN_BYTES = 256 * 2 ** 20;
 
 /** The kernels, or null where WebAssembly SIMD is missing (or switched off by useWasm). */
 export function kernels(): Kernels | null {
   if (!enabled) return null;
-  if (loaded === undefined) {
-    loaded = null;
+  if (compiled === undefined) {
+    compiled = null;
     try {
-      if (typeof WebAssembly === "object" && WebAssembly.validate(bytes)) {
-        loaded = new Kernels(new WebAssembly.Instance(new WebAssembly.Module(bytes), {}).exports as unknown as Exports);
-      }
+      if (typeof WebAssembly === "object" && WebAssembly.validate(bytes)) compiled = new WebAssembly.Module(bytes);
     } catch {
-      loaded = null; // a page whose policy forbids WebAssembly, or a compile refused on a main thread
+      compiled = null; // a page whose policy forbids WebAssembly, or a compile refused on a main thread
+    }
+  }
+  if (compiled && !loaded) {
+    try {
+      loaded = new Kernels(new WebAssembly.Instance(compiled, {}).exports as unknown as Exports);
+    } catch {
+      compiled = null;
     }
   }
   return loaded;
+}
+
+/** Lets the kernels' memory go when it grew past RETAIN_BYTES (called after each decode). */
+export function releaseKernels(): void {
+  if (loaded && loaded.held() > RETAIN_BYTES) loaded = null;
 }
 
 /** Turns the WebAssembly SIMD kernels on (the default) or off (the TypeScript path alone, as where

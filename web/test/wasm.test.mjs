@@ -243,3 +243,19 @@ test("in Chromium (a page's main thread) the kernels load and give the TypeScrip
     rmSync(work, { recursive: true, force: true });
   }
 });
+
+test("a memory that cannot grow leaves the kernels as they were; a large one is let go after use", () => {
+  const k = internals.kernels();
+  assert.throws(() => k.scratch(2 ** 33), internals.WasmMemoryError);
+  const [a, b] = idctBoth(40, 30, 97, 128, 0, 97, 0, 128, "auto", true);
+  assert.equal(firstDiff(a, b), -1, "after a refused growth");
+  // 300 MiB of scratch (address space only: nothing is written) is more than a page keeps.
+  k.scratch(300 * 2 ** 20);
+  assert.ok(k.held() > 256 * 2 ** 20);
+  internals.releaseKernels();
+  const fresh = internals.kernels();
+  assert.notEqual(fresh, k);
+  assert.ok(fresh.held() < 256 * 2 ** 20);
+  const [c, d] = idctBoth(40, 30, 97, 128, 0, 97, 0, 128, "auto", true);
+  assert.equal(firstDiff(c, d), -1, "with a fresh instance");
+});
