@@ -2,6 +2,7 @@
 // exposing the global `dftpcc`, for a Web Worker or a plain <script>).
 import { readFile } from "node:fs/promises";
 import { build } from "esbuild";
+import { compileKernels } from "./wasm/compile.mjs";
 
 // fzstd 0.1.1 loops forever on a crafted Huffman table (its weights' FSE loop never ends once a
 // state leaves the table: the bit position turns NaN); found by web/test/fuzz.test.mjs, kept by
@@ -20,7 +21,9 @@ const fzstdGuard = {
   },
 };
 
-const common = { entryPoints: ["src/index.ts"], bundle: true, target: "es2022", logLevel: "warning", sourcemap: true, plugins: [fzstdGuard] };
+await compileKernels();
+const common = { entryPoints: ["src/index.ts"], bundle: true, target: "es2022", logLevel: "warning", sourcemap: true, plugins: [fzstdGuard],
+  loader: { ".wasm": "binary" } };
 await build({ ...common, format: "esm", outfile: "dist/dftpcc.mjs" });
 await build({ ...common, format: "iife", globalName: "dftpcc", outfile: "dist/dftpcc.js", minify: true });
 await build({ ...common, entryPoints: ["src/internals.ts"], format: "esm", outfile: "dist/internals.mjs" });

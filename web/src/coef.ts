@@ -111,6 +111,20 @@ function zstdChunk(body: Uint8Array, count: number, out: Float64Array, start: nu
   const raw = inflate(body, 1 + 8 * count, what);
   const w = raw.length ? raw[0] : 0;
   if (w < 1 || w > 8 || raw.length !== 1 + w * count) throw new CorruptFileError(`${what} has an inconsistent length`);
+  if (w <= 4) {
+    // The common widths in one pass without the inner loop (a few times faster in V8): the same sums.
+    const p1 = 1 + count;
+    const p2 = 1 + 2 * count;
+    const p3 = 1 + 3 * count;
+    for (let v = 0; v < count; v++) {
+      let lo = raw[1 + v];
+      if (w > 1) lo += raw[p1 + v] * 256;
+      if (w > 2) lo += raw[p2 + v] * 65536;
+      if (w > 3) lo += raw[p3 + v] * 16777216;
+      out[start + v] = lo % 2 === 0 ? lo / 2 : -(lo + 1) / 2;
+    }
+    return;
+  }
   for (let v = 0; v < count; v++) {
     let lo = 0;
     let hi = 0;

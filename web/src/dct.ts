@@ -407,13 +407,13 @@ function searchSmooth(n: number): number {
 export class BluesteinFft {
   readonly n: number;
   readonly P: number;
-  private readonly shift: number; // the band's first index is -shift
-  private readonly band: number;
-  private readonly fft: MixedFft;
-  private readonly cr: Float64Array; // e^{-i pi k^2 / n}, k = 0 .. n - 1
-  private readonly ci: Float64Array;
-  private readonly kr: Float64Array; // FFT of the conjugate chirp, over P
-  private readonly ki: Float64Array;
+  readonly shift: number; // the band's first index is -shift
+  readonly band: number;
+  readonly fft: MixedFft;
+  readonly cr: Float64Array; // e^{-i pi k^2 / n}, k = 0 .. n - 1
+  readonly ci: Float64Array;
+  readonly kr: Float64Array; // FFT of the conjugate chirp, over P
+  readonly ki: Float64Array;
   private readonly ar: Float64Array;
   private readonly ai: Float64Array;
 
@@ -486,7 +486,7 @@ export class BluesteinFft {
 
 /** Forward DFT of length n for inputs on a band of half-width lo: the mixed-radix FFT or Bluestein's,
  * whichever costs less for that band. */
-class Fft {
+export class Fft {
   readonly n: number;
   private readonly stages: number[];
   private readonly mixed: MixedFft | null;
@@ -499,7 +499,7 @@ class Fft {
   }
 
   /** Mixed radix for this band, or Bluestein's. */
-  private pick(lo: number): MixedFft | BluesteinFft {
+  pick(lo: number): MixedFft | BluesteinFft {
     const mixed = this.mixed && mixedCost(this.n, this.stages, lo) <= BluesteinFft.cost(this.n, lo);
     if (mixed) return this.mixed!;
     // Bands rounded up to a sixteenth of n: a few kernels per length, not one per band.
@@ -507,7 +507,7 @@ class Fft {
     const key = Math.min(Math.ceil(this.n / 2), Math.ceil(lo / q) * q);
     let b = this.chirps.get(key);
     if (!b) {
-      if (this.chirps.size >= 4) this.chirps.clear();
+      if (this.chirps.size >= 17) this.chirps.clear();
       b = new BluesteinFft(this.n, key);
       this.chirps.set(key, b);
     }
@@ -533,12 +533,12 @@ const MAX_MIXED_RADIX = 257;
 /** Orthonormal DCT-III (scipy's idct(type=2, norm="ortho")) of length n, two real vectors at once. */
 export class Dct3 {
   readonly n: number;
-  private readonly fft: Fft;
+  readonly fft: Fft;
   // e^{i pi k / 2n} with the DCT's scale for X[k] (A) and for X[n - k] (B, never the DC term), over n.
-  private readonly car: Float64Array;
-  private readonly sar: Float64Array;
-  private readonly cb: Float64Array;
-  private readonly sb: Float64Array;
+  readonly car: Float64Array;
+  readonly sar: Float64Array;
+  readonly cb: Float64Array;
+  readonly sb: Float64Array;
   private readonly re: Float64Array;
   private readonly im: Float64Array;
 

@@ -4,3 +4,4 @@ export { decode, readHeader } from "./decode.js";
 export type { DecodeOptions, DecodedMap, Header } from "./decode.js";
 export { applyDelta } from "./delta.js";
 export { DftpccError, CorruptFileError, ResourceLimitError, UnsupportedFormatError, InvalidInputError } from "./errors.js";
+export { useWasm } from "./wasm.js";

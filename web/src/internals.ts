@@ -5,3 +5,5 @@ export { decayOf, tableModel, bernoulliLeft1, slotsOf } from "./ans.js";
 export { addIdct } from "./transform.js";
 export { inflate } from "./bytes.js";
 export { BluesteinFft, factorize, MixedFft } from "./dct.js";
+export { kernels, releaseKernels, useWasm, WasmMemoryError } from "./wasm.js";
+export { cornerFinished } from "./decode.js";

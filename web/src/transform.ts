@@ -3,7 +3,8 @@
 // over the kept corner of the spectrum only. The DCT runs each axis as plain sums or by FFT
 // (dct.ts), whichever costs less for the corner's size, and evaluates only the cells asked for (a
 // tile of its coded window); the DFTs, used by the paper profile and --transform dft only, are sums.
-import { Dct3 } from "./dct.js";
+import { Dct3, MixedFft } from "./dct.js";
+import { align16, Kernels, kernels, WasmMemoryError } from "./wasm.js";
 
 /** cos(2 pi m / period) for m = 0 .. period-1: bases at exact integer phase. */
 function cosTable(_n: number, period: number): Float64Array {
@@ -145,13 +146,27 @@ function axisCost(nvec: number, klen: number, n: number, w: number): number {
   return Math.min(sumsCost(nvec, klen, w), fftCost(dctOf(n), nvec, klen, w));
 }
 
+/** Columns first (L vectors along the N rows, then h vectors along the M columns) or rows first. */
+function columnsFirstOf(K: number, L: number, N: number, M: number, h: number, w: number): boolean {
+  return axisCost(L, K, N, h) + axisCost(h, L, M, w) <= axisCost(K, L, M, w) + axisCost(w, K, N, h);
+}
+
 /** out (h x w) += the inverse orthonormal DCT-II of the coefficients g (a dense K x L corner of the
  * N x M spectrum, row-major), at rows [r0, r0 + h) and columns [c0, c0 + w) of the N x M grid. */
 export function addIdct(out: Float64Array, g: Float64Array, K: number, L: number, N: number, M: number,
   r0: number, h: number, c0: number, w: number, mode: IdctMode = "auto"): void {
   if (K === 0 || L === 0) return;
-  // Columns first (L vectors along the N rows, then h vectors along the M columns) or rows first.
-  const columnsFirst = axisCost(L, K, N, h) + axisCost(h, L, M, w) <= axisCost(K, L, M, w) + axisCost(w, K, N, h);
+  const k = mode === "sums" ? null : kernels();
+  if (k) {
+    try {
+      const p = idctInKernels(k, g, K, L, N, M, r0, h, c0, w, 0, mode, out);
+      out.set(k.view().subarray(p / 8, p / 8 + h * w));
+      return;
+    } catch (e) {
+      if (!(e instanceof WasmMemoryError)) throw e;
+    }
+  }
+  const columnsFirst = columnsFirstOf(K, L, N, M, h, w);
   if (columnsFirst) {
     // t (h x L): column j of g (element stride L) to column j of t.
     const t = new Float64Array(h * L);
@@ -163,6 +178,124 @@ export function addIdct(out: Float64Array, g: Float64Array, K: number, L: number
     idctAxis({ a: g, off: 0, vs: L, es: 1 }, K, L, M, c0, w, { a: u, off: 0, vs: w, es: 1 }, mode);
     idctAxis({ a: u, off: 0, vs: 1, es: w }, w, K, N, r0, h, { a: out, off: 0, vs: 1, es: w }, mode);
   }
+}
+
+/** A strided set of vectors in the kernels' memory: vector v's element k at byte p + 8 (off + v vs +
+ * k es). */
+interface KStrided {
+  p: number;
+  off: number;
+  vs: number;
+  es: number;
+}
+
+/**
+ * The inverse DCT of the corner g as addIdct's, computed in the kernels' memory, added to `init`
+ * (h x w) when given, else to zeros: returns the byte offset of its h x w result in the kernels'
+ * memory, followed by `extra` bytes of scratch (16-aligned), both valid until the next use of the
+ * kernels. Throws WasmMemoryError when the memory cannot grow.
+ */
+export function idctInKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number, M: number,
+  r0: number, h: number, c0: number, w: number, extra: number, mode: IdctMode = "auto", init: Float64Array | null = null): number {
+  return inKernels(k, g, K, L, N, M, r0, h, c0, w, extra, mode, init, null).grid;
+}
+
+/**
+ * The inverse of the whole N x M grid, with the finishing pass fused into its last axis where that
+ * runs by FFT (each output finished as it comes, not in a pass over the grid): before the passes,
+ * `fin(finP, extraP, down)` writes the finishing descriptor (kernels.ts finishZeros) at finP, 80
+ * bytes, given the offset of the `extra` bytes of scratch and whether the last axis runs down the
+ * columns. Returns the grid's offset, the extra bytes' and whether the pass was fused (else the
+ * grid holds the heights before the finishing pass and fin was not called).
+ */
+export function idctFinishedInKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number, M: number,
+  extra: number, fin: (finP: number, extraP: number, down: boolean) => void): { grid: number; extra: number; fused: boolean } {
+  return inKernels(k, g, K, L, N, M, 0, N, 0, M, extra + 80, "auto", null, fin);
+}
+
+function inKernels(k: Kernels, g: Float64Array, K: number, L: number, N: number, M: number,
+  r0: number, h: number, c0: number, w: number, extra: number, mode: IdctMode, init: Float64Array | null,
+  fin: ((finP: number, extraP: number, down: boolean) => void) | null): { grid: number; extra: number; fused: boolean } {
+  const columnsFirst = columnsFirstOf(K, L, N, M, h, w);
+  const fused = fin !== null && (columnsFirst ? usesFft(h, L, M, w, mode) : usesFft(w, K, N, h, mode));
+  const tn = columnsFirst ? h * L : K * w;
+  const gridBytes = align16(8 * h * w);
+  const extraBytes = align16(extra);
+  // The plain sums' basis (K x h or L x w, the larger of an axis's).
+  const basisN = Math.max(K * h, L * w);
+  const outP = k.scratch(gridBytes + extraBytes + 8 * K * L + 8 * tn + 8 * basisN);
+  const gP = outP + gridBytes + extraBytes;
+  const tP = gP + 8 * K * L;
+  const bP = tP + 8 * tn;
+  const f = k.view();
+  if (init) f.set(init, outP / 8);
+  else if (!fused) f.fill(0, outP / 8, outP / 8 + h * w);
+  f.set(g.subarray(0, K * L), gP / 8);
+  f.fill(0, tP / 8, tP / 8 + tn);
+  // The descriptor in the first 80 bytes of the extra scratch, the caller's bytes after it.
+  const finP = fused ? outP + gridBytes : 0;
+  if (fused) fin!(finP, outP + gridBytes + 80, !columnsFirst);
+  if (columnsFirst) {
+    // t as L x h (t transposed): the second axis reads four adjacent vectors a call.
+    idctAxisKernels(k, { p: gP, off: 0, vs: 1, es: L }, L, K, N, r0, h, { p: tP, off: 0, vs: h, es: 1 }, mode, 0, bP);
+    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: h }, h, L, M, c0, w, { p: outP, off: 0, vs: w, es: 1 }, mode, finP, bP);
+  } else {
+    idctAxisKernels(k, { p: gP, off: 0, vs: L, es: 1 }, K, L, M, c0, w, { p: tP, off: 0, vs: w, es: 1 }, mode, 0, bP);
+    idctAxisKernels(k, { p: tP, off: 0, vs: 1, es: w }, w, K, N, r0, h, { p: outP, off: 0, vs: 1, es: w }, mode, finP, bP);
+  }
+  return { grid: outP, extra: outP + gridBytes + (fin ? 80 : 0), fused };
+}
+
+function usesFft(nvec: number, klen: number, n: number, w: number, mode: IdctMode): boolean {
+  return mode === "fft" || (mode === "auto" && fftCost(dctOf(n), nvec, klen, w) < sumsCost(nvec, klen, w));
+}
+
+/** idctAxis on the kernels' memory: the same sums or FFTs, the FFTs two pairs of vectors a call
+ * (pairs whose FFT is the same plan and band branch; a pair alone otherwise, so that each pair's
+ * arithmetic is the TypeScript path's). */
+function idctAxisKernels(k: Kernels, inp: KStrided, nvec: number, klen: number, n: number, c0: number, w: number,
+  out: KStrided, mode: IdctMode, finP: number, basisP: number): void {
+  const plan = dctOf(n);
+  if (!usesFft(nvec, klen, n, w, mode)) {
+    k.view().set(dctBasis(n, klen, c0, w), basisP / 8);
+    k.ex.sumsAxis(inp.p, inp.off, inp.vs, inp.es, nvec, klen, basisP, out.p, out.off, out.vs, out.es, w);
+    return;
+  }
+  const dct = k.dct(plan);
+  type Pair = { v: number; two: boolean; K: number; f: ReturnType<Dct3["fft"]["pick"]>; narrow: boolean };
+  const run = (A: Pair, B: Pair | null) => {
+    const fp = A.f instanceof MixedFft ? k.mixed(A.f) : k.bluestein(A.f);
+    const i0 = inp.off + A.v * inp.vs;
+    const o0 = out.off + A.v * out.vs;
+    const i2 = B ? inp.off + B.v * inp.vs : -1;
+    const o2 = B ? out.off + B.v * out.vs : -1;
+    k.ex.dctGroup(dct, A.f instanceof MixedFft ? 0 : 1, fp, inp.p, i0, A.two ? i0 + inp.vs : -1, i2, B?.two ? i2 + inp.vs : -1,
+      inp.es, B ? Math.max(A.K, B.K) : A.K, out.p, o0, A.two ? o0 + out.vs : -1, o2, B?.two ? o2 + out.vs : -1, out.es, c0, w, finP);
+  };
+  let pending: Pair | null = null;
+  for (let v = 0; v < nvec; v += 2) {
+    const two = v + 1 < nvec;
+    let len = klen;
+    const a = k.view();
+    const i1 = inp.p / 8 + inp.off + v * inp.vs;
+    const i2 = two ? i1 + inp.vs : -1;
+    while (len > 0 && a[i1 + (len - 1) * inp.es] === 0 && (!two || a[i2 + (len - 1) * inp.es] === 0)) len--;
+    if (len === 0) {
+      // Vectors of zeros: their cells are finished as zeros.
+      if (finP) for (let u = v; u < Math.min(v + 2, nvec); u++) k.ex.finishZeros(finP, out.off + u * out.vs, out.es, w);
+      continue;
+    }
+    const K = Math.min(len, n);
+    const pair: Pair = { v, two, K, f: plan.fft.pick(K), narrow: 2 * K - 1 < n };
+    if (pending && pending.f === pair.f && pending.narrow === pair.narrow) {
+      run(pending, pair);
+      pending = null;
+    } else {
+      if (pending) run(pending, null);
+      pending = pair;
+    }
+  }
+  if (pending) run(pending, null);
 }
 
 /** out (rows x cols) = irfft2(F, s=(rows, cols), norm="ortho") for F of shape rows x (cols//2 + 1)

@@ -5,11 +5,14 @@ import { build } from "esbuild";
 import { copyFile, mkdir } from "node:fs/promises";
 import { fileURLToPath } from "node:url";
 import path from "node:path";
+import { compileKernels } from "../wasm/compile.mjs";
 
 const here = path.dirname(fileURLToPath(import.meta.url));
 const out = path.resolve(process.argv[2] ?? path.join(here, "../../src/dftpcc/viewer_assets"));
 await mkdir(out, { recursive: true });
-const common = { bundle: true, format: "iife", target: "es2022", minify: true, legalComments: "none", keepNames: true, logLevel: "warning" };
+await compileKernels();
+const common = { bundle: true, format: "iife", target: "es2022", minify: true, legalComments: "none", keepNames: true, logLevel: "warning",
+  loader: { ".wasm": "binary" } };
 await build({ ...common, entryPoints: [path.join(here, "main.mjs")], outfile: path.join(out, "viewer.js") });
 await build({ ...common, entryPoints: [path.join(here, "worker.mjs")], outfile: path.join(out, "worker.js") });
 await copyFile(path.join(here, "index.html"), path.join(out, "index.html"));

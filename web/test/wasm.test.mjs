@@ -1,0 +1,261 @@
+// The WebAssembly SIMD kernels (web/wasm/kernels.ts) against the TypeScript path they replace: the
+// same operations in the same order, so the same heights to the bit (a zero's sign aside), on every
+// fixture map (whole, windows, float32, progressive prefixes and previews) and on inverse DCTs of
+// sides that take each FFT (radices 2 to 5, a generic odd radix, Bluestein's), bands and windows.
+import assert from "node:assert/strict";
+import { existsSync, mkdtempSync, readdirSync, readFileSync, rmSync } from "node:fs";
+import { createServer } from "node:http";
+import { tmpdir } from "node:os";
+import { join } from "node:path";
+import { test } from "node:test";
+import puppeteer from "puppeteer-core";
+import { decode, useWasm } from "../dist/dftpcc.mjs";
+import * as internals from "../dist/internals.mjs";
+import { bytes, fixtures, WEB } from "./helpers.mjs";
+
+const DIR = fixtures();
+
+/** Index of the first element where a and b differ (NaN equal to NaN, 0 to -0), or -1. */
+function firstDiff(a, b) {
+  if (a.length !== b.length) return 0;
+  for (let k = 0; k < a.length; k++) if (!(a[k] === b[k] || (Number.isNaN(a[k]) && Number.isNaN(b[k])))) return k;
+  return -1;
+}
+
+/** decode(data, options) by the kernels and by TypeScript alone: the results, or the errors' texts. */
+function both(data, options) {
+  const out = [];
+  for (const on of [true, false]) {
+    useWasm(on);
+    try {
+      out.push(decode(data, options));
+    } catch (e) {
+      out.push(`${e.name}: ${e.message}`);
+    } finally {
+      useWasm(true);
+    }
+  }
+  return out;
+}
+
+test("the kernels load in Node (WebAssembly SIMD), and useWasm switches them off and on", () => {
+  assert.ok(internals.kernels(), "no WebAssembly SIMD kernels");
+  assert.equal(useWasm(false), false);
+  assert.equal(useWasm(true), true);
+});
+
+const maps = readdirSync(DIR).filter((n) => n.endsWith(".dftpc")).sort();
+// Small maps, large ones, then small again: the kernels' memory grows and its plans are rebuilt.
+const order = [...maps, ...maps.slice().reverse()];
+
+test("every fixture map decodes to the same heights by the kernels and by TypeScript", () => {
+  let compared = 0;
+  for (const name of order) {
+    const data = bytes(join(DIR, name));
+    for (const options of [{}, { float32: true }]) {
+      const [w, t] = both(data, options);
+      if (typeof t === "string") {
+        assert.equal(w, t, `${name}: the paths fail differently`);
+        continue;
+      }
+      assert.equal(typeof w, "object", `${name}: ${w}`);
+      assert.equal(w.heights.constructor, t.heights.constructor, name);
+      assert.equal(firstDiff(w.heights, t.heights), -1, `${name} ${JSON.stringify(options)}: heights differ`);
+      assert.equal(firstDiff(w.mask, t.mask), -1, `${name}: masks differ`);
+      assert.deepEqual(w.statistics, t.statistics, name);
+      compared++;
+      const { width: W, height: H } = t;
+      if (options.float32 || W < 4 || H < 4) continue;
+      // A window inside the grid, with odd sides (the kernels' pairs of cells and a single one).
+      const win = { rows: [1, H - 2], cols: [1, Math.max(2, W - 2)] };
+      const [ww, tw] = both(data, { window: win });
+      assert.equal(firstDiff(ww.heights, tw.heights), -1, `${name} window: heights differ`);
+      assert.deepEqual(ww.statistics, tw.statistics, `${name} window`);
+      if (!t.header.tiled) {
+        for (const f of [0.05, 0.3, 0.6]) {
+          const opts = { fileSize: data.length };
+          const prefix = data.subarray(0, Math.floor(f * data.length));
+          const [wp, tp] = both(prefix, opts);
+          if (typeof tp === "string") {
+            assert.equal(wp, tp, `${name} prefix ${f}`);
+            continue;
+          }
+          assert.equal(firstDiff(wp.heights, tp.heights), -1, `${name} prefix ${f}: heights differ`);
+          // With the kernels a preview is the exact decode (cheaper than the TypeScript samples).
+          const pv = decode(prefix, { ...opts, preview: true });
+          assert.equal(pv.stride, undefined, `${name} prefix ${f}: a preview sampled`);
+          assert.equal(firstDiff(pv.heights, tp.heights), -1, `${name} prefix ${f} preview: heights differ`);
+        }
+      }
+    }
+  }
+  assert.ok(compared >= maps.length, `compared ${compared} decodes`);
+});
+
+let seed = 11;
+const rnd = () => (seed = (seed * 16807) % 2147483647) / 2147483647 - 0.5;
+
+/** addIdct by the kernels and by TypeScript alone, into the same random starting grid. */
+function idctBoth(K, L, N, M, r0, h, c0, w, mode, zeroRows) {
+  const g = new Float64Array(K * L);
+  // A quarter circle of coefficients (rows shorten: pairs of vectors with different bands), some
+  // rows all zeros (vectors the FFT skips).
+  for (let i = 0; i < K; i++) {
+    const len = zeroRows && i % 5 === 3 ? 0 : Math.ceil(L * Math.sqrt(Math.max(0, 1 - (i / K) ** 2)));
+    for (let j = 0; j < len; j++) g[i * L + j] = rnd();
+  }
+  const init = new Float64Array(h * w).map(() => rnd());
+  const out = [];
+  for (const on of [true, false]) {
+    internals.useWasm(on);
+    const o = init.slice();
+    internals.addIdct(o, g, K, L, N, M, r0, h, c0, w, mode);
+    out.push(o);
+  }
+  internals.useWasm(true);
+  return out;
+}
+
+// Sides by their FFTs: 2^k (radix 4 and 2), 3 and 5 mixed, a generic odd radix first (7, 11, 13,
+// 43, 67), primes and large prime factors (Bluestein's over a smooth length).
+const SIDES = [2, 3, 7, 16, 30, 35, 67 * 3, 2 * 3 * 5 * 11, 13 * 43, 4 * 3 * 67, 97, 263, 337, 349, 1024, 3 * 347];
+
+for (const N of SIDES) {
+  test(`addIdct on side ${N}: the kernels give the TypeScript path's bits`, () => {
+    const M = SIDES[(SIDES.indexOf(N) + 5) % SIDES.length];
+    for (const [K, L] of [[1, 1], [Math.ceil(N / 3), Math.ceil(M / 2)], [N, M], [Math.max(1, N >> 3), M]]) {
+      for (const mode of ["fft", "auto"]) {
+        const cases = [[0, N, 0, M], [Math.floor(N / 3), Math.max(1, N >> 1), Math.floor(M / 4), Math.max(1, M >> 1)]];
+        for (const [r0, h, c0, w] of cases) {
+          const [a, b] = idctBoth(K, L, N, M, r0, h, c0, w, mode, K > 4);
+          const k = firstDiff(a, b);
+          assert.equal(k, -1, `K ${K} L ${L} N ${N} M ${M} rows ${r0}+${h} cols ${c0}+${w} ${mode}: ${a[k]} vs ${b[k]}`);
+        }
+      }
+    }
+  });
+}
+
+/** finishWindow's heights from the TypeScript path's inverse, written here from its definition. */
+function finishedByTypeScript(g, K, L, rows, cols, mask, z0, [a, b, c], f32) {
+  internals.useWasm(false);
+  const h = new Float64Array(rows * cols);
+  internals.addIdct(h, g, K, L, rows, cols, 0, rows, 0, cols);
+  internals.useWasm(true);
+  const heights = f32 ? new Float32Array(rows * cols) : new Float64Array(rows * cols);
+  let minZ = Infinity;
+  let maxZ = -Infinity;
+  let cells = 0;
+  for (let r = 0; r < rows; r++) {
+    for (let q = 0; q < cols; q++) {
+      const k = r * cols + q;
+      if (!mask[k]) {
+        heights[k] = NaN;
+        continue;
+      }
+      const z = h[k] + (z0 + (a + c * r) + b * q);
+      heights[k] = z;
+      minZ = Math.min(minZ, z);
+      maxZ = Math.max(maxZ, z);
+      cells++;
+    }
+  }
+  return { heights, minZ, maxZ, cells };
+}
+
+// The finishing pass fused into the inverse's last axis: along rows (200 x 180 and 128 x 256 run
+// columns first) and down columns (90 x 77 and 160 x 240 run rows first), with the vectors of zeros
+// the inverse skips (a corner of zeros: every vector is one), float64 and float32, a plane and holes;
+// and not fused (97 x 120's narrow corner: its last axis by plain sums, then finish()).
+for (const [rows, cols, K, L] of [[90, 77, 60, 50], [200, 180, 150, 120], [160, 240, 130, 200], [128, 256, 100, 200], [97, 120, 3, 110]]) {
+  for (const zeros of [false, true]) {
+    test(`the fused finishing pass on a ${rows} x ${cols} grid, a ${K} x ${L} corner${zeros ? " of zeros" : ""}: TypeScript's heights`, () => {
+      const g = new Float64Array(K * L);
+      if (!zeros) for (let k = 0; k < g.length; k++) g[k] = 100 * rnd() / (1 + k);
+      const mask = new Uint8Array(rows * cols).map((_, k) => (k % 11 === 3 ? 0 : 1));
+      const plane = [3.25, 0.01 * rnd(), 0.02 * rnd()];
+      for (const f32 of [false, true]) {
+        const got = internals.cornerFinished(internals.kernels(), { g, K, L }, mask, rows, cols, [0, rows, 0, cols], 1234.5, plane, f32);
+        const want = finishedByTypeScript(g, K, L, rows, cols, mask, 1234.5, plane, f32);
+        assert.equal(firstDiff(got.heights, want.heights), -1, `f32 ${f32}: heights differ`);
+        assert.deepEqual([got.minZ, got.maxZ, got.cells], [want.minZ, want.maxZ, want.cells]);
+      }
+    });
+  }
+}
+
+test("a kernels' decode leaves the caller's buffers alone: the heights outlive the next decode", () => {
+  const name = maps.find((n) => n.startsWith("gale_default"));
+  const data = bytes(join(DIR, name));
+  const a = decode(data);
+  const copy = a.heights.slice();
+  decode(bytes(join(DIR, maps.find((n) => n.startsWith("davos")))));
+  decode(data, { float32: true });
+  assert.equal(firstDiff(a.heights, copy), -1);
+});
+
+test("in Chromium (a page's main thread) the kernels load and give the TypeScript path's bits", async (t) => {
+  const CHROMIUM = process.env.CHROMIUM ?? "/usr/bin/chromium";
+  assert.ok(existsSync(CHROMIUM), `${CHROMIUM} is missing: apt-get install chromium (or set CHROMIUM)`);
+  const names = maps.filter((n) => !n.includes("tiled")).slice(0, 6);
+  const server = createServer((req, res) => {
+    const file = req.url === "/dftpcc.mjs" ? join(WEB, "dist", "dftpcc.mjs") : join(DIR, req.url.slice(1).replace(/[^\w.-]/g, ""));
+    if (req.url === "/" || !existsSync(file)) {
+      res.writeHead(req.url === "/" ? 200 : 404, { "content-type": "text/html" });
+      res.end("<!doctype html><title>wasm</title>");
+      return;
+    }
+    res.writeHead(200, { "content-type": file.endsWith(".mjs") ? "text/javascript" : "application/octet-stream" });
+    res.end(readFileSync(file));
+  });
+  await new Promise((resolve) => server.listen(0, "127.0.0.1", resolve));
+  const work = mkdtempSync(join(tmpdir(), "dftpcc-wasm-test-"));
+  const browser = await puppeteer.launch({ executablePath: CHROMIUM, headless: true, pipe: true,
+    args: ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", `--user-data-dir=${join(work, "profile")}`] });
+  try {
+    const page = await browser.newPage();
+    await page.goto(`http://127.0.0.1:${server.address().port}/`);
+    const got = await page.evaluate(async (names) => {
+      const { decode, useWasm } = await import("/dftpcc.mjs");
+      const loaded = useWasm(true);
+      const out = {};
+      for (const name of names) {
+        const data = new Uint8Array(await (await fetch(`/${name}`)).arrayBuffer());
+        useWasm(true);
+        const a = decode(data);
+        useWasm(false);
+        const b = decode(data);
+        useWasm(true);
+        let diff = 0;
+        for (let k = 0; k < a.heights.length; k++) if (!(a.heights[k] === b.heights[k] || (Number.isNaN(a.heights[k]) && Number.isNaN(b.heights[k])))) diff++;
+        out[name] = { cells: a.heights.length, diff };
+      }
+      return { loaded, out };
+    }, names);
+    assert.ok(got.loaded, "the kernels did not load in Chromium");
+    for (const name of names) {
+      assert.equal(got.out[name].diff, 0, `${name}: ${got.out[name].diff} heights differ in Chromium`);
+      t.diagnostic(`${name}: ${got.out[name].cells} cells equal`);
+    }
+  } finally {
+    await browser.close();
+    server.close();
+    rmSync(work, { recursive: true, force: true });
+  }
+});
+
+test("a memory that cannot grow leaves the kernels as they were; a large one is let go after use", () => {
+  const k = internals.kernels();
+  assert.throws(() => k.scratch(2 ** 33), internals.WasmMemoryError);
+  const [a, b] = idctBoth(40, 30, 97, 128, 0, 97, 0, 128, "auto", true);
+  assert.equal(firstDiff(a, b), -1, "after a refused growth");
+  // 300 MiB of scratch (address space only: nothing is written) is more than a page keeps.
+  k.scratch(300 * 2 ** 20);
+  assert.ok(k.held() > 256 * 2 ** 20);
+  internals.releaseKernels();
+  const fresh = internals.kernels();
+  assert.notEqual(fresh, k);
+  assert.ok(fresh.held() < 256 * 2 ** 20);
+  const [c, d] = idctBoth(40, 30, 97, 128, 0, 97, 0, 128, "auto", true);
+  assert.equal(firstDiff(c, d), -1, "with a fresh instance");
+});
