@@ -11,11 +11,16 @@ local dask cluster of 1 and of 2 workers and checked byte-identical to the seria
 (1, 4 and 16 tiles fetched by range requests from a loopback HTTP server).
 
     .venv/bin/python -m benchmarks.bench_big [--quick] [--only raster|cloud|parallel] [--target-max-error M]
-        [--parallel-every-size] [--docs | --no-docs]
+        [--parallel-every-size] [--sizes quarter|half|whole ...] [--scheduler ADDRESS] [--docs | --no-docs]
 
 ``--quick`` runs at a quarter of the full side of the GeoTIFF (10,000 x 10,000 cells at most) and a
 quarter of the cloud (9 copies, 25 M points at most): about 7 minutes on the shared 2-core box.
-Prints tables; writes its section of docs/benchmarks.md on a full run. Never fails on a timing.
+``--sizes`` measures only those sizes (``--sizes whole --only cloud``: the 102 M-point LAZ alone).
+``--scheduler tcp://host:port`` codes and decodes the GeoTIFF's first size through a dask scheduler
+started in another process (``dask scheduler``, ``dask worker ADDRESS --nthreads 1``; the temporary
+folder, ``--tmp``, must be a path every worker sees) instead of local clusters of 1 and 2 workers.
+Prints tables; writes its section of docs/benchmarks.md on a full run (not with ``--sizes`` or
+``--scheduler`` unless ``--docs``). Never fails on a timing.
 """
 
 from __future__ import annotations
@@ -57,6 +62,9 @@ TILE_SIZE = 1024
 WORKERS = 2
 #: Whether every size is also coded on WORKERS workers (``--parallel-every-size``), not only the first.
 PARALLEL_EVERY_SIZE = False
+#: A dask scheduler started in another process (``--scheduler``): the first size is coded through it
+#: instead of on local clusters.
+SCHEDULER: str | None = None
 #: Target the peak resident memory of every run should stay under, bytes.
 RSS_TARGET = 2 * 1024 ** 3
 #: How often the whole process tree's resident memory is sampled, seconds (dask runs).
@@ -87,6 +95,9 @@ CLOUD_GAP_M = 1.0
 CLOUD_COPIES_PER_ROW = 12
 #: Points read per chunk when the LAZ is built, so building it holds one chunk of the source.
 CLOUD_CHUNK = 1_000_000
+#: The cloud's cell size, metres (``--cloud-resolution``); None: the automatic one (0.426 m, 44 M
+#: cells for the whole cloud; 0.25 m gives 127 M).
+CLOUD_RESOLUTION: float | None = None
 
 TIME_BIN = "/usr/bin/time"
 
@@ -107,13 +118,16 @@ CHILD = textwrap.dedent("""
     out = {}
     if job["op"] == "compress":
         extra = {"chunk_points": job["chunk"]} if job.get("chunk") else {}
-        m = compress_file(job["src"], job["dst"], tile_size=job["tile"], workers=job["workers"], **extra,
-                          **job.get("target", {}))
+        if job.get("resolution"):
+            extra["resolution"] = job["resolution"]
+        m = compress_file(job["src"], job["dst"], tile_size=job["tile"], workers=job["workers"],
+                          scheduler=job.get("scheduler"), **extra, **job.get("target", {}))
         out = {"points": m.header.point_count, "cells": m.header.cell_count, "rows": m.grid.rows,
                "cols": m.grid.cols, "rmse": m.header.stats.get("dem_rmse_m"),
                "max_error": m.header.stats.get("dem_max_error_m"), "resolution": m.grid.resolution}
     elif job["op"] == "decompress":
-        out = {"written": decompress_bands(job["src"], job["dst"], workers=job["workers"])}
+        out = {"written": decompress_bands(job["src"], job["dst"], workers=job["workers"],
+                                           scheduler=job.get("scheduler"))}
     out.update(seconds=time.perf_counter() - t1, total_seconds=time.perf_counter() - t0,
                imported=imported, vmhwm=peak())
     print("BENCH " + json.dumps(out), flush=True)
@@ -361,9 +375,28 @@ class _Report:
 TARGET: dict[str, float] = {}
 
 
-def _job(op: str, src: Path, dst: Path, workers: int | None, **extra: Any) -> dict[str, Any]:
+def _job(op: str, src: Path, dst: Path, workers: int | str | None, **extra: Any) -> dict[str, Any]:
+    """A run's job; ``workers``: None (serial), a local cluster's size, or ``"scheduler"`` (:data:`SCHEDULER`)."""
+    if workers == "scheduler":
+        return {"op": op, "src": str(src), "dst": str(dst), "tile": TILE_SIZE, "workers": None,
+                "scheduler": SCHEDULER, "target": TARGET, **extra}
     return {"op": op, "src": str(src), "dst": str(dst), "tile": TILE_SIZE, "workers": workers, "target": TARGET,
             **extra}
+
+
+def _scheduler_workers(address: str) -> int:
+    """Workers connected to the scheduler at ``address`` now."""
+    import distributed
+
+    with distributed.Client(address, timeout=10) as client:
+        return len(client.scheduler_info()["workers"])
+
+
+def _runs(first: bool) -> list[int | str | None]:
+    """Serial, then (on the first size, or every size with PARALLEL_EVERY_SIZE) the clusters."""
+    if not (first or PARALLEL_EVERY_SIZE):
+        return [None]
+    return [None, "scheduler"] if SCHEDULER else [None, 1, WORKERS]
 
 
 def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int, report: _Report,
@@ -379,14 +412,15 @@ def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int
         print(" | ".join(inputs[-1]), flush=True)
         size = f"{_fraction(f)} ({side:,}²)"
         cells = side * side
-        for workers in ([None, 1, WORKERS] if n == 0 or PARALLEL_EVERY_SIZE else [None]):
+        for workers in _runs(n == 0):
             dst = coded if workers is None else coded.with_suffix(f".w{workers}.dftpc")
+            label = _label(workers)
             m = measure(_job("compress", src, dst, workers))
             nbytes = dst.stat().st_size if dst.exists() else 0
-            report.add("GeoTIFF", size, "compress", _label(workers), m, cells, "cells", nbytes, nbytes,
+            report.add("GeoTIFF", size, "compress", label, m, cells, "cells", nbytes, nbytes,
                        m.get("cells") or 1, "cell")
             if workers is not None:
-                _parallel(report, "compress", size, workers, m, coded, dst)
+                _parallel(report, "compress", size, label, m, coded, dst)
             if not coded.exists():
                 break
             if n == 0 and workers is None:
@@ -394,10 +428,10 @@ def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int
             out = back if workers is None else back.with_suffix(f".w{workers}.tif")
             m = measure(_job("decompress", coded, out, workers))
             obytes = out.stat().st_size if out.exists() else 0
-            report.add("GeoTIFF", size, "decompress", _label(workers), m, cells, "cells", obytes,
+            report.add("GeoTIFF", size, "decompress", label, m, cells, "cells", obytes,
                        coded.stat().st_size, m.get("written") or 1, "cell")
             if workers is not None:
-                _parallel(report, "decompress", size, workers, m, back, out)
+                _parallel(report, "decompress", size, label, m, back, out)
                 out.unlink(missing_ok=True)
                 dst.unlink(missing_ok=True)
         back.unlink(missing_ok=True)
@@ -405,25 +439,28 @@ def run_raster(data: Path, tmp: Path, fractions: Sequence[float], full_side: int
         src.unlink(missing_ok=True)
 
 
-def _label(workers: int | None) -> str:
+def _label(workers: int | str | None) -> str:
+    if workers == "scheduler":
+        assert SCHEDULER is not None
+        return f"{_scheduler_workers(SCHEDULER)} at {SCHEDULER}"
     return "serial" if workers is None else str(workers)
 
 
-def _parallel(report: "_Report", op: str, size: str, workers: int, m: dict[str, Any], serial: Path,
+def _parallel(report: "_Report", op: str, size: str, workers: str, m: dict[str, Any], serial: Path,
               parallel: Path) -> None:
     """A row of the parallel table: the serial run's time (the last serial row of ``op`` at ``size``),
     this run's on ``workers`` workers, the speed-ups, and whether the outputs are byte-identical."""
     one = next((r for r in reversed(report.rows) if r[1] == size and r[2] == op and r[3] == "serial"), None)
     if "error" in m or one is None or one[5] == "failed":
-        report.parallel.append([op, size, str(workers), one[4] if one else "", f"{m['wall']:.0f}", "failed",
+        report.parallel.append([op, size, workers, one[4] if one else "", f"{m['wall']:.0f}", "failed",
                                 "", "", ""])
         return
     same = serial.exists() and parallel.exists() and filecmp.cmp(serial, parallel, shallow=False)
     report.seconds[(op, size, workers)] = m["seconds"]
-    single = report.seconds.get((op, size, 1))
-    report.parallel.append([op, size, str(workers), one[4], f"{m['seconds']:.0f}",
+    single = report.seconds.get((op, size, "1"))
+    report.parallel.append([op, size, workers, one[4], f"{m['seconds']:.0f}",
                             f"{float(one[4]) / m['seconds']:.2f}",
-                            f"{single / m['seconds']:.2f}" if single and workers != 1 else "",
+                            f"{single / m['seconds']:.2f}" if single and workers != "1" else "",
                             "yes" if same else "NO", _mb(m["tree"])])
 
 
@@ -493,7 +530,7 @@ def run_cloud(data: Path, tmp: Path, copies: Sequence[int], report: _Report, inp
                        f"{time.perf_counter() - t0:.0f}"])
         print(" | ".join(inputs[-1]), flush=True)
         size = f"{_fraction(f)} ({points / 1e6:.0f} M)"
-        m = measure(_job("compress", src, coded, None, chunk=CLOUD_CHUNK))
+        m = measure(_job("compress", src, coded, None, chunk=CLOUD_CHUNK, resolution=CLOUD_RESOLUTION))
         nbytes = coded.stat().st_size if coded.exists() else 0
         report.add("LAZ", size, "compress", "serial", m, points, "points", nbytes, nbytes, points, "point")
         if "error" not in m:
@@ -521,17 +558,30 @@ def main(argv: list[str] | None = None) -> int:
                          "default cutoff and step")
     ap.add_argument("--parallel-every-size", action="store_true",
                     help=f"code every size on {WORKERS} workers too, not only the first")
+    ap.add_argument("--sizes", nargs="+", choices=[_fraction(f) for f in FRACTIONS], metavar="SIZE",
+                    help="measure only these sizes (quarter, half, whole) of each map")
+    ap.add_argument("--scheduler", metavar="ADDRESS",
+                    help="code the GeoTIFF's first size through this running dask scheduler (started in another "
+                         "process; --tmp on a path every worker sees) instead of local clusters")
+    ap.add_argument("--cloud-resolution", type=float, metavar="METRES",
+                    help="grid the cloud at this cell size (0.25: 127 M cells for the whole cloud) instead of "
+                         "the automatic one")
     ap.add_argument("--tmp", type=Path, default=Path(tempfile.gettempdir()), help="where the temporary folder goes")
     args = ap.parse_args(argv)
     if not sys.platform.startswith("linux"):
         sys.exit("bench_big reads peak memory from /proc: Linux only")
-    global PARALLEL_EVERY_SIZE
+    global PARALLEL_EVERY_SIZE, SCHEDULER, CLOUD_RESOLUTION
     PARALLEL_EVERY_SIZE = args.parallel_every_size
+    SCHEDULER = args.scheduler
+    CLOUD_RESOLUTION = args.cloud_resolution
+    if args.docs is None and (args.sizes or args.scheduler or args.cloud_resolution):
+        args.docs = False  # a part of the run does not replace the full run's section
+    fractions = [f for f in FRACTIONS if args.sizes is None or _fraction(f) in args.sizes]
     if args.target_max_error:
         TARGET["target_max_error"] = args.target_max_error
     divisor = QUICK_DIVISOR if args.quick else 1
     full_side = FULL_SIDE // divisor
-    copies = [max(1, round(FULL_COPIES * f / divisor)) for f in FRACTIONS]
+    copies = [max(1, round(FULL_COPIES * f / divisor)) for f in fractions]
     # The full run's largest files: the mosaic (~2.2 GB), its decoded copy (~3.6 GB) and the LAZ (~0.4 GB).
     need = 8e9 / divisor ** 2
     if _free_bytes(args.tmp) < need:
@@ -550,11 +600,11 @@ def main(argv: list[str] | None = None) -> int:
         report = _Report(base["peak"])
         print(f"baseline (python + import dftpcc): peak RSS {_mb(base['peak'])} MB", flush=True)
         if args.only in (None, "cloud"):
-            run_cloud(args.data, tmp, copies, report, inputs, FRACTIONS)
+            run_cloud(args.data, tmp, copies, report, inputs, fractions)
         if args.only in (None, "raster"):
-            run_raster(args.data, tmp, FRACTIONS, full_side, report, inputs)
+            run_raster(args.data, tmp, fractions, full_side, report, inputs)
         if args.only == "parallel":
-            run_raster(args.data, tmp, FRACTIONS[:1], full_side, report, inputs)
+            run_raster(args.data, tmp, fractions[:1], full_side, report, inputs)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     parts = _tables(report, inputs, base, full_side, copies)
@@ -575,7 +625,8 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
              markdown_table(["map", "size", "shape", "content", "file MB", "build s"], inputs),
              f"Each run is a fresh process (`compress_file(..., tile_size={TILE_SIZE}"
              f"{''.join(f', {k}={v:g}' for k, v in TARGET.items())})`, the cloud with "
-             f"`chunk_points={CLOUD_CHUNK:,}`; `decompress_bands` to `.tif` / `.laz`; a band is coded and a "
+             f"`chunk_points={CLOUD_CHUNK:,}`"
+             f"{f', resolution={CLOUD_RESOLUTION:g}' if CLOUD_RESOLUTION else ''}; `decompress_bands` to `.tif` / `.laz`; a band is coded and a "
              f"GeoTIFF decoded in column blocks of `stream.BLOCK_TILES` = {stream.BLOCK_TILES} tiles, with "
              f"GDAL's cache at `stream.GDAL_CACHE_BYTES` = {stream.GDAL_CACHE_BYTES / 2 ** 20:.0f} MiB). Peak RSS: "
              f"`/usr/bin/time -v` (the raw maximum resident set of the largest process, the run's own; "
@@ -586,8 +637,11 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
              "read, of the .dftpc file. One run each.",
              markdown_table(_Report.HEAD, report.rows)]
     if report.parallel:
-        parts += [f"Serial (this process) against local dask clusters of 1 and {WORKERS} workers (`workers=1`, "
-                  f"`workers={WORKERS}`), on {'every size of the GeoTIFF' if PARALLEL_EVERY_SIZE else 'the GeoTIFF quarter'}; "
+        clusters = (f"a dask scheduler started in another process (`scheduler={SCHEDULER!r}`; workers: those "
+                    "connected when the run began; its workers' memory is not in the tree peak)" if SCHEDULER else
+                    f"local dask clusters of 1 and {WORKERS} workers (`workers=1`, `workers={WORKERS}`)")
+        parts += [f"Serial (this process) against {clusters}, on "
+                  f"{'every size of the GeoTIFF' if PARALLEL_EVERY_SIZE else 'the GeoTIFF first size measured'}; "
                   "each worker reads its own windows of the file (the first pass too); identical: the output "
                   "compared byte for byte with the serial run's. The machine's load is stated above and below: "
                   "on a shared box a speed-up is only as good as the cores that were free.",
@@ -601,7 +655,8 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
                   markdown_table(["tiles", "region", "cells", "fetched MB", "served MB", "file MB", "share of file",
                                   "time s"], report.remote)]
     if report.grids:
-        parts += ["The cloud's grid (automatic resolution), held whole in memory while its tiles are coded:",
+        parts += [f"The cloud's grid ({f'{CLOUD_RESOLUTION:g} m cells' if CLOUD_RESOLUTION else 'automatic resolution'}), "
+                  "held whole in memory while its tiles are coded:",
                   markdown_table(["size", "grid", "cells", "occupied", "resolution m"], report.grids)]
     if report.failures:
         parts.append("Failures:\n\n" + "\n".join(f"- {f}" for f in report.failures))

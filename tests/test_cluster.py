@@ -302,3 +302,37 @@ def test_a_worker_killed_mid_run_fails_cleanly_or_reruns_to_the_serial_bytes(tmp
     monkeypatch.setattr(stream, "STREAM_CELLS", 50_000)
     dftpcc.compress_file(src, serial, tile_size=64, cutoff=0.8, step=0.05)
     assert out.read_bytes() == serial.read_bytes()
+
+
+HEAP_SCRIPT = """
+import ctypes, numpy as np
+from dftpcc import cluster
+
+class MallInfo2(ctypes.Structure):  # glibc's mallinfo2
+    _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                     "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = MallInfo2
+
+def mapped():  # bytes of an 8 MB array that glibc gave a mapping of its own
+    before = libc.mallinfo2().hblkhd
+    array = np.ones(1 << 20)
+    return libc.mallinfo2().hblkhd - before
+
+frozen = mapped()
+cluster._task(len, "tile")  # the first task on a worker
+print(frozen, mapped())
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc")
+def test_a_worker_started_with_dasks_trim_threshold_reuses_its_heap():
+    """A worker started by ``dask worker`` (its nanny sets MALLOC_TRIM_THRESHOLD_) mapped every large
+    temporary afresh (and page-faulted it in); its first task gives it glibc's adaptive thresholds,
+    so an array of a tile comes from the heap."""
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
+    out = subprocess.run([sys.executable, "-c", HEAP_SCRIPT], env=env, capture_output=True, text=True, check=True)
+    frozen, adaptive = map(int, out.stdout.split())
+    assert frozen >= 8 * 1024 ** 2
+    assert adaptive == 0

@@ -114,7 +114,56 @@ def test_band_by_band_decoding_writes_what_a_whole_decode_does(small_threshold, 
         assert c.overviews(1)  # a COG carries its overviews
     assert dftpcc.files.decompress_bands(src, tmp_path / "bands.laz") == n
     las = laspy.read(tmp_path / "bands.laz")
-    np.testing.assert_allclose(np.c_[las.x, las.y, las.z], whole, atol=0.0006)  # the LAS millimetre
+    # The same points band after band, each band block after block (BLOCK_TILES tile columns), each
+    # block in row order; to the LAS millimetre.
+    cmap = dftpcc.open(src)
+    rows, cols = cmap.grid.cell_of(whole)
+    tile, width = cmap.block, stream.BLOCK_TILES * cmap.block
+    assert cmap.grid.cols > width  # more than one block a band: not the row order of the whole map
+    order = np.lexsort((cols, rows, cols // width, rows // tile))
+    np.testing.assert_allclose(np.c_[las.x, las.y, las.z], whole[order], atol=0.0006)
+
+
+def test_a_map_no_wider_than_a_block_is_written_to_laz_in_row_order(small_threshold, mosaic, tmp_path,
+                                                                     monkeypatch):
+    src = tmp_path / "m.dftpc"
+    dftpcc.compress_file(mosaic, src, tile_size=128, cutoff=0.8, step=0.01)
+    whole = dftpcc.decompress_file(src, tmp_path / "whole.tif")
+    monkeypatch.setattr(stream, "BLOCK_TILES", 6)  # 768 columns: the 696 of the map
+    dftpcc.files.decompress_bands(src, tmp_path / "rows.laz")
+    las = laspy.read(tmp_path / "rows.laz")
+    np.testing.assert_allclose(np.c_[las.x, las.y, las.z], whole, atol=0.0006)
+
+
+def test_laz_is_decoded_in_blocks_whatever_the_maps_width(small_threshold, mosaic, tmp_path, monkeypatch):
+    """Memory follows a block of BLOCK_TILES tiles, not a band of the map's width: no window the
+    writer asks for is wider, and the peak of a map four times as wide is about the same."""
+    import tracemalloc
+
+    with rasterio.open(mosaic) as ds:
+        a, profile = ds.read(1)[:256], ds.profile
+    peaks, windows = {}, []
+    monkeypatch.setattr(stream, "BLOCK_TILES", 2)
+    read = dftpcc.mapfile.CompressedMap.read_window
+    monkeypatch.setattr(dftpcc.mapfile.CompressedMap, "read_window",
+                        lambda self, rows, cols, **kw: windows.append(cols) or read(self, rows, cols, **kw))
+    for copies in (1, 4):
+        wide = np.hstack([a + 5.0 * k for k in range(copies)])
+        path = tmp_path / f"wide{copies}.tif"
+        profile.update(height=wide.shape[0], width=wide.shape[1])
+        with rasterio.open(path, "w", **profile) as out:
+            out.write(wide, 1)
+        dftpcc.compress_file(path, tmp_path / f"wide{copies}.dftpc", tile_size=64, cutoff=0.8, step=0.01)
+        tracemalloc.start()
+        try:
+            dftpcc.files.decompress_bands(tmp_path / f"wide{copies}.dftpc", tmp_path / f"wide{copies}.laz")
+            peaks[copies] = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert max(c1 - c0 for c0, c1 in windows) == 2 * 64
+    # A band of the map's width made it 3.3 times; what is left grows with the map's values, not its
+    # width (the entropy coder's cached tables, a bounded cache: 1.2 times).
+    assert peaks[4] < 1.6 * peaks[1], peaks
 
 
 def test_a_band_is_written_to_laz_in_parts_of_rows_with_the_same_bytes(small_threshold, mosaic, tmp_path,

@@ -74,9 +74,9 @@ BATCH_BLOCKS = 8
 #: tiles come back, so a larger batch costs little memory, and the workers wait less often for the
 #: slowest block of a batch (with 8, a 2-worker run idled about half a block every 4 blocks).
 READ_BATCH_BLOCKS = 32
-#: Cells of a decoded band turned into points and written to LAS/LAZ at a time: a band of tile
-#: rows across a 20,000-column map is 20 M points, and its point array and LAS record held 1.8 GB
-#: at 10,000 columns.
+#: Cells of a decoded block turned into points and written to LAS/LAZ at a time: a block of
+#: BLOCK_TILES tiles of 1024 cells is 4 M points, whose point array and LAS record would hold
+#: about 200 MB more than the block itself.
 LAS_CHUNK_CELLS = 1 << 20
 #: GDAL's block cache while a raster is read or written band by band, bytes. GDAL's default, 5 % of
 #: RAM (1.2 GB on a 24 GB machine), is more than the rest of a run holds; a decoded band's
@@ -604,11 +604,14 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
     """Decode the map ``cmap`` band by band (of :attr:`~dftpcc.mapfile.CompressedMap.block` rows) into ``dst``
     (GeoTIFF, COG, LAS or LAZ).
 
-    A GeoTIFF is decoded and written a block of :data:`BLOCK_TILES` tiles at a time; LAS and LAZ
-    a band of tile rows at a time, so that the points keep their row order. Returns the points
-    (valid cells) written. A GeoTIFF takes the sample type and nodata value of
-    :func:`~dftpcc.io.geotiff.output_type` (the source raster's where the file's bound allows it, or
-    ``dtype`` and ``nodata``), as a whole decode does.
+    Memory holds a block of :data:`BLOCK_TILES` tiles (a band's rows by that many tile columns),
+    never a band of the map's width. A GeoTIFF is written block by block, column strip after column
+    strip; LAS and LAZ band after band and, within a band, block after block, each block's points in
+    row order: points in row order across the whole width would need the whole band of tiles
+    decoded before its first row is complete. A map no wider than a block lists its points in row
+    order, as a whole decode does. Returns the points (valid cells) written. A GeoTIFF takes the
+    sample type and nodata value of :func:`~dftpcc.io.geotiff.output_type` (the source raster's
+    where the file's bound allows it, or ``dtype`` and ``nodata``), as a whole decode does.
     """
     if fmt not in STREAM_FORMATS:
         raise InvalidInputError(f"band-by-band decoding writes {', '.join(STREAM_FORMATS)}, not {fmt}")
@@ -622,23 +625,27 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
         if note:
             warnings.warn(f"{dst}: {note}", RasterTypeWarning, stacklevel=2)
 
-    def bands() -> Iterator[tuple[int, DEM]]:
-        for r0, r1 in _bands(grid.rows, size):
-            on_stage("decode", r0 / grid.rows)
-            yield r0, cmap.read_window((r0, r1), (0, grid.cols), map_tiles=map_tiles)
+    width = BLOCK_TILES * size
+    cells = grid.rows * grid.cols
 
     def blocks() -> Iterator[tuple[int, int, DEM]]:
         # Column strips of BLOCK_TILES tiles, each from south to north: a GeoTIFF block that
         # straddles two bands is completed by the next window written, so GDAL's cache holds
         # a strip's few partly written blocks, not a block row of the whole width.
-        width = BLOCK_TILES * size
-        done, cells = 0, grid.rows * grid.cols
+        done = 0
         for c0 in range(0, grid.cols, width):
             c1 = min(grid.cols, c0 + width)
             for r0, r1 in _bands(grid.rows, size):
                 on_stage("decode", done / cells)
                 yield r0, c0, cmap.read_window((r0, r1), (c0, c1), map_tiles=map_tiles)
                 done += (r1 - r0) * (c1 - c0)
+
+    def band_blocks() -> Iterator[DEM]:
+        # Band after band, each in blocks from west to east: a cloud's points keep the bands' order.
+        for r0, r1 in _bands(grid.rows, size):
+            for c0 in range(0, grid.cols, width):
+                on_stage("decode", (r0 * grid.cols + c0 * (r1 - r0)) / cells)
+                yield cmap.read_window((r0, r1), (c0, min(grid.cols, c0 + width)), map_tiles=map_tiles)
 
     def fill(tmp: Path) -> None:
         nonlocal written
@@ -651,7 +658,7 @@ def decompress_bands(cmap: Any, dst: str | os.PathLike[str], fmt: str, *, cog: b
             from .io.las import write_las_chunks  # laspy, loaded only for a cloud
 
             corners = (grid.x0, grid.y0, grid.x0 + grid.cols * grid.resolution, grid.y0 + grid.rows * grid.dy)
-            points = (part for _, dem in bands() for part in dem_to_point_chunks(dem, LAS_CHUNK_CELLS))
+            points = (part for dem in band_blocks() for part in dem_to_point_chunks(dem, LAS_CHUNK_CELLS))
             written = write_las_chunks(tmp, points, cmap.crs,
                                        np.floor([min(corners[0], corners[2]), min(corners[1], corners[3]), grid.z0]), fmt)
 
