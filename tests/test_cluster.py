@@ -321,7 +321,7 @@ def mapped():  # bytes of an 8 MB array that glibc gave a mapping of its own
     return libc.mallinfo2().hblkhd - before
 
 frozen = mapped()
-cluster._task(len, cluster.kernels.Backend.NUMPY, "tile")  # the first task on a worker
+cluster._task(len, "tile")  # the first task on a worker
 print(frozen, mapped())
 """
 

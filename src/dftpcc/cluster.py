@@ -210,16 +210,13 @@ def _adaptive_heap() -> None:
         pass
 
 
-def _task(func: Callable[..., Any], backend: kernels.Backend, item: Any, *args: Any) -> Any:
-    """``func(item, *args)`` on a worker, on the client's ``backend`` (a worker is a process of its
-    own: the client's choice does not reach it otherwise, and it ran numpy's kernels where the
-    client ran the compiled ones). The library's own errors go back to the client without the
+def _task(func: Callable[..., Any], item: Any, *args: Any) -> Any:
+    """``func(item, *args)`` on a worker. The library's own errors go back to the client without the
     errors of other libraries they were raised from: dask pickles that chain too, and some do not
     unpickle (GDAL's), so the client got a bare ``Exception`` (and the command a traceback)."""
     _adaptive_heap()
     try:
-        with kernels.use(backend):
-            return func(item, *args)
+        return func(item, *args)
     except DftpccError as exc:
         error = exc
     error.__cause__ = error.__context__ = None
@@ -239,7 +236,9 @@ def _gather(client: Any, func: Callable[..., Any], items: Sequence[Any], args: t
     # Items that carry cells travel as data; small ones (a block a worker reads itself) travel in the
     # graph, so that the scheduler can rerun the task of a worker that died: scattered data die with it.
     small = sum(_nbytes(item) for item in items) <= INLINE_BYTES
-    futures = client.map(functools.partial(_task, func, kernels.current()), list(items) if small else client.scatter(list(items), hash=False),
+    # The function carries the client's backend: a worker, a process of its own, ran numpy's kernels
+    # where the client ran the compiled ones.
+    futures = client.map(functools.partial(_task, kernels.carried(func)), list(items) if small else client.scatter(list(items), hash=False),
                          *[[a] * len(items) for a in shared], pure=False)
     idle_since: float | None = None
     cancelled = _cancelled()

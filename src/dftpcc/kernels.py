@@ -48,7 +48,7 @@ from typing import Any, Callable, Iterator
 from ._optional import import_optional
 from .errors import InvalidInputError
 
-__all__ = ["Backend", "use", "current", "load", "rows_of", "kernel", "Kernel", "compiled_module", "Side", "CORES",
+__all__ = ["Backend", "use", "current", "load", "carried", "rows_of", "kernel", "Kernel", "compiled_module", "Side", "CORES",
            "SIDE_MIN_CELLS", "COMPILED_MIN_POINTS", "COMPILED_MIN_MAP_CELLS", "JIT_VARIABLE",
            "available_cores"]
 
@@ -204,6 +204,17 @@ def use(backend: Backend | str | None = None, *, work: int | None = None,
         yield chosen
     finally:
         _active.reset(token)
+
+
+def carried(func: Callable[..., Any]) -> Callable[..., Any]:
+    """``func`` bound to the backend of the call in progress: called in another process (a dask
+    worker, where this process's choice does not reach), it runs on that backend there too."""
+    return functools.partial(_on_backend, current(), func)
+
+
+def _on_backend(backend: Backend, func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    with use(backend):
+        return func(*args, **kwargs)
 
 
 def rows_of(points: Any) -> int | None:
