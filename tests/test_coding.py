@@ -567,25 +567,25 @@ def test_residual_integers_that_would_wrap_are_refused(bound):
 
 
 def test_the_wide_coding_tables_kept_in_cache_stay_few():
-    """A slowly decaying band scale's tables are up to half a megabyte each, and a map's tiles ask for
-    hundreds of distinct (bound, scale) pairs: all were kept (390 MB of them decoding a 20,000² map),
-    now a few; the narrow ones, small and asked for again and again, keep their large cache."""
+    """A slowly decaying band scale's tables are up to a quarter of a megabyte each, and a map's tiles
+    ask for hundreds of distinct (bound, scale) pairs: all were kept (390 MB of them decoding a 20,000²
+    map), now a few; the narrow ones, small and asked for again and again, keep their large cache."""
     import tracemalloc
 
     from dftpcc import geometric
 
-    for name in ("table_cumulative", "table_frequencies", "_wide_cumulative", "_wide_frequencies"):
+    for name in ("table_frequencies", "_wide_frequencies"):
         getattr(getattr(geometric, name, None), "cache_clear", lambda: None)()
     bounds = range(2000, 2300)
     tracemalloc.start()
     try:
         start = tracemalloc.get_traced_memory()[0]
-        tables = [geometric.table_cumulative(b, 200)[1].nbytes for b in bounds]  # 8,451 weights: wide tables
+        tables = [geometric.table_frequencies(b, 200)[1].nbytes for b in bounds]  # 8,451 weights: wide tables
         held = tracemalloc.get_traced_memory()[0] - start
     finally:
         tracemalloc.stop()
-    one = max(tables) * 2  # its cumulative and its frequencies
+    one = max(tables)
     assert held < 100 * one < len(bounds) * one / 2, (held, one)
-    lo, cumulative = geometric.table_cumulative(2100, 200)  # a cached table is the one built afresh
-    fresh = geometric._table_cumulative(2100, 200)
-    assert lo == fresh[0] and cumulative.tobytes() == fresh[1].tobytes()
+    lo, near = geometric.table_frequencies(2100, 200)  # a cached table is the one built afresh
+    fresh = geometric._table_frequencies(2100, 200)
+    assert lo == fresh[0] and near.tobytes() == fresh[1].tobytes()

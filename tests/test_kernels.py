@@ -225,6 +225,23 @@ def test_push_pull_fill_bits_equal(jit):
         assert np.array_equal(fast[mask], heights[mask])
 
 
+def test_packed_tables_are_the_frequencies_tables_of_every_scale(jit):
+    """The compiled coders' tables, made in one pass from the weights, are the running sums of
+    table_frequencies (the constriction models' integers) for every scale code, narrow and wide
+    bounds, one table and many packed end to end."""
+    rng = np.random.default_rng(5)
+    codes = np.arange(1, 256)
+    for max_abs in (1, 2, 7, 255, 256, 3000, 32767):
+        bounds = rng.choice([max_abs, 1, 40], codes.size)
+        lows, csum, near_bounds = geometric.packed_tables(bounds, codes)
+        for k, (code, bound) in enumerate(zip(codes.tolist(), bounds.tolist())):
+            lo, near = geometric.table_frequencies(bound, code)
+            at = near_bounds[k] + k
+            assert near_bounds[k + 1] - near_bounds[k] == near.size and lows[k] == lo, (code, bound)
+            assert csum[at] == 0 and np.array_equal(np.diff(csum[at:at + near.size + 1]), near), (code, bound)
+            assert csum[at + near.size] == (1 << 24) - (2 * bound + 1 - near.size), (code, bound)
+
+
 def test_table_coder_words_equal_constriction(jit):
     rng = np.random.default_rng(3)
     for t in range(200):
@@ -239,7 +256,7 @@ def test_table_coder_words_equal_constriction(jit):
         coder = constriction.stream.stack.AnsCoder()
         for code, symbols in reversed(groups):
             coder.encode_reverse(symbols.astype(np.int32), geometric.build_table_model(max_abs, code))
-        tables = [geometric.table_cumulative(max_abs, code) for code, _ in groups]
+        tables = geometric.packed_tables(max_abs, [code for code, _ in groups])
         bounds = np.cumsum([0] + [s.size for _, s in groups])
         words = kernels.compiled_module().encode_table_words(np.concatenate([s for _, s in groups]), bounds, tables,
                                                              2 * max_abs + 1)

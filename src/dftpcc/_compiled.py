@@ -1091,27 +1091,65 @@ def decode_mask_lines(words: np.ndarray, lines: np.ndarray, n_lines: int, first_
     return flat[:n_lines].view(bool)
 
 
-def _packed_tables(tables: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each table's lowest symbol, the tables' running sums end to end, and where each table's
-    frequencies start (and the end), as the table coders read them."""
-    lows = np.asarray([lo for lo, _ in tables], dtype=np.int64)
-    near_bounds = np.zeros(len(tables) + 1, dtype=np.int64)
-    np.cumsum([cumulative.size - 1 for _, cumulative in tables], out=near_bounds[1:])
-    csum = np.concatenate([cumulative for _, cumulative in tables]) if tables else np.zeros(0, np.int64)
+@njit(cache=True, nogil=True)
+def _packed_cumulative(weights, starts, max_abs, lows, csum, near_bounds):  # pragma: no cover - compiled
+    # geometric._table_frequencies, then its running sums from 0, for each table k: its weights
+    # (|q| = 0, 1, ...) weights[starts[k]:starts[k + 1]], its alphabet 2 * max_abs[k] + 1, its
+    # frequencies at csum[near_bounds[k] + k + 1:], each 1 + w * free // total (integers, as numpy's),
+    # the remainder to q = 0
+    for k in range(max_abs.size):
+        w0 = starts[k]
+        known = starts[k + 1] - w0
+        n = 2 * max_abs[k] + 1
+        free = TOTAL - n
+        total = np.int64(0)
+        for i in range(known):
+            total += weights[w0 + i]
+        total = 2 * total - weights[w0]  # both sides of q = 0
+        at = near_bounds[k] + k
+        size = 2 * known - 1
+        spent = np.int64(0)
+        for i in range(size):
+            w = weights[w0 + abs(i - (known - 1))]
+            f = 1 + w * free // total
+            csum[at + 1 + i] = f
+            spent += f
+        csum[at + known] += TOTAL - spent - (n - size)
+        csum[at] = 0
+        for i in range(size):
+            csum[at + 1 + i] += csum[at + i]
+        lows[k] = max_abs[k] - known + 1
+
+
+def packed_cumulative(weights: list[np.ndarray], max_abs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The table coders' tables: for table k, the integer weights ``weights[k]`` of |q| = 0, 1, ...
+    (``geometric.magnitude_weights``, cut to ``max_abs[k] + 1``) and its magnitude bound ``max_abs[k]``,
+    made into ``geometric.table_frequencies``' frequencies in one pass. Returned as each table's
+    lowest symbol above the floor of 1, the tables' running sums from 0 end to end, and where each
+    table's frequencies start (and the end): what the coders below read."""
+    max_abs = np.ascontiguousarray(max_abs, dtype=np.int64)
+    starts = np.zeros(len(weights) + 1, dtype=np.int64)
+    np.cumsum([w.size for w in weights], out=starts[1:])
+    near_bounds = np.zeros(len(weights) + 1, dtype=np.int64)
+    np.cumsum(2 * np.diff(starts) - 1, out=near_bounds[1:])
+    csum = np.empty(int(near_bounds[-1]) + len(weights), dtype=np.int64)
+    lows = np.empty(len(weights), dtype=np.int64)
+    flat = np.concatenate(weights).astype(np.int64, copy=False) if weights else np.zeros(0, np.int64)
+    _packed_cumulative(flat, starts, max_abs, lows, csum, near_bounds)
     return lows, csum, near_bounds
 
 
-def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, tables: list[tuple[int, np.ndarray]],
+def encode_table_words(symbols: np.ndarray, bounds: np.ndarray, tables: tuple[np.ndarray, np.ndarray, np.ndarray],
                        n: int | np.ndarray, table_of: np.ndarray | None = None) -> np.ndarray:
     """The ANS words of groups of symbols 0..n-1 (group g: ``symbols[bounds[g]:bounds[g + 1]]``), each
-    with its table (``geometric.table_cumulative``: ``(lo, cumulative)``, a floor of 1 of 2**24 but the
-    frequencies whose running sums ``cumulative`` holds, from symbol ``lo``; table ``table_of[g]``, else
-    g), pushed as constriction's coder pushes them: the last group first, each group last symbol first.
-    ``n``: one alphabet size for all the tables, or one for each."""
-    lows, csum, near_bounds = _packed_tables(tables)
+    with its table (:func:`packed_cumulative`'s: a floor of 1 of 2**24 but the frequencies from each
+    table's lowest symbol; table ``table_of[g]``, else g), pushed as constriction's coder pushes them:
+    the last group first, each group last symbol first. ``n``: one alphabet size for all the tables,
+    or one for each."""
+    lows, csum, near_bounds = tables
     if table_of is None:
-        table_of = np.arange(len(tables), dtype=np.int64)
-    alphabets = np.broadcast_to(np.asarray(n, dtype=np.int64), (len(tables),))
+        table_of = np.arange(lows.size, dtype=np.int64)
+    alphabets = np.broadcast_to(np.asarray(n, dtype=np.int64), (lows.size,))
     return _encode_table_words(np.ascontiguousarray(symbols, dtype=np.int64), np.asarray(bounds, np.int64),
                                np.asarray(table_of, dtype=np.int64), lows, csum, near_bounds,
                                np.ascontiguousarray(alphabets))
@@ -1506,25 +1544,25 @@ def code_counts(codes: np.ndarray) -> np.ndarray:
 
 
 def decode_coded_values(words: np.ndarray, per_value: np.ndarray, present: np.ndarray,
-                        tables: list[tuple[int, np.ndarray]], n: int) -> np.ndarray:
+                        tables: tuple[np.ndarray, np.ndarray, np.ndarray], n: int) -> np.ndarray:
     """The values of an ANS chunk: each value's scale code ``per_value`` (uint8; 0: the value is 0),
     the nonzero codes ``present`` among them, ascending, with their tables (as
     :func:`encode_table_words` takes them) of one alphabet of ``n`` symbols. The values of one code are
     decoded in turn, codes ascending, as :func:`encode_table_words` pushes them."""
-    lows, csum, near_bounds = _packed_tables(tables)
+    lows, csum, near_bounds = tables
     table_of = np.zeros(256, dtype=np.int64)
     table_of[np.asarray(present, dtype=np.int64)] = np.arange(len(present))
     out = np.zeros(per_value.size, dtype=np.int64)
     _decode_coded_values(np.ascontiguousarray(words, dtype=np.uint32), np.ascontiguousarray(per_value, dtype=np.uint8),
-                         table_of, lows, csum, near_bounds, np.full(len(tables), n, dtype=np.int64), out)
+                         table_of, lows, csum, near_bounds, np.full(lows.size, n, dtype=np.int64), out)
     return out
 
 
 def decode_predicted(words: np.ndarray, kept: np.ndarray, weights: np.ndarray, codes: np.ndarray,
-                     tables: list[tuple[int, np.ndarray]], alphabets: np.ndarray) -> np.ndarray | None:
+                     tables: tuple[np.ndarray, np.ndarray, np.ndarray], alphabets: np.ndarray) -> np.ndarray | None:
     """``RESD`` kind 5's values V on the whole grid, in one pass; None when one reaches 2**31.
-    ``tables``, ``alphabets``: those of the classes of nonzero ``codes``, in class order."""
-    lows, csum, near_bounds = _packed_tables(tables)
+    ``tables`` (:func:`packed_cumulative`), ``alphabets``: those of the classes of nonzero ``codes``, in class order."""
+    lows, csum, near_bounds = tables
     table_of = np.full(len(codes), -1, dtype=np.int64)
     table_of[np.flatnonzero(codes)] = np.arange(np.count_nonzero(codes))
     values = np.zeros(kept.size, dtype=np.int64)

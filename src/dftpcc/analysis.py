@@ -174,7 +174,7 @@ class Analysis:
             shape, where = self._corner(values.size)
             coefs = np.zeros(shape, dtype=values.dtype)
             coefs.ravel()[where] = values
-            heights = spectrum.inverse(coefs, self.lay, first_axis=1)
+            heights = spectrum.inverse(coefs, self.lay, first_axis=1, overwrite=True)
             heights += self.trend  # in place: the inverse's grid is this trial's own
             return heights
         coefs = np.zeros(self.lay.coef_shape, dtype=values.dtype)

@@ -123,7 +123,7 @@ def _spectrum_heights(header: Header, blobs: dict[bytes, Any], cutoff: float | N
     else:
         coefs = np.zeros(shape, dtype=values.dtype)
         coefs.ravel()[where] = values
-    heights = spectrum.inverse(coefs, lay)
+    heights = spectrum.inverse(coefs, lay, overwrite=True)
     if params.detrend == "plane":
         add_plane(heights, header.plane)
     return heights, values.size == n and cutoff is None
@@ -336,7 +336,7 @@ def _decode_tile(header: Header, base: _Base, k: int, blobs: dict[bytes, Any],
             raise CorruptFileError("tile coefficients are not one integer per kept coefficient")
         corner_shape, where = spectrum.kept_corner(lay, params.cutoff)
         coefs = quantizer.dequantize_into(corner_shape, where, stream, params.step)
-        heights = spectrum.inverse(coefs, lay)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
+        heights = spectrum.inverse(coefs, lay, overwrite=True)[r0 - w0:r1 - w0, c0 - v0:c1 - v0]
     else:  # every coefficient 0 (format.md, TIDX)
         heights = np.zeros(shape)
     heights += tiles.base_heights(base.values, base.i, base.j, grid.shape, (r0, r1), (c0, c1), exact=False)

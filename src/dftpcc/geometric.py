@@ -26,7 +26,7 @@ from . import kernels
 from .errors import CorruptFileError
 
 __all__ = ["band_statistics", "band_sums", "band_scales", "scale_of", "decay", "magnitude_weights", "table_model", "build_table_model",
-           "table_frequencies", "table_cumulative", "code_groups", "code_order", "log_geometric", "check_ans_words",
+           "table_frequencies", "packed_tables", "code_groups", "code_order", "log_geometric", "check_ans_words",
            "table_budget", "table_words", "coded_values", "TABLE_BITS", "MAX_ANS_SYMBOL", "SCALE_STEPS",
            "SCALE_BIAS", "MIN_SCALE"]
 
@@ -133,8 +133,8 @@ NARROW_TABLE_MAX_ABS = 255
 
 
 NARROW_TABLES_CACHED = 2048
-#: Frequency and cumulative tables wider than NARROW_TABLE_MAX_ABS hold up to 2 x 32,768 int64 (half
-#: a megabyte each, a slowly decaying band scale's): this many of them are cached. In the one cache of
+#: Frequency tables wider than NARROW_TABLE_MAX_ABS hold up to 2 x 32,768 int64 (half a megabyte,
+#: a slowly decaying band scale's): this many of them are cached. In the one cache of
 #: 2048 they shared with the narrow ones, decoding a 20,000² map (400 tiles) held 390 MB of them, and
 #: a band-coded run's memory grew with the tiles it had coded.
 WIDE_TABLES_CACHED = 64
@@ -171,8 +171,8 @@ def _table_frequencies(max_abs: int, code: int) -> tuple[int, np.ndarray]:
     (2**24 - n) // total for each of the n = 2*max_abs+1 values (total: the sum of their weights),
     the remainder to q = 0. Returned as the first symbol above the floor of 1 and the frequencies
     from there: only the |q| with a nonzero weight (a few dozen: the weights decay geometrically)
-    take more than that floor, so only those are computed. Cached (a few dozen integers each): the
-    compiled coder asks for a tile's tables at every scan."""
+    take more than that floor, so only those are computed. The constriction models are built from
+    them; the compiled coders make the same integers themselves (:func:`packed_tables`)."""
     known = magnitude_weights(code)[: max_abs + 1]
     both = np.concatenate([known[:0:-1], known])  # |q| < known.size, around q = 0
     n = 2 * max_abs + 1
@@ -221,31 +221,22 @@ def code_order(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return order[skip:], present, bounds
 
 
-def table_cumulative(max_abs: int, code: int) -> tuple[int, np.ndarray]:
-    """:func:`table_frequencies` as its first symbol above the floor and the running sums of the
-    frequencies from there, from 0 (what the compiled coder reads); cached as it is."""
-    if max_abs <= NARROW_TABLE_MAX_ABS:
-        return _narrow_cumulative(max_abs, code)
-    return _wide_cumulative(max_abs, code)
-
-
-def _table_cumulative(max_abs: int, code: int) -> tuple[int, np.ndarray]:
-    lo, near = table_frequencies(max_abs, code)
-    cumulative = np.zeros(near.size + 1, dtype=np.int64)
-    np.cumsum(near, out=cumulative[1:])
-    cumulative.flags.writeable = False
-    return lo, cumulative
-
-
-_narrow_cumulative = functools.lru_cache(maxsize=NARROW_TABLES_CACHED)(_table_cumulative)
-_wide_cumulative = functools.lru_cache(maxsize=WIDE_TABLES_CACHED)(_table_cumulative)
+def packed_tables(max_abs: int | np.ndarray, codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled table coders' tables of scale ``codes`` at magnitude bound ``max_abs`` (one for all,
+    or one per code): :func:`table_frequencies`' frequencies, made in one compiled pass from
+    :func:`magnitude_weights` (a map's decode asks for hundreds of distinct tables: a few
+    milliseconds made one by one in numpy, and too many to cache), packed as the coders read them."""
+    codes = np.asarray(codes, dtype=np.int64)
+    bounds = np.broadcast_to(np.asarray(max_abs, dtype=np.int64), codes.shape)
+    weights = [magnitude_weights(code)[: bound + 1] for code, bound in zip(codes.tolist(), bounds.tolist())]
+    return kernels.compiled_module().packed_cumulative(weights, bounds)
 
 
 def _table_words_compiled(q: np.ndarray, per_value: np.ndarray, max_abs: int) -> np.ndarray:
     # The same words, without building constriction's tables.
     order, present, bounds = code_order(per_value)
-    tables = [table_cumulative(max_abs, code) for code in present.tolist()]
-    return kernels.compiled_module().encode_table_words(q[order] + max_abs, bounds, tables, 2 * max_abs + 1)
+    return kernels.compiled_module().encode_table_words(q[order] + max_abs, bounds, packed_tables(max_abs, present),
+                                                        2 * max_abs + 1)
 
 
 @kernels.kernel(_table_words_compiled)
@@ -294,8 +285,7 @@ def _coded_values_compiled(words: np.ndarray, per_value: np.ndarray, max_abs: in
     if present.size * (2 * max_abs + 1) > table_budget(per_value.size):
         raise CorruptFileError(f"{what} asks for larger probability tables than its {per_value.size} values allow")
     check_ans_words(words, what)
-    tables = [table_cumulative(max_abs, code) for code in present.tolist()]
-    return compiled.decode_coded_values(words, per_value, present, tables, 2 * max_abs + 1)
+    return compiled.decode_coded_values(words, per_value, present, packed_tables(max_abs, present), 2 * max_abs + 1)
 
 
 @kernels.kernel(_coded_values_compiled)

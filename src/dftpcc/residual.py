@@ -557,7 +557,7 @@ def _class_words_compiled(symbols: np.ndarray, bounds: np.ndarray, group_classes
                           max_abs: np.ndarray) -> np.ndarray:
     # The same words, without building constriction's tables.
     present = np.flatnonzero(codes)
-    tables = [geometric.table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
+    tables = geometric.packed_tables(max_abs[present], codes[present])
     return kernels.compiled_module().encode_table_words(symbols, bounds, tables, 2 * max_abs[present] + 1,
                                                         np.searchsorted(present, group_classes))
 
@@ -614,7 +614,7 @@ def _predicted_values_compiled(words: np.ndarray, kept: np.ndarray, weights: np.
     # The same values in one compiled pass.
     geometric.check_ans_words(words, what)
     present = np.flatnonzero(codes)
-    tables = [geometric.table_cumulative(int(max_abs[k]), int(codes[k])) for k in present.tolist()]
+    tables = geometric.packed_tables(max_abs[present], codes[present])
     found = kernels.compiled_module().decode_predicted(words, kept, weights, codes, tables, 2 * max_abs[present] + 1)
     if found is None:
         raise CorruptFileError(f"{what} decodes to values beyond 2**31")

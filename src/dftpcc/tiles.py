@@ -442,7 +442,7 @@ class TiledAnalysis:
         i, j = self.base_i[:n], self.base_j[:n]
         corner = np.zeros((int(i.max()) + 1, int(j.max()) + 1))
         corner[i, j] = values
-        return spectrum.inverse(corner, self.lay)
+        return spectrum.inverse(corner, self.lay, overwrite=True)
 
     def proxy_rmse(self, cutoff: float, step: float) -> float:
         """As :meth:`Analysis.proxy_rmse`, over the base layer and every tile (each orthonormal)."""
