@@ -210,7 +210,7 @@ def test_non_finite_heights_are_refused(monkeypatch, good):
     # Whatever makes the inverse transform produce NaN, decoding refuses it.
     from dftpcc import spectrum
 
-    monkeypatch.setattr(spectrum, "inverse", lambda coefs, lay: np.full(lay.shape, np.nan))
+    monkeypatch.setattr(spectrum, "inverse", lambda coefs, lay, **_: np.full(lay.shape, np.nan))
     with pytest.raises(CorruptFileError, match="non-finite heights"):
         _read(good)
 

@@ -314,19 +314,16 @@ def _pop_table(words, state, pos, lo, csum, at, size, n):  # pragma: no cover - 
 @njit(cache=True, nogil=True)
 def _decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, alphabets, out):  # pragma: no cover - compiled
     # coding._decode_ans's constriction loop in one pass: the values of each nonzero code c, codes
-    # ascending and positions ascending within one (a stable counting sort), decoded with table
-    # table_of[c] into out[position] as symbol - (n - 1) // 2; values of code 0 stay as they are.
+    # ascending and positions ascending within one, decoded with table table_of[c] as
+    # symbol - (n - 1) // 2; values of code 0 stay as they are. They are decoded in that order into
+    # ``decoded`` (code c's from count[c]), then laid out by position in one pass down per_value,
+    # each code's values read in turn: every array is walked in order, none is scattered into.
     count = np.zeros(257, dtype=np.int64)
     for i in range(per_value.size):
         count[np.int64(per_value[i]) + 1] += 1
     for c in range(256):
         count[c + 1] += count[c]
-    order = np.empty(per_value.size, dtype=np.int64)
-    fill = count[:256].copy()
-    for i in range(per_value.size):
-        c = np.int64(per_value[i])
-        order[fill[c]] = i
-        fill[c] += 1
+    decoded = np.empty(per_value.size, dtype=np.int32)  # values are below 2**31 (MAX_ANS_SYMBOL)
     state, pos = _ans_start(words)
     lefts = np.empty(alphabets.max() + 1 if alphabets.size else 1, dtype=np.int64)
     slots = np.empty(SLOTS + 1, dtype=np.int64)
@@ -375,7 +372,13 @@ def _decode_coded_values(words, per_value, table_of, lows, csum, near_bounds, al
             if state < low and pos >= 0:
                 state = (state << np.uint64(32)) | np.uint64(words[pos])
                 pos -= 1
-            out[order[j]] = a - half
+            decoded[j] = a - half
+    fill = count[:256].copy()
+    for i in range(per_value.size):
+        c = np.int64(per_value[i])
+        if c:
+            out[i] = decoded[fill[c]]
+            fill[c] += 1
 
 
 @njit(cache=True, nogil=True)
