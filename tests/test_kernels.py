@@ -891,6 +891,27 @@ def test_band_codes_are_the_numpy_bands(jit):
                                               expected)
 
 
+def test_band_totals_are_numpys_bincounts_to_the_bit(jit):
+    """Each band's count and sum of magnitudes, added in one compiled pass, are np.bincount's (the
+    same sums to the bit: rate control ranks candidates by them), under every layout of the chunks
+    the coder writes, with bands that start above 0 and sums of very unequal magnitudes."""
+    from dftpcc import geometric
+
+    rng = np.random.default_rng(22)
+    for _, radius, angle in _coefficient_chunks(rng):
+        for layout in range(len(coding.BAND_LAYOUTS)):
+            bands = coding.band_ids(radius, angle, layout) + int(rng.integers(0, 5))
+            magnitudes = np.abs(rng.standard_cauchy(bands.size)) * 10.0 ** rng.uniform(-3, 6, bands.size)
+            found = []
+            for on in (True, False):
+                jit(on)
+                found.append(geometric._band_totals(bands, magnitudes))
+            (lo, count, total), (lo_np, count_np, total_np) = found
+            assert lo == lo_np and count.dtype == count_np.dtype
+            np.testing.assert_array_equal(count, count_np)
+            assert total.tobytes() == total_np.tobytes()
+
+
 def test_residual_added_in_one_pass_is_numpys(jit):
     """The residual layer added cell by cell gives numpy's bits (``heights[mask] += q * step``)."""
     from dftpcc import decoder

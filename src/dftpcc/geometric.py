@@ -72,18 +72,26 @@ def band_statistics(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | N
 def band_sums(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | None = None
               ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`band_statistics` and each band's sum of ``|q|``."""
-    lo = int(bands.min())
-    local = bands - lo
-    n = int(local.max()) + 1
     if magnitudes is None:
         magnitudes = np.abs(q).astype(np.float64)
-    total = np.bincount(local, weights=magnitudes, minlength=n)
-    count = np.bincount(local, minlength=n)
+    lo, count, total = _band_totals(bands, magnitudes)
+    n = total.size
     # A band's scale is its mean |q| (the maximum-likelihood Laplace scale; the
     # table models take the geometric distribution of that mean).
     b = np.divide(total, count, out=np.zeros(n), where=count > 0)
     codes = np.where(b > 0, np.clip(np.round(np.log2(np.maximum(b, 1e-12)) * SCALE_STEPS) + SCALE_BIAS, 1, 255), 0)
     return lo, codes.astype(np.uint8), count, total
+
+
+@kernels.kernel("band_totals")
+def _band_totals(bands: np.ndarray, magnitudes: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """The lowest of ``bands`` (int64, one per value), then each band's count of values and sum of
+    ``magnitudes`` from there (``np.bincount``'s: added in the values' order). Rate control sizes
+    every candidate stream by these, once per band layout."""
+    lo = int(bands.min())
+    local = bands - lo
+    n = int(local.max()) + 1
+    return lo, np.bincount(local, minlength=n), np.bincount(local, weights=magnitudes, minlength=n)
 
 
 def scale_of(codes: np.ndarray) -> np.ndarray:
