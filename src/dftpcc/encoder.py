@@ -13,7 +13,7 @@ import dataclasses
 import math
 import warnings
 from collections.abc import Iterable
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable, Iterator, NamedTuple
 
 import numpy as np
 
@@ -316,10 +316,19 @@ class _Tiles(_Layout):
     def encode_dem(self, dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
                    map_tiles: Callable[..., list] | None, *, fill: Callable[..., np.ndarray] | None,
                    occupied: np.ndarray) -> bytes:
+        # The smallest run's file (the earliest of equal ones).
+        return min(self.runs(dem, params, point_count, crs, on_stage, map_tiles), key=len)
+
+    def runs(self, dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
+             map_tiles: Callable[..., list] | None) -> Iterator[bytes]:
+        """The files a tiled map is coded as, each run's in turn (the encoder keeps the smallest): the
+        first run's, then, where the covering base layer applies, that of a map with it and, with a
+        target, that of the base layer alone (benchmarks/bench_tiled_runs.py sizes and times each)."""
         _check_tiled(params)
         first = self.analysis(dem, params, on_stage, base_cycles=BASE_CYCLES_PER_TILE)
         masks = tiled_masks(first)  # every run's: they depend on the occupancy alone
         data, cutoff = self.encode(first, params, point_count, crs, on_stage, map_tiles, masks)
+        yield data
         # Where the cutoff's whole circle is a small base layer (covering_reach), the base layer may hold
         # all of it, and the tiles only what its quantization leaves: the tiles no longer repeat the
         # map's frequencies (nor pay for them in their own headers), so their edges rarely show. The
@@ -332,27 +341,29 @@ class _Tiles(_Layout):
         # shares the second's plane, fill and base layer): on a small map in small tiles, each tile's
         # COEF entry and stream headers (about 40 bytes) cost more than its few coefficients save.
         if params.target_bpp > 0:
-            return data
+            return
         if params.has_target and params.cutoff is None:
             lowest = covering_cutoff(dem.grid.shape, params.tile_size)
             cutoff = max(cutoff, 1.0 if lowest is None else lowest)
         cycles = covering_reach(dem.grid.shape, params.tile_size, cutoff) if cutoff < 1 else None
         if cycles is None or cycles <= BASE_CYCLES_PER_TILE:
-            return data
+            return
         with warnings.catch_warnings():  # the first run has said whatever these would
             warnings.simplefilter("ignore")
             covering = self.analysis(dem, params, on_stage, base_cycles=cycles)
             # Without a target the settings fix the quality, and a base layer alone would lose the
             # tiles' refinement of it: only a target compares files of equal quality.
-            for an in (covering, covering.without_tile_coefs()) if params.has_target else (covering,):
+            analyses = (covering, covering.without_tile_coefs()) if params.has_target else (covering,)
+        for an in analyses:
+            with warnings.catch_warnings():  # not held across the yield: the caller's warnings are its own
+                warnings.simplefilter("ignore")
                 try:
                     other, _ = self.encode(an, params, point_count, crs, on_stage, map_tiles, masks)
                 except InvalidInputError:  # a target the base layer alone cannot reach
                     if an.tile_coefs:
                         raise
                     continue
-                data = other if len(other) < len(data) else data
-        return data
+            yield other
 
     @staticmethod
     def analysis(dem: DEM, params: Params, on_stage: Stage, *, base_cycles: int) -> TiledAnalysis:
