@@ -855,6 +855,52 @@ def test_a_damaged_file_fails_on_its_mask_first_with_the_mask_beside(beside):
         assert len(errors) == 1, errors
 
 
+def test_the_residual_layer_decodes_beside_the_spectrum(beside, monkeypatch):
+    """A map with a residual layer decodes that layer on the side thread with its mask (its integers
+    need only the mask), not after the spectrum: the same points on one core or two."""
+    import threading
+
+    import dftpcc
+    from dftpcc import decoder
+
+    blob = dftpcc.compress(_patchy_points(), resolution=0.5, target_max_error=0.05)
+    where, real = [], decoder.decode_residual
+    monkeypatch.setattr(decoder, "decode_residual", lambda *a: where.append(threading.current_thread()) or real(*a))
+    out = {}
+    for cores in (1, 2):
+        beside(cores)
+        out[cores] = dftpcc.decompress(blob)
+        assert (where[-1] is not threading.current_thread()) is (cores == 2)
+    assert np.array_equal(out[1], out[2])
+
+
+def test_a_damaged_residual_layer_fails_after_the_spectrum_with_it_beside(beside):
+    """A file whose residual layer is damaged fails with the layer's error; one whose coefficients
+    are damaged too fails with theirs (a serial decoder's order: mask, spectrum, residual), on one
+    core or two."""
+    import dftpcc
+
+    from .fuzz import craft
+
+    blob = dftpcc.compress(_patchy_points(), resolution=0.5, target_max_error=0.05)
+    resd, coef = craft.section(blob, b"RESD"), craft.section(blob, b"COEF")
+    bad_resd = craft.fix_crcs(craft.replace_section(blob, b"RESD", resd[: len(resd) // 2]))
+    bad_coef = craft.fix_crcs(craft.replace_section(blob, b"COEF", coef[: len(coef) // 3]))
+    both = craft.fix_crcs(craft.replace_section(bad_resd, b"COEF", coef[: len(coef) // 3]))
+
+    def error(damaged: bytes) -> str:
+        with pytest.raises(CorruptFileError) as caught:
+            dftpcc.decompress(damaged)
+        return str(caught.value)
+
+    found = {}
+    for cores in (1, 2):
+        beside(cores)
+        found[cores] = error(bad_resd), error(bad_coef), error(both)
+    layer, spectrum, first = found[1]
+    assert found[2] == found[1] and layer != spectrum and first == spectrum, found
+
+
 def test_a_forked_child_codes_with_the_mask_beside(beside):
     # A child forked after the pool's threads started has none of them: it must start its own, not
     # wait for the parent's.

@@ -53,22 +53,40 @@ def decode_dem(header: Header, blobs: dict[bytes, Any], *, cutoff: float | None 
         if cutoff < params.cutoff:
             raise InvalidInputError(
                 f"cannot decode at cutoff {cutoff}: the file keeps only frequencies up to cutoff {params.cutoff}")
-    # The mask decodes beside the spectrum (on a second core, with the compiled kernels); a damaged
-    # file still fails on its mask first, as a serial decoder checks it first.
-    side = kernels.Side(occupancy.decode_mask, blobs[b"MASK"], grid.shape, cells=grid.size)
+    # The mask, then any residual layer, decode beside the spectrum (on a second core, with the
+    # compiled kernels); a damaged file still fails as a serial decoder fails: on its mask first,
+    # then its spectrum, then its residual layer.
+    layer = blobs.get(b"RESD") if cutoff is None else None
+    side = kernels.Side(_mask_and_layer, blobs[b"MASK"], header, layer, cells=grid.size)
     try:
         with spectrum.fft_workers(side.cores_left):
             heights, complete = _spectrum_heights(header, blobs, cutoff, allow_partial)
     except Exception:
-        _checked_mask(side.result(), header)
+        _checked_mask(side.result()[0], header)
         raise
-    mask = _checked_mask(side.result(), header)
-    if b"RESD" in blobs and complete:
+    mask, q = side.result()
+    mask = _checked_mask(mask, header)
+    if layer is not None and complete:
         # The residual layer only applies to the full-resolution map it was computed for.
-        _add_residual(heights, mask, decode_residual(blobs[b"RESD"], mask), residual_step(params.target_max_error))
+        if isinstance(q, Exception):
+            raise q
+        _add_residual(heights, mask, q, residual_step(params.target_max_error))
     if not np.isfinite(heights).all() and not np.isfinite(heights[mask]).all():
         raise CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)")
     return DEM(grid=grid, heights=heights, mask=mask)
+
+
+def _mask_and_layer(blob: Any, header: Header, layer: Any) -> tuple[np.ndarray, np.ndarray | Exception | None]:
+    """An untiled map's mask and, given a residual layer, its integers decoded with that mask (or
+    the error decoding them raised, for the caller to raise after the spectrum's own errors; None
+    where the mask is wrong: the caller refuses it first)."""
+    mask = occupancy.decode_mask(blob, header.grid.shape)
+    if layer is None or int(mask.sum()) != header.cell_count:
+        return mask, None
+    try:
+        return mask, decode_residual(layer, mask)
+    except Exception as exc:  # noqa: BLE001 - raised by the caller, in a serial decoder's order
+        return mask, exc
 
 
 @kernels.kernel("add_residual")
