@@ -23,7 +23,7 @@ from dftpcc.encoder import _TILES, no_stage
 from dftpcc.params import Params
 
 from benchmarks.bench_ratecontrol import TILE, _tilings
-from benchmarks.bench_tiles import all_maps
+from benchmarks.bench_tiles import all_maps, with_auto
 from benchmarks.common import DEFAULT_DATA, library_label, load_average, markdown_table, pick_cases
 
 #: The runs, in the order the encoder makes them.
@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     print(f"Measuring dftpcc {library_label()}; {load_average()}.")
     rows, cases = [], []
-    for case in pick_cases(all_maps(args.data), args.files):
+    for case in pick_cases([with_auto(c, args.data) for c in all_maps(args.data)], args.files):
         loading: list[str] = []
         for dem, n, unit, tile in _tilings(case, args.data, (args.tile,), loading):
             for name, multiple in (("target_rmse", 0.75), ("target_rmse", 2.0), ("target_max_error", 4.0)):
