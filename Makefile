@@ -78,6 +78,11 @@ bench-targets: $(STAMP)
 bench-decode: $(STAMP)
 	$$(command -v taskset >/dev/null && echo taskset -c 0) $(BIN)/python -m benchmarks.bench_decode $(ARGS)
 
+# What each of a tiled target's runs (first, covering base layer, base layer alone) costs and how often it gives the smallest file (issue 43; ~10 min).
+.PHONY: bench-tiled-runs
+bench-tiled-runs: $(STAMP)
+	$$(command -v taskset >/dev/null && echo taskset -c 0) $(BIN)/python -m benchmarks.bench_tiled_runs $(ARGS)
+
 # Peak memory of a large cloud read whole and in chunks (~1 min, temporary LAZ files of up to 22.7 M points).
 bench-memory: $(STAMP)
 	$(BIN)/python -m benchmarks.bench_memory $(ARGS)
