@@ -317,29 +317,35 @@ class _Tiles(_Layout):
                    map_tiles: Callable[..., list] | None, *, fill: Callable[..., np.ndarray] | None,
                    occupied: np.ndarray) -> bytes:
         # The smallest run's file (the earliest of equal ones).
-        return min(self.runs(dem, params, point_count, crs, on_stage, map_tiles), key=len)
+        return min(self.runs(dem, params, point_count, crs, on_stage, map_tiles), key=lambda run: len(run[1]))[1]
 
     def runs(self, dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
-             map_tiles: Callable[..., list] | None) -> Iterator[bytes]:
-        """The files a tiled map is coded as, each run's in turn (the encoder keeps the smallest): the
-        first run's, then, where the covering base layer applies, that of a map with it and, with a
-        target, that of the base layer alone (benchmarks/bench_tiled_runs.py sizes and times each)."""
+             map_tiles: Callable[..., list] | None, *, every: bool = False) -> Iterator[tuple[str, bytes]]:
+        """The files a tiled map is coded as, each run's in turn with its name (the encoder keeps the
+        smallest): ``'first'``; then, where the covering base layer applies, with a target,
+        ``'base alone'`` and ``'covering'`` (the base layer and the tiles' own coefficients), or
+        ``'covering'`` alone without a target. ``every``: the covering run also where the rule below
+        leaves it out (benchmarks/bench_tiled_runs.py sizes and times each run)."""
         _check_tiled(params)
         first = self.analysis(dem, params, on_stage, base_cycles=BASE_CYCLES_PER_TILE)
         masks = tiled_masks(first)  # every run's: they depend on the occupancy alone
         data, cutoff = self.encode(first, params, point_count, crs, on_stage, map_tiles, masks)
-        yield data
+        yield "first", data
         # Where the cutoff's whole circle is a small base layer (covering_reach), the base layer may hold
         # all of it, and the tiles only what its quantization leaves: the tiles no longer repeat the
         # map's frequencies (nor pay for them in their own headers), so their edges rarely show. The
         # reach is that of the first run's cutoff or, where rate control chooses the cutoff and that
         # circle is too large, of the lowest cutoff whose circle is not (in small tiles the first run
         # may keep every frequency, and pay for them in every tile); rate control then searches again.
-        # Kept when smaller (a size target keeps its first file). The second run repeats the plane fit
-        # and fill of the first (TiledAnalysis). With a target, a third run codes that base layer
-        # alone, every tile without coefficients of its own (TiledAnalysis.without_tile_coefs, which
-        # shares the second's plane, fill and base layer): on a small map in small tiles, each tile's
-        # COEF entry and stream headers (about 40 bytes) cost more than its few coefficients save.
+        # Kept when smaller (a size target keeps its first file). The covering runs repeat the plane
+        # fit and fill of the first (TiledAnalysis). With a target, the base layer alone is coded
+        # first, every tile without coefficients of its own (TiledAnalysis.without_tile_coefs, which
+        # shares the covering analysis' plane, fill and base layer): on a small map in small tiles,
+        # each tile's COEF entry and stream headers (about 40 bytes) cost more than its few
+        # coefficients save. Where that file is already no larger than the first run's, the tiles'
+        # coefficients were not worth their headers at the first run's settings either, and the map
+        # with them is not coded: on ../shared/data (make bench-tiled-runs) it would have been at
+        # most 0.2 % smaller, and it costs three times the base layer alone.
         if params.target_bpp > 0:
             return
         if params.has_target and params.cutoff is None:
@@ -353,17 +359,22 @@ class _Tiles(_Layout):
             covering = self.analysis(dem, params, on_stage, base_cycles=cycles)
             # Without a target the settings fix the quality, and a base layer alone would lose the
             # tiles' refinement of it: only a target compares files of equal quality.
-            analyses = (covering, covering.without_tile_coefs()) if params.has_target else (covering,)
-        for an in analyses:
+            alone = covering.without_tile_coefs() if params.has_target else None
+        if alone is not None:
             with warnings.catch_warnings():  # not held across the yield: the caller's warnings are its own
                 warnings.simplefilter("ignore")
                 try:
-                    other, _ = self.encode(an, params, point_count, crs, on_stage, map_tiles, masks)
+                    base, _ = self.encode(alone, params, point_count, crs, on_stage, map_tiles, masks)
                 except InvalidInputError:  # a target the base layer alone cannot reach
-                    if an.tile_coefs:
-                        raise
-                    continue
-            yield other
+                    base = None
+            if base is not None:
+                yield "base alone", base
+                if len(base) <= len(data) and not every:
+                    return
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            other, _ = self.encode(covering, params, point_count, crs, on_stage, map_tiles, masks)
+        yield "covering", other
 
     @staticmethod
     def analysis(dem: DEM, params: Params, on_stage: Stage, *, base_cycles: int) -> TiledAnalysis:
