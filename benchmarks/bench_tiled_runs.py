@@ -1,15 +1,12 @@
 """Issue 43: what each run of a tiled target costs and whether it wins.
 
 A tiled map with a target is coded up to three times (``encoder._Tiles.runs``): the first run
-(base layer of one cycle per tile), the covering base layer alone, and the map with that base
-layer and the tiles' own coefficients; the encoder keeps the smallest file, and leaves the last
-run out where the base layer alone is no larger than the first run's file. For every map of the
+(base layer of one cycle per tile), the map with the covering base layer and the tiles' own
+coefficients, and that base layer alone; the encoder keeps the smallest file. For every map of the
 data folder larger than one tile and each target level of bench_ratecontrol (RMSE 0.75 and 2
-units, a maximum error of 4), this makes every run (``every=True``) and prints each one's bytes
-and CPU seconds (one core: run under ``taskset``) and which was smallest; then, over all cases, the
-share of the time each run takes, how much larger the encoder's file is than the smallest of all
-three and the time its rule saves, and the worst size lost if it kept only some of the runs
-(issue 43's 2 % rule).
+units, a maximum error of 4), this prints each run's bytes and CPU seconds (one core: run under
+``taskset``) and which was smallest; then, over all cases, the share of the time each run takes and
+the worst size lost if the encoder kept only some of the runs (issue 43's 2 % rule).
 
     taskset -c 1 .venv/bin/python -m benchmarks.bench_tiled_runs [--files NAME ...] [--tile 256]
 """
@@ -30,29 +27,21 @@ from benchmarks.bench_tiles import all_maps, with_auto
 from benchmarks.common import DEFAULT_DATA, library_label, load_average, markdown_table, pick_cases
 
 #: The runs, in the order the encoder makes them.
-RUNS = ("first", "base alone", "covering")
+RUNS = ("first", "covering", "base alone")
 #: Issue 43's size rule: a faster path's file within this fraction of today's.
 SIZE_RULE = 0.02
 
 
 def timed_runs(dem, params: Params, point_count: int) -> dict[str, tuple[int, float]]:
-    """Each run's file size (bytes) and CPU seconds, by name, every run made."""
+    """Each run's file size (bytes) and CPU seconds, by name."""
     out = {}
-    runs = _TILES.runs(dem, params, point_count, None, no_stage, None, every=True)
+    runs = _TILES.runs(dem, params, point_count, None, no_stage, None)
     while True:
         t0 = time.process_time()
         run = next(runs, None)
         if run is None:
             return out
         out[run[0]] = (len(run[1]), time.process_time() - t0)
-
-
-def encoders_runs(runs: dict[str, tuple[int, float]]) -> list[str]:
-    """The runs the encoder makes of those made with ``every``: the covering one only where the base
-    layer alone is missing or larger than the first run's file."""
-    alone = runs.get("base alone")
-    skip = alone is not None and alone[0] <= runs["first"][0]
-    return [name for name in runs if not (skip and name == "covering")]
 
 
 def kept_loss(runs: dict[str, tuple[int, float]], keep: tuple[str, ...]) -> float:
@@ -87,11 +76,6 @@ def main(argv: list[str] | None = None) -> int:
         share = sum(runs[name][1] for runs in cases if name in runs) / total if total else 0.0
         wins = sum(1 for runs in cases if min(runs, key=lambda r: runs[r][0]) == name)
         print(f"{name}: {share:.0%} of the time, smallest in {wins} of {len(cases)} cases")
-    rule = [kept_loss(runs, tuple(encoders_runs(runs))) for runs in cases]
-    spent = sum(runs[r][1] for runs in cases for r in encoders_runs(runs))
-    print(f"the encoder's runs: worst {max(rule, default=0.0):.2%} larger than the smallest of all, "
-          f"{sum(1 for x in rule if x > 0)} of {len(cases)} cases larger at all; "
-          f"{spent / total if total else 1.0:.0%} of the time of every run")
     for keep in itertools.chain.from_iterable(itertools.combinations(RUNS, r) for r in (1, 2)):
         losses = [kept_loss(runs, keep) for runs in cases]
         made = [x for x in losses if math.isfinite(x)]

@@ -958,6 +958,28 @@ def test_band_totals_are_numpys_bincounts_to_the_bit(jit):
             assert total.tobytes() == total_np.tobytes()
 
 
+def test_layout_totals_are_numpys_to_the_bit(jit):
+    """Each band's count and sum of magnitudes under a layout, the band worked out where the value is
+    added, are numpy's (band_ids, then np.bincount): on the coder's chunks and on radii and angles
+    that fall exactly on a ring's or a sector's edge."""
+    rng = np.random.default_rng(23)
+    chunks = [(radius, angle) for _, radius, angle in _coefficient_chunks(rng)]
+    edges = np.arange(0.0, 64.0, 4.0)
+    chunks.append((np.repeat(edges, 17), np.tile(np.linspace(0.0, 1.0, 17), edges.size)))
+    for radius, angle in chunks:
+        magnitudes = np.abs(rng.standard_cauchy(radius.size)) * 10.0 ** rng.uniform(-3, 6, radius.size)
+        for layout, (width, sectors) in enumerate(coding.BAND_LAYOUTS):
+            found = []
+            for on in (True, False):
+                jit(on)
+                found.append(coding._layout_totals(radius, angle, width, sectors, magnitudes))
+            (lo, count, total), (lo_np, count_np, total_np) = found
+            bands = coding.band_ids(radius, angle, layout)
+            assert lo == lo_np == bands.min() and count.size == bands.max() - bands.min() + 1
+            np.testing.assert_array_equal(count, count_np)
+            assert total.tobytes() == total_np.tobytes()
+
+
 def test_residual_added_in_one_pass_is_numpys(jit):
     """The residual layer added cell by cell gives numpy's bits (``heights[mask] += q * step``)."""
     from dftpcc import decoder

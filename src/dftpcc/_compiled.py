@@ -1545,6 +1545,30 @@ def band_totals(bands: np.ndarray, magnitudes: np.ndarray) -> tuple[int, np.ndar
     return int(lo), count, total
 
 
+@njit(cache=True, nogil=True)
+def _layout_totals(radius, angle, width, sectors, magnitudes, count, total, lo):  # pragma: no cover - compiled
+    # _band_totals with each value's band worked out where it is added (coding.band_ids' arithmetic)
+    for i in range(radius.size):
+        k = _band_at(radius[i], angle[i], width, sectors) - lo
+        count[k] += 1
+        total[k] += magnitudes[i]
+
+
+def layout_totals(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int, magnitudes: np.ndarray
+                  ) -> tuple[int, np.ndarray, np.ndarray]:
+    """``coding._layout_totals`` in two passes, without the bands' arrays; declines an empty chunk
+    or other dtypes."""
+    if (radius.size == 0 or radius.dtype != np.float64 or angle.dtype != np.float64
+            or magnitudes.dtype != np.float64 or not radius.shape == angle.shape == magnitudes.shape):
+        return NotImplemented
+    radius, angle, magnitudes = (np.ascontiguousarray(a) for a in (radius, angle, magnitudes))
+    lo, hi = _band_range(radius, angle, float(width), int(sectors))
+    count = np.zeros(int(hi - lo) + 1, dtype=np.intp)
+    total = np.zeros(int(hi - lo) + 1)
+    _layout_totals(radius, angle, float(width), int(sectors), magnitudes, count, total, lo)
+    return int(lo), count, total
+
+
 def band_range(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int) -> tuple[int, int, None]:
     """The lowest and highest band (``coding.band_ids``) of a chunk's values, in one pass without
     the bands' array (``coding._band_codes`` finds each again); declines an empty or non-float chunk."""

@@ -245,6 +245,17 @@ def _decode_ans(payload: bytes, radius: np.ndarray, angle: np.ndarray, what: str
     return geometric.coded_values(words, _band_codes(radius, angle, width, sectors, codes, lo, bands), max_abs, what)
 
 
+@kernels.kernel("layout_totals")
+def _layout_totals(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int, magnitudes: np.ndarray
+                   ) -> tuple[int, np.ndarray, np.ndarray]:
+    """:func:`~dftpcc.geometric.band_sums`' lowest band, counts and sums of ``magnitudes`` under the
+    layout of ring ``width`` and ``sectors`` (:func:`band_ids`): rate control sizes every candidate
+    stream under every layout by them."""
+    rings = (radius / width).astype(np.int64)
+    bands = rings if sectors == 1 else rings * sectors + np.minimum((angle * sectors).astype(np.int64), sectors - 1)
+    return geometric._band_totals(bands, magnitudes)
+
+
 @kernels.kernel("band_range")
 def _band_range(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int
                 ) -> tuple[int, int, np.ndarray | None]:
@@ -351,7 +362,6 @@ def _estimated_ans_bits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, ex
         return None
     magnitudes = np.abs(q).astype(np.float64)
     layouts = range(len(BAND_LAYOUTS)) if max_abs and exhaustive else range(1)
-    rings: dict[float, np.ndarray] = {}
     best = None
     at_zero, per_step = geometric.log_geometric()
     # log2 P(q) = at_zero + |q| per_step (see _estimated_bits) sums band by band from each band's
@@ -359,11 +369,8 @@ def _estimated_ans_bits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, ex
     # -TABLE_BITS lies above its code's threshold, and only those few are looked at one by one.
     threshold = (-geometric.TABLE_BITS - at_zero) / per_step
     for k in layouts:
-        width = BAND_LAYOUTS[k][0]
-        if width not in rings:
-            rings[width] = (radius / width).astype(np.int64)
-        bands = band_ids(radius, angle, k, rings=rings[width])
-        lo, codes, count, total = geometric.band_sums(q, bands, magnitudes)
+        lo, count, total = _layout_totals(radius, angle, *BAND_LAYOUTS[k], magnitudes)
+        codes = geometric.scale_codes(count, total)
         models = int(np.count_nonzero(np.bincount(codes[count > 0], minlength=256)[1:]))
         if models * (2 * max_abs + 1) > geometric.table_budget(q.size):
             continue
@@ -371,7 +378,7 @@ def _estimated_ans_bits(q: np.ndarray, radius: np.ndarray, angle: np.ndarray, ex
         log_p = float(np.sum(count[coded] * at_zero[codes[coded]] + total[coded] * per_step[codes[coded]]))
         if coded.any() and max_abs > threshold[codes[coded]].min():
             far = np.flatnonzero(magnitudes > threshold[codes[coded]].min())
-            c = codes[bands[far] - lo]
+            c = codes[band_ids(radius[far], angle[far], k) - lo]
             a, c = magnitudes[far][c > 0], c[c > 0]
             exact = at_zero[c] + a * per_step[c]
             log_p += float(np.sum(np.maximum(exact, -geometric.TABLE_BITS) - exact))

@@ -320,12 +320,11 @@ class _Tiles(_Layout):
         return min(self.runs(dem, params, point_count, crs, on_stage, map_tiles), key=lambda run: len(run[1]))[1]
 
     def runs(self, dem: DEM, params: Params, point_count: int, crs: dict[str, Any] | None, on_stage: Stage,
-             map_tiles: Callable[..., list] | None, *, every: bool = False) -> Iterator[tuple[str, bytes]]:
+             map_tiles: Callable[..., list] | None) -> Iterator[tuple[str, bytes]]:
         """The files a tiled map is coded as, each run's in turn with its name (the encoder keeps the
-        smallest): ``'first'``; then, where the covering base layer applies, with a target,
-        ``'base alone'`` and ``'covering'`` (the base layer and the tiles' own coefficients), or
-        ``'covering'`` alone without a target. ``every``: the covering run also where the rule below
-        leaves it out (benchmarks/bench_tiled_runs.py sizes and times each run)."""
+        smallest): ``'first'``; then, where the covering base layer applies, ``'covering'`` (that base
+        layer and the tiles' own coefficients) and, with a target, ``'base alone'``
+        (benchmarks/bench_tiled_runs.py sizes and times each run)."""
         _check_tiled(params)
         first = self.analysis(dem, params, on_stage, base_cycles=BASE_CYCLES_PER_TILE)
         masks = tiled_masks(first)  # every run's: they depend on the occupancy alone
@@ -337,15 +336,14 @@ class _Tiles(_Layout):
         # reach is that of the first run's cutoff or, where rate control chooses the cutoff and that
         # circle is too large, of the lowest cutoff whose circle is not (in small tiles the first run
         # may keep every frequency, and pay for them in every tile); rate control then searches again.
-        # Kept when smaller (a size target keeps its first file). The covering runs repeat the plane
-        # fit and fill of the first (TiledAnalysis). With a target, the base layer alone is coded
-        # first, every tile without coefficients of its own (TiledAnalysis.without_tile_coefs, which
-        # shares the covering analysis' plane, fill and base layer): on a small map in small tiles,
-        # each tile's COEF entry and stream headers (about 40 bytes) cost more than its few
-        # coefficients save. Where that file is already no larger than the first run's, the tiles'
-        # coefficients were not worth their headers at the first run's settings either, and the map
-        # with them is not coded: on ../shared/data (make bench-tiled-runs) it would have been at
-        # most 0.2 % smaller, and it costs three times the base layer alone.
+        # Kept when smaller (a size target keeps its first file). The second run repeats the plane fit
+        # and fill of the first (TiledAnalysis). With a target, a third run codes that base layer
+        # alone, every tile without coefficients of its own (TiledAnalysis.without_tile_coefs, which
+        # shares the second's plane, fill and base layer): on a small map in small tiles, each tile's
+        # COEF entry and stream headers (about 40 bytes) cost more than its few coefficients save.
+        # No run is left out on the others' sizes: leaving the second out where the third beat the
+        # first lost 9.5 % on the field's ground at a 0.1 m maximum error (make bench-tiled-runs and
+        # tests/digests.json), so each is kept until a model predicts its size.
         if params.target_bpp > 0:
             return
         if params.has_target and params.cutoff is None:
@@ -359,22 +357,18 @@ class _Tiles(_Layout):
             covering = self.analysis(dem, params, on_stage, base_cycles=cycles)
             # Without a target the settings fix the quality, and a base layer alone would lose the
             # tiles' refinement of it: only a target compares files of equal quality.
-            alone = covering.without_tile_coefs() if params.has_target else None
-        if alone is not None:
+            analyses = (("covering", covering), ("base alone", covering.without_tile_coefs())) \
+                if params.has_target else (("covering", covering),)
+        for name, an in analyses:
             with warnings.catch_warnings():  # not held across the yield: the caller's warnings are its own
                 warnings.simplefilter("ignore")
                 try:
-                    base, _ = self.encode(alone, params, point_count, crs, on_stage, map_tiles, masks)
+                    other, _ = self.encode(an, params, point_count, crs, on_stage, map_tiles, masks)
                 except InvalidInputError:  # a target the base layer alone cannot reach
-                    base = None
-            if base is not None:
-                yield "base alone", base
-                if len(base) <= len(data) and not every:
-                    return
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            other, _ = self.encode(covering, params, point_count, crs, on_stage, map_tiles, masks)
-        yield "covering", other
+                    if an.tile_coefs:
+                        raise
+                    continue
+            yield name, other
 
     @staticmethod
     def analysis(dem: DEM, params: Params, on_stage: Stage, *, base_cycles: int) -> TiledAnalysis:

@@ -25,7 +25,7 @@ with warnings.catch_warnings():
 from . import kernels
 from .errors import CorruptFileError
 
-__all__ = ["band_statistics", "band_sums", "band_scales", "scale_of", "decay", "magnitude_weights", "table_model", "build_table_model",
+__all__ = ["band_statistics", "band_sums", "band_scales", "scale_codes", "scale_of", "decay", "magnitude_weights", "table_model", "build_table_model",
            "table_frequencies", "packed_tables", "code_groups", "code_order", "log_geometric", "check_ans_words",
            "table_budget", "table_words", "coded_values", "TABLE_BITS", "MAX_ANS_SYMBOL", "SCALE_STEPS",
            "SCALE_BIAS", "MIN_SCALE"]
@@ -75,12 +75,16 @@ def band_sums(q: np.ndarray, bands: np.ndarray, magnitudes: np.ndarray | None = 
     if magnitudes is None:
         magnitudes = np.abs(q).astype(np.float64)
     lo, count, total = _band_totals(bands, magnitudes)
-    n = total.size
+    return lo, scale_codes(count, total), count, total
+
+
+def scale_codes(count: np.ndarray, total: np.ndarray) -> np.ndarray:
+    """Each band's scale code (uint8, 0 for a band of zeros) from its count of values and sum of |q|."""
     # A band's scale is its mean |q| (the maximum-likelihood Laplace scale; the
     # table models take the geometric distribution of that mean).
-    b = np.divide(total, count, out=np.zeros(n), where=count > 0)
+    b = np.divide(total, count, out=np.zeros(total.size), where=count > 0)
     codes = np.where(b > 0, np.clip(np.round(np.log2(np.maximum(b, 1e-12)) * SCALE_STEPS) + SCALE_BIAS, 1, 255), 0)
-    return lo, codes.astype(np.uint8), count, total
+    return codes.astype(np.uint8)
 
 
 @kernels.kernel("band_totals")
