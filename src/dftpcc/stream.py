@@ -26,6 +26,7 @@ from . import coding, quantizer
 from .cluster import serial
 from .format import MapWriter
 from .dem import DEM, Grid, TileGrid
+from .grid import GriddedBands
 from .encoder import Stage, check_heights, choose_for_tiles, no_stage
 from .errors import InvalidInputError, RasterTypeWarning
 from .fill import PlaneSums, fill_empty
@@ -34,7 +35,7 @@ from .rebuild import dem_to_point_chunks
 from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_coefficients, base_heights, base_limit, base_order,
                     code_tile, coded_window, tile_overlap)
 
-__all__ = ["compress_raster", "compress_gridded", "decompress_bands", "codes_in_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
+__all__ = ["compress_raster", "compress_gridded", "compress_bands", "decompress_bands", "codes_in_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
 
 #: A GeoTIFF of more cells than this is coded band by band (and a tiled map of more is decoded so).
 STREAM_CELLS = 16_000_000
@@ -98,6 +99,7 @@ class _Raster:
     cache; a dask worker reopens it by its path, so no cells travel from the main process."""
 
     in_memory = False
+    counted: int | None = None  # a raster's cells are not counted points
 
     def __init__(self, path: str | os.PathLike[str]):
         from .io.geotiff import RasterWindows  # rasterio, loaded only for a raster
@@ -120,6 +122,12 @@ class _Raster:
 
     def close(self) -> None:
         self.windows.close()
+
+
+def _at_height(g: Grid, z0: float) -> Grid:
+    """The grid ``g`` with its heights about ``z0`` (metres)."""
+    return Grid(x0=g.x0, y0=g.y0, z0=z0, resolution=g.resolution, rows=g.rows, cols=g.cols, angle=g.angle,
+                resolution_y=g.resolution_y)
 
 
 class _Grid:
@@ -145,9 +153,41 @@ class _Grid:
         return None if self.dem.counts is None else self.dem.counts[r0:r1, c0:c1]
 
     def grid(self, z0: float) -> Grid:
-        g = self.dem.grid
-        return Grid(x0=g.x0, y0=g.y0, z0=z0, resolution=g.resolution, rows=g.rows, cols=g.cols, angle=g.angle,
-                    resolution_y=g.resolution_y)
+        return _at_height(self.dem.grid, z0)
+
+    def check_unchanged(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    @property
+    def counted(self) -> int | None:
+        """Points gridded (the counts' sum), or None without counts."""
+        return None if self.dem.counts is None else int(self.dem.counts.sum())
+
+
+class _Bands:
+    """A cloud's grid on disk, gridded band by band (:class:`~dftpcc.grid.GriddedBands`), read by
+    windows as a GeoTIFF is; a dask worker reads its own windows from the files."""
+
+    in_memory = False
+
+    def __init__(self, bands: GriddedBands, point_count: int, crs: dict[str, Any], name: str):
+        self.bands, self.path, self.crs, self.point_count = bands, name, crs, point_count
+        self.rows, self.cols = bands.grid.shape
+        self.counted: int | None = bands.counted
+
+    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        c1 = self.cols if c1 is None else c1
+        m = self.bands.mask(r0, r1, c0, c1)
+        return np.where(m, self.bands.heights(r0, r1, c0, c1) + self.bands.grid.z0, np.nan), m
+
+    def counts(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> np.ndarray:
+        return self.bands.counts(r0, r1, c0, self.cols if c1 is None else c1)
+
+    def grid(self, z0: float) -> Grid:
+        return _at_height(self.bands.grid, z0)
 
     def check_unchanged(self) -> None:
         pass
@@ -396,6 +436,16 @@ def compress_gridded(dem: DEM, dst: str | os.PathLike[str], params: Params, *, p
               write=write, gridding_rmse=dem.gridding_rmse or 0.0, spread=dem.spread)
 
 
+def compress_bands(bands: GriddedBands, dst: str | os.PathLike[str], params: Params, *, point_count: int,
+                   crs: dict[str, Any], name: str, map_tiles: Map | None = None, on_stage: Stage = no_stage,
+                   write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> None:
+    """:func:`compress_gridded` of a cloud's grid on disk (:func:`~dftpcc.grid.rasterize_bands`), read
+    by windows as :func:`compress_raster` reads a GeoTIFF: memory holds a band, not the map, and the
+    file's bytes are those :func:`compress_gridded` writes of the same grid. ``name``: the cloud's, for messages."""
+    _compress(_Bands(bands, point_count, crs, name), dst, params, map_tiles=map_tiles, on_stage=on_stage,
+              write=write, gridding_rmse=bands.gridding_rmse or 0.0, spread=bands.spread)
+
+
 def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_tiles: Map | None,
               on_stage: Stage, write: Callable[..., None], gridding_rmse: float = 0.0, spread: Any = None) -> None:
     src = raster.path
@@ -589,11 +639,11 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
         on_stage("encode", batch[0].tiles[0] / n)
         for code in (code for codes in run(_code_block, batch, job) for code in codes):
             writer.add_code(code)
-    counts = getattr(raster, "dem", None) is not None and raster.dem.counts is not None
+    counted = raster.counted
     stats = writer.stats(gridding_rmse=gridding_rmse,
                          spread=spread.as_stats() if spread is not None and spread.unrepresented_points else None,
-                         vertical_points=max(int(raster.dem.counts.sum()), 1)
-                         if counts and params.aggregate == "mean" else None)
+                         vertical_points=max(counted, 1) if counted is not None and params.aggregate == "mean"
+                         else None)
     return writer, stats, nb, base_blob
 
 
