@@ -547,7 +547,8 @@ class _Block:
 
     ``cells``: the window's heights and mask when the map is held in memory, else None (read
     from the pass's source where the block is coded); ``counts``: points per cell of the
-    block's tile rows and columns (the window without its overlap), for a gridded cloud.
+    block's tile rows and columns (the window without its overlap), for a gridded cloud held
+    in memory (else read from the source with the cells).
     """
 
     rows: tuple[int, int]
@@ -567,8 +568,10 @@ def _blocks(raster: Any, tiling: TileGrid, band: int, overlap: int) -> Iterator[
         c1 = tiling.bounds(ks[-1])[3]
         w0, w1 = max(0, t0 - overlap), min(tiling.rows, t1 + overlap)
         u0, u1 = max(0, c0 - overlap), min(tiling.cols, c1 + overlap)
-        cells = raster.read(w0, w1, u0, u1) if raster.in_memory else None
-        yield _Block((w0, w1), (u0, u1), ks, cells, raster.counts(t0, t1, c0, c1))
+        if raster.in_memory:
+            yield _Block((w0, w1), (u0, u1), ks, raster.read(w0, w1, u0, u1), raster.counts(t0, t1, c0, c1))
+        else:  # read where the block is coded, counts too: a batch of blocks does not hold them all here
+            yield _Block((w0, w1), (u0, u1), ks)
 
 
 def _code_block(block: _Block, job: _Pass) -> list[Any]:
@@ -578,6 +581,10 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
     """
     (w0, w1), (u0, u1) = block.rows, block.cols
     heights, m = block.cells if block.cells is not None else job.source.read(w0, w1, u0, u1)
+    band_counts = block.counts
+    if block.cells is None:  # a gridded cloud's points per cell, from its files (a raster has none)
+        t0, t1, b0, _ = job.tiling.bounds(block.tiles[0])
+        band_counts = job.source.counts(t0, t1, b0, job.tiling.bounds(block.tiles[-1])[3])
     a, b, c = job.plane
     values, bi, bj = job.base
     rest = heights - job.z0  # a new array: a worker's received cells may be read-only
@@ -595,11 +602,11 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
         _, _, v0, v1 = coded_window(job.tiling, k, overlap)
         # What quantizing the base layer changed on the tile (the layer is linear in its values).
         error = base_heights(job.base_error, bi, bj, job.shape, (t0, t1), (c0, c1))
-        counts = None if block.counts is None else block.counts[:, c0 - first:c1 - first]
+        counts = None if band_counts is None else band_counts[:, c0 - first:c1 - first]
         codes.append(code_tile(TileJob(k, rest[:, v0 - u0:v1 - u0], m[:, v0 - u0:v1 - u0],
                                        (t0 - w0, t1 - w0, c0 - v0, c1 - v0), error, counts),
                                job.params, job.refill))
-    del heights, m, rest
+    del heights, m, rest, band_counts
     _release_heap()  # before the next block's arrays are allocated, here or on a worker
     return codes
 
