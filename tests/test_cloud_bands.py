@@ -117,9 +117,8 @@ def test_memory_follows_a_band_not_the_map(small_threshold, banded, tmp_path):
         np.save(src, _terrain(rows, 1024, seed=rows))
         peaks.append(_peak_bytes(src, tmp_path / f"t{rows}.dftpc", tile_size=128, resolution=1.0, cutoff=0.9,
                                  step=0.02, chunk_points=50_000))
-    assert len(banded) == 2
-    print([f"{p / 1e6:.1f} MB" for p in peaks])
     assert peaks[1] < 1.6 * peaks[0], [f"{p / 1e6:.1f} MB" for p in peaks]
+    assert len(banded) == 2
 
 
 def test_a_grid_over_the_cell_limit_is_coded_in_bands_and_a_band_over_it_is_refused(small_threshold, banded,
@@ -192,3 +191,11 @@ def test_a_cloud_in_bands_on_two_workers_is_the_serial_bytes(small_threshold, ba
     dftpcc.compress_file(src, tmp_path / "p.dftpc", tile_size=64, classes=[2], target_rmse=0.05, workers=2)
     assert len(banded) == 2
     assert (tmp_path / "p.dftpc").read_bytes() == (tmp_path / "s.dftpc").read_bytes()
+
+
+def test_a_disk_without_room_for_the_band_files_is_refused_before_they_are_written(small_threshold, tmp_path,
+                                                                                  monkeypatch):
+    monkeypatch.setattr(limits, "SPILL_BYTES_PER_POINT", 10 ** 12)  # a petabyte for 683,023 points: no disk has it
+    with pytest.raises(InvalidInputError, match=r"band by band needs about .* free"):
+        dftpcc.compress_file(data_file(FIELD), tmp_path / "x.dftpc", tile_size=128, classes=[2])
+    assert list(tmp_path.iterdir()) == []

@@ -162,7 +162,13 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         in chunks of :data:`~dftpcc.io.DEFAULT_CHUNK_POINTS`: three or four
         passes over the file, memory holding the grid and one chunk. The map
         is the same up to float round-off; ``aggregate='median'`` needs the
-        whole cloud and is refused in chunks.
+        whole cloud and is refused in chunks. A grid coded in tiles over
+        :data:`~dftpcc.stream.STREAM_CELLS` cells (to a path) is not held:
+        it is gridded band by band into a temporary folder beside ``dst``
+        (:func:`~dftpcc.grid.rasterize_bands`) and coded from there, memory
+        holding one band of tile rows and one chunk; the file is the same,
+        byte for byte, and the limit is on a band's cells
+        (:func:`~dftpcc.limits.check_band_size`), not the map's.
     on_stage : callable, optional
         Called with the name of each stage as it starts.
     workers, scheduler : optional

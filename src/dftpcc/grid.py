@@ -1,7 +1,8 @@
 """Grid stage: a point cloud becomes a Digital Elevation Model (DEM).
 
 One per-cell accumulator for every way a cloud arrives: whole (:func:`rasterize`), in chunks
-(:func:`rasterize_chunks`, :class:`CloudSummary` for the grid), and scan by scan into the tiles
+(:func:`rasterize_chunks`, :class:`CloudSummary` for the grid), band by band on disk for a grid
+larger than memory (:func:`rasterize_bands`, :class:`GriddedBands`), and scan by scan into the tiles
 of a growing map (:class:`CellSums`, exact integer sums, so the order of the scans does not matter).
 
 As in the paper, points are projected on a horizontal plane at the height of
@@ -375,7 +376,7 @@ def rasterize_bands(segments: Iterable[Iterable[np.ndarray]], grid: Grid, folder
     segment's squared distances are put back in its points' order and summed as the whole
     grid sums them. Memory holds a band's cells and a piece of points (a segment's, for the
     median, which needs a cell's points together and is refused in chunks), not the map; the
-    folder holds about 26 bytes a point and 17 a cell (:func:`~dftpcc.limits.check_spill_space`).
+    folder holds about 24 bytes a point and 17 a cell (:func:`~dftpcc.limits.check_spill_space`).
 
     Parameters
     ----------
