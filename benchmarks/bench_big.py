@@ -12,7 +12,7 @@ local dask cluster of 1 and of 2 workers and checked byte-identical to the seria
 
     .venv/bin/python -m benchmarks.bench_big [--quick] [--only raster|cloud|parallel] [--target-max-error M]
         [--parallel-every-size] [--sizes quarter|half|whole ...] [--scheduler ADDRESS] [--cloud-resolution M]
-        [--check-cloud] [--docs | --no-docs]
+        [--cloud-file PATH] [--check-cloud] [--docs | --no-docs]
 
 ``--quick`` runs at a quarter of the full side of the GeoTIFF (10,000 x 10,000 cells at most) and a
 quarter of the cloud (9 copies, 25 M points at most): about 7 minutes on the shared 2-core box.
@@ -99,6 +99,8 @@ CLOUD_CHUNK = 1_000_000
 #: The cloud's cell size, metres (``--cloud-resolution``); None: the automatic one (0.426 m, 44 M
 #: cells for the whole cloud; 0.25 m gives 127 M).
 CLOUD_RESOLUTION: float | None = None
+#: Keep each size's LAZ beside this path, ``<stem>_x<copies>.laz`` (``--cloud-file``), and reuse it if there.
+CLOUD_FILE: Path | None = None
 #: Check each coded cloud against its grid (``--check-cloud``, :func:`check_cloud`): its errors within
 #: the promises of its header.
 CHECK_CLOUD = False
@@ -528,8 +530,16 @@ def run_cloud(data: Path, tmp: Path, copies: Sequence[int], report: _Report, inp
     """Build, compress (read in chunks) and decompress (to LAZ) the cloud mosaic at each size."""
     for f, k in zip(fractions, copies):
         src, coded, back = tmp / f"forest_x{k}.laz", tmp / f"forest_x{k}.dftpc", tmp / f"forest_x{k}_back.laz"
+        if CLOUD_FILE is not None:
+            src = CLOUD_FILE.with_name(f"{CLOUD_FILE.stem}_x{k}{CLOUD_FILE.suffix}")
         t0 = time.perf_counter()
-        points = build_cloud(data, src, k)
+        if CLOUD_FILE is not None and src.exists():  # built by an earlier run, kept
+            import laspy
+
+            with laspy.open(src) as fh:
+                points = int(fh.header.point_count)
+        else:
+            points = build_cloud(data, src, k)
         inputs.append(["LAZ", _fraction(f), f"{k} copies", f"{points:,} points", f"{src.stat().st_size / 1e6:,.0f}",
                        f"{time.perf_counter() - t0:.0f}"])
         print(" | ".join(inputs[-1]), flush=True)
@@ -550,7 +560,7 @@ def run_cloud(data: Path, tmp: Path, copies: Sequence[int], report: _Report, inp
             obytes = back.stat().st_size if back.exists() else 0
             report.add("LAZ", size, "decompress", "serial", d, d.get("written") or 1, "points", obytes, nbytes, points,
                        "point")
-        for path in (back, coded, src):
+        for path in (back, coded) if CLOUD_FILE is not None else (back, coded, src):
             path.unlink(missing_ok=True)
 
 
@@ -630,6 +640,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cloud-resolution", type=float, metavar="METRES",
                     help="grid the cloud at this cell size (0.25: 127 M cells for the whole cloud) instead of "
                          "the automatic one")
+    ap.add_argument("--cloud-file", type=Path, metavar="PATH",
+                    help="keep each size's LAZ as PATH's stem + _x<copies>.laz (outside the temporary folder) and "
+                         "reuse it when it is there: the 102 M-point LAZ is built once")
     ap.add_argument("--check-cloud", action="store_true",
                     help="check each coded cloud against its grid, gridded again band by band: the largest error "
                          "and the RMSE within what its header promises (one more pass over the LAZ)")
@@ -637,12 +650,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if not sys.platform.startswith("linux"):
         sys.exit("bench_big reads peak memory from /proc: Linux only")
-    global PARALLEL_EVERY_SIZE, SCHEDULER, CLOUD_RESOLUTION, CHECK_CLOUD
-    CHECK_CLOUD = args.check_cloud
+    global PARALLEL_EVERY_SIZE, SCHEDULER, CLOUD_RESOLUTION, CHECK_CLOUD, CLOUD_FILE
+    CHECK_CLOUD, CLOUD_FILE = args.check_cloud, args.cloud_file
     PARALLEL_EVERY_SIZE = args.parallel_every_size
     SCHEDULER = args.scheduler
     CLOUD_RESOLUTION = args.cloud_resolution
-    if args.docs is None and (args.sizes or args.scheduler or args.cloud_resolution):
+    if args.docs is None and (args.sizes or args.scheduler or args.cloud_resolution or args.cloud_file):
         args.docs = False  # a part of the run does not replace the full run's section
     fractions = [f for f in FRACTIONS if args.sizes is None or _fraction(f) in args.sizes]
     if args.target_max_error:
