@@ -9,6 +9,8 @@ map's middle (:func:`dftpcc.encoder.choose_for_tiles`) and checked on the whole 
 A band is read, reduced and coded in column blocks of :data:`BLOCK_TILES` tiles (plus the
 overlap), so memory follows the tile size, not the map's width; on a dask cluster each worker
 reads its own blocks from the file (:func:`_code_block`), and only the coded bytes come back.
+A point cloud's grid too large to hold is read the same way from the files it was gridded into,
+band by band (:func:`compress_bands` of :func:`dftpcc.grid.rasterize_bands`).
 """
 
 from __future__ import annotations
