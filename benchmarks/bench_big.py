@@ -586,7 +586,7 @@ def check_cloud(src: Path, coded: Path, resolution: float | None, tmp: Path) -> 
         folder = Path(tempfile.mkdtemp(prefix="check-", dir=tmp))
         try:
             with open_reader(src, chunk_points=CLOUD_CHUNK) as reader:
-                cloud = files._fit(reader, params, lambda *_: None, bands=True)
+                cloud = files._fit(reader, params, lambda *_: None, bands=folder)
                 bands = rasterize_bands(cloud.segments(), cloud.grid, folder, band_rows=cmap.block)
             g = cmap.grid
             assert (g.rows, g.cols) == bands.grid.shape, (g.shape, bands.grid.shape)

@@ -223,7 +223,7 @@ def _compress_file(src: Source, dst: Source, params: Params, *, format: str | No
                 dem = reader.dem()
                 count = int(dem.mask.sum())
             else:
-                cloud = _fit(reader, params, on_stage, bands=not _is_stream(dst))
+                cloud = _fit(reader, params, on_stage, bands=None if _is_stream(dst) else _folder(dst))
                 if cloud.in_bands:
                     # A grid larger than memory: gridded band by band on disk, each band coded from there.
                     _compress_in_bands(cloud, dst, params, workers=workers, scheduler=scheduler, on_stage=on_stage,
@@ -383,14 +383,15 @@ class _Cloud:
             yield iter((chunk,))
 
 
-def _fit(reader: Reader, params: Params, on_stage: Stage, *, bands: bool = False) -> _Cloud:
+def _fit(reader: Reader, params: Params, on_stage: Stage, *, bands: Path | None = None) -> _Cloud:
     """Summarise the reader's chunks, [choose the resolution], fit the grid.
 
     A cloud that fits in memory is one chunk, read once and held: that is the
     whole-cloud computation exactly (the same sums, extremes and cell
-    heights), and any aggregate, the median included, applies to it. With ``bands``, a grid that
-    :func:`~dftpcc.stream.codes_in_bands` is held to the limit of a band
-    (:func:`~dftpcc.limits.check_band_size`), not of a grid held whole.
+    heights), and any aggregate, the median included, applies to it. With ``bands`` (the folder its
+    files would go in), a grid that :func:`~dftpcc.stream.codes_in_bands` is held to the limit of a
+    band (:func:`~dftpcc.limits.check_band_size`), not of a grid held whole, and to the room on that
+    disk (:func:`~dftpcc.limits.check_spill_space`).
     """
     n = _chunk_size(reader)
     held: list[np.ndarray] = []
@@ -410,13 +411,19 @@ def _fit(reader: Reader, params: Params, on_stage: Stage, *, bands: bool = False
 
     def check_size(rows: float, cols: float, resolution: float) -> None:
         shape = (int(rows), int(cols)) if math.isfinite(rows * cols) else None
-        if bands and shape is not None and stream.codes_in_bands(shape, params):
+        if bands is not None and shape is not None and stream.codes_in_bands(shape, params):
             check_band_size(tile_size_for(params, shape), rows, cols, resolution)
+            check_spill_space(summary.count, rows, cols, resolution, bands)
         else:
             check_grid_size(rows, cols, resolution)
 
     grid = summary.fit_grid(resolution, frame=params.frame, check_size=check_size)
-    return _Cloud(reader, n, held, summary, grid, bands and stream.codes_in_bands(grid.shape, params))
+    return _Cloud(reader, n, held, summary, grid, bands is not None and stream.codes_in_bands(grid.shape, params))
+
+
+def _folder(dst: str | os.PathLike[str]) -> Path:
+    """The folder ``dst`` is written in: where a cloud gridded band by band spills to."""
+    return Path(dst).parent if str(Path(dst).parent) else Path(".")
 
 
 #: Prefix of the folder a cloud gridded band by band spills to, beside the output.
@@ -428,9 +435,7 @@ def _compress_in_bands(cloud: _Cloud, dst: str | os.PathLike[str], params: Param
     """Grid ``cloud`` band by band into a temporary folder beside ``dst`` (:func:`~dftpcc.grid.rasterize_bands`;
     removed at the end, also on an error) and code it from there (:func:`~dftpcc.stream.compress_bands`):
     the bytes :func:`~dftpcc.stream.compress_gridded` writes of the grid held whole."""
-    folder = Path(dst).parent if str(Path(dst).parent) else Path(".")
-    with tempfile.TemporaryDirectory(prefix=SPILL_PREFIX, dir=folder) as tmp:
-        check_spill_space(cloud.summary.count, cloud.grid.size, tmp)
+    with tempfile.TemporaryDirectory(prefix=SPILL_PREFIX, dir=_folder(dst)) as tmp:
         bands = rasterize_bands(cloud.segments(), cloud.grid, tmp, band_rows=tile_size_for(params, cloud.grid.shape),
                                 aggregate=params.aggregate, on_stage=on_stage)
         with executor(workers, scheduler) as map_tiles:

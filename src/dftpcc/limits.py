@@ -9,6 +9,7 @@ and a cloud too large to hold is read in chunks (:func:`holds_in_memory`).
 from __future__ import annotations
 
 import math
+import os
 
 from .errors import InvalidInputError
 
@@ -127,18 +128,24 @@ def check_band_size(band_rows: int, rows: float, cols: float, resolution: float)
         f"exceeds {why}; use a resolution of at least {_round_up(need):g} m or a smaller tile size")
 
 
-def check_spill_space(points: int, cells: int, folder: str) -> None:
-    """Refuse a band-by-band cloud whose files (:data:`SPILL_BYTES_PER_POINT` a point,
-    :data:`SPILL_BYTES_PER_CELL` a cell) the disk holding ``folder`` has no room for."""
+def check_spill_space(points: int, rows: float, cols: float, resolution: float, folder: str | os.PathLike[str]) -> None:
+    """Refuse a cloud of ``points`` gridded band by band into ``rows`` x ``cols`` cells of ``resolution``
+    metres whose files (:data:`SPILL_BYTES_PER_POINT` a point, :data:`SPILL_BYTES_PER_CELL` a cell) the
+    disk holding ``folder`` has no room for; the hint is the coarsest resolution whose cells fit."""
     import shutil
 
+    cells = rows * cols
     need = points * SPILL_BYTES_PER_POINT + cells * SPILL_BYTES_PER_CELL
     free = shutil.disk_usage(folder).free
-    if need > free:
-        raise InvalidInputError(
-            f"gridding {_count(points)} points into {_count(cells)} cells band by band needs about {_size(need)} of "
-            f"temporary files beside the output, and {folder} has {_size(free)} free; free some space, write "
-            f"the output elsewhere, or use a coarser resolution")
+    if need <= free:
+        return
+    room = max(1.0, (free - points * SPILL_BYTES_PER_POINT) / SPILL_BYTES_PER_CELL)  # cells that would fit
+    hint = (f"use a resolution of at least {_round_up(resolution * math.sqrt(cells / room) * (1 + ROUNDING_MARGIN)):g} m"
+            if points * SPILL_BYTES_PER_POINT < free else "the points' files alone would not fit")
+    raise InvalidInputError(
+        f"gridding {_count(points)} points into a {_count(rows)} x {_count(cols)} grid ({_count(cells)} cells) at "
+        f"{resolution:g} m band by band needs about {_size(need)} of temporary files beside the output, and "
+        f"{folder} has {_size(free)} free; {hint}, free some space, or write the output elsewhere")
 
 
 # Decoding budget. Decoding costs memory and time in proportion to the grid
