@@ -1,7 +1,8 @@
 """Resource limits: how large a grid may be built, decoded or held in memory.
 
 The encoder refuses a grid the memory cannot hold (:func:`check_grid_size`; a cloud's grid coded
-band by band, one whose band it cannot hold, :func:`check_band_size`, or whose files the disk cannot, :func:`check_spill_space`),
+band by band, one whose band it cannot hold, :func:`check_band_size`, or whose files the disk
+cannot, :func:`check_spill_space`),
 the reader refuses a grid a file's size does not justify (:func:`cell_budget`),
 and a cloud too large to hold is read in chunks (:func:`holds_in_memory`).
 """
@@ -140,7 +141,8 @@ def check_spill_space(points: int, rows: float, cols: float, resolution: float, 
     if need <= free:
         return
     room = max(1.0, (free - points * SPILL_BYTES_PER_POINT) / SPILL_BYTES_PER_CELL)  # cells that would fit
-    hint = (f"use a resolution of at least {_round_up(resolution * math.sqrt(cells / room) * (1 + ROUNDING_MARGIN)):g} m"
+    coarsest = _round_up(resolution * math.sqrt(cells / room) * (1 + ROUNDING_MARGIN))
+    hint = (f"use a resolution of at least {coarsest:g} m"
             if points * SPILL_BYTES_PER_POINT < free else "the points' files alone would not fit")
     raise InvalidInputError(
         f"gridding {_count(points)} points into a {_count(rows)} x {_count(cols)} grid ({_count(cells)} cells) at "
