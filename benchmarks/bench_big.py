@@ -11,7 +11,8 @@ local dask cluster of 1 and of 2 workers and checked byte-identical to the seria
 (1, 4 and 16 tiles fetched by range requests from a loopback HTTP server).
 
     .venv/bin/python -m benchmarks.bench_big [--quick] [--only raster|cloud|parallel] [--target-max-error M]
-        [--parallel-every-size] [--sizes quarter|half|whole ...] [--scheduler ADDRESS] [--docs | --no-docs]
+        [--parallel-every-size] [--sizes quarter|half|whole ...] [--scheduler ADDRESS] [--cloud-resolution M]
+        [--cloud-file PATH] [--check-cloud] [--docs | --no-docs]
 
 ``--quick`` runs at a quarter of the full side of the GeoTIFF (10,000 x 10,000 cells at most) and a
 quarter of the cloud (9 copies, 25 M points at most): about 7 minutes on the shared 2-core box.
@@ -98,6 +99,11 @@ CLOUD_CHUNK = 1_000_000
 #: The cloud's cell size, metres (``--cloud-resolution``); None: the automatic one (0.426 m, 44 M
 #: cells for the whole cloud; 0.25 m gives 127 M).
 CLOUD_RESOLUTION: float | None = None
+#: Keep each size's LAZ beside this path, ``<stem>_x<copies>.laz`` (``--cloud-file``), and reuse it if there.
+CLOUD_FILE: Path | None = None
+#: Check each coded cloud against its grid (``--check-cloud``, :func:`check_cloud`): its errors within
+#: the promises of its header.
+CHECK_CLOUD = False
 
 TIME_BIN = "/usr/bin/time"
 
@@ -524,8 +530,16 @@ def run_cloud(data: Path, tmp: Path, copies: Sequence[int], report: _Report, inp
     """Build, compress (read in chunks) and decompress (to LAZ) the cloud mosaic at each size."""
     for f, k in zip(fractions, copies):
         src, coded, back = tmp / f"forest_x{k}.laz", tmp / f"forest_x{k}.dftpc", tmp / f"forest_x{k}_back.laz"
+        if CLOUD_FILE is not None:
+            src = CLOUD_FILE.with_name(f"{CLOUD_FILE.stem}_x{k}{CLOUD_FILE.suffix}")
         t0 = time.perf_counter()
-        points = build_cloud(data, src, k)
+        if CLOUD_FILE is not None and src.exists():  # built by an earlier run, kept
+            import laspy
+
+            with laspy.open(src) as fh:
+                points = int(fh.header.point_count)
+        else:
+            points = build_cloud(data, src, k)
         inputs.append(["LAZ", _fraction(f), f"{k} copies", f"{points:,} points", f"{src.stat().st_size / 1e6:,.0f}",
                        f"{time.perf_counter() - t0:.0f}"])
         print(" | ".join(inputs[-1]), flush=True)
@@ -536,12 +550,72 @@ def run_cloud(data: Path, tmp: Path, copies: Sequence[int], report: _Report, inp
         if "error" not in m:
             report.grids.append([size, f"{m['rows']:,} x {m['cols']:,}", f"{m['rows'] * m['cols']:,}",
                                  f"{m['cells']:,}", f"{m['resolution']:.3f}"])
+            if CHECK_CLOUD:
+                c = check_cloud(src, coded, CLOUD_RESOLUTION, tmp)
+                report.grids[-1] += [f"{c['max_error']:.3g} ({_promise(c['promised_max'])})",
+                                     f"{c['rmse']:.3g} ({_promise(c['promised_rmse'])})",
+                                     "yes" if c["holds"] else "NO"]
+                print(" | ".join(report.grids[-1]), flush=True)
             d = measure(_job("decompress", coded, back, None))
             obytes = back.stat().st_size if back.exists() else 0
             report.add("LAZ", size, "decompress", "serial", d, d.get("written") or 1, "points", obytes, nbytes, points,
                        "point")
-        for path in (back, coded, src):
+        for path in (back, coded) if CLOUD_FILE is not None else (back, coded, src):
             path.unlink(missing_ok=True)
+
+
+#: Columns of the decoded map compared with the cloud's grid at a time (check_cloud).
+CHECK_COLS = 4096
+
+
+def check_cloud(src: Path, coded: Path, resolution: float | None, tmp: Path) -> dict[str, Any]:
+    """The coded cloud's errors against its grid, in bounded memory: the cloud gridded again band by band
+    (the compress's own gridding, ``files._fit`` and ``grid.rasterize_bands``, into ``tmp``) and the map
+    decoded a window of a band of tiles by :data:`CHECK_COLS` columns at a time. Returns the largest
+    error and the RMSE over the occupied cells (metres), the promises of the file's header, whether
+    the occupancy is the grid's, and whether the promises hold."""
+    import dftpcc
+    from dftpcc import files
+    from dftpcc.encoder import params_of
+    from dftpcc.grid import rasterize_bands
+    from dftpcc.io import open_reader
+
+    with dftpcc.open(coded) as cmap:
+        options = {"tile_size": TILE_SIZE, **({"resolution": resolution} if resolution else {})}
+        params = params_of(None, options)
+        folder = Path(tempfile.mkdtemp(prefix="check-", dir=tmp))
+        try:
+            with open_reader(src, chunk_points=CLOUD_CHUNK) as reader:
+                cloud = files._fit(reader, params, lambda *_: None, bands=folder)
+                bands = rasterize_bands(cloud.segments(), cloud.grid, folder, band_rows=cmap.block)
+            g = cmap.grid
+            assert (g.rows, g.cols) == bands.grid.shape, (g.shape, bands.grid.shape)
+            worst, squares, cells, same = 0.0, 0.0, 0, True
+            for r0 in range(0, g.rows, cmap.block):
+                r1 = min(g.rows, r0 + cmap.block)
+                for c0 in range(0, g.cols, CHECK_COLS):
+                    c1 = min(g.cols, c0 + CHECK_COLS)
+                    dem = cmap.read_window((r0, r1), (c0, c1))
+                    mask = bands.mask(r0, r1, c0, c1)
+                    same &= bool(np.array_equal(mask, dem.mask))
+                    err = (dem.heights + dem.grid.z0 - bands.heights(r0, r1, c0, c1) - bands.grid.z0)[mask]
+                    if err.size:
+                        worst = max(worst, float(np.abs(err).max()))
+                        squares += float(np.sum(err * err))
+                        cells += err.size
+        finally:
+            shutil.rmtree(folder, ignore_errors=True)
+        stats = cmap.header.stats
+    rmse = math.sqrt(squares / max(cells, 1))
+    promised_max, promised_rmse = stats.get("dem_max_error_m"), stats.get("dem_rmse_m")
+    holds = same and (promised_max is None or worst <= promised_max) and \
+        (promised_rmse is None or rmse <= promised_rmse * (1 + 1e-6))
+    return {"max_error": worst, "rmse": rmse, "promised_max": promised_max, "promised_rmse": promised_rmse,
+            "occupied": cells, "same_mask": same, "holds": holds}
+
+
+def _promise(value: float | None) -> str:
+    return "none" if value is None else f"{value:.3g}"
 
 
 def _free_bytes(path: Path) -> int:
@@ -566,15 +640,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cloud-resolution", type=float, metavar="METRES",
                     help="grid the cloud at this cell size (0.25: 127 M cells for the whole cloud) instead of "
                          "the automatic one")
+    ap.add_argument("--cloud-file", type=Path, metavar="PATH",
+                    help="keep each size's LAZ as PATH's stem + _x<copies>.laz (outside the temporary folder) and "
+                         "reuse it when it is there: the 102 M-point LAZ is built once")
+    ap.add_argument("--check-cloud", action="store_true",
+                    help="check each coded cloud against its grid, gridded again band by band: the largest error "
+                         "and the RMSE within what its header promises (one more pass over the LAZ)")
     ap.add_argument("--tmp", type=Path, default=Path(tempfile.gettempdir()), help="where the temporary folder goes")
     args = ap.parse_args(argv)
     if not sys.platform.startswith("linux"):
         sys.exit("bench_big reads peak memory from /proc: Linux only")
-    global PARALLEL_EVERY_SIZE, SCHEDULER, CLOUD_RESOLUTION
+    global PARALLEL_EVERY_SIZE, SCHEDULER, CLOUD_RESOLUTION, CHECK_CLOUD, CLOUD_FILE
+    CHECK_CLOUD, CLOUD_FILE = args.check_cloud, args.cloud_file
     PARALLEL_EVERY_SIZE = args.parallel_every_size
     SCHEDULER = args.scheduler
     CLOUD_RESOLUTION = args.cloud_resolution
-    if args.docs is None and (args.sizes or args.scheduler or args.cloud_resolution):
+    if args.docs is None and (args.sizes or args.scheduler or args.cloud_resolution or args.cloud_file):
         args.docs = False  # a part of the run does not replace the full run's section
     fractions = [f for f in FRACTIONS if args.sizes is None or _fraction(f) in args.sizes]
     if args.target_max_error:
@@ -655,9 +736,13 @@ def _tables(report: _Report, inputs: list[list[str]], base: dict[str, Any], full
                   markdown_table(["tiles", "region", "cells", "fetched MB", "served MB", "file MB", "share of file",
                                   "time s"], report.remote)]
     if report.grids:
-        parts += [f"The cloud's grid ({f'{CLOUD_RESOLUTION:g} m cells' if CLOUD_RESOLUTION else 'automatic resolution'}), "
-                  "held whole in memory while its tiles are coded:",
-                  markdown_table(["size", "grid", "cells", "occupied", "resolution m"], report.grids)]
+        checked = ["max error m (promised)", "RMSE m (promised)", "holds"] if CHECK_CLOUD else []
+        parts += [f"The cloud's grid ({f'{CLOUD_RESOLUTION:g} m cells' if CLOUD_RESOLUTION else 'automatic resolution'}); "
+                  "one over `stream.STREAM_CELLS` is gridded band by band into files beside the output and coded from "
+                  "them (`grid.rasterize_bands`, `stream.compress_bands`), memory holding a band of tile rows"
+                  + ("; checked: the decoded map against the cloud gridded again, its errors over the occupied cells "
+                     "and the header's promises (`check_cloud`)" if CHECK_CLOUD else "") + ":",
+                  markdown_table(["size", "grid", "cells", "occupied", "resolution m", *checked], report.grids)]
     if report.failures:
         parts.append("Failures:\n\n" + "\n".join(f"- {f}" for f in report.failures))
     return parts

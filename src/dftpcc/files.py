@@ -7,11 +7,13 @@ in memory) or takes a raster's own DEM, encodes and writes the ``.dftpc``;
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import tempfile
 import warnings
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Callable, Iterable, Iterator, Sequence
 
@@ -21,15 +23,15 @@ from . import io, kernels
 from . import stream
 from .cluster import check_executor, executor
 from .format import unpack
-from .dem import DEM
+from .dem import DEM, Grid
 from .encoder import Stage, encode_dem, no_stage, params_of
-from .grid import CloudSummary, check_chunked_aggregate, rasterize, rasterize_chunks
+from .grid import CloudSummary, check_chunked_aggregate, rasterize, rasterize_bands, rasterize_chunks
 from .errors import InvalidInputError, RasterTypeWarning, RemoteWarning
 from .io import DEFAULT_CHUNK_POINTS, Reader, atomic_write, check_output, format_of, open_reader, write
-from .limits import MAX_CELLS, holds_in_memory
+from .limits import MAX_CELLS, check_band_size, check_grid_size, check_spill_space, holds_in_memory
 from .mapfile import CompressedMap
 from .mapfile import open as open_map
-from .params import Params
+from .params import Params, tile_size_for
 from .rebuild import dem_to_dense_points, dem_to_points
 from .remote import Remote, is_url, one_version, url_suffix
 
@@ -160,7 +162,13 @@ def compress_file(src: Source, dst: Source, params: Params | None = None, *,
         in chunks of :data:`~dftpcc.io.DEFAULT_CHUNK_POINTS`: three or four
         passes over the file, memory holding the grid and one chunk. The map
         is the same up to float round-off; ``aggregate='median'`` needs the
-        whole cloud and is refused in chunks.
+        whole cloud and is refused in chunks. A grid coded in tiles over
+        :data:`~dftpcc.stream.STREAM_CELLS` cells (to a path) is not held:
+        it is gridded band by band into a temporary folder beside ``dst``
+        (:func:`~dftpcc.grid.rasterize_bands`) and coded from there, memory
+        holding one band of tile rows and one chunk; the file is the same,
+        byte for byte, and the limit is on a band's cells
+        (:func:`~dftpcc.limits.check_band_size`), not the map's.
     on_stage : callable, optional
         Called with the name of each stage as it starts.
     workers, scheduler : optional
@@ -209,9 +217,20 @@ def _compress_file(src: Source, dst: Source, params: Params, *, format: str | No
                 stream.compress_raster(path, dst, params, map_tiles=map_tiles, on_stage=on_stage,
                                        write=atomic_write)
             return open_map(dst)
-        dem, count, crs = read_dem(path, params, format=format, classes=classes, topic=topic, pose_topic=pose_topic,
-                                   drop_nonfinite=drop_nonfinite, chunk_points=chunk_points, on_stage=on_stage,
-                                   map_frame=map_frame)
+        with open_reader(path, format=format, classes=classes, topic=topic, drop_nonfinite=drop_nonfinite,
+                         chunk_points=chunk_points, pose_topic=pose_topic, map_frame=map_frame) as reader:
+            if reader.own_grid and params.resolution == "auto":
+                dem = reader.dem()
+                count = int(dem.mask.sum())
+            else:
+                cloud = _fit(reader, params, on_stage, bands=None if _is_stream(dst) else _folder(dst))
+                if cloud.in_bands:
+                    # A grid larger than memory: gridded band by band on disk, each band coded from there.
+                    _compress_in_bands(cloud, dst, params, workers=workers, scheduler=scheduler, on_stage=on_stage,
+                                       name=str(path))
+                    return open_map(dst)
+                dem, count = cloud.rasterize(params.aggregate), cloud.summary.count
+            crs = reader.crs
     with executor(workers, scheduler) as map_tiles:
         if not _is_stream(dst) and stream.codes_in_bands(dem.grid.shape, params):
             # A large grid: its tiles coded band by band, memory holding the grid and one band.
@@ -328,20 +347,60 @@ def read_dem(src: str | os.PathLike[str], params: Params, *, format: str | None 
 
 
 def _grid(reader: Reader, params: Params, on_stage: Stage) -> tuple[DEM, int]:
-    """Summarise the reader's chunks, [choose the resolution], fit the grid, rasterize; and the points read.
+    """Summarise the reader's chunks, [choose the resolution], fit the grid, rasterize; and the points read."""
+    cloud = _fit(reader, params, on_stage)
+    return cloud.rasterize(params.aggregate), cloud.summary.count
+
+
+@dataclass
+class _Cloud:
+    """A cloud summarised and its grid fitted: held whole (``held``, one chunk) or read in chunks of ``n``;
+    ``in_bands``: its grid is coded band by band from files (:func:`_compress_in_bands`)."""
+
+    reader: Reader
+    n: int | None
+    held: list[np.ndarray]
+    summary: CloudSummary
+    grid: Grid
+    in_bands: bool
+
+    def chunks(self) -> Iterable[np.ndarray]:
+        return iter(self.held) if self.n is None else self.reader.chunks(self.n)
+
+    def rasterize(self, aggregate: str) -> DEM:
+        if self.n is None:
+            return rasterize(self.held[0], self.grid, aggregate=aggregate)
+        return rasterize_chunks(self.chunks, self.grid, aggregate=aggregate)
+
+    def segments(self) -> Iterator[Iterator[np.ndarray]]:
+        """The points as :func:`~dftpcc.grid.rasterize_bands` takes them: a held cloud is one segment (let go
+        once read), in pieces of :data:`~dftpcc.io.DEFAULT_CHUNK_POINTS`; a cloud read in chunks, a segment each."""
+        if self.n is None:
+            points = self.held.pop()
+            yield (points[i:i + DEFAULT_CHUNK_POINTS] for i in range(0, points.shape[0], DEFAULT_CHUNK_POINTS))
+            return
+        for chunk in self.reader.chunks(self.n):
+            yield iter((chunk,))
+
+
+def _fit(reader: Reader, params: Params, on_stage: Stage, *, bands: Path | None = None) -> _Cloud:
+    """Summarise the reader's chunks, [choose the resolution], fit the grid.
 
     A cloud that fits in memory is one chunk, read once and held: that is the
     whole-cloud computation exactly (the same sums, extremes and cell
-    heights), and any aggregate, the median included, applies to it.
+    heights), and any aggregate, the median included, applies to it. With ``bands`` (the folder its
+    files would go in), a grid that :func:`~dftpcc.stream.codes_in_bands` is held to the limit of a
+    band (:func:`~dftpcc.limits.check_band_size`), not of a grid held whole, and to the room on that
+    disk (:func:`~dftpcc.limits.check_spill_space`).
     """
     n = _chunk_size(reader)
+    held: list[np.ndarray] = []
     if n is None:
         parts = list(reader.chunks(None))
         held = [np.concatenate(parts)] if len(parts) > 1 else parts
-        chunks: Callable[[], Iterable[np.ndarray]] = lambda: iter(held)  # noqa: E731
     else:
         check_chunked_aggregate(params.aggregate)
-        chunks = lambda: reader.chunks(n)  # noqa: E731 - a new pass over the file at each call
+    chunks: Callable[[], Iterable[np.ndarray]] = (lambda: iter(held)) if n is None else (lambda: reader.chunks(n))
     summary = CloudSummary(hull=params.frame == "oriented")
     for points in chunks():
         summary.add(points)
@@ -349,10 +408,39 @@ def _grid(reader: Reader, params: Params, on_stage: Stage) -> tuple[DEM, int]:
         raise reader.empty_error()
     resolution = summary.auto_resolution(chunks) if params.resolution == "auto" else params.resolution
     on_stage("grid")
-    grid = summary.fit_grid(resolution, frame=params.frame)
-    if n is None:
-        return rasterize(held[0], grid, aggregate=params.aggregate), summary.count
-    return rasterize_chunks(chunks, grid, aggregate=params.aggregate), summary.count
+
+    def check_size(rows: float, cols: float, resolution: float) -> None:
+        shape = (int(rows), int(cols)) if math.isfinite(rows * cols) else None
+        if bands is not None and shape is not None and stream.codes_in_bands(shape, params):
+            check_band_size(tile_size_for(params, shape), rows, cols, resolution)
+            check_spill_space(summary.count, rows, cols, resolution, bands)
+        else:
+            check_grid_size(rows, cols, resolution)
+
+    grid = summary.fit_grid(resolution, frame=params.frame, check_size=check_size)
+    return _Cloud(reader, n, held, summary, grid, bands is not None and stream.codes_in_bands(grid.shape, params))
+
+
+def _folder(dst: str | os.PathLike[str]) -> Path:
+    """The folder ``dst`` is written in: where a cloud gridded band by band spills to."""
+    return Path(dst).parent if str(Path(dst).parent) else Path(".")
+
+
+#: Prefix of the folder a cloud gridded band by band spills to, beside the output.
+SPILL_PREFIX = ".dftpcc-bands-"
+
+
+def _compress_in_bands(cloud: _Cloud, dst: str | os.PathLike[str], params: Params, *, workers: int | None,
+                       scheduler: str | None, on_stage: Stage, name: str) -> None:
+    """Grid ``cloud`` band by band into a temporary folder beside ``dst`` (:func:`~dftpcc.grid.rasterize_bands`;
+    removed at the end, also on an error) and code it from there (:func:`~dftpcc.stream.compress_bands`):
+    the bytes :func:`~dftpcc.stream.compress_gridded` writes of the grid held whole."""
+    with tempfile.TemporaryDirectory(prefix=SPILL_PREFIX, dir=_folder(dst)) as tmp:
+        bands = rasterize_bands(cloud.segments(), cloud.grid, tmp, band_rows=tile_size_for(params, cloud.grid.shape),
+                                aggregate=params.aggregate, on_stage=on_stage)
+        with executor(workers, scheduler) as map_tiles:
+            stream.compress_bands(bands, dst, params, point_count=cloud.summary.count, crs=cloud.reader.crs,
+                                  name=name, map_tiles=map_tiles, on_stage=on_stage, write=atomic_write)
 
 
 def _trusted(data: bytes) -> int:

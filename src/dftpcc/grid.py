@@ -1,7 +1,8 @@
 """Grid stage: a point cloud becomes a Digital Elevation Model (DEM).
 
 One per-cell accumulator for every way a cloud arrives: whole (:func:`rasterize`), in chunks
-(:func:`rasterize_chunks`, :class:`CloudSummary` for the grid), and scan by scan into the tiles
+(:func:`rasterize_chunks`, :class:`CloudSummary` for the grid), band by band on disk for a grid
+larger than memory (:func:`rasterize_bands`, :class:`GriddedBands`), and scan by scan into the tiles
 of a growing map (:class:`CellSums`, exact integer sums, so the order of the scans does not matter).
 
 As in the paper, points are projected on a horizontal plane at the height of
@@ -14,9 +15,11 @@ them for the transform is the spectrum stage's job (:mod:`dftpcc.fill`).
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from dataclasses import dataclass
-from typing import Callable, Iterable, NamedTuple
+from pathlib import Path
+from typing import Callable, Iterable, Iterator, NamedTuple
 
 import numpy as np
 
@@ -25,6 +28,9 @@ from .dem import DEM, MULTI_HEIGHT_TOLERANCE_CELLS, Grid, HeightSpread, as_point
 from .errors import InvalidInputError, MultiHeightWarning
 from .limits import check_grid_size
 
+#: Refuses a grid of (rows, cols) cells of a resolution (metres) that cannot be built here.
+SizeCheck = Callable[[float, float, float], None]
+
 __all__ = [
     "fit_grid",
     "extremes",
@@ -32,6 +38,8 @@ __all__ = [
     "Survey",
     "rasterize",
     "rasterize_chunks",
+    "rasterize_bands",
+    "GriddedBands",
     "check_chunked_aggregate",
     "auto_resolution",
     "CloudSummary",
@@ -185,9 +193,10 @@ def _check_resolution(resolution: float) -> None:
 
 
 def _grid_around(xy_extremes: tuple[float, float, float, float], local: tuple[float, float, float, float],
-                 angle: float, z0: float, resolution: float) -> Grid:
+                 angle: float, z0: float, resolution: float, check_size: SizeCheck = check_grid_size) -> Grid:
     """The grid of ``resolution`` cells covering ``local`` = (umin, umax, vmin, vmax) in the frame
-    rotated by ``angle``; ``xy_extremes`` = (x_lo, x_hi, y_lo, y_hi) for the precision check."""
+    rotated by ``angle``; ``xy_extremes`` = (x_lo, x_hi, y_lo, y_hi) for the precision check;
+    ``check_size`` refuses a grid too large to build (the limit of a grid held whole by default)."""
     c, s = math.cos(angle), math.sin(angle)
     # A rotated frame recomputes local coordinates from a rotated origin; a
     # margin of a millionth of a cell keeps round-off from pushing the
@@ -202,7 +211,7 @@ def _grid_around(xy_extremes: tuple[float, float, float, float], local: tuple[fl
         # counts as whole, so the last lattice point gets its own cell.
         cols_f = float(np.floor((umax - umin) / resolution + LATTICE_TOLERANCE)) + 1.0
         rows_f = float(np.floor((vmax - vmin) / resolution + LATTICE_TOLERANCE)) + 1.0
-    check_grid_size(rows_f, cols_f, resolution)
+    check_size(rows_f, cols_f, resolution)
     _check_precision(max(abs(e) for e in xy_extremes), resolution)
     rows, cols = int(rows_f), int(cols_f)
     # Whole cells overhang the points' extent; split the overhang evenly on
@@ -243,13 +252,7 @@ def rasterize(points: np.ndarray, grid: Grid, *, aggregate: str = "mean", checke
     points = points if checked else as_points(points)
     idx, z = _cells_of(points, grid)
     if aggregate == "median":
-        from scipy import ndimage  # here, not at import: only the median needs it (30-60 ms to load)
-
-        count = np.bincount(idx, minlength=grid.size)
-        mask = count > 0
-        heights = np.zeros(grid.size)
-        labels = np.flatnonzero(mask)
-        heights[labels] = ndimage.median(z, labels=idx, index=labels)
+        count, heights, mask = _median_heights(idx, z, grid.size)
     else:
         cells = _CellHeights(grid.size, aggregate)
         cells.add(idx, z)
@@ -285,11 +288,223 @@ def rasterize_chunks(chunks: Callable[[], Iterable[np.ndarray]], grid: Grid, *, 
     return spread.dem(heights, mask, cells.count)
 
 
+def _median_heights(idx: np.ndarray, z: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points per cell, the median height of each (0 where empty) and the occupancy, of ``size`` cells."""
+    from scipy import ndimage  # here, not at import: only the median needs it (30-60 ms to load)
+
+    count = np.bincount(idx, minlength=size)
+    mask = count > 0
+    heights = np.zeros(size)
+    labels = np.flatnonzero(mask)
+    heights[labels] = ndimage.median(z, labels=idx, index=labels)
+    return count, heights, mask
+
+
 def check_chunked_aggregate(aggregate: str) -> None:
     """Refuse an aggregate that cannot be gathered chunk by chunk (the median)."""
     if aggregate == "median":
         raise InvalidInputError("aggregate 'median' needs all of a cell's points at once; "
                                 "a cloud read in chunks can use mean, min or max")
+
+
+# -- a grid larger than memory: a cloud gridded band by band on disk -------------------------------
+
+#: Files of :func:`rasterize_bands` in its folder: the map's heights (float64, metres above the grid's
+#: z0, 0 where empty), occupancy (bool) and points per cell (int64), row-major, and per band its
+#: points' cells (band-local flat index) and heights, then their squared distances to the cell's height.
+_HEIGHTS, _MASK, _COUNTS = "heights.f8", "mask.b1", "counts.i8"
+
+
+@dataclass(frozen=True)
+class GriddedBands:
+    """A cloud's grid written to ``folder`` by :func:`rasterize_bands`, read back by windows.
+
+    Small and made of paths: a dask worker reads its own windows from the files.
+
+    Attributes
+    ----------
+    folder : str
+    grid : Grid
+    counted : int
+        Points gridded (the counts' sum).
+    gridding_rmse : float
+        RMS distance of the points to their cell's height, metres (as a whole grid's ``DEM.gridding_rmse``).
+    spread : HeightSpread
+    """
+
+    folder: str
+    grid: Grid
+    counted: int
+    gridding_rmse: float
+    spread: HeightSpread
+
+    def _window(self, name: str, dtype: type, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        # Mapped for the copy only: the pages read leave this process's memory with the mapping.
+        mapped = np.memmap(Path(self.folder) / name, dtype=dtype, mode="r", shape=self.grid.shape)
+        try:
+            return np.array(mapped[r0:r1, c0:c1])
+        finally:
+            del mapped
+
+    def heights(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Heights (metres above ``grid.z0``, 0 where empty) of rows ``r0:r1`` and columns ``c0:c1``."""
+        return self._window(_HEIGHTS, np.float64, r0, r1, c0, c1)
+
+    def mask(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Occupancy (bool) of rows ``r0:r1`` and columns ``c0:c1``."""
+        return self._window(_MASK, np.bool_, r0, r1, c0, c1)
+
+    def counts(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """Points (int64) per cell of rows ``r0:r1`` and columns ``c0:c1``."""
+        return self._window(_COUNTS, np.int64, r0, r1, c0, c1)
+
+
+def _smallest_uint(largest: int) -> type:
+    return next(t for t in (np.uint8, np.uint16, np.uint32, np.uint64) if largest <= np.iinfo(t).max)
+
+
+def rasterize_bands(segments: Iterable[Iterable[np.ndarray]], grid: Grid, folder: str | os.PathLike[str], *,
+                    band_rows: int, aggregate: str = "mean",
+                    on_stage: Callable[..., None] | None = None) -> GriddedBands:
+    """:func:`rasterize` (one segment) or :func:`rasterize_chunks` (a segment per chunk) of a grid larger
+    than memory, band of ``band_rows`` rows by band, into files in ``folder``: the same heights,
+    counts, gridding RMSE and spread, to the bit.
+
+    One pass over the points spills each point's cell and height to its band's files (and its
+    band to a file in the points' order); each band is then gridded alone, adding its points
+    segment by segment as the whole grid adds chunk by chunk, and written out; last, each
+    segment's squared distances are put back in its points' order and summed as the whole
+    grid sums them. Memory holds a band's cells and a piece of points (a segment's, for the
+    median, which needs a cell's points together and is refused in chunks), not the map; the
+    folder holds about 24 bytes a point and 17 a cell (:func:`~dftpcc.limits.check_spill_space`).
+
+    Parameters
+    ----------
+    segments : iterable of iterables of ndarray (n, 3)
+        The points, finite float64, in pieces; each segment is a chunk of :func:`rasterize_chunks`
+        (one segment: :func:`rasterize` of them all), whatever its pieces.
+    grid : Grid
+    folder : path
+        An empty folder for the files; the caller removes it.
+    band_rows : int
+        Rows of a band (a band of tile rows of the coded map).
+    aggregate : {'mean', 'median', 'min', 'max'}
+    on_stage : callable, optional
+        ``on_stage("grid", done)`` as the bands are gridded.
+    """
+    if aggregate not in ("mean", "median", "min", "max"):
+        raise InvalidInputError(f"aggregate must be mean, median, min or max; got {aggregate!r}")
+    report = on_stage or (lambda *_: None)
+    folder = Path(folder)
+    rows, cols = grid.shape
+    band_cells = band_rows * cols
+    nbands = -(-rows // band_rows)
+    cell_type = np.int32 if band_cells <= np.iinfo(np.int32).max else np.int64
+    band_type = _smallest_uint(nbands - 1)
+    table = []  # points per band, one row per segment
+    with open(folder / "bands", "wb") as order_out:
+        for segment in segments:
+            per_band = np.zeros(nbands, dtype=np.int64)
+            for points in segment:
+                idx, z = _cells_of(points, grid)
+                band = (idx // band_cells).astype(band_type)
+                order_out.write(band.tobytes())
+                order = np.argsort(band, kind="stable")  # each band's points keep their order
+                counts = np.bincount(band, minlength=nbands)
+                ends = np.cumsum(counts)
+                idx, z, band = idx[order], z[order], band[order]
+                idx -= band.astype(np.int64) * band_cells
+                for b in np.flatnonzero(counts):
+                    part = slice(int(ends[b] - counts[b]), int(ends[b]))
+                    with open(folder / f"cells{b}", "ab") as out:
+                        out.write(idx[part].astype(cell_type).tobytes())
+                    with open(folder / f"z{b}", "ab") as out:
+                        out.write(z[part].tobytes())
+                per_band += counts
+                del idx, z, band, order
+            table.append(per_band)
+    segment_counts = np.array(table, dtype=np.int64).reshape(len(table), nbands)
+    for name in (_HEIGHTS, _MASK, _COUNTS):
+        with open(folder / name, "wb") as out:
+            out.truncate(grid.size * {_HEIGHTS: 8, _MASK: 1, _COUNTS: 8}[name])
+    tolerance_sq = (MULTI_HEIGHT_TOLERANCE_CELLS * grid.resolution) ** 2
+    counted = far_cells = 0
+    for b in range(nbands):
+        report("grid", b / nbands)
+        r0, r1 = b * band_rows, min(rows, (b + 1) * band_rows)
+        size = (r1 - r0) * cols
+        count, heights, mask = _grid_band(folder, b, segment_counts[:, b], size, aggregate, cell_type)
+        offset = r0 * cols
+        for name, values, width in ((_HEIGHTS, heights, 8), (_MASK, mask, 1), (_COUNTS, count, 8)):
+            with open(folder / name, "r+b") as out:
+                out.seek(offset * width)
+                out.write(np.ascontiguousarray(values).tobytes())
+        counted += int(count.sum())
+        del count, mask
+        far_cells += _band_squares(folder, b, segment_counts[:, b], heights, tolerance_sq, cell_type)
+    spread = _SpreadCounter(grid)
+    _add_segment_squares(folder, segment_counts, band_type, spread)
+    rmse, height_spread = spread.result(far_cells, stacklevel=2)
+    report("grid", 1.0)
+    return GriddedBands(str(folder), grid, counted, rmse, height_spread)
+
+
+def _band_points(folder: Path, b: int, counts: np.ndarray, cell_type: type) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Band ``b``'s spilled cells (int64) and heights, one segment at a time (``counts`` points each)."""
+    if not counts.any():
+        return
+    with open(folder / f"cells{b}", "rb") as cells, open(folder / f"z{b}", "rb") as heights:
+        for n in counts:
+            if n:
+                yield (np.fromfile(cells, dtype=cell_type, count=int(n)).astype(np.int64),
+                       np.fromfile(heights, dtype=np.float64, count=int(n)))
+
+
+def _grid_band(folder: Path, b: int, counts: np.ndarray, size: int, aggregate: str,
+               cell_type: type) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points per cell, heights and occupancy of band ``b``'s ``size`` cells."""
+    if aggregate == "median":  # one segment (refused in chunks): the band's points together
+        parts = list(_band_points(folder, b, counts, cell_type))
+        if not parts:
+            return np.zeros(size, dtype=np.int64), np.zeros(size), np.zeros(size, dtype=bool)
+        return _median_heights(parts[0][0], parts[0][1], size)
+    cells = _CellHeights(size, aggregate)
+    # A segment without points of this band adds zeros to its cells in the whole grid: nothing to add.
+    for idx, z in _band_points(folder, b, counts, cell_type):
+        cells.add(idx, z)
+    return cells.count, cells.heights(), cells.count > 0
+
+
+def _band_squares(folder: Path, b: int, counts: np.ndarray, heights: np.ndarray, tolerance_sq: float,
+                  cell_type: type) -> int:
+    """Write band ``b``'s points' squared distances to their cell's height (m², :func:`_distance_sums`'
+    arithmetic) in the band's order, drop its spilled points; the cells holding a far point."""
+    far = np.zeros(heights.size, dtype=bool)
+    with open(folder / f"sq{b}", "wb") as out:
+        for idx, z in _band_points(folder, b, counts, cell_type):
+            dz = z - heights[idx]
+            dz *= dz
+            out.write(dz.tobytes())
+            far[idx[dz > tolerance_sq]] = True
+    for name in (f"cells{b}", f"z{b}"):
+        (folder / name).unlink(missing_ok=True)
+    return int(np.count_nonzero(far))
+
+
+def _add_segment_squares(folder: Path, segment_counts: np.ndarray, band_type: type, spread: _SpreadCounter) -> None:
+    """Each segment's squared distances back in its points' order (their bands, spilled in that order,
+    say from which band file each comes), added to ``spread`` as the whole grid adds a chunk's."""
+    taken = np.zeros(segment_counts.shape[1], dtype=np.int64)  # squares read from each band's file
+    with open(folder / "bands", "rb") as order_in:
+        for per_band in segment_counts:
+            band = np.fromfile(order_in, dtype=band_type, count=int(per_band.sum()))
+            sq = np.empty(band.size)
+            parts = [np.fromfile(folder / f"sq{b}", dtype=np.float64, count=int(per_band[b]), offset=int(taken[b]) * 8)
+                     for b in np.flatnonzero(per_band)]
+            if parts:
+                sq[np.argsort(band, kind="stable")] = np.concatenate(parts)
+            taken += per_band
+            spread.add_squares(sq)
 
 
 def _cells_of(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
@@ -391,22 +606,39 @@ class _SpreadCounter:
         self.far_points += far
         self.far_sq_sum += far_sum
 
-    def dem(self, heights: np.ndarray, mask: np.ndarray, count: np.ndarray) -> DEM:
-        """The DEM, with its gridding RMSE and spread; warns when the spread is large."""
+    def add_squares(self, sq: np.ndarray) -> None:
+        """:meth:`add` of one chunk's squared distances ``sq`` (m², in the chunk's order), already taken:
+        the same sums, to the bit (a chunk gridded band by band, :mod:`dftpcc.bandgrid`)."""
+        far_sq = sq[sq > self.tolerance * self.tolerance]
+        self.points += sq.size
+        self.sq_sum += float(sq.sum())
+        self.max_sq = max(self.max_sq, float(sq.max()) if sq.size else 0.0)
+        self.far_points += far_sq.size
+        self.far_sq_sum += float(far_sq.sum())
+
+    def result(self, far_cells: int | None = None, stacklevel: int = 3) -> tuple[float, HeightSpread]:
+        """The gridding RMSE (metres) and the :class:`HeightSpread`; warns when the spread is large.
+        ``far_cells``: the cells holding a far point, when counted elsewhere (band by band)."""
+        if far_cells is None:
+            far_cells = int(np.count_nonzero(self.far_cells)) if self.far_cells is not None else 0
         spread = HeightSpread(
             tolerance_m=self.tolerance,
             points=self.points,
             unrepresented_points=self.far_points,
-            unrepresented_cells=int(np.count_nonzero(self.far_cells)) if self.far_cells is not None else 0,
+            unrepresented_cells=far_cells,
             unrepresented_rmse_m=math.sqrt(self.far_sq_sum / self.far_points) if self.far_points else 0.0,
             max_distance_m=math.sqrt(self.max_sq),
         )
         if spread.fraction >= MULTI_HEIGHT_WARN_FRACTION:
-            warnings.warn(spread.describe(), MultiHeightWarning, stacklevel=3)
+            warnings.warn(spread.describe(), MultiHeightWarning, stacklevel=stacklevel + 1)
+        return math.sqrt(self.sq_sum / self.points) if self.points else 0.0, spread
+
+    def dem(self, heights: np.ndarray, mask: np.ndarray, count: np.ndarray) -> DEM:
+        """The DEM, with its gridding RMSE and spread; warns when the spread is large."""
+        rmse, spread = self.result()
         shape = self.grid.shape
         return DEM(grid=self.grid, heights=heights.reshape(shape), mask=mask.reshape(shape),
-                   counts=count.reshape(shape), gridding_rmse=math.sqrt(self.sq_sum / self.points) if self.points
-                   else 0.0, spread=spread)
+                   counts=count.reshape(shape), gridding_rmse=rmse, spread=spread)
 
 
 @kernels.kernel("distance_sums")
@@ -494,8 +726,9 @@ class CloudSummary:
         if self.hull is not None:
             self.hull = _hull_vertices(np.vstack([self.hull, points[:, :2]]))
 
-    def fit_grid(self, resolution: float, *, frame: str = "axis") -> Grid:
-        """:func:`fit_grid` for the cloud summarised here (same grid, up to float round-off)."""
+    def fit_grid(self, resolution: float, *, frame: str = "axis", check_size: SizeCheck = check_grid_size) -> Grid:
+        """:func:`fit_grid` for the cloud summarised here (same grid, up to float round-off); ``check_size``
+        refuses a grid too large (default: :func:`~dftpcc.limits.check_grid_size`, a grid held whole)."""
         if not self.count:
             raise InvalidInputError("the point cloud is empty")
         _check_resolution(resolution)
@@ -511,7 +744,8 @@ class CloudSummary:
                 u = c * self.hull[:, 0] + s * self.hull[:, 1]
                 v = -s * self.hull[:, 0] + c * self.hull[:, 1]
                 local = (float(u.min()), float(u.max()), float(v.min()), float(v.max()))
-        return _grid_around((x_lo, x_hi, y_lo, y_hi), local, angle, self.z_sum / self.count, resolution)
+        return _grid_around((x_lo, x_hi, y_lo, y_hi), local, angle, self.z_sum / self.count, resolution,
+                            check_size)
 
     def auto_resolution(self, chunks: Callable[[], Iterable[np.ndarray]]) -> float:
         """:func:`auto_resolution` for the cloud summarised here; one more pass over ``chunks``."""

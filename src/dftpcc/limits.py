@@ -1,6 +1,8 @@
 """Resource limits: how large a grid may be built, decoded or held in memory.
 
-The encoder refuses a grid the memory cannot hold (:func:`check_grid_size`),
+The encoder refuses a grid the memory cannot hold (:func:`check_grid_size`; a cloud's grid coded
+band by band, one whose band it cannot hold, :func:`check_band_size`, or whose files the disk
+cannot, :func:`check_spill_space`),
 the reader refuses a grid a file's size does not justify (:func:`cell_budget`),
 and a cloud too large to hold is read in chunks (:func:`holds_in_memory`).
 """
@@ -8,10 +10,12 @@ and a cloud too large to hold is read in chunks (:func:`holds_in_memory`).
 from __future__ import annotations
 
 import math
+import os
 
 from .errors import InvalidInputError
 
-__all__ = ["MAX_CELLS", "available_memory", "cell_limit", "check_grid_size", "cell_budget", "holds_in_memory"]
+__all__ = ["MAX_CELLS", "available_memory", "cell_limit", "check_grid_size", "band_cell_limit", "check_band_size",
+           "check_spill_space", "cell_budget", "holds_in_memory"]
 
 #: Largest grid dftpcc builds in memory (cells). A float64 DEM this size is
 #: 800 MB and the transform needs a few such arrays.
@@ -82,6 +86,68 @@ def check_grid_size(rows: float, cols: float, resolution: float) -> None:
         f"about {_size(cells * ENCODE_BYTES_PER_CELL)} of memory and exceeds {why}; {hint}")
 
 
+
+# A cloud's grid coded band by band (dftpcc.grid.rasterize_bands, then dftpcc.stream): memory holds
+# one band of tile rows at a time, so the limit is on a band's cells, not the map's; the map's cells
+# and points go to files on disk instead.
+#: Peak memory of gridding one cell of a band, bytes: its points and height sums (int64, float64),
+#: a chunk's sums of them before they are added (2 x 8 B), its heights, occupancy and far-point flags
+#: (8 + 1 + 1 B): 42 B, rounded up. Coding a band holds less: a block of tiles at a time.
+BAND_BYTES_PER_CELL = 48
+#: Disk a band-by-band cloud's files take, bytes per point: its cell (int32) and height (float64), its
+#: band (at most 4 B; one for up to 256 bands), and its squared distance to the cell's height (float64).
+SPILL_BYTES_PER_POINT = 24
+#: ... and bytes per cell of the map: heights (float64), occupancy (bool), points (int64).
+SPILL_BYTES_PER_CELL = 17
+
+
+def band_cell_limit() -> int:
+    """Largest band (cells) a cloud gridded band by band may have here: :data:`MAX_CELLS` (the largest
+    grid built in memory), or less when the available memory cannot hold :data:`BAND_BYTES_PER_CELL`
+    per cell. The map itself may be any number of bands."""
+    memory = available_memory()
+    return MAX_CELLS if memory is None else max(1, min(MAX_CELLS, memory // BAND_BYTES_PER_CELL))
+
+
+def check_band_size(band_rows: int, rows: float, cols: float, resolution: float) -> None:
+    """Refuse a grid of ``rows`` x ``cols`` cells of ``resolution`` metres, coded band by band in bands of
+    ``band_rows`` rows (a tile's side), whose band holds more than :func:`band_cell_limit` cells."""
+    cells = rows * cols
+    if not math.isfinite(cells):
+        check_grid_size(rows, cols, resolution)  # its refusal of a grid too large to count
+    band = min(band_rows, rows) * cols
+    limit = band_cell_limit()
+    if band <= limit:
+        return
+    why = (f"the {MAX_CELLS:,}-cell limit" if limit == MAX_CELLS else
+           f"the {limit:,} cells that the available memory ({_size(available_memory() or 0)}) holds")
+    # A band's rows are a tile's side: its cells scale with the columns, 1/resolution.
+    need = resolution * band / limit * (1 + ROUNDING_MARGIN)
+    raise InvalidInputError(
+        f"a {_count(rows)} x {_count(cols)} grid at {resolution:g} m is coded in bands of {band_rows:,} rows, and "
+        f"one band ({_count(band)} cells) would need about {_size(band * BAND_BYTES_PER_CELL)} of memory and "
+        f"exceeds {why}; use a resolution of at least {_round_up(need):g} m or a smaller tile size")
+
+
+def check_spill_space(points: int, rows: float, cols: float, resolution: float, folder: str | os.PathLike[str]) -> None:
+    """Refuse a cloud of ``points`` gridded band by band into ``rows`` x ``cols`` cells of ``resolution``
+    metres whose files (:data:`SPILL_BYTES_PER_POINT` a point, :data:`SPILL_BYTES_PER_CELL` a cell) the
+    disk holding ``folder`` has no room for; the hint is the coarsest resolution whose cells fit."""
+    import shutil
+
+    cells = rows * cols
+    need = points * SPILL_BYTES_PER_POINT + cells * SPILL_BYTES_PER_CELL
+    free = shutil.disk_usage(folder).free
+    if need <= free:
+        return
+    room = max(1.0, (free - points * SPILL_BYTES_PER_POINT) / SPILL_BYTES_PER_CELL)  # cells that would fit
+    coarsest = _round_up(resolution * math.sqrt(cells / room) * (1 + ROUNDING_MARGIN))
+    hint = (f"use a resolution of at least {coarsest:g} m"
+            if points * SPILL_BYTES_PER_POINT < free else "the points' files alone would not fit")
+    raise InvalidInputError(
+        f"gridding {_count(points)} points into a {_count(rows)} x {_count(cols)} grid ({_count(cells)} cells) at "
+        f"{resolution:g} m band by band needs about {_size(need)} of temporary files beside the output, and "
+        f"{folder} has {_size(free)} free; {hint}, free some space, or write the output elsewhere")
 
 
 # Decoding budget. Decoding costs memory and time in proportion to the grid

@@ -9,6 +9,8 @@ map's middle (:func:`dftpcc.encoder.choose_for_tiles`) and checked on the whole 
 A band is read, reduced and coded in column blocks of :data:`BLOCK_TILES` tiles (plus the
 overlap), so memory follows the tile size, not the map's width; on a dask cluster each worker
 reads its own blocks from the file (:func:`_code_block`), and only the coded bytes come back.
+A point cloud's grid too large to hold is read the same way from the files it was gridded into,
+band by band (:func:`compress_bands` of :func:`dftpcc.grid.rasterize_bands`).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from . import coding, quantizer
 from .cluster import serial
 from .format import MapWriter
 from .dem import DEM, Grid, TileGrid
+from .grid import GriddedBands
 from .encoder import Stage, check_heights, choose_for_tiles, no_stage
 from .errors import InvalidInputError, RasterTypeWarning
 from .fill import PlaneSums, fill_empty
@@ -34,7 +37,7 @@ from .rebuild import dem_to_point_chunks
 from .tiles import (BASE_CYCLES_PER_TILE, TileJob, base_coefficients, base_heights, base_limit, base_order,
                     code_tile, coded_window, tile_overlap)
 
-__all__ = ["compress_raster", "compress_gridded", "decompress_bands", "codes_in_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
+__all__ = ["compress_raster", "compress_gridded", "compress_bands", "decompress_bands", "codes_in_bands", "STREAM_CELLS", "SAMPLE_TILES", "STREAM_FORMATS"]
 
 #: A GeoTIFF of more cells than this is coded band by band (and a tiled map of more is decoded so).
 STREAM_CELLS = 16_000_000
@@ -98,6 +101,7 @@ class _Raster:
     cache; a dask worker reopens it by its path, so no cells travel from the main process."""
 
     in_memory = False
+    counted: int | None = None  # a raster's cells are not counted points
 
     def __init__(self, path: str | os.PathLike[str]):
         from .io.geotiff import RasterWindows  # rasterio, loaded only for a raster
@@ -120,6 +124,12 @@ class _Raster:
 
     def close(self) -> None:
         self.windows.close()
+
+
+def _at_height(g: Grid, z0: float) -> Grid:
+    """The grid ``g`` with its heights about ``z0`` (metres)."""
+    return Grid(x0=g.x0, y0=g.y0, z0=z0, resolution=g.resolution, rows=g.rows, cols=g.cols, angle=g.angle,
+                resolution_y=g.resolution_y)
 
 
 class _Grid:
@@ -145,9 +155,41 @@ class _Grid:
         return None if self.dem.counts is None else self.dem.counts[r0:r1, c0:c1]
 
     def grid(self, z0: float) -> Grid:
-        g = self.dem.grid
-        return Grid(x0=g.x0, y0=g.y0, z0=z0, resolution=g.resolution, rows=g.rows, cols=g.cols, angle=g.angle,
-                    resolution_y=g.resolution_y)
+        return _at_height(self.dem.grid, z0)
+
+    def check_unchanged(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    @property
+    def counted(self) -> int | None:
+        """Points gridded (the counts' sum), or None without counts."""
+        return None if self.dem.counts is None else int(self.dem.counts.sum())
+
+
+class _Bands:
+    """A cloud's grid on disk, gridded band by band (:class:`~dftpcc.grid.GriddedBands`), read by
+    windows as a GeoTIFF is; a dask worker reads its own windows from the files."""
+
+    in_memory = False
+
+    def __init__(self, bands: GriddedBands, point_count: int, crs: dict[str, Any], name: str):
+        self.bands, self.path, self.crs, self.point_count = bands, name, crs, point_count
+        self.rows, self.cols = bands.grid.shape
+        self.counted: int | None = bands.counted
+
+    def read(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        c1 = self.cols if c1 is None else c1
+        m = self.bands.mask(r0, r1, c0, c1)
+        return np.where(m, self.bands.heights(r0, r1, c0, c1) + self.bands.grid.z0, np.nan), m
+
+    def counts(self, r0: int, r1: int, c0: int = 0, c1: int | None = None) -> np.ndarray:
+        return self.bands.counts(r0, r1, c0, self.cols if c1 is None else c1)
+
+    def grid(self, z0: float) -> Grid:
+        return _at_height(self.bands.grid, z0)
 
     def check_unchanged(self) -> None:
         pass
@@ -396,6 +438,16 @@ def compress_gridded(dem: DEM, dst: str | os.PathLike[str], params: Params, *, p
               write=write, gridding_rmse=dem.gridding_rmse or 0.0, spread=dem.spread)
 
 
+def compress_bands(bands: GriddedBands, dst: str | os.PathLike[str], params: Params, *, point_count: int,
+                   crs: dict[str, Any], name: str, map_tiles: Map | None = None, on_stage: Stage = no_stage,
+                   write: Callable[[str | os.PathLike[str], Callable[[Path], None]], None]) -> None:
+    """:func:`compress_gridded` of a cloud's grid on disk (:func:`~dftpcc.grid.rasterize_bands`), read
+    by windows as :func:`compress_raster` reads a GeoTIFF: memory holds a band, not the map, and the
+    file's bytes are those :func:`compress_gridded` writes of the same grid. ``name``: the cloud's, for messages."""
+    _compress(_Bands(bands, point_count, crs, name), dst, params, map_tiles=map_tiles, on_stage=on_stage,
+              write=write, gridding_rmse=bands.gridding_rmse or 0.0, spread=bands.spread)
+
+
 def _compress(raster: Any, dst: str | os.PathLike[str], params: Params, *, map_tiles: Map | None,
               on_stage: Stage, write: Callable[..., None], gridding_rmse: float = 0.0, spread: Any = None) -> None:
     src = raster.path
@@ -497,7 +549,8 @@ class _Block:
 
     ``cells``: the window's heights and mask when the map is held in memory, else None (read
     from the pass's source where the block is coded); ``counts``: points per cell of the
-    block's tile rows and columns (the window without its overlap), for a gridded cloud.
+    block's tile rows and columns (the window without its overlap), for a gridded cloud held
+    in memory (else read from the source with the cells).
     """
 
     rows: tuple[int, int]
@@ -517,8 +570,10 @@ def _blocks(raster: Any, tiling: TileGrid, band: int, overlap: int) -> Iterator[
         c1 = tiling.bounds(ks[-1])[3]
         w0, w1 = max(0, t0 - overlap), min(tiling.rows, t1 + overlap)
         u0, u1 = max(0, c0 - overlap), min(tiling.cols, c1 + overlap)
-        cells = raster.read(w0, w1, u0, u1) if raster.in_memory else None
-        yield _Block((w0, w1), (u0, u1), ks, cells, raster.counts(t0, t1, c0, c1))
+        if raster.in_memory:
+            yield _Block((w0, w1), (u0, u1), ks, raster.read(w0, w1, u0, u1), raster.counts(t0, t1, c0, c1))
+        else:  # read where the block is coded, counts too: a batch of blocks does not hold them all here
+            yield _Block((w0, w1), (u0, u1), ks)
 
 
 def _code_block(block: _Block, job: _Pass) -> list[Any]:
@@ -528,6 +583,10 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
     """
     (w0, w1), (u0, u1) = block.rows, block.cols
     heights, m = block.cells if block.cells is not None else job.source.read(w0, w1, u0, u1)
+    band_counts = block.counts
+    if block.cells is None:  # a gridded cloud's points per cell, from its files (a raster has none)
+        t0, t1, b0, _ = job.tiling.bounds(block.tiles[0])
+        band_counts = job.source.counts(t0, t1, b0, job.tiling.bounds(block.tiles[-1])[3])
     a, b, c = job.plane
     values, bi, bj = job.base
     rest = heights - job.z0  # a new array: a worker's received cells may be read-only
@@ -545,11 +604,11 @@ def _code_block(block: _Block, job: _Pass) -> list[Any]:
         _, _, v0, v1 = coded_window(job.tiling, k, overlap)
         # What quantizing the base layer changed on the tile (the layer is linear in its values).
         error = base_heights(job.base_error, bi, bj, job.shape, (t0, t1), (c0, c1))
-        counts = None if block.counts is None else block.counts[:, c0 - first:c1 - first]
+        counts = None if band_counts is None else band_counts[:, c0 - first:c1 - first]
         codes.append(code_tile(TileJob(k, rest[:, v0 - u0:v1 - u0], m[:, v0 - u0:v1 - u0],
                                        (t0 - w0, t1 - w0, c0 - v0, c1 - v0), error, counts),
                                job.params, job.refill))
-    del heights, m, rest
+    del heights, m, rest, band_counts
     _release_heap()  # before the next block's arrays are allocated, here or on a worker
     return codes
 
@@ -589,11 +648,11 @@ def _code_bands(raster: Any, grid: Grid, params: Params, refill: float | None, t
         on_stage("encode", batch[0].tiles[0] / n)
         for code in (code for codes in run(_code_block, batch, job) for code in codes):
             writer.add_code(code)
-    counts = getattr(raster, "dem", None) is not None and raster.dem.counts is not None
+    counted = raster.counted
     stats = writer.stats(gridding_rmse=gridding_rmse,
                          spread=spread.as_stats() if spread is not None and spread.unrepresented_points else None,
-                         vertical_points=max(int(raster.dem.counts.sum()), 1)
-                         if counts and params.aggregate == "mean" else None)
+                         vertical_points=max(counted, 1) if counted is not None and params.aggregate == "mean"
+                         else None)
     return writer, stats, nb, base_blob
 
 
