@@ -1,8 +1,10 @@
 // COEF-structured streams (format.md, "COEF"): chunks of kinds 0 (zstd byte planes), 1 (complex64)
 // and 3 (ANS with table models), as COEF, BASE, RESD and a sparse residual's magnitudes hold them.
-import { AnsDecoder, decodeGroup, tableModel } from "./ans.js";
+import { AnsDecoder, ansInKernels, decodeGroup, tableModel } from "./ans.js";
 import { crc32, f32, inflate, u32 } from "./bytes.js";
 import { CorruptFileError } from "./errors.js";
+import { lap, mark } from "./stages.js";
+import { kernels, WasmMemoryError } from "./wasm.js";
 
 export const MAX_CHUNK_COEFS = 2 ** 28;
 export const MAX_ANS_SYMBOL = 2 ** 15;
@@ -50,6 +52,7 @@ export function decodeStream(p: Uint8Array, total: number, radius: Float64Array 
   }
   let pos = 4;
   let stop = 0;
+  let t = mark();
   let kinds = 0; // bit k: a chunk of kind k
   for (let k = 0; k < nchunks; k++) {
     if (pos + 16 > p.length) {
@@ -72,6 +75,7 @@ export function decodeStream(p: Uint8Array, total: number, radius: Float64Array 
     }
     const body = p.subarray(pos + 16, pos + 16 + nbytes);
     if (crc32(body) !== crc) throw new CorruptFileError(`${name} chunk ${k} fails its checksum`);
+    t = lap("checksums", t);
     pos += 16 + nbytes;
     stop = start + count;
     const what = `${name} chunk ${k}`;
@@ -83,8 +87,13 @@ export function decodeStream(p: Uint8Array, total: number, radius: Float64Array 
     } else if (kind === 0 || kind === 3) {
       if (complex) throw new CorruptFileError(`${name} chunks mix kinds`);
       ints ??= new Float64Array(total);
-      if (kind === 0) zstdChunk(body, count, ints, start, what);
-      else ansChunk(body, count, ints, start, radius, angle, what);
+      if (kind === 0) {
+        zstdChunk(body, count, ints, start, what);
+        t = lap("coefficients (zstd)", t);
+      } else {
+        ansChunk(body, count, ints, start, radius, angle, what);
+        t = lap("coefficients (ANS)", t);
+      }
     } else {
       throw new CorruptFileError(`${what} has unknown kind ${kind}`);
     }
@@ -177,10 +186,23 @@ function ansChunk(body: Uint8Array, count: number, out: Float64Array, start: num
   for (let c = 0; c < 256; c++) ends[c + 1] += ends[c];
   const at = new Int32Array(count);
   const fill = ends.slice(0, 256);
-  for (let v = 0; v < count; v++) at[fill[band[v]]++] = start + v;
-  const coder = new AnsDecoder(body.subarray(9 + side), what);
-  for (let c = 1; c < 256; c++) {
-    if (ends[c + 1] === ends[c]) continue;
-    decodeGroup(coder, tableModel(maxAbs, c, what), maxAbs, out, at.subarray(ends[c], ends[c + 1]), ends[c + 1] - ends[c]);
+  for (let v = 0; v < count; v++) at[fill[band[v]]++] = v;
+  const words = body.subarray(9 + side);
+  const coder = new AnsDecoder(words, what); // checks the words before either path reads them
+  const used: number[] = [];
+  for (let c = 1; c < 256; c++) if (ends[c + 1] > ends[c]) used.push(c);
+  const models = used.map((c) => tableModel(maxAbs, c, what));
+  const here = out.subarray(start, start + count);
+  const k = kernels();
+  if (k && used.length) {
+    try {
+      const groups = used.map((c, q) => ({ cdf: models[q], count: ends[c + 1] - ends[c] }));
+      // Code 0's values (zeros) come first in `at`: the kernel decodes the rest.
+      ansInKernels(k, words, groups, maxAbs, at.subarray(ends[1]), here);
+      return;
+    } catch (e) {
+      if (!(e instanceof WasmMemoryError)) throw e;
+    }
   }
+  used.forEach((c, q) => decodeGroup(coder, models[q], maxAbs, here, at.subarray(ends[c], ends[c + 1]), ends[c + 1] - ends[c]));
 }

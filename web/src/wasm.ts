@@ -19,6 +19,7 @@ interface Exports {
     out: number, ooff: number, ovs: number, oes: number, w: number): void;
   finish(h: number, mask: number, out: number, cols: number, wr0: number, wr1: number, wc0: number, wc1: number,
     z0: number, a: number, b: number, c: number, f32: number, res: number): number;
+  ansGroups(words: number, nwords: number, groups: number, ngroups: number, at: number, out: number, maxAbs: number, slotShift: number): void;
 }
 
 /** The kernels' memory could not grow: the caller runs the TypeScript path instead. */
@@ -116,6 +117,16 @@ export class Kernels {
     const p = this.alloc(8 * a.length);
     this.view().set(a, p / 8);
     return p;
+  }
+
+  /** An Int32Array's copy above the scratch region (a model's table), uploaded once while it lives. */
+  ints(a: Int32Array): number {
+    return this.cached(a, () => {
+      const p = this.alloc(4 * a.length);
+      this.views();
+      this.i32.set(a, p / 4);
+      return p;
+    });
   }
 
   private words(ptr: number, w: number[]): void {
