@@ -28,7 +28,9 @@ import { python, ROOT } from "../test/helpers.mjs";
 const args = process.argv.slice(2);
 const opt = (name, dflt) => (args.includes(name) ? args[args.indexOf(name) + 1] : dflt);
 const DIST = resolve(opt("--dist", new URL("../dist", import.meta.url).pathname));
-const { decode } = await import(join(DIST, "dftpcc.mjs"));
+const { decode, ready } = await import(join(DIST, "dftpcc.mjs"));
+// A build with the WebAssembly zstd decoder starts it asynchronously: timed once it has loaded.
+if (ready) await ready();
 /** Prefix lengths (fractions of a file's bytes) of the progressive table. */
 const PREFIXES = [0.05, 0.25];
 const REPEATS = Number(opt("--repeats", 7));
@@ -103,11 +105,13 @@ async function inChromium(dir, names) {
     await cdp.send("Performance.enable", { timeDomain: "threadTicks" });
     const taskSeconds = async () => (await cdp.send("Performance.getMetrics")).metrics.find((m) => m.name === "TaskDuration").value;
     await page.evaluate(async () => {
-      const { decode } = await import("/dftpcc.mjs");
+      const { decode, ready } = await import("/dftpcc.mjs");
+      if (ready) await ready();
       const Lerc = await import("/lerc/LercDecode.es.js");
       await Lerc.load({ locateFile: (name) => `/lerc/${name}` });
       // A build before the stage timings has no stageTimes: its table is left out.
       const internals = await import("/internals.mjs");
+      if (internals.ready) await internals.ready();
       Object.assign(window, { decodeDftpcc: decode, Lerc, internals: internals.stageTimes ? internals : null });
     });
     /** Median main-thread seconds of REPEATS calls after WARMUP calls, and the first call's own. */

@@ -5,6 +5,7 @@ export { baseCut, cutOf, hypot, prefix, radiusLimit } from "./layout.js";
 export { AnsDecoder, ansInKernels, decayOf, decodeGroup, tableModel, bernoulliLeft1, slotsOf } from "./ans.js";
 export { addIdct } from "./transform.js";
 export { inflate } from "./bytes.js";
+export { nativeZstd, ready } from "./zstd.js";
 export { BluesteinFft, factorize, MixedFft } from "./dct.js";
 export { kernels, releaseKernels, useWasm, WasmMemoryError } from "./wasm.js";
 export { cornerFinished, decode } from "./decode.js";

@@ -214,6 +214,11 @@ export function releaseKernels(): void {
   if (loaded && loaded.held() > RETAIN_BYTES) loaded = null;
 }
 
+/** Whether decodes may use WebAssembly (useWasm), for the zstd decoder (zstd.ts). */
+export function wasmEnabled(): boolean {
+  return enabled;
+}
+
 /** Turns the WebAssembly SIMD kernels on (the default) or off (the TypeScript path alone, as where
  * WebAssembly SIMD is missing; the tests compare both); returns whether decodes now use them. */
 export function useWasm(on: boolean): boolean {

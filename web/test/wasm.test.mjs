@@ -9,11 +9,13 @@ import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { test } from "node:test";
 import puppeteer from "puppeteer-core";
-import { decode, useWasm } from "../dist/dftpcc.mjs";
+import { decode, ready, useWasm } from "../dist/dftpcc.mjs";
 import * as internals from "../dist/internals.mjs";
 import { bytes, fixtures, WEB } from "./helpers.mjs";
 
 const DIR = fixtures();
+// The WebAssembly zstd decoder loaded before the comparisons: the kernels' side of each is all WebAssembly.
+const zstdLoaded = await ready();
 
 /** Index of the first element where a and b differ (NaN equal to NaN, 0 to -0), or -1. */
 function firstDiff(a, b) {
@@ -40,6 +42,7 @@ function both(data, options) {
 
 test("the kernels load in Node (WebAssembly SIMD), and useWasm switches them off and on", () => {
   assert.ok(internals.kernels(), "no WebAssembly SIMD kernels");
+  assert.ok(zstdLoaded, "the WebAssembly zstd decoder did not load");
   assert.equal(useWasm(false), false);
   assert.equal(useWasm(true), true);
 });
