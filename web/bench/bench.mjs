@@ -15,7 +15,8 @@
 // table times progressive prefixes of each untiled default map in Chromium (float32, as the viewer
 // asks): the first 5 % and 25 % of the bytes decoded exactly and as a preview, against the whole file.
 // A third says where a whole decode's time goes in Chromium, stage by stage (wall-clock milliseconds
-// a decode, from the build's internals.mjs; the stages of the map's path only).
+// a decode, each stage's median over N decodes, from the build's internals.mjs; the stages of the
+// map's path only).
 import { spawnSync } from "node:child_process";
 import { createReadStream, existsSync, mkdtempSync, readdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { createServer } from "node:http";
@@ -137,15 +138,24 @@ async function inChromium(dir, names) {
       }, name, hasLerc);
       const js = await timePage(() => void window.decodeDftpcc(window.data), undefined, true);
       out[name] = { js: js.seconds, first: js.first };
-      // Stages of the same decodes (a separate bundle: its own warm-up), milliseconds a decode.
+      // Stages of the same decodes (a separate bundle: its own warm-up), milliseconds a decode:
+      // each stage's median over the decodes (wall clock: a median leaves out most of the time
+      // another process took the core).
       out[name].stages = await page.evaluate((warmup, repeats) => {
         const i = window.internals;
         if (!i) return null;
         for (let k = 0; k < warmup; k++) i.decode(window.data);
-        i.stageTimes(true);
-        for (let k = 0; k < repeats; k++) i.decode(window.data);
-        const ms = i.stageTimes(false);
-        for (const key of Object.keys(ms)) ms[key] /= repeats;
+        const runs = [];
+        for (let k = 0; k < repeats; k++) {
+          i.stageTimes(true);
+          i.decode(window.data);
+          runs.push(i.stageTimes(false));
+        }
+        const ms = {};
+        for (const key of Object.keys(runs[0])) {
+          const v = runs.map((r) => r[key] ?? 0).sort((a, b) => a - b);
+          ms[key] = v[Math.floor(v.length / 2)];
+        }
         return ms;
       }, WARMUP, REPEATS);
       if (hasLerc) out[name].lerc = await timePage(() => void window.Lerc.decode(window.lercBlob));
