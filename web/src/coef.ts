@@ -144,6 +144,29 @@ function zstdChunk(body: Uint8Array, count: number, out: Float64Array, start: nu
   }
 }
 
+/** The band of a coefficient at radius r and angle a (format.md, COEF kind 3, step 1). */
+function bandOf(r: number, a: number, width: number, sectors: number): number {
+  return Math.floor(r / width) * sectors + Math.min(Math.floor(a * sectors), sectors - 1);
+}
+
+const bandTables = new WeakMap<Float64Array, Array<Int32Array | undefined>>();
+
+/** Every coefficient's band in a layout, for a stream's radius and angle arrays: computed once while
+ * the arrays live (layout.ts caches a grid's order, so a map's later decodes, such as a progressive
+ * load's prefixes, skip the floating-point steps). */
+function bandsOf(radius: Float64Array, angle: Float64Array, layout: number): Int32Array {
+  let byLayout = bandTables.get(radius);
+  if (!byLayout) bandTables.set(radius, (byLayout = []));
+  let bands = byLayout[layout];
+  if (!bands) {
+    const [width, sectors] = BAND_LAYOUTS[layout];
+    bands = new Int32Array(radius.length);
+    for (let v = 0; v < radius.length; v++) bands[v] = bandOf(radius[v], angle[v], width, sectors);
+    byLayout[layout] = bands;
+  }
+  return bands;
+}
+
 function ansChunk(body: Uint8Array, count: number, out: Float64Array, start: number,
   radius: Float64Array | null, angle: Float64Array | null, what: string): void {
   if (body.length < 9) throw new CorruptFileError(`${what} is truncated`);
@@ -153,17 +176,27 @@ function ansChunk(body: Uint8Array, count: number, out: Float64Array, start: num
   if (layout >= BAND_LAYOUTS.length || maxAbs > MAX_ANS_SYMBOL || 9 + side > body.length) {
     throw new CorruptFileError(`${what} has an implausible header`);
   }
-  const [width, sectors] = BAND_LAYOUTS[layout];
+  const bands = radius && angle && radius.length === angle.length && radius.length >= start + count ? bandsOf(radius, angle, layout) : null;
   const band = new Int32Array(count);
   let lo = Infinity;
   let hi = -Infinity;
-  for (let v = 0; v < count; v++) {
-    const r = radius ? radius[start + v] : 0;
-    const a = angle ? angle[start + v] : 0;
-    const b = Math.floor(r / width) * sectors + Math.min(Math.floor(a * sectors), sectors - 1);
-    band[v] = b;
-    if (b < lo) lo = b;
-    if (b > hi) hi = b;
+  if (bands) {
+    for (let v = 0; v < count; v++) {
+      const b = bands[start + v];
+      band[v] = b;
+      if (b < lo) lo = b;
+      if (b > hi) hi = b;
+    }
+  } else {
+    const [width, sectors] = BAND_LAYOUTS[layout];
+    for (let v = 0; v < count; v++) {
+      const r = radius ? radius[start + v] : 0;
+      const a = angle ? angle[start + v] : 0;
+      const b = bandOf(r, a, width, sectors);
+      band[v] = b;
+      if (b < lo) lo = b;
+      if (b > hi) hi = b;
+    }
   }
   const nbands = hi - lo + 1;
   let codes: Uint8Array;
