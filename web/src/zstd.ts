@@ -16,7 +16,14 @@ let loading: Promise<boolean> | null = null;
 export function ready(): Promise<boolean> {
   if (!loading) {
     const d = new ZSTDDecoder();
-    loading = (typeof WebAssembly === "object" ? d.init() : Promise.reject(new Error("no WebAssembly"))).then(
+    let start: Promise<void>;
+    try {
+      // init() throws at once where neither fetch nor Node's Buffer exists: fzstd decodes there.
+      start = typeof WebAssembly === "object" ? d.init() : Promise.reject(new Error("no WebAssembly"));
+    } catch (e) {
+      start = Promise.reject(e);
+    }
+    loading = start.then(
       () => {
         native = d;
         return true;

@@ -5,7 +5,7 @@ import assert from "node:assert/strict";
 import { spawnSync } from "node:child_process";
 import { join } from "node:path";
 import { test } from "node:test";
-import { python, WEB } from "./helpers.mjs";
+import { fixtures, python, WEB } from "./helpers.mjs";
 
 const FRAME = "KLUv/SBcPQIAwsUQEfDrzyLFLJOAhLIPC15Vz1io8W3K84vXODa4Dx7EU9XWkuf1DN52B2dtoz2vKpnldnDUu8s9r1QyB1e27PnClFvLYQA=";
 
@@ -50,4 +50,18 @@ print(json.dumps(out))`;
     const wasm = internals.inflate(frame, 1 << 26, `frame ${k}`);
     assert.ok(plain.length > 0 && Buffer.from(wasm).equals(Buffer.from(plain)), `frame ${k}: the decoders disagree`);
   }
+});
+
+test("where the WebAssembly zstd decoder cannot start (no fetch, no Buffer), maps decode through fzstd", () => {
+  const map = join(fixtures(), "gale_default.dftpc");
+  const script = `import { readFileSync } from "node:fs";
+    const data = new Uint8Array(readFileSync(${JSON.stringify(map)}));
+    delete globalThis.fetch;
+    globalThis.Buffer = undefined;
+    const { decode, ready } = await import(${JSON.stringify(join(WEB, "dist", "dftpcc.mjs"))});
+    const m = decode(data);
+    console.log(m.statistics.cells > 0, await ready());`;
+  const run = spawnSync(process.execPath, ["--input-type=module", "-e", script], { encoding: "utf8", timeout: 60_000 });
+  assert.equal(run.stderr, "");
+  assert.equal(run.stdout.trim(), "true false");
 });
