@@ -37,9 +37,10 @@ test-web: $(STAMP) $(WEB_STAMP)
 	cd web && PYTHON=$(abspath $(BIN))/python node --test --test-concurrency=1 test/*.test.mjs
 
 # JS decode speed (M cells/s) in Node and in headless chromium against the Python decoder and the lerc npm
-# decoder (at equal maximum error), same run, one core each, on the shared DEMs and a 4 M-cell mosaic (~6 min;
-# ARGS="--repeats N --side S --no-mosaic --no-browser"); then the viewer's time to first rendered frame of the
-# mosaic in headless chromium (~2 min).
+# decoder (at equal maximum error), same run, one core each, on the shared DEMs and a 4 M-cell mosaic, after
+# W warm-up decodes, and where Chromium's time goes stage by stage (~3 min; ARGS="--repeats N --warmup W
+# --side S --no-mosaic --no-browser"); then the viewer's time to first rendered frame of the mosaic in
+# headless chromium (~1 min). web/bench/ab.mjs compares two builds interleaved in one page.
 .PHONY: bench-web
 bench-web: $(STAMP) $(WEB_STAMP)
 	cd web && npm run build

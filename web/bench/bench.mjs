@@ -1,16 +1,22 @@
 // Decode speed of the JavaScript decoder in Node and in headless Chromium, against the Python decoder
 // and the `lerc` npm decoder (Esri's LERC, WebAssembly) at equal maximum error, all in the same run
-// (make bench-web; ARGS: --repeats N, --side S for the mosaic, --no-mosaic, --no-browser, --dist D for
-// another build's dist/ folder, such as an earlier commit's, to compare in interleaved runs).
+// (make bench-web; ARGS: --repeats N, --warmup W, --side S for the mosaic, --no-mosaic, --no-browser,
+// --dist D for another build's dist/ folder, such as an earlier commit's, to compare in interleaved runs).
 // Each shared DEM is compressed by the Python codec at its defaults (and once with a maximum-error
 // target, whose residual layer is decoded too), and so is a S x S mosaic of them (4 M cells by
 // default: benchmarks/bench_big.py's layout); each default file's DEM is LERC-encoded with maxZErr
 // = the file's stated maximum error (bench/lerc_encode.py). The table gives million cells (rows x
-// cols) per second: medians of N decodes after a warm-up, in CPU time, so that a shared machine's
+// cols) per second: medians of N decodes after W warm-up decodes of the same file (the first few
+// decodes in a fresh engine run before V8 has optimised the JavaScript and the WebAssembly: the
+// first decode's own time is printed apart, and the viewer's first frame is timed by
+// first_frame.mjs), in CPU time, so that a shared machine's
 // other work does not count: Node's and Python's process time, both pinned to core 0 (taskset -c 0
 // when it exists), and Chromium's page main thread (DevTools task durations in thread ticks). A second
 // table times progressive prefixes of each untiled default map in Chromium (float32, as the viewer
 // asks): the first 5 % and 25 % of the bytes decoded exactly and as a preview, against the whole file.
+// A third says where a whole decode's time goes in Chromium, stage by stage (wall-clock milliseconds
+// a decode, each stage's median over N decodes, from the build's internals.mjs; the stages of the
+// map's path only).
 import { spawnSync } from "node:child_process";
 import { createReadStream, existsSync, mkdtempSync, readdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { createServer } from "node:http";
@@ -23,10 +29,13 @@ import { python, ROOT } from "../test/helpers.mjs";
 const args = process.argv.slice(2);
 const opt = (name, dflt) => (args.includes(name) ? args[args.indexOf(name) + 1] : dflt);
 const DIST = resolve(opt("--dist", new URL("../dist", import.meta.url).pathname));
-const { decode } = await import(join(DIST, "dftpcc.mjs"));
+const { decode, ready } = await import(join(DIST, "dftpcc.mjs"));
+// A build with the WebAssembly zstd decoder starts it asynchronously: timed once it has loaded.
+if (ready) await ready();
 /** Prefix lengths (fractions of a file's bytes) of the progressive table. */
 const PREFIXES = [0.05, 0.25];
 const REPEATS = Number(opt("--repeats", 7));
+const WARMUP = Number(opt("--warmup", 5));
 const SIDE = Number(opt("--side", 2048));
 const WEB = join(ROOT, "web");
 const DATA = join(ROOT, "..", "shared", "data");
@@ -44,11 +53,12 @@ const cpu = () => {
   return (u.user + u.system) / 1000;
 };
 
-/** Median CPU seconds of `f` over REPEATS calls after one warm-up, and the warm-up's own. */
+/** Median CPU seconds of `f` over REPEATS calls after WARMUP warm-up calls, and the first call's own. */
 function timeCpu(f) {
   const t0 = cpu();
   const result = f();
   const cold = cpu() - t0;
+  for (let k = 1; k < WARMUP; k++) f();
   const times = [];
   for (let k = 0; k < REPEATS; k++) {
     const t = cpu();
@@ -62,7 +72,7 @@ function timeCpu(f) {
 async function inChromium(dir, names) {
   const { default: puppeteer } = await import("puppeteer-core");
   const types = { ".mjs": "text/javascript", ".js": "text/javascript", ".wasm": "application/wasm", ".html": "text/html" };
-  const routes = { "/dftpcc.mjs": join(DIST, "dftpcc.mjs"), "/lerc/LercDecode.es.js": join(WEB, "node_modules", "lerc", "LercDecode.es.js"),
+  const routes = { "/dftpcc.mjs": join(DIST, "dftpcc.mjs"), "/internals.mjs": join(DIST, "internals.mjs"), "/lerc/LercDecode.es.js": join(WEB, "node_modules", "lerc", "LercDecode.es.js"),
     "/lerc/lerc-wasm.wasm": join(WEB, "node_modules", "lerc", "lerc-wasm.wasm") };
   const server = createServer((req, res) => {
     const path = req.url === "/" ? null : routes[req.url] ?? join(dir, req.url.slice(1).replace(/[^\w.-]/g, ""));
@@ -96,20 +106,28 @@ async function inChromium(dir, names) {
     await cdp.send("Performance.enable", { timeDomain: "threadTicks" });
     const taskSeconds = async () => (await cdp.send("Performance.getMetrics")).metrics.find((m) => m.name === "TaskDuration").value;
     await page.evaluate(async () => {
-      const { decode } = await import("/dftpcc.mjs");
+      const { decode, ready } = await import("/dftpcc.mjs");
+      if (ready) await ready();
       const Lerc = await import("/lerc/LercDecode.es.js");
       await Lerc.load({ locateFile: (name) => `/lerc/${name}` });
-      Object.assign(window, { decodeDftpcc: decode, Lerc });
+      // A build before the stage timings has no stageTimes: its table is left out.
+      const internals = await import("/internals.mjs");
+      if (internals.ready) await internals.ready();
+      Object.assign(window, { decodeDftpcc: decode, Lerc, internals: internals.stageTimes ? internals : null });
     });
-    const timePage = async (f, arg) => {
-      await page.evaluate(f, arg); // warm-up
+    /** Median main-thread seconds of REPEATS calls after WARMUP calls, and the first call's own. */
+    const timePage = async (f, arg, withFirst = false) => {
+      const t00 = await taskSeconds();
+      await page.evaluate(f, arg);
+      const first = (await taskSeconds()) - t00;
+      for (let k = 1; k < WARMUP; k++) await page.evaluate(f, arg);
       const t = [];
       for (let k = 0; k < REPEATS; k++) {
         const t0 = await taskSeconds();
         await page.evaluate(f, arg);
         t.push((await taskSeconds()) - t0);
       }
-      return median(t);
+      return withFirst ? { seconds: median(t), first } : median(t);
     };
     const out = {};
     for (const name of names) {
@@ -118,7 +136,28 @@ async function inChromium(dir, names) {
         window.data = new Uint8Array(await (await fetch(`/${name}.dftpc`)).arrayBuffer());
         window.lercBlob = hasLerc ? new Uint8Array(await (await fetch(`/${name}.lerc`)).arrayBuffer()) : null;
       }, name, hasLerc);
-      out[name] = { js: await timePage(() => void window.decodeDftpcc(window.data)) };
+      const js = await timePage(() => void window.decodeDftpcc(window.data), undefined, true);
+      out[name] = { js: js.seconds, first: js.first };
+      // Stages of the same decodes (a separate bundle: its own warm-up), milliseconds a decode:
+      // each stage's median over the decodes (wall clock: a median leaves out most of the time
+      // another process took the core).
+      out[name].stages = await page.evaluate((warmup, repeats) => {
+        const i = window.internals;
+        if (!i) return null;
+        for (let k = 0; k < warmup; k++) i.decode(window.data);
+        const runs = [];
+        for (let k = 0; k < repeats; k++) {
+          i.stageTimes(true);
+          i.decode(window.data);
+          runs.push(i.stageTimes(false));
+        }
+        const ms = {};
+        for (const key of Object.keys(runs[0])) {
+          const v = runs.map((r) => r[key] ?? 0).sort((a, b) => a - b);
+          ms[key] = v[Math.floor(v.length / 2)];
+        }
+        return ms;
+      }, WARMUP, REPEATS);
       if (hasLerc) out[name].lerc = await timePage(() => void window.Lerc.decode(window.lercBlob));
       if (!name.includes(".")) {
         // Progressive prefixes as the viewer's worker decodes them (an older build ignores preview).
@@ -198,14 +237,15 @@ build_raster(Path(${JSON.stringify(DATA)}), Path(sys.argv[1]), ${SIDE})`, tif]);
   let browser = null;
   if (!args.includes("--no-browser")) {
     browser = await inChromium(dir, names);
-    for (const r of rows) Object.assign(r, { jsChromium: browser.out[r.stem].js, lercChromium: browser.out[r.stem].lerc });
+    for (const r of rows) Object.assign(r, { jsChromium: browser.out[r.stem].js, jsFirst: browser.out[r.stem].first, lercChromium: browser.out[r.stem].lerc });
   }
   const rate = (r, s) => (s ? (r.cells / s / 1e6).toFixed(2) : "");
-  console.log("| map | cells | bytes | JS Node | JS Chromium | Python | JS Node / Python | JS Chromium / Python | LERC bytes (same max error) | lerc Node | lerc Chromium |");
-  console.log("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+  console.log("| map | cells | bytes | JS Node | JS Chromium | Python | JS Node / Python | JS Chromium / Python | JS first decode Node, Chromium | LERC bytes (same max error) | lerc Node | lerc Chromium |");
+  console.log("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
   for (const r of rows) {
     console.log(`| ${r.stem} | ${r.cells} | ${r.bytes} | ${rate(r, r.js)} | ${rate(r, r.jsChromium)} | ${rate(r, r.py)} | `
       + `${(r.py / r.js).toFixed(2)} | ${r.jsChromium ? (r.py / r.jsChromium).toFixed(2) : ""} | `
+      + `${rate(r, r.cold)}${r.jsFirst ? `, ${rate(r, r.jsFirst)}` : ""} | `
       + `${r.lercBytes ? `${r.lercBytes} (${r.maxError.toPrecision(3)} m)` : ""} | ${rate(r, r.lerc)} | ${rate(r, r.lercChromium)} |`);
   }
   if (browser) {
@@ -218,7 +258,17 @@ build_raster(Path(${JSON.stringify(DATA)}), Path(sys.argv[1]), ${SIDE})`, tif]);
       console.log(`| ${r.stem} | ${ms(p.whole)} | ${PREFIXES.map((f) => (p[f] ? `${ms(p[f].exact)} | ${ms(p[f].preview)}` : "header only | header only")).join(" | ")} |`);
     }
   }
-  console.log(`\nM cells per second: medians of ${REPEATS} decodes after one warm-up each. Node and Python: CPU time, `
+  const staged = browser ? rows.filter((r) => browser.out[r.stem].stages) : [];
+  if (staged.length) {
+    const names = [...new Set(staged.flatMap((r) => Object.keys(browser.out[r.stem].stages)))];
+    console.log(`\n| map (Chromium, ms a decode) | ${names.join(" | ")} |`);
+    console.log(`|---|${names.map(() => "---:").join("|")}|`);
+    for (const r of staged) {
+      const st = browser.out[r.stem].stages;
+      console.log(`| ${r.stem} | ${names.map((n) => (st[n] === undefined ? "" : st[n].toFixed(2))).join(" | ")} |`);
+    }
+  }
+  console.log(`\nM cells per second: medians of ${REPEATS} decodes after ${WARMUP} warm-up decodes each (first decode: the first of them). Node and Python: CPU time, `
     + `${pinned ? "both pinned to core 0 (taskset)" : "not pinned"}; Chromium: CPU time of the page's main thread (DevTools task durations in thread ticks)${pinned ? ", pinned to core 0" : ""}. `
     + `node ${process.version}${browser ? `, ${browser.version}` : ""}. LERC at maxZErr = the dftpcc file's stated maximum error. `
     + `Prefixes: CPU time of the page's main thread, medians likewise. Build: ${DIST}.`);

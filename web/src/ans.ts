@@ -4,6 +4,7 @@
 // quantized as constriction's `perfect=False` models are (docs/format.md, "ANS").
 import { u32 } from "./bytes.js";
 import { CorruptFileError } from "./errors.js";
+import { align16, Kernels } from "./wasm.js";
 
 const PRECISION = 24;
 const ONE = 1 << PRECISION; // 2**24
@@ -228,4 +229,43 @@ export function slotsOf(cdf: Int32Array, n: number): Int32Array {
   slots[m] = n - 1;
   slotTables.set(cdf, slots);
   return slots;
+}
+
+/** Symbols from which the kernels search a quantile's slot rather than the whole table: a slot
+ * table is built once per model and stays in the kernels' memory (Kernels.ints), so even a short
+ * group's search pays for it (a binary search of a wide table costs a mispredicted branch a step). */
+const KERNEL_SLOTTED_SYMBOLS = 64;
+
+/**
+ * decodeGroup over consecutive groups of one chunk in the WebAssembly kernels (kernels.ts ansGroups):
+ * `words` the chunk's ANS words (checked by an AnsDecoder), groups[g] `count` values of the model
+ * `cdf` (tableModel of maxAbs), their positions in `out` at[...] in group order; the same symbols as
+ * the TypeScript decoder; `out` (the chunk's values) gets zeros where no group writes. Throws
+ * WasmMemoryError when the kernels' memory cannot hold the chunk.
+ */
+export function ansInKernels(k: Kernels, words: Uint8Array, groups: Array<{ cdf: Int32Array; count: number }>,
+  maxAbs: number, at: Int32Array, out: Float64Array): void {
+  const n = 2 * maxAbs + 1;
+  const values = at.length;
+  const wordsBytes = align16(words.length);
+  const descBytes = align16(16 * groups.length);
+  const wP = k.scratch(wordsBytes + descBytes + align16(4 * values) + 8 * out.length);
+  const dP = wP + wordsBytes;
+  const atP = dP + descBytes;
+  const outP = atP + align16(4 * values);
+  // The tables above the scratch region, uploaded once per model (they move when it grows).
+  const desc = new Int32Array(4 * groups.length);
+  groups.forEach((g, q) => {
+    desc.set([k.ints(g.cdf), n >= KERNEL_SLOTTED_SYMBOLS ? k.ints(slotsOf(g.cdf, n)) : 0, n, g.count], 4 * q);
+  });
+  const mem = k.bytes();
+  mem.set(words, wP);
+  const i32 = new Int32Array(mem.buffer);
+  i32.set(desc, dP / 4);
+  i32.set(at, atP / 4);
+  // Positions in no group (code 0's) stay zero, as in `out` before the TypeScript path writes it.
+  const res = new Float64Array(mem.buffer, outP, out.length);
+  res.fill(0);
+  k.ex.ansGroups(wP, words.length / 4, dP, groups.length, atP, outP, maxAbs, SLOT_SHIFT);
+  out.set(res);
 }

@@ -3,6 +3,7 @@
 import CRC32 from "crc-32";
 import { Decompress, decompress as zstdDecompress } from "fzstd";
 import { CorruptFileError } from "./errors.js";
+import { NATIVE_MAX_BYTES, nativeZstd } from "./zstd.js";
 
 export const ZSTD_MAGIC = [0x28, 0xb5, 0x2f, 0xfd];
 
@@ -122,7 +123,12 @@ export function inflate(frame: Uint8Array, limit: number, what: string): Uint8Ar
   if (head.contentSize === 0) return new Uint8Array(0);
   let out: Uint8Array;
   try {
-    out = head.contentSize === null ? inflateBounded(frame, limit, what) : zstdDecompress(frame);
+    const native = head.contentSize !== null && head.contentSize <= NATIVE_MAX_BYTES ? nativeZstd() : null;
+    if (native) {
+      // libzstd writes at most the declared size; an error (a negative size) gives no bytes.
+      out = native.decode(frame, head.contentSize!);
+      if (out.length === 0) throw new CorruptFileError(`${what} does not decompress`);
+    } else out = head.contentSize === null ? inflateBounded(frame, limit, what) : zstdDecompress(frame);
   } catch (exc) {
     if (exc instanceof CorruptFileError) throw exc;
     throw new CorruptFileError(`${what} does not decompress: ${exc instanceof Error ? exc.message : String(exc)}`);

@@ -1,8 +1,10 @@
 // COEF-structured streams (format.md, "COEF"): chunks of kinds 0 (zstd byte planes), 1 (complex64)
 // and 3 (ANS with table models), as COEF, BASE, RESD and a sparse residual's magnitudes hold them.
-import { AnsDecoder, decodeGroup, tableModel } from "./ans.js";
+import { AnsDecoder, ansInKernels, decodeGroup, tableModel } from "./ans.js";
 import { crc32, f32, inflate, u32 } from "./bytes.js";
 import { CorruptFileError } from "./errors.js";
+import { lap, mark } from "./stages.js";
+import { kernels, WasmMemoryError } from "./wasm.js";
 
 export const MAX_CHUNK_COEFS = 2 ** 28;
 export const MAX_ANS_SYMBOL = 2 ** 15;
@@ -50,6 +52,7 @@ export function decodeStream(p: Uint8Array, total: number, radius: Float64Array 
   }
   let pos = 4;
   let stop = 0;
+  let t = mark();
   let kinds = 0; // bit k: a chunk of kind k
   for (let k = 0; k < nchunks; k++) {
     if (pos + 16 > p.length) {
@@ -72,6 +75,7 @@ export function decodeStream(p: Uint8Array, total: number, radius: Float64Array 
     }
     const body = p.subarray(pos + 16, pos + 16 + nbytes);
     if (crc32(body) !== crc) throw new CorruptFileError(`${name} chunk ${k} fails its checksum`);
+    t = lap("checksums", t);
     pos += 16 + nbytes;
     stop = start + count;
     const what = `${name} chunk ${k}`;
@@ -83,8 +87,13 @@ export function decodeStream(p: Uint8Array, total: number, radius: Float64Array 
     } else if (kind === 0 || kind === 3) {
       if (complex) throw new CorruptFileError(`${name} chunks mix kinds`);
       ints ??= new Float64Array(total);
-      if (kind === 0) zstdChunk(body, count, ints, start, what);
-      else ansChunk(body, count, ints, start, radius, angle, what);
+      if (kind === 0) {
+        zstdChunk(body, count, ints, start, what);
+        t = lap("coefficients (zstd)", t);
+      } else {
+        ansChunk(body, count, ints, start, radius, angle, what);
+        t = lap("coefficients (ANS)", t);
+      }
     } else {
       throw new CorruptFileError(`${what} has unknown kind ${kind}`);
     }
@@ -135,6 +144,29 @@ function zstdChunk(body: Uint8Array, count: number, out: Float64Array, start: nu
   }
 }
 
+/** The band of a coefficient at radius r and angle a (format.md, COEF kind 3, step 1). */
+function bandOf(r: number, a: number, width: number, sectors: number): number {
+  return Math.floor(r / width) * sectors + Math.min(Math.floor(a * sectors), sectors - 1);
+}
+
+const bandTables = new WeakMap<Float64Array, Array<Int32Array | undefined>>();
+
+/** Every coefficient's band in a layout, for a stream's radius and angle arrays: computed once while
+ * the arrays live (layout.ts caches a grid's order, so a map's later decodes, such as a progressive
+ * load's prefixes, skip the floating-point steps). */
+function bandsOf(radius: Float64Array, angle: Float64Array, layout: number): Int32Array {
+  let byLayout = bandTables.get(radius);
+  if (!byLayout) bandTables.set(radius, (byLayout = []));
+  let bands = byLayout[layout];
+  if (!bands) {
+    const [width, sectors] = BAND_LAYOUTS[layout];
+    bands = new Int32Array(radius.length);
+    for (let v = 0; v < radius.length; v++) bands[v] = bandOf(radius[v], angle[v], width, sectors);
+    byLayout[layout] = bands;
+  }
+  return bands;
+}
+
 function ansChunk(body: Uint8Array, count: number, out: Float64Array, start: number,
   radius: Float64Array | null, angle: Float64Array | null, what: string): void {
   if (body.length < 9) throw new CorruptFileError(`${what} is truncated`);
@@ -144,17 +176,27 @@ function ansChunk(body: Uint8Array, count: number, out: Float64Array, start: num
   if (layout >= BAND_LAYOUTS.length || maxAbs > MAX_ANS_SYMBOL || 9 + side > body.length) {
     throw new CorruptFileError(`${what} has an implausible header`);
   }
-  const [width, sectors] = BAND_LAYOUTS[layout];
+  const bands = radius && angle && radius.length === angle.length && radius.length >= start + count ? bandsOf(radius, angle, layout) : null;
   const band = new Int32Array(count);
   let lo = Infinity;
   let hi = -Infinity;
-  for (let v = 0; v < count; v++) {
-    const r = radius ? radius[start + v] : 0;
-    const a = angle ? angle[start + v] : 0;
-    const b = Math.floor(r / width) * sectors + Math.min(Math.floor(a * sectors), sectors - 1);
-    band[v] = b;
-    if (b < lo) lo = b;
-    if (b > hi) hi = b;
+  if (bands) {
+    for (let v = 0; v < count; v++) {
+      const b = bands[start + v];
+      band[v] = b;
+      if (b < lo) lo = b;
+      if (b > hi) hi = b;
+    }
+  } else {
+    const [width, sectors] = BAND_LAYOUTS[layout];
+    for (let v = 0; v < count; v++) {
+      const r = radius ? radius[start + v] : 0;
+      const a = angle ? angle[start + v] : 0;
+      const b = bandOf(r, a, width, sectors);
+      band[v] = b;
+      if (b < lo) lo = b;
+      if (b > hi) hi = b;
+    }
   }
   const nbands = hi - lo + 1;
   let codes: Uint8Array;
@@ -177,10 +219,23 @@ function ansChunk(body: Uint8Array, count: number, out: Float64Array, start: num
   for (let c = 0; c < 256; c++) ends[c + 1] += ends[c];
   const at = new Int32Array(count);
   const fill = ends.slice(0, 256);
-  for (let v = 0; v < count; v++) at[fill[band[v]]++] = start + v;
-  const coder = new AnsDecoder(body.subarray(9 + side), what);
-  for (let c = 1; c < 256; c++) {
-    if (ends[c + 1] === ends[c]) continue;
-    decodeGroup(coder, tableModel(maxAbs, c, what), maxAbs, out, at.subarray(ends[c], ends[c + 1]), ends[c + 1] - ends[c]);
+  for (let v = 0; v < count; v++) at[fill[band[v]]++] = v;
+  const words = body.subarray(9 + side);
+  const coder = new AnsDecoder(words, what); // checks the words before either path reads them
+  const used: number[] = [];
+  for (let c = 1; c < 256; c++) if (ends[c + 1] > ends[c]) used.push(c);
+  const models = used.map((c) => tableModel(maxAbs, c, what));
+  const here = out.subarray(start, start + count);
+  const k = kernels();
+  if (k && used.length) {
+    try {
+      const groups = used.map((c, q) => ({ cdf: models[q], count: ends[c + 1] - ends[c] }));
+      // Code 0's values (zeros) come first in `at`: the kernel decodes the rest.
+      ansInKernels(k, words, groups, maxAbs, at.subarray(ends[1]), here);
+      return;
+    } catch (e) {
+      if (!(e instanceof WasmMemoryError)) throw e;
+    }
   }
+  used.forEach((c, q) => decodeGroup(coder, models[q], maxAbs, here, at.subarray(ends[c], ends[c + 1]), ends[c + 1] - ends[c]));
 }

@@ -10,6 +10,7 @@ import {
 import { CorruptFileError, guard, InvalidInputError, ResourceLimitError } from "./errors.js";
 import { baseCut, cutOf, prefix, Transform } from "./layout.js";
 import { countOnes, decodeMask } from "./mask.js";
+import { lap, mark } from "./stages.js";
 import { decodeResidual } from "./residual.js";
 import { addIdct, idctFinishedInKernels, idctInKernels, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
 import { align16, Kernels, kernels, releaseKernels, WasmMemoryError } from "./wasm.js";
@@ -140,7 +141,9 @@ function open(bytes: Uint8Array, options: DecodeOptions): Opened {
 export function decode(bytes: Uint8Array, options: DecodeOptions = {}): DecodedMap {
   return guard("damaged file", () => {
     try {
+      const t = mark();
       const o = open(bytes, options);
+      lap("header", t);
       const out = o.header.tiled ? decodeTiled(o, options) : decodeWhole(o, options);
       return out;
     } finally {
@@ -192,8 +195,10 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   const { geometry: g, params, stats } = o.header;
   const { rows, cols } = g;
   const [wr0, wr1, wc0, wc1] = checkWindow(options, rows, cols);
+  let t = mark();
   const mask = decodeMask(o.sections.get("MASK")!, rows, cols);
   if (countOnes(mask) !== g.cells) throw new CorruptFileError("occupancy mask disagrees with the header's cell count");
+  t = lap("mask", t);
   const kind: Transform = params.transform === "dct" ? "dct" : params.storage === "complex64" ? "dft-full" : "dft-half";
   const pre = prefix(rows, cols, kind, cutOf(rows, cols, kind, params.cutoff, o.legacy));
   const kept = pre.pos.length;
@@ -221,7 +226,9 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     }
   }
   const coef = o.sections.get("COEF")!;
+  t = lap("coefficient order", t);
   const s = decodeStream(coef, per * kept, radius, angle, { partial: o.cutCoef });
+  t = mark();
   // A progressive prefix holds the first coefficients only (the rest are zeros): its corner of the
   // spectrum, and so its inverse, is that much smaller.
   if (kind === "dct") use = Math.min(use, s.decoded);
@@ -241,9 +248,12 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
       const v = s.complex;
       corner = cornerOf(pre.pos, use, v, 2, 1, cols); // a complex64 DCT: the real parts
     }
+    t = lap("corner", t);
     if (k && corner && previewStride(corner, rows, cols, preview) === 1) {
       try {
-        return finishInKernels(k, o, corner, mask, rows, cols, [wr0, wr1, wc0, wc1], plane, options, o.cutCoef);
+        const out = finishInKernels(k, o, corner, mask, rows, cols, [wr0, wr1, wc0, wc1], plane, options, o.cutCoef);
+        lap("inverse and finish (WebAssembly)", t);
+        return out;
       } catch (e) {
         if (!(e instanceof WasmMemoryError)) throw e;
       }
@@ -273,17 +283,22 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
       irfft2(pre.pos.subarray(0, use), v.subarray(0, 2 * use), rows, cols, h);
     }
   }
+  t = lap("inverse", t);
   const resd = o.sections.get("RESD");
   if (resd) {
     const e = params.target_max_error;
     if (!(e > 0)) throw new CorruptFileError("a residual layer (RESD) in a file without a maximum-error target");
     const q = decodeResidual(resd, mask, rows, cols);
+    t = lap("residual layer", t);
     // The plane first, as the writer sums them (heights + plane, then the residual).
     if (params.detrend === "plane") addPlane(h, rows, cols, g.plane);
     for (let k = 0, c = 0; k < mask.length; k++) if (mask[k]) h[k] += q[c++] * 2 * e * (1 - 1e-6);
-    return finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], null, options, o.cutCoef);
+    const out = finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], null, options, o.cutCoef);
+    lap("finish", t);
+    return out;
   }
   const out = finishWindow(o, h, mask, rows, cols, [wr0, wr1, wc0, wc1], plane, options, o.cutCoef);
+  lap("finish", t);
   if (stride > 1) out.stride = stride;
   return out;
 }

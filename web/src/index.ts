@@ -5,3 +5,4 @@ export type { DecodeOptions, DecodedMap, Header } from "./decode.js";
 export { applyDelta } from "./delta.js";
 export { DftpccError, CorruptFileError, ResourceLimitError, UnsupportedFormatError, InvalidInputError } from "./errors.js";
 export { useWasm } from "./wasm.js";
+export { ready } from "./zstd.js";

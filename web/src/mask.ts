@@ -10,6 +10,9 @@ const POPCOUNT = Uint8Array.from({ length: 256 }, (_, c) => {
   return n;
 });
 
+/** A bitmap byte of eight rebuilt cells. */
+const FULL = 0xff;
+
 /** A bitmap byte's eight cells (most significant bit first) as bytes 0 or 1 in two little-endian words. */
 const BITS_LO = new Uint32Array(256);
 const BITS_HI = new Uint32Array(256);
@@ -48,9 +51,20 @@ export function decodeMask(p: Uint8Array, rows: number, cols: number): Uint8Arra
     // Eight cells a byte as two little-endian words of a table (a per-cell shift costs a few ns a cell in V8).
     const whole = out.length >> 3;
     const words = new Uint32Array(out.buffer, 0, 2 * whole);
-    for (let i = 0; i < whole; i++) {
-      words[2 * i] = BITS_LO[raw[i]];
-      words[2 * i + 1] = BITS_HI[raw[i]];
+    // A map's mask is mostly runs of full bytes (and the zeros of an empty stretch, which the array
+    // holds already): a run is one fill.
+    for (let i = 0; i < whole;) {
+      const b = raw[i];
+      if (b === FULL || b === 0) {
+        let j = i + 1;
+        while (j < whole && raw[j] === b) j++;
+        if (b) out.fill(1, 8 * i, 8 * j);
+        i = j;
+        continue;
+      }
+      words[2 * i] = BITS_LO[b];
+      words[2 * i + 1] = BITS_HI[b];
+      i++;
     }
     for (let k = 8 * whole; k < out.length; k++) out[k] = (raw[k >> 3] >> (7 - (k & 7))) & 1;
     return out;

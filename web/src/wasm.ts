@@ -19,6 +19,7 @@ interface Exports {
     out: number, ooff: number, ovs: number, oes: number, w: number): void;
   finish(h: number, mask: number, out: number, cols: number, wr0: number, wr1: number, wc0: number, wc1: number,
     z0: number, a: number, b: number, c: number, f32: number, res: number): number;
+  ansGroups(words: number, nwords: number, groups: number, ngroups: number, at: number, out: number, maxAbs: number, slotShift: number): void;
 }
 
 /** The kernels' memory could not grow: the caller runs the TypeScript path instead. */
@@ -118,6 +119,16 @@ export class Kernels {
     return p;
   }
 
+  /** An Int32Array's copy above the scratch region (a model's table), uploaded once while it lives. */
+  ints(a: Int32Array): number {
+    return this.cached(a, () => {
+      const p = this.alloc(4 * a.length);
+      this.views();
+      this.i32.set(a, p / 4);
+      return p;
+    });
+  }
+
   private words(ptr: number, w: number[]): void {
     this.views();
     this.i32.set(w, ptr / 4);
@@ -201,6 +212,11 @@ export function kernels(): Kernels | null {
 /** Lets the kernels' memory go when it grew past RETAIN_BYTES (called after each decode). */
 export function releaseKernels(): void {
   if (loaded && loaded.held() > RETAIN_BYTES) loaded = null;
+}
+
+/** Whether decodes may use WebAssembly (useWasm), for the zstd decoder (zstd.ts). */
+export function wasmEnabled(): boolean {
+  return enabled;
 }
 
 /** Turns the WebAssembly SIMD kernels on (the default) or off (the TypeScript path alone, as where

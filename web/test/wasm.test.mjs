@@ -9,11 +9,13 @@ import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { test } from "node:test";
 import puppeteer from "puppeteer-core";
-import { decode, useWasm } from "../dist/dftpcc.mjs";
+import { decode, ready, useWasm } from "../dist/dftpcc.mjs";
 import * as internals from "../dist/internals.mjs";
 import { bytes, fixtures, WEB } from "./helpers.mjs";
 
 const DIR = fixtures();
+// The WebAssembly zstd decoder loaded before the comparisons: the kernels' side of each is all WebAssembly.
+const zstdLoaded = await ready();
 
 /** Index of the first element where a and b differ (NaN equal to NaN, 0 to -0), or -1. */
 function firstDiff(a, b) {
@@ -40,6 +42,7 @@ function both(data, options) {
 
 test("the kernels load in Node (WebAssembly SIMD), and useWasm switches them off and on", () => {
   assert.ok(internals.kernels(), "no WebAssembly SIMD kernels");
+  assert.ok(zstdLoaded, "the WebAssembly zstd decoder did not load");
   assert.equal(useWasm(false), false);
   assert.equal(useWasm(true), true);
 });
@@ -183,6 +186,45 @@ for (const [rows, cols, K, L] of [[90, 77, 60, 50], [200, 180, 150, 120], [160, 
     });
   }
 }
+
+test("the kernels' ANS decoder gives the TypeScript decoder's symbols, on any words (damaged ones too)", () => {
+  const k = internals.kernels();
+  let seed = 12345;
+  const rand = () => ((seed = (Math.imul(seed, 1103515245) + 12345) >>> 0) / 2 ** 32);
+  let compared = 0;
+  // Narrow and wide alphabets (a wide one's table searched through its slots), groups below and above
+  // the TypeScript path's slotted size, and word runs that end before the symbols do (state refills stop).
+  for (const maxAbs of [1, 3, 40, 2000, 23118]) {
+    for (const nwords of [0, 1, 2, 7, 3000]) {
+      const counts = [1, 5, 300, 1024, 2500].filter(() => rand() < 0.8);
+      if (!counts.length) counts.push(17);
+      const codes = counts.map(() => 1 + Math.floor(rand() * 255));
+      const total = counts.reduce((a, b) => a + b, 0) + 33; // 33 positions in no group stay zero
+      const words = new Uint8Array(4 * nwords);
+      for (let b = 0; b < words.length; b++) words[b] = Math.floor(rand() * 256);
+      if (nwords) words[words.length - 1] |= 1; // a last word of zero is refused before either path
+      const perm = Int32Array.from({ length: total }, (_, i) => i);
+      for (let i = total - 1; i > 0; i--) {
+        const j = Math.floor(rand() * (i + 1));
+        [perm[i], perm[j]] = [perm[j], perm[i]];
+      }
+      const at = perm.subarray(0, total - 33);
+      const models = codes.map((c) => internals.tableModel(maxAbs, c, "test"));
+      const ts = new Float64Array(total);
+      const coder = new internals.AnsDecoder(words, "test");
+      let from = 0;
+      counts.forEach((n, q) => {
+        internals.decodeGroup(coder, models[q], maxAbs, ts, at.subarray(from, from + n), n);
+        from += n;
+      });
+      const wasm = new Float64Array(total).fill(7); // the kernel's zeros overwrite whatever was there
+      internals.ansInKernels(k, words, counts.map((n, q) => ({ cdf: models[q], count: n })), maxAbs, at, wasm);
+      assert.equal(firstDiff(wasm, ts), -1, `maxAbs ${maxAbs}, ${nwords} words, groups ${counts}: symbols differ`);
+      compared++;
+    }
+  }
+  assert.equal(compared, 25);
+});
 
 test("a kernels' decode leaves the caller's buffers alone: the heights outlive the next decode", () => {
   const name = maps.find((n) => n.startsWith("gale_default"));

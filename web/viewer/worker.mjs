@@ -1,6 +1,10 @@
 // Decodes in a Web Worker so the page keeps turning while a large map (or the next prefix of a
 // progressive one) decodes. One request at a time: {id, bytes, fileSize, window?} -> {id, map} or {id, error}.
-import { decode, readHeader } from "../src/index.ts";
+import { decode, readHeader, ready } from "../src/index.ts";
+
+// The WebAssembly zstd decoder loads while the first bytes are on their way (decodes before it has
+// loaded use fzstd).
+void ready();
 
 self.onmessage = (event) => {
   const { id, op, bytes, fileSize, window: win } = event.data;

@@ -679,3 +679,51 @@ export function sumsAxis(inp: usize, ioff: i32, ivs: i32, ies: i32, nvec: i32, k
     }
   }
 }
+
+/**
+ * The ANS decoder of src/ans.ts (AnsDecoder, decodeGroup) for one chunk of COEF kind 3 (or RESD
+ * kind 5): the stack coder's state is a u64 here, not two halves in doubles (the same integers).
+ * words: the chunk's nwords u32 words (little-endian, read from the last; the JavaScript side has
+ * checked that the last is nonzero). groups: ngroups descriptors of four i32 (the cumulative table's
+ * offset, its slot table's offset or 0 (quantiles in slots of 2**slotShift), the model's symbols n, the group's values), decoded one
+ * group after the other; value k of the chunk (in group order) goes to the f64 out[at[k]], as its
+ * symbol - maxAbs. A symbol is the largest s with cdf[s] <= the quantile (cdf strictly increasing:
+ * the slots' narrowing finds the same one as a search of the whole table).
+ */
+export function ansGroups(words: usize, nwords: i32, groups: usize, ngroups: i32, at: usize, out: usize, maxAbs: i32,
+  slotShift: i32): void {
+  let pos = nwords;
+  let state: u64 = 0;
+  if (pos > 0) {
+    state = <u64>load<u32>(words + (<usize>--pos << 2));
+    if (pos > 0) state = (state << 32) | <u64>load<u32>(words + (<usize>--pos << 2));
+  }
+  const off = <f64>maxAbs;
+  let k = 0;
+  for (let g = 0; g < ngroups; g++) {
+    const d = groups + (<usize>g << 4);
+    const cdf = <usize>load<i32>(d);
+    const slots = <usize>load<i32>(d, 4);
+    const n = load<i32>(d, 8);
+    const end = k + load<i32>(d, 12);
+    for (; k < end; k++) {
+      const quantile = <i32>(<u32>state & 0xffffff);
+      let a = 0, b = n - 1;
+      if (slots) {
+        const s = slots + (<usize>(quantile >>> slotShift) << 2);
+        a = load<i32>(s);
+        b = load<i32>(s, 4);
+      }
+      while (a < b) {
+        const m = (a + b + 1) >> 1;
+        if (load<i32>(cdf + (<usize>m << 2)) <= quantile) a = m;
+        else b = m - 1;
+      }
+      const lo = load<i32>(cdf + (<usize>a << 2));
+      const hi = load<i32>(cdf + (<usize>a << 2), 4);
+      state = (state >> 24) * <u64>(hi - lo) + <u64>(quantile - lo);
+      if ((state >> 32) == 0 && pos > 0) state = (state << 32) | <u64>load<u32>(words + (<usize>--pos << 2));
+      store<f64>(out + (<usize>load<i32>(at + (<usize>k << 2)) << 3), <f64>a - off);
+    }
+  }
+}
