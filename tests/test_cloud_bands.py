@@ -138,6 +138,29 @@ def test_a_grid_over_the_cell_limit_is_coded_in_bands_and_a_band_over_it_is_refu
     dftpcc.compress_file(src, tmp_path / "hint.dftpc", tile_size=128, classes=[2], resolution=0.91)
 
 
+def test_a_mostly_empty_grid_past_the_cell_limit_is_refused_before_any_file(small_threshold, banded, tmp_path,
+                                                                             monkeypatch, capsys):
+    """Past the limit of a grid held whole, the band path takes a grid its points fill (a few cells a
+    point), not one that a stray point made nearly all empty: one line naming the cause and a
+    resolution that would do, before any band file or output is written."""
+    monkeypatch.setattr(limits, "MAX_CELLS", 100_000)
+    points = _terrain(100, 100)  # 10,000 points on 100 x 100 m
+    stray = np.vstack([points, [[20_000.0, 20_000.0, 0.0]]])  # one point 20 km away
+    src = tmp_path / "stray.npy"
+    np.save(src, stray)
+    out = tmp_path / "stray.dftpc"
+    with pytest.raises(InvalidInputError, match=r"more than 64 cells a point.*stray points.*resolution of at least"):
+        dftpcc.compress_file(src, out, tile_size=64, resolution=1.0)
+    assert not out.exists() and _spills(tmp_path) == [] and banded == []
+    code = cli.main(["compress", str(src), str(out), "--tile-size", "64", "--resolution", "1", "-q"])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1 and "stray points" in err
+    # Without the stray point the same resolution is a grid its points fill.
+    np.save(src, points)
+    dftpcc.compress_file(src, out, tile_size=64, resolution=1.0)
+    assert out.exists()
+
+
 def _spills(folder):
     return sorted(p.name for p in folder.glob(files.SPILL_PREFIX + "*"))
 

@@ -14,7 +14,8 @@ import os
 
 from .errors import InvalidInputError
 
-__all__ = ["MAX_CELLS", "available_memory", "cell_limit", "check_grid_size", "band_cell_limit", "check_band_size",
+__all__ = ["MAX_CELLS", "BAND_CELLS_PER_POINT", "available_memory", "cell_limit", "check_grid_size", "band_cell_limit",
+           "check_band_size",
            "check_spill_space", "cell_budget", "holds_in_memory"]
 
 #: Largest grid dftpcc builds in memory (cells). A float64 DEM this size is
@@ -109,12 +110,30 @@ def band_cell_limit() -> int:
     return MAX_CELLS if memory is None else max(1, min(MAX_CELLS, memory // BAND_BYTES_PER_CELL))
 
 
-def check_band_size(band_rows: int, rows: float, cols: float, resolution: float) -> None:
-    """Refuse a grid of ``rows`` x ``cols`` cells of ``resolution`` metres, coded band by band in bands of
-    ``band_rows`` rows (a tile's side), whose band holds more than :func:`band_cell_limit` cells."""
+#: A cloud gridded band by band may pass the limit of a grid held whole (:func:`cell_limit`), but not
+#: with more than this many cells a point: such a grid is mostly empty (a stray point kilometres away,
+#: heights in another CRS than the positions, a resolution far finer than the points), and would take
+#: minutes and gigabytes of temporary files to say so (two points 10,000 km apart at 180 m: 589 s and
+#: 53 GB). The shared surveys grid at 1-3 cells a point at their own spacing.
+BAND_CELLS_PER_POINT = 64
+
+
+def check_band_size(band_rows: int, rows: float, cols: float, resolution: float, points: int) -> None:
+    """Refuse a grid of ``rows`` x ``cols`` cells of ``resolution`` metres for ``points`` points, coded band
+    by band in bands of ``band_rows`` rows (a tile's side), whose band holds more than
+    :func:`band_cell_limit` cells, or which passes :func:`cell_limit` with more than
+    :data:`BAND_CELLS_PER_POINT` cells a point."""
     cells = rows * cols
     if not math.isfinite(cells):
         check_grid_size(rows, cols, resolution)  # its refusal of a grid too large to count
+    if cells > max(cell_limit(), BAND_CELLS_PER_POINT * points):
+        # Cells scale with 1/resolution**2: the coarsest step at which the points fill enough of them.
+        need = resolution * math.sqrt(cells / (BAND_CELLS_PER_POINT * points)) * (1 + ROUNDING_MARGIN)
+        raise InvalidInputError(
+            f"the {_count(points)} points span a {_count(rows)} x {_count(cols)} grid ({_count(cells)} cells) at "
+            f"{resolution:g} m: more than {BAND_CELLS_PER_POINT} cells a point, nearly all empty; check the points' "
+            f"extent for stray points or a wrong coordinate system, or use a resolution of at least "
+            f"{_round_up(need):g} m")
     band = min(band_rows, rows) * cols
     limit = band_cell_limit()
     if band <= limit:
