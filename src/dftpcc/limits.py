@@ -131,9 +131,9 @@ def check_band_size(band_rows: int, rows: float, cols: float, resolution: float,
         need = resolution * math.sqrt(cells / (BAND_CELLS_PER_POINT * points)) * (1 + ROUNDING_MARGIN)
         raise InvalidInputError(
             f"the {_count(points)} points span a {_count(rows)} x {_count(cols)} grid ({_count(cells)} cells) at "
-            f"{resolution:g} m: more than {BAND_CELLS_PER_POINT} cells a point, nearly all empty; check the points' "
-            f"extent for stray points or a wrong coordinate system, or use a resolution of at least "
-            f"{_round_up(need):g} m")
+            f"{resolution:g} m, past the {cell_limit():,}-cell limit of a grid held whole with more than "
+            f"{BAND_CELLS_PER_POINT} cells a point, nearly all empty; check the points' extent for stray points or "
+            f"a wrong coordinate system, or use a resolution of at least {_round_up(need):g} m")
     band = min(band_rows, rows) * cols
     limit = band_cell_limit()
     if band <= limit:
