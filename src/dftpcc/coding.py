@@ -125,7 +125,12 @@ def band_ids(radius: np.ndarray, angle: np.ndarray, layout: int, *, rings: np.nd
     ``rings``: ``(radius / width).astype(np.int64)`` for the layout's ring width, if known
     (the layouts of one chunk share their rings).
     """
-    width, sectors = BAND_LAYOUTS[layout]
+    return _layout_bands(radius, angle, *BAND_LAYOUTS[layout], rings=rings)
+
+
+def _layout_bands(radius: np.ndarray, angle: np.ndarray, width: float, sectors: int, *,
+                  rings: np.ndarray | None = None) -> np.ndarray:
+    """:func:`band_ids` under rings of ``width`` and ``sectors`` sectors (the compiled kernels' ``_band_at``)."""
     if rings is None:
         rings = (radius / width).astype(np.int64)
     if sectors == 1:  # one sector: every angle in [0, 1] falls in sector 0
@@ -251,9 +256,7 @@ def _layout_totals(radius: np.ndarray, angle: np.ndarray, width: float, sectors:
     """:func:`~dftpcc.geometric.band_sums`' lowest band, counts and sums of ``magnitudes`` under the
     layout of ring ``width`` and ``sectors`` (:func:`band_ids`): rate control sizes every candidate
     stream under every layout by them."""
-    rings = (radius / width).astype(np.int64)
-    bands = rings if sectors == 1 else rings * sectors + np.minimum((angle * sectors).astype(np.int64), sectors - 1)
-    return geometric._band_totals(bands, magnitudes)
+    return geometric._band_totals(_layout_bands(radius, angle, width, sectors), magnitudes)
 
 
 @kernels.kernel("band_range")
@@ -262,8 +265,7 @@ def _band_range(radius: np.ndarray, angle: np.ndarray, width: float, sectors: in
     """The lowest and highest band of a chunk's values under a layout of ring ``width`` and
     ``sectors`` (:func:`band_ids`), and the bands themselves where the implementation made them
     (None: :func:`_band_codes` works them out again, value by value, without the array)."""
-    rings = (radius / width).astype(np.int64)
-    bands = rings if sectors == 1 else rings * sectors + np.minimum((angle * sectors).astype(np.int64), sectors - 1)
+    bands = _layout_bands(radius, angle, width, sectors)
     return int(bands.min()), int(bands.max()), bands
 
 
