@@ -313,6 +313,16 @@ export function bluesteinForward(plan: usize, re: usize, im: usize): void {
  * plan (bluestein 0, pruned to the band lo = K) or a BluesteinFft plan (bluestein 1). The Dct3
  * plan's words: n, car, sar, cb, sb (tables), re, im (lane buffers).
  */
+// One cell of dctGroup's fused finishing pass, as finish() does it: its height from the transform's
+// output h and the plane at (row, col), NaN where the mask is empty, stored at cell k and returned.
+@inline function finishCell(k: i32, h: f64, row: f64, col: f64, z0: f64, a: f64, b: f64, c: f64, mask: usize,
+                            hts: usize, f32: i32): f64 {
+  const z = load<u8>(mask + <usize>k) ? h + ((z0 + (a + c * row)) + b * col) : NaN;
+  if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
+  else store<f64>(hts + (<usize>k << 3), z);
+  return z;
+}
+
 export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0: i32, i1: i32, i2: i32, i3: i32,
   is: i32, K: i32, out: usize, o0: i32, o1: i32, o2: i32, o3: i32, os: i32, c0: i32, w: i32, fin: usize): void {
   const n = word(dct, 0);
@@ -436,55 +446,43 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       const d = cell - c0;
       if (o0 >= 0) {
         const k = o0 + p;
-        let z = NaN;
+        const z = finishCell(k, 0.0 + f64x2.extract_lane(r, 0), <f64>(down ? r0 + d : r0), <f64>(down ? q0 : q0 + d),
+                             z0, a, b, c, mask, hts, f32);
         if (load<u8>(mask + <usize>k)) {
-          const h = 0.0 + f64x2.extract_lane(r, 0);
-          z = h + ((z0 + (a + c * <f64>(down ? r0 + d : r0))) + b * <f64>(down ? q0 : q0 + d));
           lo = min(lo, z);
           hi = max(hi, z);
           cells++;
         }
-        if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
-        else store<f64>(hts + (<usize>k << 3), z);
       }
       if (o1 >= 0) {
         const k = o1 + p;
-        let z = NaN;
+        const z = finishCell(k, 0.0 - f64x2.extract_lane(i, 0), <f64>(down ? r1 + d : r1), <f64>(down ? q1 : q1 + d),
+                             z0, a, b, c, mask, hts, f32);
         if (load<u8>(mask + <usize>k)) {
-          const h = 0.0 - f64x2.extract_lane(i, 0);
-          z = h + ((z0 + (a + c * <f64>(down ? r1 + d : r1))) + b * <f64>(down ? q1 : q1 + d));
           lo = min(lo, z);
           hi = max(hi, z);
           cells++;
         }
-        if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
-        else store<f64>(hts + (<usize>k << 3), z);
       }
       if (o2 >= 0) {
         const k = o2 + p;
-        let z = NaN;
+        const z = finishCell(k, 0.0 + f64x2.extract_lane(r, 1), <f64>(down ? r2 + d : r2), <f64>(down ? q2 : q2 + d),
+                             z0, a, b, c, mask, hts, f32);
         if (load<u8>(mask + <usize>k)) {
-          const h = 0.0 + f64x2.extract_lane(r, 1);
-          z = h + ((z0 + (a + c * <f64>(down ? r2 + d : r2))) + b * <f64>(down ? q2 : q2 + d));
           lo = min(lo, z);
           hi = max(hi, z);
           cells++;
         }
-        if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
-        else store<f64>(hts + (<usize>k << 3), z);
       }
       if (o3 >= 0) {
         const k = o3 + p;
-        let z = NaN;
+        const z = finishCell(k, 0.0 - f64x2.extract_lane(i, 1), <f64>(down ? r3 + d : r3), <f64>(down ? q3 : q3 + d),
+                             z0, a, b, c, mask, hts, f32);
         if (load<u8>(mask + <usize>k)) {
-          const h = 0.0 - f64x2.extract_lane(i, 1);
-          z = h + ((z0 + (a + c * <f64>(down ? r3 + d : r3))) + b * <f64>(down ? q3 : q3 + d));
           lo = min(lo, z);
           hi = max(hi, z);
           cells++;
         }
-        if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
-        else store<f64>(hts + (<usize>k << 3), z);
       }
     }
     store<f64>(fin, lo, 32);
