@@ -302,6 +302,46 @@ def test_the_predicted_layout_is_modelled_once_for_its_estimate_and_its_coding(m
     assert blob == fresh and estimate == pytest.approx(len(blob), rel=0.01)
 
 
+def _every_layout_coded(q, kept):
+    """The RESD section coding every layout would keep: the shortest, chunked then sparse then
+    predicted on a tie (residual.encode_residual's order)."""
+    flat = np.zeros(q.size)
+    coded = [coding.encode_coefficients(q, radius=flat, angle=flat, coder="ans", exhaustive=False),
+             residual._encode_sparse(q, "ans", kept), residual.predicted_residual(q, "ans", kept)]
+    best = coded[0]
+    for blob in coded[1:]:
+        if blob is not None and len(blob) < len(best):
+            best = blob
+    return best
+
+
+def test_the_predicted_layout_is_coded_only_where_its_estimate_comes_within_reach(monkeypatch):
+    """Where the median predictor's floor lets the predicted layout in but its model's estimate
+    passes the others' by more than the slack (sparse corrections on a smooth pattern, as a growing
+    map's tiles at a fine bound), the layout is not coded; where it is the smallest, it is. Either
+    way the section is the one coding every layout keeps."""
+    rng = np.random.default_rng(7)
+    kept = np.ones((256, 256), bool)
+    xx = np.mgrid[:256, :256][1]
+    sparse_wins = (np.round(1.2 * np.sin(xx / 20.0)) * (rng.random(kept.shape) < 0.2))[kept].astype(np.int64)
+    rough, rough_kept = _rough_layer()
+    flat = np.zeros(sparse_wins.size)
+    smallest = min(coding.estimated_size(sparse_wins, radius=flat, angle=flat, exhaustive=False),
+                   residual._estimated_sparse(sparse_wins, "ans", kept))
+    reach = (1.0 + residual.LAYOUT_SLACK) * smallest
+    assert residual.PREDICTED_SHARE * residual.median_predicted_size(sparse_wins, kept) < reach
+    assert residual._estimated_predicted(sparse_wins.copy(), kept) > reach
+    real = residual.predicted_residual
+    for q, cells, coded in ((sparse_wins, kept, False), (rough, rough_kept, True)):
+        expected = _every_layout_coded(q.copy(), cells)
+        calls = []
+        monkeypatch.setattr(residual, "predicted_residual", lambda *a, **k: calls.append(1) or real(*a, **k))
+        assert residual.encode_residual(q.copy(), "ans", cells) == expected
+        monkeypatch.setattr(residual, "predicted_residual", real)
+        assert bool(calls) == coded
+        assert (residual.layout_of(expected) == "predicted") == coded
+
+
 def test_a_layer_model_is_let_go_with_its_layer():
     """The shared model (arrays the size of the map) is dropped when its layer is, not kept until
     another layer is sized."""

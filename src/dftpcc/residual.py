@@ -111,11 +111,14 @@ def encode_residual(q: np.ndarray, coder: str, kept: np.ndarray, *, predicted: b
     sparse = _estimated_sparse(q, coder, kept) if 2 * np.count_nonzero(q) <= q.size else math.inf
     smallest = min(chunked, sparse)
     layer = None
-    # The layout's estimate where its model is at hand (rate control sized it), else the median
-    # predictor's floor of it.
-    if predicted and coder == "ans" and q.size and (_estimated_predicted(q, kept) if _known_model(q, kept) is not None else
-                                                    PREDICTED_SHARE * median_predicted_size(q, kept)) \
-            < (1.0 + LAYOUT_SLACK) * smallest:
+    # The layout is coded where its estimate comes within the slack. Its model (fit, errors,
+    # contexts) is about two thirds of coding it and is kept for the coding, so where rate control
+    # has not made it, the median predictor's floor of the layout's bytes is looked at first: where
+    # even that cannot come within the slack, the model is not made at all.
+    if predicted and coder == "ans" and q.size and (
+            _known_model(q, kept) is not None
+            or PREDICTED_SHARE * median_predicted_size(q, kept) < (1.0 + LAYOUT_SLACK) * smallest) \
+            and _estimated_predicted(q, kept) < (1.0 + LAYOUT_SLACK) * smallest:
         layer = predicted_residual(q, coder, kept)
         smallest = min(smallest, math.inf if layer is None else len(layer))
     reach = (1.0 + LAYOUT_SLACK) * smallest
