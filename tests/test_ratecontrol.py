@@ -6,6 +6,7 @@ independently gridded DEM, not by trusting the statistics the file states.
 
 from __future__ import annotations
 
+import math
 import struct
 import warnings
 
@@ -15,7 +16,8 @@ import pytest
 import dftpcc
 from dftpcc.files import dem_from_geotiff
 from dftpcc.grid import fit_grid, rasterize
-from dftpcc.params import make_params
+from dftpcc import ratecontrol
+from dftpcc.params import Params, make_params
 
 from .conftest import data_file
 
@@ -414,3 +416,45 @@ def test_a_tiled_map_at_an_rmse_target_gets_no_residual_layer():
     with dftpcc.open(data) as cmap:
         assert cmap.params.target_rmse == 0.1 and cmap.params.target_max_error == 0.0
         assert cmap.header.stats["dem_rmse_m"] <= 0.1
+
+
+class _FloorAnalysis:
+    """A stand-in Analysis whose error is a cutoff's floor plus the quantizer's share, in quadrature,
+    each with its own slope on the occupied cells and in the whole grid's proxy: as a tiled map
+    coded by its base layer alone (rolling_strip_raleigh in 256-cell tiles), where the floor is
+    most of an RMSE target and the occupied cells gain error faster than the proxy."""
+
+    params = Params()
+
+    def __init__(self, floor: float, occupied: float, whole: float):
+        self.floor, self.occupied, self.whole = floor, occupied, whole
+        self.trials: list[float] = []
+
+    def tiny_step(self) -> float:
+        return 1e-7
+
+    def proxy_rmse(self, cutoff: float, step: float) -> float:
+        return math.hypot(self.floor, self.whole * step)
+
+    def trial(self, cutoff: float, step: float):
+        from types import SimpleNamespace
+
+        self.trials.append(step)
+        return SimpleNamespace(step=step, rmse=math.hypot(self.floor, self.occupied * step))
+
+
+def test_an_rmse_search_corrects_the_quantizers_share_and_lands_inside_the_target():
+    """Where the cutoff's floor is most of the target, correcting the whole proxy by the measured
+    ratio closes in on the target from above, a hair over each round, and the search kept the
+    unquantized step (62 kB for a 5.3 kB file on a real map); correcting the quantizer's share
+    then lands inside the target in one more round."""
+    target = 14.102
+    an = _FloorAnalysis(12.777, 0.0197, 0.0123)
+    trial = ratecontrol.step_for_rmse(an, 0.5, target)
+    assert ratecontrol.CLOSE_ENOUGH * target < trial.rmse <= target
+    # the unquantized trial, the ratio's rounds, the share's first round and its correction
+    assert len(an.trials) <= 1 + ratecontrol.CALIBRATION_ROUNDS + 2
+    # With no floor the ratio's rounds land, and the share's are not run.
+    an = _FloorAnalysis(0.0, 0.0197, 0.0123)
+    trial = ratecontrol.step_for_rmse(an, 0.0, target)
+    assert ratecontrol.CLOSE_ENOUGH * target < trial.rmse <= target and len(an.trials) <= 3

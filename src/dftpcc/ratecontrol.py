@@ -41,6 +41,10 @@ STEP_ITERATIONS = 18
 CALIBRATION_ROUNDS = 4
 #: An RMSE search stops calibrating once a step meets the target to within this fraction.
 CLOSE_ENOUGH = 0.97
+#: Where an RMSE search corrects the quantizer's share of the error (step_for_rmse), it aims the
+#: occupied cells' RMSE at this fraction of the target: the middle of the window (CLOSE_ENOUGH to 1)
+#: a round stops in, so that its rounds do not close in on the target from above.
+CORRECTION_AIM = (1.0 + CLOSE_ENOUGH) / 2.0
 #: Rate control stops raising the cutoff once a file is this much larger than the best.
 GIVE_UP_FACTOR = 1.3
 #: Quantizer steps tried per cutoff for a maximum-error target, as multiples of it; where the
@@ -157,8 +161,29 @@ def step_for_rmse(an: Analysis, cutoff: float, target: float) -> Trial | None:
         return None
     if an.params.storage != "quantized":
         return exact  # nothing to choose but the cutoff
+    best = _calibrated(an, cutoff, target, exact, share=False)
+    if best is exact:
+        best = _calibrated(an, cutoff, target, exact, share=True)
+    return best
+
+
+def _calibrated(an: Analysis, cutoff: float, target: float, exact: Trial, *, share: bool) -> Trial:
+    """:func:`step_for_rmse`'s rounds: a step bisected on the proxy (the whole grid's RMSE predicted in
+    the coefficient domain) for a goal, then rebuilt and measured on the occupied cells, and the goal
+    corrected, until a step meets the target within :data:`CLOSE_ENOUGH`; the coarsest step that met
+    it (``exact``, the unquantized trial, where none did).
+
+    The goal is corrected by the ratio measured (``share=False``), or (``share=True``) the quantizer's
+    share of the error alone is: what the cutoff costs (``exact``'s RMSE, and the proxy's at that step)
+    adds to it in quadrature, and the goal is aimed at :data:`CORRECTION_AIM` of the target. The ratio
+    lands where the occupied cells and the proxy grow alike; where the cutoff's error is most of the
+    target and the occupied cells gain error faster than the proxy, its rounds close in on the target
+    from above, each a hair over, and leave no quantized step (a strip map in 256-cell tiles coded
+    by its base layer alone: 62 kB where 5.3 kB met the target), and the share's rounds are run."""
     best = exact
     goal = target
+    floor, proxy_floor = exact.rmse, an.proxy_rmse(cutoff, an.tiny_step())
+    aimed = CORRECTION_AIM * target
     for _ in range(CALIBRATION_ROUNDS):
         lo, hi = an.tiny_step(), max(target, 1e-9) * 1e4
         for _ in range(STEP_ITERATIONS):
@@ -173,11 +198,16 @@ def step_for_rmse(an: Analysis, cutoff: float, target: float) -> Trial | None:
                 best = trial
             if trial.rmse > CLOSE_ENOUGH * target:
                 break
-        # The proxy counts filled cells too: aim it where this step's proxy would have
-        # to be for the occupied cells to meet the target. (Scaling the old goal instead
-        # fails when even the finest step's proxy is far above it: the filled cells of a
-        # gappy map at a high cutoff can hold more error than the whole target.)
-        goal = target * an.proxy_rmse(cutoff, lo) / max(trial.rmse, 1e-12)
+        # The proxy counts filled cells too: aim it where this step's proxy would have to be for
+        # the occupied cells to meet the target. (Scaling the old goal instead fails when even the
+        # finest step's proxy is far above it: the filled cells of a gappy map at a high cutoff can
+        # hold more error than the whole target.)
+        proxy = an.proxy_rmse(cutoff, lo)
+        measured, modelled = trial.rmse ** 2 - floor ** 2, proxy ** 2 - proxy_floor ** 2
+        if share and measured > 0 and modelled > 0 and aimed > floor:
+            goal = math.sqrt(proxy_floor ** 2 + (aimed ** 2 - floor ** 2) * modelled / measured)
+        else:
+            goal = target * proxy / max(trial.rmse, 1e-12)
     return best
 
 
