@@ -467,15 +467,7 @@ def for_bpp(an: Analysis, params: Params, budget: int, progress: Progress = _no_
         progress(i / len(tried))
         if params.storage == "quantized":
             # Sizes only: the DEM is rebuilt once, for the step found.
-            lo, hi = an.tiny_step() * 1e3, 1e4
-            found = None
-            for _ in range(STEP_ITERATIONS):
-                mid = math.sqrt(lo * hi)
-                blob = an.encode_stream(an.quantized(cutoff, mid), exhaustive=False)
-                if len(blob) <= budget:
-                    found, hi = (mid, blob), mid
-                else:
-                    lo = mid
+            found = finest_step_within(an, cutoff, budget)
             if found is None:
                 continue
             trial, blob = an.trial(cutoff, found[0]), found[1]
@@ -489,6 +481,22 @@ def for_bpp(an: Analysis, params: Params, budget: int, progress: Progress = _no_
     if best is None:
         raise bpp_out_of_reach(params, budget)
     return best
+
+
+def finest_step_within(an: Analysis, cutoff: float, budget: float) -> tuple[float, bytes] | None:
+    """The finest step at ``cutoff`` whose COEF section, coded (``exhaustive=False``), takes at most
+    ``budget`` bytes, bisected (log scale) by coding each step, and that section; None where no
+    step tried fits."""
+    lo, hi = an.tiny_step() * 1e3, 1e4
+    found = None
+    for _ in range(STEP_ITERATIONS):
+        mid = math.sqrt(lo * hi)
+        blob = an.encode_stream(an.quantized(cutoff, mid), exhaustive=False)
+        if len(blob) <= budget:
+            found, hi = (mid, blob), mid
+        else:
+            lo = mid
+    return found
 
 
 def coef_budget(params: Params, point_count: int, fixed_bytes: int) -> int:

@@ -42,7 +42,7 @@ from .errors import InvalidInputError
 from .params import Params
 from .ratecontrol import (_METHOD, _TALLY, Progress, _no_progress, search, CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
                           MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
-                          bpp_out_of_reach, coef_budget, cutoffs)
+                          bpp_out_of_reach, coef_budget, cutoffs, finest_step_within)
 from .residual import PREDICTED_SHARE, encode_residual, estimated_size, median_predicted_size, residual_integers
 from .sums import dot
 
@@ -427,11 +427,19 @@ def _refilled_for_rmse(an: Analysis, first: Trial, target: float) -> tuple[Analy
 def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy,
                    guess: float | None = None) -> tuple[float, float] | None:
     """The finest step (and its estimated bytes) at ``cutoff`` whose estimated COEF section fits
-    ``budget`` bytes, by secant steps on log size against log step from ``guess`` (default: a
-    step near the cutoff's own error); None where even the coarsest step tried does not fit."""
+    :data:`BUDGET_INSIDE` of ``budget`` bytes, by secant steps on log size against log step from
+    ``guess`` (default: a step near the cutoff's own error); None where even the coarsest step
+    tried does not fit. A budget of a few hundred bytes is met or missed by whole bytes, coarser
+    than the estimate's tolerance, and a byte more or less moves the error by several %: there the
+    step is the search's (:func:`~dftpcc.ratecontrol.finest_step_within`: each step coded, against
+    the budget itself; a short stream codes about as fast as it is estimated)."""
     guess = guess or energy.step_for(max(energy.floor * 1.5, 1e-9)) or an.tiny_step() * 1e6
     fits: tuple[float, float] | None = None  # (step, size) that fit: the finest one
     over: tuple[float, float] | None = None  # (step, size) that do not: the coarsest one
+    if budget * SIZE_TOLERANCE < 1.0:
+        found = finest_step_within(an, cutoff, budget)
+        return None if found is None else (found[0], float(len(found[1])))
+    budget = BUDGET_INSIDE * budget
     step = guess
     for _ in range(SIZE_ITERATIONS):
         size = _estimate(an, cutoff, step)
@@ -454,7 +462,6 @@ def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy,
 
 
 def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
-    aim = BUDGET_INSIDE * budget
     ranked = []
     guess = None
     for cutoff in sorted(cutoffs(params)):
@@ -462,7 +469,7 @@ def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
         if ranked and energy.floor > FLOOR_SKIP * min(ranked)[0]:
             break  # the low-pass alone loses to a file found: so do the higher cutoffs
         # The step that fills the budget moves little from one cutoff to the next: the last one's first.
-        found = _step_for_size(an, cutoff, aim, energy, guess)
+        found = _step_for_size(an, cutoff, budget, energy, guess)
         if found is not None:
             ranked.append((energy.rmse(found[0]), cutoff, found[0]))
             guess = found[0]
@@ -476,7 +483,7 @@ def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
     best = Choice(an, first, b"")
     if an.refillable:
         other = an.refilled(first)
-        found = _step_for_size(other, first.cutoff, aim, Energy(other, first.cutoff))
+        found = _step_for_size(other, first.cutoff, budget, Energy(other, first.cutoff))
         if found is not None:
             trial = other.trial(first.cutoff, found[0])
             if trial.rmse < first.rmse:
