@@ -22,9 +22,10 @@ wall time; every figure is measured in this run.
 
 With ``--speed`` (``make bench-targets``), issue 43's speed table: per map, tiling and target,
 the CPU time of a fixed encode and of the target by the model, each run's ratio (medians and
-ranges over ``--runs``), the file's bytes against the search's (``--with-search`` runs it once,
-``--search-from`` takes an earlier run's), the decoded file's error against its bound, and the
-median and worst ratio over the maps.
+ranges over ``--runs``), untiled the floor (:class:`ChoiceTime`: the target's time if choosing cost
+nothing but coding what it chose) over the fixed encode, the file's bytes against the search's
+(``--with-search`` runs it once, ``--search-from`` takes an earlier run's), the decoded file's
+error against its bound, and the median and worst ratio over the maps.
 
 Targets are set from each map's gridding floor (the RMS distance of its
 points to their cell's mean): DEM RMSE 0.75x and 2x the floor (points at
@@ -365,6 +366,50 @@ def cpu(fn: Any) -> tuple[float, Any]:
     return time.process_time() - t0, out
 
 
+class ChoiceTime:
+    """CPU seconds a target spends choosing (inside ``ratemodel.choose``) and, of those, coding
+    (coefficient streams and residual layers coded inside it): the target less its choice, plus
+    those codings, is the floor any rate control meets on this map, the time a target would take
+    if its search for a choice cost nothing but the coding of what it chose (an upper bound of the
+    floor where a choice codes more than one candidate)."""
+
+    def __init__(self) -> None:
+        self.choosing = self.coding = 0.0
+        self._inside = False
+
+    def wrap(self, owner: Any, name: str, field: str) -> tuple[Any, str, Any]:
+        original = getattr(owner, name)
+
+        def timed_call(*args: Any, **kwargs: Any) -> Any:
+            if (field == "coding") != self._inside:  # codings inside a choice; choices not nested
+                return original(*args, **kwargs)
+            self._inside = field == "choosing"
+            t0 = time.process_time()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                setattr(self, field, getattr(self, field) + time.process_time() - t0)
+                self._inside = field == "coding"
+
+        setattr(owner, name, timed_call)
+        return owner, name, original
+
+
+@contextmanager
+def choice_time() -> Iterator[ChoiceTime]:
+    times = ChoiceTime()
+    saved = [times.wrap(ratemodel, "choose", "choosing")]
+    for owner, name in ((Analysis, "encode_stream"), (TiledAnalysis, "encode_stream"),
+                        (ratecontrol, "encode_residual"), (ratecontrol, "predicted_residual"),
+                        (ratemodel, "encode_residual")):
+        saved.append(times.wrap(owner, name, "coding"))
+    try:
+        yield times
+    finally:
+        for owner, name, original in reversed(saved):
+            setattr(owner, name, original)
+
+
 def achieved(blob: bytes, dem: Any, name: str, n: int) -> float:
     """The decoded file's error (metres, occupied cells) or bits per point, as the target counts it."""
     if name == "target_bpp":
@@ -394,13 +439,16 @@ def speed_map(case: Case, data: Path, runs: int, tiles: tuple[int, ...], searche
                 name, value = targets[i]
                 params = base.replace(**{name: value})
                 row: dict[str, Any] = dict(map=case.stem, tile=tile, cells=int(dem.grid.size), target=name,
-                                           value=value, unit=unit, fixed=[], model=[])
+                                           value=value, unit=unit, fixed=[], model=[], floor=[])
                 try:
                     with ratecontrol.tally() as tally:
                         for _ in range(runs):
                             row["fixed"].append(cpu(lambda: encode_dem(dem, base, point_count=n))[0])
-                            seconds, blob = cpu(lambda: encode_dem(dem, params, point_count=n))
+                            with choice_time() as chosen:
+                                seconds, blob = cpu(lambda: encode_dem(dem, params, point_count=n))
                             row["model"].append(seconds)
+                            if not tile:  # a tiled map's runs each choose and code: no one floor
+                                row["floor"].append(seconds - chosen.choosing + chosen.coding)
                     row.update(bytes=len(blob), fallbacks=tally.fallbacks, choices=tally.choices,
                                error=achieved(blob, dem, name, n))
                     key = (case.stem, tile, name, round(value, 9))
@@ -423,26 +471,27 @@ def _span(values: list[float], fmt: str) -> str:
     return f"{format(statistics.median(values), fmt)} ({format(min(values), fmt)}-{format(max(values), fmt)})"
 
 
-def ratios(row: dict[str, Any]) -> list[float]:
-    """Each run's target time over the fixed encode timed right before it."""
-    return [m / f for m, f in zip(row["model"], row["fixed"])]
+def ratios(row: dict[str, Any], of: str = "model") -> list[float]:
+    """Each run's target time (``of='floor'``: its floor, :class:`ChoiceTime`) over the fixed
+    encode timed right before it."""
+    return [m / f for m, f in zip(row[of], row["fixed"])]
 
 
 def speed_row(row: dict[str, Any]) -> list[Any]:
     head = [row["map"], row["tile"] or "whole", label_of(row["target"], row["value"], row["unit"])]
     if "unreached" in row:
-        return head + ["unreached: " + row["unreached"][:60]] + [""] * 6
+        return head + ["unreached: " + row["unreached"][:60]] + [""] * 7
     name, bound = row["target"], row["value"]
     unit = "bits/pt" if name == "target_bpp" else "m"
     size = f"{row['bytes'] / row['search_bytes'] - 1:+.2%}" if row.get("search_bytes") else "—"
     held = row["error"] <= bound
     return head + [_span(row["fixed"], ".3f"), _span(row["model"], ".3f"), _span(ratios(row), ".1f"),
-                   row["bytes"], size, f"{row['error']:.4g} / {bound:.4g} {unit} ({verdict(held)})",
-                   f"{row['fallbacks']}/{row['choices']}"]
+                   _span(ratios(row, "floor"), ".1f") if row["floor"] else "—", row["bytes"], size,
+                   f"{row['error']:.4g} / {bound:.4g} {unit} ({verdict(held)})", f"{row['fallbacks']}/{row['choices']}"]
 
 
-SPEED_HEADER = ["map", "tiles", "target", "fixed encode s", "target s", "target / fixed", "bytes",
-                "vs search", "achieved / bound", "fallbacks"]
+SPEED_HEADER = ["map", "tiles", "target", "fixed encode s", "target s", "target / fixed",
+                "floor / fixed (choosing free; untiled)", "bytes", "vs search", "achieved / bound", "fallbacks"]
 
 
 def speed_summary(rows: list[dict[str, Any]], runs: int) -> str:
@@ -463,6 +512,12 @@ def speed_summary(rows: list[dict[str, Any]], runs: int) -> str:
              f"{max(per_row):.1f}x ({worst['map']} {worst['tile'] or 'whole'} {label_of(worst['target'], worst['value'], worst['unit'])}; "
              f"per run {min(worsts):.1f}-{max(worsts):.1f}x; goal {GOAL_MAX_RATIO:g}x); over {GOAL_MAX_RATIO:g}x: "
              f"{sum(v > GOAL_MAX_RATIO for v in per_row)} cases."]
+    floors = [statistics.median(ratios(r, "floor")) for r in done if r.get("floor")]
+    if floors:
+        parts.append(f"Untiled, the floor (the target less its choice, plus the codings inside the choice: what a "
+                 f"target would cost if choosing cost nothing but coding what it chose) over the fixed encode: median "
+                     f"{statistics.median(floors):.2f}x, worst {max(floors):.1f}x; above {GOAL_MEDIAN_RATIO:g}x: "
+                     f"{sum(v > GOAL_MEDIAN_RATIO for v in floors)} of {len(floors)} cases.")
     if sized:
         parts.append(f"Size against the search's ({len(sized)} cases): median {statistics.median(sized):+.2%}, "
                      f"min {min(sized):+.2%}, max {max(sized):+.2%}; over {GOAL_SIZE:.0%} larger: "
