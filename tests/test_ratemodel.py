@@ -139,9 +139,9 @@ def test_the_model_matches_the_search_on_real_terrain(small_map):
 
 def test_a_size_target_of_a_few_hundred_bytes_is_as_accurate_as_the_searchs():
     """A budget of a few hundred coefficient bytes is met or missed by whole bytes and a byte moves
-    the error by several %: the model's step at such a budget is the search's (each step coded), so
-    its file is as accurate at every budget, where estimates aimed inside the budget were up to 5.5 %
-    less accurate on this map at budgets 2.5 % apart."""
+    the error by several %: the model's steps at such a budget are found again by coding near the
+    estimate's, so its file is as accurate as the search's at every budget, where estimates aimed
+    inside the budget were up to 5.5 % less accurate on this map at budgets 2.5 % apart."""
     points = dftpcc.read(data_file("pointclouds/mountain_arid_alirt.las")).points
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -42,7 +42,7 @@ from .errors import InvalidInputError
 from .params import Params
 from .ratecontrol import (_METHOD, _TALLY, Progress, _no_progress, search, CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
                           MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
-                          bpp_out_of_reach, coef_budget, cutoffs, finest_step_within)
+                          bpp_out_of_reach, coef_budget, cutoffs)
 from .residual import PREDICTED_SHARE, encode_residual, estimated_size, median_predicted_size, residual_integers
 from .sums import dot
 
@@ -429,16 +429,10 @@ def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy,
     """The finest step (and its estimated bytes) at ``cutoff`` whose estimated COEF section fits
     :data:`BUDGET_INSIDE` of ``budget`` bytes, by secant steps on log size against log step from
     ``guess`` (default: a step near the cutoff's own error); None where even the coarsest step
-    tried does not fit. A budget of a few hundred bytes is met or missed by whole bytes, coarser
-    than the estimate's tolerance, and a byte more or less moves the error by several %: there the
-    step is the search's (:func:`~dftpcc.ratecontrol.finest_step_within`: each step coded, against
-    the budget itself; a short stream codes about as fast as it is estimated)."""
+    tried does not fit."""
     guess = guess or energy.step_for(max(energy.floor * 1.5, 1e-9)) or an.tiny_step() * 1e6
     fits: tuple[float, float] | None = None  # (step, size) that fit: the finest one
     over: tuple[float, float] | None = None  # (step, size) that do not: the coarsest one
-    if budget * SIZE_TOLERANCE < 1.0:
-        found = finest_step_within(an, cutoff, budget)
-        return None if found is None else (found[0], float(len(found[1])))
     budget = BUDGET_INSIDE * budget
     step = guess
     for _ in range(SIZE_ITERATIONS):
@@ -461,6 +455,44 @@ def _step_for_size(an: Analysis, cutoff: float, budget: float, energy: Energy,
     return fits
 
 
+#: A size target's step at a budget of a few hundred bytes is found again by coding, from this
+#: factor of the estimate's either way (widened where the budget is not crossed), in this many halvings.
+CODED_BRACKET = 1.1
+CODED_HALVINGS = 5
+
+
+def _coded_step(an: Analysis, cutoff: float, budget: int, step: float) -> float:
+    """``step`` (an estimate's, aimed :data:`BUDGET_INSIDE` inside ``budget``) or, where ``budget``
+    is a few hundred bytes, the finest step near it whose COEF section, coded, fits the budget
+    itself: such a budget is met or missed by whole bytes, coarser than the estimate's tolerance,
+    and a byte moves the error by several % (estimates stopped a few bytes short). Bisected
+    between steps that fit and do not, from :data:`CODED_BRACKET` either way of ``step``; ``step``
+    where no coarser step tried fits."""
+    if budget * SIZE_TOLERANCE >= 1.0:
+        return step
+
+    def fits(s: float) -> bool:
+        return len(an.encode_stream(an.quantized(cutoff, s), exhaustive=False)) <= budget
+
+    coarse, fine = step * CODED_BRACKET, step / CODED_BRACKET
+    for _ in range(4):
+        if fits(coarse):
+            break
+        coarse *= CODED_BRACKET
+    else:
+        return step
+    for _ in range(4):
+        if not fits(fine):
+            break
+        coarse, fine = fine, fine / CODED_BRACKET
+    else:
+        return fine
+    for _ in range(CODED_HALVINGS):
+        mid = math.sqrt(coarse * fine)
+        coarse, fine = (mid, fine) if fits(mid) else (coarse, mid)
+    return coarse
+
+
 def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
     ranked = []
     guess = None
@@ -478,14 +510,14 @@ def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
         raise _OutOfReach(str(bpp_out_of_reach(params, budget)))
     ranked.sort()
     # The ranking is of the whole grid's error; the occupied cells decide: the best few rebuilt.
-    trials = [an.trial(cutoff, step) for _, cutoff, step in ranked[:VERIFIED_SIZE]]
+    trials = [an.trial(cutoff, _coded_step(an, cutoff, budget, step)) for _, cutoff, step in ranked[:VERIFIED_SIZE]]
     first = min(trials, key=lambda t: t.rmse)
     best = Choice(an, first, b"")
     if an.refillable:
         other = an.refilled(first)
         found = _step_for_size(other, first.cutoff, budget, Energy(other, first.cutoff))
         if found is not None:
-            trial = other.trial(first.cutoff, found[0])
+            trial = other.trial(first.cutoff, _coded_step(other, first.cutoff, budget, found[0]))
             if trial.rmse < first.rmse:
                 best = Choice(other, trial, b"")
     coefs = best.analysis.encode(best.trial)
