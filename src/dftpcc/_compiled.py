@@ -859,19 +859,64 @@ def _neighbour_at(r, c, up, left, cols):  # pragma: no cover - compiled
     return rr * cols + cc
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _neighbour_cell(r, c, up, left, cols):  # pragma: no cover - compiled
+    # _neighbour_at as (row, column); (-1, -1) for (0, 0)'s, which is 0
+    if r == 0 and c == 0:
+        return -1, -1
+    if up > 0 and r == 0:
+        return 0, c - 1
+    if up == 0 and c == 0:
+        return r - 1, 0
+    return max(r - up, 0), min(max(c - left, 0), cols - 1)
+
+
+#: Wavefronts :func:`_decode_predicted` keeps: a cell's neighbours all lie in the four before its own.
+PREDICTED_RING = 5
+
+
 @njit(cache=True, nogil=True)
 def _decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alphabets, table_of, values):  # pragma: no cover - compiled
     # RESD kind 5 (residual._decode_predicted): values (rows * cols, zeros) gets every cell's V in
     # wavefront order; the errors of the rebuilt cells are decoded a wavefront at a time, by class
     # (classes ascending, rows ascending within one), with table table_of[class] as
     # encode_table_words reads it, and constriction's decoding as in decode_mask_lines. Returns 0,
-    # or 1 when a value reaches 2**31.
+    # or 1 when a value reaches 2**31. The neighbours' errors and values are read from rings of
+    # the last wavefronts, by row (wavefront 2 r + c): in the grid a wavefront's cells lie a row
+    # apart, each of a cell's fourteen reads on another page.
     rows, cols = kept.shape
     ups = (0, 1, 1, 1, 0, 2, 2)
     lefts = (1, 0, 1, -1, 2, 0, -1)
     act_w = (2, 2, 1, 1, 1, 1, 0)
     state, pos = _ans_start(words)
-    errors = np.zeros(rows * cols, dtype=np.int64)
+    # Each table's left cumulatives, made once (the symbol search then reads integers), and where
+    # the map is large enough to pay for them, its quantile slots (as _decode_coded_values).
+    tables = alphabets.size
+    offsets = np.zeros(tables + 1, dtype=np.int64)
+    for t in range(tables):
+        offsets[t + 1] = offsets[t] + alphabets[t] + 1
+    cum = np.empty(offsets[tables], dtype=np.int64)
+    for t in range(tables):
+        n = alphabets[t]
+        at = near_bounds[t] + t
+        size = near_bounds[t + 1] - near_bounds[t]
+        for i in range(n):
+            cum[offsets[t] + i] = _left(i, lows[t], csum, at, size, n)
+        cum[offsets[t] + n] = TOTAL
+    slotted = rows * cols >= SLOT_MIN_VALUES * tables
+    slots = np.empty((tables if slotted else 0, SLOTS + 1), dtype=np.int64)
+    for t in range(slots.shape[0]):
+        a = 0
+        base = offsets[t]
+        for s in range(SLOTS):
+            while cum[base + a + 1] <= (s << SLOT_SHIFT):
+                a += 1
+            slots[t, s] = a
+        slots[t, SLOTS] = alphabets[t] - 1
+    mask24 = np.uint64(TOTAL - 1)
+    low = np.uint64(1) << np.uint64(32)
+    ring_e = np.zeros((PREDICTED_RING, rows), dtype=np.int64)
+    ring_v = np.zeros((PREDICTED_RING, rows), dtype=np.int64)
     longest = min(rows, (cols + 1) // 2 + 1)
     cls = np.empty(longest, dtype=np.int64)
     order = np.empty(longest, dtype=np.int64)
@@ -879,7 +924,15 @@ def _decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alph
     start = np.zeros(65, dtype=np.int64)
     half = np.int64(1) << np.int64(15)
     limit = np.int64(1) << np.int64(31)
+    w0, w1, w2, w3, w4, w5, w6 = weights[0], weights[1], weights[2], weights[3], weights[4], weights[5], weights[6]
     for k in range(2 * (rows - 1) + cols):
+        slot = k % PREDICTED_RING
+        # The wavefronts before this one: a cell away from the edges (rows 2 on, columns 2 to
+        # cols - 2) has its neighbours at fixed places in them, the edge rules left out.
+        s1 = (k + PREDICTED_RING - 1) % PREDICTED_RING
+        s2 = (k + PREDICTED_RING - 2) % PREDICTED_RING
+        s3 = (k + PREDICTED_RING - 3) % PREDICTED_RING
+        s4 = (k + PREDICTED_RING - 4) % PREDICTED_RING
         r_lo = max(0, (k - cols + 2) // 2)
         r_hi = min(rows - 1, k // 2)
         m = r_hi - r_lo + 1
@@ -888,13 +941,18 @@ def _decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alph
             r = r_lo + i
             c = k - 2 * r
             cls[i] = -1
+            ring_e[slot, r] = 0
             if kept[r, c]:
-                a = np.int64(0)
-                for n in range(7):
-                    if act_w[n]:
-                        at = _neighbour_at(r, c, ups[n], lefts[n], cols)
-                        if at >= 0:
-                            a += act_w[n] * abs(errors[at])
+                if r >= 2 and 2 <= c <= cols - 2:  # act_w's neighbours, in its order
+                    a = (2 * abs(ring_e[s1, r]) + 2 * abs(ring_e[s2, r - 1]) + abs(ring_e[s3, r - 1])
+                         + abs(ring_e[s1, r - 1]) + abs(ring_e[s2, r]) + abs(ring_e[s4, r - 2]))
+                else:
+                    a = np.int64(0)
+                    for n in range(7):
+                        if act_w[n]:
+                            rr, cc = _neighbour_cell(r, c, ups[n], lefts[n], cols)
+                            if rr >= 0:
+                                a += act_w[n] * abs(ring_e[(2 * rr + cc) % PREDICTED_RING, rr])
                 if a == 0:
                     g = 0
                 else:
@@ -920,28 +978,47 @@ def _decode_predicted(words, kept, weights, codes, lows, csum, near_bounds, alph
         for j in range(start[64]):
             i = order[j]
             t = table_of[cls[i]]
-            n_sym = alphabets[t]
-            lo = lows[t]
-            at = near_bounds[t] + t
-            size = near_bounds[t + 1] - near_bounds[t]
-            symbol, state, pos = _pop_table(words, state, pos, lo, csum, at, size, n_sym)
-            r = r_lo + i
-            errors[r * cols + k - 2 * r] = symbol - (alphabets[t] - 1) // 2
+            base = offsets[t]
+            quantile = np.int64(state & mask24)
+            if slotted:
+                q = quantile >> SLOT_SHIFT
+                a, b = slots[t, q], slots[t, q + 1]
+            else:
+                a, b = 0, alphabets[t] - 1
+            while a < b:
+                mid = (a + b + 1) // 2
+                if cum[base + mid] <= quantile:
+                    a = mid
+                else:
+                    b = mid - 1
+            state = (state >> np.uint64(PRECISION)) * np.uint64(cum[base + a + 1] - cum[base + a]) \
+                + np.uint64(quantile - cum[base + a])
+            if state < low and pos >= 0:
+                state = (state << np.uint64(32)) | np.uint64(words[pos])
+                pos -= 1
+            ring_e[slot, r_lo + i] = a - (alphabets[t] - 1) // 2
         for i in range(m):
             r = r_lo + i
             c = k - 2 * r
             if kept[r, c]:
-                total = np.int64(0)
-                for n in range(7):
-                    at = _neighbour_at(r, c, ups[n], lefts[n], cols)
-                    if at >= 0 and weights[n]:
-                        total += weights[n] * values[at]
-                v = ((total + half) >> np.int64(16)) + errors[r * cols + c]
+                if r >= 2 and 2 <= c <= cols - 2:  # the neighbours in ups' and lefts' order
+                    total = (w0 * ring_v[s1, r] + w1 * ring_v[s2, r - 1] + w2 * ring_v[s3, r - 1]
+                             + w3 * ring_v[s1, r - 1] + w4 * ring_v[s2, r] + w5 * ring_v[s4, r - 2]
+                             + w6 * ring_v[s3, r - 2])
+                else:
+                    total = np.int64(0)
+                    for n in range(7):
+                        if weights[n]:
+                            rr, cc = _neighbour_cell(r, c, ups[n], lefts[n], cols)
+                            if rr >= 0:
+                                total += weights[n] * ring_v[(2 * rr + cc) % PREDICTED_RING, rr]
+                v = ((total + half) >> np.int64(16)) + ring_e[slot, r]
             else:
-                at = _neighbour_at(r, c, 0, 1, cols)
-                v = values[at] if at >= 0 else np.int64(0)
+                rr, cc = _neighbour_cell(r, c, 0, 1, cols)
+                v = ring_v[(2 * rr + cc) % PREDICTED_RING, rr] if rr >= 0 else np.int64(0)
             if v >= limit or v <= -limit:
                 return 1
+            ring_v[slot, r] = v
             values[r * cols + c] = v
     return 0
 
