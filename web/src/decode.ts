@@ -11,7 +11,7 @@ import { CorruptFileError, guard, InvalidInputError, ResourceLimitError } from "
 import { baseCut, cutOf, prefix, Transform } from "./layout.js";
 import { countOnes, decodeMask } from "./mask.js";
 import { lap, mark } from "./stages.js";
-import { decodeResidual } from "./residual.js";
+import { decodeResidual, decodeResidualLayer, spread, SparseResidual } from "./residual.js";
 import { addIdct, idctFinishedInKernels, idctInKernels, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
 import { align16, Kernels, kernels, releaseKernels, WasmMemoryError } from "./wasm.js";
 
@@ -237,7 +237,10 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   // finishing pass in TypeScript (web/bench: a 5 % prefix 3.8 to 8.2 ms exact, 3.9 to 14 ms sampled).
   const preview = options.preview === true && o.cutCoef && kind === "dct" && !o.sections.get("RESD") && kernels() === null;
   const plane = params.detrend === "plane" ? g.plane : null;
-  if (kind === "dct" && !o.sections.get("RESD")) {
+  const resd = o.sections.get("RESD") ?? null;
+  // The residual layer's integers, once decoded (by the kernels' path, kept should it fall back).
+  let q: Float64Array | SparseResidual | null = null;
+  if (kind === "dct") {
     const k = kernels();
     let corner: Corner | null = null;
     if (k && params.storage === "quantized" && s.ints) {
@@ -250,8 +253,14 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     }
     t = lap("corner", t);
     if (k && corner && previewStride(corner, rows, cols, preview) === 1) {
+      if (resd) {
+        q = residualOf(o, resd, mask, rows, cols);
+        t = lap("residual layer", t);
+      }
       try {
-        const out = finishInKernels(k, o, corner, mask, rows, cols, [wr0, wr1, wc0, wc1], plane, options, o.cutCoef);
+        const win = [wr0, wr1, wc0, wc1];
+        const out = q ? residualInKernels(k, o, corner, q, mask, rows, cols, win, plane, options)
+          : finishInKernels(k, o, corner, mask, rows, cols, win, plane, options, o.cutCoef);
         lap("inverse and finish (WebAssembly)", t);
         return out;
       } catch (e) {
@@ -284,11 +293,10 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     }
   }
   t = lap("inverse", t);
-  const resd = o.sections.get("RESD");
   if (resd) {
     const e = params.target_max_error;
-    if (!(e > 0)) throw new CorruptFileError("a residual layer (RESD) in a file without a maximum-error target");
-    const q = decodeResidual(resd, mask, rows, cols);
+    q ??= residualOf(o, resd, mask, rows, cols);
+    if (!(q instanceof Float64Array)) q = spread(q, mask);
     t = lap("residual layer", t);
     // The plane first, as the writer sums them (heights + plane, then the residual).
     if (params.detrend === "plane") addPlane(h, rows, cols, g.plane);
@@ -301,6 +309,61 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   lap("finish", t);
   if (stride > 1) out.stride = stride;
   return out;
+}
+
+/** The residual layer's integers (one per rebuilt cell), refused in a file without a maximum-error target. */
+function residualOf(o: Opened, resd: Uint8Array, mask: Uint8Array, rows: number, cols: number): Float64Array | SparseResidual {
+  if (!(o.header.params.target_max_error > 0)) {
+    throw new CorruptFileError("a residual layer (RESD) in a file without a maximum-error target");
+  }
+  return decodeResidualLayer(resd, mask, rows, cols);
+}
+
+/** decodeWhole's inverse DCT of a corner, plane, residual layer (its integers q) and finishWindow's
+ * pass in the WebAssembly kernels: the TypeScript path's operations in its order, so its heights.
+ * Throws WasmMemoryError when the kernels' memory cannot hold the grid. */
+function residualInKernels(k: Kernels, o: Opened, corner: Corner, q: Float64Array | SparseResidual, mask: Uint8Array, rows: number,
+  cols: number, [wr0, wr1, wc0, wc1]: number[], plane: number[] | null, options: DecodeOptions): DecodedMap {
+  const f32 = options.float32 === true;
+  const W = wc1 - wc0;
+  const H = wr1 - wr0;
+  const whole = H === rows && W === cols;
+  const maskBytes = align16(rows * cols);
+  // A sparse layer goes in as its picture and nonzero integers (a byte a cell, not a double).
+  const sparse = q instanceof Float64Array ? null : q;
+  const values = sparse ? sparse.nonzero : (q as Float64Array);
+  const qBytes = align16(8 * values.length) + (sparse ? align16(rows * cols) : 0);
+  const heightBytes = align16((f32 ? 4 : 8) * H * W);
+  const hP = idctInKernels(k, corner.g, corner.K, corner.L, rows, cols, 0, rows, 0, cols, maskBytes + qBytes + heightBytes + 16);
+  const maskP = hP + align16(8 * rows * cols);
+  const qP = maskP + maskBytes;
+  const outP = qP + qBytes;
+  const resP = outP + heightBytes;
+  k.bytes().set(mask, maskP);
+  k.view().set(values, qP / 8);
+  const pictureP = qP + align16(8 * values.length);
+  if (sparse) k.bytes().set(sparse.picture, pictureP);
+  const [a, b, c] = plane ?? [0, 0, 0];
+  k.ex.addResidual(hP, maskP, qP, sparse ? pictureP : 0, rows, cols, plane ? 1 : 0, a, b, c, o.header.params.target_max_error);
+  // The plane is in the grid now: the finishing pass adds z0 alone, as finishWindow's does.
+  const cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, o.header.geometry.z0, 0, 0, 0, f32 ? 1 : 0, resP);
+  const mem = k.view();
+  const minZ = mem[resP / 8];
+  const maxZ = mem[resP / 8 + 1];
+  if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ)))
+    || (!whole && !allFinite(mem.subarray(hP / 8, hP / 8 + rows * cols), mask, null, rows, cols))) {
+    throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
+  }
+  const heights = f32 ? new Float32Array(mem.buffer.slice(outP, outP + 4 * H * W)) : new Float64Array(mem.buffer.slice(outP, outP + 8 * H * W));
+  let outMask = mask;
+  if (!whole) {
+    outMask = new Uint8Array(H * W);
+    for (let r = wr0; r < wr1; r++) outMask.set(mask.subarray(r * cols + wc0, r * cols + wc1), (r - wr0) * W);
+  }
+  return {
+    width: W, height: H, row0: wr0, col0: wc0, heights, mask: outMask, header: o.header,
+    statistics: { minZ, maxZ, cells }, bytesRead: o.data.length, partial: o.cutCoef,
+  };
 }
 
 function addPlane(h: Float64Array, rows: number, cols: number, [a, b, c]: number[]): void {

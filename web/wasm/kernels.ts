@@ -725,3 +725,293 @@ export function ansGroups(words: usize, nwords: i32, groups: usize, ngroups: i32
     }
   }
 }
+
+// --- the residual layer (src/residual.ts, src/mask.ts, src/decode.ts) ------------------------------
+
+/** A stack ANS decoder's state and position (ansGroups' u64 state), shared by the two kernels below
+ * that decode symbol by symbol; ansStart sets them from a chunk's words (the JavaScript side has
+ * checked that the last word is nonzero). */
+let ansState: u64 = 0;
+let ansPos: i32 = 0;
+let ansWords: usize = 0;
+
+// @ts-ignore: decorator
+@inline function ansStart(words: usize, nwords: i32): void {
+  ansWords = words;
+  ansPos = nwords;
+  ansState = 0;
+  if (ansPos > 0) {
+    ansState = <u64>load<u32>(words + (<usize>--ansPos << 2));
+    if (ansPos > 0) ansState = (ansState << 32) | <u64>load<u32>(words + (<usize>--ansPos << 2));
+  }
+}
+
+/** state = (state >> 24) * probability + remainder, and a word refilled below 2**32 (AnsDecoder.advance). */
+// @ts-ignore: decorator
+@inline function ansAdvance(remainder: i32, probability: i32): void {
+  let s = (ansState >> 24) * <u64>probability + <u64>remainder;
+  if ((s >> 32) == 0 && ansPos > 0) s = (s << 32) | <u64>load<u32>(ansWords + (<usize>--ansPos << 2));
+  ansState = s;
+}
+
+/** The next symbol of a table model (cdf: n + 1 i32; slots: its slot table or 0), AnsDecoder.decode. */
+// @ts-ignore: decorator
+@inline function ansSymbol(cdf: usize, slots: usize, n: i32, slotShift: i32): i32 {
+  const quantile = <i32>(<u32>ansState & 0xffffff);
+  let a = 0, b = n - 1;
+  if (slots) {
+    const s = slots + (<usize>(quantile >>> slotShift) << 2);
+    a = load<i32>(s);
+    b = load<i32>(s, 4);
+  }
+  while (a < b) {
+    const m = (a + b + 1) >> 1;
+    if (load<i32>(cdf + (<usize>m << 2)) <= quantile) a = m;
+    else b = m - 1;
+  }
+  const lo = load<i32>(cdf + (<usize>a << 2));
+  ansAdvance(quantile - lo, load<i32>(cdf + (<usize>a << 2), 4) - lo);
+  return a;
+}
+
+/** One bit of a Bernoulli model whose cumulative table is [0, left1, 2**24] (AnsDecoder.decodeBit). */
+// @ts-ignore: decorator
+@inline function ansBit(left1: i32): i32 {
+  const quantile = <i32>(<u32>ansState & 0xffffff);
+  if (quantile < left1) {
+    ansAdvance(quantile, left1);
+    return 0;
+  }
+  ansAdvance(quantile - left1, 0x1000000 - left1);
+  return 1;
+}
+
+/**
+ * contextMask (src/mask.ts, MASK kinds 2 and 3) after its seed lines: lines (u8, n lines of w cells,
+ * the seed lines in place) gets every other line, step t = first .. L - 1 decoding line t of each
+ * stripe (of nStripes; only stripe 0 at t = 0) from the chunk's words, with the models of contexts
+ * 0 and 255 first, then each cell's own, the counts updated as mask.ts does (float64 operations in
+ * its order: the same left1 to the bit). scratch: 3 w + 16 bytes, then 2 nStripes w bytes, 16-aligned
+ * at an offset 16-aligned; tables: 3 x 256 f64 (zeroed here).
+ */
+export function contextMask(lines: usize, n: i32, w: i32, L: i32, nStripes: i32, first: i32, words: usize, nwords: i32,
+  scratch: usize, tables: usize): void {
+  ansStart(words, nwords);
+  const n1 = tables, nn = tables + 2048, left1 = tables + 4096;
+  memory.fill(tables, 0, 6144);
+  const padA = scratch, padB = scratch + <usize>(w + 8);
+  const ctx = scratch + ((<usize>(2 * w + 16) + 15) & ~15);
+  const bits = ctx + <usize>nStripes * <usize>w;
+  memory.fill(padA, 0, <usize>(2 * w + 16));
+  for (let t = first; t < L; t++) {
+    let lineCount = 0;
+    const most = t ? nStripes : 1;
+    while (lineCount < most && lineCount * L + t < n) lineCount++;
+    const m = lineCount * w;
+    for (let q = 0; q < lineCount; q++) {
+      const i = q * L + t;
+      const base = ctx + <usize>(q * w);
+      if (t == 0) {
+        memory.fill(base, 0, <usize>w);
+        continue;
+      }
+      memory.copy(padA + 2, lines + <usize>(i - 1) * <usize>w, <usize>w);
+      memory.copy(padB + 2, lines + <usize>(t >= 2 ? i - 2 : i - 1) * <usize>w, <usize>w);
+      let a = <i32>load<u8>(padA) | (<i32>load<u8>(padA, 1) << 1) | (<i32>load<u8>(padA, 2) << 2) | (<i32>load<u8>(padA, 3) << 3)
+        | (<i32>load<u8>(padA, 4) << 4);
+      let b = <i32>load<u8>(padB, 1) | (<i32>load<u8>(padB, 2) << 1) | (<i32>load<u8>(padB, 3) << 2);
+      for (let j = 0; j < w; j++) {
+        store<u8>(base + <usize>j, a | (b << 5));
+        a = (a >> 1) | (<i32>load<u8>(padA + <usize>(j + 5)) << 4);
+        b = (b >> 1) | (<i32>load<u8>(padB + <usize>(j + 4)) << 2);
+      }
+    }
+    for (let c = 0; c < 256; c++) {
+      const p = (load<f64>(n1 + (<usize>c << 3)) + (<f64>popcnt<i32>(c) + 0.5) / 9) / (load<f64>(nn + (<usize>c << 3)) + 1);
+      // bernoulliLeft1(p): constriction's perfect=False quantization.
+      const q = 1 - p;
+      const scale = <f64>(0x1000000 - 2) / (q + p);
+      store<i32>(left1 + (<usize>c << 2), <i32>floor(q * scale) + 1);
+    }
+    for (let pass = 0; pass < 2; pass++) {
+      const c = pass ? 255 : 0;
+      const l = load<i32>(left1 + (<usize>c << 2));
+      let cells = 0, ones = 0;
+      for (let k = 0; k < m; k++) {
+        if (<i32>load<u8>(ctx + <usize>k) == c) {
+          const bit = ansBit(l);
+          store<u8>(bits + <usize>k, bit);
+          ones += bit;
+          cells++;
+        }
+      }
+      store<f64>(nn + (<usize>c << 3), load<f64>(nn + (<usize>c << 3)) + <f64>cells);
+      store<f64>(n1 + (<usize>c << 3), load<f64>(n1 + (<usize>c << 3)) + <f64>ones);
+    }
+    for (let k = 0; k < m; k++) {
+      const c = <i32>load<u8>(ctx + <usize>k);
+      if (c != 0 && c != 255) {
+        const bit = ansBit(load<i32>(left1 + (<usize>c << 2)));
+        store<u8>(bits + <usize>k, bit);
+        const o = <usize>c << 3;
+        store<f64>(nn + o, load<f64>(nn + o) + 1);
+        store<f64>(n1 + o, load<f64>(n1 + o) + <f64>bit);
+      }
+    }
+    for (let q = 0; q < lineCount; q++) memory.copy(lines + <usize>(q * L + t) * <usize>w, bits + <usize>(q * w), <usize>w);
+  }
+}
+
+/** Neighbour (up, left) of (r, c) in an i32 grid by format.md's rules 1-4 (residual.ts nb). */
+// @ts-ignore: decorator
+@inline function nbi(g: usize, r: i32, c: i32, up: i32, left: i32, cols: i32): i32 {
+  if (r == 0 && c == 0) return 0;
+  if (up && r == 0) return load<i32>(g + (<usize>(c - 1) << 2));
+  if (!up && c == 0) return load<i32>(g + (<usize>((r - 1) * cols) << 2));
+  const rr = max(r - up, 0);
+  const cc = min(max(c - left, 0), cols - 1);
+  return load<i32>(g + (<usize>(rr * cols + cc) << 2));
+}
+
+// @ts-ignore: decorator
+@inline function vi(g: usize, k: i32): i32 { return load<i32>(g + (<usize>k << 2)); }
+
+/**
+ * RESD kind 5 (src/residual.ts predicted) after its header: the values V (i32 grid, rows x cols) and
+ * errors E (i32 grid) of every cell, wavefront by wavefront, each wavefront's errors decoded class by
+ * class from the chunk's words, then its values predicted in exact integers, P = (sum a_k x_k + 2**15)
+ * >> 16 (i64: |a| < 2**24 and |x| < 2**31, seven products below 2**58). weights: 7 i32; classes: 64
+ * descriptors of four i32 (the cumulative table's offset, its slot table's or 0, the symbols n
+ * (0: code 0, not coded), max_abs). line, order: i32 scratch of `most` (the longest wavefront),
+ * lineClass u8 of most, starts 65 i32. out: the values of the rebuilt cells in row-major order (f64).
+ * Returns 0, or 1 when a value reaches 2**31 in magnitude (the caller refuses the chunk).
+ */
+export function predicted(words: usize, nwords: i32, weights: usize, classes: usize, mask: usize, rows: i32, cols: i32,
+  V: usize, E: usize, line: usize, lineClass: usize, order: usize, starts: usize, out: usize, slotShift: i32): i32 {
+  ansStart(words, nwords);
+  const cells = <usize>rows * <usize>cols;
+  memory.fill(V, 0, cells << 2);
+  memory.fill(E, 0, cells << 2);
+  const a0 = <i64>load<i32>(weights), a1 = <i64>load<i32>(weights, 4), a2 = <i64>load<i32>(weights, 8),
+    a3 = <i64>load<i32>(weights, 12), a4 = <i64>load<i32>(weights, 16), a5 = <i64>load<i32>(weights, 20),
+    a6 = <i64>load<i32>(weights, 24);
+  const NONE = 255;
+  const last = 2 * (rows - 1) + cols;
+  for (let k = 0; k < last; k++) {
+    let n = 0;
+    memory.fill(starts, 0, 65 * 4);
+    const lo = k - cols + 1;
+    for (let r = lo <= 0 ? 0 : (lo + 1) >> 1; r < rows && 2 * r <= k; r++) {
+      const c = k - 2 * r;
+      const cell = r * cols + c;
+      store<i32>(line + (<usize>n << 2), cell);
+      if (!load<u8>(mask + <usize>cell)) {
+        store<u8>(lineClass + <usize>(n++), NONE);
+        continue;
+      }
+      let act = 0;
+      if (r >= 2 && c >= 2 && c < cols - 1) {
+        const up = cell - cols;
+        act = 2 * abs(vi(E, cell - 1)) + 2 * abs(vi(E, up)) + abs(vi(E, up - 1)) + abs(vi(E, up + 1))
+          + abs(vi(E, cell - 2)) + abs(vi(E, up - cols));
+      } else {
+        act = 2 * abs(nbi(E, r, c, 0, 1, cols)) + 2 * abs(nbi(E, r, c, 1, 0, cols)) + abs(nbi(E, r, c, 1, 1, cols))
+          + abs(nbi(E, r, c, 1, -1, cols)) + abs(nbi(E, r, c, 0, 2, cols)) + abs(nbi(E, r, c, 2, 0, cols));
+      }
+      let cls = 0;
+      if (act > 0) {
+        const bits = 32 - clz<i32>(act);
+        const s = bits >= 2 ? (act >>> (bits - 2)) & 1 : 0;
+        cls = min(63, 2 * bits - 1 + s);
+      }
+      store<u8>(lineClass + <usize>(n++), cls);
+      const sp = starts + (<usize>(cls + 1) << 2);
+      store<i32>(sp, load<i32>(sp) + 1);
+    }
+    for (let cls = 0; cls < 64; cls++) {
+      const sp = starts + (<usize>(cls + 1) << 2);
+      store<i32>(sp, load<i32>(sp) + load<i32>(sp - 4));
+    }
+    for (let i = 0; i < n; i++) {
+      const cls = <i32>load<u8>(lineClass + <usize>i);
+      if (cls != NONE) {
+        const sp = starts + (<usize>cls << 2);
+        const at = load<i32>(sp);
+        store<i32>(order + (<usize>at << 2), vi(line, i));
+        store<i32>(sp, at + 1);
+      }
+    }
+    // starts[cls] is now the end of class cls; it began where class cls - 1 ended.
+    for (let cls = 0, from = 0; cls < 64; cls++) {
+      const to = load<i32>(starts + (<usize>cls << 2));
+      const d = classes + (<usize>cls << 4);
+      const m = load<i32>(d, 8);
+      if (m) {
+        const cdf = <usize>load<i32>(d), slots = <usize>load<i32>(d, 4), w = load<i32>(d, 12);
+        for (let i = from; i < to; i++) store<i32>(E + (<usize>vi(order, i) << 2), ansSymbol(cdf, slots, m, slotShift) - w);
+      }
+      from = to;
+    }
+    for (let i = 0; i < n; i++) {
+      const cell = vi(line, i);
+      const r = cell / cols;
+      const c = cell - r * cols;
+      let v: i64;
+      if (<i32>load<u8>(lineClass + <usize>i) != NONE) {
+        let S: i64;
+        if (r >= 2 && c >= 2 && c < cols - 1) {
+          const up = cell - cols;
+          const up2 = up - cols;
+          S = a0 * <i64>vi(V, cell - 1) + a1 * <i64>vi(V, up) + a2 * <i64>vi(V, up - 1) + a3 * <i64>vi(V, up + 1)
+            + a4 * <i64>vi(V, cell - 2) + a5 * <i64>vi(V, up2) + a6 * <i64>vi(V, up2 + 1);
+        } else {
+          S = a0 * <i64>nbi(V, r, c, 0, 1, cols) + a1 * <i64>nbi(V, r, c, 1, 0, cols) + a2 * <i64>nbi(V, r, c, 1, 1, cols)
+            + a3 * <i64>nbi(V, r, c, 1, -1, cols) + a4 * <i64>nbi(V, r, c, 0, 2, cols) + a5 * <i64>nbi(V, r, c, 2, 0, cols)
+            + a6 * <i64>nbi(V, r, c, 2, -1, cols);
+        }
+        v = ((S + 32768) >> 16) + <i64>vi(E, cell);
+        if (v >= 0x80000000 || v <= -0x80000000) return 1;
+      } else {
+        v = <i64>nbi(V, r, c, 0, 1, cols);
+      }
+      store<i32>(V + (<usize>cell << 2), <i32>v);
+    }
+  }
+  let o = out;
+  for (let k: usize = 0; k < cells; k++) {
+    if (load<u8>(mask + k)) {
+      store<f64>(o, <f64>load<i32>(V + (k << 2)));
+      o += 8;
+    }
+  }
+  return 0;
+}
+
+/**
+ * decodeWhole's residual step on the grid h (f64, rows x cols), in place on the rebuilt cells: the
+ * plane first when `plane` is 1 (h += (a + c r) + b q, addPlane), then h += q_i 2 e (1 - 1e-6) with q_i
+ * the residual's integer of the cell, as decode.ts sums them (a zero too: -0 + 0 is 0). q: one f64 per
+ * rebuilt cell in row-major order; or, when picture is not 0 (a sparse layer: u8 a cell of the grid,
+ * 1 where the integer is not 0), one per set cell of the picture, the others 0.
+ */
+export function addResidual(h: usize, mask: usize, q: usize, picture: usize, rows: i32, cols: i32, plane: i32, a: f64,
+  b: f64, c: f64, e: f64): void {
+  let i: usize = q;
+  for (let r = 0; r < rows; r++) {
+    const row = a + c * <f64>r;
+    const k0 = r * cols;
+    for (let cc = 0; cc < cols; cc++) {
+      const k = k0 + cc;
+      if (!load<u8>(mask + <usize>k)) continue;
+      const p = h + (<usize>k << 3);
+      let z = load<f64>(p);
+      if (plane) z = z + (row + b * <f64>cc);
+      let v = 0.0;
+      if (!picture || load<u8>(picture + <usize>k)) {
+        v = load<f64>(i);
+        i += 8;
+      }
+      store<f64>(p, z + v * 2 * e * (1 - 1e-6));
+    }
+  }
+}
