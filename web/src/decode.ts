@@ -321,35 +321,76 @@ function residualOf(o: Opened, resd: Uint8Array, mask: Uint8Array, rows: number,
 
 /** decodeWhole's inverse DCT of a corner, plane, residual layer (its integers q) and finishWindow's
  * pass in the WebAssembly kernels: the TypeScript path's operations in its order, so its heights.
- * Throws WasmMemoryError when the kernels' memory cannot hold the grid. */
+ * For the whole grid the pass is fused into the inverse's last axis (kernels.ts finishCell, with the
+ * residual's terms as a grid), as cornerFinished does without a residual. Throws WasmMemoryError
+ * when the kernels' memory cannot hold the grid. */
 function residualInKernels(k: Kernels, o: Opened, corner: Corner, q: Float64Array | SparseResidual, mask: Uint8Array, rows: number,
   cols: number, [wr0, wr1, wc0, wc1]: number[], plane: number[] | null, options: DecodeOptions): DecodedMap {
   const f32 = options.float32 === true;
   const W = wc1 - wc0;
   const H = wr1 - wr0;
   const whole = H === rows && W === cols;
-  const maskBytes = align16(rows * cols);
+  const e = o.header.params.target_max_error;
+  const z0 = o.header.geometry.z0;
+  const [a, b, c] = plane ?? [0, 0, 0];
   // A sparse layer goes in as its picture and nonzero integers (a byte a cell, not a double).
   const sparse = q instanceof Float64Array ? null : q;
   const values = sparse ? sparse.nonzero : (q as Float64Array);
-  const qBytes = align16(8 * values.length) + (sparse ? align16(rows * cols) : 0);
+  // The extra scratch after the grid: mask, heights, 16 bytes of results, the residual's integers,
+  // its picture, and (fused) the grid of its terms.
+  const maskBytes = align16(rows * cols);
   const heightBytes = align16((f32 ? 4 : 8) * H * W);
-  const hP = idctInKernels(k, corner.g, corner.K, corner.L, rows, cols, 0, rows, 0, cols, maskBytes + qBytes + heightBytes + 16);
-  const maskP = hP + align16(8 * rows * cols);
-  const qP = maskP + maskBytes;
-  const outP = qP + qBytes;
-  const resP = outP + heightBytes;
-  k.bytes().set(mask, maskP);
-  k.view().set(values, qP / 8);
-  const pictureP = qP + align16(8 * values.length);
-  if (sparse) k.bytes().set(sparse.picture, pictureP);
-  const [a, b, c] = plane ?? [0, 0, 0];
-  k.ex.addResidual(hP, maskP, qP, sparse ? pictureP : 0, rows, cols, plane ? 1 : 0, a, b, c, o.header.params.target_max_error);
-  // The plane is in the grid now: the finishing pass adds z0 alone, as finishWindow's does.
-  const cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, o.header.geometry.z0, 0, 0, 0, f32 ? 1 : 0, resP);
-  const mem = k.view();
-  const minZ = mem[resP / 8];
-  const maxZ = mem[resP / 8 + 1];
+  const valueBytes = align16(8 * values.length);
+  const pictureBytes = sparse ? align16(rows * cols) : 0;
+  const layout = (extraP: number) => {
+    const maskP = extraP;
+    const outP = maskP + maskBytes;
+    const resP = outP + heightBytes;
+    const qP = resP + 16;
+    const pictureP = qP + valueBytes;
+    const gridP = pictureP + pictureBytes;
+    k.bytes().set(mask, maskP);
+    k.view().set(values, qP / 8);
+    if (sparse) k.bytes().set(sparse.picture, pictureP);
+    return { maskP, outP, resP, qP, pictureP: sparse ? pictureP : 0, gridP };
+  };
+  const extra = maskBytes + heightBytes + 16 + valueBytes + pictureBytes;
+  let at: ReturnType<typeof layout> | null = null;
+  let hP: number;
+  let fused = false;
+  if (whole) {
+    const r = idctFinishedInKernels(k, corner.g, corner.K, corner.L, rows, cols, extra + align16(8 * rows * cols), (finP, extraP, down) => {
+      at = layout(extraP);
+      k.ex.residualGrid(at.gridP, at.maskP, at.qP, at.pictureP, rows * cols, e);
+      k.view().set([z0, a, b, c, Infinity, -Infinity], finP / 8);
+      new Int32Array(k.view().buffer, finP + 48, 8).set([at.maskP, at.outP, f32 ? 1 : 0, cols, 0, down ? 1 : 0, at.gridP, plane ? 1 : 0]);
+    });
+    hP = r.grid;
+    fused = r.fused;
+    if (!fused) at = layout(r.extra);
+  } else {
+    hP = idctInKernels(k, corner.g, corner.K, corner.L, rows, cols, 0, rows, 0, cols, extra);
+    at = layout(hP + align16(8 * rows * cols));
+  }
+  const { maskP, outP, resP, qP, pictureP } = at!;
+  let cells: number;
+  let minZ: number;
+  let maxZ: number;
+  let mem: Float64Array;
+  if (fused) {
+    mem = k.view();
+    const finP = maskP - 80;
+    minZ = mem[finP / 8 + 4];
+    maxZ = mem[finP / 8 + 5];
+    cells = new Int32Array(mem.buffer, finP + 64, 1)[0];
+  } else {
+    k.ex.addResidual(hP, maskP, qP, pictureP, rows, cols, plane ? 1 : 0, a, b, c, e);
+    // The plane is in the grid now: the finishing pass adds z0 alone, as finishWindow's does.
+    cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, 0, 0, 0, f32 ? 1 : 0, resP);
+    mem = k.view();
+    minZ = mem[resP / 8];
+    maxZ = mem[resP / 8 + 1];
+  }
   if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ)))
     || (!whole && !allFinite(mem.subarray(hP / 8, hP / 8 + rows * cols), mask, null, rows, cols))) {
     throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
@@ -446,7 +487,7 @@ export function cornerFinished(k: Kernels, corner: Corner, mask: Uint8Array, row
     const r = idctFinishedInKernels(k, corner.g, corner.K, corner.L, rows, cols, extra, (finP, extraP, down) => {
       k.bytes().set(mask, extraP);
       k.view().set([z0, a, b, c, Infinity, -Infinity], finP / 8);
-      new Int32Array(k.view().buffer, finP + 48, 6).set([extraP, extraP + maskBytes, f32 ? 1 : 0, cols, 0, down ? 1 : 0]);
+      new Int32Array(k.view().buffer, finP + 48, 8).set([extraP, extraP + maskBytes, f32 ? 1 : 0, cols, 0, down ? 1 : 0, 0, 0]);
     });
     hP = r.grid;
     maskP = r.extra;

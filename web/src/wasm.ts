@@ -24,6 +24,7 @@ interface Exports {
     scratch: number, tables: number): void;
   predicted(words: number, nwords: number, weights: number, classes: number, mask: number, rows: number, cols: number,
     V: number, E: number, line: number, lineClass: number, order: number, starts: number, out: number, slotShift: number): number;
+  residualGrid(res: number, mask: number, q: number, picture: number, cells: number, e: number): void;
   addResidual(h: number, mask: number, q: number, picture: number, rows: number, cols: number, plane: number, a: number, b: number, c: number,
     e: number): void;
 }

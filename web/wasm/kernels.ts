@@ -315,9 +315,22 @@ export function bluesteinForward(plan: usize, re: usize, im: usize): void {
  */
 // One cell of dctGroup's fused finishing pass, as finish() does it: its height from the transform's
 // output h and the plane at (row, col), NaN where the mask is empty, stored at cell k and returned.
+// With a residual layer (res: its grid of q 2 e (1 - 1e-6), f64 a cell; 0: none) as decode.ts sums
+// it: the plane first when `plane` is 1, then the residual, then z0 as finishWindow adds it without
+// a plane (z0 + (0 + 0 row) + 0 col).
 @inline function finishCell(k: i32, h: f64, row: f64, col: f64, z0: f64, a: f64, b: f64, c: f64, mask: usize,
-                            hts: usize, f32: i32): f64 {
-  const z = load<u8>(mask + <usize>k) ? h + ((z0 + (a + c * row)) + b * col) : NaN;
+                            hts: usize, f32: i32, res: usize, plane: i32): f64 {
+  let z = NaN;
+  if (load<u8>(mask + <usize>k)) {
+    if (res) {
+      let x = h;
+      if (plane) x = x + ((a + c * row) + b * col);
+      x = x + load<f64>(res + (<usize>k << 3));
+      z = x + ((z0 + (0.0 + 0.0 * row)) + 0.0 * col);
+    } else {
+      z = h + ((z0 + (a + c * row)) + b * col);
+    }
+  }
   if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
   else store<f64>(hts + (<usize>k << 3), z);
   return z;
@@ -390,12 +403,13 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
     let lo = load<f64>(fin, 32), hi = load<f64>(fin, 40);
     const mask = <usize>load<i32>(fin, 48), hts = <usize>load<i32>(fin, 52), f32 = load<i32>(fin, 56);
     const cols = load<i32>(fin, 60), down = load<i32>(fin, 68);
+    const res = <usize>load<i32>(fin, 72), plane = load<i32>(fin, 76);
     let cells = load<i32>(fin, 64);
     const r0 = o0 >= 0 ? o0 / cols : 0, q0 = o0 >= 0 ? o0 - r0 * cols : 0;
     const r1 = o1 >= 0 ? o1 / cols : 0, q1 = o1 >= 0 ? o1 - r1 * cols : 0;
     const r2 = o2 >= 0 ? o2 / cols : 0, q2 = o2 >= 0 ? o2 - r2 * cols : 0;
     const r3 = o3 >= 0 ? o3 / cols : 0, q3 = o3 >= 0 ? o3 - r3 * cols : 0;
-    if (o0 >= 0 && o1 >= 0 && o2 >= 0 && o3 >= 0) {
+    if (!res && o0 >= 0 && o1 >= 0 && o2 >= 0 && o3 >= 0) {
       // All four outputs: the pairs' lanes as they are, outputs o0 and o2 (0 + re) in A, o1 and o3
       // (0 - im) in B; rows and columns as exact f64 integers stepped by the cell (down: the rows).
       const zero = f64x2.splat(0), one = f64x2.splat(1);
@@ -447,7 +461,7 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       if (o0 >= 0) {
         const k = o0 + p;
         const z = finishCell(k, 0.0 + f64x2.extract_lane(r, 0), <f64>(down ? r0 + d : r0), <f64>(down ? q0 : q0 + d),
-                             z0, a, b, c, mask, hts, f32);
+                             z0, a, b, c, mask, hts, f32, res, plane);
         if (load<u8>(mask + <usize>k)) {
           lo = min(lo, z);
           hi = max(hi, z);
@@ -457,7 +471,7 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       if (o1 >= 0) {
         const k = o1 + p;
         const z = finishCell(k, 0.0 - f64x2.extract_lane(i, 0), <f64>(down ? r1 + d : r1), <f64>(down ? q1 : q1 + d),
-                             z0, a, b, c, mask, hts, f32);
+                             z0, a, b, c, mask, hts, f32, res, plane);
         if (load<u8>(mask + <usize>k)) {
           lo = min(lo, z);
           hi = max(hi, z);
@@ -467,7 +481,7 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       if (o2 >= 0) {
         const k = o2 + p;
         const z = finishCell(k, 0.0 + f64x2.extract_lane(r, 1), <f64>(down ? r2 + d : r2), <f64>(down ? q2 : q2 + d),
-                             z0, a, b, c, mask, hts, f32);
+                             z0, a, b, c, mask, hts, f32, res, plane);
         if (load<u8>(mask + <usize>k)) {
           lo = min(lo, z);
           hi = max(hi, z);
@@ -477,7 +491,7 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       if (o3 >= 0) {
         const k = o3 + p;
         const z = finishCell(k, 0.0 - f64x2.extract_lane(i, 1), <f64>(down ? r3 + d : r3), <f64>(down ? q3 : q3 + d),
-                             z0, a, b, c, mask, hts, f32);
+                             z0, a, b, c, mask, hts, f32, res, plane);
         if (load<u8>(mask + <usize>k)) {
           lo = min(lo, z);
           hi = max(hi, z);
@@ -528,27 +542,25 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
  * The fused finishing pass of a vector of zeros (one the inverse skips): cells o + p os, p < w, as
  * dctGroup's fin. fin's layout: z0, a, b, c (f64 at bytes 0 .. 24), the least and greatest heights
  * so far (f64 at 32, 40), then i32s: the mask (48), the heights (52), 1 for f32 heights (56), the
- * grid's columns (60), the cells set so far (64), 1 when the vectors run down the columns (68).
+ * grid's columns (60), the cells set so far (64), 1 when the vectors run down the columns (68), a
+ * residual layer's grid or 0 (72, see finishCell), 1 to add the plane before it (76).
  */
 export function finishZeros(fin: usize, o: i32, os: i32, w: i32): void {
   const z0 = load<f64>(fin), a = load<f64>(fin, 8), b = load<f64>(fin, 16), c = load<f64>(fin, 24);
   let lo = load<f64>(fin, 32), hi = load<f64>(fin, 40);
   const mask = <usize>load<i32>(fin, 48), hts = <usize>load<i32>(fin, 52), f32 = load<i32>(fin, 56);
   const cols = load<i32>(fin, 60);
+  const res = <usize>load<i32>(fin, 72), plane = load<i32>(fin, 76);
   let cells = load<i32>(fin, 64);
   for (let p = 0; p < w; p++) {
     const k = o + p * os;
     const r = k / cols, q = k - r * cols;
-    let z = NaN;
+    const z = finishCell(k, 0.0, <f64>r, <f64>q, z0, a, b, c, mask, hts, f32, res, plane);
     if (load<u8>(mask + <usize>k)) {
-      const h = 0.0;
-      z = h + ((z0 + (a + c * <f64>r)) + b * <f64>q);
       lo = min(lo, z);
       hi = max(hi, z);
       cells++;
     }
-    if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
-    else store<f64>(hts + (<usize>k << 3), z);
   }
   store<f64>(fin, lo, 32);
   store<f64>(fin, hi, 40);
@@ -1013,5 +1025,23 @@ export function addResidual(h: usize, mask: usize, q: usize, picture: usize, row
       }
       store<f64>(p, z + v * 2 * e * (1 - 1e-6));
     }
+  }
+}
+
+/**
+ * The grid res (f64, rows x cols) of a residual layer's terms q 2 e (1 - 1e-6) at the rebuilt cells
+ * (decode.ts's operations; a zero's term too), for the fused finishing pass (finishCell). q and
+ * picture as addResidual reads them.
+ */
+export function residualGrid(res: usize, mask: usize, q: usize, picture: usize, cells: i32, e: f64): void {
+  let i: usize = q;
+  for (let k = 0; k < cells; k++) {
+    if (!load<u8>(mask + <usize>k)) continue;
+    let v = 0.0;
+    if (!picture || load<u8>(picture + <usize>k)) {
+      v = load<f64>(i);
+      i += 8;
+    }
+    store<f64>(res + (<usize>k << 3), v * 2 * e * (1 - 1e-6));
   }
 }
