@@ -260,7 +260,7 @@ function predictedInKernels(k: Kernels, words: Uint8Array, a: number[], modelOf:
   widths: Int32Array, mask: Uint8Array, rows: number, cols: number, total: number): Float64Array {
   const cells = rows * cols;
   const most = longestWavefront(rows, cols);
-  const sizes = [align16(words.length), align16(4 * cells), align16(4 * cells), align16(cells), align16(4 * most),
+  const sizes = [align16(words.length), align16(4 * cells), align16(40 * rows), align16(cells), align16(4 * most),
     align16(most), align16(4 * most), align16(4 * 65), 64 * 16, 32, 8 * total];
   const at: number[] = [];
   let end = k.scratch(sizes.reduce((x, y) => x + y, 0));
@@ -268,7 +268,7 @@ function predictedInKernels(k: Kernels, words: Uint8Array, a: number[], modelOf:
     at.push(end);
     end += n;
   }
-  const [wP, vP, eP, maskP, lineP, classP, orderP, startsP, descP, weightsP, outP] = at;
+  const [wP, vP, ringP, maskP, lineP, classP, orderP, startsP, descP, weightsP, outP] = at;
   // The tables above the scratch region, uploaded once per model (they move when it grows).
   const desc = new Int32Array(64 * 4);
   for (let cls = 0; cls < 64; cls++) {
@@ -283,7 +283,7 @@ function predictedInKernels(k: Kernels, words: Uint8Array, a: number[], modelOf:
   const i32s = new Int32Array(mem.buffer);
   i32s.set(desc, descP / 4);
   i32s.set(a, weightsP / 4);
-  const status = k.ex.predicted(wP, words.length / 4, weightsP, descP, maskP, rows, cols, vP, eP, lineP, classP, orderP,
+  const status = k.ex.predicted(wP, words.length / 4, weightsP, descP, maskP, rows, cols, vP, ringP, lineP, classP, orderP,
     startsP, outP, SLOT_SHIFT);
   if (status) throw new CorruptFileError("predicted residual layer decodes to values beyond 2**31");
   return new Float64Array(k.view().buffer.slice(outP, outP + 8 * total));

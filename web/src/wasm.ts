@@ -23,7 +23,7 @@ interface Exports {
   contextMask(lines: number, n: number, w: number, L: number, nStripes: number, first: number, words: number, nwords: number,
     scratch: number, tables: number): void;
   predicted(words: number, nwords: number, weights: number, classes: number, mask: number, rows: number, cols: number,
-    V: number, E: number, line: number, lineClass: number, order: number, starts: number, out: number, slotShift: number): number;
+    V: number, ring: number, line: number, lineClass: number, order: number, starts: number, out: number, slotShift: number): number;
   residualGrid(res: number, mask: number, q: number, picture: number, cells: number, e: number): void;
   addResidual(h: number, mask: number, q: number, picture: number, rows: number, cols: number, plane: number, a: number, b: number, c: number,
     e: number): void;

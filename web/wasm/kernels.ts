@@ -874,61 +874,82 @@ export function contextMask(lines: usize, n: i32, w: i32, L: i32, nStripes: i32,
   }
 }
 
-/** Neighbour (up, left) of (r, c) in an i32 grid by format.md's rules 1-4 (residual.ts nb). */
+/** The wavefront ring's slot (k mod 5) of neighbour (up, left) of (r, c), cell k = 2 r + c, by
+ * format.md's rules 1-4 (residual.ts nb): its row in the high half, -1 at rule 1's (0, 0). Every
+ * neighbour lies in one of the four wavefronts before k, so five wavefronts of values are all a
+ * decode reads (a wavefront's cells are rows apart in the grid: one page each). */
 // @ts-ignore: decorator
-@inline function nbi(g: usize, r: i32, c: i32, up: i32, left: i32, cols: i32): i32 {
-  if (r == 0 && c == 0) return 0;
-  if (up && r == 0) return load<i32>(g + (<usize>(c - 1) << 2));
-  if (!up && c == 0) return load<i32>(g + (<usize>((r - 1) * cols) << 2));
-  const rr = max(r - up, 0);
-  const cc = min(max(c - left, 0), cols - 1);
-  return load<i32>(g + (<usize>(rr * cols + cc) << 2));
+@inline function nbRow(r: i32, c: i32, up: i32, left: i32, cols: i32): i32 {
+  if (r == 0 && c == 0) return -1;
+  let rr = 0, cc = 0;
+  if (up && r == 0) cc = c - 1;
+  else if (!up && c == 0) rr = r - 1;
+  else {
+    rr = max(r - up, 0);
+    cc = min(max(c - left, 0), cols - 1);
+  }
+  return (rr << 3) | ((2 * rr + cc) % 5);
+}
+
+/** The value of ring `g` (five wavefronts of `rows` i32) at nbRow's answer x. */
+// @ts-ignore: decorator
+@inline function ringAt(g: usize, x: i32, rows: i32): i32 {
+  return x < 0 ? 0 : load<i32>(g + (<usize>((x & 7) * rows + (x >> 3)) << 2));
 }
 
 // @ts-ignore: decorator
 @inline function vi(g: usize, k: i32): i32 { return load<i32>(g + (<usize>k << 2)); }
 
 /**
- * RESD kind 5 (src/residual.ts predicted) after its header: the values V (i32 grid, rows x cols) and
- * errors E (i32 grid) of every cell, wavefront by wavefront, each wavefront's errors decoded class by
- * class from the chunk's words, then its values predicted in exact integers, P = (sum a_k x_k + 2**15)
- * >> 16 (i64: |a| < 2**24 and |x| < 2**31, seven products below 2**58). weights: 7 i32; classes: 64
- * descriptors of four i32 (the cumulative table's offset, its slot table's or 0, the symbols n
- * (0: code 0, not coded), max_abs). line, order: i32 scratch of `most` (the longest wavefront),
- * lineClass u8 of most, starts 65 i32. out: the values of the rebuilt cells in row-major order (f64).
- * Returns 0, or 1 when a value reaches 2**31 in magnitude (the caller refuses the chunk).
+ * RESD kind 5 (src/residual.ts predicted) after its header: the values V (i32 grid, rows x cols) of
+ * every cell, wavefront by wavefront, each wavefront's errors decoded class by class from the
+ * chunk's words, then its values predicted in exact integers, P = (sum a_k x_k + 2**15) >> 16 (i64:
+ * |a| < 2**24 and |x| < 2**31, seven products below 2**58). The neighbours are read from rings of the
+ * last five wavefronts' values and errors (ring: 2 x 5 x rows i32; wavefront k's cell of row r at
+ * (k mod 5) rows + r). weights: 7 i32; classes: 64 descriptors of four i32 (the cumulative table's
+ * offset, its slot table's or 0, the symbols n (0: code 0, not coded), max_abs). line, order: i32
+ * scratch of `most` (the longest wavefront), lineClass u8 of most, starts 65 i32. out: the values of
+ * the rebuilt cells in row-major order (f64). Returns 0, or 1 when a value reaches 2**31 in magnitude
+ * (the caller refuses the chunk).
  */
 export function predicted(words: usize, nwords: i32, weights: usize, classes: usize, mask: usize, rows: i32, cols: i32,
-  V: usize, E: usize, line: usize, lineClass: usize, order: usize, starts: usize, out: usize, slotShift: i32): i32 {
+  V: usize, ring: usize, line: usize, lineClass: usize, order: usize, starts: usize, out: usize, slotShift: i32): i32 {
   ansStart(words, nwords);
   const cells = <usize>rows * <usize>cols;
-  memory.fill(V, 0, cells << 2);
-  memory.fill(E, 0, cells << 2);
+  const RV = ring, RE = ring + (<usize>(5 * rows) << 2);
+  memory.fill(ring, 0, <usize>(10 * rows) << 2);
   const a0 = <i64>load<i32>(weights), a1 = <i64>load<i32>(weights, 4), a2 = <i64>load<i32>(weights, 8),
     a3 = <i64>load<i32>(weights, 12), a4 = <i64>load<i32>(weights, 16), a5 = <i64>load<i32>(weights, 20),
     a6 = <i64>load<i32>(weights, 24);
   const NONE = 255;
   const last = 2 * (rows - 1) + cols;
+  const slot = <usize>rows << 2;
   for (let k = 0; k < last; k++) {
+    // The wavefronts k, k - 1 .. k - 4 in the rings (only the interior, k >= 6, reads them directly).
+    const s0 = <usize>(k % 5) * slot, s1 = <usize>((k + 4) % 5) * slot, s2 = <usize>((k + 3) % 5) * slot;
+    const s3 = <usize>((k + 2) % 5) * slot, s4 = <usize>((k + 1) % 5) * slot;
     let n = 0;
     memory.fill(starts, 0, 65 * 4);
     const lo = k - cols + 1;
-    for (let r = lo <= 0 ? 0 : (lo + 1) >> 1; r < rows && 2 * r <= k; r++) {
+    const rFirst = lo <= 0 ? 0 : (lo + 1) >> 1;
+    for (let r = rFirst; r < rows && 2 * r <= k; r++) {
       const c = k - 2 * r;
       const cell = r * cols + c;
-      store<i32>(line + (<usize>n << 2), cell);
+      store<i32>(line + (<usize>n << 2), r);
+      const ro = <usize>r << 2;
+      store<i32>(RE + s0 + ro, 0);
       if (!load<u8>(mask + <usize>cell)) {
         store<u8>(lineClass + <usize>(n++), NONE);
         continue;
       }
       let act = 0;
       if (r >= 2 && c >= 2 && c < cols - 1) {
-        const up = cell - cols;
-        act = 2 * abs(vi(E, cell - 1)) + 2 * abs(vi(E, up)) + abs(vi(E, up - 1)) + abs(vi(E, up + 1))
-          + abs(vi(E, cell - 2)) + abs(vi(E, up - cols));
+        act = 2 * abs(load<i32>(RE + s1 + ro)) + 2 * abs(load<i32>(RE + s2 + ro - 4)) + abs(load<i32>(RE + s3 + ro - 4))
+          + abs(load<i32>(RE + s1 + ro - 4)) + abs(load<i32>(RE + s2 + ro)) + abs(load<i32>(RE + s4 + ro - 8));
       } else {
-        act = 2 * abs(nbi(E, r, c, 0, 1, cols)) + 2 * abs(nbi(E, r, c, 1, 0, cols)) + abs(nbi(E, r, c, 1, 1, cols))
-          + abs(nbi(E, r, c, 1, -1, cols)) + abs(nbi(E, r, c, 0, 2, cols)) + abs(nbi(E, r, c, 2, 0, cols));
+        act = 2 * abs(ringAt(RE, nbRow(r, c, 0, 1, cols), rows)) + 2 * abs(ringAt(RE, nbRow(r, c, 1, 0, cols), rows))
+          + abs(ringAt(RE, nbRow(r, c, 1, 1, cols), rows)) + abs(ringAt(RE, nbRow(r, c, 1, -1, cols), rows))
+          + abs(ringAt(RE, nbRow(r, c, 0, 2, cols), rows)) + abs(ringAt(RE, nbRow(r, c, 2, 0, cols), rows));
       }
       let cls = 0;
       if (act > 0) {
@@ -960,33 +981,34 @@ export function predicted(words: usize, nwords: i32, weights: usize, classes: us
       const m = load<i32>(d, 8);
       if (m) {
         const cdf = <usize>load<i32>(d), slots = <usize>load<i32>(d, 4), w = load<i32>(d, 12);
-        for (let i = from; i < to; i++) store<i32>(E + (<usize>vi(order, i) << 2), ansSymbol(cdf, slots, m, slotShift) - w);
+        for (let i = from; i < to; i++) store<i32>(RE + s0 + (<usize>vi(order, i) << 2), ansSymbol(cdf, slots, m, slotShift) - w);
       }
       from = to;
     }
     for (let i = 0; i < n; i++) {
-      const cell = vi(line, i);
-      const r = cell / cols;
-      const c = cell - r * cols;
+      const r = vi(line, i);
+      const c = k - 2 * r;
+      const ro = <usize>r << 2;
       let v: i64;
       if (<i32>load<u8>(lineClass + <usize>i) != NONE) {
         let S: i64;
         if (r >= 2 && c >= 2 && c < cols - 1) {
-          const up = cell - cols;
-          const up2 = up - cols;
-          S = a0 * <i64>vi(V, cell - 1) + a1 * <i64>vi(V, up) + a2 * <i64>vi(V, up - 1) + a3 * <i64>vi(V, up + 1)
-            + a4 * <i64>vi(V, cell - 2) + a5 * <i64>vi(V, up2) + a6 * <i64>vi(V, up2 + 1);
+          S = a0 * <i64>load<i32>(RV + s1 + ro) + a1 * <i64>load<i32>(RV + s2 + ro - 4) + a2 * <i64>load<i32>(RV + s3 + ro - 4)
+            + a3 * <i64>load<i32>(RV + s1 + ro - 4) + a4 * <i64>load<i32>(RV + s2 + ro) + a5 * <i64>load<i32>(RV + s4 + ro - 8)
+            + a6 * <i64>load<i32>(RV + s3 + ro - 8);
         } else {
-          S = a0 * <i64>nbi(V, r, c, 0, 1, cols) + a1 * <i64>nbi(V, r, c, 1, 0, cols) + a2 * <i64>nbi(V, r, c, 1, 1, cols)
-            + a3 * <i64>nbi(V, r, c, 1, -1, cols) + a4 * <i64>nbi(V, r, c, 0, 2, cols) + a5 * <i64>nbi(V, r, c, 2, 0, cols)
-            + a6 * <i64>nbi(V, r, c, 2, -1, cols);
+          S = a0 * <i64>ringAt(RV, nbRow(r, c, 0, 1, cols), rows) + a1 * <i64>ringAt(RV, nbRow(r, c, 1, 0, cols), rows)
+            + a2 * <i64>ringAt(RV, nbRow(r, c, 1, 1, cols), rows) + a3 * <i64>ringAt(RV, nbRow(r, c, 1, -1, cols), rows)
+            + a4 * <i64>ringAt(RV, nbRow(r, c, 0, 2, cols), rows) + a5 * <i64>ringAt(RV, nbRow(r, c, 2, 0, cols), rows)
+            + a6 * <i64>ringAt(RV, nbRow(r, c, 2, -1, cols), rows);
         }
-        v = ((S + 32768) >> 16) + <i64>vi(E, cell);
+        v = ((S + 32768) >> 16) + <i64>load<i32>(RE + s0 + ro);
         if (v >= 0x80000000 || v <= -0x80000000) return 1;
       } else {
-        v = <i64>nbi(V, r, c, 0, 1, cols);
+        v = <i64>ringAt(RV, nbRow(r, c, 0, 1, cols), rows);
       }
-      store<i32>(V + (<usize>cell << 2), <i32>v);
+      store<i32>(RV + s0 + ro, <i32>v);
+      store<i32>(V + (<usize>(r * cols + c) << 2), <i32>v);
     }
   }
   let o = out;
