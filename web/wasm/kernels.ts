@@ -803,8 +803,8 @@ let ansWords: usize = 0;
  * the seed lines in place) gets every other line, step t = first .. L - 1 decoding line t of each
  * stripe (of nStripes; only stripe 0 at t = 0) from the chunk's words, with the models of contexts
  * 0 and 255 first, then each cell's own, the counts updated as mask.ts does (float64 operations in
- * its order: the same left1 to the bit). scratch: 3 w + 16 bytes, then 2 nStripes w bytes, 16-aligned
- * at an offset 16-aligned; tables: 3 x 256 f64 (zeroed here).
+ * its order: the same left1 to the bit). scratch: 2 w + 16 bytes (two padded lines), then 2 nStripes w
+ * bytes from the next 16-aligned offset (contexts, bits), 16-aligned; tables: 6144 bytes (zeroed here).
  */
 export function contextMask(lines: usize, n: i32, w: i32, L: i32, nStripes: i32, first: i32, words: usize, nwords: i32,
   scratch: usize, tables: usize): void {
