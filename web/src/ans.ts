@@ -13,7 +13,7 @@ const TWO32 = 4294967296;
 const INV_65536 = 1 / 65536;
 const INV_TWO32 = 1 / TWO32;
 /** A table model's quantiles in slots of 2**SLOT_SHIFT: slotsOf's bounds per slot. */
-const SLOT_SHIFT = 12;
+export const SLOT_SHIFT = 12;
 /** Groups shorter than this search the table itself (a slot table costs 2**(24 - SLOT_SHIFT) steps). */
 const SLOTTED_GROUP = 1024;
 
@@ -234,7 +234,7 @@ export function slotsOf(cdf: Int32Array, n: number): Int32Array {
 /** Symbols from which the kernels search a quantile's slot rather than the whole table: a slot
  * table is built once per model and stays in the kernels' memory (Kernels.ints), so even a short
  * group's search pays for it (a binary search of a wide table costs a mispredicted branch a step). */
-const KERNEL_SLOTTED_SYMBOLS = 64;
+export const KERNEL_SLOTTED_SYMBOLS = 64;
 
 /**
  * decodeGroup over consecutive groups of one chunk in the WebAssembly kernels (kernels.ts ansGroups):

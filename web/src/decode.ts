@@ -11,7 +11,7 @@ import { CorruptFileError, guard, InvalidInputError, ResourceLimitError } from "
 import { baseCut, cutOf, prefix, Transform } from "./layout.js";
 import { countOnes, decodeMask } from "./mask.js";
 import { lap, mark } from "./stages.js";
-import { decodeResidual } from "./residual.js";
+import { decodeResidual, decodeResidualLayer, spread, SparseResidual } from "./residual.js";
 import { addIdct, idctFinishedInKernels, idctInKernels, ifft2Shifted, irfft2, sampleIdct } from "./transform.js";
 import { align16, Kernels, kernels, releaseKernels, WasmMemoryError } from "./wasm.js";
 
@@ -237,7 +237,10 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   // finishing pass in TypeScript (web/bench: a 5 % prefix 3.8 to 8.2 ms exact, 3.9 to 14 ms sampled).
   const preview = options.preview === true && o.cutCoef && kind === "dct" && !o.sections.get("RESD") && kernels() === null;
   const plane = params.detrend === "plane" ? g.plane : null;
-  if (kind === "dct" && !o.sections.get("RESD")) {
+  const resd = o.sections.get("RESD") ?? null;
+  // The residual layer's integers, once decoded (by the kernels' path, kept should it fall back).
+  let q: Float64Array | SparseResidual | null = null;
+  if (kind === "dct") {
     const k = kernels();
     let corner: Corner | null = null;
     if (k && params.storage === "quantized" && s.ints) {
@@ -250,8 +253,14 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     }
     t = lap("corner", t);
     if (k && corner && previewStride(corner, rows, cols, preview) === 1) {
+      if (resd) {
+        q = residualOf(o, resd, mask, rows, cols);
+        t = lap("residual layer", t);
+      }
       try {
-        const out = finishInKernels(k, o, corner, mask, rows, cols, [wr0, wr1, wc0, wc1], plane, options, o.cutCoef);
+        const win = [wr0, wr1, wc0, wc1];
+        const out = q ? residualInKernels(k, o, corner, q, mask, rows, cols, win, plane, options)
+          : finishInKernels(k, o, corner, mask, rows, cols, win, plane, options, o.cutCoef);
         lap("inverse and finish (WebAssembly)", t);
         return out;
       } catch (e) {
@@ -284,11 +293,10 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
     }
   }
   t = lap("inverse", t);
-  const resd = o.sections.get("RESD");
   if (resd) {
     const e = params.target_max_error;
-    if (!(e > 0)) throw new CorruptFileError("a residual layer (RESD) in a file without a maximum-error target");
-    const q = decodeResidual(resd, mask, rows, cols);
+    q ??= residualOf(o, resd, mask, rows, cols);
+    if (!(q instanceof Float64Array)) q = spread(q, mask);
     t = lap("residual layer", t);
     // The plane first, as the writer sums them (heights + plane, then the residual).
     if (params.detrend === "plane") addPlane(h, rows, cols, g.plane);
@@ -301,6 +309,102 @@ function decodeWhole(o: Opened, options: DecodeOptions): DecodedMap {
   lap("finish", t);
   if (stride > 1) out.stride = stride;
   return out;
+}
+
+/** The residual layer's integers (one per rebuilt cell), refused in a file without a maximum-error target. */
+function residualOf(o: Opened, resd: Uint8Array, mask: Uint8Array, rows: number, cols: number): Float64Array | SparseResidual {
+  if (!(o.header.params.target_max_error > 0)) {
+    throw new CorruptFileError("a residual layer (RESD) in a file without a maximum-error target");
+  }
+  return decodeResidualLayer(resd, mask, rows, cols);
+}
+
+/** decodeWhole's inverse DCT of a corner, plane, residual layer (its integers q) and finishWindow's
+ * pass in the WebAssembly kernels: the TypeScript path's operations in its order, so its heights.
+ * For the whole grid the pass is fused into the inverse's last axis (kernels.ts finishCell, with the
+ * residual's terms as a grid), as cornerFinished does without a residual. Throws WasmMemoryError
+ * when the kernels' memory cannot hold the grid. */
+function residualInKernels(k: Kernels, o: Opened, corner: Corner, q: Float64Array | SparseResidual, mask: Uint8Array, rows: number,
+  cols: number, [wr0, wr1, wc0, wc1]: number[], plane: number[] | null, options: DecodeOptions): DecodedMap {
+  const f32 = options.float32 === true;
+  const W = wc1 - wc0;
+  const H = wr1 - wr0;
+  const whole = H === rows && W === cols;
+  const e = o.header.params.target_max_error;
+  const z0 = o.header.geometry.z0;
+  const [a, b, c] = plane ?? [0, 0, 0];
+  // A sparse layer goes in as its picture and nonzero integers (a byte a cell, not a double).
+  const sparse = q instanceof Float64Array ? null : q;
+  const values = sparse ? sparse.nonzero : (q as Float64Array);
+  // The extra scratch after the grid: mask, heights, 16 bytes of results, the residual's integers,
+  // its picture, and (fused) the grid of its terms.
+  const maskBytes = align16(rows * cols);
+  const heightBytes = align16((f32 ? 4 : 8) * H * W);
+  const valueBytes = align16(8 * values.length);
+  const pictureBytes = sparse ? align16(rows * cols) : 0;
+  const layout = (extraP: number) => {
+    const maskP = extraP;
+    const outP = maskP + maskBytes;
+    const resP = outP + heightBytes;
+    const qP = resP + 16;
+    const pictureP = qP + valueBytes;
+    const gridP = pictureP + pictureBytes;
+    k.bytes().set(mask, maskP);
+    k.view().set(values, qP / 8);
+    if (sparse) k.bytes().set(sparse.picture, pictureP);
+    return { maskP, outP, resP, qP, pictureP: sparse ? pictureP : 0, gridP };
+  };
+  const extra = maskBytes + heightBytes + 16 + valueBytes + pictureBytes;
+  let at: ReturnType<typeof layout> | null = null;
+  let hP: number;
+  let fused = false;
+  if (whole) {
+    const r = idctFinishedInKernels(k, corner.g, corner.K, corner.L, rows, cols, extra + align16(8 * rows * cols), (finP, extraP, down) => {
+      at = layout(extraP);
+      k.ex.residualGrid(at.gridP, at.maskP, at.qP, at.pictureP, rows * cols, e);
+      k.view().set([z0, a, b, c, Infinity, -Infinity], finP / 8);
+      new Int32Array(k.view().buffer, finP + 48, 8).set([at.maskP, at.outP, f32 ? 1 : 0, cols, 0, down ? 1 : 0, at.gridP, plane ? 1 : 0]);
+    });
+    hP = r.grid;
+    fused = r.fused;
+    if (!fused) at = layout(r.extra);
+  } else {
+    hP = idctInKernels(k, corner.g, corner.K, corner.L, rows, cols, 0, rows, 0, cols, extra);
+    at = layout(hP + align16(8 * rows * cols));
+  }
+  const { maskP, outP, resP, qP, pictureP } = at!;
+  let cells: number;
+  let minZ: number;
+  let maxZ: number;
+  let mem: Float64Array;
+  if (fused) {
+    mem = k.view();
+    const finP = maskP - 80;
+    minZ = mem[finP / 8 + 4];
+    maxZ = mem[finP / 8 + 5];
+    cells = new Int32Array(mem.buffer, finP + 64, 1)[0];
+  } else {
+    k.ex.addResidual(hP, maskP, qP, pictureP, rows, cols, plane ? 1 : 0, a, b, c, e);
+    // The plane is in the grid now: the finishing pass adds z0 alone, as finishWindow's does.
+    cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, 0, 0, 0, f32 ? 1 : 0, resP);
+    mem = k.view();
+    minZ = mem[resP / 8];
+    maxZ = mem[resP / 8 + 1];
+  }
+  if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ)))
+    || (!whole && !allFinite(mem.subarray(hP / 8, hP / 8 + rows * cols), mask, null, rows, cols))) {
+    throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
+  }
+  const heights = f32 ? new Float32Array(mem.buffer.slice(outP, outP + 4 * H * W)) : new Float64Array(mem.buffer.slice(outP, outP + 8 * H * W));
+  let outMask = mask;
+  if (!whole) {
+    outMask = new Uint8Array(H * W);
+    for (let r = wr0; r < wr1; r++) outMask.set(mask.subarray(r * cols + wc0, r * cols + wc1), (r - wr0) * W);
+  }
+  return {
+    width: W, height: H, row0: wr0, col0: wc0, heights, mask: outMask, header: o.header,
+    statistics: { minZ, maxZ, cells }, bytesRead: o.data.length, partial: o.cutCoef,
+  };
 }
 
 function addPlane(h: Float64Array, rows: number, cols: number, [a, b, c]: number[]): void {
@@ -383,7 +487,7 @@ export function cornerFinished(k: Kernels, corner: Corner, mask: Uint8Array, row
     const r = idctFinishedInKernels(k, corner.g, corner.K, corner.L, rows, cols, extra, (finP, extraP, down) => {
       k.bytes().set(mask, extraP);
       k.view().set([z0, a, b, c, Infinity, -Infinity], finP / 8);
-      new Int32Array(k.view().buffer, finP + 48, 6).set([extraP, extraP + maskBytes, f32 ? 1 : 0, cols, 0, down ? 1 : 0]);
+      new Int32Array(k.view().buffer, finP + 48, 8).set([extraP, extraP + maskBytes, f32 ? 1 : 0, cols, 0, down ? 1 : 0, 0, 0]);
     });
     hP = r.grid;
     maskP = r.extra;

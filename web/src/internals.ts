@@ -8,6 +8,8 @@ export { inflate } from "./bytes.js";
 export { nativeZstd, ready } from "./zstd.js";
 export { BluesteinFft, factorize, MixedFft } from "./dct.js";
 export { kernels, releaseKernels, useWasm, WasmMemoryError } from "./wasm.js";
+export { decodeResidual } from "./residual.js";
+export { decodeMask } from "./mask.js";
 export { cornerFinished, decode } from "./decode.js";
 // web/bench's table of stages: the decode above (this bundle's own), timed stage by stage.
 export { stageTimes } from "./stages.js";

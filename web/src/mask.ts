@@ -3,6 +3,7 @@
 import { AnsDecoder, bernoulliLeft1 } from "./ans.js";
 import { inflate, u32 } from "./bytes.js";
 import { CorruptFileError } from "./errors.js";
+import { align16, kernels, Kernels, WasmMemoryError } from "./wasm.js";
 
 const POPCOUNT = Uint8Array.from({ length: 256 }, (_, c) => {
   let n = 0;
@@ -121,6 +122,15 @@ function contextMask(p: Uint8Array, rows: number, cols: number, firstSeed: boole
   const seeds = seedLines(p.subarray(10, 10 + seedBytes), nStripes - 1 + first, w);
   for (let k = 0; k < seeds.length; k++) lines.set(seeds[k], (k + 1 - first) * L * w);
   const coder = new AnsDecoder(p.subarray(10 + seedBytes), "occupancy mask");
+  const k = kernels();
+  if (k) {
+    try {
+      contextInKernels(k, lines, p.subarray(10 + seedBytes), n, w, L, nStripes, first);
+      return transposed ? transpose(lines, rows, cols) : lines;
+    } catch (e) {
+      if (!(e instanceof WasmMemoryError)) throw e;
+    }
+  }
   const pc = new Float64Array(256);
   for (let c = 0; c < 256; c++) pc[c] = (POPCOUNT[c] + 0.5) / 9;
   const n1 = new Float64Array(256);
@@ -183,8 +193,34 @@ function contextMask(p: Uint8Array, rows: number, cols: number, firstSeed: boole
     }
     for (let q = 0; q < idx.length; q++) lines.set(bits.subarray(q * w, (q + 1) * w), idx[q] * w);
   }
-  if (!transposed) return lines;
+  return transposed ? transpose(lines, rows, cols) : lines;
+}
+
+/** The rows x cols grid of lines that ran down its columns (cols lines of rows cells). */
+function transpose(lines: Uint8Array, rows: number, cols: number): Uint8Array {
   const out = new Uint8Array(rows * cols);
-  for (let i = 0; i < n; i++) for (let j = 0; j < w; j++) out[j * cols + i] = lines[i * w + j];
+  for (let i = 0; i < cols; i++) for (let j = 0; j < rows; j++) out[j * cols + i] = lines[i * rows + j];
   return out;
+}
+
+/**
+ * contextMask's steps in the WebAssembly kernels (kernels.ts contextMask): the same contexts, models
+ * and bits, written into `lines` (n lines of w cells, its seed lines set). `words` has been checked by
+ * an AnsDecoder. Throws WasmMemoryError when the kernels' memory cannot hold the lines.
+ */
+function contextInKernels(k: Kernels, lines: Uint8Array, words: Uint8Array, n: number, w: number, L: number,
+  nStripes: number, first: number): void {
+  const sizes = [align16(n * w), align16(words.length), 6144, align16(2 * w + 16) + 2 * nStripes * w];
+  const at: number[] = [];
+  let end = k.scratch(sizes.reduce((x, y) => x + y, 0));
+  for (const size of sizes) {
+    at.push(end);
+    end += size;
+  }
+  const [linesP, wordsP, tablesP, scratchP] = at;
+  const mem = k.bytes();
+  mem.set(lines, linesP);
+  mem.set(words, wordsP);
+  k.ex.contextMask(linesP, n, w, L, nStripes, first, wordsP, words.length / 4, scratchP, tablesP);
+  lines.set(k.bytes().subarray(linesP, linesP + n * w));
 }

@@ -1,13 +1,39 @@
 // RESD payloads (format.md, "RESD"): one integer per rebuilt cell, in COEF's chunks, as one sparse
 // chunk (kind 4) or one predicted chunk (kind 5).
-import { AnsDecoder, slotsOf, tableModel } from "./ans.js";
+import { AnsDecoder, KERNEL_SLOTTED_SYMBOLS, SLOT_SHIFT, slotsOf, tableModel } from "./ans.js";
 import { crc32, i32, u16, u32 } from "./bytes.js";
 import { decodeStream, streamEnd } from "./coef.js";
 import { CorruptFileError } from "./errors.js";
 import { countOnes, decodeMask } from "./mask.js";
+import { align16, kernels, Kernels, WasmMemoryError } from "./wasm.js";
+
+/** A sparse residual layer (kind 4): `picture` (rows x cols, 1 where a rebuilt cell's integer is not
+ * 0) and those integers, `nonzero`, in row-major order. */
+export interface SparseResidual {
+  picture: Uint8Array;
+  nonzero: Float64Array;
+}
 
 /** The residual integers of the rebuilt cells of `mask` (rows x cols), in row-major order. */
 export function decodeResidual(p: Uint8Array, mask: Uint8Array, rows: number, cols: number): Float64Array {
+  const layer = decodeResidualLayer(p, mask, rows, cols);
+  return layer instanceof Float64Array ? layer : spread(layer, mask);
+}
+
+/** A sparse layer's integers, one per rebuilt cell of `mask`, in row-major order. */
+export function spread({ picture, nonzero }: SparseResidual, mask: Uint8Array): Float64Array {
+  const out = new Float64Array(countOnes(mask));
+  for (let k = 0, c = 0, v = 0; k < mask.length; k++) {
+    if (!mask[k]) continue;
+    if (picture[k]) out[c] = nonzero[v++];
+    c++;
+  }
+  return out;
+}
+
+/** decodeResidual's integers, or a sparse layer as it is coded (its nonzero integers and where they
+ * go: a grid of bytes, not of doubles, for a map's whole grid). */
+export function decodeResidualLayer(p: Uint8Array, mask: Uint8Array, rows: number, cols: number): Float64Array | SparseResidual {
   const total = countOnes(mask);
   const kind = p.length >= 20 ? u32(p, 16) : -1;
   if (kind === 4 || kind === 5) {
@@ -20,27 +46,20 @@ export function decodeResidual(p: Uint8Array, mask: Uint8Array, rows: number, co
     }
     if (20 + nbytes !== p.length) throw new CorruptFileError(`residual chunk 0 of kind ${kind} has a wrong length`);
     if (crc32(body) !== u32(p, 12)) throw new CorruptFileError("residual chunk 0 fails its checksum");
-    return kind === 4 ? sparse(body, mask, rows, cols, total) : predicted(body, mask, rows, cols, total);
+    return kind === 4 ? sparse(body, mask, rows, cols) : predicted(body, mask, rows, cols, total);
   }
   const s = decodeStream(p, total, null, null, { name: "residual" });
   if (!s.ints) throw new CorruptFileError("residual layer holds float values");
   return s.ints;
 }
 
-function sparse(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, total: number): Float64Array {
+function sparse(body: Uint8Array, mask: Uint8Array, rows: number, cols: number): SparseResidual {
   if (body.length < 4) throw new CorruptFileError("sparse residual is truncated");
   const L = u32(body, 0);
   if (4 + L > body.length) throw new CorruptFileError("sparse residual's nonzero map runs past the chunk");
   const picture = decodeMask(body.subarray(4, 4 + L), rows, cols);
-  const nonzero = new Uint8Array(total); // per rebuilt cell
-  let n = 0;
-  for (let k = 0, c = 0; k < mask.length; k++) {
-    if (picture[k] && !mask[k]) throw new CorruptFileError("sparse residual sets a cell that is not rebuilt");
-    if (mask[k]) {
-      nonzero[c++] = picture[k];
-      n += picture[k];
-    }
-  }
+  if (!within(picture, mask)) throw new CorruptFileError("sparse residual sets a cell that is not rebuilt");
+  const n = countOnes(picture);
   const signsAt = body.length - Math.ceil(n / 8);
   if (signsAt < 4 + L) throw new CorruptFileError("sparse residual has no room for its signs");
   const region = body.subarray(4 + L, signsAt);
@@ -49,19 +68,28 @@ function sparse(body: Uint8Array, mask: Uint8Array, rows: number, cols: number, 
     throw new CorruptFileError("sparse residual's magnitudes do not end where its signs start");
   }
   if (!sizes.ints) throw new CorruptFileError("sparse residual's magnitudes are not integers");
-  const out = new Float64Array(total);
-  for (let v = 0, c = 0; c < total; c++) {
-    if (!nonzero[c]) continue;
+  const nonzero = new Float64Array(n);
+  for (let v = 0; v < n; v++) {
     const size = sizes.ints[v];
     if (size < 0 || size > 2 ** 62) throw new CorruptFileError("sparse residual's magnitudes are out of range");
     const negative = (body[signsAt + (v >> 3)] >> (7 - (v & 7))) & 1;
-    out[c] = negative ? -(size + 1) : size + 1;
-    v++;
+    nonzero[v] = negative ? -(size + 1) : size + 1;
   }
   if (n % 8 && body[body.length - 1] & ((1 << (8 - (n % 8))) - 1)) {
     throw new CorruptFileError("sparse residual has a stray sign bit");
   }
-  return out;
+  return { picture, nonzero };
+}
+
+/** Whether every set cell of `picture` is set in `mask` (grids of 0s and 1s): four cells a word. */
+function within(picture: Uint8Array, mask: Uint8Array): boolean {
+  const aligned = picture.byteOffset % 4 === 0 && mask.byteOffset % 4 === 0;
+  const words = aligned ? picture.length >> 2 : 0;
+  const p = new Uint32Array(picture.buffer, picture.byteOffset, words);
+  const m = new Uint32Array(mask.buffer, mask.byteOffset, words);
+  for (let k = 0; k < words; k++) if (p[k] & ~m[k]) return false;
+  for (let k = 4 * words; k < picture.length; k++) if (picture[k] & ~mask[k]) return false;
+  return true;
 }
 
 // Neighbours W, N, NW, NE, WW, NN, NNE as (rows up, columns left).
@@ -103,6 +131,14 @@ function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: numbe
   const slotted = total >= SLOTTED_CELLS;
   const slotsOfClass: Array<Int32Array | null> = modelOf.map((m, k) => (m && slotted && widths[k] >= SLOTTED_WIDTH ? slotsOf(m, 2 * widths[k] + 1) : null));
   const coder = new AnsDecoder(body.subarray(at), what);
+  const k = kernels();
+  if (k) {
+    try {
+      return predictedInKernels(k, body.subarray(at), a, modelOf, widths, mask, rows, cols, total);
+    } catch (e) {
+      if (!(e instanceof WasmMemoryError)) throw e;
+    }
+  }
   const V = new Float64Array(rows * cols);
   const E = new Float64Array(rows * cols);
   const nb = (g: Float64Array, r: number, c: number, up: number, left: number): number => {
@@ -115,7 +151,7 @@ function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: numbe
   };
   // One anti-diagonal (2 r + c = k) at a time; its cells' errors decode class by class (0 to 63),
   // each class in the order of its cells (a stable counting sort), then its values predict.
-  const most = Math.min(rows, Math.ceil(cols / 2) + 1);
+  const most = longestWavefront(rows, cols);
   const line = new Int32Array(most);
   const lineClass = new Uint8Array(most);
   const order = new Int32Array(most);
@@ -207,4 +243,48 @@ function predicted(body: Uint8Array, mask: Uint8Array, rows: number, cols: numbe
   const out = new Float64Array(total);
   for (let k = 0, c = 0; k < mask.length; k++) if (mask[k]) out[c++] = V[k];
   return out;
+}
+
+/** The longest wavefront (2 r + c = k) of a rows x cols grid. */
+function longestWavefront(rows: number, cols: number): number {
+  return Math.min(rows, Math.ceil(cols / 2) + 1);
+}
+
+/**
+ * predicted()'s decode after its header, in the WebAssembly kernels (kernels.ts predicted): the same
+ * wavefronts, classes, symbols and integer predictions, so the same values (web/test/wasm.test.mjs
+ * compares the two paths on real and on random chunks). `words` has been checked by an AnsDecoder.
+ * Throws WasmMemoryError when the kernels' memory cannot hold the grids.
+ */
+function predictedInKernels(k: Kernels, words: Uint8Array, a: number[], modelOf: Array<Int32Array | null>,
+  widths: Int32Array, mask: Uint8Array, rows: number, cols: number, total: number): Float64Array {
+  const cells = rows * cols;
+  const most = longestWavefront(rows, cols);
+  const sizes = [align16(words.length), align16(4 * cells), align16(40 * rows), align16(cells), align16(4 * most),
+    align16(most), align16(4 * most), align16(4 * 65), 64 * 16, 32, 8 * total];
+  const at: number[] = [];
+  let end = k.scratch(sizes.reduce((x, y) => x + y, 0));
+  for (const n of sizes) {
+    at.push(end);
+    end += n;
+  }
+  const [wP, vP, ringP, maskP, lineP, classP, orderP, startsP, descP, weightsP, outP] = at;
+  // The tables above the scratch region, uploaded once per model (they move when it grows).
+  const desc = new Int32Array(64 * 4);
+  for (let cls = 0; cls < 64; cls++) {
+    const m = modelOf[cls];
+    if (!m) continue;
+    const n = 2 * widths[cls] + 1;
+    desc.set([k.ints(m), n >= KERNEL_SLOTTED_SYMBOLS ? k.ints(slotsOf(m, n)) : 0, n, widths[cls]], 4 * cls);
+  }
+  const mem = k.bytes();
+  mem.set(words, wP);
+  mem.set(mask, maskP);
+  const i32s = new Int32Array(mem.buffer);
+  i32s.set(desc, descP / 4);
+  i32s.set(a, weightsP / 4);
+  const status = k.ex.predicted(wP, words.length / 4, weightsP, descP, maskP, rows, cols, vP, ringP, lineP, classP, orderP,
+    startsP, outP, SLOT_SHIFT);
+  if (status) throw new CorruptFileError("predicted residual layer decodes to values beyond 2**31");
+  return new Float64Array(k.view().buffer.slice(outP, outP + 8 * total));
 }

@@ -20,6 +20,13 @@ interface Exports {
   finish(h: number, mask: number, out: number, cols: number, wr0: number, wr1: number, wc0: number, wc1: number,
     z0: number, a: number, b: number, c: number, f32: number, res: number): number;
   ansGroups(words: number, nwords: number, groups: number, ngroups: number, at: number, out: number, maxAbs: number, slotShift: number): void;
+  contextMask(lines: number, n: number, w: number, L: number, nStripes: number, first: number, words: number, nwords: number,
+    scratch: number, tables: number): void;
+  predicted(words: number, nwords: number, weights: number, classes: number, mask: number, rows: number, cols: number,
+    V: number, ring: number, line: number, lineClass: number, order: number, starts: number, out: number, slotShift: number): number;
+  residualGrid(res: number, mask: number, q: number, picture: number, cells: number, e: number): void;
+  addResidual(h: number, mask: number, q: number, picture: number, rows: number, cols: number, plane: number, a: number, b: number, c: number,
+    e: number): void;
 }
 
 /** The kernels' memory could not grow: the caller runs the TypeScript path instead. */

@@ -19,7 +19,10 @@ const SEED = Number(process.env.DFTPCC_FUZZ_SEED ?? 11);
 /** A decode taking more CPU time than this is a hang (the largest seed decodes in well under a
  * second); CPU time, so that a shared machine's load does not fail the test. */
 const HANG_CPU_MS = 10_000;
-const SEEDS = ["alirt_exact", "field_oriented", "field_footprint", "gale_maxerr_coarse", "gale_rmse", "gale_default",
+// Residual layers early (the small seeds are picked most): predicted (kind 5) and sparse (kind 4),
+// whose decoders and application run in the kernels.
+const SEEDS = ["legacy_compact_max_error_predicted", "alirt_exact", "legacy_compact_max_error_sparse", "field_oriented",
+  "field_footprint", "gale_maxerr_coarse", "gale_rmse", "gale_default",
   "gale_maxerr", "gale_dft", "gale_zstd", "gale_paper", "davos_tiled_maxerr",
   // Version 1.0 and 1.1 maps (tests/legacy): the legacy coefficient order.
   "legacy_tie_dct", "legacy_compact_dft", "legacy_tiled_map_residual", "legacy_paper_dft"];

@@ -8,6 +8,7 @@ import { createServer } from "node:http";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { test } from "node:test";
+import CRC32 from "crc-32";
 import puppeteer from "puppeteer-core";
 import { decode, ready, useWasm } from "../dist/dftpcc.mjs";
 import * as internals from "../dist/internals.mjs";
@@ -226,6 +227,118 @@ test("the kernels' ANS decoder gives the TypeScript decoder's symbols, on any wo
   assert.equal(compared, 25);
 });
 
+/** decode-like f() by the kernels and by TypeScript alone: the results, or the errors' texts. */
+function bothPaths(f) {
+  const out = [];
+  for (const on of [true, false]) {
+    internals.useWasm(on);
+    try {
+      out.push(f());
+    } catch (e) {
+      out.push(`${e.name}: ${e.message}`);
+    } finally {
+      internals.useWasm(true);
+    }
+  }
+  return out;
+}
+
+const u32le = (v) => [v & 255, (v >>> 8) & 255, (v >>> 16) & 255, (v >>> 24) & 255];
+
+/** A RESD section of one kind-5 chunk holding `total` values, around `body`. */
+function predictedSection(body, total) {
+  const crc = CRC32.buf(body) >>> 0;
+  return Uint8Array.from([...u32le(1), ...u32le(total), ...u32le(body.length), ...u32le(crc), ...u32le(5), ...body]);
+}
+
+test("the kernels' predicted residual decoder (RESD kind 5) gives the TypeScript path's integers, or its refusal, on random chunks", () => {
+  let seed = 424242;
+  const rand = () => ((seed = (Math.imul(seed, 1103515245) + 12345) >>> 0) / 2 ** 32);
+  const pick = (a) => a[Math.floor(rand() * a.length)];
+  const verdicts = { decoded: 0, refused: 0 };
+  // Rows and columns of one (rules 1-4 everywhere), narrow grids, and grids with an interior.
+  const shapes = [[1, 1], [1, 9], [8, 1], [2, 2], [3, 5], [5, 3], [17, 4], [40, 61], [97, 130]];
+  for (let trial = 0; trial < 300; trial++) {
+    const [rows, cols] = shapes[trial % shapes.length];
+    const density = pick([1, 1, 0.7, 0.2]);
+    const mask = Uint8Array.from({ length: rows * cols }, () => (rand() < density ? 1 : 0));
+    const total = mask.reduce((a, b) => a + b, 0);
+    // Weights summing to 2**16 (a real fit), small random ones, ones near the 2**24 limit (values
+    // that pass 2**26, the TypeScript path's exact-float bound, then 2**31: a refusal), and halves of
+    // 2**16, positive and negative (sums halfway between two integers: the rounding and the floor).
+    const style = trial % 5;
+    const weights = Array.from({ length: 7 }, () => (style === 0 ? 0 : style === 1 ? Math.floor((rand() - 0.5) * 2 ** 17)
+      : style === 2 ? Math.floor((rand() - 0.5) * 2 ** 25) : style === 4 ? 32768 * Math.floor(rand() * 5 - 2) : 0));
+    if (style === 0) weights[Math.floor(rand() * 7)] = 65536;
+    if (style === 3) [weights[0], weights[1], weights[2]] = [2 ** 17, 2 ** 17, -(2 ** 17) + 1];
+    const C = 1 + Math.floor(rand() * 64);
+    const codes = Array.from({ length: C }, () => (rand() < 0.2 ? 0 : 1 + Math.floor(rand() * 255)));
+    const widths = codes.filter((c) => c).map(() => pick([1, 1, 2, 3, 7, 40, 300, 2 ** 15, trial === 7 ? 0 : 5]));
+    const nwords = pick([0, 1, 2, 5, 60, 4000]);
+    const body = [];
+    for (const w of weights) body.push(...u32le(w | 0));
+    body.push(C, ...codes);
+    for (const w of widths) body.push(w & 255, w >> 8);
+    for (let k = 0; k < 4 * nwords; k++) body.push(Math.floor(rand() * 256));
+    if (nwords) body[body.length - 1] |= 1; // a last word of 0 is refused alike (AnsDecoder)
+    const section = predictedSection(Uint8Array.from(body), total);
+    const [w, t] = bothPaths(() => internals.decodeResidual(section, mask, rows, cols));
+    if (typeof t === "string") {
+      assert.equal(w, t, `trial ${trial}: the paths refuse differently`);
+      verdicts.refused++;
+      continue;
+    }
+    assert.equal(typeof w, "object", `trial ${trial}: ${w}`);
+    const k = firstDiff(w, t);
+    assert.equal(k, -1, `trial ${trial} (${rows} x ${cols}, weights ${weights}): value ${k} is ${w[k]} by the kernels, ${t[k]} by TypeScript`);
+    verdicts.decoded++;
+  }
+  // Both outcomes are exercised: decodes of every shape, and refusals (values past 2**31, tables).
+  assert.ok(verdicts.decoded >= 150 && verdicts.refused >= 10, JSON.stringify(verdicts));
+});
+
+/** A zstd frame of one raw block (bytes.length <= 255): a MASK's seed lines without an encoder. */
+function rawZstd(bytes) {
+  const n = bytes.length;
+  return [0x28, 0xb5, 0x2f, 0xfd, 0x20, n, ((n << 3) | 1) & 255, (n >> 5) & 255, (n >> 13) & 255, ...bytes];
+}
+
+test("the kernels' context-coded mask (MASK kinds 2 and 3, a sparse residual's picture) gives the TypeScript path's bits on random words", () => {
+  let seed = 777;
+  const rand = () => ((seed = (Math.imul(seed, 1103515245) + 12345) >>> 0) / 2 ** 32);
+  let compared = 0;
+  for (const [rows, cols] of [[1, 1], [1, 40], [30, 1], [7, 9], [64, 50], [33, 120], [200, 150]]) {
+    for (const kind of [2, 3]) {
+      const transposed = rows > cols ? 1 : 0;
+      const n = transposed ? cols : rows;
+      const w = transposed ? rows : cols;
+      for (const stripe of [1, 3, 16, n]) {
+        const L = Math.min(stripe, n);
+        const seeds = Math.ceil(n / L) - 1 + (kind === 3 ? 1 : 0);
+        if (3 * seeds * 4 > 255) continue; // one raw zstd block of up to 255 bytes
+        // Each seed line: zeros, then ones from a random column (two runs; one run when it is 0 or w).
+        const values = [];
+        for (let s = 0; s < seeds; s++) {
+          const a = Math.floor(rand() * (w + 1));
+          if (a === 0 || a === w) values.push(1, w);
+          else values.push(2, a, w - a);
+        }
+        const planes = [0, 1, 2, 3].flatMap((b) => values.map((v) => (v >>> (8 * b)) & 255));
+        const frame = seeds ? rawZstd(planes) : [];
+        const nwords = 1 + Math.floor(rand() * 3 * Math.max(1, (rows * cols) / 64));
+        const words = Array.from({ length: 4 * nwords }, () => Math.floor(rand() * 256));
+        words[words.length - 1] |= 1;
+        const p = Uint8Array.from([kind, transposed, ...u32le(stripe), ...u32le(frame.length), ...frame, ...words]);
+        const [a, b] = bothPaths(() => internals.decodeMask(p, rows, cols));
+        assert.equal(typeof b, "object", `${rows} x ${cols} kind ${kind} stripe ${stripe}: ${b}`);
+        assert.equal(firstDiff(a, b), -1, `${rows} x ${cols} kind ${kind} stripe ${stripe}: the bits differ`);
+        compared++;
+      }
+    }
+  }
+  assert.ok(compared >= 40, `compared ${compared}`);
+});
+
 test("a kernels' decode leaves the caller's buffers alone: the heights outlive the next decode", () => {
   const name = maps.find((n) => n.startsWith("gale_default"));
   const data = bytes(join(DIR, name));
@@ -239,7 +352,9 @@ test("a kernels' decode leaves the caller's buffers alone: the heights outlive t
 test("in Chromium (a page's main thread) the kernels load and give the TypeScript path's bits", async (t) => {
   const CHROMIUM = process.env.CHROMIUM ?? "/usr/bin/chromium";
   assert.ok(existsSync(CHROMIUM), `${CHROMIUM} is missing: apt-get install chromium (or set CHROMIUM)`);
-  const names = maps.filter((n) => !n.includes("tiled")).slice(0, 6);
+  // The first maps, and maps with a residual layer (sparse and predicted).
+  const untiled = maps.filter((n) => !n.includes("tiled"));
+  const names = [...untiled.slice(0, 6), ...untiled.filter((n) => /max_?err/.test(n))];
   const server = createServer((req, res) => {
     const file = req.url === "/dftpcc.mjs" ? join(WEB, "dist", "dftpcc.mjs") : join(DIR, req.url.slice(1).replace(/[^\w.-]/g, ""));
     if (req.url === "/" || !existsSync(file)) {

@@ -315,9 +315,22 @@ export function bluesteinForward(plan: usize, re: usize, im: usize): void {
  */
 // One cell of dctGroup's fused finishing pass, as finish() does it: its height from the transform's
 // output h and the plane at (row, col), NaN where the mask is empty, stored at cell k and returned.
+// With a residual layer (res: its grid of q 2 e (1 - 1e-6), f64 a cell; 0: none) as decode.ts sums
+// it: the plane first when `plane` is 1, then the residual, then z0 as finishWindow adds it without
+// a plane (z0 + (0 + 0 row) + 0 col).
 @inline function finishCell(k: i32, h: f64, row: f64, col: f64, z0: f64, a: f64, b: f64, c: f64, mask: usize,
-                            hts: usize, f32: i32): f64 {
-  const z = load<u8>(mask + <usize>k) ? h + ((z0 + (a + c * row)) + b * col) : NaN;
+                            hts: usize, f32: i32, res: usize, plane: i32): f64 {
+  let z = NaN;
+  if (load<u8>(mask + <usize>k)) {
+    if (res) {
+      let x = h;
+      if (plane) x = x + ((a + c * row) + b * col);
+      x = x + load<f64>(res + (<usize>k << 3));
+      z = x + ((z0 + (0.0 + 0.0 * row)) + 0.0 * col);
+    } else {
+      z = h + ((z0 + (a + c * row)) + b * col);
+    }
+  }
   if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
   else store<f64>(hts + (<usize>k << 3), z);
   return z;
@@ -390,12 +403,13 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
     let lo = load<f64>(fin, 32), hi = load<f64>(fin, 40);
     const mask = <usize>load<i32>(fin, 48), hts = <usize>load<i32>(fin, 52), f32 = load<i32>(fin, 56);
     const cols = load<i32>(fin, 60), down = load<i32>(fin, 68);
+    const res = <usize>load<i32>(fin, 72), plane = load<i32>(fin, 76);
     let cells = load<i32>(fin, 64);
     const r0 = o0 >= 0 ? o0 / cols : 0, q0 = o0 >= 0 ? o0 - r0 * cols : 0;
     const r1 = o1 >= 0 ? o1 / cols : 0, q1 = o1 >= 0 ? o1 - r1 * cols : 0;
     const r2 = o2 >= 0 ? o2 / cols : 0, q2 = o2 >= 0 ? o2 - r2 * cols : 0;
     const r3 = o3 >= 0 ? o3 / cols : 0, q3 = o3 >= 0 ? o3 - r3 * cols : 0;
-    if (o0 >= 0 && o1 >= 0 && o2 >= 0 && o3 >= 0) {
+    if (!res && o0 >= 0 && o1 >= 0 && o2 >= 0 && o3 >= 0) {
       // All four outputs: the pairs' lanes as they are, outputs o0 and o2 (0 + re) in A, o1 and o3
       // (0 - im) in B; rows and columns as exact f64 integers stepped by the cell (down: the rows).
       const zero = f64x2.splat(0), one = f64x2.splat(1);
@@ -447,7 +461,7 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       if (o0 >= 0) {
         const k = o0 + p;
         const z = finishCell(k, 0.0 + f64x2.extract_lane(r, 0), <f64>(down ? r0 + d : r0), <f64>(down ? q0 : q0 + d),
-                             z0, a, b, c, mask, hts, f32);
+                             z0, a, b, c, mask, hts, f32, res, plane);
         if (load<u8>(mask + <usize>k)) {
           lo = min(lo, z);
           hi = max(hi, z);
@@ -457,7 +471,7 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       if (o1 >= 0) {
         const k = o1 + p;
         const z = finishCell(k, 0.0 - f64x2.extract_lane(i, 0), <f64>(down ? r1 + d : r1), <f64>(down ? q1 : q1 + d),
-                             z0, a, b, c, mask, hts, f32);
+                             z0, a, b, c, mask, hts, f32, res, plane);
         if (load<u8>(mask + <usize>k)) {
           lo = min(lo, z);
           hi = max(hi, z);
@@ -467,7 +481,7 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       if (o2 >= 0) {
         const k = o2 + p;
         const z = finishCell(k, 0.0 + f64x2.extract_lane(r, 1), <f64>(down ? r2 + d : r2), <f64>(down ? q2 : q2 + d),
-                             z0, a, b, c, mask, hts, f32);
+                             z0, a, b, c, mask, hts, f32, res, plane);
         if (load<u8>(mask + <usize>k)) {
           lo = min(lo, z);
           hi = max(hi, z);
@@ -477,7 +491,7 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
       if (o3 >= 0) {
         const k = o3 + p;
         const z = finishCell(k, 0.0 - f64x2.extract_lane(i, 1), <f64>(down ? r3 + d : r3), <f64>(down ? q3 : q3 + d),
-                             z0, a, b, c, mask, hts, f32);
+                             z0, a, b, c, mask, hts, f32, res, plane);
         if (load<u8>(mask + <usize>k)) {
           lo = min(lo, z);
           hi = max(hi, z);
@@ -528,27 +542,25 @@ export function dctGroup(dct: usize, bluestein: i32, fft: usize, inp: usize, i0:
  * The fused finishing pass of a vector of zeros (one the inverse skips): cells o + p os, p < w, as
  * dctGroup's fin. fin's layout: z0, a, b, c (f64 at bytes 0 .. 24), the least and greatest heights
  * so far (f64 at 32, 40), then i32s: the mask (48), the heights (52), 1 for f32 heights (56), the
- * grid's columns (60), the cells set so far (64), 1 when the vectors run down the columns (68).
+ * grid's columns (60), the cells set so far (64), 1 when the vectors run down the columns (68), a
+ * residual layer's grid or 0 (72, see finishCell), 1 to add the plane before it (76).
  */
 export function finishZeros(fin: usize, o: i32, os: i32, w: i32): void {
   const z0 = load<f64>(fin), a = load<f64>(fin, 8), b = load<f64>(fin, 16), c = load<f64>(fin, 24);
   let lo = load<f64>(fin, 32), hi = load<f64>(fin, 40);
   const mask = <usize>load<i32>(fin, 48), hts = <usize>load<i32>(fin, 52), f32 = load<i32>(fin, 56);
   const cols = load<i32>(fin, 60);
+  const res = <usize>load<i32>(fin, 72), plane = load<i32>(fin, 76);
   let cells = load<i32>(fin, 64);
   for (let p = 0; p < w; p++) {
     const k = o + p * os;
     const r = k / cols, q = k - r * cols;
-    let z = NaN;
+    const z = finishCell(k, 0.0, <f64>r, <f64>q, z0, a, b, c, mask, hts, f32, res, plane);
     if (load<u8>(mask + <usize>k)) {
-      const h = 0.0;
-      z = h + ((z0 + (a + c * <f64>r)) + b * <f64>q);
       lo = min(lo, z);
       hi = max(hi, z);
       cells++;
     }
-    if (f32) store<f32>(hts + (<usize>k << 2), <f32>z);
-    else store<f64>(hts + (<usize>k << 3), z);
   }
   store<f64>(fin, lo, 32);
   store<f64>(fin, hi, 40);
@@ -723,5 +735,335 @@ export function ansGroups(words: usize, nwords: i32, groups: usize, ngroups: i32
       if ((state >> 32) == 0 && pos > 0) state = (state << 32) | <u64>load<u32>(words + (<usize>--pos << 2));
       store<f64>(out + (<usize>load<i32>(at + (<usize>k << 2)) << 3), <f64>a - off);
     }
+  }
+}
+
+// --- the residual layer (src/residual.ts, src/mask.ts, src/decode.ts) ------------------------------
+
+/** A stack ANS decoder's state and position (ansGroups' u64 state), shared by the two kernels below
+ * that decode symbol by symbol; ansStart sets them from a chunk's words (the JavaScript side has
+ * checked that the last word is nonzero). */
+let ansState: u64 = 0;
+let ansPos: i32 = 0;
+let ansWords: usize = 0;
+
+// @ts-ignore: decorator
+@inline function ansStart(words: usize, nwords: i32): void {
+  ansWords = words;
+  ansPos = nwords;
+  ansState = 0;
+  if (ansPos > 0) {
+    ansState = <u64>load<u32>(words + (<usize>--ansPos << 2));
+    if (ansPos > 0) ansState = (ansState << 32) | <u64>load<u32>(words + (<usize>--ansPos << 2));
+  }
+}
+
+/** state = (state >> 24) * probability + remainder, and a word refilled below 2**32 (AnsDecoder.advance). */
+// @ts-ignore: decorator
+@inline function ansAdvance(remainder: i32, probability: i32): void {
+  let s = (ansState >> 24) * <u64>probability + <u64>remainder;
+  if ((s >> 32) == 0 && ansPos > 0) s = (s << 32) | <u64>load<u32>(ansWords + (<usize>--ansPos << 2));
+  ansState = s;
+}
+
+/** The next symbol of a table model (cdf: n + 1 i32; slots: its slot table or 0), AnsDecoder.decode. */
+// @ts-ignore: decorator
+@inline function ansSymbol(cdf: usize, slots: usize, n: i32, slotShift: i32): i32 {
+  const quantile = <i32>(<u32>ansState & 0xffffff);
+  let a = 0, b = n - 1;
+  if (slots) {
+    const s = slots + (<usize>(quantile >>> slotShift) << 2);
+    a = load<i32>(s);
+    b = load<i32>(s, 4);
+  }
+  while (a < b) {
+    const m = (a + b + 1) >> 1;
+    if (load<i32>(cdf + (<usize>m << 2)) <= quantile) a = m;
+    else b = m - 1;
+  }
+  const lo = load<i32>(cdf + (<usize>a << 2));
+  ansAdvance(quantile - lo, load<i32>(cdf + (<usize>a << 2), 4) - lo);
+  return a;
+}
+
+/** One bit of a Bernoulli model whose cumulative table is [0, left1, 2**24] (AnsDecoder.decodeBit). */
+// @ts-ignore: decorator
+@inline function ansBit(left1: i32): i32 {
+  const quantile = <i32>(<u32>ansState & 0xffffff);
+  if (quantile < left1) {
+    ansAdvance(quantile, left1);
+    return 0;
+  }
+  ansAdvance(quantile - left1, 0x1000000 - left1);
+  return 1;
+}
+
+/**
+ * contextMask (src/mask.ts, MASK kinds 2 and 3) after its seed lines: lines (u8, n lines of w cells,
+ * the seed lines in place) gets every other line, step t = first .. L - 1 decoding line t of each
+ * stripe (of nStripes; only stripe 0 at t = 0) from the chunk's words, with the models of contexts
+ * 0 and 255 first, then each cell's own, the counts updated as mask.ts does (float64 operations in
+ * its order: the same left1 to the bit). scratch: 2 w + 16 bytes (two padded lines), then 2 nStripes w
+ * bytes from the next 16-aligned offset (contexts, bits), 16-aligned; tables: 6144 bytes (zeroed here).
+ */
+export function contextMask(lines: usize, n: i32, w: i32, L: i32, nStripes: i32, first: i32, words: usize, nwords: i32,
+  scratch: usize, tables: usize): void {
+  ansStart(words, nwords);
+  const n1 = tables, nn = tables + 2048, left1 = tables + 4096;
+  memory.fill(tables, 0, 6144);
+  const padA = scratch, padB = scratch + <usize>(w + 8);
+  const ctx = scratch + ((<usize>(2 * w + 16) + 15) & ~15);
+  const bits = ctx + <usize>nStripes * <usize>w;
+  memory.fill(padA, 0, <usize>(2 * w + 16));
+  for (let t = first; t < L; t++) {
+    let lineCount = 0;
+    const most = t ? nStripes : 1;
+    while (lineCount < most && lineCount * L + t < n) lineCount++;
+    const m = lineCount * w;
+    for (let q = 0; q < lineCount; q++) {
+      const i = q * L + t;
+      const base = ctx + <usize>(q * w);
+      if (t == 0) {
+        memory.fill(base, 0, <usize>w);
+        continue;
+      }
+      memory.copy(padA + 2, lines + <usize>(i - 1) * <usize>w, <usize>w);
+      memory.copy(padB + 2, lines + <usize>(t >= 2 ? i - 2 : i - 1) * <usize>w, <usize>w);
+      let a = <i32>load<u8>(padA) | (<i32>load<u8>(padA, 1) << 1) | (<i32>load<u8>(padA, 2) << 2) | (<i32>load<u8>(padA, 3) << 3)
+        | (<i32>load<u8>(padA, 4) << 4);
+      let b = <i32>load<u8>(padB, 1) | (<i32>load<u8>(padB, 2) << 1) | (<i32>load<u8>(padB, 3) << 2);
+      for (let j = 0; j < w; j++) {
+        store<u8>(base + <usize>j, a | (b << 5));
+        a = (a >> 1) | (<i32>load<u8>(padA + <usize>(j + 5)) << 4);
+        b = (b >> 1) | (<i32>load<u8>(padB + <usize>(j + 4)) << 2);
+      }
+    }
+    for (let c = 0; c < 256; c++) {
+      const p = (load<f64>(n1 + (<usize>c << 3)) + (<f64>popcnt<i32>(c) + 0.5) / 9) / (load<f64>(nn + (<usize>c << 3)) + 1);
+      // bernoulliLeft1(p): constriction's perfect=False quantization.
+      const q = 1 - p;
+      const scale = <f64>(0x1000000 - 2) / (q + p);
+      store<i32>(left1 + (<usize>c << 2), <i32>floor(q * scale) + 1);
+    }
+    for (let pass = 0; pass < 2; pass++) {
+      const c = pass ? 255 : 0;
+      const l = load<i32>(left1 + (<usize>c << 2));
+      let cells = 0, ones = 0;
+      for (let k = 0; k < m; k++) {
+        if (<i32>load<u8>(ctx + <usize>k) == c) {
+          const bit = ansBit(l);
+          store<u8>(bits + <usize>k, bit);
+          ones += bit;
+          cells++;
+        }
+      }
+      store<f64>(nn + (<usize>c << 3), load<f64>(nn + (<usize>c << 3)) + <f64>cells);
+      store<f64>(n1 + (<usize>c << 3), load<f64>(n1 + (<usize>c << 3)) + <f64>ones);
+    }
+    for (let k = 0; k < m; k++) {
+      const c = <i32>load<u8>(ctx + <usize>k);
+      if (c != 0 && c != 255) {
+        const bit = ansBit(load<i32>(left1 + (<usize>c << 2)));
+        store<u8>(bits + <usize>k, bit);
+        const o = <usize>c << 3;
+        store<f64>(nn + o, load<f64>(nn + o) + 1);
+        store<f64>(n1 + o, load<f64>(n1 + o) + <f64>bit);
+      }
+    }
+    for (let q = 0; q < lineCount; q++) memory.copy(lines + <usize>(q * L + t) * <usize>w, bits + <usize>(q * w), <usize>w);
+  }
+}
+
+/** The wavefront ring's slot (k mod 5) of neighbour (up, left) of (r, c), cell k = 2 r + c, by
+ * format.md's rules 1-4 (residual.ts nb): its row in the high half, -1 at rule 1's (0, 0). Every
+ * neighbour lies in one of the four wavefronts before k, so five wavefronts of values are all a
+ * decode reads (a wavefront's cells are rows apart in the grid: one page each). */
+// @ts-ignore: decorator
+@inline function nbRow(r: i32, c: i32, up: i32, left: i32, cols: i32): i32 {
+  if (r == 0 && c == 0) return -1;
+  let rr = 0, cc = 0;
+  if (up && r == 0) cc = c - 1;
+  else if (!up && c == 0) rr = r - 1;
+  else {
+    rr = max(r - up, 0);
+    cc = min(max(c - left, 0), cols - 1);
+  }
+  return (rr << 3) | ((2 * rr + cc) % 5);
+}
+
+/** The value of ring `g` (five wavefronts of `rows` i32) at nbRow's answer x. */
+// @ts-ignore: decorator
+@inline function ringAt(g: usize, x: i32, rows: i32): i32 {
+  return x < 0 ? 0 : load<i32>(g + (<usize>((x & 7) * rows + (x >> 3)) << 2));
+}
+
+// @ts-ignore: decorator
+@inline function vi(g: usize, k: i32): i32 { return load<i32>(g + (<usize>k << 2)); }
+
+/**
+ * RESD kind 5 (src/residual.ts predicted) after its header: the values V (i32 grid, rows x cols) of
+ * every cell, wavefront by wavefront, each wavefront's errors decoded class by class from the
+ * chunk's words, then its values predicted in exact integers, P = (sum a_k x_k + 2**15) >> 16 (i64:
+ * |a| < 2**24 and |x| < 2**31, seven products below 2**58). The neighbours are read from rings of the
+ * last five wavefronts' values and errors (ring: 2 x 5 x rows i32; wavefront k's cell of row r at
+ * (k mod 5) rows + r). weights: 7 i32; classes: 64 descriptors of four i32 (the cumulative table's
+ * offset, its slot table's or 0, the symbols n (0: code 0, not coded), max_abs). line, order: i32
+ * scratch of `most` (the longest wavefront), lineClass u8 of most, starts 65 i32. out: the values of
+ * the rebuilt cells in row-major order (f64). Returns 0, or 1 when a value reaches 2**31 in magnitude
+ * (the caller refuses the chunk).
+ */
+export function predicted(words: usize, nwords: i32, weights: usize, classes: usize, mask: usize, rows: i32, cols: i32,
+  V: usize, ring: usize, line: usize, lineClass: usize, order: usize, starts: usize, out: usize, slotShift: i32): i32 {
+  ansStart(words, nwords);
+  const cells = <usize>rows * <usize>cols;
+  const RV = ring, RE = ring + (<usize>(5 * rows) << 2);
+  memory.fill(ring, 0, <usize>(10 * rows) << 2);
+  const a0 = <i64>load<i32>(weights), a1 = <i64>load<i32>(weights, 4), a2 = <i64>load<i32>(weights, 8),
+    a3 = <i64>load<i32>(weights, 12), a4 = <i64>load<i32>(weights, 16), a5 = <i64>load<i32>(weights, 20),
+    a6 = <i64>load<i32>(weights, 24);
+  const NONE = 255;
+  const last = 2 * (rows - 1) + cols;
+  const slot = <usize>rows << 2;
+  for (let k = 0; k < last; k++) {
+    // The wavefronts k, k - 1 .. k - 4 in the rings (only the interior, k >= 6, reads them directly).
+    const s0 = <usize>(k % 5) * slot, s1 = <usize>((k + 4) % 5) * slot, s2 = <usize>((k + 3) % 5) * slot;
+    const s3 = <usize>((k + 2) % 5) * slot, s4 = <usize>((k + 1) % 5) * slot;
+    let n = 0;
+    memory.fill(starts, 0, 65 * 4);
+    const lo = k - cols + 1;
+    const rFirst = lo <= 0 ? 0 : (lo + 1) >> 1;
+    for (let r = rFirst; r < rows && 2 * r <= k; r++) {
+      const c = k - 2 * r;
+      const cell = r * cols + c;
+      store<i32>(line + (<usize>n << 2), r);
+      const ro = <usize>r << 2;
+      store<i32>(RE + s0 + ro, 0);
+      if (!load<u8>(mask + <usize>cell)) {
+        store<u8>(lineClass + <usize>(n++), NONE);
+        continue;
+      }
+      let act = 0;
+      if (r >= 2 && c >= 2 && c < cols - 1) {
+        act = 2 * abs(load<i32>(RE + s1 + ro)) + 2 * abs(load<i32>(RE + s2 + ro - 4)) + abs(load<i32>(RE + s3 + ro - 4))
+          + abs(load<i32>(RE + s1 + ro - 4)) + abs(load<i32>(RE + s2 + ro)) + abs(load<i32>(RE + s4 + ro - 8));
+      } else {
+        act = 2 * abs(ringAt(RE, nbRow(r, c, 0, 1, cols), rows)) + 2 * abs(ringAt(RE, nbRow(r, c, 1, 0, cols), rows))
+          + abs(ringAt(RE, nbRow(r, c, 1, 1, cols), rows)) + abs(ringAt(RE, nbRow(r, c, 1, -1, cols), rows))
+          + abs(ringAt(RE, nbRow(r, c, 0, 2, cols), rows)) + abs(ringAt(RE, nbRow(r, c, 2, 0, cols), rows));
+      }
+      let cls = 0;
+      if (act > 0) {
+        const bits = 32 - clz<i32>(act);
+        const s = bits >= 2 ? (act >>> (bits - 2)) & 1 : 0;
+        cls = min(63, 2 * bits - 1 + s);
+      }
+      store<u8>(lineClass + <usize>(n++), cls);
+      const sp = starts + (<usize>(cls + 1) << 2);
+      store<i32>(sp, load<i32>(sp) + 1);
+    }
+    for (let cls = 0; cls < 64; cls++) {
+      const sp = starts + (<usize>(cls + 1) << 2);
+      store<i32>(sp, load<i32>(sp) + load<i32>(sp - 4));
+    }
+    for (let i = 0; i < n; i++) {
+      const cls = <i32>load<u8>(lineClass + <usize>i);
+      if (cls != NONE) {
+        const sp = starts + (<usize>cls << 2);
+        const at = load<i32>(sp);
+        store<i32>(order + (<usize>at << 2), vi(line, i));
+        store<i32>(sp, at + 1);
+      }
+    }
+    // starts[cls] is now the end of class cls; it began where class cls - 1 ended.
+    for (let cls = 0, from = 0; cls < 64; cls++) {
+      const to = load<i32>(starts + (<usize>cls << 2));
+      const d = classes + (<usize>cls << 4);
+      const m = load<i32>(d, 8);
+      if (m) {
+        const cdf = <usize>load<i32>(d), slots = <usize>load<i32>(d, 4), w = load<i32>(d, 12);
+        for (let i = from; i < to; i++) store<i32>(RE + s0 + (<usize>vi(order, i) << 2), ansSymbol(cdf, slots, m, slotShift) - w);
+      }
+      from = to;
+    }
+    for (let i = 0; i < n; i++) {
+      const r = vi(line, i);
+      const c = k - 2 * r;
+      const ro = <usize>r << 2;
+      let v: i64;
+      if (<i32>load<u8>(lineClass + <usize>i) != NONE) {
+        let S: i64;
+        if (r >= 2 && c >= 2 && c < cols - 1) {
+          S = a0 * <i64>load<i32>(RV + s1 + ro) + a1 * <i64>load<i32>(RV + s2 + ro - 4) + a2 * <i64>load<i32>(RV + s3 + ro - 4)
+            + a3 * <i64>load<i32>(RV + s1 + ro - 4) + a4 * <i64>load<i32>(RV + s2 + ro) + a5 * <i64>load<i32>(RV + s4 + ro - 8)
+            + a6 * <i64>load<i32>(RV + s3 + ro - 8);
+        } else {
+          S = a0 * <i64>ringAt(RV, nbRow(r, c, 0, 1, cols), rows) + a1 * <i64>ringAt(RV, nbRow(r, c, 1, 0, cols), rows)
+            + a2 * <i64>ringAt(RV, nbRow(r, c, 1, 1, cols), rows) + a3 * <i64>ringAt(RV, nbRow(r, c, 1, -1, cols), rows)
+            + a4 * <i64>ringAt(RV, nbRow(r, c, 0, 2, cols), rows) + a5 * <i64>ringAt(RV, nbRow(r, c, 2, 0, cols), rows)
+            + a6 * <i64>ringAt(RV, nbRow(r, c, 2, -1, cols), rows);
+        }
+        v = ((S + 32768) >> 16) + <i64>load<i32>(RE + s0 + ro);
+        if (v >= 0x80000000 || v <= -0x80000000) return 1;
+      } else {
+        v = <i64>ringAt(RV, nbRow(r, c, 0, 1, cols), rows);
+      }
+      store<i32>(RV + s0 + ro, <i32>v);
+      store<i32>(V + (<usize>(r * cols + c) << 2), <i32>v);
+    }
+  }
+  let o = out;
+  for (let k: usize = 0; k < cells; k++) {
+    if (load<u8>(mask + k)) {
+      store<f64>(o, <f64>load<i32>(V + (k << 2)));
+      o += 8;
+    }
+  }
+  return 0;
+}
+
+/**
+ * decodeWhole's residual step on the grid h (f64, rows x cols), in place on the rebuilt cells: the
+ * plane first when `plane` is 1 (h += (a + c r) + b q, addPlane), then h += q_i 2 e (1 - 1e-6) with q_i
+ * the residual's integer of the cell, as decode.ts sums them (a zero too: -0 + 0 is 0). q: one f64 per
+ * rebuilt cell in row-major order; or, when picture is not 0 (a sparse layer: u8 a cell of the grid,
+ * 1 where the integer is not 0), one per set cell of the picture, the others 0.
+ */
+export function addResidual(h: usize, mask: usize, q: usize, picture: usize, rows: i32, cols: i32, plane: i32, a: f64,
+  b: f64, c: f64, e: f64): void {
+  let i: usize = q;
+  for (let r = 0; r < rows; r++) {
+    const row = a + c * <f64>r;
+    const k0 = r * cols;
+    for (let cc = 0; cc < cols; cc++) {
+      const k = k0 + cc;
+      if (!load<u8>(mask + <usize>k)) continue;
+      const p = h + (<usize>k << 3);
+      let z = load<f64>(p);
+      if (plane) z = z + (row + b * <f64>cc);
+      let v = 0.0;
+      if (!picture || load<u8>(picture + <usize>k)) {
+        v = load<f64>(i);
+        i += 8;
+      }
+      store<f64>(p, z + v * 2 * e * (1 - 1e-6));
+    }
+  }
+}
+
+/**
+ * The grid res (f64, rows x cols) of a residual layer's terms q 2 e (1 - 1e-6) at the rebuilt cells
+ * (decode.ts's operations; a zero's term too), for the fused finishing pass (finishCell). q and
+ * picture as addResidual reads them.
+ */
+export function residualGrid(res: usize, mask: usize, q: usize, picture: usize, cells: i32, e: f64): void {
+  let i: usize = q;
+  for (let k = 0; k < cells; k++) {
+    if (!load<u8>(mask + <usize>k)) continue;
+    let v = 0.0;
+    if (!picture || load<u8>(picture + <usize>k)) {
+      v = load<f64>(i);
+      i += 8;
+    }
+    store<f64>(res + (<usize>k << 3), v * 2 * e * (1 - 1e-6));
   }
 }
