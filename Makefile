@@ -74,7 +74,7 @@ bench-ratecontrol: $(STAMP)
 bench-targets: $(STAMP)
 	$$(command -v taskset >/dev/null && echo taskset -c 0) $(BIN)/python -m benchmarks.bench_ratecontrol --speed $(ARGS)
 
-# A map's decode against one inverse DCT of its grid, on a 1.6 M-cell mosaic of two shared DEMs, fixed and with a residual layer, each backend (issue 43 item 3; ~2 min).
+# A map's decode against one inverse DCT of its grid, on a 1.6 M-cell mosaic of two shared DEMs, fixed and with a residual layer, then each shared DEM with a predicted residual layer at 1 m, each backend (issue 43 item 3; ~4 min).
 .PHONY: bench-decode
 bench-decode: $(STAMP)
 	$$(command -v taskset >/dev/null && echo taskset -c 0) $(BIN)/python -m benchmarks.bench_decode $(ARGS)
