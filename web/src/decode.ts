@@ -373,37 +373,14 @@ function residualInKernels(k: Kernels, o: Opened, corner: Corner, q: Float64Arra
     at = layout(hP + align16(8 * rows * cols));
   }
   const { maskP, outP, resP, qP, pictureP } = at!;
-  let cells: number;
-  let minZ: number;
-  let maxZ: number;
-  let mem: Float64Array;
-  if (fused) {
-    mem = k.view();
-    const finP = maskP - 80;
-    minZ = mem[finP / 8 + 4];
-    maxZ = mem[finP / 8 + 5];
-    cells = new Int32Array(mem.buffer, finP + 64, 1)[0];
-  } else {
+  const f = finishedWindow(k, fused, maskP, hP, outP, resP, () => {
     k.ex.addResidual(hP, maskP, qP, pictureP, rows, cols, plane ? 1 : 0, a, b, c, e);
     // The plane is in the grid now: the finishing pass adds z0 alone, as finishWindow's does.
-    cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, 0, 0, 0, f32 ? 1 : 0, resP);
-    mem = k.view();
-    minZ = mem[resP / 8];
-    maxZ = mem[resP / 8 + 1];
-  }
-  if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ)))
-    || (!whole && !allFinite(mem.subarray(hP / 8, hP / 8 + rows * cols), mask, null, rows, cols))) {
-    throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
-  }
-  const heights = f32 ? new Float32Array(mem.buffer.slice(outP, outP + 4 * H * W)) : new Float64Array(mem.buffer.slice(outP, outP + 8 * H * W));
-  let outMask = mask;
-  if (!whole) {
-    outMask = new Uint8Array(H * W);
-    for (let r = wr0; r < wr1; r++) outMask.set(mask.subarray(r * cols + wc0, r * cols + wc1), (r - wr0) * W);
-  }
+    return k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, 0, 0, 0, f32 ? 1 : 0, resP);
+  }, mask, null, rows, cols, [wr0, wr1, wc0, wc1], f32);
   return {
-    width: W, height: H, row0: wr0, col0: wc0, heights, mask: outMask, header: o.header,
-    statistics: { minZ, maxZ, cells }, bytesRead: o.data.length, partial: o.cutCoef,
+    width: W, height: H, row0: wr0, col0: wc0, heights: f.heights, mask: f.mask, header: o.header,
+    statistics: { minZ: f.minZ, maxZ: f.maxZ, cells: f.cells }, bytesRead: o.data.length, partial: o.cutCoef,
   };
 }
 
@@ -498,6 +475,23 @@ export function cornerFinished(k: Kernels, corner: Corner, mask: Uint8Array, row
   }
   const outP = maskP + maskBytes;
   const resP = outP + heightBytes;
+  return finishedWindow(k, fused, maskP, hP, outP, resP, () => {
+    k.bytes().set(mask, maskP);
+    return k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, a, b, c, f32 ? 1 : 0, resP);
+  }, mask, plane, rows, cols, [wr0, wr1, wc0, wc1], f32);
+}
+
+/** A window the kernels finished: the fused pass's results (``fused``: its block 80 bytes before
+ * ``maskP``) or ``finish()``'s (which runs the finishing pass and returns the cells it counted, its
+ * extremes at ``resP``); refused where a rebuilt height is not finite (the whole grid at ``hP``,
+ * ``gridPlane`` added, checked for a window), and its heights (at ``outP``) and mask copied out. */
+function finishedWindow(k: Kernels, fused: boolean, maskP: number, hP: number, outP: number, resP: number,
+  finish: () => number, mask: Uint8Array, gridPlane: number[] | null, rows: number, cols: number,
+  [wr0, wr1, wc0, wc1]: number[], f32: boolean):
+  { heights: Float32Array | Float64Array; mask: Uint8Array; minZ: number; maxZ: number; cells: number } {
+  const W = wc1 - wc0;
+  const H = wr1 - wr0;
+  const whole = H === rows && W === cols;
   let cells: number;
   let mem: Float64Array;
   let minZ: number;
@@ -509,14 +503,13 @@ export function cornerFinished(k: Kernels, corner: Corner, mask: Uint8Array, row
     maxZ = mem[finP / 8 + 5];
     cells = new Int32Array(mem.buffer, finP + 64, 1)[0];
   } else {
-    k.bytes().set(mask, maskP);
-    cells = k.ex.finish(hP, maskP, outP, cols, wr0, wr1, wc0, wc1, z0, a, b, c, f32 ? 1 : 0, resP);
+    cells = finish();
     mem = k.view();
     minZ = mem[resP / 8];
     maxZ = mem[resP / 8 + 1];
   }
   if ((cells && !(Number.isFinite(minZ) && Number.isFinite(maxZ)))
-    || (!whole && !allFinite(mem.subarray(hP / 8, hP / 8 + rows * cols), mask, plane, rows, cols))) {
+    || (!whole && !allFinite(mem.subarray(hP / 8, hP / 8 + rows * cols), mask, gridPlane, rows, cols))) {
     throw new CorruptFileError("coefficients decode to non-finite heights (damaged or crafted file)");
   }
   const heights = f32 ? new Float32Array(mem.buffer.slice(outP, outP + 4 * H * W)) : new Float64Array(mem.buffer.slice(outP, outP + 8 * H * W));

@@ -742,7 +742,8 @@ export function ansGroups(words: usize, nwords: i32, groups: usize, ngroups: i32
 
 /** A stack ANS decoder's state and position (ansGroups' u64 state), shared by the two kernels below
  * that decode symbol by symbol; ansStart sets them from a chunk's words (the JavaScript side has
- * checked that the last word is nonzero). */
+ * checked that the last word is nonzero). ansGroups keeps the same steps in locals of its own: its
+ * loop through these globals decoded the 2 m mosaic 0.86-1.00x as fast (web/bench/ab.mjs, 3 runs). */
 let ansState: u64 = 0;
 let ansPos: i32 = 0;
 let ansWords: usize = 0;
