@@ -182,7 +182,8 @@ def _calibrated(an: Analysis, cutoff: float, target: float, exact: Trial, *, sha
     by its base layer alone: 62 kB where 5.3 kB met the target), and the share's rounds are run."""
     best = exact
     goal = target
-    floor, proxy_floor = exact.rmse, an.proxy_rmse(cutoff, an.tiny_step())
+    if share:  # what the cutoff alone costs, on the occupied cells and in the proxy
+        floor, proxy_floor = exact.rmse, an.proxy_rmse(cutoff, an.tiny_step())
     aimed = CORRECTION_AIM * target
     for _ in range(CALIBRATION_ROUNDS):
         lo, hi = an.tiny_step(), max(target, 1e-9) * 1e4
@@ -203,11 +204,11 @@ def _calibrated(an: Analysis, cutoff: float, target: float, exact: Trial, *, sha
         # finest step's proxy is far above it: the filled cells of a gappy map at a high cutoff can
         # hold more error than the whole target.)
         proxy = an.proxy_rmse(cutoff, lo)
-        measured, modelled = trial.rmse ** 2 - floor ** 2, proxy ** 2 - proxy_floor ** 2
-        if share and measured > 0 and modelled > 0 and aimed > floor:
-            goal = math.sqrt(proxy_floor ** 2 + (aimed ** 2 - floor ** 2) * modelled / measured)
-        else:
-            goal = target * proxy / max(trial.rmse, 1e-12)
+        goal = target * proxy / max(trial.rmse, 1e-12)
+        if share:
+            measured, modelled = trial.rmse ** 2 - floor ** 2, proxy ** 2 - proxy_floor ** 2
+            if measured > 0 and modelled > 0 and aimed > floor:
+                goal = math.sqrt(proxy_floor ** 2 + (aimed ** 2 - floor ** 2) * modelled / measured)
     return best
 
 
