@@ -372,3 +372,50 @@ def test_a_layer_model_is_let_go_with_its_layer():
     del q
     gc.collect()
     assert not residual._MODELS.entries
+
+
+def test_the_residual_curve_extrapolates_by_its_nearest_slope():
+    # Past the layers rebuilt, a flat curve ranked a map that is all layer (the highest cutoff, the
+    # coarsest step) as cheap as the dearest pilot: the model's first pick was the one file sure to lose.
+    curve = ratemodel._ResidualCurve()
+    for ratio, size in ((0.5, 1000.0), (1.0, 4000.0), (2.0, 10000.0)):
+        curve.add(ratio, size)
+    assert curve(1.0) == pytest.approx(4000.0)
+    assert curve(0.75) == pytest.approx(4000.0 * (0.75 / 1.0) ** 2.0)  # log-log, between points
+    # Above, the last two points' slope (log2(10000 / 4000)) goes on.
+    assert curve(8.0) == pytest.approx(10000.0 * 4.0 ** np.log2(2.5))
+    # Below, at least as steep as CURVE_SLOPE_BELOW, or the first two points' slope if steeper.
+    assert curve(0.25) == pytest.approx(1000.0 * 0.5 ** max(2.0, ratemodel.CURVE_SLOPE_BELOW))
+    shallow = ratemodel._ResidualCurve()
+    for ratio, size in ((1.0, 1000.0), (2.0, 1100.0)):
+        shallow.add(ratio, size)
+    assert shallow(0.5) == pytest.approx(1000.0 * 0.5 ** ratemodel.CURVE_SLOPE_BELOW)
+    # A layer never shrinks as the ratio grows: a falling end does not extrapolate downwards.
+    falling = ratemodel._ResidualCurve()
+    for ratio, size in ((1.0, 1000.0), (2.0, 900.0)):
+        falling.add(ratio, size)
+    assert falling(4.0) == pytest.approx(900.0)
+
+
+def test_a_maximum_error_target_rebuilds_what_the_model_ranks_smallest(gale, monkeypatch):
+    # Each layer rebuilt is the candidate the model, taught by every layer before it, ranks
+    # smallest; the file is the smallest rebuilt (or the map with no spectrum); the search
+    # would rebuild every cutoff at every step.
+    rebuilt = []
+    real = ratemodel._layer
+
+    def counted(an, cutoff, step, *args, **kwargs):
+        layer = real(an, cutoff, step, *args, **kwargs)
+        rebuilt.append(layer)
+        return layer
+
+    monkeypatch.setattr(ratemodel, "_layer", counted)
+    params = make_params(resolution=gale.grid.resolution, target_max_error=0.05)
+    with ratecontrol.tally() as tally:
+        blob = encode_dem(gale, params)
+    assert tally.modelled == 1
+    assert _held(blob, gale, "target_max_error", 0.05, gale.mask.sum())
+    pilots = len(ratemodel.PILOTS)
+    assert pilots < len(rebuilt) <= pilots + ratemodel.GUIDED + 2  # the refills' two
+    sizes = [layer.size for layer in rebuilt if layer is not None]
+    assert min(sizes) < min(layer.size for layer in rebuilt[:pilots] if layer is not None)

@@ -18,8 +18,9 @@ the one kept.
   sparse layer, the map with no spectrum) rebuilt and sized by estimates.
 * A maximum-error target: a few pilot trials teach the model the residual
   layer's bytes as a function of the predicted RMSE over the bound; every
-  (cutoff, step) is ranked by that and its estimated coefficients; the best
-  are rebuilt, then a hill climb over rebuilt neighbours corrects the choice.
+  (cutoff, step) is ranked by that and its estimated coefficients, and the
+  one ranked smallest is rebuilt, teaching the model in turn, until it ranks
+  none smaller than the smallest file found (the map with no spectrum's too).
 * A size target: each cutoff's step that fills the budget by estimates, ranked
   by Parseval's error, the best few rebuilt to compare their occupied cells.
 
@@ -33,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -297,59 +299,65 @@ FINALIST_SLACK = 0.02
 def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: float) -> Choice | None:
     """:func:`dftpcc.ratecontrol.corrected_for_rmse` with each candidate's bytes estimated, not
     coded: the smallest low-passed map with a residual layer that meets the RMSE target, or the map
-    with no spectrum with one, where smaller than ``to_beat`` bytes; coded (None where none is)."""
+    with no spectrum with one, where smaller than ``to_beat`` bytes; coded (None where none is).
+
+    The map with no spectrum is sized after the walk's first base, whose size may rule it out at a
+    glance (:func:`_free_loses`), and before the rest of the walk, whose bases it spares where their
+    coefficients alone pass it, and the other steps where they cannot bring the walk's best below
+    it: on rough terrain it wins by 7-30 %, and every base of the walk had lost to it. (The residual
+    curve that guides a maximum-error target, :class:`_Guided`, ranks these bases poorly: the
+    layer that brings a base to an RMSE grows from nothing just past the target, and it stopped
+    short of the walk's file by 1-8 % on three maps of ../shared/data.)"""
     if an.params.tile_size or params.storage != "quantized":
         return None
     target, coder = params.target_rmse, params.coder
-    best: tuple[float, Analysis, Trial, float, np.ndarray] | None = None  # size, analysis, trial, bound, q
+    best: _Layer | None = None
 
-    def attempt(on: Analysis, cutoff: float, step: float, *, predicted: bool = False) -> float | None:
+    def attempt(on: Analysis, cutoff: float, step: float, *, predicted: bool = False) -> _Layer | None:
         nonlocal best
-        coefs = on.estimate_stream(on.quantized(cutoff, step), exhaustive=True)
-        if coefs >= min(to_beat, best[0] if best else math.inf):
-            return None  # not smaller even with an empty residual layer: no need to rebuild it
-        trial = on.trial(cutoff, step)
-        bound = _coarsest_bound(on, trial, target)
-        if bound is None:
+        found = _corrected_layer(on, cutoff, step, target, coder, min(to_beat, best.size if best else math.inf),
+                                 predicted=predicted)
+        if found is None:
             return None
-        q = residual_integers(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
-        size = coefs + estimated_size(q, coder, on.kept_cells, predicted=False)
-        if predicted:
-            size = min(size, coefs + _predicted_size(q, coder, on.kept_cells,
-                                                     min(to_beat, best[0] if best else math.inf) - coefs))
-        if best is None or size < best[0]:
-            best = (size, on, trial, bound, q)
-        return size
+        if best is None or found.size < best.size:
+            best = found
+        return found
 
     first_factor, *others = CORRECTED_STEP_FACTORS
+    free = _spectrum_free(an, params)
+    walked: _Layer | None = None  # the walk's smallest base
     last, rises = None, 0
     for cutoff in (c for c in cutoffs(params) if c >= first.cutoff):
-        size = attempt(an, cutoff, first_factor * target)
-        if size is None:
+        found = attempt(an, cutoff, first_factor * target)
+        if free is not None:  # after the first base
+            if not _free_loses(*free, target, coder, min(to_beat, best.size if best else math.inf)):
+                attempt(free[0], free[1].cutoff, free[1].step, predicted=True)
+            free = None
+        if found is None:
             continue
-        rises = rises + 1 if last is not None and size > last else 0
-        last = size
-        if rises == CORRECTED_RISES or size > GIVE_UP_FACTOR * min(best[0], to_beat):
+        if walked is None or found.size < walked.size:
+            walked = found
+        rises = rises + 1 if last is not None and found.size > last else 0
+        last = found.size
+        # Against the walk's own files: the walk falls steeply at times, and by the map with no
+        # spectrum's it stopped short of redrocks' smallest file at a 5 cm RMSE target (2.3 % larger).
+        if rises == CORRECTED_RISES or found.size > GIVE_UP_FACTOR * min(walked.size, to_beat):
             break
-    if best is not None:
-        cutoff = best[2].cutoff
-        if best[0] < OTHERS_REACH * to_beat:
+    if walked is not None:
+        if walked.size < OTHERS_REACH * min(to_beat, best.size):
             for factor in others:
-                attempt(an, cutoff, factor * target)
-        size, on, trial, bound, q = best
-        coded = _coded(on, trial)
-        # The predicted layout must beat the chunked one and leave the file below ``to_beat``.
-        layout = _predicted_size(q, coder, on.kept_cells, min(size, to_beat) - coded)
-        if layout < size - coded:
-            best = (coded + layout, on, trial, bound, q)
-    free = _spectrum_free(an, params)
-    if free is not None and not _free_loses(*free, target, coder, min(to_beat, best[0] if best else math.inf)):
-        attempt(free[0], free[1].cutoff, free[1].step, predicted=True)
-    if best is None or best[0] >= to_beat:
+                found = attempt(an, walked.trial.cutoff, factor * target)
+                if found is not None and found.size < walked.size:
+                    walked = found
+        # The predicted layout must beat the chunked one and leave the file below ``to_beat`` and the best.
+        layout = _predicted_size(walked.q, coder, walked.analysis.kept_cells, min(best.size, to_beat) - walked.coefs)
+        if layout < walked.resd and walked.coefs + layout < best.size:
+            walked.resd = layout
+            best = walked
+    if best is None or best.size >= to_beat:
         return None
-    size, on, trial, bound, q = best
-    choice = Choice(on, trial, on.encode(trial), q, encode_residual(q, coder, on.kept_cells), bound)
-    return choice
+    return Choice(best.analysis, best.trial, best.analysis.encode(best.trial), best.q,
+                  encode_residual(best.q, coder, best.analysis.kept_cells), best.bound)
 
 
 #: The other steps of :data:`~dftpcc.ratecontrol.CORRECTED_STEP_FACTORS` are tried at the walk's best
@@ -360,6 +368,28 @@ OTHERS_REACH = 2.0
 #: times in a row, as the search's (:func:`dftpcc.ratecontrol.corrected_for_rmse`): at the first rise,
 #: redrocks at a 5 cm RMSE target missed its smallest file by 2.3 %.
 CORRECTED_RISES = 2
+
+
+def _corrected_layer(on: Analysis, cutoff: float, step: float, target: float, coder: str, to_beat: float, *,
+                     predicted: bool = False) -> _Layer | None:
+    """A base of :func:`_corrected_for_rmse` rebuilt with the coarsest layer that brings it within
+    the RMSE ``target`` (:func:`~dftpcc.ratecontrol._coarsest_bound`), sized by estimates (the
+    predicted layout too with ``predicted``); None where its coefficients alone take ``to_beat``
+    bytes or more (no need to rebuild it), or the low-pass alone meets the target."""
+    coefs = on.estimate_stream(on.quantized(cutoff, step), exhaustive=True)
+    if coefs >= to_beat:
+        return None
+    trial = on.trial(cutoff, step)
+    bound = _coarsest_bound(on, trial, target)
+    if bound is None:
+        return None
+    q = residual_integers(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+    resd = estimated_size(q, coder, on.kept_cells, predicted=False)
+    if predicted:
+        resd = min(resd, _predicted_size(q, coder, on.kept_cells, to_beat - coefs))
+    return _Layer(on, trial, coefs, resd, q, bound)
+
+
 #: The map with no spectrum meets an RMSE target with a layer at a bound near sqrt(3) times the
 #: target (nearly every cell corrected, its error then uniform within the bound); sized at this
 #: many times the target, a coarser layer, its bytes are a floor of the file's (:func:`_free_loses`).
@@ -537,15 +567,14 @@ def _for_bpp(an: Analysis, params: Params, budget: int) -> Choice | None:
 #: Each gives the layer's bytes a cell at one ratio of the predicted RMSE to the bound; the layer's
 #: cost at any other candidate is interpolated (log-log) between them.
 PILOTS = ((0.8, 2.0), (0.8, 8.0), (0.95, 4.0), (0.6, 4.0))
-#: Candidates the model ranks best that are rebuilt and sized (with the pilots' best); the climb
-#: corrects the choice from there (three gave the same files on ../shared/data at 1.5, 4 and 10
-#: units, with 4 % more rebuilds).
-VERIFIED = 1
 #: A cutoff's smallest predicted file this many times in a row larger than the one before ends the
-#: walk down the cutoffs (the files only grow from there).
+#: ranking's walk down the cutoffs (the files only grow from there).
 RISES = 2
 #: The step (times the bound) the ranking's walk over the steps starts from at the highest cutoff.
 START_FACTOR = 4.0
+#: Candidates rebuilt after the pilots, each the one the model (taught by every layer rebuilt
+#: before it) ranks smallest, at most.
+GUIDED = 10
 
 
 @dataclass
@@ -557,6 +586,7 @@ class _Layer:
     coefs: float
     resd: float
     q: np.ndarray
+    bound: float
 
     @property
     def size(self) -> float:
@@ -572,22 +602,42 @@ def _layer(an: Analysis, cutoff: float, step: float, bound: float, coder: str,
         return None
     trial = an.trial(cutoff, step)
     q = residual_integers(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
-    return _Layer(an, trial, coefs, estimated_size(q, coder, an.kept_cells, predicted=False), q)
+    return _Layer(an, trial, coefs, estimated_size(q, coder, an.kept_cells, predicted=False), q, bound)
 
 
 class _ResidualCurve:
     """The residual layer's bytes as a function of the predicted RMSE over the bound, learned from
-    rebuilt candidates (log-log interpolation, flat beyond them)."""
+    rebuilt candidates: log-log interpolation, and beyond them the nearest two's slope (a layer
+    never shrinks as the ratio grows), so that the model ranks a candidate past the layers it
+    has seen neither as cheap as the last one nor as dear as the first."""
 
     def __init__(self) -> None:
         self.points: list[tuple[float, float]] = []
 
     def add(self, ratio: float, size: float) -> None:
         self.points.append((math.log(max(ratio, 1e-12)), math.log(max(size, 1.0))))
+        self.points.sort()
 
     def __call__(self, ratio: float) -> float:
-        xs, ys = zip(*sorted(self.points))
-        return math.exp(float(np.interp(math.log(max(ratio, 1e-12)), xs, ys)))
+        x = math.log(max(ratio, 1e-12))
+        xs, ys = zip(*self.points)
+        if xs[0] < x < xs[-1]:
+            return math.exp(float(np.interp(x, xs, ys)))
+        # Past an end, the slope from that end to the nearest point distinctly inside it.
+        end = 0 if x <= xs[0] else len(xs) - 1
+        inner = next((k for k in (range(1, len(xs)) if end == 0 else range(len(xs) - 2, -1, -1))
+                      if abs(xs[k] - xs[end]) > CURVE_SPAN), None)
+        slope = 0.0 if inner is None else (ys[inner] - ys[end]) / (xs[inner] - xs[end])
+        slope = max(slope, 0.0 if end else CURVE_SLOPE_BELOW)
+        return math.exp(ys[end] + slope * (x - xs[end]))
+
+
+#: Ratios closer than this (log) are one point to the curve's extrapolation.
+CURVE_SPAN = 0.01
+#: Below the smallest ratio rebuilt, the curve falls at least this steeply (log-log): a layer
+#: thins out fast as the errors sink below the bound (1.4-2.9 between rebuilt layers on
+#: ../shared/data; a Gaussian error's share over the bound falls at 1.5 to 5 from ratio 1 to 0.5).
+CURVE_SLOPE_BELOW = 2.0
 
 
 def _factors(quantized: bool) -> list[float]:
@@ -599,53 +649,121 @@ def _factors(quantized: bool) -> list[float]:
     return out
 
 
+class _Guided:
+    """A target's candidates with a residual layer (a cutoff, a step as a multiple of ``unit``):
+    each one's predicted file (estimated COEF bytes and the residual curve's RESD bytes, from
+    estimates cached as they are asked for) and the layers rebuilt (``sized(cutoff, step,
+    to_beat)``: a :class:`_Layer`, or None where its coefficients alone take ``to_beat`` bytes),
+    every one of which teaches the curve. :meth:`choose` rebuilds the candidate ranked smallest
+    until none is ranked smaller than the smallest file found."""
+
+    def __init__(self, an: Analysis, unit: float, factors: list[float], tried: list[float], start: float,
+                 sized: Callable[[float, float, float], _Layer | None]):
+        self.an, self.unit, self.sized = an, unit, sized
+        self.tried, self.factors = sorted(tried), sorted(factors)
+        self.start = self.index(start)
+        self.energies = {c: Energy(an, c) for c in self.tried}
+        self.curve = _ResidualCurve()
+        self.rebuilt: dict[tuple[float, int], _Layer | None] = {}
+        self._coefs: dict[tuple[float, int], float] = {}
+        self._ratio: dict[tuple[float, int], float] = {}
+        # The layers' COEF bytes are estimated in every band layout, the ranking's in the first:
+        # on directional terrain a few % apart, which the ranking scales by (the latest layer's).
+        self.scale = 1.0
+        #: Bytes of a file found another way (the map with no spectrum): a candidate's to beat too.
+        self.ceiling = math.inf
+
+    def index(self, factor: float) -> int:
+        return min(range(len(self.factors)), key=lambda k: abs(math.log(self.factors[k] / factor)))
+
+    def ratio(self, key: tuple[float, int]) -> float:
+        if key not in self._ratio:
+            self._ratio[key] = self.energies[key[0]].rmse(self.unit * self.factors[key[1]]) / self.unit
+        return self._ratio[key]
+
+    def predicted(self, key: tuple[float, int]) -> float:
+        if key in self.rebuilt:
+            layer = self.rebuilt[key]
+            return math.inf if layer is None else layer.size
+        if key not in self._coefs:
+            self._coefs[key] = _estimate(self.an, key[0], self.unit * self.factors[key[1]])
+        return self.scale * self._coefs[key] + self.curve(self.ratio(key)) if self.curve.points else \
+            self.scale * self._coefs[key]
+
+    def rebuild(self, cutoff: float, factor: float) -> None:
+        key = (cutoff, self.index(factor))
+        best = self.best()
+        layer = self.sized(cutoff, self.unit * self.factors[key[1]],
+                           min(best.size if best is not None else math.inf, self.ceiling))
+        self.rebuilt[key] = layer
+        if layer is not None:
+            self.curve.add(self.energies[cutoff].rmse(layer.trial.step) / self.unit, layer.resd)
+            first = self._coefs.get(key)
+            if first:
+                self.scale = layer.coefs / first
+
+    def best(self) -> _Layer | None:
+        return min((layer for layer in self.rebuilt.values() if layer is not None), key=lambda layer: layer.size,
+                   default=None)
+
+    def ranked(self) -> list[tuple[float, tuple[float, int]]]:
+        """The candidates the ranking looked at, not yet rebuilt, smallest predicted first. In the
+        factor the predicted file falls to one low and rises from it (the spectrum shrinks, the
+        layer grows), found by walking down from the last cutoff's (a few estimates a cutoff);
+        the cutoffs from the highest down, until their lows have risen :data:`RISES` times."""
+        seen: dict[tuple[float, int], float] = {}
+        lows: list[float] = []
+        at = self.start
+        for cutoff in reversed(self.tried):
+            def size_at(j: int) -> float:
+                if (cutoff, j) not in seen:
+                    seen[(cutoff, j)] = self.predicted((cutoff, j))
+                return seen[(cutoff, j)]
+
+            while True:
+                near = [j for j in (at - 1, at + 1) if 0 <= j < len(self.factors)]
+                nearer = min(near, key=size_at) if near else at
+                if size_at(nearer) >= size_at(at):
+                    break
+                at = nearer
+            lows.append(size_at(at))
+            if len(lows) > RISES and all(lows[-k - 1] > lows[-k - 2] for k in range(RISES)):
+                break
+        return sorted((size, key) for key, size in seen.items() if key not in self.rebuilt)
+
+    def choose(self) -> _Layer | None:
+        """The candidate ranked smallest, rebuilt, until the model ranks none smaller than the
+        smallest file found (at most :data:`GUIDED`): the curve learned from a few layers is
+        coarse next to files a few % apart, and each layer rebuilt corrects it where the choice
+        lies. The smallest layer rebuilt."""
+        for _ in range(GUIDED):
+            ranked = self.ranked()
+            best = self.best()
+            if not ranked or ranked[0][0] >= min(best.size if best is not None else math.inf, self.ceiling):
+                break
+            self.rebuild(ranked[0][1][0], self.factors[ranked[0][1][1]])
+        return self.best()
+
+
 def _for_max_error(an: Analysis, params: Params) -> Choice | None:
     bound, coder = params.target_max_error, params.coder
     tried = cutoffs(params)
     pilots = [(c, f) for c, f in PILOTS] if params.cutoff is None else [(params.cutoff, f) for f in (2.0, 8.0)]
-    pilots = [(min(tried, key=lambda t: abs(t - c)), f) for c, f in pilots]
-    curve = _ResidualCurve()
-    rebuilt: dict[tuple[float, float], _Layer] = {}
-    energies = {c: Energy(an, c) for c in tried}
-    for cutoff, factor in dict.fromkeys(pilots):
-        layer = _layer(an, cutoff, bound * factor, bound, coder)
-        rebuilt[(cutoff, factor)] = layer
-        curve.add(energies[cutoff].rmse(layer.trial.step) / bound, layer.resd)
-    # Rank each cutoff's smallest (cutoff, factor) by its estimated COEF bytes and the curve's RESD
-    # bytes: in the factor the predicted file falls to one low and rises from it (the spectrum
-    # shrinks, the layer grows), found by walking down from the last cutoff's (a few estimates a
-    # cutoff, where every factor up to the rise took twice as many).
-    factors = _factors(True)
-    ranked: list[tuple[float, float, float]] = []
-    best_at: list[float] = []
-    at = factors.index(START_FACTOR)
-    for cutoff in sorted(tried, reverse=True):
-        energy = energies[cutoff]
-        sizes: dict[int, float] = {}
-
-        def size_at(j: int) -> float:
-            if j not in sizes:
-                step = bound * factors[j]
-                sizes[j] = _estimate(an, cutoff, step) + curve(energy.rmse(step) / bound)
-            return sizes[j]
-
-        while True:
-            nearer = min((j for j in (at - 1, at + 1) if 0 <= j < len(factors)), key=size_at)
-            if size_at(nearer) >= size_at(at):
-                break
-            at = nearer
-        ranked.append((sizes[at], cutoff, factors[at]))
-        best_at.append(sizes[at])
-        if len(best_at) > RISES and all(best_at[-k - 1] > best_at[-k - 2] for k in range(RISES)):
-            break
-    ranked.sort()
-    # Candidates whose coefficients alone pass the best rebuilt are not rebuilt (nor can win).
-    for _, cutoff, factor in ranked[:VERIFIED]:
-        if (cutoff, factor) not in rebuilt:
-            smallest = min(layer.size for layer in rebuilt.values() if layer is not None)
-            rebuilt[(cutoff, factor)] = _layer(an, cutoff, bound * factor, bound, coder, smallest)
-    best = _climb(an, rebuilt, min((layer for layer in rebuilt.values() if layer is not None),
-                                   key=lambda layer: layer.size), sorted(tried), bound, coder)
+    guided = _Guided(an, bound, _factors(True), list(tried), START_FACTOR,
+                     lambda cutoff, step, to_beat: _layer(an, cutoff, step, bound, coder, to_beat))
+    for cutoff, factor in dict.fromkeys((min(tried, key=lambda t: abs(t - c)), f) for c, f in pilots):
+        guided.rebuild(cutoff, factor)
+    # The map with no spectrum, sized once the pilots give it a file to beat: on rough terrain it
+    # wins, and no low-passed candidate whose coefficients alone pass it is rebuilt.
+    free = _spectrum_free(an, params)
+    if free is not None:
+        on, trial = free
+        free_q = residual_integers(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
+        coefs = _coded(on, trial)
+        guided.ceiling = coefs + min(estimated_size(free_q, coder, on.kept_cells, predicted=False),
+                                     _predicted_size(free_q, coder, on.kept_cells, guided.best().size - coefs))
+    guided.choose()
+    best = guided.best()
     if an.refillable:
         other = an.refilled(best.trial)
         factor = best.trial.step / bound
@@ -653,68 +771,18 @@ def _for_max_error(an: Analysis, params: Params) -> Choice | None:
         # finer step follows closer); doubled, it never won on ../shared/data (clouds at 1.5, 4 and 10
         # units): a rebuild saved.
         for f in (factor, factor / 2.0):
-            layer = _layer(other, best.trial.cutoff, bound * f, bound, coder, best.size)
+            layer = _layer(other, best.trial.cutoff, bound * f, bound, coder, min(best.size, guided.ceiling))
             if layer is not None and layer.size < best.size:
                 best = layer
     choice = Choice(best.analysis, best.trial, b"", best.q, b"", bound)
-    size = best.size
-    # The predicted layout, the slowest to code, is sized on the winner and on the map with no spectrum.
-    predicted = _predicted_size(best.q, coder, best.analysis.kept_cells, best.resd)
-    if predicted < best.resd:
-        size = best.coefs + predicted
-    free = _spectrum_free(an, params)
-    if free is not None:
-        on, trial = free
-        q = residual_integers(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
-        coefs = _coded(on, trial)
-        free_size = coefs + min(estimated_size(q, coder, on.kept_cells, predicted=False),
-                                _predicted_size(q, coder, on.kept_cells, size - coefs))
-        if free_size < size:
-            choice = Choice(on, trial, b"", q, b"", bound)
+    # The predicted layout, the slowest to code, is sized on the winner (and was on the map with no spectrum).
+    predicted = _predicted_size(best.q, coder, best.analysis.kept_cells, min(best.resd, guided.ceiling - best.coefs))
+    size = best.coefs + min(best.resd, predicted)
+    if free is not None and guided.ceiling < size:
+        choice = Choice(free[0], free[1], b"", free_q, b"", bound)
     choice.coefs = choice.analysis.encode(choice.trial)
     choice.residual_blob = encode_residual(choice.residual, coder, choice.analysis.kept_cells)
     return choice
-
-
-#: Moves of the hill climb from the model's choice over rebuilt neighbours (:func:`_climb`).
-CLIMB_MOVES = 4
-
-
-def _climb(an: Analysis, rebuilt: dict[tuple[float, float], _Layer | None], best: _Layer, tried: list[float],
-           bound: float, coder: str) -> _Layer:
-    """The model's choice corrected by rebuilt candidates: from ``best``, move to the smallest of
-    its four neighbours (the next cutoff either way, the step doubled or halved) while that is
-    smaller, at most :data:`CLIMB_MOVES` times: the model ranks well, but the curve it learned
-    from a few trials is coarse next to files a few % apart. After a move, the neighbour one more
-    step the same way is rebuilt first, and taken alone where it is smaller still: the files
-    fall along a line of cutoffs or steps on real maps, and the other neighbours of each step of
-    it, rebuilt by a full look around, were most of the climb's time."""
-    factors = _factors(True)
-    heading: tuple[int, int] | None = None
-    for _ in range(CLIMB_MOVES):
-        cutoff, factor = best.trial.cutoff, best.trial.step / bound
-        i = min(range(len(tried)), key=lambda k: abs(tried[k] - cutoff))
-        j = min(range(len(factors)), key=lambda k: abs(math.log(factors[k] / factor)))
-
-        def at(di: int, dj: int) -> _Layer | None:
-            if not (0 <= i + di < len(tried) and 0 <= j + dj < len(factors)):
-                return None
-            key = (tried[i + di], factors[j + dj])
-            if key not in rebuilt:
-                rebuilt[key] = _layer(an, key[0], bound * key[1], bound, coder, best.size)
-            return rebuilt[key]
-
-        ahead = at(*heading) if heading is not None else None
-        if ahead is not None and ahead.size < best.size:
-            best = ahead
-            continue
-        around = {move: at(*move) for move in ((-1, 0), (1, 0), (0, -1), (0, 1)) if move != heading}
-        nearer = [(layer.size, move) for move, layer in around.items() if layer is not None]
-        if not nearer or min(nearer)[0] >= best.size:
-            break
-        heading = min(nearer)[1]
-        best = around[heading]
-    return best
 
 
 def _predicted_size(q: np.ndarray, coder: str, kept: np.ndarray, to_beat: float = math.inf) -> float:
