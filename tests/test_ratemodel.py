@@ -419,3 +419,41 @@ def test_a_maximum_error_target_rebuilds_what_the_model_ranks_smallest(gale, mon
     assert pilots < len(rebuilt) <= pilots + ratemodel.GUIDED + 2  # the refills' two
     sizes = [layer.size for layer in rebuilt if layer is not None]
     assert min(sizes) < min(layer.size for layer in rebuilt[:pilots] if layer is not None)
+
+
+def test_a_sampled_predicted_estimate_is_near_the_whole_grids_and_never_kept():
+    """The predicted layout's estimate from a quarter of the rows is near the whole grid's, and
+    within SAMPLED_OVER of it from above (so rate control may pass over the layout on it); the
+    bands' models are not kept (the shared model is the kept layer's); a grid of too few bands is
+    not sampled."""
+    rng = np.random.default_rng(5)
+    n = 512
+    heights = np.cumsum(rng.normal(0, 4, (n, n)), 0) + np.cumsum(rng.normal(0, 4, (n, n)), 1)
+    kept = rng.random((n, n)) > 0.2
+    q = np.round(heights[kept]).astype(np.int64)
+    sampled = residual.sampled_predicted_size(q, kept)
+    whole = residual._estimated_predicted(q.copy(), kept)
+    assert whole / 1.1 < sampled < whole * min(1.1, ratemodel.SAMPLED_OVER)
+    assert residual._known_model(q, kept) is None
+    small, small_kept = _rough_layer()
+    assert residual.sampled_predicted_size(small, small_kept) is None
+
+
+def test_the_predicted_layout_is_fitted_whole_only_where_its_sample_may_win(monkeypatch):
+    rng = np.random.default_rng(5)
+    n = 512
+    heights = np.cumsum(rng.normal(0, 4, (n, n)), 0) + np.cumsum(rng.normal(0, 4, (n, n)), 1)
+    kept = np.ones((n, n), bool)
+    q = np.round(heights).astype(np.int64).ravel()
+    whole = residual._estimated_predicted(q.copy(), kept)
+    sampled = residual.sampled_predicted_size(q, kept)
+    fits = []
+    real = residual._estimated_predicted
+    monkeypatch.setattr(residual, "_estimated_predicted", lambda *a: fits.append(1) or real(*a))
+    # Out of reach by the sample: no whole fit, even where the median predictor's floor let it in.
+    beat = 0.99 * sampled / ratemodel.SAMPLED_OVER
+    assert residual.PREDICTED_SHARE * residual.median_predicted_size(q, kept) < beat
+    assert ratemodel._predicted_size(q, "ans", kept, beat) == np.inf and not fits
+    # Within reach: fitted whole, its estimate the whole grid's.
+    assert ratemodel._predicted_size(q, "ans", kept, 1.01 * sampled / ratemodel.SAMPLED_OVER) == whole
+    assert fits == [1]

@@ -192,15 +192,60 @@ def _median_errors(grid: np.ndarray, kept: np.ndarray) -> np.ndarray:
 def _estimated_predicted(q: np.ndarray, kept: np.ndarray) -> float:
     """Bytes of :func:`predicted_residual` of ``q``, from its model's probabilities (inf where the
     layout does not apply)."""
-    model = _shared_model(q, kept)
+    return _model_bytes(_shared_model(q, kept))
+
+
+#: :func:`sampled_predicted_size` models bands of this many rows, one in every :data:`SAMPLE_EVERY`,
+#: and counts the bits of their rows after the first :data:`SAMPLE_SKIP` (which the band before
+#: predicts and classifies) ...
+SAMPLE_ROWS = 16
+SAMPLE_EVERY = 4
+SAMPLE_SKIP = 2
+#: ... on a grid of at least this many bands.
+SAMPLE_BANDS = 4
+
+
+def sampled_predicted_size(q: np.ndarray, kept: np.ndarray) -> float | None:
+    """:func:`_estimated_predicted` of ``q`` from a quarter of its rows, scaled to all of them:
+    bands of :data:`SAMPLE_ROWS` rows, one in every :data:`SAMPLE_EVERY`, modelled as one grid.
+    For rate control to pass over the layout where even that comes nowhere near another file, in
+    a quarter of the time (0.43-1.15 times the whole grid's estimate on ../shared/data); None on a
+    grid of too few bands to sample (its model is cheap anyway), or where a band has no model."""
+    rows = kept.shape[0]
+    starts = np.arange(0, rows, SAMPLE_ROWS * SAMPLE_EVERY)
+    if starts.size < SAMPLE_BANDS or not q.size:
+        return None
+    offsets = np.concatenate(([0], np.cumsum(np.count_nonzero(kept, axis=1))))
+    bits = cells = 0.0
+    for start in starts:
+        stop = min(start + SAMPLE_ROWS, rows)
+        part = kept[start:stop]
+        counted = np.repeat(np.arange(stop - start) >= SAMPLE_SKIP, np.count_nonzero(part, axis=1))
+        if not counted.any():
+            continue
+        size = _model_bytes(_predicted_model(q[offsets[start]:offsets[stop]], part), counted)
+        if not math.isfinite(size):
+            return None  # a band's alphabet passes a small chunk's table budget: it says nothing of the whole
+        bits, cells = bits + size, cells + np.count_nonzero(counted)
+    return bits * q.size / cells if cells else None
+
+
+def _model_bytes(model: tuple | None, counted: np.ndarray | None = None) -> float:
+    """Bytes of a kind-5 chunk coded with ``model`` (:func:`_predicted_model`), from its
+    probabilities (``counted``: of those cells' values alone, and no chunk overhead); inf where
+    there is no model (the layout does not apply)."""
     if model is None:
         return math.inf
     _, e, classes, codes, _ = model
     per_cell = codes[classes]
     coded = per_cell > 0
+    if counted is not None:
+        coded &= counted
     at_zero, per_step = geometric.log_geometric()
     log_p = at_zero[per_cell[coded]] + np.abs(e[coded]) * per_step[per_cell[coded]]
     bits = -float(np.maximum(log_p, -geometric.TABLE_BITS).sum())
+    if counted is not None:
+        return bits / 8.0
     present = int(np.count_nonzero(codes))
     listed = int(np.flatnonzero(codes)[-1]) + 1 if present else 1
     return 4.0 + coding.CHUNK_HEAD.size + _WEIGHTS.size + listed + 2 * present + coding.ANS_FLUSH_BYTES + bits / 8.0
