@@ -457,3 +457,26 @@ def test_the_predicted_layout_is_fitted_whole_only_where_its_sample_may_win(monk
     # Within reach: fitted whole, its estimate the whole grid's.
     assert ratemodel._predicted_size(q, "ans", kept, 1.01 * sampled / ratemodel.SAMPLED_OVER) == whole
     assert fits == [1]
+
+
+def test_an_rmse_targets_walk_sized_from_a_quarter_of_the_rows_keeps_the_whole_maps_file(monkeypatch):
+    """Davos at an RMSE of twice 0.1 % of its relief: the smallest file is a low-pass with a
+    residual layer, found by a walk whose bases are sized from a quarter of the rows; the one kept
+    is sized again whole, and the file is the one a walk sizing every row writes."""
+    from dftpcc.files import dem_from_geotiff as load
+
+    dem, _ = load(data_file("dems/earth_davos_10m.tif"))
+    target = 2e-3 * float(np.std(dem.heights[dem.mask]))
+    params = make_params(resolution=dem.grid.resolution, target_rmse=target)
+    sampled = []
+    real = ratemodel._corrected_layer
+    monkeypatch.setattr(ratemodel, "_corrected_layer",
+                        lambda *a, **k: sampled.append(k.get("rows") is not None) or real(*a, **k))
+    blob = encode_dem(dem, params)
+    assert any(sampled)
+    from dftpcc.format.reader import _sections
+
+    assert b"RESD" in _sections(memoryview(blob), allow_truncated_coef=False)[0]  # a layer won
+    assert _held(blob, dem, "target_rmse", target, dem.mask.sum())
+    monkeypatch.setattr(ratemodel, "sampled_rows", lambda rows: None)
+    assert encode_dem(dem, params) == blob

@@ -402,7 +402,11 @@ def _coarsest_bound(an: Analysis, trial: Trial, target: float) -> float | None:
     target, which always meets it, and the trial's largest error, which does not) at which
     ``trial`` corrected by its residual layer is within ``target`` RMSE on the occupied cells;
     None when the trial alone is."""
-    err = (an.dem.heights - trial.heights)[an.mask]
+    return coarsest_bound_of((an.dem.heights - trial.heights)[an.mask], target)
+
+
+def coarsest_bound_of(err: np.ndarray, target: float) -> float | None:
+    """:func:`_coarsest_bound` of the errors ``err`` (metres, one per cell counted)."""
     if float(np.sqrt(np.mean(err * err))) <= target:
         return None
     # Held a hair inside the target: the encoder rebuilds the corrected heights by another route

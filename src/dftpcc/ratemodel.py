@@ -43,9 +43,10 @@ from .analysis import Analysis, Trial
 from .errors import InvalidInputError
 from .params import Params
 from .ratecontrol import (_METHOD, _TALLY, Progress, _no_progress, search, CLOSE_ENOUGH, CORRECTED_STEP_FACTORS, GIVE_UP_FACTOR, MAX_ERROR_STEP_FACTOR_LIMIT,
-                          MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, _coarsest_bound, _spectrum_free,
+                          MAX_ERROR_STEP_FACTORS, REFILL_STEP_RANGE, Choice, coarsest_bound_of, _spectrum_free,
                           bpp_out_of_reach, coef_budget, cutoffs)
-from .residual import PREDICTED_SHARE, encode_residual, estimated_size, median_predicted_size, residual_integers
+from .residual import (PREDICTED_SHARE, encode_residual, estimated_size, median_predicted_size, residual_integers,
+                       sampled_rows)
 from .sums import dot
 
 __all__ = ["choose", "predict", "Energy"]
@@ -311,27 +312,25 @@ def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: flo
     if an.params.tile_size or params.storage != "quantized":
         return None
     target, coder = params.target_rmse, params.coder
-    best: _Layer | None = None
+    # The walk's bases are sized from a quarter of the rows (their bound too), the one it keeps
+    # again from all of them: a base's layer cost three times its rebuild to size.
+    rows = sampled_rows(an.mask.shape[0])
+    free_layer: _Layer | None = None
+    walked: _Layer | None = None  # the walk's smallest base
 
-    def attempt(on: Analysis, cutoff: float, step: float, *, predicted: bool = False) -> _Layer | None:
-        nonlocal best
-        found = _corrected_layer(on, cutoff, step, target, coder, min(to_beat, best.size if best else math.inf),
-                                 predicted=predicted)
-        if found is None:
-            return None
-        if best is None or found.size < best.size:
-            best = found
-        return found
+    def beat() -> float:
+        return min([to_beat] + [layer.size for layer in (free_layer, walked) if layer is not None])
 
     first_factor, *others = CORRECTED_STEP_FACTORS
     free = _spectrum_free(an, params)
-    walked: _Layer | None = None  # the walk's smallest base
     last, rises = None, 0
     for cutoff in (c for c in cutoffs(params) if c >= first.cutoff):
-        found = attempt(an, cutoff, first_factor * target)
+        found = _corrected_layer(an, cutoff, first_factor * target, target, coder, beat(), rows=rows)
         if free is not None:  # after the first base
-            if not _free_loses(*free, target, coder, min(to_beat, best.size if best else math.inf)):
-                attempt(free[0], free[1].cutoff, free[1].step, predicted=True)
+            if not _free_loses(*free, target, coder, min(beat(), found.size if found else math.inf)):
+                on, trial = free
+                free_layer = _corrected_layer(on, trial.cutoff, trial.step, target, coder,
+                                              min(beat(), found.size if found else math.inf), predicted=True)
             free = None
         if found is None:
             continue
@@ -343,23 +342,31 @@ def _corrected_for_rmse(an: Analysis, params: Params, first: Trial, to_beat: flo
         # spectrum's it stopped short of redrocks' smallest file at a 5 cm RMSE target (2.3 % larger).
         if rises == CORRECTED_RISES or found.size > GIVE_UP_FACTOR * min(walked.size, to_beat):
             break
+    if walked is not None and walked.size < OTHERS_REACH * beat():
+        for factor in others:
+            found = _corrected_layer(an, walked.trial.cutoff, factor * target, target, coder, beat(), rows=rows)
+            if found is not None and found.size < walked.size:
+                walked = found
+    if walked is not None and walked.q.size < np.count_nonzero(an.kept_cells):  # sized from the rows: now whole
+        rival = min(to_beat, free_layer.size if free_layer else math.inf)
+        walked = None if walked.size > SAMPLED_REACH * rival else \
+            _corrected_layer(an, walked.trial.cutoff, walked.trial.step, target, coder, rival)
     if walked is not None:
-        if walked.size < OTHERS_REACH * min(to_beat, best.size):
-            for factor in others:
-                found = attempt(an, walked.trial.cutoff, factor * target)
-                if found is not None and found.size < walked.size:
-                    walked = found
-        # The predicted layout must beat the chunked one and leave the file below ``to_beat`` and the best.
-        layout = _predicted_size(walked.q, coder, walked.analysis.kept_cells, min(best.size, to_beat) - walked.coefs)
-        if layout < walked.resd and walked.coefs + layout < best.size:
-            walked.resd = layout
-            best = walked
+        # The predicted layout must beat the chunked one and leave the file below the others.
+        layout = _predicted_size(walked.q, coder, walked.analysis.kept_cells, beat() - walked.coefs)
+        walked.resd = min(walked.resd, layout)
+    best = min((layer for layer in (walked, free_layer) if layer is not None), key=lambda layer: layer.size,
+               default=None)
     if best is None or best.size >= to_beat:
         return None
     return Choice(best.analysis, best.trial, best.analysis.encode(best.trial), best.q,
                   encode_residual(best.q, coder, best.analysis.kept_cells), best.bound)
 
 
+#: A base sized from a quarter of the rows is sized again from all of them only where within this
+#: factor of the file to beat (its size from the rows was within 1.5 % of the whole's on the dense
+#: layers of ../shared/data; a sparse layer the rows miss is sized whole at once).
+SAMPLED_REACH = 1.05
 #: The other steps of :data:`~dftpcc.ratecontrol.CORRECTED_STEP_FACTORS` are tried at the walk's best
 #: cutoff only where its file is within this factor of the one to beat: on ../shared/data they
 #: brought it down by 39 % at most (to 0.61 of it), so further off they only cost two rebuilds.
@@ -371,22 +378,33 @@ CORRECTED_RISES = 2
 
 
 def _corrected_layer(on: Analysis, cutoff: float, step: float, target: float, coder: str, to_beat: float, *,
-                     predicted: bool = False) -> _Layer | None:
+                     predicted: bool = False, rows: np.ndarray | None = None) -> _Layer | None:
     """A base of :func:`_corrected_for_rmse` rebuilt with the coarsest layer that brings it within
-    the RMSE ``target`` (:func:`~dftpcc.ratecontrol._coarsest_bound`), sized by estimates (the
+    the RMSE ``target`` (:func:`~dftpcc.ratecontrol.coarsest_bound_of`), sized by estimates (the
     predicted layout too with ``predicted``); None where its coefficients alone take ``to_beat``
-    bytes or more (no need to rebuild it), or the low-pass alone meets the target."""
+    bytes or more (no need to rebuild it), or the low-pass alone meets the target. With ``rows``
+    (a mask), the bound and the layer are those of these rows, its bytes scaled to the map's: a
+    base to rank, not to code."""
     coefs = on.estimate_stream(on.quantized(cutoff, step), exhaustive=True)
     if coefs >= to_beat:
         return None
     trial = on.trial(cutoff, step)
-    bound = _coarsest_bound(on, trial, target)
+    heights, rebuilt, mask, kept = on.dem.heights, trial.heights, on.mask, on.kept_cells
+    if rows is not None:
+        heights, rebuilt, mask, kept = heights[rows], rebuilt[rows], mask[rows], kept[rows]
+    bound = coarsest_bound_of((heights - rebuilt)[mask], target)
+    if bound is None and rows is not None:
+        # The rows meet the target alone: the map's few cells past it lie elsewhere; sized whole.
+        heights, rebuilt, mask, kept, rows = on.dem.heights, trial.heights, on.mask, on.kept_cells, None
+        bound = coarsest_bound_of((heights - rebuilt)[mask], target)
     if bound is None:
         return None
-    q = residual_integers(on.dem.heights, trial.heights, on.mask, on.kept_cells, bound)
-    resd = estimated_size(q, coder, on.kept_cells, predicted=False)
+    q = residual_integers(heights, rebuilt, mask, kept, bound)
+    resd = estimated_size(q, coder, kept, predicted=False)
+    if rows is not None:
+        resd *= np.count_nonzero(on.kept_cells) / max(np.count_nonzero(kept), 1)
     if predicted:
-        resd = min(resd, _predicted_size(q, coder, on.kept_cells, to_beat - coefs))
+        resd = min(resd, _predicted_size(q, coder, kept, to_beat - coefs))
     return _Layer(on, trial, coefs, resd, q, bound)
 
 

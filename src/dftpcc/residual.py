@@ -31,7 +31,7 @@ from . import coding, geometric, kernels, occupancy, quantizer
 from .errors import CorruptFileError, InvalidInputError
 
 __all__ = ["GUARANTEE_MARGIN", "residual_step", "residual", "residual_integers", "encode_residual", "decode_residual", "layout_of",
-           "predicted_residual", "estimated_size"]
+           "predicted_residual", "estimated_size", "sampled_predicted_size", "sampled_rows"]
 
 #: The residual layer aims this much inside the promised bound, so float
 #: round-off in the decoder's inverse transform cannot break the guarantee.
@@ -212,8 +212,8 @@ def sampled_predicted_size(q: np.ndarray, kept: np.ndarray) -> float | None:
     a quarter of the time (0.43-1.15 times the whole grid's estimate on ../shared/data); None on a
     grid of too few bands to sample (its model is cheap anyway), or where a band has no model."""
     rows = kept.shape[0]
-    starts = np.arange(0, rows, SAMPLE_ROWS * SAMPLE_EVERY)
-    if starts.size < SAMPLE_BANDS or not q.size:
+    starts = _sample_starts(rows)
+    if starts is None or not q.size:
         return None
     offsets = np.concatenate(([0], np.cumsum(np.count_nonzero(kept, axis=1))))
     bits = cells = 0.0
@@ -228,6 +228,23 @@ def sampled_predicted_size(q: np.ndarray, kept: np.ndarray) -> float | None:
             return None  # a band's alphabet passes a small chunk's table budget: it says nothing of the whole
         bits, cells = bits + size, cells + np.count_nonzero(counted)
     return bits * q.size / cells if cells else None
+
+
+def _sample_starts(rows: int) -> np.ndarray | None:
+    """The first rows of the bands a layer is estimated from (:func:`sampled_rows`)."""
+    starts = np.arange(0, rows, SAMPLE_ROWS * SAMPLE_EVERY)
+    return starts if starts.size >= SAMPLE_BANDS else None
+
+
+def sampled_rows(rows: int) -> np.ndarray | None:
+    """The rows (a mask) a layer's bytes are estimated from where estimating every row would
+    cost too much: bands of :data:`SAMPLE_ROWS`, one in every :data:`SAMPLE_EVERY`; None on a
+    grid of fewer than :data:`SAMPLE_BANDS` bands."""
+    starts = _sample_starts(rows)
+    if starts is None:
+        return None
+    within = np.arange(rows)[:, None] - starts
+    return ((within >= 0) & (within < SAMPLE_ROWS)).any(axis=1)
 
 
 def _model_bytes(model: tuple | None, counted: np.ndarray | None = None) -> float:
