@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -668,18 +667,16 @@ def _factors(quantized: bool) -> list[float]:
 
 
 class _Guided:
-    """A target's candidates with a residual layer (a cutoff, a step as a multiple of ``unit``):
-    each one's predicted file (estimated COEF bytes and the residual curve's RESD bytes, from
-    estimates cached as they are asked for) and the layers rebuilt (``sized(cutoff, step,
-    to_beat)``: a :class:`_Layer`, or None where its coefficients alone take ``to_beat`` bytes),
-    every one of which teaches the curve. :meth:`choose` rebuilds the candidate ranked smallest
-    until none is ranked smaller than the smallest file found."""
+    """A maximum-error target's candidates (a cutoff, a step as a multiple of the bound): each
+    one's predicted file (estimated COEF bytes and the residual curve's RESD bytes, from estimates
+    cached as they are asked for) and the layers rebuilt (:func:`_layer`), every one of which
+    teaches the curve. :meth:`choose` rebuilds the candidate ranked smallest until none is ranked
+    smaller than the smallest file found."""
 
-    def __init__(self, an: Analysis, unit: float, factors: list[float], tried: list[float], start: float,
-                 sized: Callable[[float, float, float], _Layer | None]):
-        self.an, self.unit, self.sized = an, unit, sized
-        self.tried, self.factors = sorted(tried), sorted(factors)
-        self.start = self.index(start)
+    def __init__(self, an: Analysis, bound: float, coder: str, tried: list[float]):
+        self.an, self.bound, self.coder = an, bound, coder
+        self.tried, self.factors = sorted(tried), _factors(True)
+        self.start = self.index(START_FACTOR)
         self.energies = {c: Energy(an, c) for c in self.tried}
         self.curve = _ResidualCurve()
         self.rebuilt: dict[tuple[float, int], _Layer | None] = {}
@@ -696,7 +693,7 @@ class _Guided:
 
     def ratio(self, key: tuple[float, int]) -> float:
         if key not in self._ratio:
-            self._ratio[key] = self.energies[key[0]].rmse(self.unit * self.factors[key[1]]) / self.unit
+            self._ratio[key] = self.energies[key[0]].rmse(self.bound * self.factors[key[1]]) / self.bound
         return self._ratio[key]
 
     def predicted(self, key: tuple[float, int]) -> float:
@@ -704,18 +701,18 @@ class _Guided:
             layer = self.rebuilt[key]
             return math.inf if layer is None else layer.size
         if key not in self._coefs:
-            self._coefs[key] = _estimate(self.an, key[0], self.unit * self.factors[key[1]])
+            self._coefs[key] = _estimate(self.an, key[0], self.bound * self.factors[key[1]])
         return self.scale * self._coefs[key] + self.curve(self.ratio(key)) if self.curve.points else \
             self.scale * self._coefs[key]
 
     def rebuild(self, cutoff: float, factor: float) -> None:
         key = (cutoff, self.index(factor))
         best = self.best()
-        layer = self.sized(cutoff, self.unit * self.factors[key[1]],
-                           min(best.size if best is not None else math.inf, self.ceiling))
+        layer = _layer(self.an, cutoff, self.bound * self.factors[key[1]], self.bound, self.coder,
+                       min(best.size if best is not None else math.inf, self.ceiling))
         self.rebuilt[key] = layer
         if layer is not None:
-            self.curve.add(self.energies[cutoff].rmse(layer.trial.step) / self.unit, layer.resd)
+            self.curve.add(self.energies[cutoff].rmse(layer.trial.step) / self.bound, layer.resd)
             first = self._coefs.get(key)
             if first:
                 self.scale = layer.coefs / first
@@ -767,8 +764,7 @@ def _for_max_error(an: Analysis, params: Params) -> Choice | None:
     bound, coder = params.target_max_error, params.coder
     tried = cutoffs(params)
     pilots = [(c, f) for c, f in PILOTS] if params.cutoff is None else [(params.cutoff, f) for f in (2.0, 8.0)]
-    guided = _Guided(an, bound, _factors(True), list(tried), START_FACTOR,
-                     lambda cutoff, step, to_beat: _layer(an, cutoff, step, bound, coder, to_beat))
+    guided = _Guided(an, bound, coder, list(tried))
     for cutoff, factor in dict.fromkeys((min(tried, key=lambda t: abs(t - c)), f) for c, f in pilots):
         guided.rebuild(cutoff, factor)
     # The map with no spectrum, sized once the pilots give it a file to beat: on rough terrain it
