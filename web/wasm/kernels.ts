@@ -690,6 +690,25 @@ export function sumsAxis(inp: usize, ioff: i32, ivs: i32, ies: i32, nvec: i32, k
   }
 }
 
+/** The symbol of a table model (cdf: n + 1 i32, strictly increasing; slots: its slot table or 0)
+ * whose interval holds ``quantile``: the largest s with cdf[s] <= quantile, searched within the
+ * quantile's slot. Pure (no decoder state): ansGroups and ansSymbol both step their ANS state around it. */
+// @ts-ignore: decorator
+@inline function symbolAt(cdf: usize, slots: usize, n: i32, slotShift: i32, quantile: i32): i32 {
+  let a = 0, b = n - 1;
+  if (slots) {
+    const s = slots + (<usize>(quantile >>> slotShift) << 2);
+    a = load<i32>(s);
+    b = load<i32>(s, 4);
+  }
+  while (a < b) {
+    const m = (a + b + 1) >> 1;
+    if (load<i32>(cdf + (<usize>m << 2)) <= quantile) a = m;
+    else b = m - 1;
+  }
+  return a;
+}
+
 /**
  * The ANS decoder of src/ans.ts (AnsDecoder, decodeGroup) for one chunk of COEF kind 3 (or RESD
  * kind 5): the stack coder's state is a u64 here, not two halves in doubles (the same integers).
@@ -718,17 +737,7 @@ export function ansGroups(words: usize, nwords: i32, groups: usize, ngroups: i32
     const end = k + load<i32>(d, 12);
     for (; k < end; k++) {
       const quantile = <i32>(<u32>state & 0xffffff);
-      let a = 0, b = n - 1;
-      if (slots) {
-        const s = slots + (<usize>(quantile >>> slotShift) << 2);
-        a = load<i32>(s);
-        b = load<i32>(s, 4);
-      }
-      while (a < b) {
-        const m = (a + b + 1) >> 1;
-        if (load<i32>(cdf + (<usize>m << 2)) <= quantile) a = m;
-        else b = m - 1;
-      }
+      const a = symbolAt(cdf, slots, n, slotShift, quantile);
       const lo = load<i32>(cdf + (<usize>a << 2));
       const hi = load<i32>(cdf + (<usize>a << 2), 4);
       state = (state >> 24) * <u64>(hi - lo) + <u64>(quantile - lo);
@@ -742,8 +751,9 @@ export function ansGroups(words: usize, nwords: i32, groups: usize, ngroups: i32
 
 /** A stack ANS decoder's state and position (ansGroups' u64 state), shared by the two kernels below
  * that decode symbol by symbol; ansStart sets them from a chunk's words (the JavaScript side has
- * checked that the last word is nonzero). ansGroups keeps the same steps in locals of its own: its
- * loop through these globals decoded the 2 m mosaic 0.86-1.00x as fast (web/bench/ab.mjs, 3 runs). */
+ * checked that the last word is nonzero). ansGroups keeps its state in locals of its own (the symbol
+ * search, symbolAt, is shared): its loop through these globals decoded the 2 m mosaic 0.86-1.00x as
+ * fast (web/bench/ab.mjs, 3 runs). */
 let ansState: u64 = 0;
 let ansPos: i32 = 0;
 let ansWords: usize = 0;
@@ -771,17 +781,7 @@ let ansWords: usize = 0;
 // @ts-ignore: decorator
 @inline function ansSymbol(cdf: usize, slots: usize, n: i32, slotShift: i32): i32 {
   const quantile = <i32>(<u32>ansState & 0xffffff);
-  let a = 0, b = n - 1;
-  if (slots) {
-    const s = slots + (<usize>(quantile >>> slotShift) << 2);
-    a = load<i32>(s);
-    b = load<i32>(s, 4);
-  }
-  while (a < b) {
-    const m = (a + b + 1) >> 1;
-    if (load<i32>(cdf + (<usize>m << 2)) <= quantile) a = m;
-    else b = m - 1;
-  }
+  const a = symbolAt(cdf, slots, n, slotShift, quantile);
   const lo = load<i32>(cdf + (<usize>a << 2));
   ansAdvance(quantile - lo, load<i32>(cdf + (<usize>a << 2), 4) - lo);
   return a;
