@@ -376,6 +376,14 @@ OTHERS_REACH = 2.0
 CORRECTED_RISES = 2
 
 
+def _base(an: Analysis, cutoff: float, step: float, to_beat: float) -> tuple[float, Trial] | None:
+    """A candidate's estimated COEF bytes (every band layout) and its rebuilt trial; None, without
+    rebuilding it, where those bytes alone take ``to_beat`` or more (no residual layer can make it
+    smaller): the start of sizing any candidate with a layer (:func:`_corrected_layer`, :func:`_layer`)."""
+    coefs = an.estimate_stream(an.quantized(cutoff, step), exhaustive=True)
+    return None if coefs >= to_beat else (coefs, an.trial(cutoff, step))
+
+
 def _corrected_layer(on: Analysis, cutoff: float, step: float, target: float, coder: str, to_beat: float, *,
                      predicted: bool = False, rows: np.ndarray | None = None) -> _Layer | None:
     """A base of :func:`_corrected_for_rmse` rebuilt with the coarsest layer that brings it within
@@ -384,10 +392,10 @@ def _corrected_layer(on: Analysis, cutoff: float, step: float, target: float, co
     bytes or more (no need to rebuild it), or the low-pass alone meets the target. With ``rows``
     (a mask), the bound and the layer are those of these rows, its bytes scaled to the map's: a
     base to rank, not to code."""
-    coefs = on.estimate_stream(on.quantized(cutoff, step), exhaustive=True)
-    if coefs >= to_beat:
+    based = _base(on, cutoff, step, to_beat)
+    if based is None:
         return None
-    trial = on.trial(cutoff, step)
+    coefs, trial = based
     heights, rebuilt, mask, kept = on.dem.heights, trial.heights, on.mask, on.kept_cells
     if rows is not None:
         heights, rebuilt, mask, kept = heights[rows], rebuilt[rows], mask[rows], kept[rows]
@@ -614,10 +622,10 @@ def _layer(an: Analysis, cutoff: float, step: float, bound: float, coder: str,
            to_beat: float = math.inf) -> _Layer | None:
     """The candidate rebuilt and sized; None, without rebuilding it, where its coefficients alone
     take ``to_beat`` bytes or more (no residual layer can make it smaller)."""
-    coefs = an.estimate_stream(an.quantized(cutoff, step), exhaustive=True)
-    if coefs >= to_beat:
+    based = _base(an, cutoff, step, to_beat)
+    if based is None:
         return None
-    trial = an.trial(cutoff, step)
+    coefs, trial = based
     q = residual_integers(an.dem.heights, trial.heights, an.mask, an.kept_cells, bound)
     return _Layer(an, trial, coefs, estimated_size(q, coder, an.kept_cells, predicted=False), q, bound)
 
